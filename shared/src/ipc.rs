@@ -1,0 +1,454 @@
+//! The iceoryx2 transport every process shares.
+//!
+//! Each process (broker, system, user) owns one **inbox** — a publish-subscribe service
+//! of byte frames with many publishers and one subscriber — and one **bell** — an event
+//! service it waits on. Sending to a peer means writing a frame into the peer's inbox
+//! (zero-copy: the peer reads it from shared memory) and ringing its bell. Peers' ports
+//! are opened lazily and cached. Nothing here polls: the bell's file descriptor goes
+//! into the process's [`crate::reactor::Reactor`].
+
+use crate::names::{Address, Instance};
+use crate::snapshot::ServiceListSnapshot;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::reader::Reader;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::writer::Writer;
+use iceoryx2::prelude::*;
+use std::collections::HashMap;
+use std::os::fd::RawFd;
+
+/// The iceoryx2 service type muster uses between processes.
+pub type Ipc = ipc::Service;
+
+/// Most processes (users + systems + broker) one instance supports at once.
+pub const MAX_PARTICIPANTS: usize = 2048;
+/// Most peers that may write to one user's inbox (the broker and the systems it has sessions with).
+pub const MAX_USER_PEERS: usize = 64;
+/// Bytes preallocated per outgoing frame; larger frames grow the segment (power of two).
+const INITIAL_FRAME: usize = 1024;
+
+/// Event ids rung on a bell.
+pub mod bell {
+    /// Frames wait in the inbox.
+    pub const MESSAGE: usize = 0;
+    /// The service list changed (users only).
+    pub const LIST_CHANGED: usize = 1;
+    /// A broker started (presence event only).
+    pub const BROKER_UP: usize = 2;
+    /// The broker stopped on purpose (presence event only).
+    pub const BROKER_DOWN: usize = 3;
+    /// Highest id in use.
+    pub const MAX: usize = 7;
+}
+
+/// Why the transport failed. Setup errors name the service; send errors the peer.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    /// iceoryx2 could not create the node; check /dev/shm space and permissions.
+    #[error("cannot create iceoryx2 node: {0}")]
+    Node(String),
+    /// A service could not be created or opened (limits exceeded, incompatible settings).
+    #[error("iceoryx2 service {name}: {detail}")]
+    Service {
+        /// The service name.
+        name: String,
+        /// What iceoryx2 said.
+        detail: String,
+    },
+    /// The peer's inbox does not exist or nobody reads it: the peer is gone.
+    #[error("{0} is unreachable (not running?)")]
+    Unreachable(Address),
+    /// A frame could not be written to the peer's inbox.
+    #[error("sending to {peer}: {detail}")]
+    Send {
+        /// The peer.
+        peer: Address,
+        /// What iceoryx2 said.
+        detail: String,
+    },
+}
+
+fn svc_err(name: &str, e: impl std::fmt::Debug) -> TransportError {
+    TransportError::Service { name: name.to_string(), detail: format!("{e:?}") }
+}
+
+fn service_name(name: &str) -> Result<ServiceName, TransportError> {
+    ServiceName::new(name).map_err(|e| svc_err(name, e))
+}
+
+/// Limits of one process's inbox.
+#[derive(Clone, Copy, Debug)]
+pub struct InboxLimits {
+    /// How many peers may write to it.
+    pub max_publishers: usize,
+    /// Frames queued per writing peer before further frames are dropped.
+    pub buffer: usize,
+}
+
+impl InboxLimits {
+    /// The limits for an address's role.
+    pub fn for_addr(addr: &Address) -> Self {
+        match addr {
+            Address::Broker => InboxLimits { max_publishers: MAX_PARTICIPANTS, buffer: 32 },
+            Address::System(_) => InboxLimits { max_publishers: MAX_PARTICIPANTS, buffer: 32 },
+            Address::User(_) => InboxLimits { max_publishers: MAX_USER_PEERS, buffer: 128 },
+        }
+    }
+}
+
+/// The iceoryx2 config for a process. Users skip dead-node cleanup on node creation, which
+/// costs O(nodes) each time; the broker cleans instead (measured: 83 ms per client at 900).
+pub fn config(cleanup_dead_nodes: bool) -> Config {
+    let mut c = Config::global_config().clone();
+    c.global.node.cleanup_dead_nodes_on_creation = cleanup_dead_nodes;
+    c.global.node.cleanup_dead_nodes_on_destruction = cleanup_dead_nodes;
+    c.global.service.cleanup_dead_nodes_on_open = cleanup_dead_nodes;
+    c
+}
+
+/// Creates this process's iceoryx2 node, with signal handling left to muster.
+pub fn create_node(name: &str, cleanup_dead_nodes: bool) -> Result<Node<Ipc>, TransportError> {
+    let node_name = NodeName::new(name).map_err(|e| TransportError::Node(format!("{e:?}")))?;
+    NodeBuilder::new()
+        .name(&node_name)
+        .config(&config(cleanup_dead_nodes))
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<Ipc>()
+        .map_err(|e| TransportError::Node(format!("{e:?}")))
+}
+
+struct Peer {
+    publisher: Publisher<Ipc, [u8], ()>,
+    notifier: Notifier<Ipc>,
+}
+
+/// One process's inbox and bell, plus cached ports to its peers.
+pub struct Endpoint {
+    inst: Instance,
+    me: Address,
+    node: Node<Ipc>,
+    inbox: Subscriber<Ipc, [u8], ()>,
+    bell: Listener<Ipc>,
+    peers: HashMap<Address, Peer>,
+    dropped_sends: u64,
+}
+
+impl Endpoint {
+    /// Creates (or takes over, after a crash) the inbox and bell of `me`.
+    pub fn open(inst: &Instance, me: Address, node: Node<Ipc>) -> Result<Self, TransportError> {
+        let limits = InboxLimits::for_addr(&me);
+        let inbox_name = inst.inbox(&me);
+        let svc = node
+            .service_builder(&service_name(&inbox_name)?)
+            .publish_subscribe::<[u8]>()
+            .max_publishers(limits.max_publishers)
+            .max_subscribers(1)
+            .max_nodes(limits.max_publishers + 2)
+            .subscriber_max_buffer_size(limits.buffer)
+            .subscriber_max_borrowed_samples(1)
+            .history_size(0)
+            .enable_safe_overflow(false)
+            .open_or_create()
+            .map_err(|e| svc_err(&inbox_name, e))?;
+        let inbox = match svc.subscriber_builder().buffer_size(limits.buffer).create() {
+            Ok(s) => s,
+            Err(_) => {
+                // A dead process of the same name may still hold the only subscriber slot.
+                node.try_cleanup_dead_nodes();
+                svc.subscriber_builder()
+                    .buffer_size(limits.buffer)
+                    .create()
+                    .map_err(|e| svc_err(&inbox_name, e))?
+            }
+        };
+        let bell_name = inst.bell(&me);
+        let bell_svc = node
+            .service_builder(&service_name(&bell_name)?)
+            .event()
+            .max_notifiers(limits.max_publishers)
+            .max_listeners(1)
+            .max_nodes(limits.max_publishers + 2)
+            .event_id_max_value(bell::MAX)
+            .open_or_create()
+            .map_err(|e| svc_err(&bell_name, e))?;
+        let bell = match bell_svc.listener_builder().create() {
+            Ok(l) => l,
+            Err(_) => {
+                node.try_cleanup_dead_nodes();
+                bell_svc.listener_builder().create().map_err(|e| svc_err(&bell_name, e))?
+            }
+        };
+        Ok(Endpoint {
+            inst: inst.clone(),
+            me,
+            node,
+            inbox,
+            bell,
+            peers: HashMap::new(),
+            dropped_sends: 0,
+        })
+    }
+
+    /// This endpoint's address.
+    pub fn me(&self) -> &Address {
+        &self.me
+    }
+
+    /// The iceoryx2 node.
+    pub fn node(&self) -> &Node<Ipc> {
+        &self.node
+    }
+
+    /// The bell's file descriptor, for the reactor.
+    pub fn bell_fd(&self) -> RawFd {
+        // SAFETY: the descriptor stays owned by the listener; we only read its number.
+        unsafe { self.bell.file_descriptor().native_handle() }
+    }
+
+    /// Empties the bell; returns the set of event ids rung (bit i = id i).
+    pub fn drain_bell(&self) -> u64 {
+        let mut rung = 0u64;
+        let _ = self.bell.try_wait(|a| {
+            let id = a.id.as_value();
+            if id < 64 {
+                rung |= 1 << id;
+            }
+        });
+        rung
+    }
+
+    /// Takes the next frame from the inbox, copied out (it is decoded right away).
+    pub fn recv(&mut self) -> Result<Option<Vec<u8>>, TransportError> {
+        match self.inbox.receive() {
+            Ok(Some(sample)) => Ok(Some(sample.payload().to_vec())),
+            Ok(None) => Ok(None),
+            Err(e) => Err(svc_err(&self.inst.inbox(&self.me), e)),
+        }
+    }
+
+    fn peer(&mut self, to: &Address) -> Result<&mut Peer, TransportError> {
+        if !self.peers.contains_key(to) {
+            let inbox_name = self.inst.inbox(to);
+            let svc = self
+                .node
+                .service_builder(&service_name(&inbox_name)?)
+                .publish_subscribe::<[u8]>()
+                .open()
+                .map_err(|_| TransportError::Unreachable(to.clone()))?;
+            let publisher = svc
+                .publisher_builder()
+                .initial_max_slice_len(INITIAL_FRAME)
+                .allocation_strategy(AllocationStrategy::PowerOfTwo)
+                .max_loaned_samples(1)
+                .backpressure_strategy(BackpressureStrategy::DiscardData)
+                .create()
+                .map_err(|e| svc_err(&inbox_name, e))?;
+            let bell_name = self.inst.bell(to);
+            let notifier = self
+                .node
+                .service_builder(&service_name(&bell_name)?)
+                .event()
+                .open()
+                .map_err(|_| TransportError::Unreachable(to.clone()))?
+                .notifier_builder()
+                .create()
+                .map_err(|e| svc_err(&bell_name, e))?;
+            self.peers.insert(to.clone(), Peer { publisher, notifier });
+        }
+        Ok(self.peers.get_mut(to).expect("inserted above"))
+    }
+
+    /// Writes a frame into `to`'s inbox and rings its bell.
+    pub fn send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
+        let result = self.try_send(to, frame);
+        if result.is_err() {
+            // Forget the ports: the peer may come back as a new process.
+            self.peers.remove(to);
+            self.dropped_sends += 1;
+        }
+        result
+    }
+
+    fn try_send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
+        let peer = self.peer(to)?;
+        let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
+            peer: to.clone(),
+            detail: format!("{e:?}"),
+        };
+        let sample = peer.publisher.loan_slice_uninit(frame.len()).map_err(|e| send_err(&e))?;
+        let delivered = sample.write_from_slice(frame).send().map_err(|e| send_err(&e))?;
+        if delivered == 0 {
+            return Err(TransportError::Unreachable(to.clone()));
+        }
+        peer.notifier
+            .notify_with_custom_event_id(EventId::new(bell::MESSAGE))
+            .map_err(|e| send_err(&e))?;
+        Ok(())
+    }
+
+    /// Rings `to`'s bell with `id` without sending a frame.
+    pub fn ring(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
+        let result = self.peer(to).and_then(|p| {
+            p.notifier
+                .notify_with_custom_event_id(EventId::new(id))
+                .map(|_| ())
+                .map_err(|e| TransportError::Send { peer: to.clone(), detail: format!("{e:?}") })
+        });
+        if result.is_err() {
+            self.peers.remove(to);
+        }
+        result
+    }
+
+    /// Forgets the cached ports to `to` (it died or left), releasing their shared memory.
+    pub fn forget(&mut self, to: &Address) {
+        self.peers.remove(to);
+    }
+
+    /// Frames that could not be delivered so far.
+    pub fn dropped_sends(&self) -> u64 {
+        self.dropped_sends
+    }
+}
+
+/// The presence event: a starting broker rings it; systems and users wait on it.
+pub struct Presence {
+    listener: Option<Listener<Ipc>>,
+    notifier: Option<Notifier<Ipc>>,
+}
+
+fn presence_service(
+    node: &Node<Ipc>,
+    inst: &Instance,
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<Ipc>, TransportError> {
+    let name = inst.presence();
+    node.service_builder(&service_name(&name)?)
+        .event()
+        .max_listeners(MAX_PARTICIPANTS)
+        .max_notifiers(4)
+        .max_nodes(MAX_PARTICIPANTS + 4)
+        .event_id_max_value(bell::MAX)
+        .open_or_create()
+        .map_err(|e| svc_err(&name, e))
+}
+
+impl Presence {
+    /// A listener, for systems and users.
+    pub fn listen(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
+        let svc = presence_service(node, inst)?;
+        let listener = svc.listener_builder().create().map_err(|e| svc_err(&inst.presence(), e))?;
+        Ok(Presence { listener: Some(listener), notifier: None })
+    }
+
+    /// A notifier, for the broker.
+    pub fn announce(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
+        let svc = presence_service(node, inst)?;
+        let notifier = svc.notifier_builder().create().map_err(|e| svc_err(&inst.presence(), e))?;
+        Ok(Presence { listener: None, notifier: Some(notifier) })
+    }
+
+    /// Rings every listener with `id` (broker only).
+    pub fn ring(&self, id: usize) {
+        if let Some(n) = &self.notifier {
+            if let Err(e) = n.notify_with_custom_event_id(EventId::new(id)) {
+                tracing::warn!("presence notify failed: {e:?}");
+            }
+        }
+    }
+
+    /// The listener's file descriptor (listeners only).
+    pub fn fd(&self) -> Option<RawFd> {
+        // SAFETY: the descriptor stays owned by the listener; we only read its number.
+        self.listener.as_ref().map(|l| unsafe { l.file_descriptor().native_handle() })
+    }
+
+    /// Empties the listener; returns the ids rung as bits.
+    pub fn drain(&self) -> u64 {
+        let mut rung = 0u64;
+        if let Some(l) = &self.listener {
+            let _ = l.try_wait(|a| {
+                let id = a.id.as_value();
+                if id < 64 {
+                    rung |= 1 << id;
+                }
+            });
+        }
+        rung
+    }
+}
+
+/// The broker's side of the service list blackboard.
+pub struct ListWriter {
+    writer: Writer<Ipc, u64>,
+}
+
+impl ListWriter {
+    /// Creates the blackboard, or takes over the one a crashed broker left.
+    pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
+        let name = inst.service_list();
+        let sname = service_name(&name)?;
+        let created = node
+            .service_builder(&sname)
+            .blackboard_creator::<u64>()
+            .max_readers(MAX_PARTICIPANTS)
+            .max_nodes(MAX_PARTICIPANTS + 4)
+            .add::<ServiceListSnapshot>(0, ServiceListSnapshot::empty())
+            .create();
+        let svc = match created {
+            Ok(s) => s,
+            Err(_) => node
+                .service_builder(&sname)
+                .blackboard_opener::<u64>()
+                .open()
+                .map_err(|e| svc_err(&name, e))?,
+        };
+        let writer = match svc.writer_builder().create() {
+            Ok(w) => w,
+            Err(_) => {
+                node.try_cleanup_dead_nodes();
+                svc.writer_builder().create().map_err(|e| svc_err(&name, e))?
+            }
+        };
+        Ok(ListWriter { writer })
+    }
+
+    /// Publishes a new snapshot; readers see it on their next read.
+    pub fn publish(&self, snapshot: &ServiceListSnapshot) -> Result<(), TransportError> {
+        let entry = self
+            .writer
+            .entry::<ServiceListSnapshot>(&0)
+            .map_err(|e| svc_err("service-list entry", e))?;
+        entry.update_with_copy(*snapshot);
+        Ok(())
+    }
+}
+
+/// A user's side of the service list blackboard.
+pub struct ListReader {
+    reader: Reader<Ipc, u64>,
+}
+
+impl ListReader {
+    /// Opens the blackboard; fails if no broker ever created it.
+    pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
+        let name = inst.service_list();
+        let svc = node
+            .service_builder(&service_name(&name)?)
+            .blackboard_opener::<u64>()
+            .open()
+            .map_err(|_| TransportError::Unreachable(Address::Broker))?;
+        let reader = svc.reader_builder().create().map_err(|e| svc_err(&name, e))?;
+        Ok(ListReader { reader })
+    }
+
+    /// Reads the newest snapshot (a consistent copy out of shared memory).
+    pub fn read(&self) -> Result<Box<ServiceListSnapshot>, TransportError> {
+        let entry = self
+            .reader
+            .entry::<ServiceListSnapshot>(&0)
+            .map_err(|e| svc_err("service-list entry", e))?;
+        Ok(Box::new(*entry.get()))
+    }
+}

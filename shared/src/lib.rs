@@ -1,0 +1,12 @@
+//! What every muster process shares: the protocol's types and messages, the wire codec,
+//! the service list snapshot layout, instance naming, and the iceoryx2 transport.
+
+pub mod ipc;
+pub mod names;
+pub mod protocol;
+pub mod reactor;
+pub mod snapshot;
+pub mod types;
+
+pub use names::{Address, Instance};
+pub use types::*;

@@ -1,0 +1,112 @@
+//! Instance names and the iceoryx2 service names derived from them.
+//!
+//! Everything a process creates in shared memory is named `muster/<instance>/...`, so
+//! instances (tests, demos) run side by side without seeing each other.
+
+use crate::types::UserId;
+use std::fmt;
+
+/// Where a frame goes: the broker, a system, or a user. Each owns one inbox and one bell.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Address {
+    /// The broker.
+    Broker,
+    /// A system, by name.
+    System(String),
+    /// A user, by id.
+    User(UserId),
+}
+
+impl fmt::Display for Address {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Address::Broker => f.write_str("broker"),
+            Address::System(s) => write!(f, "system {s}"),
+            Address::User(u) => write!(f, "user {u}"),
+        }
+    }
+}
+
+/// A validated instance name.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct Instance(String);
+
+/// The instance name is not 1..=32 characters of `[A-Za-z0-9_-]`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("invalid instance name {0:?}: use 1 to 32 characters of [A-Za-z0-9_-]")]
+pub struct BadInstance(pub String);
+
+impl Instance {
+    /// Checks and wraps an instance name.
+    pub fn new(name: &str) -> Result<Self, BadInstance> {
+        let ok = !name.is_empty()
+            && name.len() <= 32
+            && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+        if ok {
+            Ok(Instance(name.to_string()))
+        } else {
+            Err(BadInstance(name.to_string()))
+        }
+    }
+
+    /// The name.
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+
+    fn owner(&self, addr: &Address) -> String {
+        match addr {
+            Address::Broker => format!("muster/{}/broker", self.0),
+            Address::System(s) => format!("muster/{}/system/{s}", self.0),
+            Address::User(u) => format!("muster/{}/user/{u}", self.0),
+        }
+    }
+
+    /// The inbox (publish-subscribe) of `addr`.
+    pub fn inbox(&self, addr: &Address) -> String {
+        format!("{}/inbox", self.owner(addr))
+    }
+
+    /// The bell (event) of `addr`.
+    pub fn bell(&self, addr: &Address) -> String {
+        format!("{}/bell", self.owner(addr))
+    }
+
+    /// The event on which a starting broker announces itself to everyone.
+    pub fn presence(&self) -> String {
+        format!("muster/{}/presence", self.0)
+    }
+
+    /// The blackboard holding the service list snapshot.
+    pub fn service_list(&self) -> String {
+        format!("muster/{}/service-list", self.0)
+    }
+
+    /// The prefix of every service of this instance.
+    pub fn prefix(&self) -> String {
+        format!("muster/{}/", self.0)
+    }
+}
+
+impl fmt::Display for Instance {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn instance_names() {
+        assert!(Instance::new("t-1_x").is_ok());
+        assert!(Instance::new("").is_err());
+        assert!(Instance::new("a/b").is_err());
+        assert!(Instance::new(&"x".repeat(33)).is_err());
+        let i = Instance::new("t1").unwrap();
+        assert_eq!(i.inbox(&Address::Broker), "muster/t1/broker/inbox");
+        assert_eq!(i.bell(&Address::System("d1".into())), "muster/t1/system/d1/bell");
+        assert_eq!(i.inbox(&Address::User(UserId("u9".into()))), "muster/t1/user/u9/inbox");
+    }
+}

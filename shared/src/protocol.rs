@@ -1,0 +1,398 @@
+//! Protocol messages, grouped by the inbox they arrive at, and the one codec that
+//! encodes and decodes all of them.
+//!
+//! Every frame is `MAGIC`, `VERSION`, then a postcard body. [`decode`] checks the
+//! header, the size limit and that no bytes trail the message.
+
+use crate::types::{
+    EndReason, Payload, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId, TaskStatus, UserId,
+};
+use serde::{de::DeserializeOwned, Deserialize, Serialize};
+
+/// First byte of every frame.
+pub const MAGIC: u8 = 0x4d; // 'M'
+/// Protocol version; a frame of another version is refused.
+pub const VERSION: u8 = 1;
+/// Largest frame, in bytes, on any transport.
+pub const MAX_FRAME: usize = 64 * 1024;
+
+/// Why a frame could not be decoded. The frame is dropped; nothing else changes.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum DecodeError {
+    /// The frame is shorter than its 2-byte header.
+    #[error("frame truncated: {0} bytes")]
+    Truncated(usize),
+    /// The first byte is not [`MAGIC`]: not a muster frame.
+    #[error("not a muster frame (magic {0:#04x})")]
+    BadMagic(u8),
+    /// The peer speaks another protocol version; upgrade one side.
+    #[error("protocol version {got}, this build speaks {VERSION}")]
+    WrongVersion {
+        /// The version in the frame.
+        got: u8,
+    },
+    /// The frame is larger than [`MAX_FRAME`].
+    #[error("frame of {0} bytes exceeds the {MAX_FRAME}-byte limit")]
+    Oversized(usize),
+    /// The body does not decode as the expected message.
+    #[error("malformed body: {0}")]
+    Malformed(String),
+    /// The message decoded but bytes were left over.
+    #[error("{0} trailing bytes after the message")]
+    Trailing(usize),
+}
+
+/// Why a message could not be encoded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum EncodeError {
+    /// The message would be larger than [`MAX_FRAME`]; send less (e.g. fewer services).
+    #[error("message of {0} bytes exceeds the {MAX_FRAME}-byte frame limit")]
+    Oversized(usize),
+    /// Serialization failed.
+    #[error("cannot serialize: {0}")]
+    Serialize(String),
+}
+
+/// Encodes a message into a frame.
+pub fn encode<T: Serialize>(msg: &T) -> Result<Vec<u8>, EncodeError> {
+    let out = postcard::to_extend(msg, vec![MAGIC, VERSION])
+        .map_err(|e| EncodeError::Serialize(e.to_string()))?;
+    if out.len() > MAX_FRAME {
+        return Err(EncodeError::Oversized(out.len()));
+    }
+    Ok(out)
+}
+
+/// Decodes one frame into a message: header, size, body and no trailing bytes.
+pub fn decode<T: DeserializeOwned>(frame: &[u8]) -> Result<T, DecodeError> {
+    if frame.len() > MAX_FRAME {
+        return Err(DecodeError::Oversized(frame.len()));
+    }
+    if frame.len() < 2 {
+        return Err(DecodeError::Truncated(frame.len()));
+    }
+    if frame[0] != MAGIC {
+        return Err(DecodeError::BadMagic(frame[0]));
+    }
+    if frame[1] != VERSION {
+        return Err(DecodeError::WrongVersion { got: frame[1] });
+    }
+    let (msg, rest) =
+        postcard::take_from_bytes(&frame[2..]).map_err(|e| DecodeError::Malformed(e.to_string()))?;
+    if !rest.is_empty() {
+        return Err(DecodeError::Trailing(rest.len()));
+    }
+    Ok(msg)
+}
+
+/// A session a system holds, reported when it (re-)registers so a new broker counts it.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ActiveSession {
+    /// The session.
+    pub session: SessionId,
+    /// The service it uses.
+    pub service: String,
+    /// The user holding it.
+    pub user: UserId,
+}
+
+/// A link a user runs, reported to the broker so that it is visible.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LinkInfo {
+    /// Number of the link within the user.
+    pub link: u64,
+    /// The data service feeding the link.
+    pub data: ServiceId,
+    /// The command service taking the data as task input.
+    pub command: ServiceId,
+}
+
+/// Messages arriving at the broker's inbox.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ToBroker {
+    /// A system joins (or re-joins) with its services and the sessions it already holds.
+    Register {
+        /// System name.
+        system: String,
+        /// Its process id, watched for death.
+        pid: u32,
+        /// Its services.
+        services: Vec<ServiceSpec>,
+        /// Sessions it holds (after a broker restart or delinquency).
+        sessions: Vec<ActiveSession>,
+    },
+    /// Answer to [`ToSystem::Ping`].
+    Pong {
+        /// System name.
+        system: String,
+        /// The ping's nonce.
+        nonce: u64,
+    },
+    /// The system's answer to a forwarded request.
+    OfferAnswer {
+        /// System name.
+        system: String,
+        /// The offer's ticket.
+        ticket: u64,
+        /// `Ok(session)` if granted (the system told the user directly), `Err(reason)` if not.
+        answer: Result<SessionId, String>,
+    },
+    /// A session ended (either side); the quota is free again.
+    SessionEnded {
+        /// System name.
+        system: String,
+        /// The session.
+        session: SessionId,
+    },
+    /// The system can no longer offer the service, for now.
+    Withdraw {
+        /// System name.
+        system: String,
+        /// Service name.
+        service: String,
+    },
+    /// The system offers a withdrawn service again.
+    Restore {
+        /// System name.
+        system: String,
+        /// Service name.
+        service: String,
+    },
+    /// The system leaves on purpose.
+    Unregister {
+        /// System name.
+        system: String,
+    },
+    /// A user connects (or reconnects after a broker restart).
+    Hello {
+        /// User id.
+        user: UserId,
+        /// Its process id.
+        pid: u32,
+        /// Links it already runs.
+        links: Vec<LinkInfo>,
+    },
+    /// A user asks for a service.
+    Request {
+        /// User id.
+        user: UserId,
+        /// The user's request number, echoed in the answer.
+        req: u64,
+        /// The service.
+        service: ServiceId,
+    },
+    /// A user gives up a pending or queued request.
+    Cancel {
+        /// User id.
+        user: UserId,
+        /// The request number.
+        req: u64,
+    },
+    /// A user started a link.
+    LinkOpened {
+        /// User id.
+        user: UserId,
+        /// The link.
+        link: LinkInfo,
+    },
+    /// A user's link ended.
+    LinkClosed {
+        /// User id.
+        user: UserId,
+        /// The link number.
+        link: u64,
+    },
+    /// A user leaves.
+    Goodbye {
+        /// User id.
+        user: UserId,
+    },
+}
+
+/// Messages arriving at a system's inbox.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ToSystem {
+    /// The broker accepted the registration.
+    Registered {
+        /// The broker's run (changes on restart).
+        epoch: u64,
+        /// The broker's process id, watched for death.
+        broker_pid: u32,
+    },
+    /// The broker refused the registration (bad spec, name held by a live process, list full).
+    RegistrationRefused {
+        /// Why.
+        reason: String,
+    },
+    /// Liveness check; answer with [`ToBroker::Pong`].
+    Ping {
+        /// Echo this.
+        nonce: u64,
+    },
+    /// The broker removed the system as delinquent (or does not know it); re-register.
+    Delinquent,
+    /// A user's request the broker forwards; answer with [`ToBroker::OfferAnswer`].
+    Offer {
+        /// Echo this.
+        ticket: u64,
+        /// The requesting user.
+        user: UserId,
+        /// The user's request number.
+        req: u64,
+        /// Service name.
+        service: String,
+    },
+    /// Task input on a command session.
+    Input {
+        /// The user.
+        user: UserId,
+        /// The session.
+        session: SessionId,
+        /// The input.
+        payload: Payload,
+    },
+    /// The user ends a session.
+    End {
+        /// The user.
+        user: UserId,
+        /// The session.
+        session: SessionId,
+    },
+}
+
+/// Messages arriving at a user's inbox.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ToUser {
+    /// The broker accepted the user's hello.
+    Welcome {
+        /// The broker's run (changes on restart).
+        epoch: u64,
+        /// The broker's process id.
+        broker_pid: u32,
+    },
+    /// The request waits in the service's task queue at this position (1 = next).
+    Queued {
+        /// Request number.
+        req: u64,
+        /// Position, 1-based.
+        position: u16,
+    },
+    /// The request was refused.
+    Refused {
+        /// Request number.
+        req: u64,
+        /// Why.
+        reason: Refusal,
+    },
+    /// Sent by the system: the session is granted; updates follow on this inbox.
+    Granted {
+        /// Request number.
+        req: u64,
+        /// The session.
+        session: SessionId,
+        /// The service.
+        service: ServiceId,
+        /// Data or command.
+        kind: ServiceKind,
+        /// Payload type name.
+        payload: String,
+        /// The system's process id, watched for death.
+        system_pid: u32,
+    },
+    /// Sent by the system: one data update.
+    Update {
+        /// The session.
+        session: SessionId,
+        /// Sequence number, from 1, no gaps unless data was dropped.
+        seq: u64,
+        /// The data.
+        payload: Payload,
+    },
+    /// Sent by the system: task status on a command session.
+    Status {
+        /// The session.
+        session: SessionId,
+        /// Sequence number shared with updates.
+        seq: u64,
+        /// The status.
+        status: TaskStatus,
+    },
+    /// Sent by the system: the session ended.
+    Ended {
+        /// The session.
+        session: SessionId,
+        /// Why.
+        reason: EndReason,
+    },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn sample() -> ToBroker {
+        ToBroker::Request { user: UserId("u1".into()), req: 7, service: ServiceId::new("s", "a") }
+    }
+
+    #[test]
+    fn round_trip() {
+        let frame = encode(&sample()).unwrap();
+        assert_eq!(frame[0], MAGIC);
+        assert_eq!(frame[1], VERSION);
+        assert_eq!(decode::<ToBroker>(&frame).unwrap(), sample());
+    }
+
+    #[test]
+    fn rejects_bad_frames() {
+        let frame = encode(&sample()).unwrap();
+        assert_eq!(decode::<ToBroker>(&[]), Err(DecodeError::Truncated(0)));
+        assert_eq!(decode::<ToBroker>(&[0, 1, 2]), Err(DecodeError::BadMagic(0)));
+        let mut v2 = frame.clone();
+        v2[1] = 2;
+        assert_eq!(decode::<ToBroker>(&v2), Err(DecodeError::WrongVersion { got: 2 }));
+        let mut trailing = frame.clone();
+        trailing.push(0);
+        assert_eq!(decode::<ToBroker>(&trailing), Err(DecodeError::Trailing(1)));
+        assert!(matches!(
+            decode::<ToBroker>(&frame[..frame.len() - 1]),
+            Err(DecodeError::Malformed(_))
+        ));
+        let big = vec![MAGIC; MAX_FRAME + 1];
+        assert_eq!(decode::<ToBroker>(&big), Err(DecodeError::Oversized(MAX_FRAME + 1)));
+    }
+
+    #[test]
+    fn refuses_oversized_encode() {
+        let msg = ToUser::Update {
+            session: SessionId(1),
+            seq: 1,
+            payload: Payload::Text("x".repeat(MAX_FRAME)),
+        };
+        assert!(matches!(encode(&msg), Err(EncodeError::Oversized(_))));
+    }
+
+    proptest! {
+        #[test]
+        fn decoders_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..512)) {
+            let _ = decode::<ToBroker>(&bytes);
+            let _ = decode::<ToSystem>(&bytes);
+            let _ = decode::<ToUser>(&bytes);
+        }
+
+        #[test]
+        fn decoders_never_panic_with_valid_header(bytes in proptest::collection::vec(any::<u8>(), 0..512)) {
+            let mut f = vec![MAGIC, VERSION];
+            f.extend(bytes);
+            let _ = decode::<ToBroker>(&f);
+            let _ = decode::<ToSystem>(&f);
+            let _ = decode::<ToUser>(&f);
+        }
+
+        #[test]
+        fn text_updates_round_trip(s in ".{0,200}", seq in any::<u64>()) {
+            let m = ToUser::Update { session: SessionId(seq ^ 1), seq, payload: Payload::Text(s) };
+            prop_assert_eq!(decode::<ToUser>(&encode(&m).unwrap()).unwrap(), m);
+        }
+    }
+}

@@ -1,0 +1,165 @@
+//! The event loop's waiting part: one epoll (through mio) over the bell, the presence
+//! event, process-death descriptors (pidfd) and a signal pipe. A process sleeps here
+//! until something happens or its core's next deadline, never polling.
+
+use mio::unix::SourceFd;
+use mio::{Events, Interest, Poll, Token};
+use std::io::{self, Read};
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
+use std::os::unix::net::UnixStream;
+use std::time::Duration;
+
+/// An epoll set of file descriptors, each under a caller-chosen token.
+pub struct Reactor {
+    poll: Poll,
+    events: Events,
+}
+
+impl Reactor {
+    /// A new, empty reactor.
+    pub fn new() -> io::Result<Self> {
+        Ok(Reactor { poll: Poll::new()?, events: Events::with_capacity(256) })
+    }
+
+    /// Watches `fd` for readability under `token`. The fd must outlive its registration.
+    pub fn add(&self, fd: RawFd, token: usize) -> io::Result<()> {
+        self.poll.registry().register(&mut SourceFd(&fd), Token(token), Interest::READABLE)
+    }
+
+    /// Stops watching `fd`.
+    pub fn remove(&self, fd: RawFd) {
+        let _ = self.poll.registry().deregister(&mut SourceFd(&fd));
+    }
+
+    /// Waits until a watched fd is readable or `timeout` passes; returns the ready tokens.
+    /// An interrupted wait returns no tokens.
+    pub fn wait(&mut self, timeout: Option<Duration>) -> io::Result<Vec<usize>> {
+        match self.poll.poll(&mut self.events, timeout) {
+            Ok(()) => Ok(self.events.iter().map(|e| e.token().0).collect()),
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => Ok(Vec::new()),
+            Err(e) => Err(e),
+        }
+    }
+}
+
+/// A process-exit descriptor: readable once the process has exited.
+#[derive(Debug)]
+pub struct PidFd {
+    fd: OwnedFd,
+    pid: u32,
+}
+
+impl PidFd {
+    /// Opens a pidfd for `pid`; fails if the process does not exist.
+    pub fn open(pid: u32) -> io::Result<Self> {
+        let pid_t = libc::pid_t::try_from(pid)
+            .map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "pid out of range"))?;
+        // SAFETY: pidfd_open takes a pid and flags and returns a new fd or -1.
+        let fd = unsafe { libc::syscall(libc::SYS_pidfd_open, pid_t, 0) };
+        if fd < 0 {
+            return Err(io::Error::last_os_error());
+        }
+        // SAFETY: the syscall returned a fresh descriptor that we now own.
+        let fd = unsafe { OwnedFd::from_raw_fd(fd as RawFd) };
+        Ok(PidFd { fd, pid })
+    }
+
+    /// The watched process id.
+    pub fn pid(&self) -> u32 {
+        self.pid
+    }
+
+    /// The descriptor, for the reactor.
+    pub fn raw(&self) -> RawFd {
+        self.fd.as_raw_fd()
+    }
+
+    /// Whether the process has exited (checked without blocking).
+    pub fn exited(&self) -> bool {
+        let mut pfd = libc::pollfd { fd: self.raw(), events: libc::POLLIN, revents: 0 };
+        // SAFETY: one valid pollfd, zero timeout.
+        let n = unsafe { libc::poll(&mut pfd, 1, 0) };
+        n > 0 && pfd.revents & libc::POLLIN != 0
+    }
+}
+
+/// Whether a process with this pid exists (signal 0 probe; no signal is sent).
+pub fn process_exists(pid: u32) -> bool {
+    let Ok(p) = libc::pid_t::try_from(pid) else { return false };
+    // SAFETY: kill with signal 0 only checks existence and permission.
+    unsafe { libc::kill(p, 0) == 0 || io::Error::last_os_error().raw_os_error() == Some(libc::EPERM) }
+}
+
+/// SIGINT/SIGTERM/SIGHUP delivered through a pipe, so the reactor wakes on them.
+pub struct SignalPipe {
+    read: UnixStream,
+}
+
+impl SignalPipe {
+    /// Installs the handlers.
+    pub fn install() -> io::Result<Self> {
+        let (read, write) = UnixStream::pair()?;
+        read.set_nonblocking(true)?;
+        for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+            signal_hook::low_level::pipe::register(sig, write.try_clone()?)?;
+        }
+        Ok(SignalPipe { read })
+    }
+
+    /// The read end, for the reactor.
+    pub fn raw(&self) -> RawFd {
+        self.read.as_raw_fd()
+    }
+
+    /// Empties the pipe; true if a signal arrived.
+    pub fn drain(&mut self) -> bool {
+        let mut buf = [0u8; 64];
+        let mut got = false;
+        while let Ok(n) = self.read.read(&mut buf) {
+            if n == 0 {
+                break;
+            }
+            got = true;
+        }
+        got
+    }
+}
+
+/// Raises the soft RLIMIT_NOFILE to the hard limit (the broker holds a few fds per peer).
+/// Returns the new soft limit.
+pub fn raise_fd_limit() -> io::Result<u64> {
+    let mut lim = libc::rlimit { rlim_cur: 0, rlim_max: 0 };
+    // SAFETY: valid out-pointer.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    if lim.rlim_cur < lim.rlim_max {
+        lim.rlim_cur = lim.rlim_max;
+        // SAFETY: valid in-pointer.
+        if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &lim) } != 0 {
+            return Err(io::Error::last_os_error());
+        }
+    }
+    Ok(lim.rlim_cur as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pidfd_sees_child_exit() {
+        let mut child = std::process::Command::new("sleep").arg("5").spawn().unwrap();
+        let pfd = PidFd::open(child.id()).unwrap();
+        assert!(!pfd.exited());
+        let mut r = Reactor::new().unwrap();
+        r.add(pfd.raw(), 7).unwrap();
+        assert!(r.wait(Some(Duration::from_millis(10))).unwrap().is_empty());
+        child.kill().unwrap();
+        let tokens = r.wait(Some(Duration::from_secs(5))).unwrap();
+        assert_eq!(tokens, vec![7]);
+        assert!(pfd.exited());
+        child.wait().unwrap();
+        assert!(PidFd::open(u32::MAX).is_err());
+    }
+}

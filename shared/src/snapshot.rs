@@ -1,0 +1,247 @@
+//! The global service list as one fixed-size `#[repr(C)]` value that the broker writes
+//! into an iceoryx2 blackboard and every local user reads from shared memory.
+//!
+//! The broker writes it once per change, never once per user; the blackboard's
+//! generation counter tells a reader whether the copy it holds is stale.
+
+use crate::types::{
+    ServiceId, ServiceKind, MAX_DESCRIPTION, MAX_PAYLOAD_TYPE, MAX_SERVICE_NAME, MAX_SYSTEM_NAME,
+};
+use iceoryx2::prelude::ZeroCopySend;
+use serde::Serialize;
+
+/// Most services the global list holds (the paper ran 80).
+pub const MAX_LISTED_SERVICES: usize = 256;
+
+/// A fixed-capacity UTF-8 string that lives in shared memory.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ZeroCopySend)]
+#[repr(C)]
+pub struct FixedStr<const N: usize> {
+    len: u8,
+    bytes: [u8; N],
+}
+
+impl<const N: usize> FixedStr<N> {
+    /// The empty string.
+    pub const EMPTY: Self = FixedStr { len: 0, bytes: [0; N] };
+
+    /// Copies `s`, cut at a character boundary to fit `N` bytes (at most 255).
+    pub fn new(s: &str) -> Self {
+        let cap = N.min(255);
+        let mut end = s.len().min(cap);
+        while !s.is_char_boundary(end) {
+            end -= 1;
+        }
+        let mut bytes = [0u8; N];
+        bytes[..end].copy_from_slice(&s.as_bytes()[..end]);
+        FixedStr { len: end as u8, bytes }
+    }
+
+    /// The text; empty if the bytes in shared memory are not valid UTF-8.
+    pub fn as_str(&self) -> &str {
+        let len = (self.len as usize).min(N);
+        std::str::from_utf8(&self.bytes[..len]).unwrap_or("")
+    }
+}
+
+/// One service as the list shows it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ZeroCopySend)]
+#[repr(C)]
+pub struct ServiceEntry {
+    /// Offering system.
+    pub system: FixedStr<{ MAX_SYSTEM_NAME + 1 }>,
+    /// Service name.
+    pub name: FixedStr<{ MAX_SERVICE_NAME + 1 }>,
+    /// Description.
+    pub description: FixedStr<{ MAX_DESCRIPTION + 1 }>,
+    /// Payload type name.
+    pub payload: FixedStr<{ MAX_PAYLOAD_TYPE + 1 }>,
+    /// Quota.
+    pub quota: u16,
+    /// Sessions in use (granted and being granted).
+    pub in_use: u16,
+    /// Requests waiting in the task queue.
+    pub queued: u16,
+    /// Links through this service.
+    pub links: u16,
+    /// 0 = data, 1 = command.
+    pub kind: u8,
+    /// 1 if a task queue is kept.
+    pub queue: u8,
+    /// 1 if withdrawn for now.
+    pub withdrawn: u8,
+    /// Padding, zero.
+    pub _pad: u8,
+}
+
+impl ServiceEntry {
+    /// Data or command.
+    pub fn kind(&self) -> ServiceKind {
+        if self.kind == 1 {
+            ServiceKind::Command
+        } else {
+            ServiceKind::Data
+        }
+    }
+
+    /// The stable id `system/name`.
+    pub fn id(&self) -> ServiceId {
+        ServiceId::new(self.system.as_str(), self.name.as_str())
+    }
+
+    /// An owned view for printing and JSON.
+    pub fn view(&self) -> ServiceView {
+        ServiceView {
+            id: self.id().0,
+            system: self.system.as_str().to_string(),
+            name: self.name.as_str().to_string(),
+            description: self.description.as_str().to_string(),
+            kind: self.kind().as_str().to_string(),
+            queue: self.queue == 1,
+            quota: self.quota,
+            in_use: self.in_use,
+            queued: self.queued,
+            links: self.links,
+            withdrawn: self.withdrawn == 1,
+            payload: self.payload.as_str().to_string(),
+        }
+    }
+}
+
+/// The whole list: what the blackboard holds.
+#[derive(Clone, Copy, Debug, ZeroCopySend)]
+#[repr(C)]
+pub struct ServiceListSnapshot {
+    /// Bumped by the broker on every change; with the epoch it orders snapshots.
+    pub generation: u64,
+    /// The broker run that wrote it (0 = no broker has written yet).
+    pub epoch: u64,
+    /// Number of valid entries.
+    pub count: u32,
+    /// Padding, zero.
+    pub _pad: u32,
+    /// The entries; only `..count` are valid.
+    pub entries: [ServiceEntry; MAX_LISTED_SERVICES],
+}
+
+impl ServiceListSnapshot {
+    /// An empty list.
+    pub fn empty() -> Self {
+        const E: ServiceEntry = ServiceEntry {
+            system: FixedStr::EMPTY,
+            name: FixedStr::EMPTY,
+            description: FixedStr::EMPTY,
+            payload: FixedStr::EMPTY,
+            quota: 0,
+            in_use: 0,
+            queued: 0,
+            links: 0,
+            kind: 0,
+            queue: 0,
+            withdrawn: 0,
+            _pad: 0,
+        };
+        ServiceListSnapshot {
+            generation: 0,
+            epoch: 0,
+            count: 0,
+            _pad: 0,
+            entries: [E; MAX_LISTED_SERVICES],
+        }
+    }
+
+    /// The valid entries.
+    pub fn entries(&self) -> &[ServiceEntry] {
+        &self.entries[..(self.count as usize).min(MAX_LISTED_SERVICES)]
+    }
+
+    /// Finds a service by id.
+    pub fn find(&self, id: &ServiceId) -> Option<&ServiceEntry> {
+        self.entries().iter().find(|e| &e.id() == id)
+    }
+
+    /// Owned views of every entry.
+    pub fn views(&self) -> Vec<ServiceView> {
+        self.entries().iter().map(ServiceEntry::view).collect()
+    }
+}
+
+/// An owned, printable row of the list; its JSON form is what `muster user list --json` prints.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, serde::Deserialize)]
+pub struct ServiceView {
+    /// `system/name`.
+    pub id: String,
+    /// Offering system.
+    pub system: String,
+    /// Service name.
+    pub name: String,
+    /// Description.
+    pub description: String,
+    /// `data` or `command`.
+    pub kind: String,
+    /// Task queue kept.
+    pub queue: bool,
+    /// Quota.
+    pub quota: u16,
+    /// Sessions in use.
+    pub in_use: u16,
+    /// Requests waiting.
+    pub queued: u16,
+    /// Links through the service.
+    pub links: u16,
+    /// Withdrawn for now.
+    pub withdrawn: bool,
+    /// Payload type.
+    pub payload: String,
+}
+
+impl ServiceView {
+    /// Packs the view into a shared-memory entry.
+    pub fn to_entry(&self) -> ServiceEntry {
+        ServiceEntry {
+            system: FixedStr::new(&self.system),
+            name: FixedStr::new(&self.name),
+            description: FixedStr::new(&self.description),
+            payload: FixedStr::new(&self.payload),
+            quota: self.quota,
+            in_use: self.in_use,
+            queued: self.queued,
+            links: self.links,
+            kind: u8::from(self.kind == "command"),
+            queue: u8::from(self.queue),
+            withdrawn: u8::from(self.withdrawn),
+            _pad: 0,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fixed_str_cuts_at_char_boundary() {
+        let s = FixedStr::<4>::new("aéé");
+        assert_eq!(s.as_str(), "aé");
+        assert_eq!(FixedStr::<8>::new("tracker").as_str(), "tracker");
+    }
+
+    #[test]
+    fn view_round_trips_through_entry() {
+        let v = ServiceView {
+            id: "t1/track".into(),
+            system: "t1".into(),
+            name: "track".into(),
+            description: "follows a beacon".into(),
+            kind: "command".into(),
+            queue: true,
+            quota: 10,
+            in_use: 3,
+            queued: 2,
+            links: 1,
+            withdrawn: false,
+            payload: "goal2d".into(),
+        };
+        assert_eq!(v.to_entry().view(), v);
+    }
+}

@@ -1,0 +1,418 @@
+//! Domain types: services, sessions, payloads, refusals — the paper's words.
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+
+/// Longest system name, in bytes.
+pub const MAX_SYSTEM_NAME: usize = 31;
+/// Longest service name, in bytes.
+pub const MAX_SERVICE_NAME: usize = 31;
+/// Longest service description, in bytes.
+pub const MAX_DESCRIPTION: usize = 95;
+/// Longest payload type name, in bytes.
+pub const MAX_PAYLOAD_TYPE: usize = 23;
+/// Largest quota a service may declare.
+pub const MAX_QUOTA: u16 = 1000;
+/// Largest number of services one system may register.
+pub const MAX_SERVICES_PER_SYSTEM: usize = 128;
+
+/// Whether a service streams data to the user or takes task input from the user.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, PartialOrd, Ord)]
+pub enum ServiceKind {
+    /// The system streams information and task status (e.g. a tracker's target position).
+    Data,
+    /// The user supplies task input (e.g. a delivery robot's goal).
+    Command,
+}
+
+impl ServiceKind {
+    /// The lower-case name used on the command line and in JSON.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ServiceKind::Data => "data",
+            ServiceKind::Command => "command",
+        }
+    }
+}
+
+impl fmt::Display for ServiceKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for ServiceKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "data" => Ok(ServiceKind::Data),
+            "command" => Ok(ServiceKind::Command),
+            other => Err(format!("unknown service kind {other:?}: expected data or command")),
+        }
+    }
+}
+
+/// What a system declares about one service when it registers.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ServiceSpec {
+    /// Name, unique within the system.
+    pub name: String,
+    /// One line for the user's menu.
+    pub description: String,
+    /// Data or command.
+    pub kind: ServiceKind,
+    /// Whether requests beyond the quota wait in a task queue instead of being refused.
+    pub queue: bool,
+    /// How many sessions the service accepts at once.
+    pub quota: u16,
+    /// Payload type name (e.g. `pose2d`, `goal2d`), used to check that a link makes sense.
+    pub payload: String,
+}
+
+/// Why a [`ServiceSpec`] or a system name was rejected.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error, Serialize, Deserialize)]
+pub enum SpecError {
+    /// A name is empty, too long, or holds characters other than `[A-Za-z0-9_.-]`; rename it.
+    #[error("invalid {what} {value:?}: 1..={max} characters of [A-Za-z0-9_.-]")]
+    BadName {
+        /// Which name.
+        what: String,
+        /// The value given.
+        value: String,
+        /// The longest allowed.
+        max: usize,
+    },
+    /// The description is longer than [`MAX_DESCRIPTION`] bytes; shorten it.
+    #[error("description of {0:?} is longer than {MAX_DESCRIPTION} bytes")]
+    DescriptionTooLong(String),
+    /// The quota is 0 or above [`MAX_QUOTA`]; pick a value in range.
+    #[error("quota of {service:?} is {quota}: must be 1..={MAX_QUOTA}")]
+    BadQuota {
+        /// The service.
+        service: String,
+        /// The value given.
+        quota: u16,
+    },
+    /// Two services of one system share a name; rename one.
+    #[error("service {0:?} is declared twice")]
+    Duplicate(String),
+    /// More services than [`MAX_SERVICES_PER_SYSTEM`]; split the system.
+    #[error("{0} services declared, at most {MAX_SERVICES_PER_SYSTEM} per system")]
+    TooMany(usize),
+}
+
+/// Checks a name against the naming rule shared by systems, services and payload types.
+pub fn check_name(what: &str, value: &str, max: usize) -> Result<(), SpecError> {
+    let ok = !value.is_empty()
+        && value.len() <= max
+        && value
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'.');
+    if ok {
+        Ok(())
+    } else {
+        Err(SpecError::BadName { what: what.to_string(), value: value.to_string(), max })
+    }
+}
+
+impl ServiceSpec {
+    /// Checks every field against the protocol's limits.
+    pub fn validate(&self) -> Result<(), SpecError> {
+        check_name("service name", &self.name, MAX_SERVICE_NAME)?;
+        check_name("payload type", &self.payload, MAX_PAYLOAD_TYPE)?;
+        if self.description.len() > MAX_DESCRIPTION {
+            return Err(SpecError::DescriptionTooLong(self.name.clone()));
+        }
+        if self.quota == 0 || self.quota > MAX_QUOTA {
+            return Err(SpecError::BadQuota { service: self.name.clone(), quota: self.quota });
+        }
+        Ok(())
+    }
+}
+
+/// Checks a whole registration: system name, each spec, no duplicates, not too many.
+pub fn validate_registration(system: &str, specs: &[ServiceSpec]) -> Result<(), SpecError> {
+    check_name("system name", system, MAX_SYSTEM_NAME)?;
+    if specs.len() > MAX_SERVICES_PER_SYSTEM {
+        return Err(SpecError::TooMany(specs.len()));
+    }
+    let mut seen = std::collections::BTreeSet::new();
+    for s in specs {
+        s.validate()?;
+        if !seen.insert(s.name.as_str()) {
+            return Err(SpecError::Duplicate(s.name.clone()));
+        }
+    }
+    Ok(())
+}
+
+/// A service's stable identity: `system/service`. Stable across re-registration by construction.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct ServiceId(pub String);
+
+impl ServiceId {
+    /// Builds the id of `service` offered by `system`.
+    pub fn new(system: &str, service: &str) -> Self {
+        ServiceId(format!("{system}/{service}"))
+    }
+
+    /// Splits the id into (system, service), if it has the `system/service` form.
+    pub fn split(&self) -> Option<(&str, &str)> {
+        self.0.split_once('/')
+    }
+}
+
+impl fmt::Display for ServiceId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// A one-to-one session, numbered by the system that granted it (unique per system process).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct SessionId(pub u64);
+
+impl fmt::Display for SessionId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:016x}", self.0)
+    }
+}
+
+/// A user's identity on this host: unique per user process.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct UserId(pub String);
+
+impl fmt::Display for UserId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// Typed session data and task input.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Payload {
+    /// A position and heading in the world frame (metres, radians).
+    Pose2d {
+        /// x, metres.
+        x: f64,
+        /// y, metres.
+        y: f64,
+        /// heading, radians.
+        theta: f64,
+    },
+    /// A goal position in the world frame (metres).
+    Goal2d {
+        /// x, metres.
+        x: f64,
+        /// y, metres.
+        y: f64,
+    },
+    /// A single reading.
+    Scalar(f64),
+    /// Free text.
+    Text(String),
+}
+
+impl Payload {
+    /// The payload type name this value belongs to.
+    pub fn type_name(&self) -> &'static str {
+        match self {
+            Payload::Pose2d { .. } => "pose2d",
+            Payload::Goal2d { .. } => "goal2d",
+            Payload::Scalar(_) => "scalar",
+            Payload::Text(_) => "text",
+        }
+    }
+
+    /// Converts this value into task input of type `target`, as a link does; `None` if the
+    /// conversion makes no sense.
+    pub fn convert_to(&self, target: &str) -> Option<Payload> {
+        match (self, target) {
+            (p, t) if p.type_name() == t => Some(p.clone()),
+            (Payload::Pose2d { x, y, .. }, "goal2d") => Some(Payload::Goal2d { x: *x, y: *y }),
+            (p, "text") => Some(Payload::Text(p.to_string())),
+            _ => None,
+        }
+    }
+}
+
+impl fmt::Display for Payload {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Payload::Pose2d { x, y, theta } => write!(f, "pose2d x={x:.3} y={y:.3} theta={theta:.3}"),
+            Payload::Goal2d { x, y } => write!(f, "goal2d x={x:.3} y={y:.3}"),
+            Payload::Scalar(v) => write!(f, "scalar {v}"),
+            Payload::Text(t) => write!(f, "text {t}"),
+        }
+    }
+}
+
+/// Whether data of payload type `data` can drive a command service taking `command`.
+pub fn link_compatible(data: &str, command: &str) -> bool {
+    data == command || (data == "pose2d" && command == "goal2d") || command == "text"
+}
+
+/// Why a request was refused. Every refusal names one of these.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Refusal {
+    /// No service has this id (never registered, or its system was removed).
+    Unknown,
+    /// The system withdrew the service for now.
+    Withdrawn,
+    /// All of the service's quota is in use and it keeps no queue.
+    QuotaFull {
+        /// The quota.
+        quota: u16,
+    },
+    /// The service's task queue is occupied by other users up to its capacity.
+    QueueFull {
+        /// How many requests wait.
+        waiting: u16,
+    },
+    /// The system is gone (delinquent, dead or unregistered) or did not answer.
+    SystemGone,
+    /// The system itself refused (e.g. overloaded), with its reason.
+    SystemRefused(String),
+    /// This user already has a request pending for the service.
+    AlreadyPending,
+    /// The broker refused a malformed or unauthorised request.
+    BadRequest(String),
+}
+
+impl fmt::Display for Refusal {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Refusal::Unknown => f.write_str("unknown service"),
+            Refusal::Withdrawn => f.write_str("service withdrawn by its system"),
+            Refusal::QuotaFull { quota } => write!(f, "quota full ({quota} sessions in use)"),
+            Refusal::QueueFull { waiting } => {
+                write!(f, "task queue occupied by other users ({waiting} waiting)")
+            }
+            Refusal::SystemGone => f.write_str("system gone"),
+            Refusal::SystemRefused(r) => write!(f, "refused by the system: {r}"),
+            Refusal::AlreadyPending => f.write_str("a request for this service is already pending"),
+            Refusal::BadRequest(r) => write!(f, "bad request: {r}"),
+        }
+    }
+}
+
+impl Refusal {
+    /// A short machine-readable code, for JSON output and counters.
+    pub fn code(&self) -> &'static str {
+        match self {
+            Refusal::Unknown => "unknown",
+            Refusal::Withdrawn => "withdrawn",
+            Refusal::QuotaFull { .. } => "quota_full",
+            Refusal::QueueFull { .. } => "queue_full",
+            Refusal::SystemGone => "system_gone",
+            Refusal::SystemRefused(_) => "system_refused",
+            Refusal::AlreadyPending => "already_pending",
+            Refusal::BadRequest(_) => "bad_request",
+        }
+    }
+}
+
+/// Why a session ended.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum EndReason {
+    /// The user ended it.
+    ByUser,
+    /// The system ended it (with its reason).
+    BySystem(String),
+    /// The system withdrew the service.
+    Withdrawn,
+    /// The other process died or stopped answering.
+    PeerGone,
+    /// The user's requested duration ran out.
+    DurationOver,
+}
+
+impl fmt::Display for EndReason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            EndReason::ByUser => f.write_str("ended by the user"),
+            EndReason::BySystem(r) => write!(f, "ended by the system: {r}"),
+            EndReason::Withdrawn => f.write_str("service withdrawn"),
+            EndReason::PeerGone => f.write_str("peer gone"),
+            EndReason::DurationOver => f.write_str("duration over"),
+        }
+    }
+}
+
+/// Task status a command system reports on a session.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum TaskStatus {
+    /// Waiting for task input.
+    Idle,
+    /// Working on the input, with a human-readable progress note.
+    Working(String),
+    /// Task done (e.g. arrived within 1 m of the goal).
+    Done(String),
+    /// The input could not be used.
+    Rejected(String),
+}
+
+impl fmt::Display for TaskStatus {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            TaskStatus::Idle => f.write_str("idle"),
+            TaskStatus::Working(s) => write!(f, "working: {s}"),
+            TaskStatus::Done(s) => write!(f, "done: {s}"),
+            TaskStatus::Rejected(s) => write!(f, "rejected: {s}"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(name: &str) -> ServiceSpec {
+        ServiceSpec {
+            name: name.into(),
+            description: "d".into(),
+            kind: ServiceKind::Data,
+            queue: false,
+            quota: 10,
+            payload: "pose2d".into(),
+        }
+    }
+
+    #[test]
+    fn registration_rules() {
+        assert!(validate_registration("t1", &[spec("a"), spec("b")]).is_ok());
+        assert_eq!(
+            validate_registration("t1", &[spec("a"), spec("a")]),
+            Err(SpecError::Duplicate("a".into()))
+        );
+        assert!(matches!(
+            validate_registration("bad name", &[spec("a")]),
+            Err(SpecError::BadName { .. })
+        ));
+        let mut s = spec("a");
+        s.quota = 0;
+        assert!(matches!(validate_registration("t1", &[s]), Err(SpecError::BadQuota { .. })));
+        let many: Vec<_> = (0..=MAX_SERVICES_PER_SYSTEM).map(|i| spec(&format!("s{i}"))).collect();
+        assert_eq!(
+            validate_registration("t1", &many),
+            Err(SpecError::TooMany(MAX_SERVICES_PER_SYSTEM + 1))
+        );
+    }
+
+    #[test]
+    fn link_conversions() {
+        let pose = Payload::Pose2d { x: 1.0, y: 2.0, theta: 0.5 };
+        assert_eq!(pose.convert_to("goal2d"), Some(Payload::Goal2d { x: 1.0, y: 2.0 }));
+        assert_eq!(pose.convert_to("pose2d"), Some(pose.clone()));
+        assert_eq!(Payload::Scalar(1.0).convert_to("goal2d"), None);
+        assert!(link_compatible("pose2d", "goal2d"));
+        assert!(!link_compatible("scalar", "goal2d"));
+    }
+
+    #[test]
+    fn service_id_is_stable_and_splits() {
+        let id = ServiceId::new("t1", "track");
+        assert_eq!(id, ServiceId::new("t1", "track"));
+        assert_eq!(id.split(), Some(("t1", "track")));
+    }
+}
