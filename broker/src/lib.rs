@@ -1,1 +1,8 @@
-//! stub
+//! The muster broker: the registry of systems and their services, request arbitration
+//! (quotas, task queues), liveness (pings, process death), and the shared-memory
+//! service list. [`core`] is the pure logic; [`run`] drives it over iceoryx2.
+
+pub mod core;
+pub mod run;
+
+pub use crate::core::{Broker, BrokerConfig, BrokerStats, Output};

@@ -237,6 +237,8 @@ pub enum ToSystem {
         ticket: u64,
         /// The requesting user.
         user: UserId,
+        /// The user's process id (0 if unknown), watched for death.
+        user_pid: u32,
         /// The user's request number.
         req: u64,
         /// Service name.

@@ -1,0 +1,717 @@
+//! The broker's registry and arbitration: a plain struct with no I/O and no clock.
+//!
+//! Drive it with [`Broker::handle`] (a decoded message), [`Broker::handle_timeout`]
+//! (at or after [`Broker::poll_timeout`]), and [`Broker::system_died`] /
+//! [`Broker::user_died`] (from process-death detection); collect what it wants sent
+//! with [`Broker::poll_output`] and the new list with [`Broker::take_list_change`].
+//! Time is a [`Duration`] since any fixed origin the driver chooses.
+
+use muster_shared::protocol::{ActiveSession, LinkInfo, ToBroker, ToSystem, ToUser};
+use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
+use muster_shared::types::{
+    validate_registration, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId, UserId,
+};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::time::Duration;
+
+/// The broker's tunables.
+#[derive(Clone, Debug)]
+pub struct BrokerConfig {
+    /// How often each system is pinged (paper: 20 s).
+    pub ping_interval: Duration,
+    /// How long a system has to answer a ping (paper: 10 s).
+    pub ping_timeout: Duration,
+    /// How long a system has to answer a forwarded request.
+    pub offer_timeout: Duration,
+    /// Most requests one service's task queue holds.
+    pub queue_capacity: u16,
+}
+
+impl Default for BrokerConfig {
+    fn default() -> Self {
+        BrokerConfig {
+            ping_interval: Duration::from_secs(20),
+            ping_timeout: Duration::from_secs(10),
+            offer_timeout: Duration::from_secs(10),
+            queue_capacity: 32,
+        }
+    }
+}
+
+/// What the broker wants done.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Output {
+    /// Send to a system.
+    ToSystem(String, ToSystem),
+    /// Send to a user.
+    ToUser(UserId, ToUser),
+    /// Watch this system's process for death.
+    WatchSystem {
+        /// System name.
+        system: String,
+        /// Its pid.
+        pid: u32,
+    },
+    /// Stop watching the system; forget its ports.
+    ForgetSystem(String),
+    /// Watch this user's process for death.
+    WatchUser {
+        /// User id.
+        user: UserId,
+        /// Its pid.
+        pid: u32,
+    },
+    /// Stop watching the user; forget its ports.
+    ForgetUser(UserId),
+}
+
+/// Why a system left the registry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Removal {
+    /// It did not answer a ping in time; it is told and may re-register.
+    Delinquent,
+    /// Its process died.
+    Died,
+    /// It unregistered.
+    Unregistered,
+}
+
+/// Counters of what the broker did, for status and stress reports.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct BrokerStats {
+    /// Registrations accepted.
+    pub registrations: u64,
+    /// Registrations refused.
+    pub registrations_refused: u64,
+    /// Requests received.
+    pub requests: u64,
+    /// Requests forwarded to systems (immediately or from a queue).
+    pub offers: u64,
+    /// Grants reported by systems.
+    pub grants: u64,
+    /// Refusals by reason code.
+    pub refusals: BTreeMap<&'static str, u64>,
+    /// Requests queued.
+    pub queued: u64,
+    /// Systems removed as delinquent.
+    pub delinquent: u64,
+    /// Systems removed because their process died.
+    pub died: u64,
+    /// Pings sent.
+    pub pings: u64,
+}
+
+#[derive(Debug)]
+struct SystemRec {
+    pid: u32,
+    services: Vec<String>,
+    next_ping: Duration,
+    awaiting: Option<(u64, Duration)>,
+    sessions: BTreeMap<SessionId, (String, UserId)>,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Waiting {
+    user: UserId,
+    req: u64,
+}
+
+#[derive(Debug)]
+struct ServiceRec {
+    spec: ServiceSpec,
+    system: String,
+    withdrawn: bool,
+    sessions: BTreeSet<SessionId>,
+    pending: u16,
+    queue: VecDeque<Waiting>,
+    links: u16,
+}
+
+impl ServiceRec {
+    fn used(&self) -> usize {
+        self.sessions.len() + self.pending as usize
+    }
+}
+
+#[derive(Debug)]
+struct UserRec {
+    pid: u32,
+    links: BTreeMap<u64, LinkInfo>,
+}
+
+#[derive(Debug)]
+struct Offer {
+    user: UserId,
+    req: u64,
+    service: ServiceId,
+    deadline: Duration,
+}
+
+/// The broker's registry of systems, services, users and requests.
+#[derive(Debug)]
+pub struct Broker {
+    cfg: BrokerConfig,
+    epoch: u64,
+    pid: u32,
+    systems: BTreeMap<String, SystemRec>,
+    services: BTreeMap<ServiceId, ServiceRec>,
+    users: BTreeMap<UserId, UserRec>,
+    offers: BTreeMap<u64, Offer>,
+    next_ticket: u64,
+    next_nonce: u64,
+    generation: u64,
+    list_dirty: bool,
+    out: VecDeque<Output>,
+    stats: BrokerStats,
+}
+
+impl Broker {
+    /// A broker run numbered `epoch` (distinct per start) in process `pid`.
+    pub fn new(cfg: BrokerConfig, epoch: u64, pid: u32) -> Self {
+        Broker {
+            cfg,
+            epoch,
+            pid,
+            systems: BTreeMap::new(),
+            services: BTreeMap::new(),
+            users: BTreeMap::new(),
+            offers: BTreeMap::new(),
+            next_ticket: 1,
+            next_nonce: epoch.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1,
+            generation: 0,
+            list_dirty: true,
+            out: VecDeque::new(),
+            stats: BrokerStats::default(),
+        }
+    }
+
+    /// The next thing to send or do, if any.
+    pub fn poll_output(&mut self) -> Option<Output> {
+        self.out.pop_front()
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> &BrokerStats {
+        &self.stats
+    }
+
+    /// Users the broker knows (to ring on list changes).
+    pub fn users(&self) -> impl Iterator<Item = &UserId> {
+        self.users.keys()
+    }
+
+    /// Registered system names.
+    pub fn systems(&self) -> impl Iterator<Item = &str> {
+        self.systems.keys().map(String::as_str)
+    }
+
+    /// If the list changed since the last call: the new generation and rows.
+    pub fn take_list_change(&mut self) -> Option<(u64, Vec<ServiceView>)> {
+        if !self.list_dirty {
+            return None;
+        }
+        self.list_dirty = false;
+        self.generation += 1;
+        Some((self.generation, self.views()))
+    }
+
+    /// The current list, in id order.
+    pub fn views(&self) -> Vec<ServiceView> {
+        self.services
+            .iter()
+            .map(|(id, s)| ServiceView {
+                id: id.0.clone(),
+                system: s.system.clone(),
+                name: s.spec.name.clone(),
+                description: s.spec.description.clone(),
+                kind: s.spec.kind.as_str().to_string(),
+                queue: s.spec.queue,
+                quota: s.spec.quota,
+                in_use: u16::try_from(s.used()).unwrap_or(u16::MAX),
+                queued: u16::try_from(s.queue.len()).unwrap_or(u16::MAX),
+                links: s.links,
+                withdrawn: s.withdrawn,
+                payload: s.spec.payload.clone(),
+            })
+            .collect()
+    }
+
+    /// When [`Broker::handle_timeout`] must next be called, if ever.
+    pub fn poll_timeout(&self) -> Option<Duration> {
+        let pings = self.systems.values().map(|s| match s.awaiting {
+            Some((_, deadline)) => deadline,
+            None => s.next_ping,
+        });
+        let offers = self.offers.values().map(|o| o.deadline);
+        pings.chain(offers).min()
+    }
+
+    /// Handles one message.
+    pub fn handle(&mut self, now: Duration, msg: ToBroker) {
+        match msg {
+            ToBroker::Register { system, pid, services, sessions } => {
+                self.register(now, system, pid, services, sessions)
+            }
+            ToBroker::Pong { system, nonce } => self.pong(now, &system, nonce),
+            ToBroker::OfferAnswer { system, ticket, answer } => {
+                self.offer_answer(now, &system, ticket, answer)
+            }
+            ToBroker::SessionEnded { system, session } => self.session_ended(now, &system, session),
+            ToBroker::Withdraw { system, service } => self.set_withdrawn(&system, &service, true),
+            ToBroker::Restore { system, service } => {
+                self.set_withdrawn(&system, &service, false);
+                let id = ServiceId::new(&system, &service);
+                self.dispatch_queue(now, &id);
+            }
+            ToBroker::Unregister { system } => {
+                if self.systems.contains_key(&system) {
+                    self.remove_system(&system, Removal::Unregistered);
+                }
+            }
+            ToBroker::Hello { user, pid, links } => self.hello(user, pid, links),
+            ToBroker::Request { user, req, service } => self.request(now, user, req, service),
+            ToBroker::Cancel { user, req } => self.cancel(now, &user, req),
+            ToBroker::LinkOpened { user, link } => {
+                self.users
+                    .entry(user)
+                    .or_insert_with(|| UserRec { pid: 0, links: BTreeMap::new() })
+                    .links
+                    .insert(link.link, link);
+                self.recount_links();
+            }
+            ToBroker::LinkClosed { user, link } => {
+                if let Some(u) = self.users.get_mut(&user) {
+                    u.links.remove(&link);
+                }
+                self.recount_links();
+            }
+            ToBroker::Goodbye { user } => self.forget_user(now, &user),
+        }
+    }
+
+    /// Runs due pings, delinquency checks and offer timeouts.
+    pub fn handle_timeout(&mut self, now: Duration) {
+        let mut delinquent = Vec::new();
+        for (name, s) in self.systems.iter_mut() {
+            match s.awaiting {
+                Some((_, deadline)) if now >= deadline => delinquent.push(name.clone()),
+                None if now >= s.next_ping => {
+                    let nonce = self.next_nonce;
+                    self.next_nonce = self.next_nonce.wrapping_add(2);
+                    s.awaiting = Some((nonce, now + self.cfg.ping_timeout));
+                    self.stats.pings += 1;
+                    self.out.push_back(Output::ToSystem(name.clone(), ToSystem::Ping { nonce }));
+                }
+                _ => {}
+            }
+        }
+        for name in delinquent {
+            tracing::warn!(system = %name, "no answer to ping: delinquent, removed");
+            self.remove_system(&name, Removal::Delinquent);
+        }
+        let expired: Vec<u64> =
+            self.offers.iter().filter(|(_, o)| now >= o.deadline).map(|(t, _)| *t).collect();
+        for ticket in expired {
+            if let Some(offer) = self.offers.remove(&ticket) {
+                self.release_pending(&offer.service);
+                self.refuse(&offer.user, offer.req, Refusal::SystemGone);
+                self.dispatch_queue(now, &offer.service);
+            }
+        }
+    }
+
+    /// A system's process died: remove it at once, without waiting for a ping.
+    pub fn system_died(&mut self, _now: Duration, system: &str) {
+        if self.systems.contains_key(system) {
+            tracing::warn!(%system, "system process died: removed");
+            self.remove_system(system, Removal::Died);
+        }
+    }
+
+    /// A user's process died: drop its queued requests and links.
+    pub fn user_died(&mut self, now: Duration, user: &UserId) {
+        self.forget_user(now, user);
+    }
+
+    fn register(
+        &mut self,
+        now: Duration,
+        system: String,
+        pid: u32,
+        services: Vec<ServiceSpec>,
+        sessions: Vec<ActiveSession>,
+    ) {
+        if let Err(e) = validate_registration(&system, &services) {
+            return self.refuse_registration(&system, e.to_string());
+        }
+        if let Some(old) = self.systems.get(&system) {
+            if old.pid != pid {
+                let reason = format!("system name {system:?} is held by live process {}", old.pid);
+                return self.refuse_registration(&system, reason);
+            }
+        }
+        let others: usize = self
+            .systems
+            .iter()
+            .filter(|(n, _)| **n != system)
+            .map(|(_, s)| s.services.len())
+            .sum();
+        if others + services.len() > MAX_LISTED_SERVICES {
+            let reason = format!(
+                "service list full: {others} services listed, {} more asked, at most {MAX_LISTED_SERVICES}",
+                services.len()
+            );
+            return self.refuse_registration(&system, reason);
+        }
+        // Drop services the system no longer declares.
+        let new_names: BTreeSet<&str> = services.iter().map(|s| s.name.as_str()).collect();
+        let dropped: Vec<ServiceId> = self
+            .systems
+            .get(&system)
+            .map(|s| {
+                s.services
+                    .iter()
+                    .filter(|n| !new_names.contains(n.as_str()))
+                    .map(|n| ServiceId::new(&system, n))
+                    .collect()
+            })
+            .unwrap_or_default();
+        for id in dropped {
+            self.drop_service(&id, Refusal::Unknown);
+        }
+        let mut rec = SystemRec {
+            pid,
+            services: services.iter().map(|s| s.name.clone()).collect(),
+            next_ping: now + self.cfg.ping_interval,
+            awaiting: None,
+            sessions: BTreeMap::new(),
+        };
+        for spec in services {
+            let id = ServiceId::new(&system, &spec.name);
+            match self.services.get_mut(&id) {
+                Some(s) => {
+                    s.spec = spec;
+                    s.withdrawn = false;
+                    s.sessions.clear();
+                }
+                None => {
+                    self.services.insert(
+                        id,
+                        ServiceRec {
+                            spec,
+                            system: system.clone(),
+                            withdrawn: false,
+                            sessions: BTreeSet::new(),
+                            pending: 0,
+                            queue: VecDeque::new(),
+                            links: 0,
+                        },
+                    );
+                }
+            }
+        }
+        for a in sessions {
+            let id = ServiceId::new(&system, &a.service);
+            if let Some(s) = self.services.get_mut(&id) {
+                s.sessions.insert(a.session);
+                rec.sessions.insert(a.session, (a.service, a.user));
+            }
+        }
+        self.systems.insert(system.clone(), rec);
+        self.stats.registrations += 1;
+        self.recount_links();
+        self.list_dirty = true;
+        self.out.push_back(Output::WatchSystem { system: system.clone(), pid });
+        self.out.push_back(Output::ToSystem(
+            system,
+            ToSystem::Registered { epoch: self.epoch, broker_pid: self.pid },
+        ));
+    }
+
+    fn refuse_registration(&mut self, system: &str, reason: String) {
+        tracing::warn!(%system, %reason, "registration refused");
+        self.stats.registrations_refused += 1;
+        self.out.push_back(Output::ToSystem(
+            system.to_string(),
+            ToSystem::RegistrationRefused { reason },
+        ));
+    }
+
+    fn pong(&mut self, now: Duration, system: &str, nonce: u64) {
+        match self.systems.get_mut(system) {
+            Some(s) => {
+                if matches!(s.awaiting, Some((n, _)) if n == nonce) {
+                    s.awaiting = None;
+                    s.next_ping = now + self.cfg.ping_interval;
+                }
+            }
+            // Found alive after removal: tell it, so it re-registers.
+            None => {
+                self.out.push_back(Output::ToSystem(system.to_string(), ToSystem::Delinquent))
+            }
+        }
+    }
+
+    fn offer_answer(
+        &mut self,
+        now: Duration,
+        system: &str,
+        ticket: u64,
+        answer: Result<SessionId, String>,
+    ) {
+        let offer = self.offers.remove(&ticket);
+        if let Some(o) = &offer {
+            self.release_pending(&o.service);
+        }
+        match answer {
+            Ok(session) => {
+                self.stats.grants += 1;
+                // A late grant (the offer timed out) is not counted: its user was refused
+                // and ends the session on sight.
+                let Some(o) = &offer else { return };
+                let (service, user) = (o.service.clone(), o.user.clone());
+                if let (Some(svc), Some(sys)) =
+                    (self.services.get_mut(&service), self.systems.get_mut(system))
+                {
+                    svc.sessions.insert(session);
+                    sys.sessions.insert(session, (svc.spec.name.clone(), user));
+                }
+                self.list_dirty = true;
+            }
+            Err(reason) => {
+                if let Some(o) = offer {
+                    self.refuse(&o.user, o.req, Refusal::SystemRefused(reason));
+                    self.dispatch_queue(now, &o.service);
+                }
+            }
+        }
+    }
+
+    fn session_ended(&mut self, now: Duration, system: &str, session: SessionId) {
+        let Some(sys) = self.systems.get_mut(system) else { return };
+        let Some((service, _user)) = sys.sessions.remove(&session) else { return };
+        let id = ServiceId::new(system, &service);
+        if let Some(svc) = self.services.get_mut(&id) {
+            svc.sessions.remove(&session);
+        }
+        self.list_dirty = true;
+        self.dispatch_queue(now, &id);
+    }
+
+    fn set_withdrawn(&mut self, system: &str, service: &str, withdrawn: bool) {
+        let id = ServiceId::new(system, service);
+        let Some(svc) = self.services.get_mut(&id) else { return };
+        if svc.withdrawn == withdrawn {
+            return;
+        }
+        svc.withdrawn = withdrawn;
+        self.list_dirty = true;
+        if withdrawn {
+            let waiting: Vec<Waiting> = svc.queue.drain(..).collect();
+            for w in waiting {
+                self.refuse(&w.user, w.req, Refusal::Withdrawn);
+            }
+        }
+    }
+
+    fn hello(&mut self, user: UserId, pid: u32, links: Vec<LinkInfo>) {
+        let rec = self.users.entry(user.clone()).or_insert_with(|| UserRec { pid: 0, links: BTreeMap::new() });
+        rec.pid = pid;
+        rec.links = links.into_iter().map(|l| (l.link, l)).collect();
+        self.recount_links();
+        self.out.push_back(Output::WatchUser { user: user.clone(), pid });
+        self.out
+            .push_back(Output::ToUser(user, ToUser::Welcome { epoch: self.epoch, broker_pid: self.pid }));
+    }
+
+    fn request(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
+        self.stats.requests += 1;
+        self.users.entry(user.clone()).or_insert_with(|| UserRec { pid: 0, links: BTreeMap::new() });
+        let Some(svc) = self.services.get(&service) else {
+            return self.refuse(&user, req, Refusal::Unknown);
+        };
+        if svc.withdrawn {
+            return self.refuse(&user, req, Refusal::Withdrawn);
+        }
+        let already = svc.queue.iter().any(|w| w.user == user)
+            || self.offers.values().any(|o| o.user == user && o.service == service);
+        if already {
+            return self.refuse(&user, req, Refusal::AlreadyPending);
+        }
+        let quota = svc.spec.quota;
+        if svc.used() < quota as usize && svc.queue.is_empty() {
+            return self.offer(now, user, req, service);
+        }
+        if !svc.spec.queue {
+            return self.refuse(&user, req, Refusal::QuotaFull { quota });
+        }
+        let waiting = svc.queue.len();
+        if waiting >= self.cfg.queue_capacity as usize {
+            let waiting = u16::try_from(waiting).unwrap_or(u16::MAX);
+            return self.refuse(&user, req, Refusal::QueueFull { waiting });
+        }
+        let svc = self.services.get_mut(&service).expect("checked above");
+        svc.queue.push_back(Waiting { user: user.clone(), req });
+        let position = u16::try_from(svc.queue.len()).unwrap_or(u16::MAX);
+        self.stats.queued += 1;
+        self.list_dirty = true;
+        self.out.push_back(Output::ToUser(user, ToUser::Queued { req, position }));
+    }
+
+    fn offer(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
+        let Some(svc) = self.services.get_mut(&service) else {
+            return self.refuse(&user, req, Refusal::Unknown);
+        };
+        svc.pending += 1;
+        let ticket = self.next_ticket;
+        self.next_ticket += 1;
+        let system = svc.system.clone();
+        let name = svc.spec.name.clone();
+        self.offers.insert(
+            ticket,
+            Offer { user: user.clone(), req, service, deadline: now + self.cfg.offer_timeout },
+        );
+        self.stats.offers += 1;
+        self.list_dirty = true;
+        let user_pid = self.users.get(&user).map_or(0, |u| u.pid);
+        self.out.push_back(Output::ToSystem(
+            system,
+            ToSystem::Offer { ticket, user, user_pid, req, service: name },
+        ));
+    }
+
+    fn cancel(&mut self, now: Duration, user: &UserId, req: u64) {
+        let mut touched = Vec::new();
+        for (id, svc) in self.services.iter_mut() {
+            let before = svc.queue.len();
+            svc.queue.retain(|w| !(w.user == *user && w.req == req));
+            if svc.queue.len() != before {
+                touched.push(id.clone());
+            }
+        }
+        for id in touched {
+            self.list_dirty = true;
+            self.announce_positions(&id);
+            self.dispatch_queue(now, &id);
+        }
+    }
+
+    fn forget_user(&mut self, now: Duration, user: &UserId) {
+        let had = self.users.remove(user).is_some();
+        let mut touched = Vec::new();
+        for (id, svc) in self.services.iter_mut() {
+            let before = svc.queue.len();
+            svc.queue.retain(|w| w.user != *user);
+            if svc.queue.len() != before {
+                touched.push(id.clone());
+            }
+        }
+        for id in touched {
+            self.list_dirty = true;
+            self.announce_positions(&id);
+            self.dispatch_queue(now, &id);
+        }
+        if had {
+            self.recount_links();
+            self.out.push_back(Output::ForgetUser(user.clone()));
+        }
+    }
+
+    /// Grants waiting requests while the quota allows, head first.
+    fn dispatch_queue(&mut self, now: Duration, id: &ServiceId) {
+        let mut moved = false;
+        loop {
+            let Some(svc) = self.services.get_mut(id) else { return };
+            if svc.withdrawn || svc.used() >= svc.spec.quota as usize {
+                break;
+            }
+            let Some(w) = svc.queue.pop_front() else { break };
+            moved = true;
+            self.offer(now, w.user, w.req, id.clone());
+        }
+        if moved {
+            self.announce_positions(id);
+        }
+    }
+
+    fn announce_positions(&mut self, id: &ServiceId) {
+        let Some(svc) = self.services.get(id) else { return };
+        for (i, w) in svc.queue.iter().enumerate() {
+            let position = u16::try_from(i + 1).unwrap_or(u16::MAX);
+            self.out.push_back(Output::ToUser(
+                w.user.clone(),
+                ToUser::Queued { req: w.req, position },
+            ));
+        }
+    }
+
+    fn release_pending(&mut self, id: &ServiceId) {
+        if let Some(svc) = self.services.get_mut(id) {
+            svc.pending = svc.pending.saturating_sub(1);
+            self.list_dirty = true;
+        }
+    }
+
+    fn refuse(&mut self, user: &UserId, req: u64, reason: Refusal) {
+        *self.stats.refusals.entry(reason.code()).or_default() += 1;
+        self.out.push_back(Output::ToUser(user.clone(), ToUser::Refused { req, reason }));
+    }
+
+    fn drop_service(&mut self, id: &ServiceId, why: Refusal) {
+        if let Some(svc) = self.services.remove(id) {
+            for w in svc.queue {
+                self.refuse(&w.user, w.req, why.clone());
+            }
+        }
+        let stale: Vec<u64> =
+            self.offers.iter().filter(|(_, o)| o.service == *id).map(|(t, _)| *t).collect();
+        for t in stale {
+            if let Some(o) = self.offers.remove(&t) {
+                self.refuse(&o.user, o.req, why.clone());
+            }
+        }
+        self.list_dirty = true;
+    }
+
+    fn remove_system(&mut self, name: &str, why: Removal) {
+        let Some(rec) = self.systems.remove(name) else { return };
+        for service in &rec.services {
+            self.drop_service(&ServiceId::new(name, service), Refusal::SystemGone);
+        }
+        match why {
+            Removal::Delinquent => {
+                self.stats.delinquent += 1;
+                self.out.push_back(Output::ToSystem(name.to_string(), ToSystem::Delinquent));
+            }
+            Removal::Died => self.stats.died += 1,
+            Removal::Unregistered => {}
+        }
+        self.out.push_back(Output::ForgetSystem(name.to_string()));
+        self.recount_links();
+        self.list_dirty = true;
+    }
+
+    fn recount_links(&mut self) {
+        let mut counts: BTreeMap<&ServiceId, u16> = BTreeMap::new();
+        for u in self.users.values() {
+            for l in u.links.values() {
+                *counts.entry(&l.data).or_default() += 1;
+                *counts.entry(&l.command).or_default() += 1;
+            }
+        }
+        let counts: BTreeMap<ServiceId, u16> =
+            counts.into_iter().map(|(k, v)| (k.clone(), v)).collect();
+        for (id, svc) in self.services.iter_mut() {
+            let n = counts.get(id).copied().unwrap_or(0);
+            if svc.links != n {
+                svc.links = n;
+                self.list_dirty = true;
+            }
+        }
+    }
+
+    /// Kind of a listed service, if known.
+    pub fn kind_of(&self, id: &ServiceId) -> Option<ServiceKind> {
+        self.services.get(id).map(|s| s.spec.kind)
+    }
+}

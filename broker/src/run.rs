@@ -1,0 +1,263 @@
+//! The broker process: drives [`crate::core::Broker`] over iceoryx2.
+//!
+//! It sleeps in one epoll over its bell, a signal pipe and one pidfd per registered
+//! system and user, and wakes only for frames, process deaths, or the core's next
+//! deadline (a ping, a ping timeout, an offer timeout).
+
+use crate::core::{Broker, BrokerConfig, Output};
+use muster_shared::ipc::{bell, create_node, Endpoint, ListWriter, Presence, TransportError};
+use muster_shared::names::{Address, Instance};
+use muster_shared::protocol::{decode, encode, ToBroker};
+use muster_shared::reactor::{raise_fd_limit, PidFd, Reactor, SignalPipe};
+use muster_shared::snapshot::{ServiceListSnapshot, MAX_LISTED_SERVICES};
+use muster_shared::types::UserId;
+use std::collections::HashMap;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// Why the broker could not start or had to stop.
+#[derive(Debug, thiserror::Error)]
+pub enum BrokerError {
+    /// Shared memory could not be set up; see the detail (another broker on this instance?).
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    /// The OS refused epoll, signals or rlimits.
+    #[error("os: {0}")]
+    Os(#[from] std::io::Error),
+    /// Another broker already serves this instance.
+    #[error("another broker already serves instance {0:?}")]
+    AlreadyRunning(String),
+}
+
+const TOKEN_BELL: usize = 0;
+const TOKEN_SIGNAL: usize = 1;
+const FIRST_WATCH_TOKEN: usize = 16;
+
+enum Watched {
+    System(String),
+    User(UserId),
+}
+
+struct Watch {
+    who: Watched,
+    pidfd: PidFd,
+}
+
+/// The broker process's state outside the core.
+struct Shell {
+    endpoint: Endpoint,
+    list: ListWriter,
+    reactor: Reactor,
+    watches: HashMap<usize, Watch>,
+    by_system: HashMap<String, usize>,
+    by_user: HashMap<UserId, usize>,
+    next_token: usize,
+    bad_frames: u64,
+    snapshot: Box<ServiceListSnapshot>,
+}
+
+/// Runs a broker on `inst` until SIGINT or SIGTERM.
+pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
+    match raise_fd_limit() {
+        Ok(n) if n < 4096 => {
+            tracing::warn!("file-descriptor limit is {n}: at most about {} users", n / 4)
+        }
+        Ok(n) => tracing::debug!("file-descriptor limit {n}"),
+        Err(e) => tracing::warn!("cannot raise the file-descriptor limit: {e}"),
+    }
+    let node = create_node(&format!("muster-broker-{inst}"), true)?;
+    node.try_cleanup_dead_nodes();
+    let endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
+        TransportError::Service { ref detail, .. } if detail.contains("ExceedsMax") => {
+            BrokerError::AlreadyRunning(inst.to_string())
+        }
+        other => BrokerError::from(other),
+    })?;
+    let presence = Presence::announce(endpoint.node(), inst)?;
+    let list = ListWriter::open(endpoint.node(), inst)?;
+    let pid = std::process::id();
+    let epoch = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0)
+        ^ (u64::from(pid) << 40);
+    let mut core = Broker::new(cfg, epoch, pid);
+    let mut signals = SignalPipe::install()?;
+    let reactor = Reactor::new()?;
+    reactor.add(endpoint.bell_fd(), TOKEN_BELL)?;
+    reactor.add(signals.raw(), TOKEN_SIGNAL)?;
+    let mut shell = Shell {
+        endpoint,
+        list,
+        reactor,
+        watches: HashMap::new(),
+        by_system: HashMap::new(),
+        by_user: HashMap::new(),
+        next_token: FIRST_WATCH_TOKEN,
+        bad_frames: 0,
+        snapshot: Box::new(ServiceListSnapshot::empty()),
+    };
+    shell.snapshot.epoch = epoch;
+    let start = Instant::now();
+    shell.flush(&mut core)?;
+    presence.ring(bell::BROKER_UP);
+    tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), "broker up");
+
+    loop {
+        let now = start.elapsed();
+        let timeout = core.poll_timeout().map(|t| t.saturating_sub(now));
+        let tokens = shell.reactor.wait(timeout)?;
+        let now = start.elapsed();
+        let mut died = false;
+        for token in tokens {
+            match token {
+                TOKEN_BELL => {
+                    shell.endpoint.drain_bell();
+                }
+                TOKEN_SIGNAL => {
+                    if signals.drain() {
+                        tracing::info!("signal received: broker stopping");
+                        presence.ring(bell::BROKER_DOWN);
+                        return Ok(());
+                    }
+                }
+                t => {
+                    if let Some(w) = shell.watches.get(&t) {
+                        if w.pidfd.exited() {
+                            died = true;
+                            match &w.who {
+                                Watched::System(s) => core.system_died(now, &s.clone()),
+                                Watched::User(u) => core.user_died(now, &u.clone()),
+                            }
+                            shell.unwatch(t);
+                        }
+                    }
+                }
+            }
+        }
+        shell.drain_inbox(&mut core, now)?;
+        if core.poll_timeout().is_some_and(|t| t <= now) {
+            core.handle_timeout(now);
+        }
+        shell.flush(&mut core)?;
+        if died {
+            // The dead process's iceoryx2 resources: its node shows as dead at once.
+            let state = shell.endpoint.node().try_cleanup_dead_nodes();
+            tracing::debug!(?state, "cleaned up dead nodes");
+        }
+    }
+}
+
+impl Shell {
+    fn drain_inbox(&mut self, core: &mut Broker, now: Duration) -> Result<(), BrokerError> {
+        while let Some(frame) = self.endpoint.recv()? {
+            match decode::<ToBroker>(&frame) {
+                Ok(msg) => core.handle(now, msg),
+                Err(e) => {
+                    self.bad_frames += 1;
+                    if self.bad_frames.is_power_of_two() {
+                        tracing::warn!(count = self.bad_frames, "dropped a malformed frame: {e}");
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self, core: &mut Broker) -> Result<(), BrokerError> {
+        while let Some(out) = core.poll_output() {
+            match out {
+                Output::ToSystem(name, msg) => self.send(&Address::System(name), &msg),
+                Output::ToUser(user, msg) => self.send(&Address::User(user), &msg),
+                Output::WatchSystem { system, pid } => {
+                    if let Some(t) = self.by_system.remove(&system) {
+                        self.unwatch(t);
+                    }
+                    if let Some(t) = self.watch(Watched::System(system.clone()), pid) {
+                        self.by_system.insert(system, t);
+                    }
+                }
+                Output::WatchUser { user, pid } => {
+                    if let Some(t) = self.by_user.remove(&user) {
+                        self.unwatch(t);
+                    }
+                    if let Some(t) = self.watch(Watched::User(user.clone()), pid) {
+                        self.by_user.insert(user, t);
+                    }
+                }
+                Output::ForgetSystem(system) => {
+                    if let Some(t) = self.by_system.remove(&system) {
+                        self.unwatch(t);
+                    }
+                    self.endpoint.forget(&Address::System(system));
+                }
+                Output::ForgetUser(user) => {
+                    if let Some(t) = self.by_user.remove(&user) {
+                        self.unwatch(t);
+                    }
+                    self.endpoint.forget(&Address::User(user));
+                }
+            }
+        }
+        if let Some((generation, views)) = core.take_list_change() {
+            self.snapshot.generation = generation;
+            self.snapshot.count = views.len().min(MAX_LISTED_SERVICES) as u32;
+            for (slot, v) in self.snapshot.entries.iter_mut().zip(views.iter()) {
+                *slot = v.to_entry();
+            }
+            self.list.publish(&self.snapshot)?;
+            let users: Vec<UserId> = core.users().cloned().collect();
+            for u in users {
+                let _ = self.endpoint.ring(&Address::User(u), bell::LIST_CHANGED);
+            }
+        }
+        Ok(())
+    }
+
+    fn send<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        match encode(msg) {
+            Ok(frame) => {
+                if let Err(e) = self.endpoint.send(to, &frame) {
+                    tracing::debug!("{e}");
+                }
+            }
+            Err(e) => tracing::error!("cannot encode a message to {to}: {e}"),
+        }
+    }
+
+    fn watch(&mut self, who: Watched, pid: u32) -> Option<usize> {
+        match PidFd::open(pid) {
+            Ok(pidfd) => {
+                let token = self.next_token;
+                self.next_token += 1;
+                if let Err(e) = self.reactor.add(pidfd.raw(), token) {
+                    tracing::warn!("cannot watch pid {pid}: {e}; relying on pings");
+                    return None;
+                }
+                self.watches.insert(token, Watch { who, pidfd });
+                Some(token)
+            }
+            Err(e) => {
+                tracing::warn!("cannot watch pid {pid}: {e}; relying on pings");
+                None
+            }
+        }
+    }
+
+    fn unwatch(&mut self, token: usize) {
+        if let Some(w) = self.watches.remove(&token) {
+            self.reactor.remove(w.pidfd.raw());
+            match w.who {
+                Watched::System(s) => {
+                    if self.by_system.get(&s) == Some(&token) {
+                        self.by_system.remove(&s);
+                    }
+                }
+                Watched::User(u) => {
+                    if self.by_user.get(&u) == Some(&token) {
+                        self.by_user.remove(&u);
+                    }
+                }
+            }
+        }
+    }
+}
