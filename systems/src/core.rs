@@ -1,0 +1,366 @@
+//! A robot system's side of the protocol as a pure state machine: registration,
+//! pings, offers, sessions with sequence numbers, withdrawal. No I/O, no clock.
+
+use muster_shared::protocol::{ActiveSession, ToBroker, ToSystem, ToUser};
+use muster_shared::types::{
+    EndReason, Payload, ServiceId, ServiceKind, ServiceSpec, SessionId, TaskStatus, UserId,
+};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+
+/// What the system wants sent or watched.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SystemOutput {
+    /// Send to the broker.
+    ToBroker(ToBroker),
+    /// Send to a user (directly, not through the broker).
+    ToUser(UserId, ToUser),
+    /// Watch the broker's process for death.
+    WatchBroker(u32),
+    /// Watch a user's process for death.
+    WatchUser(UserId, u32),
+    /// Forget a user's ports and watch.
+    ForgetUser(UserId),
+}
+
+/// What happened, for the system's own logic.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SystemEvent {
+    /// The broker listed our services.
+    Registered,
+    /// The broker refused our registration; fix the cause and restart.
+    RegistrationRefused(String),
+    /// The broker declared us delinquent; we re-register.
+    Delinquent,
+    /// The broker is gone; sessions go on, we re-register when it is back.
+    BrokerLost,
+    /// A session began.
+    SessionStarted {
+        /// The session.
+        session: SessionId,
+        /// Its user.
+        user: UserId,
+        /// Service name.
+        service: String,
+    },
+    /// Task input arrived on a command session.
+    Input {
+        /// The session.
+        session: SessionId,
+        /// Service name.
+        service: String,
+        /// The input.
+        payload: Payload,
+    },
+    /// A session ended.
+    SessionEnded {
+        /// The session.
+        session: SessionId,
+        /// Service name.
+        service: String,
+        /// Why.
+        reason: EndReason,
+    },
+}
+
+/// Where the system stands with the broker.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BrokerState {
+    /// Not registered (no broker, or waiting for an answer).
+    Unregistered,
+    /// Registered with the broker run `epoch`.
+    Registered {
+        /// The broker's run.
+        epoch: u64,
+    },
+}
+
+#[derive(Clone, Debug)]
+struct Session {
+    user: UserId,
+    service: String,
+    seq: u64,
+}
+
+/// One system's protocol state.
+#[derive(Debug)]
+pub struct SystemCore {
+    name: String,
+    pid: u32,
+    specs: Vec<ServiceSpec>,
+    withdrawn: BTreeSet<String>,
+    sessions: BTreeMap<SessionId, Session>,
+    state: BrokerState,
+    session_prefix: u64,
+    next_session: u64,
+    overloaded: bool,
+    out: VecDeque<SystemOutput>,
+    events: VecDeque<SystemEvent>,
+}
+
+impl SystemCore {
+    /// A system named `name` in process `pid` offering `specs`. `salt` makes session ids
+    /// unique across restarts of the same system (e.g. a start time).
+    pub fn new(name: &str, pid: u32, specs: Vec<ServiceSpec>, salt: u64) -> Self {
+        SystemCore {
+            name: name.to_string(),
+            pid,
+            specs,
+            withdrawn: BTreeSet::new(),
+            sessions: BTreeMap::new(),
+            state: BrokerState::Unregistered,
+            session_prefix: (salt ^ (u64::from(pid) << 16)) << 24,
+            next_session: 1,
+            overloaded: false,
+            out: VecDeque::new(),
+            events: VecDeque::new(),
+        }
+    }
+
+    /// System name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The declared services.
+    pub fn specs(&self) -> &[ServiceSpec] {
+        &self.specs
+    }
+
+    /// Where the system stands with the broker.
+    pub fn state(&self) -> BrokerState {
+        self.state
+    }
+
+    /// Next output, if any.
+    pub fn poll_output(&mut self) -> Option<SystemOutput> {
+        self.out.pop_front()
+    }
+
+    /// Next event, if any.
+    pub fn poll_event(&mut self) -> Option<SystemEvent> {
+        self.events.pop_front()
+    }
+
+    /// Sessions currently open, with their user and service.
+    pub fn sessions(&self) -> impl Iterator<Item = (SessionId, &UserId, &str)> {
+        self.sessions.iter().map(|(id, s)| (*id, &s.user, s.service.as_str()))
+    }
+
+    /// Number of open sessions of `service`.
+    pub fn sessions_of(&self, service: &str) -> usize {
+        self.sessions.values().filter(|s| s.service == service).count()
+    }
+
+    /// Refuse new offers ("overloaded") while `true`.
+    pub fn set_overloaded(&mut self, value: bool) {
+        self.overloaded = value;
+    }
+
+    /// Sends (or re-sends) the registration, with the sessions already held.
+    pub fn register(&mut self) {
+        let sessions = self
+            .sessions
+            .iter()
+            .map(|(id, s)| ActiveSession { session: *id, service: s.service.clone(), user: s.user.clone() })
+            .collect();
+        self.out.push_back(SystemOutput::ToBroker(ToBroker::Register {
+            system: self.name.clone(),
+            pid: self.pid,
+            services: self.specs.clone(),
+            sessions,
+        }));
+    }
+
+    /// The broker's process died: sessions go on; re-register when a broker announces itself.
+    pub fn broker_lost(&mut self) {
+        if self.state != BrokerState::Unregistered {
+            self.state = BrokerState::Unregistered;
+            self.events.push_back(SystemEvent::BrokerLost);
+        }
+    }
+
+    /// Handles one frame from the inbox.
+    pub fn handle(&mut self, msg: ToSystem) {
+        match msg {
+            ToSystem::Registered { epoch, broker_pid } => {
+                self.state = BrokerState::Registered { epoch };
+                self.out.push_back(SystemOutput::WatchBroker(broker_pid));
+                for service in self.withdrawn.clone() {
+                    self.to_broker(ToBroker::Withdraw { system: self.name.clone(), service });
+                }
+                self.events.push_back(SystemEvent::Registered);
+            }
+            ToSystem::RegistrationRefused { reason } => {
+                self.state = BrokerState::Unregistered;
+                self.events.push_back(SystemEvent::RegistrationRefused(reason));
+            }
+            ToSystem::Ping { nonce } => {
+                self.to_broker(ToBroker::Pong { system: self.name.clone(), nonce });
+            }
+            ToSystem::Delinquent => {
+                self.state = BrokerState::Unregistered;
+                self.events.push_back(SystemEvent::Delinquent);
+                self.register();
+            }
+            ToSystem::Offer { ticket, user, user_pid, req, service } => {
+                self.offer(ticket, user, user_pid, req, service)
+            }
+            ToSystem::Input { user, session, payload } => {
+                let Some(s) = self.sessions.get(&session) else {
+                    tracing::debug!(%session, "input for an unknown session dropped");
+                    return;
+                };
+                if s.user != user {
+                    tracing::warn!(%session, %user, "input from a user not holding the session dropped");
+                    return;
+                }
+                let service = s.service.clone();
+                self.events.push_back(SystemEvent::Input { session, service, payload });
+            }
+            ToSystem::End { user, session } => {
+                if self.sessions.get(&session).is_some_and(|s| s.user == user) {
+                    self.close(session, EndReason::ByUser, false);
+                }
+            }
+        }
+    }
+
+    fn offer(&mut self, ticket: u64, user: UserId, user_pid: u32, req: u64, service: String) {
+        let answer = match self.specs.iter().find(|s| s.name == service) {
+            None => Err(format!("no service {service:?} here")),
+            Some(_) if self.withdrawn.contains(&service) => Err("service withdrawn".to_string()),
+            Some(_) if self.overloaded => Err("overloaded".to_string()),
+            Some(spec) if self.sessions_of(&service) >= spec.quota as usize => {
+                Err(format!("overloaded: all {} sessions in use", spec.quota))
+            }
+            Some(spec) => Ok(spec.clone()),
+        };
+        match answer {
+            Ok(spec) => {
+                let session = SessionId(self.session_prefix | self.next_session);
+                self.next_session += 1;
+                self.sessions.insert(
+                    session,
+                    Session { user: user.clone(), service: service.clone(), seq: 0 },
+                );
+                if user_pid != 0 {
+                    self.out.push_back(SystemOutput::WatchUser(user.clone(), user_pid));
+                }
+                self.out.push_back(SystemOutput::ToUser(
+                    user.clone(),
+                    ToUser::Granted {
+                        req,
+                        session,
+                        service: ServiceId::new(&self.name, &service),
+                        kind: spec.kind,
+                        payload: spec.payload.clone(),
+                        system_pid: self.pid,
+                    },
+                ));
+                self.to_broker(ToBroker::OfferAnswer {
+                    system: self.name.clone(),
+                    ticket,
+                    answer: Ok(session),
+                });
+                self.events.push_back(SystemEvent::SessionStarted { session, user, service });
+            }
+            Err(reason) => self.to_broker(ToBroker::OfferAnswer {
+                system: self.name.clone(),
+                ticket,
+                answer: Err(reason),
+            }),
+        }
+    }
+
+    /// Streams one data update to every session of `service`. Returns how many got it.
+    pub fn publish(&mut self, service: &str, payload: &Payload) -> usize {
+        let mut n = 0;
+        for (id, s) in self.sessions.iter_mut().filter(|(_, s)| s.service == service) {
+            s.seq += 1;
+            self.out.push_back(SystemOutput::ToUser(
+                s.user.clone(),
+                ToUser::Update { session: *id, seq: s.seq, payload: payload.clone() },
+            ));
+            n += 1;
+        }
+        n
+    }
+
+    /// Sends task status on one session.
+    pub fn status(&mut self, session: SessionId, status: TaskStatus) {
+        if let Some(s) = self.sessions.get_mut(&session) {
+            s.seq += 1;
+            self.out.push_back(SystemOutput::ToUser(
+                s.user.clone(),
+                ToUser::Status { session, seq: s.seq, status },
+            ));
+        }
+    }
+
+    /// Ends a session from the system's side; the user and the broker are told.
+    pub fn end_session(&mut self, session: SessionId, reason: EndReason) {
+        self.close(session, reason, true);
+    }
+
+    fn close(&mut self, session: SessionId, reason: EndReason, tell_user: bool) {
+        let Some(s) = self.sessions.remove(&session) else { return };
+        if tell_user {
+            self.out.push_back(SystemOutput::ToUser(
+                s.user.clone(),
+                ToUser::Ended { session, reason: reason.clone() },
+            ));
+        }
+        self.to_broker(ToBroker::SessionEnded { system: self.name.clone(), session });
+        if !self.sessions.values().any(|o| o.user == s.user) {
+            self.out.push_back(SystemOutput::ForgetUser(s.user.clone()));
+        }
+        self.events.push_back(SystemEvent::SessionEnded { session, service: s.service, reason });
+    }
+
+    /// A user's process died: its sessions end.
+    pub fn user_died(&mut self, user: &UserId) {
+        let ids: Vec<SessionId> =
+            self.sessions.iter().filter(|(_, s)| s.user == *user).map(|(id, _)| *id).collect();
+        for id in ids {
+            self.close(id, EndReason::PeerGone, false);
+        }
+    }
+
+    /// Stops offering `service` for now: its sessions end, the broker is told.
+    pub fn withdraw(&mut self, service: &str) {
+        if !self.specs.iter().any(|s| s.name == service) || !self.withdrawn.insert(service.into()) {
+            return;
+        }
+        let ids: Vec<SessionId> =
+            self.sessions.iter().filter(|(_, s)| s.service == service).map(|(id, _)| *id).collect();
+        for id in ids {
+            self.close(id, EndReason::Withdrawn, true);
+        }
+        self.to_broker(ToBroker::Withdraw { system: self.name.clone(), service: service.into() });
+    }
+
+    /// Offers a withdrawn service again.
+    pub fn restore(&mut self, service: &str) {
+        if self.withdrawn.remove(service) {
+            self.to_broker(ToBroker::Restore { system: self.name.clone(), service: service.into() });
+        }
+    }
+
+    /// Leaves: ends every session and unregisters.
+    pub fn shutdown(&mut self) {
+        let ids: Vec<SessionId> = self.sessions.keys().copied().collect();
+        for id in ids {
+            self.close(id, EndReason::BySystem("system shutting down".into()), true);
+        }
+        self.to_broker(ToBroker::Unregister { system: self.name.clone() });
+    }
+
+    /// Kind of one of our services.
+    pub fn kind_of(&self, service: &str) -> Option<ServiceKind> {
+        self.specs.iter().find(|s| s.name == service).map(|s| s.kind)
+    }
+
+    fn to_broker(&mut self, msg: ToBroker) {
+        self.out.push_back(SystemOutput::ToBroker(msg));
+    }
+}

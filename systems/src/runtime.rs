@@ -1,0 +1,234 @@
+//! The SDK's runtime: drives a [`SystemCore`] over iceoryx2 and calls the system's own
+//! logic ([`SystemApp`]) on events and on its ticks.
+//!
+//! A new robot system implements [`SystemApp`] and calls [`run_system`]. The runtime
+//! registers, answers pings, re-registers after delinquency or a broker restart, and
+//! sleeps on its bell, the broker's presence event and process-death descriptors.
+
+use crate::core::{SystemCore, SystemEvent, SystemOutput};
+use muster_shared::ipc::{bell, create_node, Endpoint, Presence, TransportError};
+use muster_shared::names::{Address, Instance};
+use muster_shared::protocol::{decode, encode, ToBroker, ToSystem};
+use muster_shared::reactor::{PidFd, Reactor, SignalPipe};
+use muster_shared::types::UserId;
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+/// A robot system's own logic.
+pub trait SystemApp {
+    /// Called for every protocol event (session started, input, ended, ...).
+    fn on_event(&mut self, core: &mut SystemCore, now: Duration, event: SystemEvent);
+    /// Called when [`SystemApp::next_tick`] has passed.
+    fn on_tick(&mut self, core: &mut SystemCore, now: Duration);
+    /// When to call [`SystemApp::on_tick`] next; `None` sleeps until an event.
+    fn next_tick(&self, core: &SystemCore) -> Option<Duration>;
+}
+
+/// Why a system stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum SystemError {
+    /// Shared memory could not be set up.
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    /// The OS refused epoll or signals.
+    #[error("os: {0}")]
+    Os(#[from] std::io::Error),
+    /// The broker refused the registration; the reason says what to fix.
+    #[error("registration refused: {0}")]
+    Refused(String),
+}
+
+const TOKEN_BELL: usize = 0;
+const TOKEN_PRESENCE: usize = 1;
+const TOKEN_SIGNAL: usize = 2;
+const TOKEN_BROKER: usize = 3;
+const FIRST_USER_TOKEN: usize = 16;
+
+struct Shell {
+    endpoint: Endpoint,
+    reactor: Reactor,
+    broker: Option<PidFd>,
+    users: HashMap<usize, (UserId, PidFd)>,
+    user_tokens: HashMap<UserId, usize>,
+    next_token: usize,
+    waiting_logged: bool,
+}
+
+/// Runs `app` as system `core` on instance `inst` until SIGINT/SIGTERM.
+pub fn run_system<A: SystemApp>(
+    inst: &Instance,
+    mut core: SystemCore,
+    mut app: A,
+) -> Result<(), SystemError> {
+    let node = create_node(&format!("muster-system-{}", core.name()), true)?;
+    let endpoint = Endpoint::open(inst, Address::System(core.name().to_string()), node)?;
+    let presence = Presence::listen(endpoint.node(), inst)?;
+    let mut signals = SignalPipe::install()?;
+    let reactor = Reactor::new()?;
+    reactor.add(endpoint.bell_fd(), TOKEN_BELL)?;
+    if let Some(fd) = presence.fd() {
+        reactor.add(fd, TOKEN_PRESENCE)?;
+    }
+    reactor.add(signals.raw(), TOKEN_SIGNAL)?;
+    let mut shell = Shell {
+        endpoint,
+        reactor,
+        broker: None,
+        users: HashMap::new(),
+        user_tokens: HashMap::new(),
+        next_token: FIRST_USER_TOKEN,
+        waiting_logged: false,
+    };
+    let start = Instant::now();
+    core.register();
+    shell.flush(&mut core);
+    tracing::info!(system = core.name(), services = core.specs().len(), "system up");
+
+    loop {
+        let now = start.elapsed();
+        let timeout = app.next_tick(&core).map(|t| t.saturating_sub(now));
+        let tokens = shell.reactor.wait(timeout)?;
+        let now = start.elapsed();
+        for token in tokens {
+            match token {
+                TOKEN_BELL => {
+                    shell.endpoint.drain_bell();
+                }
+                TOKEN_PRESENCE => {
+                    let rung = presence.drain();
+                    if rung & (1 << bell::BROKER_DOWN) != 0 {
+                        core.broker_lost();
+                        shell.drop_broker();
+                    }
+                    if rung & (1 << bell::BROKER_UP) != 0 {
+                        core.broker_lost();
+                        shell.drop_broker();
+                        core.register();
+                    }
+                }
+                TOKEN_SIGNAL => {
+                    if signals.drain() {
+                        tracing::info!(system = core.name(), "signal received: leaving");
+                        core.shutdown();
+                        shell.flush(&mut core);
+                        return Ok(());
+                    }
+                }
+                TOKEN_BROKER => {
+                    if shell.broker.as_ref().is_some_and(PidFd::exited) {
+                        tracing::warn!("broker died; sessions go on, waiting for a new broker");
+                        core.broker_lost();
+                        shell.drop_broker();
+                    }
+                }
+                t => {
+                    let dead = shell.users.get(&t).filter(|(_, p)| p.exited()).map(|(u, _)| u.clone());
+                    if let Some(user) = dead {
+                        core.user_died(&user);
+                        shell.unwatch_user(&user);
+                    }
+                }
+            }
+        }
+        while let Some(frame) = shell.endpoint.recv()? {
+            match decode::<ToSystem>(&frame) {
+                Ok(msg) => core.handle(msg),
+                Err(e) => tracing::warn!("dropped a malformed frame: {e}"),
+            }
+        }
+        if app.next_tick(&core).is_some_and(|t| t <= now) {
+            app.on_tick(&mut core, now);
+        }
+        loop {
+            shell.flush(&mut core);
+            let Some(ev) = core.poll_event() else { break };
+            match &ev {
+                SystemEvent::RegistrationRefused(r) => return Err(SystemError::Refused(r.clone())),
+                SystemEvent::Registered => {
+                    shell.waiting_logged = false;
+                    tracing::info!(system = core.name(), "registered with the broker");
+                }
+                SystemEvent::Delinquent => tracing::warn!("broker declared us delinquent; re-registering"),
+                _ => {}
+            }
+            app.on_event(&mut core, now, ev);
+        }
+    }
+}
+
+impl Shell {
+    fn flush(&mut self, core: &mut SystemCore) {
+        while let Some(out) = core.poll_output() {
+            match out {
+                SystemOutput::ToBroker(msg) => {
+                    let is_register = matches!(msg, ToBroker::Register { .. });
+                    match encode(&msg).map(|f| self.endpoint.send(&Address::Broker, &f)) {
+                        Ok(Ok(())) => {}
+                        Ok(Err(TransportError::Unreachable(_))) if is_register => {
+                            if !self.waiting_logged {
+                                tracing::info!("no broker yet; waiting for one to announce itself");
+                                self.waiting_logged = true;
+                            }
+                        }
+                        Ok(Err(e)) => tracing::debug!("{e}"),
+                        Err(e) => tracing::error!("cannot encode: {e}"),
+                    }
+                }
+                SystemOutput::ToUser(user, msg) => {
+                    match encode(&msg).map(|f| self.endpoint.send(&Address::User(user.clone()), &f)) {
+                        Ok(Ok(())) => {}
+                        Ok(Err(e)) => tracing::debug!("{e}"),
+                        Err(e) => tracing::error!("cannot encode: {e}"),
+                    }
+                }
+                SystemOutput::WatchBroker(pid) => {
+                    self.drop_broker_watch();
+                    match PidFd::open(pid) {
+                        Ok(p) => {
+                            if self.reactor.add(p.raw(), TOKEN_BROKER).is_ok() {
+                                self.broker = Some(p);
+                            }
+                        }
+                        Err(e) => tracing::warn!("cannot watch the broker (pid {pid}): {e}"),
+                    }
+                }
+                SystemOutput::WatchUser(user, pid) => {
+                    if self.user_tokens.contains_key(&user) {
+                        continue;
+                    }
+                    if let Ok(p) = PidFd::open(pid) {
+                        let t = self.next_token;
+                        self.next_token += 1;
+                        if self.reactor.add(p.raw(), t).is_ok() {
+                            self.users.insert(t, (user.clone(), p));
+                            self.user_tokens.insert(user, t);
+                        }
+                    }
+                }
+                SystemOutput::ForgetUser(user) => {
+                    self.unwatch_user(&user);
+                    self.endpoint.forget(&Address::User(user));
+                }
+            }
+        }
+    }
+
+    fn drop_broker_watch(&mut self) {
+        if let Some(p) = self.broker.take() {
+            self.reactor.remove(p.raw());
+        }
+    }
+
+    fn drop_broker(&mut self) {
+        self.drop_broker_watch();
+        self.endpoint.forget(&Address::Broker);
+    }
+
+    fn unwatch_user(&mut self, user: &UserId) {
+        if let Some(t) = self.user_tokens.remove(user) {
+            if let Some((_, p)) = self.users.remove(&t) {
+                self.reactor.remove(p.raw());
+            }
+        }
+    }
+}
