@@ -1,1 +1,10 @@
-//! stub
+//! The user side of muster: [`core::UserCore`] is the protocol state machine (requests,
+//! sessions, links), [`client::UserClient`] drives it over shared memory with a blocking
+//! API, and [`menu`] is the paper's interactive terminal menu.
+
+pub mod client;
+pub mod core;
+pub mod menu;
+
+pub use crate::client::{ConnectOptions, UserClient, UserError, Wake};
+pub use crate::core::{UserCore, UserEvent, UserOutput};

@@ -1,0 +1,134 @@
+//! Command-line flags.
+
+use clap::{Args, Parser, Subcommand};
+use muster_shared::types::ServiceKind;
+use std::time::Duration;
+
+/// muster: many users, many robots, one broker, zero-copy shared memory.
+#[derive(Parser, Debug)]
+#[command(name = "muster", version, about)]
+pub struct Cli {
+    /// Instance name: prefixes everything this process creates in shared memory.
+    #[arg(long, global = true, default_value = "default")]
+    pub instance: String,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Run the broker: registry of systems and services, request arbitration, liveness.
+    Broker(BrokerArgs),
+    /// Run a robot system.
+    #[command(subcommand)]
+    System(SystemCommand),
+    /// Act as a user: list, request, link, or (no verb) the interactive menu.
+    User(UserArgs),
+    /// Run the main job on the built-in default: a broker and synthetic systems as child
+    /// processes, and a user listing, requesting, receiving data and linking.
+    Up(UpArgs),
+}
+
+fn duration(s: &str) -> Result<Duration, String> {
+    humantime::parse_duration(s).map_err(|e| format!("{e} (examples: 500ms, 5s, 2m)"))
+}
+
+#[derive(Args, Debug)]
+pub struct BrokerArgs {
+    /// How often each system is pinged.
+    #[arg(long, default_value = "20s", value_parser = duration)]
+    pub ping_interval: Duration,
+    /// How long a system has to answer a ping before it is delinquent.
+    #[arg(long, default_value = "10s", value_parser = duration)]
+    pub ping_timeout: Duration,
+    /// How long a system has to answer a forwarded request.
+    #[arg(long, default_value = "10s", value_parser = duration)]
+    pub offer_timeout: Duration,
+    /// Most requests one service's task queue holds.
+    #[arg(long, default_value_t = 32)]
+    pub queue_capacity: u16,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum SystemCommand {
+    /// A generic system offering K services (streaming poses, or driving to goals).
+    Synthetic(SyntheticArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct SyntheticArgs {
+    /// System name, unique on the instance.
+    #[arg(long)]
+    pub name: String,
+    /// How many services to offer.
+    #[arg(long, default_value_t = 1)]
+    pub services: usize,
+    /// Service kind: data or command.
+    #[arg(long, default_value = "data")]
+    pub kind: ServiceKind,
+    /// Sessions each service accepts at once.
+    #[arg(long, default_value_t = 10)]
+    pub quota: u16,
+    /// Keep a task queue: requests beyond the quota wait instead of being refused.
+    #[arg(long)]
+    pub queue: bool,
+    /// Payload type name (default pose2d for data, goal2d for command).
+    #[arg(long)]
+    pub payload: Option<String>,
+    /// Update rate, Hz.
+    #[arg(long, default_value_t = 10.0)]
+    pub rate: f64,
+}
+
+#[derive(Args, Debug)]
+pub struct UserArgs {
+    /// How long to wait for a broker.
+    #[arg(long, default_value = "5s", value_parser = duration, global = true)]
+    pub wait: Duration,
+    #[command(subcommand)]
+    pub verb: Option<UserVerb>,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum UserVerb {
+    /// Print the service list snapshot.
+    List {
+        /// One JSON array instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Request a service and print the answer and then each update until the duration ends.
+    Request {
+        /// Service id, `system/service` (see `muster user list`).
+        id: String,
+        /// How long to keep the session.
+        #[arg(long, default_value = "5s", value_parser = duration)]
+        duration: Duration,
+        /// For a command service: send this goal once granted, `X,Y` in metres.
+        #[arg(long, allow_hyphen_values = true)]
+        goal: Option<String>,
+        /// One JSON object a line.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Link a data service into a command service: data becomes the command's task input.
+    Link {
+        /// Data service id.
+        data: String,
+        /// Command service id.
+        command: String,
+        /// How long to keep the link.
+        #[arg(long, default_value = "5s", value_parser = duration)]
+        duration: Duration,
+        /// One JSON object a line.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Args, Debug)]
+pub struct UpArgs {
+    /// Stop by itself after this long (default: run until Ctrl-C).
+    #[arg(long, value_parser = duration)]
+    pub duration: Option<Duration>,
+}

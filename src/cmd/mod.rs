@@ -1,0 +1,22 @@
+//! One file per command.
+
+mod broker;
+mod system;
+mod up;
+mod user;
+
+use crate::cli::{Cli, Command};
+use anyhow::Context;
+use muster_shared::Instance;
+use std::process::ExitCode;
+
+/// Runs the parsed command.
+pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    let inst = Instance::new(&cli.instance).context("--instance")?;
+    match cli.command {
+        Command::Broker(a) => broker::run(&inst, a),
+        Command::System(s) => system::run(&inst, s),
+        Command::User(u) => user::run(&inst, u),
+        Command::Up(a) => up::run(&inst, a),
+    }
+}

@@ -1,0 +1,273 @@
+//! `muster user ...`: list, request, link, and the interactive menu.
+
+use crate::cli::{UserArgs, UserVerb};
+use anyhow::Context;
+use muster_shared::types::{EndReason, Payload, ServiceId, ServiceKind};
+use muster_shared::Instance;
+use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
+use serde_json::{json, Value};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
+    let opts = ConnectOptions { wait_for_broker: a.wait, handle_signals: true };
+    let client = UserClient::connect(inst, &opts)?;
+    match a.verb {
+        None => {
+            muster_users::menu::run(client)?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Some(UserVerb::List { json }) => list(client, json),
+        Some(UserVerb::Request { id, duration, goal, json }) => {
+            let goal = goal.map(|g| parse_goal(&g)).transpose()?;
+            request(client, &ServiceId(id), duration, goal, json)
+        }
+        Some(UserVerb::Link { data, command, duration, json }) => {
+            link(client, &ServiceId(data), &ServiceId(command), duration, json)
+        }
+    }
+}
+
+fn parse_goal(s: &str) -> anyhow::Result<Payload> {
+    let (x, y) = s.split_once(',').context("--goal takes X,Y (metres), e.g. 3.5,-2")?;
+    let x: f64 = x.trim().parse().context("--goal X")?;
+    let y: f64 = y.trim().parse().context("--goal Y")?;
+    anyhow::ensure!(x.is_finite() && y.is_finite(), "--goal must be finite");
+    Ok(Payload::Goal2d { x, y })
+}
+
+/// A payload as JSON: `{"type": "pose2d", "x": ..}`.
+pub fn payload_json(p: &Payload) -> Value {
+    match p {
+        Payload::Pose2d { x, y, theta } => json!({"type": "pose2d", "x": x, "y": y, "theta": theta}),
+        Payload::Goal2d { x, y } => json!({"type": "goal2d", "x": x, "y": y}),
+        Payload::Scalar(v) => json!({"type": "scalar", "value": v}),
+        Payload::Text(t) => json!({"type": "text", "text": t}),
+    }
+}
+
+fn list(mut client: UserClient, as_json: bool) -> anyhow::Result<ExitCode> {
+    let snapshot = client.list()?;
+    let views = snapshot.views();
+    if as_json {
+        println!("{}", serde_json::to_string_pretty(&views)?);
+    } else {
+        println!("{}", muster_users::menu::table(&views));
+        println!("({} services, list generation {})", views.len(), snapshot.generation);
+    }
+    client.close();
+    Ok(ExitCode::SUCCESS)
+}
+
+fn emit(as_json: bool, value: Value, text: String) {
+    if as_json {
+        println!("{value}");
+    } else {
+        println!("{text}");
+    }
+}
+
+fn request(
+    mut client: UserClient,
+    id: &ServiceId,
+    duration: Duration,
+    goal: Option<Payload>,
+    as_json: bool,
+) -> anyhow::Result<ExitCode> {
+    let req = client.request(id)?;
+    let answer_deadline = Instant::now() + Duration::from_secs(30);
+    let mut first_position = None;
+    let session = loop {
+        match client.next_event(answer_deadline) {
+            Ok(Some(UserEvent::Granted { req: r, session, kind, .. })) if r == req => {
+                emit(
+                    as_json,
+                    json!({"granted": true, "reason": null, "queue_position": first_position,
+                           "session": session.to_string(), "service": id.0, "kind": kind.as_str()}),
+                    format!("granted: session {session} on {id} ({kind})"),
+                );
+                break (session, kind);
+            }
+            Ok(Some(UserEvent::Refused { req: r, reason, .. })) if r == req => {
+                emit(
+                    as_json,
+                    json!({"granted": false, "reason": reason.to_string(), "code": reason.code(),
+                           "queue_position": first_position}),
+                    format!("refused: {reason}"),
+                );
+                client.close();
+                return Ok(ExitCode::from(3));
+            }
+            Ok(Some(UserEvent::Queued { req: r, position, .. })) if r == req => {
+                first_position.get_or_insert(position);
+                if !as_json {
+                    println!("queued at position {position}");
+                }
+            }
+            Ok(Some(_)) => {}
+            Ok(None) => {
+                client.cancel(req);
+                anyhow::bail!("no answer to the request within 30 s");
+            }
+            Err(UserError::Interrupted) => {
+                client.cancel(req);
+                return Ok(ExitCode::from(130));
+            }
+            Err(e) => return Err(e.into()),
+        }
+    };
+    let (session, kind) = session;
+    if let Some(g) = goal {
+        if kind == ServiceKind::Command {
+            client.input(session, g).map_err(|e| anyhow::anyhow!(e))?;
+        } else {
+            eprintln!("muster: --goal ignored: {id} is a data service");
+        }
+    }
+    let end = stream(&mut client, session, Instant::now() + duration, as_json, |_| true)?;
+    let counters = client.core().counters(session).unwrap_or_default();
+    if end.is_none() {
+        client.end(session);
+    }
+    let reason = end.unwrap_or(EndReason::DurationOver);
+    emit(
+        as_json,
+        json!({"ended": true, "reason": reason.to_string(), "last_seq": counters.last_seq, "gaps": counters.gaps}),
+        format!("ended: {reason} (last seq {}, {} lost)", counters.last_seq, counters.gaps),
+    );
+    client.close();
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Prints updates and status of `session` until it ends (returns why) or the deadline.
+fn stream(
+    client: &mut UserClient,
+    session: muster_shared::types::SessionId,
+    deadline: Instant,
+    as_json: bool,
+    mut other: impl FnMut(&UserEvent) -> bool,
+) -> anyhow::Result<Option<EndReason>> {
+    loop {
+        match client.next_event(deadline) {
+            Ok(Some(UserEvent::Update { session: s, seq, gap, payload, .. })) if s == session => emit(
+                as_json,
+                json!({"seq": seq, "gap": gap, "payload": payload_json(&payload)}),
+                format!("#{seq} {payload}{}", if gap > 0 { format!(" ({gap} lost)") } else { String::new() }),
+            ),
+            Ok(Some(UserEvent::Status { session: s, seq, status, .. })) if s == session => emit(
+                as_json,
+                json!({"seq": seq, "status": status.to_string(), "payload": null}),
+                format!("#{seq} status: {status}"),
+            ),
+            Ok(Some(UserEvent::Ended { session: s, reason, .. })) if s == session => {
+                return Ok(Some(reason))
+            }
+            Ok(Some(UserEvent::BrokerLost)) => {
+                if !as_json {
+                    eprintln!("(broker lost; the session goes on)");
+                }
+            }
+            Ok(Some(e)) => {
+                if !other(&e) {
+                    return Ok(None);
+                }
+            }
+            Ok(None) => return Ok(None),
+            Err(UserError::Interrupted) => return Ok(None),
+            Err(e) => return Err(e.into()),
+        }
+    }
+}
+
+fn link(
+    mut client: UserClient,
+    data: &ServiceId,
+    command: &ServiceId,
+    duration: Duration,
+    as_json: bool,
+) -> anyhow::Result<ExitCode> {
+    let link = match client.link(data, command) {
+        Ok(l) => l,
+        Err(e @ (UserError::CannotLink(_) | UserError::UnknownService(_))) => {
+            emit(as_json, json!({"linked": false, "reason": e.to_string()}), format!("link refused: {e}"));
+            client.close();
+            return Ok(ExitCode::from(3));
+        }
+        Err(e) => return Err(e.into()),
+    };
+    let setup_deadline = Instant::now() + Duration::from_secs(30);
+    let (mut data_session, mut cmd_session) = (None, None);
+    loop {
+        match client.next_event(setup_deadline) {
+            Ok(Some(UserEvent::Granted { session, kind, .. })) => match kind {
+                ServiceKind::Data => data_session = Some(session),
+                ServiceKind::Command => cmd_session = Some(session),
+            },
+            Ok(Some(UserEvent::LinkUp { link: l })) if l == link => break,
+            Ok(Some(UserEvent::LinkEnded { link: l, reason })) if l == link => {
+                emit(as_json, json!({"linked": false, "reason": reason}), format!("link failed: {reason}"));
+                client.close();
+                return Ok(ExitCode::from(3));
+            }
+            Ok(Some(UserEvent::Queued { service, position, .. })) => {
+                if !as_json {
+                    println!("{service}: queued at position {position}");
+                }
+            }
+            Ok(Some(_)) => {}
+            Ok(None) => {
+                client.unlink(link);
+                anyhow::bail!("link not set up within 30 s");
+            }
+            Err(UserError::Interrupted) => {
+                client.unlink(link);
+                return Ok(ExitCode::from(130));
+            }
+            Err(e) => return Err(e.into()),
+        }
+    }
+    let (Some(ds), Some(cs)) = (data_session, cmd_session) else {
+        anyhow::bail!("link up without both sessions");
+    };
+    emit(
+        as_json,
+        json!({"linked": true, "link": link, "data": data.0, "command": command.0,
+               "data_session": ds.to_string(), "command_session": cs.to_string()}),
+        format!("linked: {data} -> {command} (link {link})"),
+    );
+    let deadline = Instant::now() + duration;
+    let mut ended = None;
+    while ended.is_none() {
+        match client.next_event(deadline) {
+            Ok(Some(UserEvent::Update { session, seq, gap, payload, .. })) if session == ds => emit(
+                as_json,
+                json!({"seq": seq, "gap": gap, "payload": payload_json(&payload), "from": data.0}),
+                format!("#{seq} {data}: {payload}"),
+            ),
+            Ok(Some(UserEvent::LinkForwarded { input, .. })) => emit(
+                as_json,
+                json!({"forwarded": payload_json(&input), "to": command.0}),
+                format!("  -> {command}: {input}"),
+            ),
+            Ok(Some(UserEvent::Status { session, seq, status, .. })) if session == cs => emit(
+                as_json,
+                json!({"seq": seq, "status": status.to_string(), "from": command.0, "payload": null}),
+                format!("#{seq} {command}: {status}"),
+            ),
+            Ok(Some(UserEvent::LinkEnded { link: l, reason })) if l == link => ended = Some(reason),
+            Ok(Some(_)) => {}
+            Ok(None) | Err(UserError::Interrupted) => break,
+            Err(e) => return Err(e.into()),
+        }
+    }
+    let reason = match ended {
+        Some(r) => r,
+        None => {
+            client.unlink(link);
+            EndReason::DurationOver.to_string()
+        }
+    };
+    emit(as_json, json!({"ended": true, "reason": reason}), format!("link ended: {reason}"));
+    client.close();
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,397 @@
+//! The user client library: a [`UserCore`] driven over iceoryx2, with a blocking API
+//! that takes deadlines. Reads the service list in place from the broker's blackboard.
+
+use crate::core::{UserCore, UserEvent, UserOutput};
+use muster_shared::ipc::{bell, create_node, Endpoint, ListReader, Presence, TransportError};
+use muster_shared::names::{Address, Instance};
+use muster_shared::protocol::{decode, encode, ToUser};
+use muster_shared::reactor::{PidFd, Reactor, SignalPipe};
+use muster_shared::snapshot::ServiceListSnapshot;
+use muster_shared::types::{link_compatible, Payload, ServiceId, ServiceKind, SessionId, UserId};
+use std::collections::{HashMap, VecDeque};
+use std::os::fd::RawFd;
+use std::time::{Duration, Instant};
+
+/// Why a user operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum UserError {
+    /// Shared memory could not be set up.
+    #[error(transparent)]
+    Transport(#[from] TransportError),
+    /// The OS refused epoll or signals.
+    #[error("os: {0}")]
+    Os(#[from] std::io::Error),
+    /// No broker answered before the deadline; start one with `muster broker`.
+    #[error("no broker on instance {0:?} (start one with `muster broker --instance {0}`)")]
+    NoBroker(String),
+    /// The service id is not in the list.
+    #[error("unknown service {0:?} (see `muster user list`)")]
+    UnknownService(String),
+    /// The two services cannot be linked; the text says why.
+    #[error("cannot link: {0}")]
+    CannotLink(String),
+    /// SIGINT or SIGTERM arrived.
+    #[error("interrupted")]
+    Interrupted,
+}
+
+/// What [`UserClient::wait`] woke for.
+#[derive(Debug)]
+pub enum Wake {
+    /// A protocol event.
+    Event(UserEvent),
+    /// The extra file descriptor is readable.
+    Extra,
+    /// The deadline passed.
+    Timeout,
+}
+
+const TOKEN_BELL: usize = 0;
+const TOKEN_PRESENCE: usize = 1;
+const TOKEN_SIGNAL: usize = 2;
+const TOKEN_BROKER: usize = 3;
+const TOKEN_EXTRA: usize = 4;
+const FIRST_SYSTEM_TOKEN: usize = 16;
+
+/// A connected user.
+pub struct UserClient {
+    inst: Instance,
+    core: UserCore,
+    endpoint: Endpoint,
+    presence: Presence,
+    list: Option<ListReader>,
+    reactor: Reactor,
+    signals: Option<SignalPipe>,
+    broker: Option<PidFd>,
+    systems: HashMap<usize, (String, PidFd)>,
+    system_tokens: HashMap<String, usize>,
+    next_token: usize,
+    events: VecDeque<UserEvent>,
+    extra: Option<RawFd>,
+    closed: bool,
+}
+
+/// How to connect.
+#[derive(Clone, Debug)]
+pub struct ConnectOptions {
+    /// How long to wait for a broker before giving up.
+    pub wait_for_broker: Duration,
+    /// Turn SIGINT/SIGTERM into [`UserError::Interrupted`] (for command-line programs).
+    pub handle_signals: bool,
+}
+
+impl Default for ConnectOptions {
+    fn default() -> Self {
+        ConnectOptions { wait_for_broker: Duration::from_secs(5), handle_signals: true }
+    }
+}
+
+impl UserClient {
+    /// Connects to the broker of `inst`, waiting up to `opts.wait_for_broker` for one.
+    pub fn connect(inst: &Instance, opts: &ConnectOptions) -> Result<Self, UserError> {
+        let pid = std::process::id();
+        let nonce = Instant::now().elapsed().as_nanos() as u64
+            ^ std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_nanos() as u64)
+                .unwrap_or(0);
+        let id = UserId(format!("u{pid}-{:06x}", nonce & 0xff_ffff));
+        let node = create_node(&format!("muster-user-{pid}"), false)?;
+        let endpoint = Endpoint::open(inst, Address::User(id.clone()), node)?;
+        let presence = Presence::listen(endpoint.node(), inst)?;
+        let reactor = Reactor::new()?;
+        reactor.add(endpoint.bell_fd(), TOKEN_BELL)?;
+        if let Some(fd) = presence.fd() {
+            reactor.add(fd, TOKEN_PRESENCE)?;
+        }
+        let signals = if opts.handle_signals {
+            let s = SignalPipe::install()?;
+            reactor.add(s.raw(), TOKEN_SIGNAL)?;
+            Some(s)
+        } else {
+            None
+        };
+        let mut client = UserClient {
+            inst: inst.clone(),
+            core: UserCore::new(id, pid),
+            endpoint,
+            presence,
+            list: None,
+            reactor,
+            signals,
+            broker: None,
+            systems: HashMap::new(),
+            system_tokens: HashMap::new(),
+            next_token: FIRST_SYSTEM_TOKEN,
+            events: VecDeque::new(),
+            extra: None,
+            closed: false,
+        };
+        client.core.hello();
+        client.flush();
+        let deadline = Instant::now() + opts.wait_for_broker;
+        while client.core.connected().is_none() {
+            match client.wait(deadline)? {
+                Wake::Timeout => return Err(UserError::NoBroker(inst.to_string())),
+                Wake::Event(UserEvent::Connected { .. }) => {}
+                Wake::Event(other) => client.events.push_back(other),
+                Wake::Extra => {}
+            }
+        }
+        Ok(client)
+    }
+
+    /// This user's id.
+    pub fn id(&self) -> &UserId {
+        self.core.id()
+    }
+
+    /// The protocol state (sessions, counters, links).
+    pub fn core(&self) -> &UserCore {
+        &self.core
+    }
+
+    /// Reads the newest service list snapshot from shared memory.
+    pub fn list(&mut self) -> Result<Box<ServiceListSnapshot>, UserError> {
+        if self.list.is_none() {
+            self.list = Some(ListReader::open(self.endpoint.node(), &self.inst)?);
+        }
+        Ok(self.list.as_ref().expect("opened above").read()?)
+    }
+
+    /// Asks for a service by id; the answer comes as an event.
+    pub fn request(&mut self, id: &ServiceId) -> Result<u64, UserError> {
+        let req = self.core.request(id.clone());
+        self.flush();
+        Ok(req)
+    }
+
+    /// Gives up a pending or queued request.
+    pub fn cancel(&mut self, req: u64) {
+        self.core.cancel(req);
+        self.flush();
+    }
+
+    /// Ends a session.
+    pub fn end(&mut self, session: SessionId) {
+        self.core.end(session);
+        self.flush();
+    }
+
+    /// Sends task input on a command session.
+    pub fn input(&mut self, session: SessionId, payload: Payload) -> Result<(), String> {
+        let r = self.core.input(session, payload);
+        self.flush();
+        r
+    }
+
+    /// Links a data service into a command service, after checking kinds and payload types
+    /// against the list. Returns the link number.
+    pub fn link(&mut self, data: &ServiceId, command: &ServiceId) -> Result<u64, UserError> {
+        let list = self.list()?;
+        let d = list.find(data).ok_or_else(|| UserError::UnknownService(data.0.clone()))?;
+        let c = list.find(command).ok_or_else(|| UserError::UnknownService(command.0.clone()))?;
+        if d.kind() != ServiceKind::Data {
+            return Err(UserError::CannotLink(format!("{data} is not a data service")));
+        }
+        if c.kind() != ServiceKind::Command {
+            return Err(UserError::CannotLink(format!("{command} is not a command service")));
+        }
+        if !link_compatible(d.payload.as_str(), c.payload.as_str()) {
+            return Err(UserError::CannotLink(format!(
+                "{data} streams {} but {command} takes {}",
+                d.payload.as_str(),
+                c.payload.as_str()
+            )));
+        }
+        let link = self.core.link(data.clone(), command.clone());
+        self.flush();
+        Ok(link)
+    }
+
+    /// Ends a link and its sessions.
+    pub fn unlink(&mut self, link: u64) {
+        self.core.unlink(link);
+        self.flush();
+    }
+
+    /// Also wake [`UserClient::wait`] when `fd` is readable (e.g. a terminal's input).
+    pub fn watch_extra(&mut self, fd: RawFd) -> Result<(), UserError> {
+        if let Some(old) = self.extra.take() {
+            self.reactor.remove(old);
+        }
+        self.reactor.add(fd, TOKEN_EXTRA)?;
+        self.extra = Some(fd);
+        Ok(())
+    }
+
+    /// The next event, waiting until `deadline` at most.
+    pub fn next_event(&mut self, deadline: Instant) -> Result<Option<UserEvent>, UserError> {
+        loop {
+            match self.wait(deadline)? {
+                Wake::Event(e) => return Ok(Some(e)),
+                Wake::Timeout => return Ok(None),
+                Wake::Extra => {}
+            }
+        }
+    }
+
+    /// Waits for an event, the extra fd, or the deadline.
+    pub fn wait(&mut self, deadline: Instant) -> Result<Wake, UserError> {
+        loop {
+            if let Some(e) = self.events.pop_front() {
+                return Ok(Wake::Event(e));
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(Wake::Timeout);
+            }
+            let tokens = self.reactor.wait(Some(deadline - now))?;
+            let mut extra = false;
+            for t in tokens {
+                self.on_token(t, &mut extra)?;
+            }
+            self.pump()?;
+            if extra {
+                return Ok(Wake::Extra);
+            }
+        }
+    }
+
+    fn on_token(&mut self, token: usize, extra: &mut bool) -> Result<(), UserError> {
+        match token {
+            TOKEN_BELL => {
+                if self.endpoint.drain_bell() & (1 << bell::LIST_CHANGED) != 0 {
+                    self.core.list_changed();
+                }
+            }
+            TOKEN_PRESENCE => {
+                let rung = self.presence.drain();
+                if rung & (1 << bell::BROKER_DOWN) != 0 {
+                    self.lose_broker();
+                }
+                if rung & (1 << bell::BROKER_UP) != 0 {
+                    self.lose_broker();
+                    self.core.hello();
+                }
+            }
+            TOKEN_SIGNAL => {
+                if self.signals.as_mut().is_some_and(SignalPipe::drain) {
+                    return Err(UserError::Interrupted);
+                }
+            }
+            TOKEN_BROKER => {
+                if self.broker.as_ref().is_some_and(PidFd::exited) {
+                    tracing::warn!("broker died; sessions go on, new requests wait for a new broker");
+                    self.lose_broker();
+                }
+            }
+            TOKEN_EXTRA => *extra = true,
+            t => {
+                let dead = self.systems.get(&t).filter(|(_, p)| p.exited()).map(|(s, _)| s.clone());
+                if let Some(system) = dead {
+                    self.core.system_died(&system);
+                    self.unwatch_system(&system);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn lose_broker(&mut self) {
+        self.core.broker_lost();
+        if let Some(p) = self.broker.take() {
+            self.reactor.remove(p.raw());
+        }
+        self.endpoint.forget(&Address::Broker);
+    }
+
+    fn pump(&mut self) -> Result<(), UserError> {
+        while let Some(frame) = self.endpoint.recv()? {
+            match decode::<ToUser>(&frame) {
+                Ok(msg) => self.core.handle(msg),
+                Err(e) => tracing::warn!("dropped a malformed frame: {e}"),
+            }
+        }
+        self.flush();
+        while let Some(e) = self.core.poll_event() {
+            self.events.push_back(e);
+        }
+        self.flush();
+        Ok(())
+    }
+
+    fn flush(&mut self) {
+        while let Some(out) = self.core.poll_output() {
+            match out {
+                UserOutput::ToBroker(msg) => self.send(&Address::Broker, &msg),
+                UserOutput::ToSystem(system, msg) => self.send(&Address::System(system), &msg),
+                UserOutput::WatchBroker(pid) => {
+                    if let Some(p) = self.broker.take() {
+                        self.reactor.remove(p.raw());
+                    }
+                    if let Ok(p) = PidFd::open(pid) {
+                        if self.reactor.add(p.raw(), TOKEN_BROKER).is_ok() {
+                            self.broker = Some(p);
+                        }
+                    }
+                }
+                UserOutput::WatchSystem(system, pid) => {
+                    if self.system_tokens.contains_key(&system) {
+                        continue;
+                    }
+                    if let Ok(p) = PidFd::open(pid) {
+                        let t = self.next_token;
+                        self.next_token += 1;
+                        if self.reactor.add(p.raw(), t).is_ok() {
+                            self.systems.insert(t, (system.clone(), p));
+                            self.system_tokens.insert(system, t);
+                        }
+                    } else {
+                        // Already gone before we could watch it.
+                        self.core.system_died(&system);
+                    }
+                }
+                UserOutput::ForgetSystem(system) => {
+                    self.unwatch_system(&system);
+                    self.endpoint.forget(&Address::System(system));
+                }
+            }
+        }
+    }
+
+    fn send<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        match encode(msg) {
+            Ok(frame) => {
+                if let Err(e) = self.endpoint.send(to, &frame) {
+                    tracing::debug!("{e}");
+                }
+            }
+            Err(e) => tracing::error!("cannot encode a message to {to}: {e}"),
+        }
+    }
+
+    fn unwatch_system(&mut self, system: &str) {
+        if let Some(t) = self.system_tokens.remove(system) {
+            if let Some((_, p)) = self.systems.remove(&t) {
+                self.reactor.remove(p.raw());
+            }
+        }
+    }
+
+    /// Ends everything and says goodbye (dropping the client does the same).
+    pub fn close(mut self) {
+        self.core.shutdown();
+        self.flush();
+        self.closed = true;
+    }
+}
+
+impl Drop for UserClient {
+    fn drop(&mut self) {
+        if !self.closed {
+            self.core.shutdown();
+            self.flush();
+        }
+    }
+}

@@ -1,0 +1,510 @@
+//! A user's side of the protocol as a pure state machine: requests, sessions with gap
+//! counting, task input, and links (data session → command session), run in the user's
+//! own client so they survive a broker crash. No I/O, no clock.
+
+use muster_shared::protocol::{LinkInfo, ToBroker, ToSystem, ToUser};
+use muster_shared::types::{
+    link_compatible, EndReason, Payload, Refusal, ServiceId, ServiceKind, SessionId, TaskStatus,
+    UserId,
+};
+use std::collections::{BTreeMap, VecDeque};
+
+/// What the user client wants sent or watched.
+#[derive(Clone, Debug, PartialEq)]
+pub enum UserOutput {
+    /// Send to the broker.
+    ToBroker(ToBroker),
+    /// Send to a system directly.
+    ToSystem(String, ToSystem),
+    /// Watch a system's process for death.
+    WatchSystem(String, u32),
+    /// Forget a system's ports and watch.
+    ForgetSystem(String),
+    /// Watch the broker's process for death.
+    WatchBroker(u32),
+}
+
+/// What happened, for the user program.
+#[derive(Clone, Debug, PartialEq)]
+pub enum UserEvent {
+    /// The broker welcomed us.
+    Connected {
+        /// Broker run.
+        epoch: u64,
+    },
+    /// The broker is gone; sessions and links go on, new requests wait for a new broker.
+    BrokerLost,
+    /// The service list changed; refresh to see it.
+    ListChanged,
+    /// A request waits in a task queue.
+    Queued {
+        /// Request number.
+        req: u64,
+        /// Service.
+        service: ServiceId,
+        /// Position, 1 = next.
+        position: u16,
+    },
+    /// A request was granted: a one-to-one session is open.
+    Granted {
+        /// Request number.
+        req: u64,
+        /// The session.
+        session: SessionId,
+        /// Service.
+        service: ServiceId,
+        /// Data or command.
+        kind: ServiceKind,
+    },
+    /// A request was refused.
+    Refused {
+        /// Request number.
+        req: u64,
+        /// Service.
+        service: ServiceId,
+        /// Why.
+        reason: Refusal,
+    },
+    /// A data update.
+    Update {
+        /// The session.
+        session: SessionId,
+        /// Service.
+        service: ServiceId,
+        /// Sequence number.
+        seq: u64,
+        /// Updates lost before this one (sequence gap).
+        gap: u64,
+        /// The data.
+        payload: Payload,
+    },
+    /// Task status on a command session.
+    Status {
+        /// The session.
+        session: SessionId,
+        /// Service.
+        service: ServiceId,
+        /// Sequence number.
+        seq: u64,
+        /// The status.
+        status: TaskStatus,
+    },
+    /// A session ended.
+    Ended {
+        /// The session.
+        session: SessionId,
+        /// Service.
+        service: ServiceId,
+        /// Why.
+        reason: EndReason,
+    },
+    /// Both ends of a link are granted; data now flows into the command service.
+    LinkUp {
+        /// The link.
+        link: u64,
+    },
+    /// One data update was forwarded as task input.
+    LinkForwarded {
+        /// The link.
+        link: u64,
+        /// The input sent to the command system.
+        input: Payload,
+    },
+    /// A link ended.
+    LinkEnded {
+        /// The link.
+        link: u64,
+        /// Why.
+        reason: String,
+    },
+}
+
+#[derive(Clone, Debug)]
+struct Pending {
+    service: ServiceId,
+    link: Option<u64>,
+}
+
+#[derive(Clone, Debug)]
+struct SessionInfo {
+    service: ServiceId,
+    system: String,
+    kind: ServiceKind,
+    payload: String,
+    last_seq: u64,
+    gaps: u64,
+    link: Option<u64>,
+}
+
+#[derive(Clone, Debug)]
+struct LinkState {
+    info: LinkInfo,
+    data: Option<SessionId>,
+    command: Option<SessionId>,
+    command_payload: Option<String>,
+    forwarded: u64,
+}
+
+/// Per-session counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SessionCounters {
+    /// Highest sequence number seen.
+    pub last_seq: u64,
+    /// Updates lost (gaps in sequence numbers).
+    pub gaps: u64,
+}
+
+/// One user's protocol state.
+#[derive(Debug)]
+pub struct UserCore {
+    id: UserId,
+    pid: u32,
+    connected: Option<u64>,
+    next_req: u64,
+    next_link: u64,
+    pending: BTreeMap<u64, Pending>,
+    sessions: BTreeMap<SessionId, SessionInfo>,
+    links: BTreeMap<u64, LinkState>,
+    out: VecDeque<UserOutput>,
+    events: VecDeque<UserEvent>,
+    stale_frames: u64,
+}
+
+impl UserCore {
+    /// A user `id` in process `pid`.
+    pub fn new(id: UserId, pid: u32) -> Self {
+        UserCore {
+            id,
+            pid,
+            connected: None,
+            next_req: 1,
+            next_link: 1,
+            pending: BTreeMap::new(),
+            sessions: BTreeMap::new(),
+            links: BTreeMap::new(),
+            out: VecDeque::new(),
+            events: VecDeque::new(),
+            stale_frames: 0,
+        }
+    }
+
+    /// This user's id.
+    pub fn id(&self) -> &UserId {
+        &self.id
+    }
+
+    /// The broker run we are connected to, if any.
+    pub fn connected(&self) -> Option<u64> {
+        self.connected
+    }
+
+    /// Next output.
+    pub fn poll_output(&mut self) -> Option<UserOutput> {
+        self.out.pop_front()
+    }
+
+    /// Next event.
+    pub fn poll_event(&mut self) -> Option<UserEvent> {
+        self.events.pop_front()
+    }
+
+    /// Open sessions.
+    pub fn sessions(&self) -> impl Iterator<Item = (SessionId, &ServiceId, ServiceKind)> {
+        self.sessions.iter().map(|(id, s)| (*id, &s.service, s.kind))
+    }
+
+    /// Sequence counters of a session.
+    pub fn counters(&self, session: SessionId) -> Option<SessionCounters> {
+        self.sessions.get(&session).map(|s| SessionCounters { last_seq: s.last_seq, gaps: s.gaps })
+    }
+
+    /// Requests not yet answered by a grant or a refusal.
+    pub fn pending_requests(&self) -> usize {
+        self.pending.len()
+    }
+
+    /// Links currently set up or being set up.
+    pub fn links(&self) -> impl Iterator<Item = &LinkInfo> {
+        self.links.values().map(|l| &l.info)
+    }
+
+    /// Frames dropped because they belonged to no session or were out of order.
+    pub fn stale_frames(&self) -> u64 {
+        self.stale_frames
+    }
+
+    /// Says hello (again, after a broker restart), re-sending requests still pending.
+    pub fn hello(&mut self) {
+        let links = self.links.values().map(|l| l.info.clone()).collect();
+        self.to_broker(ToBroker::Hello { user: self.id.clone(), pid: self.pid, links });
+        let pending: Vec<(u64, ServiceId)> =
+            self.pending.iter().map(|(r, p)| (*r, p.service.clone())).collect();
+        for (req, service) in pending {
+            self.to_broker(ToBroker::Request { user: self.id.clone(), req, service });
+        }
+    }
+
+    /// The broker died: existing sessions and links go on.
+    pub fn broker_lost(&mut self) {
+        if self.connected.take().is_some() {
+            self.events.push_back(UserEvent::BrokerLost);
+        }
+    }
+
+    /// The broker says the list changed.
+    pub fn list_changed(&mut self) {
+        self.events.push_back(UserEvent::ListChanged);
+    }
+
+    /// Asks for a service; returns the request number echoed in its answer.
+    pub fn request(&mut self, service: ServiceId) -> u64 {
+        self.request_for(service, None)
+    }
+
+    fn request_for(&mut self, service: ServiceId, link: Option<u64>) -> u64 {
+        let req = self.next_req;
+        self.next_req += 1;
+        self.pending.insert(req, Pending { service: service.clone(), link });
+        self.to_broker(ToBroker::Request { user: self.id.clone(), req, service });
+        req
+    }
+
+    /// Gives up a pending or queued request.
+    pub fn cancel(&mut self, req: u64) {
+        if self.pending.remove(&req).is_some() {
+            self.to_broker(ToBroker::Cancel { user: self.id.clone(), req });
+        }
+    }
+
+    /// Ends a session from the user's side; the system is told directly.
+    pub fn end(&mut self, session: SessionId) {
+        self.close(session, EndReason::ByUser, true);
+    }
+
+    fn close(&mut self, session: SessionId, reason: EndReason, tell_system: bool) {
+        let Some(s) = self.sessions.remove(&session) else { return };
+        if tell_system {
+            self.out.push_back(UserOutput::ToSystem(
+                s.system.clone(),
+                ToSystem::End { user: self.id.clone(), session },
+            ));
+        }
+        if !self.sessions.values().any(|o| o.system == s.system) {
+            self.out.push_back(UserOutput::ForgetSystem(s.system.clone()));
+        }
+        self.events.push_back(UserEvent::Ended { session, service: s.service, reason: reason.clone() });
+        if let Some(link) = s.link {
+            self.end_link(link, format!("a linked session ended: {reason}"));
+        }
+    }
+
+    /// Sends task input on a command session.
+    pub fn input(&mut self, session: SessionId, payload: Payload) -> Result<(), String> {
+        let s = self.sessions.get(&session).ok_or_else(|| format!("no session {session}"))?;
+        if s.kind != ServiceKind::Command {
+            return Err(format!("session {session} is a data session: it takes no input"));
+        }
+        let system = s.system.clone();
+        self.out.push_back(UserOutput::ToSystem(
+            system,
+            ToSystem::Input { user: self.id.clone(), session, payload },
+        ));
+        Ok(())
+    }
+
+    /// Links data service `data` into command service `command`: requests both, then
+    /// forwards every data update as task input. Returns the link number.
+    pub fn link(&mut self, data: ServiceId, command: ServiceId) -> u64 {
+        let link = self.next_link;
+        self.next_link += 1;
+        let info = LinkInfo { link, data: data.clone(), command: command.clone() };
+        self.links.insert(
+            link,
+            LinkState { info, data: None, command: None, command_payload: None, forwarded: 0 },
+        );
+        self.request_for(data, Some(link));
+        self.request_for(command, Some(link));
+        link
+    }
+
+    /// Ends a link and both its sessions.
+    pub fn unlink(&mut self, link: u64) {
+        self.end_link(link, "ended by the user".into());
+    }
+
+    fn end_link(&mut self, link: u64, reason: String) {
+        let Some(l) = self.links.remove(&link) else { return };
+        let reqs: Vec<u64> =
+            self.pending.iter().filter(|(_, p)| p.link == Some(link)).map(|(r, _)| *r).collect();
+        for r in reqs {
+            self.cancel(r);
+        }
+        for s in [l.data, l.command].into_iter().flatten() {
+            if let Some(info) = self.sessions.get_mut(&s) {
+                info.link = None;
+            }
+            self.close(s, EndReason::ByUser, true);
+        }
+        if l.data.is_some() && l.command.is_some() {
+            self.to_broker(ToBroker::LinkClosed { user: self.id.clone(), link });
+        }
+        self.events.push_back(UserEvent::LinkEnded { link, reason });
+    }
+
+    /// A system's process died: its sessions end.
+    pub fn system_died(&mut self, system: &str) {
+        let ids: Vec<SessionId> =
+            self.sessions.iter().filter(|(_, s)| s.system == system).map(|(id, _)| *id).collect();
+        for id in ids {
+            self.close(id, EndReason::PeerGone, false);
+        }
+    }
+
+    /// Leaves: ends links and sessions, cancels requests, says goodbye.
+    pub fn shutdown(&mut self) {
+        let links: Vec<u64> = self.links.keys().copied().collect();
+        for l in links {
+            self.end_link(l, "user leaving".into());
+        }
+        let ids: Vec<SessionId> = self.sessions.keys().copied().collect();
+        for id in ids {
+            self.close(id, EndReason::ByUser, true);
+        }
+        let reqs: Vec<u64> = self.pending.keys().copied().collect();
+        for r in reqs {
+            self.cancel(r);
+        }
+        self.to_broker(ToBroker::Goodbye { user: self.id.clone() });
+    }
+
+    /// Handles one frame from the inbox.
+    pub fn handle(&mut self, msg: ToUser) {
+        match msg {
+            ToUser::Welcome { epoch, broker_pid } => {
+                self.connected = Some(epoch);
+                self.out.push_back(UserOutput::WatchBroker(broker_pid));
+                self.events.push_back(UserEvent::Connected { epoch });
+            }
+            ToUser::Queued { req, position } => {
+                if let Some(p) = self.pending.get(&req) {
+                    let service = p.service.clone();
+                    self.events.push_back(UserEvent::Queued { req, service, position });
+                }
+            }
+            ToUser::Refused { req, reason } => {
+                if let Some(p) = self.pending.remove(&req) {
+                    self.events.push_back(UserEvent::Refused {
+                        req,
+                        service: p.service,
+                        reason: reason.clone(),
+                    });
+                    if let Some(link) = p.link {
+                        self.end_link(link, format!("a linked request was refused: {reason}"));
+                    }
+                }
+            }
+            ToUser::Granted { req, session, service, kind, payload, system_pid } => {
+                self.granted(req, session, service, kind, payload, system_pid)
+            }
+            ToUser::Update { session, seq, payload } => self.update(session, seq, payload),
+            ToUser::Status { session, seq, status } => {
+                let Some(s) = self.sessions.get_mut(&session) else {
+                    self.stale_frames += 1;
+                    return;
+                };
+                if seq <= s.last_seq {
+                    self.stale_frames += 1;
+                    return;
+                }
+                s.gaps += seq - s.last_seq - 1;
+                s.last_seq = seq;
+                let service = s.service.clone();
+                self.events.push_back(UserEvent::Status { session, service, seq, status });
+            }
+            ToUser::Ended { session, reason } => self.close(session, reason, false),
+        }
+    }
+
+    fn granted(
+        &mut self,
+        req: u64,
+        session: SessionId,
+        service: ServiceId,
+        kind: ServiceKind,
+        payload: String,
+        system_pid: u32,
+    ) {
+        let system = service.split().map(|(s, _)| s.to_string()).unwrap_or_default();
+        let Some(p) = self.pending.remove(&req) else {
+            // Granted after we gave up (cancelled, refused on timeout): end it at once.
+            self.out.push_back(UserOutput::ToSystem(system, ToSystem::End { user: self.id.clone(), session }));
+            return;
+        };
+        self.out.push_back(UserOutput::WatchSystem(system.clone(), system_pid));
+        self.sessions.insert(
+            session,
+            SessionInfo {
+                service: service.clone(),
+                system,
+                kind,
+                payload: payload.clone(),
+                last_seq: 0,
+                gaps: 0,
+                link: p.link,
+            },
+        );
+        self.events.push_back(UserEvent::Granted { req, session, service, kind });
+        let Some(link) = p.link else { return };
+        let Some(l) = self.links.get_mut(&link) else { return };
+        match kind {
+            ServiceKind::Data => l.data = Some(session),
+            ServiceKind::Command => {
+                l.command = Some(session);
+                l.command_payload = Some(payload);
+            }
+        }
+        if let (Some(d), Some(_)) = (l.data, l.command) {
+            let data_payload = self.sessions.get(&d).map(|s| s.payload.clone()).unwrap_or_default();
+            let cmd_payload = l.command_payload.clone().unwrap_or_default();
+            if !link_compatible(&data_payload, &cmd_payload) {
+                self.end_link(link, format!("cannot link {data_payload} into {cmd_payload}"));
+                return;
+            }
+            let info = l.info.clone();
+            self.to_broker(ToBroker::LinkOpened { user: self.id.clone(), link: info });
+            self.events.push_back(UserEvent::LinkUp { link });
+        }
+    }
+
+    fn update(&mut self, session: SessionId, seq: u64, payload: Payload) {
+        let Some(s) = self.sessions.get_mut(&session) else {
+            self.stale_frames += 1;
+            return;
+        };
+        if seq <= s.last_seq {
+            self.stale_frames += 1;
+            return;
+        }
+        let gap = seq - s.last_seq - 1;
+        s.gaps += gap;
+        s.last_seq = seq;
+        let service = s.service.clone();
+        let link = s.link;
+        self.events.push_back(UserEvent::Update { session, service, seq, gap, payload: payload.clone() });
+        let Some(link) = link else { return };
+        let Some(l) = self.links.get_mut(&link) else { return };
+        let (Some(cmd), Some(target)) = (l.command, l.command_payload.clone()) else { return };
+        let Some(input) = payload.convert_to(&target) else { return };
+        l.forwarded += 1;
+        let Some(system) = self.sessions.get(&cmd).map(|c| c.system.clone()) else { return };
+        self.out.push_back(UserOutput::ToSystem(
+            system,
+            ToSystem::Input { user: self.id.clone(), session: cmd, payload: input.clone() },
+        ));
+        self.events.push_back(UserEvent::LinkForwarded { link, input });
+    }
+
+    fn to_broker(&mut self, msg: ToBroker) {
+        self.out.push_back(UserOutput::ToBroker(msg));
+    }
+}
