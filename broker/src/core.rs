@@ -715,3 +715,7 @@ impl Broker {
         self.services.get(id).map(|s| s.spec.kind)
     }
 }
+
+#[cfg(test)]
+#[path = "core_tests.rs"]
+mod tests;

@@ -183,6 +183,9 @@ impl SystemCore {
     pub fn handle(&mut self, msg: ToSystem) {
         match msg {
             ToSystem::Registered { epoch, broker_pid } => {
+                if self.state == (BrokerState::Registered { epoch }) {
+                    return; // a duplicate answer (we registered twice while a broker started)
+                }
                 self.state = BrokerState::Registered { epoch };
                 self.out.push_back(SystemOutput::WatchBroker(broker_pid));
                 for service in self.withdrawn.clone() {

@@ -101,8 +101,10 @@ pub fn run_system<A: SystemApp>(
                         shell.drop_broker();
                     }
                     if rung & (1 << bell::BROKER_UP) != 0 {
+                        // Keep the publisher: the new broker takes over the same inbox, and
+                        // dropping it could lose a frame already sent.
                         core.broker_lost();
-                        shell.drop_broker();
+                        shell.drop_broker_watch();
                         core.register();
                     }
                 }

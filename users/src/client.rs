@@ -268,10 +268,11 @@ impl UserClient {
             TOKEN_PRESENCE => {
                 let rung = self.presence.drain();
                 if rung & (1 << bell::BROKER_DOWN) != 0 {
-                    self.lose_broker();
+                    self.lose_broker(true);
                 }
                 if rung & (1 << bell::BROKER_UP) != 0 {
-                    self.lose_broker();
+                    // Keep the publisher: the new broker takes over the same inbox.
+                    self.lose_broker(false);
                     self.core.hello();
                 }
             }
@@ -283,7 +284,7 @@ impl UserClient {
             TOKEN_BROKER => {
                 if self.broker.as_ref().is_some_and(PidFd::exited) {
                     tracing::warn!("broker died; sessions go on, new requests wait for a new broker");
-                    self.lose_broker();
+                    self.lose_broker(true);
                 }
             }
             TOKEN_EXTRA => *extra = true,
@@ -298,12 +299,14 @@ impl UserClient {
         Ok(())
     }
 
-    fn lose_broker(&mut self) {
+    fn lose_broker(&mut self, forget_ports: bool) {
         self.core.broker_lost();
         if let Some(p) = self.broker.take() {
             self.reactor.remove(p.raw());
         }
-        self.endpoint.forget(&Address::Broker);
+        if forget_ports {
+            self.endpoint.forget(&Address::Broker);
+        }
     }
 
     fn pump(&mut self) -> Result<(), UserError> {

@@ -1,0 +1,482 @@
+//! Broker core tests on a virtual clock.
+
+use super::*;
+use proptest::prelude::*;
+
+const S: Duration = Duration::from_secs(1);
+
+fn spec(name: &str, quota: u16, queue: bool) -> ServiceSpec {
+    ServiceSpec {
+        name: name.into(),
+        description: format!("{name} service"),
+        kind: ServiceKind::Data,
+        queue,
+        quota,
+        payload: "pose2d".into(),
+    }
+}
+
+fn user(n: u32) -> UserId {
+    UserId(format!("u{n}"))
+}
+
+fn broker() -> Broker {
+    Broker::new(BrokerConfig::default(), 42, 1000)
+}
+
+fn drain(b: &mut Broker) -> Vec<Output> {
+    std::iter::from_fn(|| b.poll_output()).collect()
+}
+
+fn register(b: &mut Broker, now: Duration, system: &str, pid: u32, specs: Vec<ServiceSpec>) {
+    b.handle(
+        now,
+        ToBroker::Register { system: system.into(), pid, services: specs, sessions: vec![] },
+    );
+}
+
+fn request(b: &mut Broker, now: Duration, u: u32, req: u64, id: &str) {
+    b.handle(now, ToBroker::Request { user: user(u), req, service: ServiceId(id.into()) });
+}
+
+/// The single user-bound answer in `out` for (user, req).
+fn answers(out: &[Output], u: u32, req: u64) -> Vec<ToUser> {
+    out.iter()
+        .filter_map(|o| match o {
+            Output::ToUser(who, m) if *who == user(u) => match m {
+                ToUser::Refused { req: r, .. } | ToUser::Queued { req: r, .. } if *r == req => {
+                    Some(m.clone())
+                }
+                _ => None,
+            },
+            _ => None,
+        })
+        .collect()
+}
+
+fn offers(out: &[Output]) -> Vec<(String, u64, UserId, u64)> {
+    out.iter()
+        .filter_map(|o| match o {
+            Output::ToSystem(s, ToSystem::Offer { ticket, user, req, .. }) => {
+                Some((s.clone(), *ticket, user.clone(), *req))
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+fn grant(b: &mut Broker, now: Duration, system: &str, ticket: u64, session: u64) {
+    b.handle(
+        now,
+        ToBroker::OfferAnswer { system: system.into(), ticket, answer: Ok(SessionId(session)) },
+    );
+}
+
+fn view<'a>(views: &'a [ServiceView], id: &str) -> &'a ServiceView {
+    views.iter().find(|v| v.id == id).expect("listed")
+}
+
+#[test]
+fn registration_lists_services_and_bumps_generation() {
+    let mut b = broker();
+    let (g0, v0) = b.take_list_change().unwrap();
+    assert!(v0.is_empty());
+    register(&mut b, S, "t1", 7, vec![spec("b", 10, false), spec("a", 3, true)]);
+    let out = drain(&mut b);
+    assert!(out.contains(&Output::WatchSystem { system: "t1".into(), pid: 7 }));
+    assert!(out.contains(&Output::ToSystem(
+        "t1".into(),
+        ToSystem::Registered { epoch: 42, broker_pid: 1000 }
+    )));
+    let (g1, views) = b.take_list_change().unwrap();
+    assert_eq!(g1, g0 + 1);
+    let ids: Vec<&str> = views.iter().map(|v| v.id.as_str()).collect();
+    assert_eq!(ids, ["t1/a", "t1/b"]);
+    assert_eq!(view(&views, "t1/a").quota, 3);
+    assert!(view(&views, "t1/a").queue);
+    assert!(b.take_list_change().is_none(), "no change, no new generation");
+}
+
+#[test]
+fn bad_registrations_are_refused_with_reasons() {
+    let mut b = broker();
+    register(&mut b, S, "t1", 7, vec![spec("a", 1, false), spec("a", 1, false)]);
+    register(&mut b, S, "bad name", 8, vec![spec("a", 1, false)]);
+    register(&mut b, S, "t2", 9, vec![spec("a", 0, false)]);
+    let reasons: Vec<String> = drain(&mut b)
+        .into_iter()
+        .filter_map(|o| match o {
+            Output::ToSystem(_, ToSystem::RegistrationRefused { reason }) => Some(reason),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(reasons.len(), 3);
+    assert!(reasons[0].contains("declared twice"));
+    assert!(reasons[1].contains("invalid system name"));
+    assert!(reasons[2].contains("quota"));
+    assert!(b.views().is_empty());
+    assert_eq!(b.stats().registrations_refused, 3);
+}
+
+#[test]
+fn a_name_held_by_a_live_process_cannot_be_taken() {
+    let mut b = broker();
+    register(&mut b, S, "t1", 7, vec![spec("a", 1, false)]);
+    drain(&mut b);
+    register(&mut b, S, "t1", 8, vec![spec("evil", 1, false)]);
+    let out = drain(&mut b);
+    assert!(matches!(&out[..], [Output::ToSystem(_, ToSystem::RegistrationRefused { reason })] if reason.contains("held by live process 7")));
+    assert_eq!(b.views().len(), 1);
+    assert_eq!(b.views()[0].name, "a");
+}
+
+#[test]
+fn the_list_has_a_hard_size_limit() {
+    let mut b = broker();
+    let per = muster_shared::types::MAX_SERVICES_PER_SYSTEM;
+    let mut registered = 0;
+    for i in 0.. {
+        let specs: Vec<_> = (0..per).map(|k| spec(&format!("s{k}"), 1, false)).collect();
+        register(&mut b, S, &format!("sys{i}"), 100 + i, specs);
+        let out = drain(&mut b);
+        if out.iter().any(|o| matches!(o, Output::ToSystem(_, ToSystem::RegistrationRefused { reason }) if reason.contains("service list full"))) {
+            break;
+        }
+        registered += per;
+    }
+    assert_eq!(registered, MAX_LISTED_SERVICES);
+    assert_eq!(b.views().len(), MAX_LISTED_SERVICES);
+}
+
+#[test]
+fn ten_hours_of_pings_keep_an_answering_system() {
+    let mut b = broker();
+    register(&mut b, Duration::ZERO, "t1", 7, vec![spec("a", 1, false)]);
+    drain(&mut b);
+    let end = Duration::from_secs(10 * 3600);
+    let mut pings = 0;
+    while let Some(t) = b.poll_timeout() {
+        if t > end {
+            break;
+        }
+        b.handle_timeout(t);
+        for o in drain(&mut b) {
+            if let Output::ToSystem(s, ToSystem::Ping { nonce }) = o {
+                pings += 1;
+                // Answer one second later.
+                b.handle(t + S, ToBroker::Pong { system: s, nonce });
+            }
+        }
+    }
+    // First ping at 20 s, then every 21 s (20 s after each answer, which takes 1 s).
+    assert_eq!(pings, (end.as_secs() - 20) / 21 + 1);
+    assert_eq!(b.stats().delinquent, 0);
+    assert_eq!(b.views().len(), 1);
+}
+
+#[test]
+fn a_silent_system_becomes_delinquent_and_can_come_back() {
+    let mut b = broker();
+    register(&mut b, Duration::ZERO, "t1", 7, vec![spec("a", 1, true)]);
+    request(&mut b, S, 1, 1, "t1/a");
+    request(&mut b, S, 2, 2, "t1/a"); // queued behind user 1's offer
+    drain(&mut b);
+    assert_eq!(b.poll_timeout(), Some(Duration::from_secs(11)), "offer timeout first");
+    b.handle_timeout(Duration::from_secs(20));
+    let out = drain(&mut b);
+    let ping = out.iter().find_map(|o| match o {
+        Output::ToSystem(_, ToSystem::Ping { nonce }) => Some(*nonce),
+        _ => None,
+    });
+    assert!(ping.is_some());
+    // No pong: at 30 s the system is delinquent.
+    b.handle_timeout(Duration::from_secs(29));
+    assert!(!drain(&mut b).iter().any(|o| matches!(o, Output::ToSystem(_, ToSystem::Delinquent))));
+    b.handle_timeout(Duration::from_secs(30));
+    let out = drain(&mut b);
+    assert!(out.contains(&Output::ToSystem("t1".into(), ToSystem::Delinquent)));
+    assert!(out.contains(&Output::ForgetSystem("t1".into())));
+    assert!(b.views().is_empty());
+    assert_eq!(b.stats().delinquent, 1);
+    // A late pong from the removed system gets told again, so it re-registers.
+    b.handle(Duration::from_secs(31), ToBroker::Pong { system: "t1".into(), nonce: ping.unwrap() });
+    assert_eq!(drain(&mut b), vec![Output::ToSystem("t1".into(), ToSystem::Delinquent)]);
+    register(&mut b, Duration::from_secs(32), "t1", 7, vec![spec("a", 1, true)]);
+    assert_eq!(b.views().len(), 1);
+    assert_eq!(b.views()[0].in_use, 0);
+}
+
+#[test]
+fn queue_and_quota_arbitration() {
+    let mut b = broker();
+    register(&mut b, S, "q", 7, vec![spec("a", 2, true), spec("n", 1, false)]);
+    drain(&mut b);
+    // Quota 2 with a queue: two offers, then queue positions 1 and 2.
+    for u in 1..=4 {
+        request(&mut b, S, u, 10 + u64::from(u), "q/a");
+    }
+    let out = drain(&mut b);
+    let off = offers(&out);
+    assert_eq!(off.iter().map(|o| o.2.clone()).collect::<Vec<_>>(), vec![user(1), user(2)]);
+    assert_eq!(answers(&out, 3, 13), vec![ToUser::Queued { req: 13, position: 1 }]);
+    assert_eq!(answers(&out, 4, 14), vec![ToUser::Queued { req: 14, position: 2 }]);
+    grant(&mut b, S, "q", off[0].1, 1);
+    grant(&mut b, S, "q", off[1].1, 2);
+    let views = b.views();
+    assert_eq!(view(&views, "q/a").in_use, 2);
+    assert_eq!(view(&views, "q/a").queued, 2);
+    drain(&mut b);
+    // A session ends: the head of the queue is offered, the other moves to position 1.
+    b.handle(S, ToBroker::SessionEnded { system: "q".into(), session: SessionId(1) });
+    let out = drain(&mut b);
+    assert_eq!(offers(&out).iter().map(|o| o.2.clone()).collect::<Vec<_>>(), vec![user(3)]);
+    assert_eq!(answers(&out, 4, 14), vec![ToUser::Queued { req: 14, position: 1 }]);
+    // Without a queue: quota full.
+    request(&mut b, S, 1, 20, "q/n");
+    let t = offers(&drain(&mut b))[0].1;
+    grant(&mut b, S, "q", t, 3);
+    request(&mut b, S, 2, 21, "q/n");
+    assert_eq!(
+        answers(&drain(&mut b), 2, 21),
+        vec![ToUser::Refused { req: 21, reason: Refusal::QuotaFull { quota: 1 } }]
+    );
+}
+
+#[test]
+fn queue_capacity_and_duplicates() {
+    let cfg = BrokerConfig { queue_capacity: 2, ..BrokerConfig::default() };
+    let mut b = Broker::new(cfg, 1, 1);
+    register(&mut b, S, "q", 7, vec![spec("a", 1, true)]);
+    request(&mut b, S, 1, 1, "q/a");
+    request(&mut b, S, 1, 2, "q/a");
+    request(&mut b, S, 2, 3, "q/a");
+    request(&mut b, S, 3, 4, "q/a");
+    request(&mut b, S, 4, 5, "q/a");
+    let out = drain(&mut b);
+    assert_eq!(answers(&out, 1, 2), vec![ToUser::Refused { req: 2, reason: Refusal::AlreadyPending }]);
+    assert_eq!(answers(&out, 2, 3), vec![ToUser::Queued { req: 3, position: 1 }]);
+    assert_eq!(answers(&out, 3, 4), vec![ToUser::Queued { req: 4, position: 2 }]);
+    assert_eq!(
+        answers(&out, 4, 5),
+        vec![ToUser::Refused { req: 5, reason: Refusal::QueueFull { waiting: 2 } }]
+    );
+    // Cancelling moves the next one up.
+    b.handle(S, ToBroker::Cancel { user: user(2), req: 3 });
+    assert_eq!(answers(&drain(&mut b), 3, 4), vec![ToUser::Queued { req: 4, position: 1 }]);
+}
+
+#[test]
+fn unknown_withdrawn_refused_and_timed_out_requests() {
+    let mut b = broker();
+    register(&mut b, S, "s", 7, vec![spec("a", 5, true)]);
+    request(&mut b, S, 1, 1, "s/zzz");
+    request(&mut b, S, 1, 2, "nosuch/a");
+    let out = drain(&mut b);
+    assert_eq!(answers(&out, 1, 1), vec![ToUser::Refused { req: 1, reason: Refusal::Unknown }]);
+    assert_eq!(answers(&out, 1, 2), vec![ToUser::Refused { req: 2, reason: Refusal::Unknown }]);
+
+    b.handle(S, ToBroker::Withdraw { system: "s".into(), service: "a".into() });
+    assert!(b.views()[0].withdrawn);
+    request(&mut b, S, 1, 3, "s/a");
+    assert_eq!(answers(&drain(&mut b), 1, 3), vec![ToUser::Refused { req: 3, reason: Refusal::Withdrawn }]);
+    b.handle(S, ToBroker::Restore { system: "s".into(), service: "a".into() });
+    assert!(!b.views()[0].withdrawn);
+
+    request(&mut b, S, 1, 4, "s/a");
+    let t = offers(&drain(&mut b))[0].1;
+    b.handle(S, ToBroker::OfferAnswer { system: "s".into(), ticket: t, answer: Err("overloaded".into()) });
+    assert_eq!(
+        answers(&drain(&mut b), 1, 4),
+        vec![ToUser::Refused { req: 4, reason: Refusal::SystemRefused("overloaded".into()) }]
+    );
+    assert_eq!(b.views()[0].in_use, 0);
+
+    request(&mut b, S, 1, 5, "s/a");
+    drain(&mut b);
+    assert_eq!(b.views()[0].in_use, 1, "a pending offer holds quota");
+    b.handle_timeout(S + BrokerConfig::default().offer_timeout);
+    let out = drain(&mut b);
+    assert_eq!(answers(&out, 1, 5), vec![ToUser::Refused { req: 5, reason: Refusal::SystemGone }]);
+    assert_eq!(b.views()[0].in_use, 0);
+}
+
+#[test]
+fn a_dead_system_takes_its_services_and_queue_with_it() {
+    let mut b = broker();
+    register(&mut b, S, "s", 7, vec![spec("a", 1, true)]);
+    request(&mut b, S, 1, 1, "s/a");
+    request(&mut b, S, 2, 2, "s/a");
+    drain(&mut b);
+    b.system_died(S, "s");
+    let out = drain(&mut b);
+    assert_eq!(answers(&out, 1, 1), vec![ToUser::Refused { req: 1, reason: Refusal::SystemGone }]);
+    assert_eq!(answers(&out, 2, 2), vec![ToUser::Refused { req: 2, reason: Refusal::SystemGone }]);
+    assert!(out.contains(&Output::ForgetSystem("s".into())));
+    assert!(!out.iter().any(|o| matches!(o, Output::ToSystem(_, ToSystem::Delinquent))));
+    assert!(b.views().is_empty());
+    assert_eq!(b.stats().died, 1);
+    assert_eq!(b.poll_timeout(), None, "nothing left to ping or time out");
+}
+
+#[test]
+fn sessions_reported_at_registration_count_against_the_quota() {
+    // A new broker after a crash: the system re-registers with its two live sessions.
+    let mut b = broker();
+    b.handle(
+        S,
+        ToBroker::Register {
+            system: "s".into(),
+            pid: 7,
+            services: vec![spec("a", 2, false)],
+            sessions: vec![
+                ActiveSession { session: SessionId(1), service: "a".into(), user: user(1) },
+                ActiveSession { session: SessionId(2), service: "a".into(), user: user(2) },
+            ],
+        },
+    );
+    assert_eq!(b.views()[0].in_use, 2);
+    request(&mut b, S, 3, 1, "s/a");
+    assert_eq!(
+        answers(&drain(&mut b), 3, 1),
+        vec![ToUser::Refused { req: 1, reason: Refusal::QuotaFull { quota: 2 } }]
+    );
+    b.handle(S, ToBroker::SessionEnded { system: "s".into(), session: SessionId(2) });
+    request(&mut b, S, 3, 2, "s/a");
+    assert_eq!(offers(&drain(&mut b)).len(), 1);
+}
+
+#[test]
+fn links_are_visible_and_go_with_their_user() {
+    let mut b = broker();
+    register(&mut b, S, "t", 7, vec![spec("a", 5, false)]);
+    let mut cmd = spec("go", 1, true);
+    cmd.kind = ServiceKind::Command;
+    register(&mut b, S, "d", 8, vec![cmd]);
+    let link = LinkInfo { link: 1, data: ServiceId::new("t", "a"), command: ServiceId::new("d", "go") };
+    b.handle(S, ToBroker::Hello { user: user(1), pid: 99, links: vec![] });
+    b.handle(S, ToBroker::LinkOpened { user: user(1), link });
+    let views = b.views();
+    assert_eq!(view(&views, "t/a").links, 1);
+    assert_eq!(view(&views, "d/go").links, 1);
+    b.user_died(S, &user(1));
+    let views = b.views();
+    assert_eq!(view(&views, "t/a").links, 0);
+    assert!(drain(&mut b).contains(&Output::ForgetUser(user(1))));
+}
+
+#[derive(Clone, Debug)]
+enum Op {
+    Request(u32, usize),
+    Grant(usize),
+    Refuse(usize),
+    End(usize),
+    Cancel(u32),
+    Tick(u64),
+    Died(u32),
+}
+
+fn op() -> impl Strategy<Value = Op> {
+    prop_oneof![
+        4 => (0..6u32, 0..3usize).prop_map(|(u, s)| Op::Request(u, s)),
+        3 => (0..8usize).prop_map(Op::Grant),
+        1 => (0..8usize).prop_map(Op::Refuse),
+        2 => (0..8usize).prop_map(Op::End),
+        1 => (0..6u32).prop_map(Op::Cancel),
+        1 => (1..15u64).prop_map(Op::Tick),
+        1 => (0..6u32).prop_map(Op::Died),
+    ]
+}
+
+proptest! {
+    /// Whatever happens, a service never has more sessions plus offers out than its quota,
+    /// a queue never exceeds its capacity, and every request gets exactly one final answer
+    /// (an offer or a refusal) unless it is still queued or was cancelled.
+    #[test]
+    fn quotas_hold_and_every_request_is_answered(ops in proptest::collection::vec(op(), 1..120)) {
+        let cfg = BrokerConfig { queue_capacity: 3, ..BrokerConfig::default() };
+        let mut b = Broker::new(cfg, 1, 1);
+        let services = ["s/a", "s/b", "s/c"];
+        register(&mut b, Duration::ZERO, "s", 7,
+            vec![spec("a", 1, true), spec("b", 2, false), spec("c", 3, true)]);
+        let mut now = Duration::ZERO;
+        let mut next_req = 1u64;
+        let mut outstanding: Vec<(String, u64, UserId, u64)> = Vec::new(); // live offers
+        let mut sessions: Vec<u64> = Vec::new();
+        let mut next_session = 1u64;
+        let mut final_answers: BTreeMap<(UserId, u64), u32> = BTreeMap::new();
+        let mut cancelled: BTreeSet<(UserId, u64)> = BTreeSet::new();
+        let mut asked: Vec<(UserId, u64)> = Vec::new();
+        for op in ops {
+            match op {
+                Op::Request(u, s) => {
+                    request(&mut b, now, u, next_req, services[s]);
+                    asked.push((user(u), next_req));
+                    next_req += 1;
+                }
+                Op::Grant(i) if !outstanding.is_empty() => {
+                    let (sys, t, who, r) = outstanding.remove(i % outstanding.len());
+                    *final_answers.entry((who, r)).or_default() += 1;
+                    grant(&mut b, now, &sys, t, next_session);
+                    sessions.push(next_session);
+                    next_session += 1;
+                }
+                Op::Refuse(i) if !outstanding.is_empty() => {
+                    let (sys, t, _, _) = outstanding.remove(i % outstanding.len());
+                    b.handle(now, ToBroker::OfferAnswer { system: sys, ticket: t, answer: Err("no".into()) });
+                }
+                Op::End(i) if !sessions.is_empty() => {
+                    let s = sessions.remove(i % sessions.len());
+                    b.handle(now, ToBroker::SessionEnded { system: "s".into(), session: SessionId(s) });
+                }
+                Op::Cancel(u) => {
+                    if let Some((who, r)) = asked.iter().rev().find(|(w, _)| *w == user(u)).cloned() {
+                        b.handle(now, ToBroker::Cancel { user: who.clone(), req: r });
+                        cancelled.insert((who, r));
+                    }
+                }
+                Op::Tick(secs) => {
+                    now += Duration::from_secs(secs);
+                    // Keep the system alive: answer pings.
+                    b.handle_timeout(now);
+                }
+                Op::Died(u) => b.user_died(now, &user(u)),
+                _ => {}
+            }
+            for o in drain(&mut b) {
+                match o {
+                    Output::ToSystem(sys, ToSystem::Offer { ticket, user, req, .. }) => {
+                        outstanding.push((sys, ticket, user, req));
+                    }
+                    Output::ToSystem(sys, ToSystem::Ping { nonce }) => {
+                        b.handle(now, ToBroker::Pong { system: sys, nonce });
+                    }
+                    Output::ToUser(user, ToUser::Refused { req, .. }) => {
+                        // A timed-out offer is refused; the system can no longer grant it.
+                        outstanding.retain(|(_, _, w, r)| !(*w == user && *r == req));
+                        *final_answers.entry((user, req)).or_default() += 1;
+                    }
+                    _ => {}
+                }
+            }
+            for v in b.views() {
+                prop_assert!(v.in_use <= v.quota, "{} in use {} > quota {}", v.id, v.in_use, v.quota);
+                prop_assert!(v.queued <= 3);
+            }
+        }
+        for (k, n) in &final_answers {
+            prop_assert!(*n <= 1, "request {:?} answered {} times", k, n);
+        }
+        // Every request not answered, cancelled or dropped with its dead user is either
+        // queued or has a live offer.
+        let queued: usize = b.views().iter().map(|v| v.queued as usize).sum();
+        let unanswered = asked
+            .iter()
+            .filter(|k| !final_answers.contains_key(*k) && !cancelled.contains(*k))
+            .count();
+        let live_offers = outstanding
+            .iter()
+            .filter(|(_, _, w, r)| !cancelled.contains(&(w.clone(), *r)))
+            .count();
+        prop_assert!(unanswered >= queued + live_offers);
+    }
+}
