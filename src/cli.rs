@@ -111,6 +111,15 @@ pub enum UserVerb {
         #[arg(long)]
         json: bool,
     },
+    /// Stay connected, idle, and print the list each time it changes.
+    Watch {
+        /// Stop after this long (default: until Ctrl-C).
+        #[arg(long, value_parser = duration)]
+        duration: Option<Duration>,
+        /// One JSON object a line: `{"generation": .., "services": [..]}`.
+        #[arg(long)]
+        json: bool,
+    },
     /// Link a data service into a command service: data becomes the command's task input.
     Link {
         /// Data service id.

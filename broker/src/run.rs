@@ -67,9 +67,7 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
     let node = create_node(&format!("muster-broker-{inst}"), true)?;
     node.try_cleanup_dead_nodes();
     let endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
-        TransportError::Service { ref detail, .. } if detail.contains("ExceedsMax") => {
-            BrokerError::AlreadyRunning(inst.to_string())
-        }
+        TransportError::InUse(_) => BrokerError::AlreadyRunning(inst.to_string()),
         other => BrokerError::from(other),
     })?;
     let presence = Presence::announce(endpoint.node(), inst)?;

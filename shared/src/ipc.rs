@@ -57,6 +57,9 @@ pub enum TransportError {
         /// What iceoryx2 said.
         detail: String,
     },
+    /// Another live process already owns this address (e.g. a system of the same name).
+    #[error("{0} is already running on this instance")]
+    InUse(Address),
     /// The peer's inbox does not exist or nobody reads it: the peer is gone.
     #[error("{0} is unreachable (not running?)")]
     Unreachable(Address),
@@ -157,10 +160,13 @@ impl Endpoint {
             Err(_) => {
                 // A dead process of the same name may still hold the only subscriber slot.
                 node.try_cleanup_dead_nodes();
-                svc.subscriber_builder()
-                    .buffer_size(limits.buffer)
-                    .create()
-                    .map_err(|e| svc_err(&inbox_name, e))?
+                svc.subscriber_builder().buffer_size(limits.buffer).create().map_err(|e| {
+                    if format!("{e:?}").contains("ExceedsMax") {
+                        TransportError::InUse(me.clone())
+                    } else {
+                        svc_err(&inbox_name, e)
+                    }
+                })?
             }
         };
         let bell_name = inst.bell(&me);

@@ -22,6 +22,7 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             let goal = goal.map(|g| parse_goal(&g)).transpose()?;
             request(client, &ServiceId(id), duration, goal, json)
         }
+        Some(UserVerb::Watch { duration, json }) => watch(client, duration, json),
         Some(UserVerb::Link { data, command, duration, json }) => {
             link(client, &ServiceId(data), &ServiceId(command), duration, json)
         }
@@ -54,6 +55,30 @@ fn list(mut client: UserClient, as_json: bool) -> anyhow::Result<ExitCode> {
     } else {
         println!("{}", muster_users::menu::table(&views));
         println!("({} services, list generation {})", views.len(), snapshot.generation);
+    }
+    client.close();
+    Ok(ExitCode::SUCCESS)
+}
+
+fn watch(mut client: UserClient, duration: Option<Duration>, as_json: bool) -> anyhow::Result<ExitCode> {
+    let deadline = Instant::now() + duration.unwrap_or(Duration::from_secs(100 * 365 * 86400));
+    let mut shown = None;
+    loop {
+        let snapshot = client.list()?;
+        if shown != Some(snapshot.generation) {
+            shown = Some(snapshot.generation);
+            let views = snapshot.views();
+            emit(
+                as_json,
+                json!({"generation": snapshot.generation, "services": views}),
+                format!("-- generation {} --\n{}", snapshot.generation, muster_users::menu::table(&views)),
+            );
+        }
+        match client.next_event(deadline) {
+            Ok(Some(_)) => {}
+            Ok(None) | Err(UserError::Interrupted) => break,
+            Err(e) => return Err(e.into()),
+        }
     }
     client.close();
     Ok(ExitCode::SUCCESS)

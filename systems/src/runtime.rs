@@ -42,7 +42,71 @@ const TOKEN_BELL: usize = 0;
 const TOKEN_PRESENCE: usize = 1;
 const TOKEN_SIGNAL: usize = 2;
 const TOKEN_BROKER: usize = 3;
+const TOKEN_CONTROL: usize = 4;
 const FIRST_USER_TOKEN: usize = 16;
+
+/// Operator commands read from standard input, one a line.
+pub const CONTROL_HELP: &str =
+    "withdraw SERVICE | restore SERVICE | overload on|off | end SESSION|all | quit";
+
+/// Lines of standard input, delivered through a socket the reactor can wait on.
+struct Control {
+    wake: std::os::unix::net::UnixStream,
+    lines: std::sync::mpsc::Receiver<String>,
+}
+
+impl Control {
+    fn spawn() -> std::io::Result<Self> {
+        use std::io::{BufRead, Write};
+        let (wake, mut tx_wake) = std::os::unix::net::UnixStream::pair()?;
+        wake.set_nonblocking(true)?;
+        let (tx, lines) = std::sync::mpsc::channel();
+        std::thread::Builder::new().name("stdin-control".into()).spawn(move || {
+            for line in std::io::stdin().lock().lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() || tx_wake.write_all(b".").is_err() {
+                    break;
+                }
+            }
+        })?;
+        Ok(Control { wake, lines })
+    }
+
+    fn take(&mut self) -> Vec<String> {
+        use std::io::Read;
+        let mut buf = [0u8; 64];
+        while (&self.wake).read(&mut buf).is_ok_and(|n| n > 0) {}
+        self.lines.try_iter().collect()
+    }
+}
+
+/// Applies one operator line; `false` means quit.
+pub fn apply_control(core: &mut SystemCore, line: &str) -> bool {
+    let words: Vec<&str> = line.split_whitespace().collect();
+    match words.as_slice() {
+        [] => {}
+        ["withdraw", s] => core.withdraw(s),
+        ["restore", s] => core.restore(s),
+        ["overload", "on"] => core.set_overloaded(true),
+        ["overload", "off"] => core.set_overloaded(false),
+        ["end", "all"] => {
+            let ids: Vec<_> = core.sessions().map(|(id, _, _)| id).collect();
+            for id in ids {
+                core.end_session(id, muster_shared::types::EndReason::BySystem("ended by the operator".into()));
+            }
+        }
+        ["end", hex] => match u64::from_str_radix(hex, 16) {
+            Ok(n) => core.end_session(
+                muster_shared::types::SessionId(n),
+                muster_shared::types::EndReason::BySystem("ended by the operator".into()),
+            ),
+            Err(_) => tracing::warn!("not a session id: {hex}"),
+        },
+        ["quit"] => return false,
+        _ => tracing::warn!("unknown control line {line:?}: {CONTROL_HELP}"),
+    }
+    true
+}
 
 struct Shell {
     endpoint: Endpoint,
@@ -70,6 +134,8 @@ pub fn run_system<A: SystemApp>(
         reactor.add(fd, TOKEN_PRESENCE)?;
     }
     reactor.add(signals.raw(), TOKEN_SIGNAL)?;
+    let mut control = Control::spawn()?;
+    reactor.add(std::os::fd::AsRawFd::as_raw_fd(&control.wake), TOKEN_CONTROL)?;
     let mut shell = Shell {
         endpoint,
         reactor,
@@ -114,6 +180,15 @@ pub fn run_system<A: SystemApp>(
                         core.shutdown();
                         shell.flush(&mut core);
                         return Ok(());
+                    }
+                }
+                TOKEN_CONTROL => {
+                    for line in control.take() {
+                        if !apply_control(&mut core, &line) {
+                            core.shutdown();
+                            shell.flush(&mut core);
+                            return Ok(());
+                        }
                     }
                 }
                 TOKEN_BROKER => {

@@ -1,0 +1,224 @@
+//! Helpers for tests that run real `muster` processes: a unique instance per test,
+//! bounded waits, and only our own children killed (by PID) when the test ends.
+
+#![allow(dead_code)]
+
+use serde_json::Value;
+use std::io::{BufRead, BufReader, Write};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError};
+use std::time::{Duration, Instant};
+
+pub const BIN: &str = env!("CARGO_BIN_EXE_muster");
+
+/// One child process with its stdout as lines.
+pub struct Proc {
+    pub child: Child,
+    pub lines: Receiver<String>,
+    pub stdin: Option<ChildStdin>,
+}
+
+impl Proc {
+    pub fn pid(&self) -> i32 {
+        self.child.id() as i32
+    }
+
+    /// The next stdout line, or `None` at the deadline or end of output.
+    pub fn line(&self, timeout: Duration) -> Option<String> {
+        match self.lines.recv_timeout(timeout) {
+            Ok(l) => Some(l),
+            Err(RecvTimeoutError::Timeout | RecvTimeoutError::Disconnected) => None,
+        }
+    }
+
+    /// The next stdout line as JSON.
+    pub fn json(&self, timeout: Duration) -> Option<Value> {
+        let l = self.line(timeout)?;
+        Some(serde_json::from_str(&l).unwrap_or_else(|e| panic!("not JSON ({e}): {l}")))
+    }
+
+    /// Every JSON line until the output ends (bounded by `timeout`).
+    pub fn all_json(&self, timeout: Duration) -> Vec<Value> {
+        let deadline = Instant::now() + timeout;
+        let mut out = Vec::new();
+        while let Some(v) = self.json(deadline.saturating_duration_since(Instant::now())) {
+            out.push(v);
+        }
+        out
+    }
+
+    /// Writes one control line to the child's stdin.
+    pub fn send(&mut self, line: &str) {
+        let stdin = self.stdin.as_mut().expect("stdin piped");
+        writeln!(stdin, "{line}").expect("write control line");
+        stdin.flush().expect("flush");
+    }
+
+    pub fn signal(&self, sig: i32) {
+        // SAFETY: signalling our own child, not yet reaped.
+        unsafe { libc::kill(self.pid(), sig) };
+    }
+
+    /// Waits for exit up to `timeout`; the exit code, or `None` if still running.
+    pub fn wait(&mut self, timeout: Duration) -> Option<i32> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Ok(Some(status)) = self.child.try_wait() {
+                return Some(status.code().unwrap_or(-1));
+            }
+            if Instant::now() >= deadline {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+}
+
+/// A federation of processes on one instance, torn down on drop.
+pub struct Fed {
+    pub inst: String,
+    procs: Vec<Proc>,
+}
+
+impl Fed {
+    /// A fresh instance named after the test.
+    pub fn new(name: &str) -> Self {
+        let mut inst = format!("{}-{}", name, std::process::id());
+        inst.truncate(32);
+        Fed { inst, procs: Vec::new() }
+    }
+
+    pub fn command(&self, args: &[&str]) -> Command {
+        let mut c = Command::new(BIN);
+        c.arg("--instance").arg(&self.inst).args(args).env("RUST_LOG", "warn");
+        c
+    }
+
+    /// Starts a long-running process; returns its index.
+    pub fn spawn(&mut self, args: &[&str]) -> usize {
+        let mut child = self
+            .command(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("spawn muster");
+        let stdout = child.stdout.take().expect("stdout");
+        let stdin = child.stdin.take();
+        let (tx, lines) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        self.procs.push(Proc { child, lines, stdin });
+        self.procs.len() - 1
+    }
+
+    pub fn proc(&mut self, i: usize) -> &mut Proc {
+        &mut self.procs[i]
+    }
+
+    pub fn broker(&mut self, extra: &[&str]) -> usize {
+        let mut args = vec!["broker"];
+        args.extend_from_slice(extra);
+        self.spawn(&args)
+    }
+
+    /// `muster system synthetic --name NAME` plus `extra`.
+    pub fn system(&mut self, name: &str, extra: &[&str]) -> usize {
+        let mut args = vec!["system", "synthetic", "--name", name];
+        args.extend_from_slice(extra);
+        self.spawn(&args)
+    }
+
+    /// Runs a command to completion (bounded); returns exit code and stdout.
+    pub fn run(&self, args: &[&str], timeout: Duration) -> (i32, String) {
+        let mut child = self
+            .command(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("spawn muster");
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Ok(Some(_)) = child.try_wait() {
+                let out = child.wait_with_output().expect("output");
+                return (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stdout).into());
+            }
+            if Instant::now() >= deadline {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("`muster {}` did not finish within {timeout:?}", args.join(" "));
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    /// The list, from `muster user list --json`.
+    pub fn list(&self) -> Vec<Value> {
+        let (code, out) = self.run(&["user", "list", "--json"], Duration::from_secs(20));
+        assert_eq!(code, 0, "user list failed: {out}");
+        serde_json::from_str::<Value>(&out).expect("list JSON").as_array().expect("array").clone()
+    }
+
+    /// Polls the list until `pred` holds; returns it and how long it took.
+    pub fn wait_list(&self, timeout: Duration, pred: impl Fn(&[Value]) -> bool) -> (Vec<Value>, Duration) {
+        let start = Instant::now();
+        loop {
+            let l = self.list();
+            if pred(&l) {
+                return (l, start.elapsed());
+            }
+            assert!(start.elapsed() < timeout, "list condition not met within {timeout:?}: {l:?}");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Stops everything: SIGTERM, then SIGKILL after 5 s, then cleans up what dead
+    /// processes left in shared memory.
+    pub fn shutdown(&mut self) {
+        for p in self.procs.iter().rev() {
+            p.signal(libc::SIGTERM);
+        }
+        for p in self.procs.iter_mut().rev() {
+            if p.wait(Duration::from_secs(5)).is_none() {
+                let _ = p.child.kill();
+                let _ = p.child.wait();
+            }
+        }
+        self.procs.clear();
+        cleanup_dead_nodes();
+    }
+}
+
+impl Drop for Fed {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}
+
+/// Removes the iceoryx2 resources of dead processes (ours, SIGKILLed on purpose).
+pub fn cleanup_dead_nodes() {
+    use iceoryx2::prelude::*;
+    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+        if let NodeState::Dead(view) = state {
+            let _ = view.try_remove_stale_resources();
+        }
+        CallbackProgression::Continue
+    });
+}
+
+pub fn ids(list: &[Value]) -> Vec<String> {
+    list.iter().map(|v| v["id"].as_str().unwrap_or_default().to_string()).collect()
+}
+
+pub fn find<'a>(list: &'a [Value], id: &str) -> Option<&'a Value> {
+    list.iter().find(|v| v["id"] == id)
+}
+
+pub const SEC: Duration = Duration::from_secs(1);

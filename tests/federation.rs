@@ -1,0 +1,315 @@
+//! Process-level tests of the local federation: real broker, system and user processes
+//! over iceoryx2 shared memory, one instance per test.
+
+mod common;
+
+use common::{find, ids, Fed, SEC};
+use serde_json::Value;
+use std::time::{Duration, Instant};
+
+fn seqs(lines: &[Value]) -> Vec<u64> {
+    lines.iter().filter_map(|v| v.get("payload").filter(|p| !p.is_null()).and(v["seq"].as_u64())).collect()
+}
+
+#[test]
+fn registration_lists_every_field_and_ids_are_stable() {
+    let mut f = Fed::new("reg");
+    f.broker(&[]);
+    f.system("t1", &["--services", "2", "--quota", "4", "--rate", "5"]);
+    f.system("d1", &["--kind", "command", "--quota", "1", "--queue"]);
+    let (list, _) = f.wait_list(10 * SEC, |l| l.len() == 3);
+    assert_eq!(ids(&list), ["d1/s0", "t1/s0", "t1/s1"]);
+    let t = find(&list, "t1/s1").unwrap();
+    assert_eq!(t["system"], "t1");
+    assert_eq!(t["name"], "s1");
+    assert_eq!(t["kind"], "data");
+    assert_eq!(t["queue"], false);
+    assert_eq!(t["quota"], 4);
+    assert_eq!(t["in_use"], 0);
+    assert_eq!(t["payload"], "pose2d");
+    assert!(t["description"].as_str().unwrap().contains("t1"));
+    let d = find(&list, "d1/s0").unwrap();
+    assert_eq!((d["kind"].as_str(), d["queue"].as_bool(), d["payload"].as_str()), (Some("command"), Some(true), Some("goal2d")));
+
+    // The system leaves (SIGTERM: unregisters) and comes back: same ids.
+    let t1 = 1;
+    f.proc(t1).signal(libc::SIGTERM);
+    assert_eq!(f.proc(t1).wait(5 * SEC), Some(0));
+    f.wait_list(10 * SEC, |l| ids(l) == ["d1/s0"]);
+    f.system("t1", &["--services", "2", "--quota", "4"]);
+    f.wait_list(10 * SEC, |l| ids(l) == ["d1/s0", "t1/s0", "t1/s1"]);
+}
+
+#[test]
+fn a_second_system_with_a_taken_name_is_refused() {
+    let mut f = Fed::new("dupname");
+    f.broker(&[]);
+    f.system("t1", &[]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let second = f.system("t1", &["--services", "3"]);
+    assert_eq!(f.proc(second).wait(10 * SEC), Some(1), "a second t1 exits 1");
+    assert_eq!(f.list().len(), 1);
+}
+
+#[test]
+fn watchers_are_woken_when_the_list_changes() {
+    let mut f = Fed::new("watch");
+    f.broker(&[]);
+    let w = f.spawn(&["user", "watch", "--json"]);
+    let first = f.proc(w).json(10 * SEC).expect("first snapshot");
+    let g0 = first["generation"].as_u64().unwrap();
+    assert_eq!(first["services"].as_array().unwrap().len(), 0);
+    f.system("t1", &["--services", "2"]);
+    let next = f.proc(w).json(10 * SEC).expect("woken by the change");
+    assert!(next["generation"].as_u64().unwrap() > g0);
+    assert_eq!(next["services"].as_array().unwrap().len(), 2);
+}
+
+#[test]
+fn a_killed_system_is_removed_without_waiting_for_a_ping() {
+    let mut f = Fed::new("sigkill");
+    f.broker(&[]); // default pings: 20 s + 10 s
+    f.system("t1", &[]);
+    let t2 = f.system("t2", &[]);
+    f.wait_list(10 * SEC, |l| l.len() == 2);
+    f.proc(t2).signal(libc::SIGKILL);
+    let (_, took) = f.wait_list(10 * SEC, |l| ids(l) == ["t1/s0"]);
+    eprintln!("SIGKILLed system gone from the list after {took:?} (incl. 50 ms list polling)");
+    // Well before the 20 s + 10 s a ping would take.
+}
+
+#[test]
+fn a_stopped_system_turns_delinquent_and_returns_after_sigcont() {
+    let mut f = Fed::new("sigstop");
+    f.broker(&["--ping-interval", "1s", "--ping-timeout", "1s"]);
+    let t1 = f.system("t1", &[]);
+    f.system("t2", &[]);
+    f.wait_list(10 * SEC, |l| l.len() == 2);
+    // A session on t2 must not be disturbed by t1's delinquency.
+    let req = f.spawn(&["user", "request", "t2/s0", "--duration", "6s", "--json"]);
+    assert_eq!(f.proc(req).json(10 * SEC).unwrap()["granted"], true);
+    f.proc(t1).signal(libc::SIGSTOP);
+    f.wait_list(15 * SEC, |l| ids(l) == ["t2/s0"]);
+    f.proc(t1).signal(libc::SIGCONT);
+    f.wait_list(15 * SEC, |l| l.len() == 2);
+    let lines = f.proc(req).all_json(20 * SEC);
+    let s = seqs(&lines);
+    assert!(s.len() > 20);
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gaps or reordering");
+    assert_eq!(lines.last().unwrap()["gaps"], 0);
+}
+
+#[test]
+fn refusals_name_their_reason() {
+    let mut f = Fed::new("refuse");
+    f.broker(&[]);
+    f.system("t1", &["--quota", "1"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let (code, out) = f.run(&["user", "request", "nosuch/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 3);
+    let v: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
+    assert_eq!((v["granted"].as_bool(), v["code"].as_str()), (Some(false), Some("unknown")));
+
+    let holder = f.spawn(&["user", "request", "t1/s0", "--duration", "10s", "--json"]);
+    assert_eq!(f.proc(holder).json(10 * SEC).unwrap()["granted"], true);
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 3);
+    let v: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
+    assert_eq!(v["code"], "quota_full");
+    assert!(v["reason"].as_str().unwrap().contains("quota full"));
+    assert_eq!(find(&f.list(), "t1/s0").unwrap()["in_use"], 1);
+}
+
+#[test]
+fn a_queued_request_is_granted_at_the_head_of_the_queue() {
+    let mut f = Fed::new("queue");
+    f.broker(&[]);
+    f.system("d1", &["--kind", "command", "--quota", "1", "--queue"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let first = f.spawn(&["user", "request", "d1/s0", "--duration", "2s", "--json"]);
+    assert_eq!(f.proc(first).json(10 * SEC).unwrap()["granted"], true);
+    let second = f.spawn(&["user", "request", "d1/s0", "--duration", "1s", "--json"]);
+    f.wait_list(10 * SEC, |l| find(l, "d1/s0").is_some_and(|s| s["queued"] == 1));
+    let v = f.proc(second).json(15 * SEC).expect("granted once the first session ends");
+    assert_eq!(v["granted"], true);
+    assert_eq!(v["queue_position"], 1);
+    assert_eq!(f.proc(second).wait(10 * SEC), Some(0));
+}
+
+#[test]
+fn a_data_session_streams_with_sequence_numbers_and_the_system_can_end_it() {
+    let mut f = Fed::new("session");
+    f.broker(&[]);
+    let t1 = f.system("t1", &["--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--duration", "2s", "--json"], 20 * SEC);
+    assert_eq!(code, 0);
+    let lines: Vec<Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines[0]["granted"], true);
+    let s = seqs(&lines);
+    assert_eq!(s[0], 1);
+    assert!(s.len() >= 20, "about 40 updates at 20 Hz over 2 s, got {}", s.len());
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1));
+    assert_eq!(lines[1]["payload"]["type"], "pose2d");
+    let last = lines.last().unwrap();
+    assert_eq!((last["ended"].as_bool(), last["reason"].as_str()), (Some(true), Some("duration over")));
+    f.wait_list(10 * SEC, |l| l[0]["in_use"] == 0);
+
+    // The system ends a session: the user is told and stops early.
+    let req = f.spawn(&["user", "request", "t1/s0", "--duration", "30s", "--json"]);
+    assert_eq!(f.proc(req).json(10 * SEC).unwrap()["granted"], true);
+    f.proc(t1).send("end all");
+    let lines = f.proc(req).all_json(10 * SEC);
+    let last = lines.last().expect("an end line");
+    assert!(last["reason"].as_str().unwrap().contains("ended by the system"), "{last}");
+    assert_eq!(f.proc(req).wait(5 * SEC), Some(0));
+}
+
+#[test]
+fn a_command_session_takes_a_goal_and_reports_arrival() {
+    let mut f = Fed::new("command");
+    f.broker(&[]);
+    f.system("d1", &["--kind", "command", "--quota", "1", "--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let (code, out) = f.run(&["user", "request", "d1/s0", "--goal", "1.5,-1.5", "--duration", "3s", "--json"], 20 * SEC);
+    assert_eq!(code, 0);
+    let statuses: Vec<String> = out
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter_map(|v| v["status"].as_str().map(String::from))
+        .collect();
+    assert_eq!(statuses[0], "idle");
+    assert!(statuses[1].contains("goal (1.50, -1.50) accepted"), "{statuses:?}");
+    assert_eq!(statuses.iter().filter(|s| s.starts_with("done: arrived within 1 m")).count(), 1, "{statuses:?}");
+}
+
+#[test]
+fn withdraw_and_restore() {
+    let mut f = Fed::new("withdraw");
+    f.broker(&[]);
+    let t1 = f.system("t1", &[]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let req = f.spawn(&["user", "request", "t1/s0", "--duration", "30s", "--json"]);
+    assert_eq!(f.proc(req).json(10 * SEC).unwrap()["granted"], true);
+    f.proc(t1).send("withdraw s0");
+    f.wait_list(10 * SEC, |l| l[0]["withdrawn"] == true && l[0]["in_use"] == 0);
+    let last = f.proc(req).all_json(10 * SEC).pop().unwrap();
+    assert_eq!(last["reason"], "service withdrawn");
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 3);
+    assert!(out.contains("\"code\":\"withdrawn\""), "{out}");
+    f.proc(t1).send("restore s0");
+    f.wait_list(10 * SEC, |l| l[0]["withdrawn"] == false);
+    let (code, _) = f.run(&["user", "request", "t1/s0", "--duration", "200ms", "--json"], 20 * SEC);
+    assert_eq!(code, 0);
+}
+
+#[test]
+fn sessions_survive_a_broker_crash_and_the_list_comes_back() {
+    let mut f = Fed::new("crash");
+    let broker = f.broker(&[]);
+    f.system("t1", &["--rate", "20", "--quota", "1"]);
+    f.system("t2", &["--services", "3"]);
+    f.wait_list(10 * SEC, |l| l.len() == 4);
+    let req = f.spawn(&["user", "request", "t1/s0", "--duration", "6s", "--json"]);
+    assert_eq!(f.proc(req).json(10 * SEC).unwrap()["granted"], true);
+    std::thread::sleep(Duration::from_millis(1500));
+    f.proc(broker).signal(libc::SIGKILL);
+    assert!(f.proc(broker).wait(5 * SEC).is_some());
+    std::thread::sleep(Duration::from_millis(1000));
+    let restart = Instant::now();
+    f.broker(&[]);
+    let (list, _) = f.wait_list(10 * SEC, |l| l.len() == 4 && find(l, "t1/s0").is_some_and(|s| s["in_use"] == 1));
+    eprintln!("list complete {:?} after the broker restart", restart.elapsed());
+    assert_eq!(find(&list, "t1/s0").unwrap()["in_use"], 1, "the old session still counts");
+    // Its quota is still taken by the session granted before the crash.
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 3, "{out}");
+    let lines = f.proc(req).all_json(20 * SEC);
+    let s = seqs(&lines);
+    assert!(s.len() >= 60, "updates through the crash: {}", s.len());
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap in sequence numbers");
+    assert_eq!(lines.last().unwrap()["gaps"], 0);
+    assert_eq!(lines.last().unwrap()["reason"], "duration over");
+}
+
+#[test]
+fn a_link_forwards_data_as_task_input_and_ends_when_its_data_goes() {
+    let mut f = Fed::new("link");
+    f.broker(&[]);
+    let t1 = f.system("t1", &["--rate", "20"]);
+    f.system("d1", &["--kind", "command", "--quota", "1", "--queue", "--rate", "20"]);
+    f.system("s1", &["--payload", "scalar"]);
+    f.wait_list(10 * SEC, |l| l.len() == 3);
+    let (code, out) = f.run(&["user", "link", "s1/s0", "d1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 3);
+    assert!(out.contains("streams scalar but d1/s0 takes goal2d"), "{out}");
+    let (code, out) = f.run(&["user", "link", "d1/s0", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 3);
+    assert!(out.contains("not a data service"), "{out}");
+
+    let link = f.spawn(&["user", "link", "t1/s0", "d1/s0", "--duration", "30s", "--json"]);
+    let first = f.proc(link).json(10 * SEC).unwrap();
+    assert_eq!(first["linked"], true, "{first}");
+    let mut forwarded = 0;
+    let mut statuses = 0;
+    let deadline = Instant::now() + 10 * SEC;
+    while (forwarded < 10 || statuses < 5) && Instant::now() < deadline {
+        let v = f.proc(link).json(10 * SEC).unwrap();
+        if v["forwarded"]["type"] == "goal2d" {
+            forwarded += 1;
+        }
+        if v["from"] == "d1/s0" && v["status"].is_string() {
+            statuses += 1;
+        }
+    }
+    assert!(forwarded >= 10 && statuses >= 5, "forwarded {forwarded}, statuses {statuses}");
+    let (list, _) = f.wait_list(10 * SEC, |l| find(l, "t1/s0").is_some_and(|s| s["links"] == 1));
+    assert_eq!(find(&list, "d1/s0").unwrap()["links"], 1);
+    // The tracker dies: the link ends with a notice; the delivery session is freed.
+    f.proc(t1).signal(libc::SIGKILL);
+    let lines = f.proc(link).all_json(10 * SEC);
+    let last = lines.last().unwrap();
+    assert_eq!(last["ended"], true);
+    assert!(last["reason"].as_str().unwrap().contains("linked session ended"), "{last}");
+    assert_eq!(f.proc(link).wait(5 * SEC), Some(0));
+    f.wait_list(10 * SEC, |l| find(l, "d1/s0").is_some_and(|s| s["in_use"] == 0 && s["links"] == 0));
+}
+
+#[test]
+fn a_missing_broker_gets_a_clear_error() {
+    let f = Fed::new("nobroker");
+    let out = f
+        .command(&["user", "list", "--wait", "300ms"])
+        .output()
+        .expect("run");
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no broker on instance"), "{err}");
+    let out = std::process::Command::new(common::BIN)
+        .args(["--instance", "bad/name", "user", "list"])
+        .output()
+        .expect("run");
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("invalid instance name"));
+}
+
+#[test]
+fn a_hundred_user_processes_connect_at_once() {
+    let mut f = Fed::new("hundred");
+    f.broker(&[]);
+    for i in 0..10 {
+        f.system(&format!("t{i}"), &["--services", "8", "--rate", "1"]);
+    }
+    f.wait_list(20 * SEC, |l| l.len() == 80);
+    let users: Vec<usize> = (0..100).map(|_| f.spawn(&["user", "watch", "--json", "--wait", "30s"])).collect();
+    let start = Instant::now();
+    for &u in &users {
+        let v = f.proc(u).json(60 * SEC).expect("every user gets the list");
+        assert_eq!(v["services"].as_array().unwrap().len(), 80);
+    }
+    eprintln!("100 user processes connected and read an 80-service list in {:?}", start.elapsed());
+    // With all of them connected, a request still works.
+    let (code, out) = f.run(&["user", "request", "t3/s5", "--duration", "100ms", "--json"], 30 * SEC);
+    assert_eq!(code, 0, "{out}");
+}
