@@ -8,7 +8,14 @@ use serde_json::Value;
 use std::time::{Duration, Instant};
 
 fn seqs(lines: &[Value]) -> Vec<u64> {
-    lines.iter().filter_map(|v| v.get("payload").filter(|p| !p.is_null()).and(v["seq"].as_u64())).collect()
+    lines
+        .iter()
+        .filter_map(|v| {
+            v.get("payload")
+                .filter(|p| !p.is_null())
+                .and(v["seq"].as_u64())
+        })
+        .collect()
 }
 
 #[test]
@@ -29,7 +36,14 @@ fn registration_lists_every_field_and_ids_are_stable() {
     assert_eq!(t["payload"], "pose2d");
     assert!(t["description"].as_str().unwrap().contains("t1"));
     let d = find(&list, "d1/s0").unwrap();
-    assert_eq!((d["kind"].as_str(), d["queue"].as_bool(), d["payload"].as_str()), (Some("command"), Some(true), Some("goal2d")));
+    assert_eq!(
+        (
+            d["kind"].as_str(),
+            d["queue"].as_bool(),
+            d["payload"].as_str()
+        ),
+        (Some("command"), Some(true), Some("goal2d"))
+    );
 
     // The system leaves (SIGTERM: unregisters) and comes back: same ids.
     let t1 = 1;
@@ -47,7 +61,11 @@ fn a_second_system_with_a_taken_name_is_refused() {
     f.system("t1", &[]);
     f.wait_list(10 * SEC, |l| l.len() == 1);
     let second = f.system("t1", &["--services", "3"]);
-    assert_eq!(f.proc(second).wait(10 * SEC), Some(1), "a second t1 exits 1");
+    assert_eq!(
+        f.proc(second).wait(10 * SEC),
+        Some(1),
+        "a second t1 exits 1"
+    );
     assert_eq!(f.list().len(), 1);
 }
 
@@ -95,7 +113,10 @@ fn a_stopped_system_turns_delinquent_and_returns_after_sigcont() {
     let lines = f.proc(req).all_json(20 * SEC);
     let s = seqs(&lines);
     assert!(s.len() > 20);
-    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gaps or reordering");
+    assert!(
+        s.windows(2).all(|w| w[1] == w[0] + 1),
+        "no gaps or reordering"
+    );
     assert_eq!(lines.last().unwrap()["gaps"], 0);
 }
 
@@ -108,7 +129,10 @@ fn refusals_name_their_reason() {
     let (code, out) = f.run(&["user", "request", "nosuch/s0", "--json"], 20 * SEC);
     assert_eq!(code, 3);
     let v: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
-    assert_eq!((v["granted"].as_bool(), v["code"].as_str()), (Some(false), Some("unknown")));
+    assert_eq!(
+        (v["granted"].as_bool(), v["code"].as_str()),
+        (Some(false), Some("unknown"))
+    );
 
     let holder = f.spawn(&["user", "request", "t1/s0", "--duration", "10s", "--json"]);
     assert_eq!(f.proc(holder).json(10 * SEC).unwrap()["granted"], true);
@@ -129,8 +153,13 @@ fn a_queued_request_is_granted_at_the_head_of_the_queue() {
     let first = f.spawn(&["user", "request", "d1/s0", "--duration", "2s", "--json"]);
     assert_eq!(f.proc(first).json(10 * SEC).unwrap()["granted"], true);
     let second = f.spawn(&["user", "request", "d1/s0", "--duration", "1s", "--json"]);
-    f.wait_list(10 * SEC, |l| find(l, "d1/s0").is_some_and(|s| s["queued"] == 1));
-    let v = f.proc(second).json(15 * SEC).expect("granted once the first session ends");
+    f.wait_list(10 * SEC, |l| {
+        find(l, "d1/s0").is_some_and(|s| s["queued"] == 1)
+    });
+    let v = f
+        .proc(second)
+        .json(15 * SEC)
+        .expect("granted once the first session ends");
     assert_eq!(v["granted"], true);
     assert_eq!(v["queue_position"], 1);
     assert_eq!(f.proc(second).wait(10 * SEC), Some(0));
@@ -142,17 +171,30 @@ fn a_data_session_streams_with_sequence_numbers_and_the_system_can_end_it() {
     f.broker(&[]);
     let t1 = f.system("t1", &["--rate", "20"]);
     f.wait_list(10 * SEC, |l| l.len() == 1);
-    let (code, out) = f.run(&["user", "request", "t1/s0", "--duration", "2s", "--json"], 20 * SEC);
+    let (code, out) = f.run(
+        &["user", "request", "t1/s0", "--duration", "2s", "--json"],
+        20 * SEC,
+    );
     assert_eq!(code, 0);
-    let lines: Vec<Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
     assert_eq!(lines[0]["granted"], true);
     let s = seqs(&lines);
     assert_eq!(s[0], 1);
-    assert!(s.len() >= 20, "about 40 updates at 20 Hz over 2 s, got {}", s.len());
+    assert!(
+        s.len() >= 20,
+        "about 40 updates at 20 Hz over 2 s, got {}",
+        s.len()
+    );
     assert!(s.windows(2).all(|w| w[1] == w[0] + 1));
     assert_eq!(lines[1]["payload"]["type"], "pose2d");
     let last = lines.last().unwrap();
-    assert_eq!((last["ended"].as_bool(), last["reason"].as_str()), (Some(true), Some("duration over")));
+    assert_eq!(
+        (last["ended"].as_bool(), last["reason"].as_str()),
+        (Some(true), Some("duration over"))
+    );
     f.wait_list(10 * SEC, |l| l[0]["in_use"] == 0);
 
     // The system ends a session: the user is told and stops early.
@@ -161,7 +203,13 @@ fn a_data_session_streams_with_sequence_numbers_and_the_system_can_end_it() {
     f.proc(t1).send("end all");
     let lines = f.proc(req).all_json(10 * SEC);
     let last = lines.last().expect("an end line");
-    assert!(last["reason"].as_str().unwrap().contains("ended by the system"), "{last}");
+    assert!(
+        last["reason"]
+            .as_str()
+            .unwrap()
+            .contains("ended by the system"),
+        "{last}"
+    );
     assert_eq!(f.proc(req).wait(5 * SEC), Some(0));
 }
 
@@ -171,7 +219,19 @@ fn a_command_session_takes_a_goal_and_reports_arrival() {
     f.broker(&[]);
     f.system("d1", &["--kind", "command", "--quota", "1", "--rate", "20"]);
     f.wait_list(10 * SEC, |l| l.len() == 1);
-    let (code, out) = f.run(&["user", "request", "d1/s0", "--goal", "1.5,-1.5", "--duration", "3s", "--json"], 20 * SEC);
+    let (code, out) = f.run(
+        &[
+            "user",
+            "request",
+            "d1/s0",
+            "--goal",
+            "1.5,-1.5",
+            "--duration",
+            "3s",
+            "--json",
+        ],
+        20 * SEC,
+    );
     assert_eq!(code, 0);
     let statuses: Vec<String> = out
         .lines()
@@ -179,8 +239,18 @@ fn a_command_session_takes_a_goal_and_reports_arrival() {
         .filter_map(|v| v["status"].as_str().map(String::from))
         .collect();
     assert_eq!(statuses[0], "idle");
-    assert!(statuses[1].contains("goal (1.50, -1.50) accepted"), "{statuses:?}");
-    assert_eq!(statuses.iter().filter(|s| s.starts_with("done: arrived within 1 m")).count(), 1, "{statuses:?}");
+    assert!(
+        statuses[1].contains("goal (1.50, -1.50) accepted"),
+        "{statuses:?}"
+    );
+    assert_eq!(
+        statuses
+            .iter()
+            .filter(|s| s.starts_with("done: arrived within 1 m"))
+            .count(),
+        1,
+        "{statuses:?}"
+    );
 }
 
 #[test]
@@ -192,7 +262,9 @@ fn withdraw_and_restore() {
     let req = f.spawn(&["user", "request", "t1/s0", "--duration", "30s", "--json"]);
     assert_eq!(f.proc(req).json(10 * SEC).unwrap()["granted"], true);
     f.proc(t1).send("withdraw s0");
-    f.wait_list(10 * SEC, |l| l[0]["withdrawn"] == true && l[0]["in_use"] == 0);
+    f.wait_list(10 * SEC, |l| {
+        l[0]["withdrawn"] == true && l[0]["in_use"] == 0
+    });
     let last = f.proc(req).all_json(10 * SEC).pop().unwrap();
     assert_eq!(last["reason"], "service withdrawn");
     let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
@@ -200,7 +272,10 @@ fn withdraw_and_restore() {
     assert!(out.contains("\"code\":\"withdrawn\""), "{out}");
     f.proc(t1).send("restore s0");
     f.wait_list(10 * SEC, |l| l[0]["withdrawn"] == false);
-    let (code, _) = f.run(&["user", "request", "t1/s0", "--duration", "200ms", "--json"], 20 * SEC);
+    let (code, _) = f.run(
+        &["user", "request", "t1/s0", "--duration", "200ms", "--json"],
+        20 * SEC,
+    );
     assert_eq!(code, 0);
 }
 
@@ -219,16 +294,28 @@ fn sessions_survive_a_broker_crash_and_the_list_comes_back() {
     std::thread::sleep(Duration::from_millis(1000));
     let restart = Instant::now();
     f.broker(&[]);
-    let (list, _) = f.wait_list(10 * SEC, |l| l.len() == 4 && find(l, "t1/s0").is_some_and(|s| s["in_use"] == 1));
-    eprintln!("list complete {:?} after the broker restart", restart.elapsed());
-    assert_eq!(find(&list, "t1/s0").unwrap()["in_use"], 1, "the old session still counts");
+    let (list, _) = f.wait_list(10 * SEC, |l| {
+        l.len() == 4 && find(l, "t1/s0").is_some_and(|s| s["in_use"] == 1)
+    });
+    eprintln!(
+        "list complete {:?} after the broker restart",
+        restart.elapsed()
+    );
+    assert_eq!(
+        find(&list, "t1/s0").unwrap()["in_use"],
+        1,
+        "the old session still counts"
+    );
     // Its quota is still taken by the session granted before the crash.
     let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
     assert_eq!(code, 3, "{out}");
     let lines = f.proc(req).all_json(20 * SEC);
     let s = seqs(&lines);
     assert!(s.len() >= 60, "updates through the crash: {}", s.len());
-    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap in sequence numbers");
+    assert!(
+        s.windows(2).all(|w| w[1] == w[0] + 1),
+        "no gap in sequence numbers"
+    );
     assert_eq!(lines.last().unwrap()["gaps"], 0);
     assert_eq!(lines.last().unwrap()["reason"], "duration over");
 }
@@ -238,17 +325,33 @@ fn a_link_forwards_data_as_task_input_and_ends_when_its_data_goes() {
     let mut f = Fed::new("link");
     f.broker(&[]);
     let t1 = f.system("t1", &["--rate", "20"]);
-    f.system("d1", &["--kind", "command", "--quota", "1", "--queue", "--rate", "20"]);
+    f.system(
+        "d1",
+        &[
+            "--kind", "command", "--quota", "1", "--queue", "--rate", "20",
+        ],
+    );
     f.system("s1", &["--payload", "scalar"]);
     f.wait_list(10 * SEC, |l| l.len() == 3);
     let (code, out) = f.run(&["user", "link", "s1/s0", "d1/s0", "--json"], 20 * SEC);
     assert_eq!(code, 3);
-    assert!(out.contains("streams scalar but d1/s0 takes goal2d"), "{out}");
+    assert!(
+        out.contains("streams scalar but d1/s0 takes goal2d"),
+        "{out}"
+    );
     let (code, out) = f.run(&["user", "link", "d1/s0", "t1/s0", "--json"], 20 * SEC);
     assert_eq!(code, 3);
     assert!(out.contains("not a data service"), "{out}");
 
-    let link = f.spawn(&["user", "link", "t1/s0", "d1/s0", "--duration", "30s", "--json"]);
+    let link = f.spawn(&[
+        "user",
+        "link",
+        "t1/s0",
+        "d1/s0",
+        "--duration",
+        "30s",
+        "--json",
+    ]);
     let first = f.proc(link).json(10 * SEC).unwrap();
     assert_eq!(first["linked"], true, "{first}");
     let mut forwarded = 0;
@@ -263,17 +366,30 @@ fn a_link_forwards_data_as_task_input_and_ends_when_its_data_goes() {
             statuses += 1;
         }
     }
-    assert!(forwarded >= 10 && statuses >= 5, "forwarded {forwarded}, statuses {statuses}");
-    let (list, _) = f.wait_list(10 * SEC, |l| find(l, "t1/s0").is_some_and(|s| s["links"] == 1));
+    assert!(
+        forwarded >= 10 && statuses >= 5,
+        "forwarded {forwarded}, statuses {statuses}"
+    );
+    let (list, _) = f.wait_list(10 * SEC, |l| {
+        find(l, "t1/s0").is_some_and(|s| s["links"] == 1)
+    });
     assert_eq!(find(&list, "d1/s0").unwrap()["links"], 1);
     // The tracker dies: the link ends with a notice; the delivery session is freed.
     f.proc(t1).signal(libc::SIGKILL);
     let lines = f.proc(link).all_json(10 * SEC);
     let last = lines.last().unwrap();
     assert_eq!(last["ended"], true);
-    assert!(last["reason"].as_str().unwrap().contains("linked session ended"), "{last}");
+    assert!(
+        last["reason"]
+            .as_str()
+            .unwrap()
+            .contains("linked session ended"),
+        "{last}"
+    );
     assert_eq!(f.proc(link).wait(5 * SEC), Some(0));
-    f.wait_list(10 * SEC, |l| find(l, "d1/s0").is_some_and(|s| s["in_use"] == 0 && s["links"] == 0));
+    f.wait_list(10 * SEC, |l| {
+        find(l, "d1/s0").is_some_and(|s| s["in_use"] == 0 && s["links"] == 0)
+    });
 }
 
 #[test]
@@ -302,14 +418,22 @@ fn a_hundred_user_processes_connect_at_once() {
         f.system(&format!("t{i}"), &["--services", "8", "--rate", "1"]);
     }
     f.wait_list(20 * SEC, |l| l.len() == 80);
-    let users: Vec<usize> = (0..100).map(|_| f.spawn(&["user", "watch", "--json", "--wait", "30s"])).collect();
+    let users: Vec<usize> = (0..100)
+        .map(|_| f.spawn(&["user", "watch", "--json", "--wait", "30s"]))
+        .collect();
     let start = Instant::now();
     for &u in &users {
         let v = f.proc(u).json(60 * SEC).expect("every user gets the list");
         assert_eq!(v["services"].as_array().unwrap().len(), 80);
     }
-    eprintln!("100 user processes connected and read an 80-service list in {:?}", start.elapsed());
+    eprintln!(
+        "100 user processes connected and read an 80-service list in {:?}",
+        start.elapsed()
+    );
     // With all of them connected, a request still works.
-    let (code, out) = f.run(&["user", "request", "t3/s5", "--duration", "100ms", "--json"], 30 * SEC);
+    let (code, out) = f.run(
+        &["user", "request", "t3/s5", "--duration", "100ms", "--json"],
+        30 * SEC,
+    );
     assert_eq!(code, 0, "{out}");
 }

@@ -81,10 +81,19 @@ impl Net {
     }
 
     fn add_system(&mut self, opts: SyntheticOptions) {
-        let mut core = SystemCore::new(&opts.name, 100 + self.systems.len() as u32, opts.specs(), 9);
+        let mut core =
+            SystemCore::new(&opts.name, 100 + self.systems.len() as u32, opts.specs(), 9);
         core.register();
         let app = Synthetic::new(&opts);
-        self.systems.insert(opts.name.clone(), Sys { core, app, alive: true, frozen: false });
+        self.systems.insert(
+            opts.name.clone(),
+            Sys {
+                core,
+                app,
+                alive: true,
+                frozen: false,
+            },
+        );
         self.settle();
     }
 
@@ -109,7 +118,9 @@ impl Net {
     fn settle(&mut self) {
         for _ in 0..100_000 {
             self.collect();
-            let Some(frame) = self.wire.pop_front() else { return };
+            let Some(frame) = self.wire.pop_front() else {
+                return;
+            };
             self.delivered += 1;
             match frame {
                 Frame::Broker(f) => {
@@ -140,8 +151,12 @@ impl Net {
         if let Some(b) = self.broker.as_mut() {
             while let Some(o) = b.poll_output() {
                 match o {
-                    Output::ToSystem(s, m) => self.wire.push_back(Frame::System(s, encode(&m).unwrap())),
-                    Output::ToUser(u, m) => self.wire.push_back(Frame::User(u, encode(&m).unwrap())),
+                    Output::ToSystem(s, m) => {
+                        self.wire.push_back(Frame::System(s, encode(&m).unwrap()))
+                    }
+                    Output::ToUser(u, m) => {
+                        self.wire.push_back(Frame::User(u, encode(&m).unwrap()))
+                    }
                     _ => {}
                 }
             }
@@ -155,7 +170,9 @@ impl Net {
                         SystemOutput::ToBroker(m) if broker_up => {
                             self.wire.push_back(Frame::Broker(encode(&m).unwrap()))
                         }
-                        SystemOutput::ToUser(u, m) => self.wire.push_back(Frame::User(u, encode(&m).unwrap())),
+                        SystemOutput::ToUser(u, m) => {
+                            self.wire.push_back(Frame::User(u, encode(&m).unwrap()))
+                        }
                         _ => {}
                     }
                 }
@@ -166,8 +183,12 @@ impl Net {
         for (id, u) in self.users.iter_mut() {
             while let Some(o) = u.poll_output() {
                 match o {
-                    UserOutput::ToBroker(m) if broker_up => self.wire.push_back(Frame::Broker(encode(&m).unwrap())),
-                    UserOutput::ToSystem(s, m) => self.wire.push_back(Frame::System(s, encode(&m).unwrap())),
+                    UserOutput::ToBroker(m) if broker_up => {
+                        self.wire.push_back(Frame::Broker(encode(&m).unwrap()))
+                    }
+                    UserOutput::ToSystem(s, m) => {
+                        self.wire.push_back(Frame::System(s, encode(&m).unwrap()))
+                    }
                     _ => {}
                 }
             }
@@ -230,7 +251,11 @@ fn data(name: &str, services: usize, quota: u16) -> SyntheticOptions {
 }
 
 fn command(name: &str, quota: u16, queue: bool) -> SyntheticOptions {
-    SyntheticOptions { kind: ServiceKind::Command, queue, ..data(name, 1, quota) }
+    SyntheticOptions {
+        kind: ServiceKind::Command,
+        queue,
+        ..data(name, 1, quota)
+    }
 }
 
 fn secs(s: f64) -> Duration {
@@ -261,7 +286,12 @@ fn a_data_session_streams_in_order_without_gaps() {
         .take_events(&u)
         .into_iter()
         .filter_map(|e| match e {
-            UserEvent::Update { seq, gap, payload: Payload::Pose2d { .. }, .. } => {
+            UserEvent::Update {
+                seq,
+                gap,
+                payload: Payload::Pose2d { .. },
+                ..
+            } => {
                 assert_eq!(gap, 0);
                 Some(seq)
             }
@@ -271,13 +301,22 @@ fn a_data_session_streams_in_order_without_gaps() {
     assert_eq!(seqs.len(), 101, "10 s at 10 Hz, both ends included");
     assert!(seqs.windows(2).all(|w| w[1] == w[0] + 1));
     assert_eq!(net.user(&u).counters(s).unwrap().gaps, 0);
-    assert_eq!(net.list().iter().find(|v| v.id == "t1/s1").unwrap().in_use, 1);
+    assert_eq!(
+        net.list().iter().find(|v| v.id == "t1/s1").unwrap().in_use,
+        1
+    );
     // The user ends it: the system stops streaming, the broker frees the quota.
     net.user(&u).end(s);
     net.settle();
     net.run_until(secs(20.0));
-    assert!(!net.take_events(&u).iter().any(|e| matches!(e, UserEvent::Update { .. })));
-    assert_eq!(net.list().iter().find(|v| v.id == "t1/s1").unwrap().in_use, 0);
+    assert!(!net
+        .take_events(&u)
+        .iter()
+        .any(|e| matches!(e, UserEvent::Update { .. })));
+    assert_eq!(
+        net.list().iter().find(|v| v.id == "t1/s1").unwrap().in_use,
+        0
+    );
 }
 
 #[test]
@@ -295,7 +334,10 @@ fn several_users_share_a_service_up_to_its_quota() {
         for e in net.take_events(u) {
             match e {
                 UserEvent::Granted { .. } => grants += 1,
-                UserEvent::Refused { reason: Refusal::QuotaFull { quota: 10 }, .. } => full += 1,
+                UserEvent::Refused {
+                    reason: Refusal::QuotaFull { quota: 10 },
+                    ..
+                } => full += 1,
                 _ => {}
             }
         }
@@ -316,7 +358,9 @@ fn a_queued_request_is_granted_when_it_reaches_the_head() {
     net.settle();
     let sa = granted(&net.take_events(&a))[0];
     let eb = net.take_events(&b);
-    assert!(eb.iter().any(|e| matches!(e, UserEvent::Queued { position: 1, .. })));
+    assert!(eb
+        .iter()
+        .any(|e| matches!(e, UserEvent::Queued { position: 1, .. })));
     assert!(granted(&eb).is_empty());
     net.user(&a).end(sa);
     net.settle();
@@ -332,9 +376,14 @@ fn a_command_session_drives_to_the_goal_and_reports_arrival() {
     net.settle();
     let mut events = net.take_events(&u);
     let s = granted(&events)[0];
-    net.user(&u).input(s, Payload::Goal2d { x: 6.0, y: 8.0 }).unwrap();
+    net.user(&u)
+        .input(s, Payload::Goal2d { x: 6.0, y: 8.0 })
+        .unwrap();
     net.settle();
-    assert!(net.user(&u).input(SessionId(12345), Payload::Scalar(1.0)).is_err());
+    assert!(net
+        .user(&u)
+        .input(SessionId(12345), Payload::Scalar(1.0))
+        .is_err());
     net.run_until(secs(15.0));
     events.extend(net.take_events(&u));
     let statuses: Vec<TaskStatus> = events
@@ -346,10 +395,16 @@ fn a_command_session_drives_to_the_goal_and_reports_arrival() {
         .collect();
     assert_eq!(statuses[0], TaskStatus::Idle);
     assert!(matches!(&statuses[1], TaskStatus::Working(s) if s.contains("accepted")));
-    let done: Vec<_> = statuses.iter().filter(|s| matches!(s, TaskStatus::Done(_))).collect();
+    let done: Vec<_> = statuses
+        .iter()
+        .filter(|s| matches!(s, TaskStatus::Done(_)))
+        .collect();
     assert_eq!(done.len(), 1, "arrival reported once");
     // 10 m at 1 m/s, arriving within 1 m: about 9 s of progress reports at 10 Hz.
-    let working = statuses.iter().filter(|s| matches!(s, TaskStatus::Working(_))).count();
+    let working = statuses
+        .iter()
+        .filter(|s| matches!(s, TaskStatus::Working(_)))
+        .count();
     assert!((85..=95).contains(&working), "{working} progress reports");
 }
 
@@ -359,11 +414,17 @@ fn a_link_forwards_tracker_poses_as_delivery_goals() {
     net.add_system(data("t1", 1, 10));
     net.add_system(command("d1", 1, true));
     let u = net.add_user(1);
-    let link = net.user(&u).link(ServiceId::new("t1", "s0"), ServiceId::new("d1", "s0"));
+    let link = net
+        .user(&u)
+        .link(ServiceId::new("t1", "s0"), ServiceId::new("d1", "s0"));
     net.settle();
     let ev = net.take_events(&u);
     assert!(ev.contains(&UserEvent::LinkUp { link }));
-    assert_eq!(net.list().iter().map(|v| v.links).sum::<u16>(), 2, "visible to the broker");
+    assert_eq!(
+        net.list().iter().map(|v| v.links).sum::<u16>(),
+        2,
+        "visible to the broker"
+    );
     net.run_until(secs(5.0));
     let ev = net.take_events(&u);
     let forwarded: Vec<&Payload> = ev
@@ -373,15 +434,22 @@ fn a_link_forwards_tracker_poses_as_delivery_goals() {
             _ => None,
         })
         .collect();
-    let updates = ev.iter().filter(|e| matches!(e, UserEvent::Update { .. })).count();
+    let updates = ev
+        .iter()
+        .filter(|e| matches!(e, UserEvent::Update { .. }))
+        .count();
     assert_eq!(forwarded.len(), updates, "every data update is forwarded");
-    assert!(forwarded.iter().all(|p| matches!(p, Payload::Goal2d { .. })));
+    assert!(forwarded
+        .iter()
+        .all(|p| matches!(p, Payload::Goal2d { .. })));
     // The data stops (tracker dies): the link ends with a notice, the command session too.
     net.systems.get_mut("t1").unwrap().alive = false;
     net.user(&u).system_died("t1");
     net.settle();
     let ev = net.take_events(&u);
-    assert!(ev.iter().any(|e| matches!(e, UserEvent::LinkEnded { link: l, .. } if *l == link)));
+    assert!(ev
+        .iter()
+        .any(|e| matches!(e, UserEvent::LinkEnded { link: l, .. } if *l == link)));
     assert!(ev.iter().any(|e| matches!(e, UserEvent::Ended { reason: EndReason::ByUser, service, .. } if service.0 == "d1/s0")));
     assert_eq!(net.systems["d1"].core.sessions_of("s0"), 0);
 }
@@ -393,7 +461,8 @@ fn sessions_and_links_survive_a_broker_crash_and_quotas_still_hold() {
     net.add_system(command("d1", 1, false));
     let u = net.add_user(1);
     let v = net.add_user(2);
-    net.user(&u).link(ServiceId::new("t1", "s0"), ServiceId::new("d1", "s0"));
+    net.user(&u)
+        .link(ServiceId::new("t1", "s0"), ServiceId::new("d1", "s0"));
     net.user(&v).request(ServiceId::new("t1", "s0"));
     net.settle();
     net.run_until(secs(2.0));
@@ -414,7 +483,13 @@ fn sessions_and_links_survive_a_broker_crash_and_quotas_still_hold() {
         .collect();
     assert_eq!(seqs.len(), 280, "28 s at 10 Hz with no broker");
     assert!(ev.contains(&UserEvent::BrokerLost));
-    assert!(net.take_events(&u).iter().filter(|e| matches!(e, UserEvent::LinkForwarded { .. })).count() >= 280);
+    assert!(
+        net.take_events(&u)
+            .iter()
+            .filter(|e| matches!(e, UserEvent::LinkForwarded { .. }))
+            .count()
+            >= 280
+    );
     // A new broker: the list is rebuilt from re-registration, in-use counts included.
     net.start_broker();
     let list = net.list();
@@ -424,10 +499,13 @@ fn sessions_and_links_survive_a_broker_crash_and_quotas_still_hold() {
     let w = net.add_user(3);
     net.user(&w).request(ServiceId::new("t1", "s0"));
     net.settle();
-    assert!(net
-        .take_events(&w)
-        .iter()
-        .any(|e| matches!(e, UserEvent::Refused { reason: Refusal::QuotaFull { quota: 2 }, .. })));
+    assert!(net.take_events(&w).iter().any(|e| matches!(
+        e,
+        UserEvent::Refused {
+            reason: Refusal::QuotaFull { quota: 2 },
+            ..
+        }
+    )));
 }
 
 #[test]
@@ -442,7 +520,11 @@ fn an_hour_with_a_frozen_system_then_thawed() {
     assert_eq!(net.list().len(), 2);
     net.systems.get_mut("t1").unwrap().frozen = true; // SIGSTOP
     net.run_until(secs(650.0));
-    assert_eq!(net.list().len(), 1, "t1 delinquent within ping interval + timeout");
+    assert_eq!(
+        net.list().len(),
+        1,
+        "t1 delinquent within ping interval + timeout"
+    );
     assert_eq!(net.list()[0].system, "t2");
     // SIGCONT: the frozen system reads the delinquency notice and re-registers.
     let s = net.systems.get_mut("t1").unwrap();
@@ -453,7 +535,11 @@ fn an_hour_with_a_frozen_system_then_thawed() {
     net.run_until(secs(3600.0));
     assert_eq!(net.list().len(), 2);
     // t2's session streamed the whole hour, undisturbed.
-    let updates = net.take_events(&u).iter().filter(|e| matches!(e, UserEvent::Update { .. })).count();
+    let updates = net
+        .take_events(&u)
+        .iter()
+        .filter(|e| matches!(e, UserEvent::Update { .. }))
+        .count();
     assert_eq!(updates, 36_001, "an hour at 10 Hz, both ends included");
     assert!(net.delivered > 36_000);
 }
@@ -469,14 +555,23 @@ fn withdraw_ends_sessions_and_refuses_then_restore_reopens() {
     net.systems.get_mut("t1").unwrap().core.withdraw("s0");
     net.settle();
     let ev = net.take_events(&u);
-    assert!(ev.iter().any(|e| matches!(e, UserEvent::Ended { reason: EndReason::Withdrawn, .. })));
+    assert!(ev.iter().any(|e| matches!(
+        e,
+        UserEvent::Ended {
+            reason: EndReason::Withdrawn,
+            ..
+        }
+    )));
     assert!(net.list()[0].withdrawn);
     net.user(&u).request(ServiceId::new("t1", "s0"));
     net.settle();
-    assert!(net
-        .take_events(&u)
-        .iter()
-        .any(|e| matches!(e, UserEvent::Refused { reason: Refusal::Withdrawn, .. })));
+    assert!(net.take_events(&u).iter().any(|e| matches!(
+        e,
+        UserEvent::Refused {
+            reason: Refusal::Withdrawn,
+            ..
+        }
+    )));
     net.systems.get_mut("t1").unwrap().core.restore("s0");
     net.settle();
     net.user(&u).request(ServiceId::new("t1", "s0"));

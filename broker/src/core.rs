@@ -249,13 +249,18 @@ impl Broker {
     /// Handles one message.
     pub fn handle(&mut self, now: Duration, msg: ToBroker) {
         match msg {
-            ToBroker::Register { system, pid, services, sessions } => {
-                self.register(now, system, pid, services, sessions)
-            }
+            ToBroker::Register {
+                system,
+                pid,
+                services,
+                sessions,
+            } => self.register(now, system, pid, services, sessions),
             ToBroker::Pong { system, nonce } => self.pong(now, &system, nonce),
-            ToBroker::OfferAnswer { system, ticket, answer } => {
-                self.offer_answer(now, &system, ticket, answer)
-            }
+            ToBroker::OfferAnswer {
+                system,
+                ticket,
+                answer,
+            } => self.offer_answer(now, &system, ticket, answer),
             ToBroker::SessionEnded { system, session } => self.session_ended(now, &system, session),
             ToBroker::Withdraw { system, service } => self.set_withdrawn(&system, &service, true),
             ToBroker::Restore { system, service } => {
@@ -274,7 +279,10 @@ impl Broker {
             ToBroker::LinkOpened { user, link } => {
                 self.users
                     .entry(user)
-                    .or_insert_with(|| UserRec { pid: 0, links: BTreeMap::new() })
+                    .or_insert_with(|| UserRec {
+                        pid: 0,
+                        links: BTreeMap::new(),
+                    })
                     .links
                     .insert(link.link, link);
                 self.recount_links();
@@ -300,7 +308,8 @@ impl Broker {
                     self.next_nonce = self.next_nonce.wrapping_add(2);
                     s.awaiting = Some((nonce, now + self.cfg.ping_timeout));
                     self.stats.pings += 1;
-                    self.out.push_back(Output::ToSystem(name.clone(), ToSystem::Ping { nonce }));
+                    self.out
+                        .push_back(Output::ToSystem(name.clone(), ToSystem::Ping { nonce }));
                 }
                 _ => {}
             }
@@ -309,8 +318,12 @@ impl Broker {
             tracing::warn!(system = %name, "no answer to ping: delinquent, removed");
             self.remove_system(&name, Removal::Delinquent);
         }
-        let expired: Vec<u64> =
-            self.offers.iter().filter(|(_, o)| now >= o.deadline).map(|(t, _)| *t).collect();
+        let expired: Vec<u64> = self
+            .offers
+            .iter()
+            .filter(|(_, o)| now >= o.deadline)
+            .map(|(t, _)| *t)
+            .collect();
         for ticket in expired {
             if let Some(offer) = self.offers.remove(&ticket) {
                 self.release_pending(&offer.service);
@@ -421,10 +434,16 @@ impl Broker {
         self.stats.registrations += 1;
         self.recount_links();
         self.list_dirty = true;
-        self.out.push_back(Output::WatchSystem { system: system.clone(), pid });
+        self.out.push_back(Output::WatchSystem {
+            system: system.clone(),
+            pid,
+        });
         self.out.push_back(Output::ToSystem(
             system,
-            ToSystem::Registered { epoch: self.epoch, broker_pid: self.pid },
+            ToSystem::Registered {
+                epoch: self.epoch,
+                broker_pid: self.pid,
+            },
         ));
     }
 
@@ -446,9 +465,9 @@ impl Broker {
                 }
             }
             // Found alive after removal: tell it, so it re-registers.
-            None => {
-                self.out.push_back(Output::ToSystem(system.to_string(), ToSystem::Delinquent))
-            }
+            None => self
+                .out
+                .push_back(Output::ToSystem(system.to_string(), ToSystem::Delinquent)),
         }
     }
 
@@ -470,9 +489,10 @@ impl Broker {
                 // and ends the session on sight.
                 let Some(o) = &offer else { return };
                 let (service, user) = (o.service.clone(), o.user.clone());
-                if let (Some(svc), Some(sys)) =
-                    (self.services.get_mut(&service), self.systems.get_mut(system))
-                {
+                if let (Some(svc), Some(sys)) = (
+                    self.services.get_mut(&service),
+                    self.systems.get_mut(system),
+                ) {
                     svc.sessions.insert(session);
                     sys.sessions.insert(session, (svc.spec.name.clone(), user));
                 }
@@ -488,8 +508,12 @@ impl Broker {
     }
 
     fn session_ended(&mut self, now: Duration, system: &str, session: SessionId) {
-        let Some(sys) = self.systems.get_mut(system) else { return };
-        let Some((service, _user)) = sys.sessions.remove(&session) else { return };
+        let Some(sys) = self.systems.get_mut(system) else {
+            return;
+        };
+        let Some((service, _user)) = sys.sessions.remove(&session) else {
+            return;
+        };
         let id = ServiceId::new(system, &service);
         if let Some(svc) = self.services.get_mut(&id) {
             svc.sessions.remove(&session);
@@ -500,7 +524,9 @@ impl Broker {
 
     fn set_withdrawn(&mut self, system: &str, service: &str, withdrawn: bool) {
         let id = ServiceId::new(system, service);
-        let Some(svc) = self.services.get_mut(&id) else { return };
+        let Some(svc) = self.services.get_mut(&id) else {
+            return;
+        };
         if svc.withdrawn == withdrawn {
             return;
         }
@@ -515,18 +541,32 @@ impl Broker {
     }
 
     fn hello(&mut self, user: UserId, pid: u32, links: Vec<LinkInfo>) {
-        let rec = self.users.entry(user.clone()).or_insert_with(|| UserRec { pid: 0, links: BTreeMap::new() });
+        let rec = self.users.entry(user.clone()).or_insert_with(|| UserRec {
+            pid: 0,
+            links: BTreeMap::new(),
+        });
         rec.pid = pid;
         rec.links = links.into_iter().map(|l| (l.link, l)).collect();
         self.recount_links();
-        self.out.push_back(Output::WatchUser { user: user.clone(), pid });
-        self.out
-            .push_back(Output::ToUser(user, ToUser::Welcome { epoch: self.epoch, broker_pid: self.pid }));
+        self.out.push_back(Output::WatchUser {
+            user: user.clone(),
+            pid,
+        });
+        self.out.push_back(Output::ToUser(
+            user,
+            ToUser::Welcome {
+                epoch: self.epoch,
+                broker_pid: self.pid,
+            },
+        ));
     }
 
     fn request(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
         self.stats.requests += 1;
-        self.users.entry(user.clone()).or_insert_with(|| UserRec { pid: 0, links: BTreeMap::new() });
+        self.users.entry(user.clone()).or_insert_with(|| UserRec {
+            pid: 0,
+            links: BTreeMap::new(),
+        });
         let Some(svc) = self.services.get(&service) else {
             return self.refuse(&user, req, Refusal::Unknown);
         };
@@ -534,7 +574,10 @@ impl Broker {
             return self.refuse(&user, req, Refusal::Withdrawn);
         }
         let already = svc.queue.iter().any(|w| w.user == user)
-            || self.offers.values().any(|o| o.user == user && o.service == service);
+            || self
+                .offers
+                .values()
+                .any(|o| o.user == user && o.service == service);
         if already {
             return self.refuse(&user, req, Refusal::AlreadyPending);
         }
@@ -551,11 +594,15 @@ impl Broker {
             return self.refuse(&user, req, Refusal::QueueFull { waiting });
         }
         let svc = self.services.get_mut(&service).expect("checked above");
-        svc.queue.push_back(Waiting { user: user.clone(), req });
+        svc.queue.push_back(Waiting {
+            user: user.clone(),
+            req,
+        });
         let position = u16::try_from(svc.queue.len()).unwrap_or(u16::MAX);
         self.stats.queued += 1;
         self.list_dirty = true;
-        self.out.push_back(Output::ToUser(user, ToUser::Queued { req, position }));
+        self.out
+            .push_back(Output::ToUser(user, ToUser::Queued { req, position }));
     }
 
     fn offer(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
@@ -569,14 +616,25 @@ impl Broker {
         let name = svc.spec.name.clone();
         self.offers.insert(
             ticket,
-            Offer { user: user.clone(), req, service, deadline: now + self.cfg.offer_timeout },
+            Offer {
+                user: user.clone(),
+                req,
+                service,
+                deadline: now + self.cfg.offer_timeout,
+            },
         );
         self.stats.offers += 1;
         self.list_dirty = true;
         let user_pid = self.users.get(&user).map_or(0, |u| u.pid);
         self.out.push_back(Output::ToSystem(
             system,
-            ToSystem::Offer { ticket, user, user_pid, req, service: name },
+            ToSystem::Offer {
+                ticket,
+                user,
+                user_pid,
+                req,
+                service: name,
+            },
         ));
     }
 
@@ -621,11 +679,15 @@ impl Broker {
     fn dispatch_queue(&mut self, now: Duration, id: &ServiceId) {
         let mut moved = false;
         loop {
-            let Some(svc) = self.services.get_mut(id) else { return };
+            let Some(svc) = self.services.get_mut(id) else {
+                return;
+            };
             if svc.withdrawn || svc.used() >= svc.spec.quota as usize {
                 break;
             }
-            let Some(w) = svc.queue.pop_front() else { break };
+            let Some(w) = svc.queue.pop_front() else {
+                break;
+            };
             moved = true;
             self.offer(now, w.user, w.req, id.clone());
         }
@@ -635,12 +697,17 @@ impl Broker {
     }
 
     fn announce_positions(&mut self, id: &ServiceId) {
-        let Some(svc) = self.services.get(id) else { return };
+        let Some(svc) = self.services.get(id) else {
+            return;
+        };
         for (i, w) in svc.queue.iter().enumerate() {
             let position = u16::try_from(i + 1).unwrap_or(u16::MAX);
             self.out.push_back(Output::ToUser(
                 w.user.clone(),
-                ToUser::Queued { req: w.req, position },
+                ToUser::Queued {
+                    req: w.req,
+                    position,
+                },
             ));
         }
     }
@@ -654,7 +721,10 @@ impl Broker {
 
     fn refuse(&mut self, user: &UserId, req: u64, reason: Refusal) {
         *self.stats.refusals.entry(reason.code()).or_default() += 1;
-        self.out.push_back(Output::ToUser(user.clone(), ToUser::Refused { req, reason }));
+        self.out.push_back(Output::ToUser(
+            user.clone(),
+            ToUser::Refused { req, reason },
+        ));
     }
 
     fn drop_service(&mut self, id: &ServiceId, why: Refusal) {
@@ -663,8 +733,12 @@ impl Broker {
                 self.refuse(&w.user, w.req, why.clone());
             }
         }
-        let stale: Vec<u64> =
-            self.offers.iter().filter(|(_, o)| o.service == *id).map(|(t, _)| *t).collect();
+        let stale: Vec<u64> = self
+            .offers
+            .iter()
+            .filter(|(_, o)| o.service == *id)
+            .map(|(t, _)| *t)
+            .collect();
         for t in stale {
             if let Some(o) = self.offers.remove(&t) {
                 self.refuse(&o.user, o.req, why.clone());
@@ -674,14 +748,17 @@ impl Broker {
     }
 
     fn remove_system(&mut self, name: &str, why: Removal) {
-        let Some(rec) = self.systems.remove(name) else { return };
+        let Some(rec) = self.systems.remove(name) else {
+            return;
+        };
         for service in &rec.services {
             self.drop_service(&ServiceId::new(name, service), Refusal::SystemGone);
         }
         match why {
             Removal::Delinquent => {
                 self.stats.delinquent += 1;
-                self.out.push_back(Output::ToSystem(name.to_string(), ToSystem::Delinquent));
+                self.out
+                    .push_back(Output::ToSystem(name.to_string(), ToSystem::Delinquent));
             }
             Removal::Died => self.stats.died += 1,
             Removal::Unregistered => {}

@@ -31,12 +31,24 @@ fn drain(b: &mut Broker) -> Vec<Output> {
 fn register(b: &mut Broker, now: Duration, system: &str, pid: u32, specs: Vec<ServiceSpec>) {
     b.handle(
         now,
-        ToBroker::Register { system: system.into(), pid, services: specs, sessions: vec![] },
+        ToBroker::Register {
+            system: system.into(),
+            pid,
+            services: specs,
+            sessions: vec![],
+        },
     );
 }
 
 fn request(b: &mut Broker, now: Duration, u: u32, req: u64, id: &str) {
-    b.handle(now, ToBroker::Request { user: user(u), req, service: ServiceId(id.into()) });
+    b.handle(
+        now,
+        ToBroker::Request {
+            user: user(u),
+            req,
+            service: ServiceId(id.into()),
+        },
+    );
 }
 
 /// The single user-bound answer in `out` for (user, req).
@@ -57,9 +69,12 @@ fn answers(out: &[Output], u: u32, req: u64) -> Vec<ToUser> {
 fn offers(out: &[Output]) -> Vec<(String, u64, UserId, u64)> {
     out.iter()
         .filter_map(|o| match o {
-            Output::ToSystem(s, ToSystem::Offer { ticket, user, req, .. }) => {
-                Some((s.clone(), *ticket, user.clone(), *req))
-            }
+            Output::ToSystem(
+                s,
+                ToSystem::Offer {
+                    ticket, user, req, ..
+                },
+            ) => Some((s.clone(), *ticket, user.clone(), *req)),
             _ => None,
         })
         .collect()
@@ -68,7 +83,11 @@ fn offers(out: &[Output]) -> Vec<(String, u64, UserId, u64)> {
 fn grant(b: &mut Broker, now: Duration, system: &str, ticket: u64, session: u64) {
     b.handle(
         now,
-        ToBroker::OfferAnswer { system: system.into(), ticket, answer: Ok(SessionId(session)) },
+        ToBroker::OfferAnswer {
+            system: system.into(),
+            ticket,
+            answer: Ok(SessionId(session)),
+        },
     );
 }
 
@@ -81,12 +100,24 @@ fn registration_lists_services_and_bumps_generation() {
     let mut b = broker();
     let (g0, v0) = b.take_list_change().unwrap();
     assert!(v0.is_empty());
-    register(&mut b, S, "t1", 7, vec![spec("b", 10, false), spec("a", 3, true)]);
+    register(
+        &mut b,
+        S,
+        "t1",
+        7,
+        vec![spec("b", 10, false), spec("a", 3, true)],
+    );
     let out = drain(&mut b);
-    assert!(out.contains(&Output::WatchSystem { system: "t1".into(), pid: 7 }));
+    assert!(out.contains(&Output::WatchSystem {
+        system: "t1".into(),
+        pid: 7
+    }));
     assert!(out.contains(&Output::ToSystem(
         "t1".into(),
-        ToSystem::Registered { epoch: 42, broker_pid: 1000 }
+        ToSystem::Registered {
+            epoch: 42,
+            broker_pid: 1000
+        }
     )));
     let (g1, views) = b.take_list_change().unwrap();
     assert_eq!(g1, g0 + 1);
@@ -94,13 +125,22 @@ fn registration_lists_services_and_bumps_generation() {
     assert_eq!(ids, ["t1/a", "t1/b"]);
     assert_eq!(view(&views, "t1/a").quota, 3);
     assert!(view(&views, "t1/a").queue);
-    assert!(b.take_list_change().is_none(), "no change, no new generation");
+    assert!(
+        b.take_list_change().is_none(),
+        "no change, no new generation"
+    );
 }
 
 #[test]
 fn bad_registrations_are_refused_with_reasons() {
     let mut b = broker();
-    register(&mut b, S, "t1", 7, vec![spec("a", 1, false), spec("a", 1, false)]);
+    register(
+        &mut b,
+        S,
+        "t1",
+        7,
+        vec![spec("a", 1, false), spec("a", 1, false)],
+    );
     register(&mut b, S, "bad name", 8, vec![spec("a", 1, false)]);
     register(&mut b, S, "t2", 9, vec![spec("a", 0, false)]);
     let reasons: Vec<String> = drain(&mut b)
@@ -125,7 +165,9 @@ fn a_name_held_by_a_live_process_cannot_be_taken() {
     drain(&mut b);
     register(&mut b, S, "t1", 8, vec![spec("evil", 1, false)]);
     let out = drain(&mut b);
-    assert!(matches!(&out[..], [Output::ToSystem(_, ToSystem::RegistrationRefused { reason })] if reason.contains("held by live process 7")));
+    assert!(
+        matches!(&out[..], [Output::ToSystem(_, ToSystem::RegistrationRefused { reason })] if reason.contains("held by live process 7"))
+    );
     assert_eq!(b.views().len(), 1);
     assert_eq!(b.views()[0].name, "a");
 }
@@ -181,7 +223,11 @@ fn a_silent_system_becomes_delinquent_and_can_come_back() {
     request(&mut b, S, 1, 1, "t1/a");
     request(&mut b, S, 2, 2, "t1/a"); // queued behind user 1's offer
     drain(&mut b);
-    assert_eq!(b.poll_timeout(), Some(Duration::from_secs(11)), "offer timeout first");
+    assert_eq!(
+        b.poll_timeout(),
+        Some(Duration::from_secs(11)),
+        "offer timeout first"
+    );
     b.handle_timeout(Duration::from_secs(20));
     let out = drain(&mut b);
     let ping = out.iter().find_map(|o| match o {
@@ -191,7 +237,9 @@ fn a_silent_system_becomes_delinquent_and_can_come_back() {
     assert!(ping.is_some());
     // No pong: at 30 s the system is delinquent.
     b.handle_timeout(Duration::from_secs(29));
-    assert!(!drain(&mut b).iter().any(|o| matches!(o, Output::ToSystem(_, ToSystem::Delinquent))));
+    assert!(!drain(&mut b)
+        .iter()
+        .any(|o| matches!(o, Output::ToSystem(_, ToSystem::Delinquent))));
     b.handle_timeout(Duration::from_secs(30));
     let out = drain(&mut b);
     assert!(out.contains(&Output::ToSystem("t1".into(), ToSystem::Delinquent)));
@@ -199,9 +247,24 @@ fn a_silent_system_becomes_delinquent_and_can_come_back() {
     assert!(b.views().is_empty());
     assert_eq!(b.stats().delinquent, 1);
     // A late pong from the removed system gets told again, so it re-registers.
-    b.handle(Duration::from_secs(31), ToBroker::Pong { system: "t1".into(), nonce: ping.unwrap() });
-    assert_eq!(drain(&mut b), vec![Output::ToSystem("t1".into(), ToSystem::Delinquent)]);
-    register(&mut b, Duration::from_secs(32), "t1", 7, vec![spec("a", 1, true)]);
+    b.handle(
+        Duration::from_secs(31),
+        ToBroker::Pong {
+            system: "t1".into(),
+            nonce: ping.unwrap(),
+        },
+    );
+    assert_eq!(
+        drain(&mut b),
+        vec![Output::ToSystem("t1".into(), ToSystem::Delinquent)]
+    );
+    register(
+        &mut b,
+        Duration::from_secs(32),
+        "t1",
+        7,
+        vec![spec("a", 1, true)],
+    );
     assert_eq!(b.views().len(), 1);
     assert_eq!(b.views()[0].in_use, 0);
 }
@@ -209,7 +272,13 @@ fn a_silent_system_becomes_delinquent_and_can_come_back() {
 #[test]
 fn queue_and_quota_arbitration() {
     let mut b = broker();
-    register(&mut b, S, "q", 7, vec![spec("a", 2, true), spec("n", 1, false)]);
+    register(
+        &mut b,
+        S,
+        "q",
+        7,
+        vec![spec("a", 2, true), spec("n", 1, false)],
+    );
     drain(&mut b);
     // Quota 2 with a queue: two offers, then queue positions 1 and 2.
     for u in 1..=4 {
@@ -217,9 +286,24 @@ fn queue_and_quota_arbitration() {
     }
     let out = drain(&mut b);
     let off = offers(&out);
-    assert_eq!(off.iter().map(|o| o.2.clone()).collect::<Vec<_>>(), vec![user(1), user(2)]);
-    assert_eq!(answers(&out, 3, 13), vec![ToUser::Queued { req: 13, position: 1 }]);
-    assert_eq!(answers(&out, 4, 14), vec![ToUser::Queued { req: 14, position: 2 }]);
+    assert_eq!(
+        off.iter().map(|o| o.2.clone()).collect::<Vec<_>>(),
+        vec![user(1), user(2)]
+    );
+    assert_eq!(
+        answers(&out, 3, 13),
+        vec![ToUser::Queued {
+            req: 13,
+            position: 1
+        }]
+    );
+    assert_eq!(
+        answers(&out, 4, 14),
+        vec![ToUser::Queued {
+            req: 14,
+            position: 2
+        }]
+    );
     grant(&mut b, S, "q", off[0].1, 1);
     grant(&mut b, S, "q", off[1].1, 2);
     let views = b.views();
@@ -227,10 +311,25 @@ fn queue_and_quota_arbitration() {
     assert_eq!(view(&views, "q/a").queued, 2);
     drain(&mut b);
     // A session ends: the head of the queue is offered, the other moves to position 1.
-    b.handle(S, ToBroker::SessionEnded { system: "q".into(), session: SessionId(1) });
+    b.handle(
+        S,
+        ToBroker::SessionEnded {
+            system: "q".into(),
+            session: SessionId(1),
+        },
+    );
     let out = drain(&mut b);
-    assert_eq!(offers(&out).iter().map(|o| o.2.clone()).collect::<Vec<_>>(), vec![user(3)]);
-    assert_eq!(answers(&out, 4, 14), vec![ToUser::Queued { req: 14, position: 1 }]);
+    assert_eq!(
+        offers(&out).iter().map(|o| o.2.clone()).collect::<Vec<_>>(),
+        vec![user(3)]
+    );
+    assert_eq!(
+        answers(&out, 4, 14),
+        vec![ToUser::Queued {
+            req: 14,
+            position: 1
+        }]
+    );
     // Without a queue: quota full.
     request(&mut b, S, 1, 20, "q/n");
     let t = offers(&drain(&mut b))[0].1;
@@ -238,13 +337,19 @@ fn queue_and_quota_arbitration() {
     request(&mut b, S, 2, 21, "q/n");
     assert_eq!(
         answers(&drain(&mut b), 2, 21),
-        vec![ToUser::Refused { req: 21, reason: Refusal::QuotaFull { quota: 1 } }]
+        vec![ToUser::Refused {
+            req: 21,
+            reason: Refusal::QuotaFull { quota: 1 }
+        }]
     );
 }
 
 #[test]
 fn queue_capacity_and_duplicates() {
-    let cfg = BrokerConfig { queue_capacity: 2, ..BrokerConfig::default() };
+    let cfg = BrokerConfig {
+        queue_capacity: 2,
+        ..BrokerConfig::default()
+    };
     let mut b = Broker::new(cfg, 1, 1);
     register(&mut b, S, "q", 7, vec![spec("a", 1, true)]);
     request(&mut b, S, 1, 1, "q/a");
@@ -253,16 +358,49 @@ fn queue_capacity_and_duplicates() {
     request(&mut b, S, 3, 4, "q/a");
     request(&mut b, S, 4, 5, "q/a");
     let out = drain(&mut b);
-    assert_eq!(answers(&out, 1, 2), vec![ToUser::Refused { req: 2, reason: Refusal::AlreadyPending }]);
-    assert_eq!(answers(&out, 2, 3), vec![ToUser::Queued { req: 3, position: 1 }]);
-    assert_eq!(answers(&out, 3, 4), vec![ToUser::Queued { req: 4, position: 2 }]);
+    assert_eq!(
+        answers(&out, 1, 2),
+        vec![ToUser::Refused {
+            req: 2,
+            reason: Refusal::AlreadyPending
+        }]
+    );
+    assert_eq!(
+        answers(&out, 2, 3),
+        vec![ToUser::Queued {
+            req: 3,
+            position: 1
+        }]
+    );
+    assert_eq!(
+        answers(&out, 3, 4),
+        vec![ToUser::Queued {
+            req: 4,
+            position: 2
+        }]
+    );
     assert_eq!(
         answers(&out, 4, 5),
-        vec![ToUser::Refused { req: 5, reason: Refusal::QueueFull { waiting: 2 } }]
+        vec![ToUser::Refused {
+            req: 5,
+            reason: Refusal::QueueFull { waiting: 2 }
+        }]
     );
     // Cancelling moves the next one up.
-    b.handle(S, ToBroker::Cancel { user: user(2), req: 3 });
-    assert_eq!(answers(&drain(&mut b), 3, 4), vec![ToUser::Queued { req: 4, position: 1 }]);
+    b.handle(
+        S,
+        ToBroker::Cancel {
+            user: user(2),
+            req: 3,
+        },
+    );
+    assert_eq!(
+        answers(&drain(&mut b), 3, 4),
+        vec![ToUser::Queued {
+            req: 4,
+            position: 1
+        }]
+    );
 }
 
 #[test]
@@ -272,22 +410,62 @@ fn unknown_withdrawn_refused_and_timed_out_requests() {
     request(&mut b, S, 1, 1, "s/zzz");
     request(&mut b, S, 1, 2, "nosuch/a");
     let out = drain(&mut b);
-    assert_eq!(answers(&out, 1, 1), vec![ToUser::Refused { req: 1, reason: Refusal::Unknown }]);
-    assert_eq!(answers(&out, 1, 2), vec![ToUser::Refused { req: 2, reason: Refusal::Unknown }]);
+    assert_eq!(
+        answers(&out, 1, 1),
+        vec![ToUser::Refused {
+            req: 1,
+            reason: Refusal::Unknown
+        }]
+    );
+    assert_eq!(
+        answers(&out, 1, 2),
+        vec![ToUser::Refused {
+            req: 2,
+            reason: Refusal::Unknown
+        }]
+    );
 
-    b.handle(S, ToBroker::Withdraw { system: "s".into(), service: "a".into() });
+    b.handle(
+        S,
+        ToBroker::Withdraw {
+            system: "s".into(),
+            service: "a".into(),
+        },
+    );
     assert!(b.views()[0].withdrawn);
     request(&mut b, S, 1, 3, "s/a");
-    assert_eq!(answers(&drain(&mut b), 1, 3), vec![ToUser::Refused { req: 3, reason: Refusal::Withdrawn }]);
-    b.handle(S, ToBroker::Restore { system: "s".into(), service: "a".into() });
+    assert_eq!(
+        answers(&drain(&mut b), 1, 3),
+        vec![ToUser::Refused {
+            req: 3,
+            reason: Refusal::Withdrawn
+        }]
+    );
+    b.handle(
+        S,
+        ToBroker::Restore {
+            system: "s".into(),
+            service: "a".into(),
+        },
+    );
     assert!(!b.views()[0].withdrawn);
 
     request(&mut b, S, 1, 4, "s/a");
     let t = offers(&drain(&mut b))[0].1;
-    b.handle(S, ToBroker::OfferAnswer { system: "s".into(), ticket: t, answer: Err("overloaded".into()) });
+    b.handle(
+        S,
+        ToBroker::OfferAnswer {
+            system: "s".into(),
+            ticket: t,
+            answer: Err("overloaded".into()),
+        },
+    );
     assert_eq!(
         answers(&drain(&mut b), 1, 4),
-        vec![ToUser::Refused { req: 4, reason: Refusal::SystemRefused("overloaded".into()) }]
+        vec![ToUser::Refused {
+            req: 4,
+            reason: Refusal::SystemRefused("overloaded".into())
+        }]
     );
     assert_eq!(b.views()[0].in_use, 0);
 
@@ -296,7 +474,13 @@ fn unknown_withdrawn_refused_and_timed_out_requests() {
     assert_eq!(b.views()[0].in_use, 1, "a pending offer holds quota");
     b.handle_timeout(S + BrokerConfig::default().offer_timeout);
     let out = drain(&mut b);
-    assert_eq!(answers(&out, 1, 5), vec![ToUser::Refused { req: 5, reason: Refusal::SystemGone }]);
+    assert_eq!(
+        answers(&out, 1, 5),
+        vec![ToUser::Refused {
+            req: 5,
+            reason: Refusal::SystemGone
+        }]
+    );
     assert_eq!(b.views()[0].in_use, 0);
 }
 
@@ -309,10 +493,24 @@ fn a_dead_system_takes_its_services_and_queue_with_it() {
     drain(&mut b);
     b.system_died(S, "s");
     let out = drain(&mut b);
-    assert_eq!(answers(&out, 1, 1), vec![ToUser::Refused { req: 1, reason: Refusal::SystemGone }]);
-    assert_eq!(answers(&out, 2, 2), vec![ToUser::Refused { req: 2, reason: Refusal::SystemGone }]);
+    assert_eq!(
+        answers(&out, 1, 1),
+        vec![ToUser::Refused {
+            req: 1,
+            reason: Refusal::SystemGone
+        }]
+    );
+    assert_eq!(
+        answers(&out, 2, 2),
+        vec![ToUser::Refused {
+            req: 2,
+            reason: Refusal::SystemGone
+        }]
+    );
     assert!(out.contains(&Output::ForgetSystem("s".into())));
-    assert!(!out.iter().any(|o| matches!(o, Output::ToSystem(_, ToSystem::Delinquent))));
+    assert!(!out
+        .iter()
+        .any(|o| matches!(o, Output::ToSystem(_, ToSystem::Delinquent))));
     assert!(b.views().is_empty());
     assert_eq!(b.stats().died, 1);
     assert_eq!(b.poll_timeout(), None, "nothing left to ping or time out");
@@ -329,8 +527,16 @@ fn sessions_reported_at_registration_count_against_the_quota() {
             pid: 7,
             services: vec![spec("a", 2, false)],
             sessions: vec![
-                ActiveSession { session: SessionId(1), service: "a".into(), user: user(1) },
-                ActiveSession { session: SessionId(2), service: "a".into(), user: user(2) },
+                ActiveSession {
+                    session: SessionId(1),
+                    service: "a".into(),
+                    user: user(1),
+                },
+                ActiveSession {
+                    session: SessionId(2),
+                    service: "a".into(),
+                    user: user(2),
+                },
             ],
         },
     );
@@ -338,9 +544,18 @@ fn sessions_reported_at_registration_count_against_the_quota() {
     request(&mut b, S, 3, 1, "s/a");
     assert_eq!(
         answers(&drain(&mut b), 3, 1),
-        vec![ToUser::Refused { req: 1, reason: Refusal::QuotaFull { quota: 2 } }]
+        vec![ToUser::Refused {
+            req: 1,
+            reason: Refusal::QuotaFull { quota: 2 }
+        }]
     );
-    b.handle(S, ToBroker::SessionEnded { system: "s".into(), session: SessionId(2) });
+    b.handle(
+        S,
+        ToBroker::SessionEnded {
+            system: "s".into(),
+            session: SessionId(2),
+        },
+    );
     request(&mut b, S, 3, 2, "s/a");
     assert_eq!(offers(&drain(&mut b)).len(), 1);
 }
@@ -352,9 +567,26 @@ fn links_are_visible_and_go_with_their_user() {
     let mut cmd = spec("go", 1, true);
     cmd.kind = ServiceKind::Command;
     register(&mut b, S, "d", 8, vec![cmd]);
-    let link = LinkInfo { link: 1, data: ServiceId::new("t", "a"), command: ServiceId::new("d", "go") };
-    b.handle(S, ToBroker::Hello { user: user(1), pid: 99, links: vec![] });
-    b.handle(S, ToBroker::LinkOpened { user: user(1), link });
+    let link = LinkInfo {
+        link: 1,
+        data: ServiceId::new("t", "a"),
+        command: ServiceId::new("d", "go"),
+    };
+    b.handle(
+        S,
+        ToBroker::Hello {
+            user: user(1),
+            pid: 99,
+            links: vec![],
+        },
+    );
+    b.handle(
+        S,
+        ToBroker::LinkOpened {
+            user: user(1),
+            link,
+        },
+    );
     let views = b.views();
     assert_eq!(view(&views, "t/a").links, 1);
     assert_eq!(view(&views, "d/go").links, 1);

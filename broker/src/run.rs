@@ -59,7 +59,10 @@ struct Shell {
 pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
     match raise_fd_limit() {
         Ok(n) if n < 4096 => {
-            tracing::warn!("file-descriptor limit is {n}: at most about {} users", n / 4)
+            tracing::warn!(
+                "file-descriptor limit is {n}: at most about {} users",
+                n / 4
+            )
         }
         Ok(n) => tracing::debug!("file-descriptor limit {n}"),
         Err(e) => tracing::warn!("cannot raise the file-descriptor limit: {e}"),

@@ -74,7 +74,10 @@ pub enum TransportError {
 }
 
 fn svc_err(name: &str, e: impl std::fmt::Debug) -> TransportError {
-    TransportError::Service { name: name.to_string(), detail: format!("{e:?}") }
+    TransportError::Service {
+        name: name.to_string(),
+        detail: format!("{e:?}"),
+    }
 }
 
 fn service_name(name: &str) -> Result<ServiceName, TransportError> {
@@ -94,9 +97,18 @@ impl InboxLimits {
     /// The limits for an address's role.
     pub fn for_addr(addr: &Address) -> Self {
         match addr {
-            Address::Broker => InboxLimits { max_publishers: MAX_PARTICIPANTS, buffer: 32 },
-            Address::System(_) => InboxLimits { max_publishers: MAX_PARTICIPANTS, buffer: 32 },
-            Address::User(_) => InboxLimits { max_publishers: MAX_USER_PEERS, buffer: 128 },
+            Address::Broker => InboxLimits {
+                max_publishers: MAX_PARTICIPANTS,
+                buffer: 32,
+            },
+            Address::System(_) => InboxLimits {
+                max_publishers: MAX_PARTICIPANTS,
+                buffer: 32,
+            },
+            Address::User(_) => InboxLimits {
+                max_publishers: MAX_USER_PEERS,
+                buffer: 128,
+            },
         }
     }
 }
@@ -160,13 +172,16 @@ impl Endpoint {
             Err(_) => {
                 // A dead process of the same name may still hold the only subscriber slot.
                 node.try_cleanup_dead_nodes();
-                svc.subscriber_builder().buffer_size(limits.buffer).create().map_err(|e| {
-                    if format!("{e:?}").contains("ExceedsMax") {
-                        TransportError::InUse(me.clone())
-                    } else {
-                        svc_err(&inbox_name, e)
-                    }
-                })?
+                svc.subscriber_builder()
+                    .buffer_size(limits.buffer)
+                    .create()
+                    .map_err(|e| {
+                        if format!("{e:?}").contains("ExceedsMax") {
+                            TransportError::InUse(me.clone())
+                        } else {
+                            svc_err(&inbox_name, e)
+                        }
+                    })?
             }
         };
         let bell_name = inst.bell(&me);
@@ -183,7 +198,10 @@ impl Endpoint {
             Ok(l) => l,
             Err(_) => {
                 node.try_cleanup_dead_nodes();
-                bell_svc.listener_builder().create().map_err(|e| svc_err(&bell_name, e))?
+                bell_svc
+                    .listener_builder()
+                    .create()
+                    .map_err(|e| svc_err(&bell_name, e))?
             }
         };
         Ok(Endpoint {
@@ -261,7 +279,13 @@ impl Endpoint {
                 .notifier_builder()
                 .create()
                 .map_err(|e| svc_err(&bell_name, e))?;
-            self.peers.insert(to.clone(), Peer { publisher, notifier });
+            self.peers.insert(
+                to.clone(),
+                Peer {
+                    publisher,
+                    notifier,
+                },
+            );
         }
         Ok(self.peers.get_mut(to).expect("inserted above"))
     }
@@ -283,8 +307,14 @@ impl Endpoint {
             peer: to.clone(),
             detail: format!("{e:?}"),
         };
-        let sample = peer.publisher.loan_slice_uninit(frame.len()).map_err(|e| send_err(&e))?;
-        let delivered = sample.write_from_slice(frame).send().map_err(|e| send_err(&e))?;
+        let sample = peer
+            .publisher
+            .loan_slice_uninit(frame.len())
+            .map_err(|e| send_err(&e))?;
+        let delivered = sample
+            .write_from_slice(frame)
+            .send()
+            .map_err(|e| send_err(&e))?;
         if delivered == 0 {
             return Err(TransportError::Unreachable(to.clone()));
         }
@@ -300,7 +330,10 @@ impl Endpoint {
             p.notifier
                 .notify_with_custom_event_id(EventId::new(id))
                 .map(|_| ())
-                .map_err(|e| TransportError::Send { peer: to.clone(), detail: format!("{e:?}") })
+                .map_err(|e| TransportError::Send {
+                    peer: to.clone(),
+                    detail: format!("{e:?}"),
+                })
         });
         if result.is_err() {
             self.peers.remove(to);
@@ -344,15 +377,27 @@ impl Presence {
     /// A listener, for systems and users.
     pub fn listen(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
         let svc = presence_service(node, inst)?;
-        let listener = svc.listener_builder().create().map_err(|e| svc_err(&inst.presence(), e))?;
-        Ok(Presence { listener: Some(listener), notifier: None })
+        let listener = svc
+            .listener_builder()
+            .create()
+            .map_err(|e| svc_err(&inst.presence(), e))?;
+        Ok(Presence {
+            listener: Some(listener),
+            notifier: None,
+        })
     }
 
     /// A notifier, for the broker.
     pub fn announce(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
         let svc = presence_service(node, inst)?;
-        let notifier = svc.notifier_builder().create().map_err(|e| svc_err(&inst.presence(), e))?;
-        Ok(Presence { listener: None, notifier: Some(notifier) })
+        let notifier = svc
+            .notifier_builder()
+            .create()
+            .map_err(|e| svc_err(&inst.presence(), e))?;
+        Ok(Presence {
+            listener: None,
+            notifier: Some(notifier),
+        })
     }
 
     /// Rings every listener with `id` (broker only).
@@ -367,7 +412,9 @@ impl Presence {
     /// The listener's file descriptor (listeners only).
     pub fn fd(&self) -> Option<RawFd> {
         // SAFETY: the descriptor stays owned by the listener; we only read its number.
-        self.listener.as_ref().map(|l| unsafe { l.file_descriptor().native_handle() })
+        self.listener
+            .as_ref()
+            .map(|l| unsafe { l.file_descriptor().native_handle() })
     }
 
     /// Empties the listener; returns the ids rung as bits.
@@ -414,7 +461,9 @@ impl ListWriter {
             Ok(w) => w,
             Err(_) => {
                 node.try_cleanup_dead_nodes();
-                svc.writer_builder().create().map_err(|e| svc_err(&name, e))?
+                svc.writer_builder()
+                    .create()
+                    .map_err(|e| svc_err(&name, e))?
             }
         };
         Ok(ListWriter { writer })
@@ -445,7 +494,10 @@ impl ListReader {
             .blackboard_opener::<u64>()
             .open()
             .map_err(|_| TransportError::Unreachable(Address::Broker))?;
-        let reader = svc.reader_builder().create().map_err(|e| svc_err(&name, e))?;
+        let reader = svc
+            .reader_builder()
+            .create()
+            .map_err(|e| svc_err(&name, e))?;
         Ok(ListReader { reader })
     }
 

@@ -41,7 +41,9 @@ impl Instance {
     pub fn new(name: &str) -> Result<Self, BadInstance> {
         let ok = !name.is_empty()
             && name.len() <= 32
-            && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+            && name
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
         if ok {
             Ok(Instance(name.to_string()))
         } else {
@@ -106,7 +108,13 @@ mod tests {
         assert!(Instance::new(&"x".repeat(33)).is_err());
         let i = Instance::new("t1").unwrap();
         assert_eq!(i.inbox(&Address::Broker), "muster/t1/broker/inbox");
-        assert_eq!(i.bell(&Address::System("d1".into())), "muster/t1/system/d1/bell");
-        assert_eq!(i.inbox(&Address::User(UserId("u9".into()))), "muster/t1/user/u9/inbox");
+        assert_eq!(
+            i.bell(&Address::System("d1".into())),
+            "muster/t1/system/d1/bell"
+        );
+        assert_eq!(
+            i.inbox(&Address::User(UserId("u9".into()))),
+            "muster/t1/user/u9/inbox"
+        );
     }
 }

@@ -77,8 +77,8 @@ pub fn decode<T: DeserializeOwned>(frame: &[u8]) -> Result<T, DecodeError> {
     if frame[1] != VERSION {
         return Err(DecodeError::WrongVersion { got: frame[1] });
     }
-    let (msg, rest) =
-        postcard::take_from_bytes(&frame[2..]).map_err(|e| DecodeError::Malformed(e.to_string()))?;
+    let (msg, rest) = postcard::take_from_bytes(&frame[2..])
+        .map_err(|e| DecodeError::Malformed(e.to_string()))?;
     if !rest.is_empty() {
         return Err(DecodeError::Trailing(rest.len()));
     }
@@ -334,7 +334,11 @@ mod tests {
     use proptest::prelude::*;
 
     fn sample() -> ToBroker {
-        ToBroker::Request { user: UserId("u1".into()), req: 7, service: ServiceId::new("s", "a") }
+        ToBroker::Request {
+            user: UserId("u1".into()),
+            req: 7,
+            service: ServiceId::new("s", "a"),
+        }
     }
 
     #[test]
@@ -349,10 +353,16 @@ mod tests {
     fn rejects_bad_frames() {
         let frame = encode(&sample()).unwrap();
         assert_eq!(decode::<ToBroker>(&[]), Err(DecodeError::Truncated(0)));
-        assert_eq!(decode::<ToBroker>(&[0, 1, 2]), Err(DecodeError::BadMagic(0)));
+        assert_eq!(
+            decode::<ToBroker>(&[0, 1, 2]),
+            Err(DecodeError::BadMagic(0))
+        );
         let mut v2 = frame.clone();
         v2[1] = 2;
-        assert_eq!(decode::<ToBroker>(&v2), Err(DecodeError::WrongVersion { got: 2 }));
+        assert_eq!(
+            decode::<ToBroker>(&v2),
+            Err(DecodeError::WrongVersion { got: 2 })
+        );
         let mut trailing = frame.clone();
         trailing.push(0);
         assert_eq!(decode::<ToBroker>(&trailing), Err(DecodeError::Trailing(1)));
@@ -361,7 +371,10 @@ mod tests {
             Err(DecodeError::Malformed(_))
         ));
         let big = vec![MAGIC; MAX_FRAME + 1];
-        assert_eq!(decode::<ToBroker>(&big), Err(DecodeError::Oversized(MAX_FRAME + 1)));
+        assert_eq!(
+            decode::<ToBroker>(&big),
+            Err(DecodeError::Oversized(MAX_FRAME + 1))
+        );
     }
 
     #[test]

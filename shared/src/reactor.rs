@@ -18,12 +18,17 @@ pub struct Reactor {
 impl Reactor {
     /// A new, empty reactor.
     pub fn new() -> io::Result<Self> {
-        Ok(Reactor { poll: Poll::new()?, events: Events::with_capacity(256) })
+        Ok(Reactor {
+            poll: Poll::new()?,
+            events: Events::with_capacity(256),
+        })
     }
 
     /// Watches `fd` for readability under `token`. The fd must outlive its registration.
     pub fn add(&self, fd: RawFd, token: usize) -> io::Result<()> {
-        self.poll.registry().register(&mut SourceFd(&fd), Token(token), Interest::READABLE)
+        self.poll
+            .registry()
+            .register(&mut SourceFd(&fd), Token(token), Interest::READABLE)
     }
 
     /// Stops watching `fd`.
@@ -76,7 +81,11 @@ impl PidFd {
 
     /// Whether the process has exited (checked without blocking).
     pub fn exited(&self) -> bool {
-        let mut pfd = libc::pollfd { fd: self.raw(), events: libc::POLLIN, revents: 0 };
+        let mut pfd = libc::pollfd {
+            fd: self.raw(),
+            events: libc::POLLIN,
+            revents: 0,
+        };
         // SAFETY: one valid pollfd, zero timeout.
         let n = unsafe { libc::poll(&mut pfd, 1, 0) };
         n > 0 && pfd.revents & libc::POLLIN != 0
@@ -85,9 +94,13 @@ impl PidFd {
 
 /// Whether a process with this pid exists (signal 0 probe; no signal is sent).
 pub fn process_exists(pid: u32) -> bool {
-    let Ok(p) = libc::pid_t::try_from(pid) else { return false };
+    let Ok(p) = libc::pid_t::try_from(pid) else {
+        return false;
+    };
     // SAFETY: kill with signal 0 only checks existence and permission.
-    unsafe { libc::kill(p, 0) == 0 || io::Error::last_os_error().raw_os_error() == Some(libc::EPERM) }
+    unsafe {
+        libc::kill(p, 0) == 0 || io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+    }
 }
 
 /// SIGINT/SIGTERM/SIGHUP delivered through a pipe, so the reactor wakes on them.
@@ -128,7 +141,10 @@ impl SignalPipe {
 /// Raises the soft RLIMIT_NOFILE to the hard limit (the broker holds a few fds per peer).
 /// Returns the new soft limit.
 pub fn raise_fd_limit() -> io::Result<u64> {
-    let mut lim = libc::rlimit { rlim_cur: 0, rlim_max: 0 };
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
     // SAFETY: valid out-pointer.
     if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } != 0 {
         return Err(io::Error::last_os_error());
@@ -149,7 +165,10 @@ mod tests {
 
     #[test]
     fn pidfd_sees_child_exit() {
-        let mut child = std::process::Command::new("sleep").arg("5").spawn().unwrap();
+        let mut child = std::process::Command::new("sleep")
+            .arg("5")
+            .spawn()
+            .unwrap();
         let pfd = PidFd::open(child.id()).unwrap();
         assert!(!pfd.exited());
         let mut r = Reactor::new().unwrap();

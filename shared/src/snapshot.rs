@@ -23,7 +23,10 @@ pub struct FixedStr<const N: usize> {
 
 impl<const N: usize> FixedStr<N> {
     /// The empty string.
-    pub const EMPTY: Self = FixedStr { len: 0, bytes: [0; N] };
+    pub const EMPTY: Self = FixedStr {
+        len: 0,
+        bytes: [0; N],
+    };
 
     /// Copies `s`, cut at a character boundary to fit `N` bytes (at most 255).
     pub fn new(s: &str) -> Self {
@@ -34,7 +37,10 @@ impl<const N: usize> FixedStr<N> {
         }
         let mut bytes = [0u8; N];
         bytes[..end].copy_from_slice(&s.as_bytes()[..end]);
-        FixedStr { len: end as u8, bytes }
+        FixedStr {
+            len: end as u8,
+            bytes,
+        }
     }
 
     /// The text; empty if the bytes in shared memory are not valid UTF-8.

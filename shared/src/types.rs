@@ -47,7 +47,9 @@ impl std::str::FromStr for ServiceKind {
         match s {
             "data" => Ok(ServiceKind::Data),
             "command" => Ok(ServiceKind::Command),
-            other => Err(format!("unknown service kind {other:?}: expected data or command")),
+            other => Err(format!(
+                "unknown service kind {other:?}: expected data or command"
+            )),
         }
     }
 }
@@ -111,7 +113,11 @@ pub fn check_name(what: &str, value: &str, max: usize) -> Result<(), SpecError> 
     if ok {
         Ok(())
     } else {
-        Err(SpecError::BadName { what: what.to_string(), value: value.to_string(), max })
+        Err(SpecError::BadName {
+            what: what.to_string(),
+            value: value.to_string(),
+            max,
+        })
     }
 }
 
@@ -124,7 +130,10 @@ impl ServiceSpec {
             return Err(SpecError::DescriptionTooLong(self.name.clone()));
         }
         if self.quota == 0 || self.quota > MAX_QUOTA {
-            return Err(SpecError::BadQuota { service: self.name.clone(), quota: self.quota });
+            return Err(SpecError::BadQuota {
+                service: self.name.clone(),
+                quota: self.quota,
+            });
         }
         Ok(())
     }
@@ -239,7 +248,9 @@ impl Payload {
 impl fmt::Display for Payload {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Payload::Pose2d { x, y, theta } => write!(f, "pose2d x={x:.3} y={y:.3} theta={theta:.3}"),
+            Payload::Pose2d { x, y, theta } => {
+                write!(f, "pose2d x={x:.3} y={y:.3} theta={theta:.3}")
+            }
             Payload::Goal2d { x, y } => write!(f, "goal2d x={x:.3} y={y:.3}"),
             Payload::Scalar(v) => write!(f, "scalar {v}"),
             Payload::Text(t) => write!(f, "text {t}"),
@@ -391,8 +402,13 @@ mod tests {
         ));
         let mut s = spec("a");
         s.quota = 0;
-        assert!(matches!(validate_registration("t1", &[s]), Err(SpecError::BadQuota { .. })));
-        let many: Vec<_> = (0..=MAX_SERVICES_PER_SYSTEM).map(|i| spec(&format!("s{i}"))).collect();
+        assert!(matches!(
+            validate_registration("t1", &[s]),
+            Err(SpecError::BadQuota { .. })
+        ));
+        let many: Vec<_> = (0..=MAX_SERVICES_PER_SYSTEM)
+            .map(|i| spec(&format!("s{i}")))
+            .collect();
         assert_eq!(
             validate_registration("t1", &many),
             Err(SpecError::TooMany(MAX_SERVICES_PER_SYSTEM + 1))
@@ -401,8 +417,15 @@ mod tests {
 
     #[test]
     fn link_conversions() {
-        let pose = Payload::Pose2d { x: 1.0, y: 2.0, theta: 0.5 };
-        assert_eq!(pose.convert_to("goal2d"), Some(Payload::Goal2d { x: 1.0, y: 2.0 }));
+        let pose = Payload::Pose2d {
+            x: 1.0,
+            y: 2.0,
+            theta: 0.5,
+        };
+        assert_eq!(
+            pose.convert_to("goal2d"),
+            Some(Payload::Goal2d { x: 1.0, y: 2.0 })
+        );
         assert_eq!(pose.convert_to("pose2d"), Some(pose.clone()));
         assert_eq!(Payload::Scalar(1.0).convert_to("goal2d"), None);
         assert!(link_compatible("pose2d", "goal2d"));

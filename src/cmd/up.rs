@@ -42,7 +42,9 @@ impl Children {
             loop {
                 match c.try_wait() {
                     Ok(Some(_)) => break,
-                    Ok(None) if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(20)),
+                    Ok(None) if Instant::now() < deadline => {
+                        std::thread::sleep(Duration::from_millis(20))
+                    }
                     _ => {
                         eprintln!("muster up: {label} did not stop; killing it");
                         let _ = c.kill();
@@ -68,14 +70,40 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     children.spawn(
         inst,
         "tracker system t1",
-        &["system", "synthetic", "--name", "t1", "--services", "3", "--kind", "data", "--quota", "10"],
+        &[
+            "system",
+            "synthetic",
+            "--name",
+            "t1",
+            "--services",
+            "3",
+            "--kind",
+            "data",
+            "--quota",
+            "10",
+        ],
     )?;
     children.spawn(
         inst,
         "delivery system d1",
-        &["system", "synthetic", "--name", "d1", "--services", "1", "--kind", "command", "--quota", "1", "--queue"],
+        &[
+            "system",
+            "synthetic",
+            "--name",
+            "d1",
+            "--services",
+            "1",
+            "--kind",
+            "command",
+            "--quota",
+            "1",
+            "--queue",
+        ],
     )?;
-    let opts = ConnectOptions { wait_for_broker: Duration::from_secs(10), handle_signals: true };
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(10),
+        handle_signals: true,
+    };
     let mut client = UserClient::connect(inst, &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);
     match demo(&mut client, end) {
@@ -110,7 +138,9 @@ fn demo(client: &mut UserClient, end: Option<Instant>) -> Result<(), UserError> 
     let until = Instant::now() + Duration::from_secs(2);
     while let Some(e) = client.next_event(until)? {
         match e {
-            UserEvent::Granted { req: r, session: s, .. } if r == req => {
+            UserEvent::Granted {
+                req: r, session: s, ..
+            } if r == req => {
                 println!("granted: session {s}");
                 session = Some(s);
             }
@@ -129,7 +159,9 @@ fn demo(client: &mut UserClient, end: Option<Instant>) -> Result<(), UserError> 
     let mut shown = 0u32;
     loop {
         let deadline = end.unwrap_or(Instant::now() + Duration::from_secs(3600));
-        let Some(e) = client.next_event(deadline)? else { break };
+        let Some(e) = client.next_event(deadline)? else {
+            break;
+        };
         match e {
             UserEvent::LinkUp { link: l } if l == link => {
                 println!("link up: tracker positions become delivery goals (Ctrl-C to stop)")

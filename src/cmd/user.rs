@@ -10,7 +10,10 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
-    let opts = ConnectOptions { wait_for_broker: a.wait, handle_signals: true };
+    let opts = ConnectOptions {
+        wait_for_broker: a.wait,
+        handle_signals: true,
+    };
     let client = UserClient::connect(inst, &opts)?;
     match a.verb {
         None => {
@@ -18,19 +21,35 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Some(UserVerb::List { json }) => list(client, json),
-        Some(UserVerb::Request { id, duration, goal, json }) => {
+        Some(UserVerb::Request {
+            id,
+            duration,
+            goal,
+            json,
+        }) => {
             let goal = goal.map(|g| parse_goal(&g)).transpose()?;
             request(client, &ServiceId(id), duration, goal, json)
         }
         Some(UserVerb::Watch { duration, json }) => watch(client, duration, json),
-        Some(UserVerb::Link { data, command, duration, json }) => {
-            link(client, &ServiceId(data), &ServiceId(command), duration, json)
-        }
+        Some(UserVerb::Link {
+            data,
+            command,
+            duration,
+            json,
+        }) => link(
+            client,
+            &ServiceId(data),
+            &ServiceId(command),
+            duration,
+            json,
+        ),
     }
 }
 
 fn parse_goal(s: &str) -> anyhow::Result<Payload> {
-    let (x, y) = s.split_once(',').context("--goal takes X,Y (metres), e.g. 3.5,-2")?;
+    let (x, y) = s
+        .split_once(',')
+        .context("--goal takes X,Y (metres), e.g. 3.5,-2")?;
     let x: f64 = x.trim().parse().context("--goal X")?;
     let y: f64 = y.trim().parse().context("--goal Y")?;
     anyhow::ensure!(x.is_finite() && y.is_finite(), "--goal must be finite");
@@ -40,7 +59,9 @@ fn parse_goal(s: &str) -> anyhow::Result<Payload> {
 /// A payload as JSON: `{"type": "pose2d", "x": ..}`.
 pub fn payload_json(p: &Payload) -> Value {
     match p {
-        Payload::Pose2d { x, y, theta } => json!({"type": "pose2d", "x": x, "y": y, "theta": theta}),
+        Payload::Pose2d { x, y, theta } => {
+            json!({"type": "pose2d", "x": x, "y": y, "theta": theta})
+        }
         Payload::Goal2d { x, y } => json!({"type": "goal2d", "x": x, "y": y}),
         Payload::Scalar(v) => json!({"type": "scalar", "value": v}),
         Payload::Text(t) => json!({"type": "text", "text": t}),
@@ -54,13 +75,21 @@ fn list(mut client: UserClient, as_json: bool) -> anyhow::Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&views)?);
     } else {
         println!("{}", muster_users::menu::table(&views));
-        println!("({} services, list generation {})", views.len(), snapshot.generation);
+        println!(
+            "({} services, list generation {})",
+            views.len(),
+            snapshot.generation
+        );
     }
     client.close();
     Ok(ExitCode::SUCCESS)
 }
 
-fn watch(mut client: UserClient, duration: Option<Duration>, as_json: bool) -> anyhow::Result<ExitCode> {
+fn watch(
+    mut client: UserClient,
+    duration: Option<Duration>,
+    as_json: bool,
+) -> anyhow::Result<ExitCode> {
     let deadline = Instant::now() + duration.unwrap_or(Duration::from_secs(100 * 365 * 86400));
     let mut shown = None;
     loop {
@@ -71,7 +100,11 @@ fn watch(mut client: UserClient, duration: Option<Duration>, as_json: bool) -> a
             emit(
                 as_json,
                 json!({"generation": snapshot.generation, "services": views}),
-                format!("-- generation {} --\n{}", snapshot.generation, muster_users::menu::table(&views)),
+                format!(
+                    "-- generation {} --\n{}",
+                    snapshot.generation,
+                    muster_users::menu::table(&views)
+                ),
             );
         }
         match client.next_event(deadline) {
@@ -104,7 +137,12 @@ fn request(
     let mut first_position = None;
     let session = loop {
         match client.next_event(answer_deadline) {
-            Ok(Some(UserEvent::Granted { req: r, session, kind, .. })) if r == req => {
+            Ok(Some(UserEvent::Granted {
+                req: r,
+                session,
+                kind,
+                ..
+            })) if r == req => {
                 emit(
                     as_json,
                     json!({"granted": true, "reason": null, "queue_position": first_position,
@@ -123,7 +161,9 @@ fn request(
                 client.close();
                 return Ok(ExitCode::from(3));
             }
-            Ok(Some(UserEvent::Queued { req: r, position, .. })) if r == req => {
+            Ok(Some(UserEvent::Queued {
+                req: r, position, ..
+            })) if r == req => {
                 first_position.get_or_insert(position);
                 if !as_json {
                     println!("queued at position {position}");
@@ -149,7 +189,13 @@ fn request(
             eprintln!("muster: --goal ignored: {id} is a data service");
         }
     }
-    let end = stream(&mut client, session, Instant::now() + duration, as_json, |_| true)?;
+    let end = stream(
+        &mut client,
+        session,
+        Instant::now() + duration,
+        as_json,
+        |_| true,
+    )?;
     let counters = client.core().counters(session).unwrap_or_default();
     if end.is_none() {
         client.end(session);
@@ -158,7 +204,10 @@ fn request(
     emit(
         as_json,
         json!({"ended": true, "reason": reason.to_string(), "last_seq": counters.last_seq, "gaps": counters.gaps}),
-        format!("ended: {reason} (last seq {}, {} lost)", counters.last_seq, counters.gaps),
+        format!(
+            "ended: {reason} (last seq {}, {} lost)",
+            counters.last_seq, counters.gaps
+        ),
     );
     client.close();
     Ok(ExitCode::SUCCESS)
@@ -174,19 +223,37 @@ fn stream(
 ) -> anyhow::Result<Option<EndReason>> {
     loop {
         match client.next_event(deadline) {
-            Ok(Some(UserEvent::Update { session: s, seq, gap, payload, .. })) if s == session => emit(
+            Ok(Some(UserEvent::Update {
+                session: s,
+                seq,
+                gap,
+                payload,
+                ..
+            })) if s == session => emit(
                 as_json,
                 json!({"seq": seq, "gap": gap, "payload": payload_json(&payload)}),
-                format!("#{seq} {payload}{}", if gap > 0 { format!(" ({gap} lost)") } else { String::new() }),
+                format!(
+                    "#{seq} {payload}{}",
+                    if gap > 0 {
+                        format!(" ({gap} lost)")
+                    } else {
+                        String::new()
+                    }
+                ),
             ),
-            Ok(Some(UserEvent::Status { session: s, seq, status, .. })) if s == session => emit(
+            Ok(Some(UserEvent::Status {
+                session: s,
+                seq,
+                status,
+                ..
+            })) if s == session => emit(
                 as_json,
                 json!({"seq": seq, "status": status.to_string(), "payload": null}),
                 format!("#{seq} status: {status}"),
             ),
-            Ok(Some(UserEvent::Ended { session: s, reason, .. })) if s == session => {
-                return Ok(Some(reason))
-            }
+            Ok(Some(UserEvent::Ended {
+                session: s, reason, ..
+            })) if s == session => return Ok(Some(reason)),
             Ok(Some(UserEvent::BrokerLost)) => {
                 if !as_json {
                     eprintln!("(broker lost; the session goes on)");
@@ -214,7 +281,11 @@ fn link(
     let link = match client.link(data, command) {
         Ok(l) => l,
         Err(e @ (UserError::CannotLink(_) | UserError::UnknownService(_))) => {
-            emit(as_json, json!({"linked": false, "reason": e.to_string()}), format!("link refused: {e}"));
+            emit(
+                as_json,
+                json!({"linked": false, "reason": e.to_string()}),
+                format!("link refused: {e}"),
+            );
             client.close();
             return Ok(ExitCode::from(3));
         }
@@ -230,11 +301,17 @@ fn link(
             },
             Ok(Some(UserEvent::LinkUp { link: l })) if l == link => break,
             Ok(Some(UserEvent::LinkEnded { link: l, reason })) if l == link => {
-                emit(as_json, json!({"linked": false, "reason": reason}), format!("link failed: {reason}"));
+                emit(
+                    as_json,
+                    json!({"linked": false, "reason": reason}),
+                    format!("link failed: {reason}"),
+                );
                 client.close();
                 return Ok(ExitCode::from(3));
             }
-            Ok(Some(UserEvent::Queued { service, position, .. })) => {
+            Ok(Some(UserEvent::Queued {
+                service, position, ..
+            })) => {
                 if !as_json {
                     println!("{service}: queued at position {position}");
                 }
@@ -264,7 +341,13 @@ fn link(
     let mut ended = None;
     while ended.is_none() {
         match client.next_event(deadline) {
-            Ok(Some(UserEvent::Update { session, seq, gap, payload, .. })) if session == ds => emit(
+            Ok(Some(UserEvent::Update {
+                session,
+                seq,
+                gap,
+                payload,
+                ..
+            })) if session == ds => emit(
                 as_json,
                 json!({"seq": seq, "gap": gap, "payload": payload_json(&payload), "from": data.0}),
                 format!("#{seq} {data}: {payload}"),
@@ -274,7 +357,12 @@ fn link(
                 json!({"forwarded": payload_json(&input), "to": command.0}),
                 format!("  -> {command}: {input}"),
             ),
-            Ok(Some(UserEvent::Status { session, seq, status, .. })) if session == cs => emit(
+            Ok(Some(UserEvent::Status {
+                session,
+                seq,
+                status,
+                ..
+            })) if session == cs => emit(
                 as_json,
                 json!({"seq": seq, "status": status.to_string(), "from": command.0, "payload": null}),
                 format!("#{seq} {command}: {status}"),
@@ -292,7 +380,11 @@ fn link(
             EndReason::DurationOver.to_string()
         }
     };
-    emit(as_json, json!({"ended": true, "reason": reason}), format!("link ended: {reason}"));
+    emit(
+        as_json,
+        json!({"ended": true, "reason": reason}),
+        format!("link ended: {reason}"),
+    );
     client.close();
     Ok(ExitCode::SUCCESS)
 }

@@ -143,12 +143,17 @@ impl SystemCore {
 
     /// Sessions currently open, with their user and service.
     pub fn sessions(&self) -> impl Iterator<Item = (SessionId, &UserId, &str)> {
-        self.sessions.iter().map(|(id, s)| (*id, &s.user, s.service.as_str()))
+        self.sessions
+            .iter()
+            .map(|(id, s)| (*id, &s.user, s.service.as_str()))
     }
 
     /// Number of open sessions of `service`.
     pub fn sessions_of(&self, service: &str) -> usize {
-        self.sessions.values().filter(|s| s.service == service).count()
+        self.sessions
+            .values()
+            .filter(|s| s.service == service)
+            .count()
     }
 
     /// Refuse new offers ("overloaded") while `true`.
@@ -161,14 +166,19 @@ impl SystemCore {
         let sessions = self
             .sessions
             .iter()
-            .map(|(id, s)| ActiveSession { session: *id, service: s.service.clone(), user: s.user.clone() })
+            .map(|(id, s)| ActiveSession {
+                session: *id,
+                service: s.service.clone(),
+                user: s.user.clone(),
+            })
             .collect();
-        self.out.push_back(SystemOutput::ToBroker(ToBroker::Register {
-            system: self.name.clone(),
-            pid: self.pid,
-            services: self.specs.clone(),
-            sessions,
-        }));
+        self.out
+            .push_back(SystemOutput::ToBroker(ToBroker::Register {
+                system: self.name.clone(),
+                pid: self.pid,
+                services: self.specs.clone(),
+                sessions,
+            }));
     }
 
     /// The broker's process died: sessions go on; re-register when a broker announces itself.
@@ -189,26 +199,41 @@ impl SystemCore {
                 self.state = BrokerState::Registered { epoch };
                 self.out.push_back(SystemOutput::WatchBroker(broker_pid));
                 for service in self.withdrawn.clone() {
-                    self.to_broker(ToBroker::Withdraw { system: self.name.clone(), service });
+                    self.to_broker(ToBroker::Withdraw {
+                        system: self.name.clone(),
+                        service,
+                    });
                 }
                 self.events.push_back(SystemEvent::Registered);
             }
             ToSystem::RegistrationRefused { reason } => {
                 self.state = BrokerState::Unregistered;
-                self.events.push_back(SystemEvent::RegistrationRefused(reason));
+                self.events
+                    .push_back(SystemEvent::RegistrationRefused(reason));
             }
             ToSystem::Ping { nonce } => {
-                self.to_broker(ToBroker::Pong { system: self.name.clone(), nonce });
+                self.to_broker(ToBroker::Pong {
+                    system: self.name.clone(),
+                    nonce,
+                });
             }
             ToSystem::Delinquent => {
                 self.state = BrokerState::Unregistered;
                 self.events.push_back(SystemEvent::Delinquent);
                 self.register();
             }
-            ToSystem::Offer { ticket, user, user_pid, req, service } => {
-                self.offer(ticket, user, user_pid, req, service)
-            }
-            ToSystem::Input { user, session, payload } => {
+            ToSystem::Offer {
+                ticket,
+                user,
+                user_pid,
+                req,
+                service,
+            } => self.offer(ticket, user, user_pid, req, service),
+            ToSystem::Input {
+                user,
+                session,
+                payload,
+            } => {
                 let Some(s) = self.sessions.get(&session) else {
                     tracing::debug!(%session, "input for an unknown session dropped");
                     return;
@@ -218,7 +243,11 @@ impl SystemCore {
                     return;
                 }
                 let service = s.service.clone();
-                self.events.push_back(SystemEvent::Input { session, service, payload });
+                self.events.push_back(SystemEvent::Input {
+                    session,
+                    service,
+                    payload,
+                });
             }
             ToSystem::End { user, session } => {
                 if self.sessions.get(&session).is_some_and(|s| s.user == user) {
@@ -244,10 +273,15 @@ impl SystemCore {
                 self.next_session += 1;
                 self.sessions.insert(
                     session,
-                    Session { user: user.clone(), service: service.clone(), seq: 0 },
+                    Session {
+                        user: user.clone(),
+                        service: service.clone(),
+                        seq: 0,
+                    },
                 );
                 if user_pid != 0 {
-                    self.out.push_back(SystemOutput::WatchUser(user.clone(), user_pid));
+                    self.out
+                        .push_back(SystemOutput::WatchUser(user.clone(), user_pid));
                 }
                 self.out.push_back(SystemOutput::ToUser(
                     user.clone(),
@@ -265,7 +299,11 @@ impl SystemCore {
                     ticket,
                     answer: Ok(session),
                 });
-                self.events.push_back(SystemEvent::SessionStarted { session, user, service });
+                self.events.push_back(SystemEvent::SessionStarted {
+                    session,
+                    user,
+                    service,
+                });
             }
             Err(reason) => self.to_broker(ToBroker::OfferAnswer {
                 system: self.name.clone(),
@@ -278,11 +316,19 @@ impl SystemCore {
     /// Streams one data update to every session of `service`. Returns how many got it.
     pub fn publish(&mut self, service: &str, payload: &Payload) -> usize {
         let mut n = 0;
-        for (id, s) in self.sessions.iter_mut().filter(|(_, s)| s.service == service) {
+        for (id, s) in self
+            .sessions
+            .iter_mut()
+            .filter(|(_, s)| s.service == service)
+        {
             s.seq += 1;
             self.out.push_back(SystemOutput::ToUser(
                 s.user.clone(),
-                ToUser::Update { session: *id, seq: s.seq, payload: payload.clone() },
+                ToUser::Update {
+                    session: *id,
+                    seq: s.seq,
+                    payload: payload.clone(),
+                },
             ));
             n += 1;
         }
@@ -295,7 +341,11 @@ impl SystemCore {
             s.seq += 1;
             self.out.push_back(SystemOutput::ToUser(
                 s.user.clone(),
-                ToUser::Status { session, seq: s.seq, status },
+                ToUser::Status {
+                    session,
+                    seq: s.seq,
+                    status,
+                },
             ));
         }
     }
@@ -306,24 +356,40 @@ impl SystemCore {
     }
 
     fn close(&mut self, session: SessionId, reason: EndReason, tell_user: bool) {
-        let Some(s) = self.sessions.remove(&session) else { return };
+        let Some(s) = self.sessions.remove(&session) else {
+            return;
+        };
         if tell_user {
             self.out.push_back(SystemOutput::ToUser(
                 s.user.clone(),
-                ToUser::Ended { session, reason: reason.clone() },
+                ToUser::Ended {
+                    session,
+                    reason: reason.clone(),
+                },
             ));
         }
-        self.to_broker(ToBroker::SessionEnded { system: self.name.clone(), session });
+        self.to_broker(ToBroker::SessionEnded {
+            system: self.name.clone(),
+            session,
+        });
         if !self.sessions.values().any(|o| o.user == s.user) {
             self.out.push_back(SystemOutput::ForgetUser(s.user.clone()));
         }
-        self.events.push_back(SystemEvent::SessionEnded { session, service: s.service, reason });
+        self.events.push_back(SystemEvent::SessionEnded {
+            session,
+            service: s.service,
+            reason,
+        });
     }
 
     /// A user's process died: its sessions end.
     pub fn user_died(&mut self, user: &UserId) {
-        let ids: Vec<SessionId> =
-            self.sessions.iter().filter(|(_, s)| s.user == *user).map(|(id, _)| *id).collect();
+        let ids: Vec<SessionId> = self
+            .sessions
+            .iter()
+            .filter(|(_, s)| s.user == *user)
+            .map(|(id, _)| *id)
+            .collect();
         for id in ids {
             self.close(id, EndReason::PeerGone, false);
         }
@@ -334,18 +400,28 @@ impl SystemCore {
         if !self.specs.iter().any(|s| s.name == service) || !self.withdrawn.insert(service.into()) {
             return;
         }
-        let ids: Vec<SessionId> =
-            self.sessions.iter().filter(|(_, s)| s.service == service).map(|(id, _)| *id).collect();
+        let ids: Vec<SessionId> = self
+            .sessions
+            .iter()
+            .filter(|(_, s)| s.service == service)
+            .map(|(id, _)| *id)
+            .collect();
         for id in ids {
             self.close(id, EndReason::Withdrawn, true);
         }
-        self.to_broker(ToBroker::Withdraw { system: self.name.clone(), service: service.into() });
+        self.to_broker(ToBroker::Withdraw {
+            system: self.name.clone(),
+            service: service.into(),
+        });
     }
 
     /// Offers a withdrawn service again.
     pub fn restore(&mut self, service: &str) {
         if self.withdrawn.remove(service) {
-            self.to_broker(ToBroker::Restore { system: self.name.clone(), service: service.into() });
+            self.to_broker(ToBroker::Restore {
+                system: self.name.clone(),
+                service: service.into(),
+            });
         }
     }
 
@@ -355,12 +431,17 @@ impl SystemCore {
         for id in ids {
             self.close(id, EndReason::BySystem("system shutting down".into()), true);
         }
-        self.to_broker(ToBroker::Unregister { system: self.name.clone() });
+        self.to_broker(ToBroker::Unregister {
+            system: self.name.clone(),
+        });
     }
 
     /// Kind of one of our services.
     pub fn kind_of(&self, service: &str) -> Option<ServiceKind> {
-        self.specs.iter().find(|s| s.name == service).map(|s| s.kind)
+        self.specs
+            .iter()
+            .find(|s| s.name == service)
+            .map(|s| s.kind)
     }
 
     fn to_broker(&mut self, msg: ToBroker) {

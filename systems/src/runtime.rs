@@ -61,14 +61,16 @@ impl Control {
         let (wake, mut tx_wake) = std::os::unix::net::UnixStream::pair()?;
         wake.set_nonblocking(true)?;
         let (tx, lines) = std::sync::mpsc::channel();
-        std::thread::Builder::new().name("stdin-control".into()).spawn(move || {
-            for line in std::io::stdin().lock().lines() {
-                let Ok(line) = line else { break };
-                if tx.send(line).is_err() || tx_wake.write_all(b".").is_err() {
-                    break;
+        std::thread::Builder::new()
+            .name("stdin-control".into())
+            .spawn(move || {
+                for line in std::io::stdin().lock().lines() {
+                    let Ok(line) = line else { break };
+                    if tx.send(line).is_err() || tx_wake.write_all(b".").is_err() {
+                        break;
+                    }
                 }
-            }
-        })?;
+            })?;
         Ok(Control { wake, lines })
     }
 
@@ -92,7 +94,10 @@ pub fn apply_control(core: &mut SystemCore, line: &str) -> bool {
         ["end", "all"] => {
             let ids: Vec<_> = core.sessions().map(|(id, _, _)| id).collect();
             for id in ids {
-                core.end_session(id, muster_shared::types::EndReason::BySystem("ended by the operator".into()));
+                core.end_session(
+                    id,
+                    muster_shared::types::EndReason::BySystem("ended by the operator".into()),
+                );
             }
         }
         ["end", hex] => match u64::from_str_radix(hex, 16) {
@@ -135,7 +140,10 @@ pub fn run_system<A: SystemApp>(
     }
     reactor.add(signals.raw(), TOKEN_SIGNAL)?;
     let mut control = Control::spawn()?;
-    reactor.add(std::os::fd::AsRawFd::as_raw_fd(&control.wake), TOKEN_CONTROL)?;
+    reactor.add(
+        std::os::fd::AsRawFd::as_raw_fd(&control.wake),
+        TOKEN_CONTROL,
+    )?;
     let mut shell = Shell {
         endpoint,
         reactor,
@@ -148,7 +156,11 @@ pub fn run_system<A: SystemApp>(
     let start = Instant::now();
     core.register();
     shell.flush(&mut core);
-    tracing::info!(system = core.name(), services = core.specs().len(), "system up");
+    tracing::info!(
+        system = core.name(),
+        services = core.specs().len(),
+        "system up"
+    );
 
     loop {
         let now = start.elapsed();
@@ -199,7 +211,11 @@ pub fn run_system<A: SystemApp>(
                     }
                 }
                 t => {
-                    let dead = shell.users.get(&t).filter(|(_, p)| p.exited()).map(|(u, _)| u.clone());
+                    let dead = shell
+                        .users
+                        .get(&t)
+                        .filter(|(_, p)| p.exited())
+                        .map(|(u, _)| u.clone());
                     if let Some(user) = dead {
                         core.user_died(&user);
                         shell.unwatch_user(&user);
@@ -225,7 +241,9 @@ pub fn run_system<A: SystemApp>(
                     shell.waiting_logged = false;
                     tracing::info!(system = core.name(), "registered with the broker");
                 }
-                SystemEvent::Delinquent => tracing::warn!("broker declared us delinquent; re-registering"),
+                SystemEvent::Delinquent => {
+                    tracing::warn!("broker declared us delinquent; re-registering")
+                }
                 _ => {}
             }
             app.on_event(&mut core, now, ev);
@@ -252,7 +270,8 @@ impl Shell {
                     }
                 }
                 SystemOutput::ToUser(user, msg) => {
-                    match encode(&msg).map(|f| self.endpoint.send(&Address::User(user.clone()), &f)) {
+                    match encode(&msg).map(|f| self.endpoint.send(&Address::User(user.clone()), &f))
+                    {
                         Ok(Ok(())) => {}
                         Ok(Err(e)) => tracing::debug!("{e}"),
                         Err(e) => tracing::error!("cannot encode: {e}"),

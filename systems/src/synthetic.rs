@@ -41,8 +41,13 @@ impl SyntheticOptions {
             .map(|i| ServiceSpec {
                 name: format!("s{i}"),
                 description: match self.kind {
-                    ServiceKind::Data => format!("synthetic target {i} of {}: {payload} stream", self.name),
-                    ServiceKind::Command => format!("synthetic robot {i} of {}: takes {payload} goals", self.name),
+                    ServiceKind::Data => {
+                        format!("synthetic target {i} of {}: {payload} stream", self.name)
+                    }
+                    ServiceKind::Command => format!(
+                        "synthetic robot {i} of {}: takes {payload} goals",
+                        self.name
+                    ),
                 },
                 kind: self.kind,
                 queue: self.queue,
@@ -78,7 +83,11 @@ pub struct Synthetic {
 impl Synthetic {
     /// Logic for `opts`.
     pub fn new(opts: &SyntheticOptions) -> Self {
-        let hz = if opts.rate_hz.is_finite() && opts.rate_hz > 0.0 { opts.rate_hz } else { 10.0 };
+        let hz = if opts.rate_hz.is_finite() && opts.rate_hz > 0.0 {
+            opts.rate_hz
+        } else {
+            10.0
+        };
         Synthetic {
             kind: opts.kind,
             period: Duration::from_secs_f64(1.0 / hz),
@@ -93,7 +102,11 @@ impl Synthetic {
         let w = 0.2;
         let phase = index as f64 * 0.7;
         let a = w * t.as_secs_f64() + phase;
-        Payload::Pose2d { x: 5.0 * a.cos(), y: 5.0 * a.sin(), theta: a + std::f64::consts::FRAC_PI_2 }
+        Payload::Pose2d {
+            x: 5.0 * a.cos(),
+            y: 5.0 * a.sin(),
+            theta: a + std::f64::consts::FRAC_PI_2,
+        }
     }
 }
 
@@ -106,18 +119,30 @@ impl SystemApp for Synthetic {
                     self.last = now;
                 }
                 if self.kind == ServiceKind::Command {
-                    self.drives.insert(session, Drive { pos: (0.0, 0.0), goal: None, arrived: false });
+                    self.drives.insert(
+                        session,
+                        Drive {
+                            pos: (0.0, 0.0),
+                            goal: None,
+                            arrived: false,
+                        },
+                    );
                     core.status(session, TaskStatus::Idle);
                 }
             }
-            SystemEvent::Input { session, payload, .. } => match payload.convert_to("goal2d") {
+            SystemEvent::Input {
+                session, payload, ..
+            } => match payload.convert_to("goal2d") {
                 Some(Payload::Goal2d { x, y }) => {
                     if let Some(d) = self.drives.get_mut(&session) {
                         let fresh = d.goal.is_none() || d.arrived;
                         d.goal = Some((x, y));
                         d.arrived = false;
                         if fresh {
-                            core.status(session, TaskStatus::Working(format!("goal ({x:.2}, {y:.2}) accepted")));
+                            core.status(
+                                session,
+                                TaskStatus::Working(format!("goal ({x:.2}, {y:.2}) accepted")),
+                            );
                         }
                     }
                 }

@@ -85,12 +85,18 @@ impl Fed {
     pub fn new(name: &str) -> Self {
         let mut inst = format!("{}-{}", name, std::process::id());
         inst.truncate(32);
-        Fed { inst, procs: Vec::new() }
+        Fed {
+            inst,
+            procs: Vec::new(),
+        }
     }
 
     pub fn command(&self, args: &[&str]) -> Command {
         let mut c = Command::new(BIN);
-        c.arg("--instance").arg(&self.inst).args(args).env("RUST_LOG", "warn");
+        c.arg("--instance")
+            .arg(&self.inst)
+            .args(args)
+            .env("RUST_LOG", "warn");
         c
     }
 
@@ -114,7 +120,11 @@ impl Fed {
                 }
             }
         });
-        self.procs.push(Proc { child, lines, stdin });
+        self.procs.push(Proc {
+            child,
+            lines,
+            stdin,
+        });
         self.procs.len() - 1
     }
 
@@ -148,12 +158,18 @@ impl Fed {
         loop {
             if let Ok(Some(_)) = child.try_wait() {
                 let out = child.wait_with_output().expect("output");
-                return (out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stdout).into());
+                return (
+                    out.status.code().unwrap_or(-1),
+                    String::from_utf8_lossy(&out.stdout).into(),
+                );
             }
             if Instant::now() >= deadline {
                 let _ = child.kill();
                 let _ = child.wait();
-                panic!("`muster {}` did not finish within {timeout:?}", args.join(" "));
+                panic!(
+                    "`muster {}` did not finish within {timeout:?}",
+                    args.join(" ")
+                );
             }
             std::thread::sleep(Duration::from_millis(10));
         }
@@ -163,18 +179,29 @@ impl Fed {
     pub fn list(&self) -> Vec<Value> {
         let (code, out) = self.run(&["user", "list", "--json"], Duration::from_secs(20));
         assert_eq!(code, 0, "user list failed: {out}");
-        serde_json::from_str::<Value>(&out).expect("list JSON").as_array().expect("array").clone()
+        serde_json::from_str::<Value>(&out)
+            .expect("list JSON")
+            .as_array()
+            .expect("array")
+            .clone()
     }
 
     /// Polls the list until `pred` holds; returns it and how long it took.
-    pub fn wait_list(&self, timeout: Duration, pred: impl Fn(&[Value]) -> bool) -> (Vec<Value>, Duration) {
+    pub fn wait_list(
+        &self,
+        timeout: Duration,
+        pred: impl Fn(&[Value]) -> bool,
+    ) -> (Vec<Value>, Duration) {
         let start = Instant::now();
         loop {
             let l = self.list();
             if pred(&l) {
                 return (l, start.elapsed());
             }
-            assert!(start.elapsed() < timeout, "list condition not met within {timeout:?}: {l:?}");
+            assert!(
+                start.elapsed() < timeout,
+                "list condition not met within {timeout:?}: {l:?}"
+            );
             std::thread::sleep(Duration::from_millis(50));
         }
     }
@@ -214,7 +241,9 @@ pub fn cleanup_dead_nodes() {
 }
 
 pub fn ids(list: &[Value]) -> Vec<String> {
-    list.iter().map(|v| v["id"].as_str().unwrap_or_default().to_string()).collect()
+    list.iter()
+        .map(|v| v["id"].as_str().unwrap_or_default().to_string())
+        .collect()
 }
 
 pub fn find<'a>(list: &'a [Value], id: &str) -> Option<&'a Value> {

@@ -82,7 +82,10 @@ pub struct ConnectOptions {
 
 impl Default for ConnectOptions {
     fn default() -> Self {
-        ConnectOptions { wait_for_broker: Duration::from_secs(5), handle_signals: true }
+        ConnectOptions {
+            wait_for_broker: Duration::from_secs(5),
+            handle_signals: true,
+        }
     }
 }
 
@@ -189,13 +192,21 @@ impl UserClient {
     /// against the list. Returns the link number.
     pub fn link(&mut self, data: &ServiceId, command: &ServiceId) -> Result<u64, UserError> {
         let list = self.list()?;
-        let d = list.find(data).ok_or_else(|| UserError::UnknownService(data.0.clone()))?;
-        let c = list.find(command).ok_or_else(|| UserError::UnknownService(command.0.clone()))?;
+        let d = list
+            .find(data)
+            .ok_or_else(|| UserError::UnknownService(data.0.clone()))?;
+        let c = list
+            .find(command)
+            .ok_or_else(|| UserError::UnknownService(command.0.clone()))?;
         if d.kind() != ServiceKind::Data {
-            return Err(UserError::CannotLink(format!("{data} is not a data service")));
+            return Err(UserError::CannotLink(format!(
+                "{data} is not a data service"
+            )));
         }
         if c.kind() != ServiceKind::Command {
-            return Err(UserError::CannotLink(format!("{command} is not a command service")));
+            return Err(UserError::CannotLink(format!(
+                "{command} is not a command service"
+            )));
         }
         if !link_compatible(d.payload.as_str(), c.payload.as_str()) {
             return Err(UserError::CannotLink(format!(
@@ -283,13 +294,19 @@ impl UserClient {
             }
             TOKEN_BROKER => {
                 if self.broker.as_ref().is_some_and(PidFd::exited) {
-                    tracing::warn!("broker died; sessions go on, new requests wait for a new broker");
+                    tracing::warn!(
+                        "broker died; sessions go on, new requests wait for a new broker"
+                    );
                     self.lose_broker(true);
                 }
             }
             TOKEN_EXTRA => *extra = true,
             t => {
-                let dead = self.systems.get(&t).filter(|(_, p)| p.exited()).map(|(s, _)| s.clone());
+                let dead = self
+                    .systems
+                    .get(&t)
+                    .filter(|(_, p)| p.exited())
+                    .map(|(s, _)| s.clone());
                 if let Some(system) = dead {
                     self.core.system_died(&system);
                     self.unwatch_system(&system);

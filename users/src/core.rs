@@ -210,12 +210,17 @@ impl UserCore {
 
     /// Open sessions.
     pub fn sessions(&self) -> impl Iterator<Item = (SessionId, &ServiceId, ServiceKind)> {
-        self.sessions.iter().map(|(id, s)| (*id, &s.service, s.kind))
+        self.sessions
+            .iter()
+            .map(|(id, s)| (*id, &s.service, s.kind))
     }
 
     /// Sequence counters of a session.
     pub fn counters(&self, session: SessionId) -> Option<SessionCounters> {
-        self.sessions.get(&session).map(|s| SessionCounters { last_seq: s.last_seq, gaps: s.gaps })
+        self.sessions.get(&session).map(|s| SessionCounters {
+            last_seq: s.last_seq,
+            gaps: s.gaps,
+        })
     }
 
     /// Requests not yet answered by a grant or a refusal.
@@ -236,11 +241,22 @@ impl UserCore {
     /// Says hello (again, after a broker restart), re-sending requests still pending.
     pub fn hello(&mut self) {
         let links = self.links.values().map(|l| l.info.clone()).collect();
-        self.to_broker(ToBroker::Hello { user: self.id.clone(), pid: self.pid, links });
-        let pending: Vec<(u64, ServiceId)> =
-            self.pending.iter().map(|(r, p)| (*r, p.service.clone())).collect();
+        self.to_broker(ToBroker::Hello {
+            user: self.id.clone(),
+            pid: self.pid,
+            links,
+        });
+        let pending: Vec<(u64, ServiceId)> = self
+            .pending
+            .iter()
+            .map(|(r, p)| (*r, p.service.clone()))
+            .collect();
         for (req, service) in pending {
-            self.to_broker(ToBroker::Request { user: self.id.clone(), req, service });
+            self.to_broker(ToBroker::Request {
+                user: self.id.clone(),
+                req,
+                service,
+            });
         }
     }
 
@@ -264,15 +280,28 @@ impl UserCore {
     fn request_for(&mut self, service: ServiceId, link: Option<u64>) -> u64 {
         let req = self.next_req;
         self.next_req += 1;
-        self.pending.insert(req, Pending { service: service.clone(), link });
-        self.to_broker(ToBroker::Request { user: self.id.clone(), req, service });
+        self.pending.insert(
+            req,
+            Pending {
+                service: service.clone(),
+                link,
+            },
+        );
+        self.to_broker(ToBroker::Request {
+            user: self.id.clone(),
+            req,
+            service,
+        });
         req
     }
 
     /// Gives up a pending or queued request.
     pub fn cancel(&mut self, req: u64) {
         if self.pending.remove(&req).is_some() {
-            self.to_broker(ToBroker::Cancel { user: self.id.clone(), req });
+            self.to_broker(ToBroker::Cancel {
+                user: self.id.clone(),
+                req,
+            });
         }
     }
 
@@ -282,17 +311,27 @@ impl UserCore {
     }
 
     fn close(&mut self, session: SessionId, reason: EndReason, tell_system: bool) {
-        let Some(s) = self.sessions.remove(&session) else { return };
+        let Some(s) = self.sessions.remove(&session) else {
+            return;
+        };
         if tell_system {
             self.out.push_back(UserOutput::ToSystem(
                 s.system.clone(),
-                ToSystem::End { user: self.id.clone(), session },
+                ToSystem::End {
+                    user: self.id.clone(),
+                    session,
+                },
             ));
         }
         if !self.sessions.values().any(|o| o.system == s.system) {
-            self.out.push_back(UserOutput::ForgetSystem(s.system.clone()));
+            self.out
+                .push_back(UserOutput::ForgetSystem(s.system.clone()));
         }
-        self.events.push_back(UserEvent::Ended { session, service: s.service, reason: reason.clone() });
+        self.events.push_back(UserEvent::Ended {
+            session,
+            service: s.service,
+            reason: reason.clone(),
+        });
         if let Some(link) = s.link {
             self.end_link(link, format!("a linked session ended: {reason}"));
         }
@@ -300,14 +339,23 @@ impl UserCore {
 
     /// Sends task input on a command session.
     pub fn input(&mut self, session: SessionId, payload: Payload) -> Result<(), String> {
-        let s = self.sessions.get(&session).ok_or_else(|| format!("no session {session}"))?;
+        let s = self
+            .sessions
+            .get(&session)
+            .ok_or_else(|| format!("no session {session}"))?;
         if s.kind != ServiceKind::Command {
-            return Err(format!("session {session} is a data session: it takes no input"));
+            return Err(format!(
+                "session {session} is a data session: it takes no input"
+            ));
         }
         let system = s.system.clone();
         self.out.push_back(UserOutput::ToSystem(
             system,
-            ToSystem::Input { user: self.id.clone(), session, payload },
+            ToSystem::Input {
+                user: self.id.clone(),
+                session,
+                payload,
+            },
         ));
         Ok(())
     }
@@ -317,10 +365,20 @@ impl UserCore {
     pub fn link(&mut self, data: ServiceId, command: ServiceId) -> u64 {
         let link = self.next_link;
         self.next_link += 1;
-        let info = LinkInfo { link, data: data.clone(), command: command.clone() };
+        let info = LinkInfo {
+            link,
+            data: data.clone(),
+            command: command.clone(),
+        };
         self.links.insert(
             link,
-            LinkState { info, data: None, command: None, command_payload: None, forwarded: 0 },
+            LinkState {
+                info,
+                data: None,
+                command: None,
+                command_payload: None,
+                forwarded: 0,
+            },
         );
         self.request_for(data, Some(link));
         self.request_for(command, Some(link));
@@ -333,9 +391,15 @@ impl UserCore {
     }
 
     fn end_link(&mut self, link: u64, reason: String) {
-        let Some(l) = self.links.remove(&link) else { return };
-        let reqs: Vec<u64> =
-            self.pending.iter().filter(|(_, p)| p.link == Some(link)).map(|(r, _)| *r).collect();
+        let Some(l) = self.links.remove(&link) else {
+            return;
+        };
+        let reqs: Vec<u64> = self
+            .pending
+            .iter()
+            .filter(|(_, p)| p.link == Some(link))
+            .map(|(r, _)| *r)
+            .collect();
         for r in reqs {
             self.cancel(r);
         }
@@ -346,15 +410,22 @@ impl UserCore {
             self.close(s, EndReason::ByUser, true);
         }
         if l.data.is_some() && l.command.is_some() {
-            self.to_broker(ToBroker::LinkClosed { user: self.id.clone(), link });
+            self.to_broker(ToBroker::LinkClosed {
+                user: self.id.clone(),
+                link,
+            });
         }
         self.events.push_back(UserEvent::LinkEnded { link, reason });
     }
 
     /// A system's process died: its sessions end.
     pub fn system_died(&mut self, system: &str) {
-        let ids: Vec<SessionId> =
-            self.sessions.iter().filter(|(_, s)| s.system == system).map(|(id, _)| *id).collect();
+        let ids: Vec<SessionId> = self
+            .sessions
+            .iter()
+            .filter(|(_, s)| s.system == system)
+            .map(|(id, _)| *id)
+            .collect();
         for id in ids {
             self.close(id, EndReason::PeerGone, false);
         }
@@ -374,7 +445,9 @@ impl UserCore {
         for r in reqs {
             self.cancel(r);
         }
-        self.to_broker(ToBroker::Goodbye { user: self.id.clone() });
+        self.to_broker(ToBroker::Goodbye {
+            user: self.id.clone(),
+        });
     }
 
     /// Handles one frame from the inbox.
@@ -388,7 +461,11 @@ impl UserCore {
             ToUser::Queued { req, position } => {
                 if let Some(p) = self.pending.get(&req) {
                     let service = p.service.clone();
-                    self.events.push_back(UserEvent::Queued { req, service, position });
+                    self.events.push_back(UserEvent::Queued {
+                        req,
+                        service,
+                        position,
+                    });
                 }
             }
             ToUser::Refused { req, reason } => {
@@ -403,11 +480,24 @@ impl UserCore {
                     }
                 }
             }
-            ToUser::Granted { req, session, service, kind, payload, system_pid } => {
-                self.granted(req, session, service, kind, payload, system_pid)
-            }
-            ToUser::Update { session, seq, payload } => self.update(session, seq, payload),
-            ToUser::Status { session, seq, status } => {
+            ToUser::Granted {
+                req,
+                session,
+                service,
+                kind,
+                payload,
+                system_pid,
+            } => self.granted(req, session, service, kind, payload, system_pid),
+            ToUser::Update {
+                session,
+                seq,
+                payload,
+            } => self.update(session, seq, payload),
+            ToUser::Status {
+                session,
+                seq,
+                status,
+            } => {
                 let Some(s) = self.sessions.get_mut(&session) else {
                     self.stale_frames += 1;
                     return;
@@ -419,7 +509,12 @@ impl UserCore {
                 s.gaps += seq - s.last_seq - 1;
                 s.last_seq = seq;
                 let service = s.service.clone();
-                self.events.push_back(UserEvent::Status { session, service, seq, status });
+                self.events.push_back(UserEvent::Status {
+                    session,
+                    service,
+                    seq,
+                    status,
+                });
             }
             ToUser::Ended { session, reason } => self.close(session, reason, false),
         }
@@ -434,13 +529,23 @@ impl UserCore {
         payload: String,
         system_pid: u32,
     ) {
-        let system = service.split().map(|(s, _)| s.to_string()).unwrap_or_default();
+        let system = service
+            .split()
+            .map(|(s, _)| s.to_string())
+            .unwrap_or_default();
         let Some(p) = self.pending.remove(&req) else {
             // Granted after we gave up (cancelled, refused on timeout): end it at once.
-            self.out.push_back(UserOutput::ToSystem(system, ToSystem::End { user: self.id.clone(), session }));
+            self.out.push_back(UserOutput::ToSystem(
+                system,
+                ToSystem::End {
+                    user: self.id.clone(),
+                    session,
+                },
+            ));
             return;
         };
-        self.out.push_back(UserOutput::WatchSystem(system.clone(), system_pid));
+        self.out
+            .push_back(UserOutput::WatchSystem(system.clone(), system_pid));
         self.sessions.insert(
             session,
             SessionInfo {
@@ -453,9 +558,16 @@ impl UserCore {
                 link: p.link,
             },
         );
-        self.events.push_back(UserEvent::Granted { req, session, service, kind });
+        self.events.push_back(UserEvent::Granted {
+            req,
+            session,
+            service,
+            kind,
+        });
         let Some(link) = p.link else { return };
-        let Some(l) = self.links.get_mut(&link) else { return };
+        let Some(l) = self.links.get_mut(&link) else {
+            return;
+        };
         match kind {
             ServiceKind::Data => l.data = Some(session),
             ServiceKind::Command => {
@@ -464,14 +576,24 @@ impl UserCore {
             }
         }
         if let (Some(d), Some(_)) = (l.data, l.command) {
-            let data_payload = self.sessions.get(&d).map(|s| s.payload.clone()).unwrap_or_default();
+            let data_payload = self
+                .sessions
+                .get(&d)
+                .map(|s| s.payload.clone())
+                .unwrap_or_default();
             let cmd_payload = l.command_payload.clone().unwrap_or_default();
             if !link_compatible(&data_payload, &cmd_payload) {
-                self.end_link(link, format!("cannot link {data_payload} into {cmd_payload}"));
+                self.end_link(
+                    link,
+                    format!("cannot link {data_payload} into {cmd_payload}"),
+                );
                 return;
             }
             let info = l.info.clone();
-            self.to_broker(ToBroker::LinkOpened { user: self.id.clone(), link: info });
+            self.to_broker(ToBroker::LinkOpened {
+                user: self.id.clone(),
+                link: info,
+            });
             self.events.push_back(UserEvent::LinkUp { link });
         }
     }
@@ -490,18 +612,37 @@ impl UserCore {
         s.last_seq = seq;
         let service = s.service.clone();
         let link = s.link;
-        self.events.push_back(UserEvent::Update { session, service, seq, gap, payload: payload.clone() });
+        self.events.push_back(UserEvent::Update {
+            session,
+            service,
+            seq,
+            gap,
+            payload: payload.clone(),
+        });
         let Some(link) = link else { return };
-        let Some(l) = self.links.get_mut(&link) else { return };
-        let (Some(cmd), Some(target)) = (l.command, l.command_payload.clone()) else { return };
-        let Some(input) = payload.convert_to(&target) else { return };
+        let Some(l) = self.links.get_mut(&link) else {
+            return;
+        };
+        let (Some(cmd), Some(target)) = (l.command, l.command_payload.clone()) else {
+            return;
+        };
+        let Some(input) = payload.convert_to(&target) else {
+            return;
+        };
         l.forwarded += 1;
-        let Some(system) = self.sessions.get(&cmd).map(|c| c.system.clone()) else { return };
+        let Some(system) = self.sessions.get(&cmd).map(|c| c.system.clone()) else {
+            return;
+        };
         self.out.push_back(UserOutput::ToSystem(
             system,
-            ToSystem::Input { user: self.id.clone(), session: cmd, payload: input.clone() },
+            ToSystem::Input {
+                user: self.id.clone(),
+                session: cmd,
+                payload: input.clone(),
+            },
         ));
-        self.events.push_back(UserEvent::LinkForwarded { link, input });
+        self.events
+            .push_back(UserEvent::LinkForwarded { link, input });
     }
 
     fn to_broker(&mut self, msg: ToBroker) {

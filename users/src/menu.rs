@@ -20,7 +20,11 @@ pub fn table(views: &[ServiceView]) -> String {
     );
     for (i, v) in views.iter().enumerate() {
         let usage = format!("{}/{}", v.in_use, v.quota);
-        let queue = if v.queue { v.queued.to_string() } else { "-".into() };
+        let queue = if v.queue {
+            v.queued.to_string()
+        } else {
+            "-".into()
+        };
         let mark = if v.withdrawn { " [withdrawn]" } else { "" };
         out.push_str(&format!(
             "{:<4} {:<24} {:<8} {:<8} {:>9} {:<5} {}{}\n",
@@ -84,7 +88,13 @@ pub fn run(mut client: UserClient) -> Result<(), UserError> {
                 loop {
                     match lines_rx.try_recv() {
                         Ok(line) => {
-                            if !command(&mut client, line.trim(), &mut views, &sessions, &mut stale)? {
+                            if !command(
+                                &mut client,
+                                line.trim(),
+                                &mut views,
+                                &sessions,
+                                &mut stale,
+                            )? {
                                 client.close();
                                 return Ok(());
                             }
@@ -122,24 +132,50 @@ fn show_event(
                 *stale = true;
             }
         }
-        UserEvent::Granted { session, service, kind, .. } => {
+        UserEvent::Granted {
+            session,
+            service,
+            kind,
+            ..
+        } => {
             sessions.push(*session);
-            println!("\ngranted: session {} on {service} ({kind})", sessions.len());
+            println!(
+                "\ngranted: session {} on {service} ({kind})",
+                sessions.len()
+            );
         }
-        UserEvent::Refused { service, reason, .. } => println!("\nrefused {service}: {reason}"),
-        UserEvent::Queued { service, position, .. } => {
+        UserEvent::Refused {
+            service, reason, ..
+        } => println!("\nrefused {service}: {reason}"),
+        UserEvent::Queued {
+            service, position, ..
+        } => {
             println!("\n{service}: queued at position {position}")
         }
-        UserEvent::Update { session, service, seq, payload, .. } => {
+        UserEvent::Update {
+            session,
+            service,
+            seq,
+            payload,
+            ..
+        } => {
             let now = Instant::now();
-            let due = last_print.get(session).is_none_or(|t| now.duration_since(*t) >= Duration::from_secs(1));
+            let due = last_print
+                .get(session)
+                .is_none_or(|t| now.duration_since(*t) >= Duration::from_secs(1));
             if due {
                 last_print.insert(*session, now);
                 println!("{service} #{seq}: {payload}");
             }
         }
-        UserEvent::Status { service, status, .. } => println!("{service}: {status}"),
-        UserEvent::Ended { session, service, reason } => {
+        UserEvent::Status {
+            service, status, ..
+        } => println!("{service}: {status}"),
+        UserEvent::Ended {
+            session,
+            service,
+            reason,
+        } => {
             sessions.retain(|s| s != session);
             println!("\nsession on {service} ended: {reason}");
         }
@@ -153,7 +189,9 @@ fn show_event(
 
 fn pick(views: &[ServiceView], s: &str) -> Option<ServiceId> {
     let n: usize = s.parse().ok()?;
-    views.get(n.checked_sub(1)?).map(|v| ServiceId(v.id.clone()))
+    views
+        .get(n.checked_sub(1)?)
+        .map(|v| ServiceId(v.id.clone()))
 }
 
 /// Handles one typed line; `false` means exit.
@@ -175,11 +213,19 @@ fn command(
         }
         ["s"] => {
             for (i, s) in sessions.iter().enumerate() {
-                let svc = client.core().sessions().find(|(id, _, _)| id == s).map(|(_, svc, _)| svc.0.clone());
+                let svc = client
+                    .core()
+                    .sessions()
+                    .find(|(id, _, _)| id == s)
+                    .map(|(_, svc, _)| svc.0.clone());
                 println!("{}: {} {}", i + 1, s, svc.unwrap_or_default());
             }
         }
-        ["e", n] => match n.parse::<usize>().ok().and_then(|n| sessions.get(n.checked_sub(1)?)) {
+        ["e", n] => match n
+            .parse::<usize>()
+            .ok()
+            .and_then(|n| sessions.get(n.checked_sub(1)?))
+        {
             Some(s) => client.end(*s),
             None => println!("no session {n} (s lists them)"),
         },
@@ -191,7 +237,10 @@ fn command(
             _ => println!("link takes two service numbers from the list"),
         },
         ["g", n, x, y] => {
-            let s = n.parse::<usize>().ok().and_then(|n| sessions.get(n.checked_sub(1)?));
+            let s = n
+                .parse::<usize>()
+                .ok()
+                .and_then(|n| sessions.get(n.checked_sub(1)?));
             match (s, x.parse::<f64>(), y.parse::<f64>()) {
                 (Some(s), Ok(x), Ok(y)) => {
                     if let Err(e) = client.input(*s, Payload::Goal2d { x, y }) {
