@@ -27,6 +27,38 @@ pub enum Command {
     /// Run the main job on the built-in default: a broker and synthetic systems as child
     /// processes, and a user listing, requesting, receiving data and linking.
     Up(UpArgs),
+    /// Benchmarks that print figures.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Subcommand, Debug)]
+pub enum BenchCommand {
+    /// Connect N separate user processes to a broker serving S services; report setup
+    /// time, shared memory, broker RSS and idle CPU, per-user PSS, request and list latency.
+    Scale(ScaleArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct ScaleArgs {
+    /// User processes.
+    #[arg(long, default_value_t = 900)]
+    pub users: usize,
+    /// Services in the list.
+    #[arg(long, default_value_t = 80)]
+    pub services: usize,
+    /// Systems offering them.
+    #[arg(long, default_value_t = 10)]
+    pub systems: usize,
+    /// How long to measure the broker's CPU with every user connected and idle.
+    #[arg(long, default_value = "10s", value_parser = duration)]
+    pub idle: Duration,
+    /// Request round trips to time with every user connected.
+    #[arg(long, default_value_t = 500)]
+    pub requests: usize,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
 }
 
 fn duration(s: &str) -> Result<Duration, String> {
@@ -119,6 +151,13 @@ pub enum UserVerb {
         /// One JSON object a line: `{"generation": .., "services": [..]}`.
         #[arg(long)]
         json: bool,
+    },
+    /// Connect, print one JSON line `{"connected": true, "services": N}`, and stay idle
+    /// (not notified of list changes) until the duration ends or a signal: an idle user.
+    Idle {
+        /// Stop after this long (default: until Ctrl-C).
+        #[arg(long, value_parser = duration)]
+        duration: Option<Duration>,
     },
     /// Link a data service into a command service: data becomes the command's task input.
     Link {

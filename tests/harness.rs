@@ -99,7 +99,7 @@ impl Net {
 
     fn add_user(&mut self, n: u32) -> UserId {
         let id = UserId(format!("u{n}"));
-        let mut core = UserCore::new(id.clone(), 1000 + n);
+        let mut core = UserCore::new(id.clone(), 1000 + n, false);
         core.hello();
         self.users.insert(id.clone(), core);
         self.settle();

@@ -133,9 +133,10 @@ impl ServiceRec {
     }
 }
 
-#[derive(Debug)]
+#[derive(Debug, Default)]
 struct UserRec {
     pid: u32,
+    watch_list: bool,
     links: BTreeMap<u64, LinkInfo>,
 }
 
@@ -195,9 +196,17 @@ impl Broker {
         &self.stats
     }
 
-    /// Users the broker knows (to ring on list changes).
+    /// Users the broker knows.
     pub fn users(&self) -> impl Iterator<Item = &UserId> {
         self.users.keys()
+    }
+
+    /// Users who asked to be rung when the list changes.
+    pub fn list_watchers(&self) -> impl Iterator<Item = &UserId> {
+        self.users
+            .iter()
+            .filter(|(_, u)| u.watch_list)
+            .map(|(id, _)| id)
     }
 
     /// Registered system names.
@@ -273,16 +282,18 @@ impl Broker {
                     self.remove_system(&system, Removal::Unregistered);
                 }
             }
-            ToBroker::Hello { user, pid, links } => self.hello(user, pid, links),
+            ToBroker::Hello {
+                user,
+                pid,
+                links,
+                watch_list,
+            } => self.hello(user, pid, links, watch_list),
             ToBroker::Request { user, req, service } => self.request(now, user, req, service),
             ToBroker::Cancel { user, req } => self.cancel(now, &user, req),
             ToBroker::LinkOpened { user, link } => {
                 self.users
                     .entry(user)
-                    .or_insert_with(|| UserRec {
-                        pid: 0,
-                        links: BTreeMap::new(),
-                    })
+                    .or_default()
                     .links
                     .insert(link.link, link);
                 self.recount_links();
@@ -540,12 +551,10 @@ impl Broker {
         }
     }
 
-    fn hello(&mut self, user: UserId, pid: u32, links: Vec<LinkInfo>) {
-        let rec = self.users.entry(user.clone()).or_insert_with(|| UserRec {
-            pid: 0,
-            links: BTreeMap::new(),
-        });
+    fn hello(&mut self, user: UserId, pid: u32, links: Vec<LinkInfo>, watch_list: bool) {
+        let rec = self.users.entry(user.clone()).or_default();
         rec.pid = pid;
+        rec.watch_list = watch_list;
         rec.links = links.into_iter().map(|l| (l.link, l)).collect();
         self.recount_links();
         self.out.push_back(Output::WatchUser {
@@ -563,10 +572,7 @@ impl Broker {
 
     fn request(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
         self.stats.requests += 1;
-        self.users.entry(user.clone()).or_insert_with(|| UserRec {
-            pid: 0,
-            links: BTreeMap::new(),
-        });
+        self.users.entry(user.clone()).or_default();
         let Some(svc) = self.services.get(&service) else {
             return self.refuse(&user, req, Refusal::Unknown);
         };

@@ -561,6 +561,26 @@ fn sessions_reported_at_registration_count_against_the_quota() {
 }
 
 #[test]
+fn only_watching_users_are_rung_on_list_changes() {
+    let mut b = broker();
+    for (u, watch) in [(1, true), (2, false), (3, true)] {
+        b.handle(
+            S,
+            ToBroker::Hello {
+                user: user(u),
+                pid: u,
+                links: vec![],
+                watch_list: watch,
+            },
+        );
+    }
+    let watchers: Vec<&UserId> = b.list_watchers().collect();
+    assert_eq!(watchers, [&user(1), &user(3)]);
+    b.user_died(S, &user(3));
+    assert_eq!(b.list_watchers().collect::<Vec<_>>(), [&user(1)]);
+}
+
+#[test]
 fn links_are_visible_and_go_with_their_user() {
     let mut b = broker();
     register(&mut b, S, "t", 7, vec![spec("a", 5, false)]);
@@ -578,6 +598,7 @@ fn links_are_visible_and_go_with_their_user() {
             user: user(1),
             pid: 99,
             links: vec![],
+            watch_list: true,
         },
     );
     b.handle(

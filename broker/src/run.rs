@@ -53,7 +53,13 @@ struct Shell {
     next_token: usize,
     bad_frames: u64,
     snapshot: Box<ServiceListSnapshot>,
+    /// When list watchers were last rung, and whether a ring is owed.
+    last_ring: Option<Instant>,
+    ring_owed: bool,
 }
+
+/// List watchers are rung at most this often; the blackboard itself is updated at once.
+const RING_EVERY: Duration = Duration::from_millis(100);
 
 /// Runs a broker on `inst` until SIGINT or SIGTERM.
 pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
@@ -96,6 +102,8 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
         next_token: FIRST_WATCH_TOKEN,
         bad_frames: 0,
         snapshot: Box::new(ServiceListSnapshot::empty()),
+        last_ring: None,
+        ring_owed: false,
     };
     shell.snapshot.epoch = epoch;
     let start = Instant::now();
@@ -106,6 +114,10 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
     loop {
         let now = start.elapsed();
         let timeout = core.poll_timeout().map(|t| t.saturating_sub(now));
+        let timeout = match (timeout, shell.ring_due()) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
         let tokens = shell.reactor.wait(timeout)?;
         let now = start.elapsed();
         let mut died = false;
@@ -140,6 +152,7 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
             core.handle_timeout(now);
         }
         shell.flush(&mut core)?;
+        shell.ring_watchers(&core);
         if died {
             // The dead process's iceoryx2 resources: its node shows as dead at once.
             let state = shell.endpoint.node().try_cleanup_dead_nodes();
@@ -206,12 +219,33 @@ impl Shell {
                 *slot = v.to_entry();
             }
             self.list.publish(&self.snapshot)?;
-            let users: Vec<UserId> = core.users().cloned().collect();
-            for u in users {
-                let _ = self.endpoint.ring(&Address::User(u), bell::LIST_CHANGED);
-            }
+            self.ring_owed = true;
         }
         Ok(())
+    }
+
+    /// How long until watchers may be rung again, if a ring is owed.
+    fn ring_due(&self) -> Option<Duration> {
+        if !self.ring_owed {
+            return None;
+        }
+        Some(
+            self.last_ring
+                .map_or(Duration::ZERO, |t| RING_EVERY.saturating_sub(t.elapsed())),
+        )
+    }
+
+    /// Rings the users who watch the list, at most once per [`RING_EVERY`].
+    fn ring_watchers(&mut self, core: &Broker) {
+        if self.ring_due() != Some(Duration::ZERO) {
+            return;
+        }
+        self.ring_owed = false;
+        self.last_ring = Some(Instant::now());
+        let watchers: Vec<UserId> = core.list_watchers().cloned().collect();
+        for u in watchers {
+            let _ = self.endpoint.ring(&Address::User(u), bell::LIST_CHANGED);
+        }
     }
 
     fn send<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {

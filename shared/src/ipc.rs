@@ -24,10 +24,19 @@ pub type Ipc = ipc::Service;
 
 /// Most processes (users + systems + broker) one instance supports at once.
 pub const MAX_PARTICIPANTS: usize = 2048;
-/// Most peers that may write to one user's inbox (the broker and the systems it has sessions with).
-pub const MAX_USER_PEERS: usize = 64;
-/// Bytes preallocated per outgoing frame; larger frames grow the segment (power of two).
-const INITIAL_FRAME: usize = 1024;
+/// Most peers that may write to one user's inbox (the broker and the systems it has
+/// sessions with). iceoryx2 preallocates ~11 KiB per possible writer in each reader,
+/// so these limits are what a process's memory is made of.
+pub const MAX_USER_PEERS: usize = 16;
+/// Most peers that may write to one system's inbox (the broker and its users at once).
+pub const MAX_SYSTEM_PEERS: usize = 256;
+/// Largest frame on every path but system → broker. These publishers use static
+/// segments: a growable (dynamic) segment makes every reader preallocate ~290 KiB of
+/// bookkeeping per writer, which at 900 users is most of the broker's memory.
+pub const SMALL_FRAME: usize = 4096;
+/// Initial frame size of the system → broker path, which grows (power of two) up to
+/// [`crate::protocol::MAX_FRAME`] for large registrations.
+const INITIAL_LARGE_FRAME: usize = 4096;
 
 /// Event ids rung on a bell.
 pub mod bell {
@@ -261,10 +270,16 @@ impl Endpoint {
                 .publish_subscribe::<[u8]>()
                 .open()
                 .map_err(|_| TransportError::Unreachable(to.clone()))?;
+            let (len, strategy) = match (&self.me, to) {
+                (Address::System(_), Address::Broker) => {
+                    (INITIAL_LARGE_FRAME, AllocationStrategy::PowerOfTwo)
+                }
+                _ => (SMALL_FRAME, AllocationStrategy::Static),
+            };
             let publisher = svc
                 .publisher_builder()
-                .initial_max_slice_len(INITIAL_FRAME)
-                .allocation_strategy(AllocationStrategy::PowerOfTwo)
+                .initial_max_slice_len(len)
+                .allocation_strategy(strategy)
                 .max_loaned_samples(1)
                 .backpressure_strategy(BackpressureStrategy::DiscardData)
                 .create()
@@ -302,6 +317,16 @@ impl Endpoint {
     }
 
     fn try_send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
+        let large = matches!((&self.me, to), (Address::System(_), Address::Broker));
+        if !large && frame.len() > SMALL_FRAME {
+            return Err(TransportError::Send {
+                peer: to.clone(),
+                detail: format!(
+                    "frame of {} bytes exceeds the {SMALL_FRAME}-byte limit of this path",
+                    frame.len()
+                ),
+            });
+        }
         let peer = self.peer(to)?;
         let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
             peer: to.clone(),

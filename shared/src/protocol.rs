@@ -171,6 +171,8 @@ pub enum ToBroker {
         pid: u32,
         /// Links it already runs.
         links: Vec<LinkInfo>,
+        /// Ring this user's bell when the service list changes.
+        watch_list: bool,
     },
     /// A user asks for a service.
     Request {

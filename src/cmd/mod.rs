@@ -1,6 +1,8 @@
 //! One file per command.
 
+mod bench;
 mod broker;
+mod children;
 mod system;
 mod up;
 mod user;
@@ -18,5 +20,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::System(s) => system::run(&inst, s),
         Command::User(u) => user::run(&inst, u),
         Command::Up(a) => up::run(&inst, a),
+        Command::Bench(b) => bench::run(&inst, b),
     }
 }

@@ -5,68 +5,17 @@
 //! then acts as a user: lists, requests a data service, links tracker to delivery.
 //! Runs until Ctrl-C (or `--duration`), then stops its children cleanly.
 
+use super::children::Children;
 use crate::cli::UpArgs;
-use anyhow::Context;
 use muster_shared::types::ServiceId;
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
-use std::process::{Child, Command, ExitCode, Stdio};
+use std::process::{ExitCode, Stdio};
 use std::time::{Duration, Instant};
 
-struct Children(Vec<(String, Child)>);
-
-impl Children {
-    fn spawn(&mut self, inst: &Instance, label: &str, args: &[&str]) -> anyhow::Result<()> {
-        let exe = std::env::current_exe().context("locating the muster binary")?;
-        let child = Command::new(exe)
-            .arg("--instance")
-            .arg(inst.as_str())
-            .args(args)
-            .stdin(Stdio::null())
-            .spawn()
-            .with_context(|| format!("starting {label}"))?;
-        self.0.push((label.to_string(), child));
-        Ok(())
-    }
-
-    /// SIGTERM every child we started (by PID), wait up to 5 s, then SIGKILL stragglers.
-    fn stop(&mut self) {
-        for (_, c) in self.0.iter().rev() {
-            if let Ok(pid) = libc::pid_t::try_from(c.id()) {
-                // SAFETY: signalling a child we spawned and have not reaped.
-                unsafe { libc::kill(pid, libc::SIGTERM) };
-            }
-        }
-        let deadline = Instant::now() + Duration::from_secs(5);
-        for (label, c) in self.0.iter_mut().rev() {
-            loop {
-                match c.try_wait() {
-                    Ok(Some(_)) => break,
-                    Ok(None) if Instant::now() < deadline => {
-                        std::thread::sleep(Duration::from_millis(20))
-                    }
-                    _ => {
-                        eprintln!("muster up: {label} did not stop; killing it");
-                        let _ = c.kill();
-                        let _ = c.wait();
-                        break;
-                    }
-                }
-            }
-        }
-        self.0.clear();
-    }
-}
-
-impl Drop for Children {
-    fn drop(&mut self) {
-        self.stop();
-    }
-}
-
 pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
-    let mut children = Children(Vec::new());
-    children.spawn(inst, "broker", &["broker"])?;
+    let mut children = Children::default();
+    children.spawn(inst, "broker", &["broker"], Stdio::inherit())?;
     children.spawn(
         inst,
         "tracker system t1",
@@ -82,6 +31,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
             "--quota",
             "10",
         ],
+        Stdio::inherit(),
     )?;
     children.spawn(
         inst,
@@ -99,10 +49,12 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
             "1",
             "--queue",
         ],
+        Stdio::inherit(),
     )?;
     let opts = ConnectOptions {
         wait_for_broker: Duration::from_secs(10),
         handle_signals: true,
+        watch_list: false,
     };
     let mut client = UserClient::connect(inst, &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);

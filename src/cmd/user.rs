@@ -10,9 +10,12 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
+    // The menu and `watch` want to hear of list changes; one-shot verbs do not.
+    let watch_list = matches!(a.verb, None | Some(UserVerb::Watch { .. }));
     let opts = ConnectOptions {
         wait_for_broker: a.wait,
         handle_signals: true,
+        watch_list,
     };
     let client = UserClient::connect(inst, &opts)?;
     match a.verb {
@@ -31,6 +34,7 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             request(client, &ServiceId(id), duration, goal, json)
         }
         Some(UserVerb::Watch { duration, json }) => watch(client, duration, json),
+        Some(UserVerb::Idle { duration }) => idle(client, duration),
         Some(UserVerb::Link {
             data,
             command,
@@ -107,6 +111,24 @@ fn watch(
                 ),
             );
         }
+        match client.next_event(deadline) {
+            Ok(Some(_)) => {}
+            Ok(None) | Err(UserError::Interrupted) => break,
+            Err(e) => return Err(e.into()),
+        }
+    }
+    client.close();
+    Ok(ExitCode::SUCCESS)
+}
+
+fn idle(mut client: UserClient, duration: Option<Duration>) -> anyhow::Result<ExitCode> {
+    let services = client.list()?.count;
+    println!(
+        "{}",
+        json!({"connected": true, "user": client.id().0, "services": services})
+    );
+    let deadline = Instant::now() + duration.unwrap_or(Duration::from_secs(100 * 365 * 86400));
+    loop {
         match client.next_event(deadline) {
             Ok(Some(_)) => {}
             Ok(None) | Err(UserError::Interrupted) => break,

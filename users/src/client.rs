@@ -5,7 +5,7 @@ use crate::core::{UserCore, UserEvent, UserOutput};
 use muster_shared::ipc::{bell, create_node, Endpoint, ListReader, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, encode, ToUser};
-use muster_shared::reactor::{PidFd, Reactor, SignalPipe};
+use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
 use muster_shared::snapshot::ServiceListSnapshot;
 use muster_shared::types::{link_compatible, Payload, ServiceId, ServiceKind, SessionId, UserId};
 use std::collections::{HashMap, VecDeque};
@@ -78,6 +78,8 @@ pub struct ConnectOptions {
     pub wait_for_broker: Duration,
     /// Turn SIGINT/SIGTERM into [`UserError::Interrupted`] (for command-line programs).
     pub handle_signals: bool,
+    /// Be woken (a [`UserEvent::ListChanged`]) when the service list changes.
+    pub watch_list: bool,
 }
 
 impl Default for ConnectOptions {
@@ -85,6 +87,7 @@ impl Default for ConnectOptions {
         ConnectOptions {
             wait_for_broker: Duration::from_secs(5),
             handle_signals: true,
+            watch_list: false,
         }
     }
 }
@@ -116,7 +119,7 @@ impl UserClient {
         };
         let mut client = UserClient {
             inst: inst.clone(),
-            core: UserCore::new(id, pid),
+            core: UserCore::new(id, pid, opts.watch_list),
             endpoint,
             presence,
             list: None,
@@ -360,16 +363,18 @@ impl UserClient {
                     if self.system_tokens.contains_key(&system) {
                         continue;
                     }
-                    if let Ok(p) = PidFd::open(pid) {
-                        let t = self.next_token;
-                        self.next_token += 1;
-                        if self.reactor.add(p.raw(), t).is_ok() {
-                            self.systems.insert(t, (system.clone(), p));
-                            self.system_tokens.insert(system, t);
+                    match PidFd::open(pid) {
+                        Ok(p) => {
+                            let t = self.next_token;
+                            self.next_token += 1;
+                            if self.reactor.add(p.raw(), t).is_ok() {
+                                self.systems.insert(t, (system.clone(), p));
+                                self.system_tokens.insert(system, t);
+                            }
                         }
-                    } else {
-                        // Already gone before we could watch it.
-                        self.core.system_died(&system);
+                        // Gone before we could watch it (but not merely unwatchable).
+                        Err(_) if !process_exists(pid) => self.core.system_died(&system),
+                        Err(e) => tracing::warn!("cannot watch system {system} (pid {pid}): {e}"),
                     }
                 }
                 UserOutput::ForgetSystem(system) => {

@@ -159,6 +159,7 @@ pub struct SessionCounters {
 pub struct UserCore {
     id: UserId,
     pid: u32,
+    watch_list: bool,
     connected: Option<u64>,
     next_req: u64,
     next_link: u64,
@@ -171,11 +172,12 @@ pub struct UserCore {
 }
 
 impl UserCore {
-    /// A user `id` in process `pid`.
-    pub fn new(id: UserId, pid: u32) -> Self {
+    /// A user `id` in process `pid`; `watch_list` asks the broker to ring on list changes.
+    pub fn new(id: UserId, pid: u32, watch_list: bool) -> Self {
         UserCore {
             id,
             pid,
+            watch_list,
             connected: None,
             next_req: 1,
             next_link: 1,
@@ -245,6 +247,7 @@ impl UserCore {
             user: self.id.clone(),
             pid: self.pid,
             links,
+            watch_list: self.watch_list,
         });
         let pending: Vec<(u64, ServiceId)> = self
             .pending

@@ -1,0 +1,39 @@
+//! `muster bench ...`: benchmarks that print figures (never assertions).
+
+mod procfs;
+use super::children;
+mod scale;
+
+use crate::cli::BenchCommand;
+use muster_shared::Instance;
+use std::process::ExitCode;
+
+pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
+    match cmd {
+        BenchCommand::Scale(a) => scale::run(inst, a),
+    }
+}
+
+/// p50/p99/max of a histogram of microseconds, as a JSON object.
+pub fn summary(h: &hdrhistogram::Histogram<u64>) -> serde_json::Value {
+    serde_json::json!({
+        "count": h.len(),
+        "min_us": h.min(),
+        "p50_us": h.value_at_quantile(0.5),
+        "p90_us": h.value_at_quantile(0.9),
+        "p99_us": h.value_at_quantile(0.99),
+        "max_us": h.max(),
+    })
+}
+
+/// One table row for a histogram of microseconds.
+pub fn row(name: &str, h: &hdrhistogram::Histogram<u64>) -> String {
+    format!(
+        "{name:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
+        h.len(),
+        h.value_at_quantile(0.5),
+        h.value_at_quantile(0.9),
+        h.value_at_quantile(0.99),
+        h.max()
+    )
+}

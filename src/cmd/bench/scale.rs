@@ -1,0 +1,276 @@
+//! `muster bench scale`: N separate user processes connected at once to a broker serving
+//! S services. Reports setup time per user, shared memory, broker RSS and idle CPU,
+//! per-user PSS, and request / list latency measured with everyone connected.
+
+use super::children::Children;
+use super::procfs;
+use super::{row, summary};
+use crate::cli::ScaleArgs;
+use anyhow::{bail, Context};
+use hdrhistogram::Histogram;
+use muster_shared::ipc::MAX_PARTICIPANTS;
+use muster_shared::reactor::raise_fd_limit;
+use muster_shared::snapshot::MAX_LISTED_SERVICES;
+use muster_shared::types::{ServiceId, MAX_SERVICES_PER_SYSTEM};
+use muster_shared::Instance;
+use muster_users::{ConnectOptions, UserClient, UserEvent};
+use serde_json::json;
+use std::io::{BufRead, BufReader};
+use std::process::{ExitCode, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+fn histogram() -> Histogram<u64> {
+    Histogram::new_with_bounds(1, 600_000_000, 3).expect("valid bounds")
+}
+
+fn mib(bytes: u64) -> f64 {
+    bytes as f64 / (1024.0 * 1024.0)
+}
+
+pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
+    if a.systems == 0 || a.services < a.systems {
+        bail!("--services must be at least --systems (and --systems at least 1)");
+    }
+    if a.services > MAX_LISTED_SERVICES || a.services.div_ceil(a.systems) > MAX_SERVICES_PER_SYSTEM
+    {
+        bail!("at most {MAX_LISTED_SERVICES} services, {MAX_SERVICES_PER_SYSTEM} per system");
+    }
+    if a.users + a.systems + 8 > MAX_PARTICIPANTS {
+        bail!(
+            "at most {} users with {} systems",
+            MAX_PARTICIPANTS - a.systems - 8,
+            a.systems
+        );
+    }
+    let fds = raise_fd_limit().context("raising the file-descriptor limit")?;
+    if fds < (a.users as u64) * 2 + 64 {
+        bail!(
+            "file-descriptor limit {fds} is too low for {} users (raise `ulimit -Hn`)",
+            a.users
+        );
+    }
+    let shm_start = (procfs::shm_allocated_bytes(), procfs::shm_reserved_bytes());
+    let mut children = Children::default();
+    children.spawn(inst, "broker", &["broker"], Stdio::inherit())?;
+    let broker_pid = children.pids().next().expect("broker");
+    let mut system_pids = Vec::new();
+    for i in 0..a.systems {
+        let n = a.services / a.systems + usize::from(i < a.services % a.systems);
+        let name = format!("b{i}");
+        let n = n.to_string();
+        let args = [
+            "system",
+            "synthetic",
+            "--name",
+            &name,
+            "--services",
+            &n,
+            "--quota",
+            "10",
+            "--rate",
+            "10",
+        ];
+        system_pids.push(children.spawn(inst, &name, &args, Stdio::inherit())?.id());
+    }
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(20),
+        handle_signals: false,
+        watch_list: false,
+    };
+    let mut client = UserClient::connect(inst, &opts)?;
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while (client.list()?.count as usize) < a.services {
+        if Instant::now() > deadline {
+            bail!(
+                "the systems did not register {} services within 30 s",
+                a.services
+            );
+        }
+        let _ = client.next_event(Instant::now() + Duration::from_millis(50))?;
+    }
+    let shm_systems = (procfs::shm_allocated_bytes(), procfs::shm_reserved_bytes());
+
+    // Users: each a separate process; setup = spawn until it has read the list.
+    let (tx, rx) = mpsc::channel::<(usize, Result<Duration, String>)>();
+    let mut user_pids = Vec::with_capacity(a.users);
+    let all_start = Instant::now();
+    for i in 0..a.users {
+        let spawned = Instant::now();
+        let child = children.spawn(
+            inst,
+            "user",
+            &["user", "idle", "--wait", "60s"],
+            Stdio::piped(),
+        )?;
+        user_pids.push(child.id());
+        let stdout = child.stdout.take().context("user stdout")?;
+        let tx = tx.clone();
+        std::thread::spawn(move || {
+            let mut lines = BufReader::new(stdout).lines();
+            let first = match lines.next() {
+                Some(Ok(l)) if l.contains("\"connected\":true") => Ok(spawned.elapsed()),
+                Some(Ok(l)) => Err(format!("unexpected first line {l}")),
+                _ => Err("exited before connecting".to_string()),
+            };
+            let _ = tx.send((i, first));
+            for _ in lines {} // keep the pipe open until the user exits
+        });
+    }
+    drop(tx);
+    let mut setup = histogram();
+    let mut failures = Vec::new();
+    for _ in 0..a.users {
+        match rx.recv_timeout(Duration::from_secs(180)) {
+            Ok((_, Ok(d))) => setup.record(d.as_micros().max(1) as u64)?,
+            Ok((i, Err(e))) => failures.push(format!("user {i}: {e}")),
+            Err(_) => {
+                failures.push("timed out waiting for users".into());
+                break;
+            }
+        }
+    }
+    let all_connected = all_start.elapsed();
+    let shm_users = (procfs::shm_allocated_bytes(), procfs::shm_reserved_bytes());
+
+    // Idle: everyone connected, nobody doing anything.
+    let tps = procfs::ticks_per_second();
+    let cpu0 = procfs::cpu_ticks(broker_pid).unwrap_or(0);
+    let sys0: u64 = system_pids
+        .iter()
+        .filter_map(|p| procfs::cpu_ticks(*p))
+        .sum();
+    let users0: u64 = user_pids.iter().filter_map(|p| procfs::cpu_ticks(*p)).sum();
+    std::thread::sleep(a.idle);
+    let idle_s = a.idle.as_secs_f64();
+    let pct = |ticks: u64| ticks as f64 / tps as f64 / idle_s * 100.0;
+    let broker_cpu = pct(procfs::cpu_ticks(broker_pid)
+        .unwrap_or(0)
+        .saturating_sub(cpu0));
+    let systems_cpu = pct(system_pids
+        .iter()
+        .filter_map(|p| procfs::cpu_ticks(*p))
+        .sum::<u64>()
+        .saturating_sub(sys0));
+    let users_cpu = pct(user_pids
+        .iter()
+        .filter_map(|p| procfs::cpu_ticks(*p))
+        .sum::<u64>()
+        .saturating_sub(users0));
+    let broker_rss = procfs::rss_kib(broker_pid).unwrap_or(0);
+    let broker_pss = procfs::pss_kib(broker_pid).unwrap_or(0);
+    let user_pss: Vec<u64> = user_pids
+        .iter()
+        .filter_map(|p| procfs::pss_kib(*p))
+        .collect();
+    let user_pss_mean = user_pss.iter().sum::<u64>() as f64 / user_pss.len().max(1) as f64;
+    let user_pss_max = user_pss.iter().copied().max().unwrap_or(0);
+
+    // Latency with everyone connected: list reads and request round trips.
+    let mut list_read = histogram();
+    for _ in 0..1000 {
+        let t = Instant::now();
+        let l = client.list()?;
+        list_read.record(t.elapsed().as_micros().max(1) as u64)?;
+        std::hint::black_box(l);
+    }
+    let ids: Vec<ServiceId> = client
+        .list()?
+        .views()
+        .into_iter()
+        .map(|v| ServiceId(v.id))
+        .collect();
+    let mut request = histogram();
+    let mut refused = 0u64;
+    for k in 0..a.requests {
+        let id = &ids[k % ids.len()];
+        let t = Instant::now();
+        let req = client.request(id)?;
+        let deadline = t + Duration::from_secs(10);
+        loop {
+            match client.next_event(deadline)? {
+                Some(UserEvent::Granted {
+                    req: r, session, ..
+                }) if r == req => {
+                    request.record(t.elapsed().as_micros().max(1) as u64)?;
+                    client.end(session);
+                    break;
+                }
+                Some(UserEvent::Refused { req: r, .. }) if r == req => {
+                    refused += 1;
+                    break;
+                }
+                Some(_) => {}
+                None => bail!("request {req} unanswered within 10 s"),
+            }
+        }
+    }
+    client.close();
+    let teardown = Instant::now();
+    children.stop();
+    let teardown = teardown.elapsed();
+
+    let report = json!({
+        "users": a.users,
+        "services": a.services,
+        "systems": a.systems,
+        "connected": setup.len(),
+        "failures": failures,
+        "all_connected_s": all_connected.as_secs_f64(),
+        "setup": summary(&setup),
+        "shm_allocated_mib": {"systems": mib(shm_systems.0 - shm_start.0.min(shm_systems.0)),
+                               "users": mib(shm_users.0.saturating_sub(shm_systems.0)),
+                               "per_user_kib": shm_users.0.saturating_sub(shm_systems.0) as f64 / 1024.0 / a.users.max(1) as f64},
+        "shm_reserved_mib": {"systems": mib(shm_systems.1.saturating_sub(shm_start.1)),
+                              "users": mib(shm_users.1.saturating_sub(shm_systems.1))},
+        "broker": {"rss_kib": broker_rss, "pss_kib": broker_pss, "idle_cpu_percent": broker_cpu},
+        "systems_idle_cpu_percent": systems_cpu,
+        "users_idle_cpu_percent": users_cpu,
+        "user_pss_kib": {"mean": user_pss_mean, "max": user_pss_max},
+        "list_read": summary(&list_read),
+        "service_request": summary(&request),
+        "service_request_refused": refused,
+        "teardown_s": teardown.as_secs_f64(),
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "muster bench scale: {} user processes, {} services on {} systems",
+            a.users, a.services, a.systems
+        );
+        println!(
+            "connected {} of {} in {:.2} s ({} failures)",
+            setup.len(),
+            a.users,
+            all_connected.as_secs_f64(),
+            failures.len()
+        );
+        for f in failures.iter().take(5) {
+            println!("  {f}");
+        }
+        println!(
+            "\n{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
+            "latency (us)", "count", "p50", "p90", "p99", "max"
+        );
+        println!("{}", row("user setup (spawn..list)", &setup));
+        println!("{}", row("list read (shared memory)", &list_read));
+        println!("{}", row("service request (to grant)", &request));
+        println!(
+            "\nshared memory allocated: systems+broker {:.1} MiB, users {:.1} MiB ({:.0} KiB per user); reserved {:.1} MiB for users",
+            mib(shm_systems.0.saturating_sub(shm_start.0)),
+            mib(shm_users.0.saturating_sub(shm_systems.0)),
+            shm_users.0.saturating_sub(shm_systems.0) as f64 / 1024.0 / a.users.max(1) as f64,
+            mib(shm_users.1.saturating_sub(shm_systems.1)),
+        );
+        println!("broker: RSS {broker_rss} KiB, PSS {broker_pss} KiB, CPU while all idle {broker_cpu:.2} % over {:.0} s", idle_s);
+        println!("systems CPU while idle {systems_cpu:.2} %, all users together {users_cpu:.2} %");
+        println!("user PSS: mean {user_pss_mean:.0} KiB, max {user_pss_max} KiB");
+        println!("teardown of all processes: {:.2} s", teardown.as_secs_f64());
+    }
+    Ok(if failures.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}

@@ -1,0 +1,72 @@
+//! Child `muster` processes started by a command, stopped by PID.
+
+use anyhow::Context;
+use muster_shared::Instance;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// The children we started; stopped (SIGTERM, then SIGKILL) on drop.
+#[derive(Default)]
+pub struct Children(Vec<(String, Child)>);
+
+impl Children {
+    /// Starts `muster --instance INST ARGS...`.
+    pub fn spawn(
+        &mut self,
+        inst: &Instance,
+        label: &str,
+        args: &[&str],
+        stdout: Stdio,
+    ) -> anyhow::Result<&mut Child> {
+        let exe = std::env::current_exe().context("locating the muster binary")?;
+        let child = Command::new(exe)
+            .arg("--instance")
+            .arg(inst.as_str())
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(stdout)
+            .spawn()
+            .with_context(|| format!("starting {label}"))?;
+        self.0.push((label.to_string(), child));
+        Ok(&mut self.0.last_mut().expect("pushed").1)
+    }
+
+    /// Process ids, in start order.
+    pub fn pids(&self) -> impl Iterator<Item = u32> + '_ {
+        self.0.iter().map(|(_, c)| c.id())
+    }
+
+    /// SIGTERM every child we started (by PID, last first), wait up to 5 s, then SIGKILL.
+    pub fn stop(&mut self) {
+        for (_, c) in self.0.iter().rev() {
+            if let Ok(pid) = libc::pid_t::try_from(c.id()) {
+                // SAFETY: signalling a child we spawned and have not reaped.
+                unsafe { libc::kill(pid, libc::SIGTERM) };
+            }
+        }
+        let deadline = Instant::now() + Duration::from_secs(5);
+        for (label, c) in self.0.iter_mut().rev() {
+            loop {
+                match c.try_wait() {
+                    Ok(Some(_)) => break,
+                    Ok(None) if Instant::now() < deadline => {
+                        std::thread::sleep(Duration::from_millis(5))
+                    }
+                    _ => {
+                        eprintln!("muster: {label} did not stop; killing it");
+                        let _ = c.kill();
+                        let _ = c.wait();
+                        break;
+                    }
+                }
+            }
+        }
+        self.0.clear();
+    }
+}
+
+impl Drop for Children {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
