@@ -437,3 +437,49 @@ fn a_hundred_user_processes_connect_at_once() {
     );
     assert_eq!(code, 0, "{out}");
 }
+
+/// Regression: the `End` of a user's only session with a system went through a fresh
+/// publisher that was dropped at once, so iceoryx2 lost it and the quota leaked.
+#[test]
+fn ending_sessions_frees_the_quota_every_time() {
+    use muster_shared::types::ServiceId;
+    use muster_users::{ConnectOptions, UserClient, UserEvent};
+    let mut f = Fed::new("endfree");
+    f.broker(&[]);
+    f.system("t1", &["--quota", "1"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let inst = muster_shared::Instance::new(&f.inst).unwrap();
+    let opts = ConnectOptions {
+        handle_signals: false,
+        ..ConnectOptions::default()
+    };
+    let mut client = UserClient::connect(&inst, &opts).unwrap();
+    let id = ServiceId::new("t1", "s0");
+    for round in 0..30 {
+        let req = client.request(&id).unwrap();
+        let deadline = Instant::now() + 10 * SEC;
+        let session = loop {
+            match client.next_event(deadline).unwrap() {
+                Some(UserEvent::Granted {
+                    req: r, session, ..
+                }) if r == req => break session,
+                Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
+                    panic!("round {round}: refused: {reason}")
+                }
+                Some(_) => {}
+                None => panic!("round {round}: no answer"),
+            }
+        };
+        client.end(session);
+        // The quota is free again once the system has the End and told the broker.
+        let free = Instant::now() + 10 * SEC;
+        while f.list()[0]["in_use"] != 0 {
+            assert!(
+                Instant::now() < free,
+                "round {round}: the session never ended"
+            );
+            let _ = client.next_event(Instant::now() + Duration::from_millis(20));
+        }
+    }
+    client.close();
+}

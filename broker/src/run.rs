@@ -114,13 +114,13 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
     loop {
         let now = start.elapsed();
         let timeout = core.poll_timeout().map(|t| t.saturating_sub(now));
-        let timeout = match (timeout, shell.ring_due()) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        };
+        let timeout = [timeout, shell.ring_due(), shell.endpoint.sweep()]
+            .into_iter()
+            .flatten()
+            .min();
         let tokens = shell.reactor.wait(timeout)?;
         let now = start.elapsed();
-        let mut died = false;
+        let mut died: Vec<Address> = Vec::new();
         for token in tokens {
             match token {
                 TOKEN_BELL => {
@@ -136,10 +136,15 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
                 t => {
                     if let Some(w) = shell.watches.get(&t) {
                         if w.pidfd.exited() {
-                            died = true;
                             match &w.who {
-                                Watched::System(s) => core.system_died(now, &s.clone()),
-                                Watched::User(u) => core.user_died(now, &u.clone()),
+                                Watched::System(s) => {
+                                    died.push(Address::System(s.clone()));
+                                    core.system_died(now, &s.clone());
+                                }
+                                Watched::User(u) => {
+                                    died.push(Address::User(u.clone()));
+                                    core.user_died(now, &u.clone());
+                                }
                             }
                             shell.unwatch(t);
                         }
@@ -153,8 +158,12 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
         }
         shell.flush(&mut core)?;
         shell.ring_watchers(&core);
-        if died {
-            // The dead process's iceoryx2 resources: its node shows as dead at once.
+        if !died.is_empty() {
+            // Nobody will read a dead peer's inbox: drop our ports to it now, then remove
+            // the dead process's iceoryx2 resources (its node shows as dead at once).
+            for addr in &died {
+                shell.endpoint.forget(addr);
+            }
             let state = shell.endpoint.node().try_cleanup_dead_nodes();
             tracing::debug!(?state, "cleaned up dead nodes");
         }
@@ -202,13 +211,14 @@ impl Shell {
                     if let Some(t) = self.by_system.remove(&system) {
                         self.unwatch(t);
                     }
-                    self.endpoint.forget(&Address::System(system));
+                    // Linger: a Delinquent notice may just have been sent.
+                    self.endpoint.release(&Address::System(system));
                 }
                 Output::ForgetUser(user) => {
                     if let Some(t) = self.by_user.remove(&user) {
                         self.unwatch(t);
                     }
-                    self.endpoint.forget(&Address::User(user));
+                    self.endpoint.release(&Address::User(user));
                 }
             }
         }

@@ -17,6 +17,7 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
         handle_signals: true,
         watch_list,
     };
+    let started = Instant::now();
     let client = UserClient::connect(inst, &opts)?;
     match a.verb {
         None => {
@@ -34,7 +35,7 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             request(client, &ServiceId(id), duration, goal, json)
         }
         Some(UserVerb::Watch { duration, json }) => watch(client, duration, json),
-        Some(UserVerb::Idle { duration }) => idle(client, duration),
+        Some(UserVerb::Idle { duration }) => idle(client, duration, started),
         Some(UserVerb::Link {
             data,
             command,
@@ -121,11 +122,16 @@ fn watch(
     Ok(ExitCode::SUCCESS)
 }
 
-fn idle(mut client: UserClient, duration: Option<Duration>) -> anyhow::Result<ExitCode> {
+fn idle(
+    mut client: UserClient,
+    duration: Option<Duration>,
+    started: Instant,
+) -> anyhow::Result<ExitCode> {
     let services = client.list()?.count;
+    let connect_us = started.elapsed().as_micros() as u64;
     println!(
         "{}",
-        json!({"connected": true, "user": client.id().0, "services": services})
+        json!({"connected": true, "user": client.id().0, "services": services, "connect_us": connect_us})
     );
     let deadline = Instant::now() + duration.unwrap_or(Duration::from_secs(100 * 365 * 86400));
     loop {

@@ -165,6 +165,10 @@ pub fn run_system<A: SystemApp>(
     loop {
         let now = start.elapsed();
         let timeout = app.next_tick(&core).map(|t| t.saturating_sub(now));
+        let timeout = match (timeout, shell.endpoint.sweep()) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
         let tokens = shell.reactor.wait(timeout)?;
         let now = start.elapsed();
         for token in tokens {
@@ -219,6 +223,7 @@ pub fn run_system<A: SystemApp>(
                     if let Some(user) = dead {
                         core.user_died(&user);
                         shell.unwatch_user(&user);
+                        shell.endpoint.forget(&Address::User(user));
                     }
                 }
             }
@@ -303,7 +308,7 @@ impl Shell {
                 }
                 SystemOutput::ForgetUser(user) => {
                     self.unwatch_user(&user);
-                    self.endpoint.forget(&Address::User(user));
+                    self.endpoint.release(&Address::User(user));
                 }
             }
         }

@@ -232,7 +232,7 @@ impl Drop for Fed {
 /// Removes the iceoryx2 resources of dead processes (ours, SIGKILLed on purpose).
 pub fn cleanup_dead_nodes() {
     use iceoryx2::prelude::*;
-    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+    let _ = Node::<ipc::Service>::list(&muster_shared::ipc::config(true), |state| {
         if let NodeState::Dead(view) = state {
             let _ = view.try_remove_stale_resources();
         }

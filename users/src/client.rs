@@ -260,7 +260,11 @@ impl UserClient {
             if now >= deadline {
                 return Ok(Wake::Timeout);
             }
-            let tokens = self.reactor.wait(Some(deadline - now))?;
+            let wait = match self.endpoint.sweep() {
+                Some(linger) => linger.min(deadline - now),
+                None => deadline - now,
+            };
+            let tokens = self.reactor.wait(Some(wait))?;
             let mut extra = false;
             for t in tokens {
                 self.on_token(t, &mut extra)?;
@@ -379,7 +383,7 @@ impl UserClient {
                 }
                 UserOutput::ForgetSystem(system) => {
                     self.unwatch_system(&system);
-                    self.endpoint.forget(&Address::System(system));
+                    self.endpoint.release(&Address::System(system));
                 }
             }
         }

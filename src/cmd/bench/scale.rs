@@ -92,7 +92,7 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
     let shm_systems = (procfs::shm_allocated_bytes(), procfs::shm_reserved_bytes());
 
     // Users: each a separate process; setup = spawn until it has read the list.
-    let (tx, rx) = mpsc::channel::<(usize, Result<Duration, String>)>();
+    let (tx, rx) = mpsc::channel::<(usize, Result<(Duration, u64), String>)>();
     let mut user_pids = Vec::with_capacity(a.users);
     let all_start = Instant::now();
     for i in 0..a.users {
@@ -109,7 +109,13 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         std::thread::spawn(move || {
             let mut lines = BufReader::new(stdout).lines();
             let first = match lines.next() {
-                Some(Ok(l)) if l.contains("\"connected\":true") => Ok(spawned.elapsed()),
+                Some(Ok(l)) if l.contains("\"connected\":true") => {
+                    let connect_us = serde_json::from_str::<serde_json::Value>(&l)
+                        .ok()
+                        .and_then(|v| v["connect_us"].as_u64())
+                        .unwrap_or(0);
+                    Ok((spawned.elapsed(), connect_us))
+                }
                 Some(Ok(l)) => Err(format!("unexpected first line {l}")),
                 _ => Err("exited before connecting".to_string()),
             };
@@ -119,10 +125,14 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
     }
     drop(tx);
     let mut setup = histogram();
+    let mut connect = histogram();
     let mut failures = Vec::new();
     for _ in 0..a.users {
         match rx.recv_timeout(Duration::from_secs(180)) {
-            Ok((_, Ok(d))) => setup.record(d.as_micros().max(1) as u64)?,
+            Ok((_, Ok((d, c)))) => {
+                setup.record(d.as_micros().max(1) as u64)?;
+                connect.record(c.max(1))?;
+            }
             Ok((i, Err(e))) => failures.push(format!("user {i}: {e}")),
             Err(_) => {
                 failures.push("timed out waiting for users".into());
@@ -181,7 +191,7 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         .map(|v| ServiceId(v.id))
         .collect();
     let mut request = histogram();
-    let mut refused = 0u64;
+    let mut refused: std::collections::BTreeMap<&'static str, u64> = Default::default();
     for k in 0..a.requests {
         let id = &ids[k % ids.len()];
         let t = Instant::now();
@@ -196,8 +206,8 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
                     client.end(session);
                     break;
                 }
-                Some(UserEvent::Refused { req: r, .. }) if r == req => {
-                    refused += 1;
+                Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
+                    *refused.entry(reason.code()).or_default() += 1;
                     break;
                 }
                 Some(_) => {}
@@ -218,6 +228,7 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         "failures": failures,
         "all_connected_s": all_connected.as_secs_f64(),
         "setup": summary(&setup),
+        "connect": summary(&connect),
         "shm_allocated_mib": {"systems": mib(shm_systems.0 - shm_start.0.min(shm_systems.0)),
                                "users": mib(shm_users.0.saturating_sub(shm_systems.0)),
                                "per_user_kib": shm_users.0.saturating_sub(shm_systems.0) as f64 / 1024.0 / a.users.max(1) as f64},
@@ -253,9 +264,13 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
             "\n{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
             "latency (us)", "count", "p50", "p90", "p99", "max"
         );
-        println!("{}", row("user setup (spawn..list)", &setup));
+        println!("{}", row("user spawn..list (queued)", &setup));
+        println!("{}", row("user connect+list (in-proc)", &connect));
         println!("{}", row("list read (shared memory)", &list_read));
         println!("{}", row("service request (to grant)", &request));
+        if !refused.is_empty() {
+            println!("refused requests: {refused:?}");
+        }
         println!(
             "\nshared memory allocated: systems+broker {:.1} MiB, users {:.1} MiB ({:.0} KiB per user); reserved {:.1} MiB for users",
             mib(shm_systems.0.saturating_sub(shm_start.0)),
