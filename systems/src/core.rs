@@ -448,3 +448,206 @@ impl SystemCore {
         self.out.push_back(SystemOutput::ToBroker(msg));
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(name: &str, kind: ServiceKind, quota: u16) -> ServiceSpec {
+        ServiceSpec {
+            name: name.into(),
+            description: String::new(),
+            kind,
+            queue: false,
+            quota,
+            payload: "pose2d".into(),
+        }
+    }
+
+    fn core() -> SystemCore {
+        SystemCore::new(
+            "t1",
+            7,
+            vec![
+                spec("a", ServiceKind::Data, 1),
+                spec("c", ServiceKind::Command, 2),
+            ],
+            1,
+        )
+    }
+
+    fn outs(c: &mut SystemCore) -> Vec<SystemOutput> {
+        std::iter::from_fn(|| c.poll_output()).collect()
+    }
+
+    fn offer(c: &mut SystemCore, ticket: u64, user: &str, service: &str) -> Vec<SystemOutput> {
+        c.handle(ToSystem::Offer {
+            ticket,
+            user: UserId(user.into()),
+            user_pid: 0,
+            req: ticket,
+            service: service.into(),
+        });
+        outs(c)
+    }
+
+    fn answer(out: &[SystemOutput]) -> Option<Result<SessionId, String>> {
+        out.iter().find_map(|o| match o {
+            SystemOutput::ToBroker(ToBroker::OfferAnswer { answer, .. }) => Some(answer.clone()),
+            _ => None,
+        })
+    }
+
+    #[test]
+    fn grants_tell_the_user_directly_and_the_broker() {
+        let mut c = core();
+        let out = offer(&mut c, 1, "u1", "a");
+        let session = answer(&out).unwrap().unwrap();
+        assert!(out.iter().any(|o| matches!(o,
+            SystemOutput::ToUser(u, ToUser::Granted { session: s, kind: ServiceKind::Data, system_pid: 7, .. })
+                if u.0 == "u1" && *s == session)));
+        assert_eq!(c.sessions_of("a"), 1);
+    }
+
+    #[test]
+    fn refuses_beyond_its_own_quota_when_overloaded_and_for_unknown_services() {
+        let mut c = core();
+        assert!(answer(&offer(&mut c, 1, "u1", "a")).unwrap().is_ok());
+        assert!(answer(&offer(&mut c, 2, "u2", "a"))
+            .unwrap()
+            .unwrap_err()
+            .contains("overloaded"));
+        assert!(answer(&offer(&mut c, 3, "u2", "zz"))
+            .unwrap()
+            .unwrap_err()
+            .contains("no service"));
+        c.set_overloaded(true);
+        assert_eq!(
+            answer(&offer(&mut c, 4, "u2", "c")),
+            Some(Err("overloaded".into()))
+        );
+    }
+
+    #[test]
+    fn sequence_numbers_count_per_session() {
+        let mut c = core();
+        let s1 = answer(&offer(&mut c, 1, "u1", "c")).unwrap().unwrap();
+        let s2 = answer(&offer(&mut c, 2, "u2", "c")).unwrap().unwrap();
+        assert_ne!(s1, s2);
+        c.status(s1, TaskStatus::Idle);
+        c.status(s1, TaskStatus::Idle);
+        c.status(s2, TaskStatus::Idle);
+        let seqs: Vec<(SessionId, u64)> = outs(&mut c)
+            .into_iter()
+            .filter_map(|o| match o {
+                SystemOutput::ToUser(_, ToUser::Status { session, seq, .. }) => {
+                    Some((session, seq))
+                }
+                _ => None,
+            })
+            .collect();
+        assert_eq!(seqs, vec![(s1, 1), (s1, 2), (s2, 1)]);
+    }
+
+    #[test]
+    fn input_only_from_the_session_holder() {
+        let mut c = core();
+        let s = answer(&offer(&mut c, 1, "u1", "c")).unwrap().unwrap();
+        c.handle(ToSystem::Input {
+            user: UserId("u2".into()),
+            session: s,
+            payload: Payload::Scalar(1.0),
+        });
+        c.handle(ToSystem::Input {
+            user: UserId("u1".into()),
+            session: SessionId(99),
+            payload: Payload::Scalar(1.0),
+        });
+        c.handle(ToSystem::Input {
+            user: UserId("u1".into()),
+            session: s,
+            payload: Payload::Scalar(2.0),
+        });
+        let inputs: Vec<SystemEvent> = std::iter::from_fn(|| c.poll_event())
+            .filter(|e| matches!(e, SystemEvent::Input { .. }))
+            .collect();
+        assert_eq!(
+            inputs,
+            vec![SystemEvent::Input {
+                session: s,
+                service: "c".into(),
+                payload: Payload::Scalar(2.0)
+            }]
+        );
+        // Only the holder can end it, too.
+        c.handle(ToSystem::End {
+            user: UserId("u2".into()),
+            session: s,
+        });
+        assert_eq!(c.sessions_of("c"), 1);
+        c.handle(ToSystem::End {
+            user: UserId("u1".into()),
+            session: s,
+        });
+        assert_eq!(c.sessions_of("c"), 0);
+        assert!(
+            outs(&mut c).contains(&SystemOutput::ToBroker(ToBroker::SessionEnded {
+                system: "t1".into(),
+                session: s
+            }))
+        );
+    }
+
+    #[test]
+    fn reregistration_reports_live_sessions_and_withdrawals() {
+        let mut c = core();
+        let s = answer(&offer(&mut c, 1, "u1", "c")).unwrap().unwrap();
+        c.withdraw("a");
+        outs(&mut c);
+        c.broker_lost();
+        c.register();
+        let out = outs(&mut c);
+        let Some(SystemOutput::ToBroker(ToBroker::Register { sessions, .. })) = out.first() else {
+            panic!("{out:?}")
+        };
+        assert_eq!(
+            sessions,
+            &vec![ActiveSession {
+                session: s,
+                service: "c".into(),
+                user: UserId("u1".into())
+            }]
+        );
+        c.handle(ToSystem::Registered {
+            epoch: 2,
+            broker_pid: 9,
+        });
+        let out = outs(&mut c);
+        assert!(out.contains(&SystemOutput::WatchBroker(9)));
+        assert!(out.contains(&SystemOutput::ToBroker(ToBroker::Withdraw {
+            system: "t1".into(),
+            service: "a".into()
+        })));
+        // A duplicate answer (we registered twice while the broker started) changes nothing.
+        c.handle(ToSystem::Registered {
+            epoch: 2,
+            broker_pid: 9,
+        });
+        assert!(outs(&mut c).is_empty());
+    }
+
+    #[test]
+    fn a_dead_user_loses_its_sessions_and_pings_are_answered() {
+        let mut c = core();
+        answer(&offer(&mut c, 1, "u1", "c")).unwrap().unwrap();
+        c.user_died(&UserId("u1".into()));
+        assert_eq!(c.sessions().count(), 0);
+        c.handle(ToSystem::Ping { nonce: 5 });
+        assert!(
+            outs(&mut c).contains(&SystemOutput::ToBroker(ToBroker::Pong {
+                system: "t1".into(),
+                nonce: 5
+            }))
+        );
+    }
+}

@@ -652,3 +652,206 @@ impl UserCore {
         self.out.push_back(UserOutput::ToBroker(msg));
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn user() -> UserCore {
+        UserCore::new(UserId("u1".into()), 1, false)
+    }
+
+    fn outs(u: &mut UserCore) -> Vec<UserOutput> {
+        std::iter::from_fn(|| u.poll_output()).collect()
+    }
+
+    fn events(u: &mut UserCore) -> Vec<UserEvent> {
+        std::iter::from_fn(|| u.poll_event()).collect()
+    }
+
+    fn grant(
+        u: &mut UserCore,
+        req: u64,
+        session: u64,
+        service: &str,
+        kind: ServiceKind,
+        payload: &str,
+    ) {
+        let (system, _) = service.split_once('/').unwrap();
+        u.handle(ToUser::Granted {
+            req,
+            session: SessionId(session),
+            service: ServiceId::new(system, &service[system.len() + 1..]),
+            kind,
+            payload: payload.into(),
+            system_pid: 50,
+        });
+    }
+
+    fn update(u: &mut UserCore, session: u64, seq: u64) {
+        u.handle(ToUser::Update {
+            session: SessionId(session),
+            seq,
+            payload: Payload::Pose2d {
+                x: 1.0,
+                y: 2.0,
+                theta: 0.0,
+            },
+        });
+    }
+
+    #[test]
+    fn gaps_are_counted_and_old_frames_dropped() {
+        let mut u = user();
+        let req = u.request(ServiceId::new("t", "a"));
+        grant(&mut u, req, 9, "t/a", ServiceKind::Data, "pose2d");
+        for seq in [1, 2, 5, 4, 5, 6] {
+            update(&mut u, 9, seq);
+        }
+        let seen: Vec<(u64, u64)> = events(&mut u)
+            .into_iter()
+            .filter_map(|e| match e {
+                UserEvent::Update { seq, gap, .. } => Some((seq, gap)),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            seen,
+            vec![(1, 0), (2, 0), (5, 2), (6, 0)],
+            "never misordered"
+        );
+        assert_eq!(
+            u.counters(SessionId(9)),
+            Some(SessionCounters {
+                last_seq: 6,
+                gaps: 2
+            })
+        );
+        assert_eq!(u.stale_frames(), 2);
+        update(&mut u, 404, 1);
+        assert_eq!(u.stale_frames(), 3, "updates for no session are dropped");
+    }
+
+    #[test]
+    fn a_grant_after_giving_up_is_ended_at_once() {
+        let mut u = user();
+        let req = u.request(ServiceId::new("t", "a"));
+        u.cancel(req);
+        outs(&mut u);
+        grant(&mut u, req, 9, "t/a", ServiceKind::Data, "pose2d");
+        assert_eq!(
+            outs(&mut u),
+            vec![UserOutput::ToSystem(
+                "t".into(),
+                ToSystem::End {
+                    user: UserId("u1".into()),
+                    session: SessionId(9)
+                }
+            )]
+        );
+        assert_eq!(u.sessions().count(), 0);
+    }
+
+    #[test]
+    fn a_link_converts_and_forwards_then_ends_with_its_command_side() {
+        let mut u = user();
+        let link = u.link(ServiceId::new("t", "a"), ServiceId::new("d", "go"));
+        outs(&mut u);
+        grant(&mut u, 1, 10, "t/a", ServiceKind::Data, "pose2d");
+        grant(&mut u, 2, 20, "d/go", ServiceKind::Command, "goal2d");
+        let out = outs(&mut u);
+        assert!(out
+            .iter()
+            .any(|o| matches!(o, UserOutput::ToBroker(ToBroker::LinkOpened { .. }))));
+        assert!(events(&mut u).contains(&UserEvent::LinkUp { link }));
+        update(&mut u, 10, 1);
+        assert!(outs(&mut u).contains(&UserOutput::ToSystem(
+            "d".into(),
+            ToSystem::Input {
+                user: UserId("u1".into()),
+                session: SessionId(20),
+                payload: Payload::Goal2d { x: 1.0, y: 2.0 }
+            }
+        )));
+        // The command system ends its side: the link ends and the data session is ended too.
+        u.handle(ToUser::Ended {
+            session: SessionId(20),
+            reason: EndReason::BySystem("done".into()),
+        });
+        let out = outs(&mut u);
+        assert!(out.contains(&UserOutput::ToSystem(
+            "t".into(),
+            ToSystem::End {
+                user: UserId("u1".into()),
+                session: SessionId(10)
+            }
+        )));
+        assert!(out.contains(&UserOutput::ToBroker(ToBroker::LinkClosed {
+            user: UserId("u1".into()),
+            link
+        })));
+        assert!(events(&mut u)
+            .iter()
+            .any(|e| matches!(e, UserEvent::LinkEnded { .. })));
+        assert_eq!(u.sessions().count(), 0);
+        assert_eq!(u.links().count(), 0);
+    }
+
+    #[test]
+    fn a_refused_half_cancels_the_other_half_of_a_link() {
+        let mut u = user();
+        let link = u.link(ServiceId::new("t", "a"), ServiceId::new("d", "go"));
+        outs(&mut u);
+        u.handle(ToUser::Refused {
+            req: 2,
+            reason: Refusal::QuotaFull { quota: 1 },
+        });
+        assert!(
+            outs(&mut u).contains(&UserOutput::ToBroker(ToBroker::Cancel {
+                user: UserId("u1".into()),
+                req: 1
+            }))
+        );
+        assert!(events(&mut u)
+            .iter()
+            .any(|e| matches!(e, UserEvent::LinkEnded { link: l, .. } if *l == link)));
+        assert_eq!(u.pending_requests(), 0);
+    }
+
+    #[test]
+    fn pending_requests_are_resent_to_a_new_broker() {
+        let mut u = user();
+        u.hello();
+        u.handle(ToUser::Welcome {
+            epoch: 1,
+            broker_pid: 3,
+        });
+        let r = u.request(ServiceId::new("t", "a"));
+        outs(&mut u);
+        u.broker_lost();
+        assert_eq!(u.connected(), None);
+        u.hello();
+        let out = outs(&mut u);
+        assert!(matches!(
+            &out[0],
+            UserOutput::ToBroker(ToBroker::Hello { .. })
+        ));
+        assert!(out.contains(&UserOutput::ToBroker(ToBroker::Request {
+            user: UserId("u1".into()),
+            req: r,
+            service: ServiceId::new("t", "a")
+        })));
+    }
+
+    #[test]
+    fn input_only_on_command_sessions() {
+        let mut u = user();
+        let r = u.request(ServiceId::new("t", "a"));
+        grant(&mut u, r, 9, "t/a", ServiceKind::Data, "pose2d");
+        assert!(u
+            .input(SessionId(9), Payload::Scalar(1.0))
+            .unwrap_err()
+            .contains("data session"));
+        assert!(u.input(SessionId(8), Payload::Scalar(1.0)).is_err());
+    }
+}
