@@ -291,12 +291,10 @@ impl Broker {
             ToBroker::Request { user, req, service } => self.request(now, user, req, service),
             ToBroker::Cancel { user, req } => self.cancel(now, &user, req),
             ToBroker::LinkOpened { user, link } => {
-                self.users
-                    .entry(user)
-                    .or_default()
-                    .links
-                    .insert(link.link, link);
-                self.recount_links();
+                if let Some(u) = self.users.get_mut(&user) {
+                    u.links.insert(link.link, link);
+                    self.recount_links();
+                }
             }
             ToBroker::LinkClosed { user, link } => {
                 if let Some(u) = self.users.get_mut(&user) {
@@ -572,7 +570,12 @@ impl Broker {
 
     fn request(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
         self.stats.requests += 1;
-        self.users.entry(user.clone()).or_default();
+        if !self.users.contains_key(&user) {
+            // Unknown (never said hello) or known dead: nobody could watch it, so a
+            // session granted to it might never end.
+            let reason = Refusal::BadRequest("unknown user: say hello first".into());
+            return self.refuse(&user, req, reason);
+        }
         let Some(svc) = self.services.get(&service) else {
             return self.refuse(&user, req, Refusal::Unknown);
         };

@@ -40,7 +40,19 @@ fn register(b: &mut Broker, now: Duration, system: &str, pid: u32, specs: Vec<Se
     );
 }
 
+/// Says hello for user `u` (once) and requests `id`.
 fn request(b: &mut Broker, now: Duration, u: u32, req: u64, id: &str) {
+    if !b.users().any(|x| *x == user(u)) {
+        b.handle(
+            now,
+            ToBroker::Hello {
+                user: user(u),
+                pid: u,
+                links: vec![],
+                watch_list: false,
+            },
+        );
+    }
     b.handle(
         now,
         ToBroker::Request {
@@ -558,6 +570,39 @@ fn sessions_reported_at_registration_count_against_the_quota() {
     );
     request(&mut b, S, 3, 2, "s/a");
     assert_eq!(offers(&drain(&mut b)).len(), 1);
+}
+
+#[test]
+fn requests_from_users_that_never_said_hello_are_refused() {
+    let mut b = broker();
+    register(&mut b, S, "s", 7, vec![spec("a", 1, false)]);
+    drain(&mut b);
+    b.handle(
+        S,
+        ToBroker::Request {
+            user: user(9),
+            req: 1,
+            service: ServiceId::new("s", "a"),
+        },
+    );
+    let out = drain(&mut b);
+    assert!(
+        matches!(&answers(&out, 9, 1)[..], [ToUser::Refused { reason: Refusal::BadRequest(r), .. }] if r.contains("hello"))
+    );
+    assert!(offers(&out).is_empty());
+    // A user known dead is refused the same way.
+    request(&mut b, S, 8, 1, "s/a");
+    drain(&mut b);
+    b.user_died(S, &user(8));
+    b.handle(
+        S,
+        ToBroker::Request {
+            user: user(8),
+            req: 2,
+            service: ServiceId::new("s", "a"),
+        },
+    );
+    assert!(offers(&drain(&mut b)).is_empty());
 }
 
 #[test]

@@ -8,7 +8,7 @@ use crate::core::{Broker, BrokerConfig, Output};
 use muster_shared::ipc::{bell, create_node, Endpoint, ListWriter, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, encode, ToBroker};
-use muster_shared::reactor::{raise_fd_limit, PidFd, Reactor, SignalPipe};
+use muster_shared::reactor::{process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe};
 use muster_shared::snapshot::{ServiceListSnapshot, MAX_LISTED_SERVICES};
 use muster_shared::types::UserId;
 use std::collections::HashMap;
@@ -51,7 +51,6 @@ struct Shell {
     by_system: HashMap<String, usize>,
     by_user: HashMap<UserId, usize>,
     next_token: usize,
-    bad_frames: u64,
     snapshot: Box<ServiceListSnapshot>,
     /// When list watchers were last rung, and whether a ring is owed.
     last_ring: Option<Instant>,
@@ -100,14 +99,13 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
         by_system: HashMap::new(),
         by_user: HashMap::new(),
         next_token: FIRST_WATCH_TOKEN,
-        bad_frames: 0,
         snapshot: Box::new(ServiceListSnapshot::empty()),
         last_ring: None,
         ring_owed: false,
     };
     shell.snapshot.epoch = epoch;
     let start = Instant::now();
-    shell.flush(&mut core)?;
+    shell.flush(&mut core, start.elapsed())?;
     presence.ring(bell::BROKER_UP);
     tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), "broker up");
 
@@ -156,7 +154,7 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
         if core.poll_timeout().is_some_and(|t| t <= now) {
             core.handle_timeout(now);
         }
-        shell.flush(&mut core)?;
+        shell.flush(&mut core, start.elapsed())?;
         shell.ring_watchers(&core);
         if !died.is_empty() {
             // Nobody will read a dead peer's inbox: drop our ports to it now, then remove
@@ -175,18 +173,34 @@ impl Shell {
         while let Some(frame) = self.endpoint.recv()? {
             match decode::<ToBroker>(&frame) {
                 Ok(msg) => core.handle(now, msg),
-                Err(e) => {
-                    self.bad_frames += 1;
-                    if self.bad_frames.is_power_of_two() {
-                        tracing::warn!(count = self.bad_frames, "dropped a malformed frame: {e}");
-                    }
-                }
+                Err(e) => muster_shared::protocol::log_bad_frame(&e),
             }
         }
         Ok(())
     }
 
-    fn flush(&mut self, core: &mut Broker) -> Result<(), BrokerError> {
+    fn flush(&mut self, core: &mut Broker, now: Duration) -> Result<(), BrokerError> {
+        loop {
+            let mut dead = Vec::new();
+            self.flush_outputs(core, &mut dead)?;
+            if dead.is_empty() {
+                return Ok(());
+            }
+            // A process that registered or said hello but is already gone.
+            for who in dead {
+                match who {
+                    Watched::System(s) => core.system_died(now, &s),
+                    Watched::User(u) => core.user_died(now, &u),
+                }
+            }
+        }
+    }
+
+    fn flush_outputs(
+        &mut self,
+        core: &mut Broker,
+        dead: &mut Vec<Watched>,
+    ) -> Result<(), BrokerError> {
         while let Some(out) = core.poll_output() {
             match out {
                 Output::ToSystem(name, msg) => self.send(&Address::System(name), &msg),
@@ -195,7 +209,9 @@ impl Shell {
                     if let Some(t) = self.by_system.remove(&system) {
                         self.unwatch(t);
                     }
-                    if let Some(t) = self.watch(Watched::System(system.clone()), pid) {
+                    if !process_exists(pid) {
+                        dead.push(Watched::System(system));
+                    } else if let Some(t) = self.watch(Watched::System(system.clone()), pid) {
                         self.by_system.insert(system, t);
                     }
                 }
@@ -203,7 +219,9 @@ impl Shell {
                     if let Some(t) = self.by_user.remove(&user) {
                         self.unwatch(t);
                     }
-                    if let Some(t) = self.watch(Watched::User(user.clone()), pid) {
+                    if !process_exists(pid) {
+                        dead.push(Watched::User(user));
+                    } else if let Some(t) = self.watch(Watched::User(user.clone()), pid) {
                         self.by_user.insert(user, t);
                     }
                 }

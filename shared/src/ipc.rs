@@ -75,6 +75,10 @@ pub enum TransportError {
     /// Another live process already owns this address (e.g. a system of the same name).
     #[error("{0} is already running on this instance")]
     InUse(Address),
+    /// The peer's inbox is full (it reads slower than we write): this frame was dropped.
+    /// The peer is still there; session updates show the loss as a sequence gap.
+    #[error("{0}'s inbox is full: frame dropped")]
+    Full(Address),
     /// The peer's inbox does not exist or nobody reads it: the peer is gone.
     #[error("{0} is unreachable (not running?)")]
     Unreachable(Address),
@@ -174,6 +178,7 @@ pub fn create_node(name: &str, cleanup_dead_nodes: bool) -> Result<Node<Ipc>, Tr
 struct Peer {
     publisher: Publisher<Ipc, [u8], ()>,
     notifier: Notifier<Ipc>,
+    inbox: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
 }
 
 /// One process's inbox and bell, plus cached ports to its peers.
@@ -329,6 +334,7 @@ impl Endpoint {
                 Peer {
                     publisher,
                     notifier,
+                    inbox: svc,
                 },
             );
         }
@@ -339,10 +345,14 @@ impl Endpoint {
     pub fn send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
         self.lingering.remove(to);
         let result = self.try_send(to, frame);
-        if result.is_err() {
-            // Forget the ports: the peer may come back as a new process.
-            self.peers.remove(to);
-            self.dropped_sends += 1;
+        match &result {
+            Ok(()) => {}
+            Err(TransportError::Full(_)) => self.dropped_sends += 1,
+            Err(_) => {
+                // Forget the ports: the peer may come back as a new process.
+                self.peers.remove(to);
+                self.dropped_sends += 1;
+            }
         }
         result
     }
@@ -372,7 +382,14 @@ impl Endpoint {
             .send()
             .map_err(|e| send_err(&e))?;
         if delivered == 0 {
-            return Err(TransportError::Unreachable(to.clone()));
+            // Nobody read it: either nobody is there, or the reader's queue is full.
+            return Err(
+                if peer.inbox.dynamic_config().number_of_subscribers() == 0 {
+                    TransportError::Unreachable(to.clone())
+                } else {
+                    TransportError::Full(to.clone())
+                },
+            );
         }
         peer.notifier
             .notify_with_custom_event_id(EventId::new(bell::MESSAGE))

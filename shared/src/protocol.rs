@@ -85,6 +85,21 @@ pub fn decode<T: DeserializeOwned>(frame: &[u8]) -> Result<T, DecodeError> {
     Ok(msg)
 }
 
+static BAD_FRAMES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Counts a dropped frame and logs it, rate-limited: the 1st, 2nd, 4th, 8th, ... get a line.
+pub fn log_bad_frame(e: &DecodeError) {
+    let n = BAD_FRAMES.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+    if n.is_power_of_two() {
+        tracing::warn!(dropped = n, "dropped a malformed frame: {e}");
+    }
+}
+
+/// Frames dropped as malformed by this process so far.
+pub fn bad_frames() -> u64 {
+    BAD_FRAMES.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 /// A session a system holds, reported when it (re-)registers so a new broker counts it.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ActiveSession {

@@ -9,7 +9,7 @@ use crate::core::{SystemCore, SystemEvent, SystemOutput};
 use muster_shared::ipc::{bell, create_node, Endpoint, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, encode, ToBroker, ToSystem};
-use muster_shared::reactor::{PidFd, Reactor, SignalPipe};
+use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
 use muster_shared::types::UserId;
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
@@ -231,7 +231,7 @@ pub fn run_system<A: SystemApp>(
         while let Some(frame) = shell.endpoint.recv()? {
             match decode::<ToSystem>(&frame) {
                 Ok(msg) => core.handle(msg),
-                Err(e) => tracing::warn!("dropped a malformed frame: {e}"),
+                Err(e) => muster_shared::protocol::log_bad_frame(&e),
             }
         }
         if app.next_tick(&core).is_some_and(|t| t <= now) {
@@ -258,6 +258,18 @@ pub fn run_system<A: SystemApp>(
 
 impl Shell {
     fn flush(&mut self, core: &mut SystemCore) {
+        let mut dead_users = Vec::new();
+        self.flush_outputs(core, &mut dead_users);
+        while !dead_users.is_empty() {
+            for user in std::mem::take(&mut dead_users) {
+                core.user_died(&user);
+                self.endpoint.forget(&Address::User(user));
+            }
+            self.flush_outputs(core, &mut dead_users);
+        }
+    }
+
+    fn flush_outputs(&mut self, core: &mut SystemCore, dead_users: &mut Vec<UserId>) {
         while let Some(out) = core.poll_output() {
             match out {
                 SystemOutput::ToBroker(msg) => {
@@ -297,13 +309,18 @@ impl Shell {
                     if self.user_tokens.contains_key(&user) {
                         continue;
                     }
-                    if let Ok(p) = PidFd::open(pid) {
-                        let t = self.next_token;
-                        self.next_token += 1;
-                        if self.reactor.add(p.raw(), t).is_ok() {
-                            self.users.insert(t, (user.clone(), p));
-                            self.user_tokens.insert(user, t);
+                    match PidFd::open(pid) {
+                        Ok(p) => {
+                            let t = self.next_token;
+                            self.next_token += 1;
+                            if self.reactor.add(p.raw(), t).is_ok() {
+                                self.users.insert(t, (user.clone(), p));
+                                self.user_tokens.insert(user, t);
+                            }
                         }
+                        // The user died between its request and our grant.
+                        Err(_) if !process_exists(pid) => dead_users.push(user),
+                        Err(e) => tracing::warn!("cannot watch user {user} (pid {pid}): {e}"),
                     }
                 }
                 SystemOutput::ForgetUser(user) => {

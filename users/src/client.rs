@@ -337,7 +337,7 @@ impl UserClient {
         while let Some(frame) = self.endpoint.recv()? {
             match decode::<ToUser>(&frame) {
                 Ok(msg) => self.core.handle(msg),
-                Err(e) => tracing::warn!("dropped a malformed frame: {e}"),
+                Err(e) => muster_shared::protocol::log_bad_frame(&e),
             }
         }
         self.flush();

@@ -1,0 +1,137 @@
+//! Bad input and dying peers, against real processes: a hand-driven fake peer writes
+//! garbage into the broker's and a system's inbox, and requests on behalf of a dead user.
+
+mod common;
+
+use common::{Fed, SEC};
+use muster_shared::ipc::{create_node, Endpoint, TransportError};
+use muster_shared::protocol::{encode, ToBroker, MAGIC, VERSION};
+use muster_shared::types::{ServiceId, UserId};
+use muster_shared::{Address, Instance};
+use std::time::Duration;
+
+fn fake(inst: &str, me: Address) -> Endpoint {
+    let inst = Instance::new(inst).unwrap();
+    let node = create_node(&format!("muster-test-{}", std::process::id()), false).unwrap();
+    Endpoint::open(&inst, me, node).unwrap()
+}
+
+fn garbage() -> Vec<Vec<u8>> {
+    let valid = encode(&ToBroker::Goodbye {
+        user: UserId("x".into()),
+    })
+    .unwrap();
+    let mut trailing = valid.clone();
+    trailing.extend_from_slice(b"junk");
+    let mut wrong_version = valid.clone();
+    wrong_version[1] = VERSION + 1;
+    let mut frames = vec![
+        vec![],
+        vec![MAGIC],
+        vec![0xff; 64],
+        wrong_version,
+        trailing,
+        valid[..valid.len() - 1].to_vec(),
+        vec![
+            MAGIC, VERSION, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x7f,
+        ],
+    ];
+    // Deterministic pseudo-random frames with a valid header.
+    let mut x: u32 = 0x1234_5678;
+    for len in 0..200usize {
+        let mut f = vec![MAGIC, VERSION];
+        for _ in 0..len % 97 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            f.push(x as u8);
+        }
+        frames.push(f);
+    }
+    frames
+}
+
+#[test]
+fn garbage_frames_are_dropped_and_lose_nothing() {
+    let mut f = Fed::new("garbage");
+    f.broker(&[]);
+    f.system("t1", &["--quota", "3"]);
+    let (before, _) = f.wait_list(10 * SEC, |l| l.len() == 1);
+    let holder = f.spawn(&["user", "request", "t1/s0", "--duration", "20s", "--json"]);
+    assert_eq!(f.proc(holder).json(10 * SEC).unwrap()["granted"], true);
+
+    let mut as_user = fake(&f.inst, Address::User(UserId("evil".into())));
+    for (i, frame) in garbage().iter().enumerate() {
+        for to in [Address::Broker, Address::System("t1".into())] {
+            match as_user.send(&to, frame) {
+                Ok(()) | Err(TransportError::Full(_)) => {}
+                Err(e) => panic!("frame {i} to {to}: {e}"),
+            }
+        }
+        if i % 16 == 15 {
+            std::thread::sleep(Duration::from_millis(20)); // let the readers drain
+        }
+    }
+    // Larger than any frame may be, on the one path that allows large frames.
+    let mut as_system = fake(&f.inst, Address::System("evilsys".into()));
+    let mut huge = vec![MAGIC, VERSION];
+    huge.resize(100 * 1024, 0x42);
+    as_system.send(&Address::Broker, &huge).unwrap();
+    // A frame too large for a user's path is refused by the sender, not sent.
+    assert!(as_user.send(&Address::Broker, &huge).is_err());
+
+    // Everything still works, and nothing was lost.
+    std::thread::sleep(Duration::from_millis(300));
+    let after = f.list();
+    assert_eq!(after.len(), before.len());
+    assert_eq!(after[0]["in_use"], 1, "the live session still counts");
+    let (code, out) = f.run(
+        &["user", "request", "t1/s0", "--duration", "500ms", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let seqs: Vec<u64> = (0..5)
+        .filter_map(|_| f.proc(holder).json(5 * SEC))
+        .filter_map(|v| v["seq"].as_u64())
+        .collect();
+    assert!(
+        seqs.len() >= 4 && seqs.windows(2).all(|w| w[1] == w[0] + 1),
+        "the old session streams on: {seqs:?}"
+    );
+}
+
+#[test]
+fn a_user_that_dies_before_its_grant_does_not_leak_quota() {
+    let mut f = Fed::new("diedreq");
+    f.broker(&[]);
+    f.system("t1", &["--quota", "1"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    // A pid that surely belongs to no process any more.
+    let mut gone = std::process::Command::new("true").spawn().unwrap();
+    let dead_pid = gone.id();
+    gone.wait().unwrap();
+
+    let ghost = UserId("ghost".into());
+    let mut ep = fake(&f.inst, Address::User(ghost.clone()));
+    let hello = ToBroker::Hello {
+        user: ghost.clone(),
+        pid: dead_pid,
+        links: vec![],
+        watch_list: false,
+    };
+    let request = ToBroker::Request {
+        user: ghost,
+        req: 1,
+        service: ServiceId::new("t1", "s0"),
+    };
+    ep.send(&Address::Broker, &encode(&hello).unwrap()).unwrap();
+    ep.send(&Address::Broker, &encode(&request).unwrap())
+        .unwrap();
+    // The system granted a session to a process that is gone; it must notice and end it.
+    f.wait_list(10 * SEC, |l| l[0]["in_use"] == 0);
+    let (code, out) = f.run(
+        &["user", "request", "t1/s0", "--duration", "200ms", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "the quota of 1 is free again: {out}");
+}
