@@ -37,6 +37,22 @@ pub enum BenchCommand {
     /// Connect N separate user processes to a broker serving S services; report setup
     /// time, shared memory, broker RSS and idle CPU, per-user PSS, request and list latency.
     Scale(ScaleArgs),
+    /// Time failure detection: SIGKILL of a system until it leaves the list, and SIGKILL
+    /// plus restart of the broker until the whole list is back.
+    Liveness(LivenessArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct LivenessArgs {
+    /// Repetitions of each measurement.
+    #[arg(long, default_value_t = 10)]
+    pub trials: usize,
+    /// Systems (8 services each) registered during the broker-restart trials.
+    #[arg(long, default_value_t = 10)]
+    pub systems: usize,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Args, Debug)]

@@ -483,3 +483,42 @@ fn ending_sessions_frees_the_quota_every_time() {
     }
     client.close();
 }
+
+#[test]
+fn the_interactive_menu_lists_requests_links_and_exits() {
+    let mut f = Fed::new("menu");
+    f.broker(&[]);
+    f.system("t1", &["--rate", "20"]);
+    f.system("d1", &["--kind", "command", "--quota", "1"]);
+    f.wait_list(10 * SEC, |l| l.len() == 2);
+    let m = f.spawn(&["user"]);
+    let until = |f: &mut Fed, needle: &str| -> String {
+        let deadline = Instant::now() + 10 * SEC;
+        loop {
+            let line = f
+                .proc(m)
+                .line(deadline.saturating_duration_since(Instant::now()));
+            match line {
+                Some(l) if l.contains(needle) => return l,
+                Some(_) => {}
+                None => panic!("menu never printed {needle:?}"),
+            }
+        }
+    };
+    until(&mut f, "t1/s0"); // the numbered list: 1 = d1/s0, 2 = t1/s0
+    f.proc(m).send("2");
+    until(&mut f, "granted: session 1 on t1/s0");
+    until(&mut f, "t1/s0 #");
+    f.proc(m).send("e 1");
+    until(&mut f, "session on t1/s0 ended: ended by the user");
+    f.proc(m).send("l 2 1");
+    until(&mut f, "link 1 up");
+    until(&mut f, "d1/s0: working");
+    f.proc(m).send("r");
+    until(&mut f, "d1/s0");
+    f.proc(m).send("x");
+    assert_eq!(f.proc(m).wait(10 * SEC), Some(0));
+    f.wait_list(10 * SEC, |l| {
+        l.iter().all(|s| s["in_use"] == 0 && s["links"] == 0)
+    });
+}

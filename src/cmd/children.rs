@@ -31,6 +31,15 @@ impl Children {
         Ok(&mut self.0.last_mut().expect("pushed").1)
     }
 
+    /// SIGKILLs the child labelled `label` (one we started) and reaps it.
+    pub fn kill(&mut self, label: &str) {
+        if let Some(i) = self.0.iter().position(|(l, _)| l == label) {
+            let (_, mut c) = self.0.remove(i);
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+
     /// Process ids, in start order.
     pub fn pids(&self) -> impl Iterator<Item = u32> + '_ {
         self.0.iter().map(|(_, c)| c.id())

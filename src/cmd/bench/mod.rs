@@ -1,5 +1,6 @@
 //! `muster bench ...`: benchmarks that print figures (never assertions).
 
+mod liveness;
 mod procfs;
 use super::children;
 mod scale;
@@ -11,6 +12,7 @@ use std::process::ExitCode;
 pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
     match cmd {
         BenchCommand::Scale(a) => scale::run(inst, a),
+        BenchCommand::Liveness(a) => liveness::run(inst, a),
     }
 }
 

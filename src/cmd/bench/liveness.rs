@@ -1,0 +1,119 @@
+//! `muster bench liveness`: how fast failures are seen and repaired, polling the
+//! shared-memory list every millisecond.
+
+use super::children::Children;
+use super::{row, summary};
+use crate::cli::LivenessArgs;
+use anyhow::bail;
+use hdrhistogram::Histogram;
+use muster_shared::Instance;
+use muster_users::{ConnectOptions, UserClient};
+use serde_json::json;
+use std::process::{ExitCode, Stdio};
+use std::time::{Duration, Instant};
+
+/// Polls the list until `pred` holds; returns how long it took.
+fn until(
+    client: &mut UserClient,
+    timeout: Duration,
+    pred: impl Fn(&[String]) -> bool,
+) -> anyhow::Result<Duration> {
+    let start = Instant::now();
+    loop {
+        let ids: Vec<String> = client.list()?.entries().iter().map(|e| e.id().0).collect();
+        if pred(&ids) {
+            return Ok(start.elapsed());
+        }
+        if start.elapsed() > timeout {
+            bail!(
+                "condition not met within {timeout:?} (list: {} services)",
+                ids.len()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+pub fn run(inst: &Instance, a: LivenessArgs) -> anyhow::Result<ExitCode> {
+    let mut children = Children::default();
+    children.spawn(inst, "broker", &["broker"], Stdio::null())?;
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(20),
+        handle_signals: false,
+        watch_list: false,
+    };
+    let mut client = UserClient::connect(inst, &opts)?;
+    let mut kill = Histogram::<u64>::new(3)?;
+    for i in 0..a.trials {
+        let name = format!("k{i}");
+        children.spawn(
+            inst,
+            &name,
+            &["system", "synthetic", "--name", &name],
+            Stdio::null(),
+        )?;
+        let id = format!("{name}/s0");
+        until(&mut client, Duration::from_secs(20), |l| l.contains(&id))?;
+        let t = Instant::now();
+        children.kill(&name);
+        until(&mut client, Duration::from_secs(60), |l| !l.contains(&id))?;
+        kill.record(t.elapsed().as_micros().max(1) as u64)?;
+    }
+
+    for i in 0..a.systems {
+        let name = format!("r{i}");
+        children.spawn(
+            inst,
+            &name,
+            &["system", "synthetic", "--name", &name, "--services", "8"],
+            Stdio::null(),
+        )?;
+    }
+    let total = a.systems * 8;
+    until(&mut client, Duration::from_secs(30), |l| l.len() == total)?;
+    let mut restart = Histogram::<u64>::new(3)?;
+    for _ in 0..a.trials {
+        children.kill("broker");
+        // The list stays readable while no broker runs; wait until systems noticed.
+        std::thread::sleep(Duration::from_millis(200));
+        let t = Instant::now();
+        children.spawn(inst, "broker", &["broker"], Stdio::null())?;
+        // Complete again: every service listed by the new broker.
+        let epoch_before = client.list()?.epoch;
+        loop {
+            let l = client.list()?;
+            if l.epoch != epoch_before && l.count as usize == total {
+                break;
+            }
+            if t.elapsed() > Duration::from_secs(30) {
+                bail!(
+                    "the list was not complete within 30 s of the restart ({} of {total})",
+                    l.count
+                );
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        restart.record(t.elapsed().as_micros().max(1) as u64)?;
+    }
+    client.close();
+    children.stop();
+    if a.json {
+        println!(
+            "{}",
+            json!({"system_sigkill_to_unlisted": summary(&kill), "broker_restart_to_complete_list": summary(&restart), "services": total})
+        );
+    } else {
+        println!("muster bench liveness: {} trials", a.trials);
+        println!(
+            "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
+            "latency (us)", "count", "p50", "p90", "p99", "max"
+        );
+        println!("{}", row("system SIGKILL -> unlisted", &kill));
+        println!(
+            "{}",
+            row(&format!("broker restart -> {total} listed"), &restart)
+        );
+        println!("(restart time counts from spawning the new broker process)");
+    }
+    Ok(ExitCode::SUCCESS)
+}
