@@ -1,6 +1,8 @@
 //! Process-level tests of the local federation: real broker, system and user processes
 //! over iceoryx2 shared memory, one instance per test.
 
+#![allow(clippy::unwrap_used)]
+
 mod common;
 
 use common::{find, ids, Fed, SEC};

@@ -2,12 +2,14 @@
 //! synthetic system's logic) and user cores wired together on a virtual clock. Frames
 //! still go through the wire codec. Hours of virtual time run in milliseconds.
 
+#![allow(clippy::unwrap_used)]
+
 use muster_broker::core::{Broker, BrokerConfig, Output};
 use muster_shared::protocol::{decode, encode, ToBroker, ToSystem, ToUser};
 use muster_shared::types::{
     EndReason, Payload, Refusal, ServiceId, ServiceKind, SessionId, TaskStatus, UserId,
 };
-use muster_systems::core::{SystemCore, SystemEvent, SystemOutput};
+use muster_systems::core::{SystemCore, SystemOutput};
 use muster_systems::runtime::SystemApp;
 use muster_systems::synthetic::{Synthetic, SyntheticOptions};
 use muster_users::core::{UserCore, UserEvent, UserOutput};

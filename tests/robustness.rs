@@ -1,6 +1,8 @@
 //! Bad input and dying peers, against real processes: a hand-driven fake peer writes
 //! garbage into the broker's and a system's inbox, and requests on behalf of a dead user.
 
+#![allow(clippy::unwrap_used)]
+
 mod common;
 
 use common::{Fed, SEC};

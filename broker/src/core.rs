@@ -804,4 +804,5 @@ impl Broker {
 
 #[cfg(test)]
 #[path = "core_tests.rs"]
+#[allow(clippy::unwrap_used)]
 mod tests;

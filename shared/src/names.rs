@@ -97,6 +97,7 @@ impl fmt::Display for Instance {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -375,6 +375,7 @@ impl fmt::Display for TaskStatus {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -118,7 +118,7 @@ fn demo(client: &mut UserClient, end: Option<Instant>) -> Result<(), UserError> 
             UserEvent::LinkUp { link: l } if l == link => {
                 println!("link up: tracker positions become delivery goals (Ctrl-C to stop)")
             }
-            UserEvent::LinkForwarded { input, .. } if shown % 10 == 0 => {
+            UserEvent::LinkForwarded { input, .. } if shown.is_multiple_of(10) => {
                 println!("  forwarded {input}");
                 shown += 1;
             }

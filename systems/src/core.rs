@@ -199,7 +199,7 @@ impl SystemCore {
                 self.state = BrokerState::Registered { epoch };
                 self.out.push_back(SystemOutput::WatchBroker(broker_pid));
                 for service in self.withdrawn.clone() {
-                    self.to_broker(ToBroker::Withdraw {
+                    self.send_broker(ToBroker::Withdraw {
                         system: self.name.clone(),
                         service,
                     });
@@ -212,7 +212,7 @@ impl SystemCore {
                     .push_back(SystemEvent::RegistrationRefused(reason));
             }
             ToSystem::Ping { nonce } => {
-                self.to_broker(ToBroker::Pong {
+                self.send_broker(ToBroker::Pong {
                     system: self.name.clone(),
                     nonce,
                 });
@@ -294,7 +294,7 @@ impl SystemCore {
                         system_pid: self.pid,
                     },
                 ));
-                self.to_broker(ToBroker::OfferAnswer {
+                self.send_broker(ToBroker::OfferAnswer {
                     system: self.name.clone(),
                     ticket,
                     answer: Ok(session),
@@ -305,7 +305,7 @@ impl SystemCore {
                     service,
                 });
             }
-            Err(reason) => self.to_broker(ToBroker::OfferAnswer {
+            Err(reason) => self.send_broker(ToBroker::OfferAnswer {
                 system: self.name.clone(),
                 ticket,
                 answer: Err(reason),
@@ -368,7 +368,7 @@ impl SystemCore {
                 },
             ));
         }
-        self.to_broker(ToBroker::SessionEnded {
+        self.send_broker(ToBroker::SessionEnded {
             system: self.name.clone(),
             session,
         });
@@ -409,7 +409,7 @@ impl SystemCore {
         for id in ids {
             self.close(id, EndReason::Withdrawn, true);
         }
-        self.to_broker(ToBroker::Withdraw {
+        self.send_broker(ToBroker::Withdraw {
             system: self.name.clone(),
             service: service.into(),
         });
@@ -418,7 +418,7 @@ impl SystemCore {
     /// Offers a withdrawn service again.
     pub fn restore(&mut self, service: &str) {
         if self.withdrawn.remove(service) {
-            self.to_broker(ToBroker::Restore {
+            self.send_broker(ToBroker::Restore {
                 system: self.name.clone(),
                 service: service.into(),
             });
@@ -431,7 +431,7 @@ impl SystemCore {
         for id in ids {
             self.close(id, EndReason::BySystem("system shutting down".into()), true);
         }
-        self.to_broker(ToBroker::Unregister {
+        self.send_broker(ToBroker::Unregister {
             system: self.name.clone(),
         });
     }
@@ -444,12 +444,13 @@ impl SystemCore {
             .map(|s| s.kind)
     }
 
-    fn to_broker(&mut self, msg: ToBroker) {
+    fn send_broker(&mut self, msg: ToBroker) {
         self.out.push_back(SystemOutput::ToBroker(msg));
     }
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -243,7 +243,7 @@ impl UserCore {
     /// Says hello (again, after a broker restart), re-sending requests still pending.
     pub fn hello(&mut self) {
         let links = self.links.values().map(|l| l.info.clone()).collect();
-        self.to_broker(ToBroker::Hello {
+        self.send_broker(ToBroker::Hello {
             user: self.id.clone(),
             pid: self.pid,
             links,
@@ -255,7 +255,7 @@ impl UserCore {
             .map(|(r, p)| (*r, p.service.clone()))
             .collect();
         for (req, service) in pending {
-            self.to_broker(ToBroker::Request {
+            self.send_broker(ToBroker::Request {
                 user: self.id.clone(),
                 req,
                 service,
@@ -290,7 +290,7 @@ impl UserCore {
                 link,
             },
         );
-        self.to_broker(ToBroker::Request {
+        self.send_broker(ToBroker::Request {
             user: self.id.clone(),
             req,
             service,
@@ -301,7 +301,7 @@ impl UserCore {
     /// Gives up a pending or queued request.
     pub fn cancel(&mut self, req: u64) {
         if self.pending.remove(&req).is_some() {
-            self.to_broker(ToBroker::Cancel {
+            self.send_broker(ToBroker::Cancel {
                 user: self.id.clone(),
                 req,
             });
@@ -413,7 +413,7 @@ impl UserCore {
             self.close(s, EndReason::ByUser, true);
         }
         if l.data.is_some() && l.command.is_some() {
-            self.to_broker(ToBroker::LinkClosed {
+            self.send_broker(ToBroker::LinkClosed {
                 user: self.id.clone(),
                 link,
             });
@@ -448,7 +448,7 @@ impl UserCore {
         for r in reqs {
             self.cancel(r);
         }
-        self.to_broker(ToBroker::Goodbye {
+        self.send_broker(ToBroker::Goodbye {
             user: self.id.clone(),
         });
     }
@@ -593,7 +593,7 @@ impl UserCore {
                 return;
             }
             let info = l.info.clone();
-            self.to_broker(ToBroker::LinkOpened {
+            self.send_broker(ToBroker::LinkOpened {
                 user: self.id.clone(),
                 link: info,
             });
@@ -648,12 +648,13 @@ impl UserCore {
             .push_back(UserEvent::LinkForwarded { link, input });
     }
 
-    fn to_broker(&mut self, msg: ToBroker) {
+    fn send_broker(&mut self, msg: ToBroker) {
         self.out.push_back(UserOutput::ToBroker(msg));
     }
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
