@@ -648,27 +648,24 @@ impl Broker {
     }
 
     fn cancel(&mut self, now: Duration, user: &UserId, req: u64) {
-        let mut touched = Vec::new();
-        for (id, svc) in self.services.iter_mut() {
-            let before = svc.queue.len();
-            svc.queue.retain(|w| !(w.user == *user && w.req == req));
-            if svc.queue.len() != before {
-                touched.push(id.clone());
-            }
-        }
-        for id in touched {
-            self.list_dirty = true;
-            self.announce_positions(&id);
-            self.dispatch_queue(now, &id);
-        }
+        self.remove_waiting(now, |w| w.user == *user && w.req == req);
     }
 
     fn forget_user(&mut self, now: Duration, user: &UserId) {
         let had = self.users.remove(user).is_some();
+        self.remove_waiting(now, |w| w.user == *user);
+        if had {
+            self.recount_links();
+            self.out.push_back(Output::ForgetUser(user.clone()));
+        }
+    }
+
+    /// Removes matching requests from every task queue; the rest move up (and are told).
+    fn remove_waiting(&mut self, now: Duration, gone: impl Fn(&Waiting) -> bool) {
         let mut touched = Vec::new();
         for (id, svc) in self.services.iter_mut() {
             let before = svc.queue.len();
-            svc.queue.retain(|w| w.user != *user);
+            svc.queue.retain(|w| !gone(w));
             if svc.queue.len() != before {
                 touched.push(id.clone());
             }
@@ -677,10 +674,6 @@ impl Broker {
             self.list_dirty = true;
             self.announce_positions(&id);
             self.dispatch_queue(now, &id);
-        }
-        if had {
-            self.recount_links();
-            self.out.push_back(Output::ForgetUser(user.clone()));
         }
     }
 
