@@ -524,3 +524,42 @@ fn the_interactive_menu_lists_requests_links_and_exits() {
         l.iter().all(|s| s["in_use"] == 0 && s["links"] == 0)
     });
 }
+
+#[test]
+fn up_runs_the_default_scenario_and_stops_cleanly_on_ctrl_c() {
+    let mut f = Fed::new("up");
+    let up = f.spawn(&["up"]);
+    let mut seen = Vec::new();
+    let deadline = Instant::now() + 30 * SEC;
+    while !seen.iter().any(|l: &String| l.contains("forwarded goal2d")) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match f.proc(up).line(left) {
+            Some(l) => seen.push(l),
+            None => panic!("up did not get to the link: {seen:#?}"),
+        }
+    }
+    let text = seen.join("\n");
+    for needle in [
+        "== service list",
+        "d1/s0",
+        "t1/s2",
+        "granted: session",
+        "#1 pose2d",
+        "link up",
+    ] {
+        assert!(text.contains(needle), "missing {needle:?} in:\n{text}");
+    }
+    // Ctrl-C: up ends its session and link, stops its children (by PID), exits 0.
+    f.proc(up).signal(libc::SIGINT);
+    assert_eq!(f.proc(up).wait(15 * SEC), Some(0));
+    let rest = f.proc(up).rest_lines(5 * SEC);
+    assert!(
+        rest.iter().any(|l| l.contains("muster up: stopped")),
+        "{rest:?}"
+    );
+    let out = f
+        .command(&["user", "list", "--wait", "300ms"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "the broker is gone too");
+}

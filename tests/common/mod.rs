@@ -44,6 +44,13 @@ impl Proc {
         out
     }
 
+    /// Every remaining stdout line until the output ends (bounded by `timeout`).
+    pub fn rest_lines(&self, timeout: Duration) -> Vec<String> {
+        let deadline = Instant::now() + timeout;
+        std::iter::from_fn(|| self.line(deadline.saturating_duration_since(Instant::now())))
+            .collect()
+    }
+
     /// Writes one control line to the child's stdin.
     pub fn send(&mut self, line: &str) {
         let stdin = self.stdin.as_mut().expect("stdin piped");
