@@ -1,0 +1,531 @@
+//! Occupancy maps in the ROS map_server format, the built-in office floor, and exact
+//! geometry on them: ray casts and clearance.
+//!
+//! Occupied cells are exact squares. A Euclidean distance transform of the occupied
+//! cells gives, anywhere, a lower bound on the distance to the nearest wall; ray casts
+//! jump by that bound (sphere tracing) while far from walls and walk cell by cell
+//! (Amanatides–Woo) near them, so every hit is the exact entry point into an occupied
+//! square. Clearance near walls is the exact point-to-square distance.
+
+use serde::Deserialize;
+use std::path::Path;
+
+/// Why a map could not be loaded. Nothing is loaded on error.
+#[derive(Debug, thiserror::Error)]
+pub enum MapError {
+    /// The YAML file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The YAML does not describe a map (a field is missing or has the wrong type).
+    #[error("{path}: not a map_server YAML: {detail}")]
+    Yaml {
+        /// The file.
+        path: String,
+        /// What is wrong.
+        detail: String,
+    },
+    /// A value is out of range (resolution ≤ 0, thresholds outside 0..1, ...).
+    #[error("{path}: {detail}")]
+    Invalid {
+        /// The file.
+        path: String,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The image named by the YAML could not be decoded (PGM or PNG expected).
+    #[error("{path}: cannot decode the map image: {detail}")]
+    Image {
+        /// The image file.
+        path: String,
+        /// What the decoder said.
+        detail: String,
+    },
+}
+
+#[derive(Deserialize)]
+struct MapYaml {
+    image: String,
+    resolution: f64,
+    origin: Vec<f64>,
+    #[serde(default)]
+    negate: u8,
+    #[serde(default = "default_occupied")]
+    occupied_thresh: f64,
+    #[serde(default = "default_free")]
+    free_thresh: f64,
+}
+
+fn default_occupied() -> f64 {
+    0.65
+}
+fn default_free() -> f64 {
+    0.196
+}
+
+/// A 2-D occupancy grid: cell (i, j) covers x in origin.x + [i, i+1)·res, y likewise
+/// (j = 0 is the bottom row). Unknown cells count as occupied.
+#[derive(Clone, Debug)]
+pub struct OccupancyMap {
+    width: usize,
+    height: usize,
+    resolution: f64,
+    origin: (f64, f64),
+    occupied: Vec<bool>,
+    /// Distance, in cells, from each cell's centre to the nearest occupied cell's centre.
+    edt: Vec<f32>,
+}
+
+/// Most cells a map may have (≈ 1 km² at 5 cm).
+pub const MAX_CELLS: usize = 400_000_000;
+
+impl OccupancyMap {
+    /// A map from a grid of occupied flags, row 0 at the bottom.
+    pub fn from_grid(width: usize, height: usize, resolution: f64, origin: (f64, f64), occupied: Vec<bool>) -> Self {
+        assert_eq!(occupied.len(), width * height, "grid size");
+        assert!(resolution > 0.0, "resolution");
+        let edt = distance_transform(width, height, &occupied);
+        OccupancyMap { width, height, resolution, origin, occupied, edt }
+    }
+
+    /// Loads a ROS map_server YAML and the PGM/PNG image it names (relative to the YAML).
+    pub fn load(yaml_path: &Path) -> Result<Self, MapError> {
+        let path = yaml_path.display().to_string();
+        let text = std::fs::read_to_string(yaml_path).map_err(|source| MapError::Io { path: path.clone(), source })?;
+        let y: MapYaml =
+            serde_norway::from_str(&text).map_err(|e| MapError::Yaml { path: path.clone(), detail: e.to_string() })?;
+        let invalid = |detail: String| MapError::Invalid { path: path.clone(), detail };
+        if !(y.resolution.is_finite() && y.resolution > 0.0) {
+            return Err(invalid(format!("resolution must be > 0, got {}", y.resolution)));
+        }
+        if y.origin.len() != 3 || y.origin.iter().any(|v| !v.is_finite()) {
+            return Err(invalid("origin must be [x, y, yaw]".into()));
+        }
+        if y.origin[2] != 0.0 {
+            return Err(invalid("rotated maps (origin yaw ≠ 0) are not supported".into()));
+        }
+        let ok = |t: f64| (0.0..=1.0).contains(&t);
+        if !ok(y.occupied_thresh) || !ok(y.free_thresh) || y.free_thresh > y.occupied_thresh {
+            return Err(invalid("thresholds must satisfy 0 ≤ free_thresh ≤ occupied_thresh ≤ 1".into()));
+        }
+        let image_path = yaml_path.parent().unwrap_or(Path::new(".")).join(&y.image);
+        let img = image::open(&image_path)
+            .map_err(|e| MapError::Image { path: image_path.display().to_string(), detail: e.to_string() })?
+            .to_luma8();
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        if w == 0 || h == 0 || w.saturating_mul(h) > MAX_CELLS {
+            return Err(invalid(format!("image of {w}x{h} cells: must be 1..={MAX_CELLS} cells")));
+        }
+        let mut occupied = vec![false; w * h];
+        for (x, yy, p) in img.enumerate_pixels() {
+            let v = f64::from(p.0[0]) / 255.0;
+            let occ = if y.negate == 0 { 1.0 - v } else { v };
+            // Unknown (between the thresholds) counts as occupied: robots stay out.
+            let blocked = occ > y.free_thresh;
+            let row = h - 1 - yy as usize; // image row 0 is the top
+            occupied[row * w + x as usize] = blocked;
+        }
+        Ok(Self::from_grid(w, h, y.resolution, (y.origin[0], y.origin[1]), occupied))
+    }
+
+    /// Writes the map as map_server YAML plus a PGM image named `stem.pgm` beside it.
+    pub fn save(&self, yaml_path: &Path) -> std::io::Result<()> {
+        let stem = yaml_path.file_stem().and_then(|s| s.to_str()).unwrap_or("map");
+        let pgm = format!("{stem}.pgm");
+        let mut img = image::GrayImage::new(self.width as u32, self.height as u32);
+        for j in 0..self.height {
+            for i in 0..self.width {
+                let v = if self.occupied[j * self.width + i] { 0 } else { 254 };
+                img.put_pixel(i as u32, (self.height - 1 - j) as u32, image::Luma([v]));
+            }
+        }
+        let dir = yaml_path.parent().unwrap_or(Path::new("."));
+        img.save(dir.join(&pgm)).map_err(std::io::Error::other)?;
+        std::fs::write(
+            yaml_path,
+            format!(
+                "image: {pgm}\nresolution: {}\norigin: [{}, {}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n",
+                self.resolution, self.origin.0, self.origin.1
+            ),
+        )
+    }
+
+    /// The paper's Figure 3, roughly: an office floor of 40 m × 20 m with a corridor
+    /// loop around two rows of offices, doors into every office, a lab and a lobby.
+    pub fn office() -> Self {
+        let res = 0.05;
+        let (w, h) = (800usize, 400usize);
+        let mut g = Grid { w, h, res, cells: vec![false; w * h] };
+        // Outer walls, 0.2 m thick.
+        g.rect(0.0, 0.0, 40.0, 0.2);
+        g.rect(0.0, 19.8, 40.0, 20.0);
+        g.rect(0.0, 0.0, 0.2, 20.0);
+        g.rect(39.8, 0.0, 40.0, 20.0);
+        // Corridors: a loop at y 2..4 and 16..18, x 2..4 and 36..38, and a middle one at y 9..11.
+        // Office blocks are the areas between corridors; their walls have doors.
+        let blocks = [(4.0, 4.0, 36.0, 9.0), (4.0, 11.0, 36.0, 16.0)];
+        for &(x0, y0, x1, y1) in &blocks {
+            g.rect(x0, y0, x1, y0 + 0.1);
+            g.rect(x0, y1 - 0.1, x1, y1);
+            g.rect(x0, y0, x0 + 0.1, y1);
+            g.rect(x1 - 0.1, y0, x1, y1);
+            // Offices 4 m wide, separated by walls, each with a 1 m door on a corridor side.
+            let mut x = x0 + 4.0;
+            while x < x1 - 0.5 {
+                g.rect(x - 0.05, y0, x + 0.05, y1);
+                x += 4.0;
+            }
+            let mut x = x0;
+            let mut k = 0;
+            while x < x1 - 0.5 {
+                let door_y = if k % 2 == 0 { y0 } else { y1 - 0.1 };
+                g.clear(x + 1.5, door_y - 0.05, x + 2.5, door_y + 0.15);
+                x += 4.0;
+                k += 1;
+            }
+        }
+        // The outer band between corridor and outer wall: a lab (west) and lobby (east),
+        // separated from the rest by walls with wide openings.
+        g.rect(0.2, 4.0, 2.0, 4.1);
+        g.rect(38.0, 15.9, 39.8, 16.0);
+        Self::from_grid(w, h, res, (0.0, 0.0), g.cells)
+    }
+
+    /// Tiles this map `nx` × `ny` times (for large benchmark worlds at the same density).
+    pub fn tiled(&self, nx: usize, ny: usize) -> Self {
+        let (w, h) = (self.width * nx, self.height * ny);
+        let mut cells = vec![false; w * h];
+        for j in 0..h {
+            for i in 0..w {
+                cells[j * w + i] = self.occupied[(j % self.height) * self.width + (i % self.width)];
+            }
+        }
+        Self::from_grid(w, h, self.resolution, self.origin, cells)
+    }
+
+    /// Width in cells.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+    /// Height in cells.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+    /// Cell size, metres.
+    pub fn resolution(&self) -> f64 {
+        self.resolution
+    }
+    /// World coordinates of the lower-left corner.
+    pub fn origin(&self) -> (f64, f64) {
+        self.origin
+    }
+    /// Size in metres.
+    pub fn size(&self) -> (f64, f64) {
+        (self.width as f64 * self.resolution, self.height as f64 * self.resolution)
+    }
+
+    /// The cell holding a point, if inside the map.
+    pub fn cell(&self, x: f64, y: f64) -> Option<(usize, usize)> {
+        let i = ((x - self.origin.0) / self.resolution).floor();
+        let j = ((y - self.origin.1) / self.resolution).floor();
+        (i >= 0.0 && j >= 0.0 && (i as usize) < self.width && (j as usize) < self.height)
+            .then(|| (i as usize, j as usize))
+    }
+
+    /// Whether a cell is occupied (outside the map counts as occupied).
+    pub fn occupied(&self, i: i64, j: i64) -> bool {
+        if i < 0 || j < 0 || i as usize >= self.width || j as usize >= self.height {
+            return true;
+        }
+        self.occupied[j as usize * self.width + i as usize]
+    }
+
+    /// Whether the point lies in an occupied cell or outside the map.
+    pub fn blocked(&self, x: f64, y: f64) -> bool {
+        match self.cell(x, y) {
+            Some((i, j)) => self.occupied[j * self.width + i],
+            None => true,
+        }
+    }
+
+    /// A lower bound on the distance from (x, y) to any occupied square, metres.
+    pub fn distance_bound(&self, x: f64, y: f64) -> f64 {
+        match self.cell(x, y) {
+            Some((i, j)) => {
+                let d = f64::from(self.edt[j * self.width + i]) * self.resolution;
+                (d - self.resolution * std::f64::consts::SQRT_2).max(0.0)
+            }
+            None => 0.0,
+        }
+    }
+
+    /// The exact distance from (x, y) to the nearest occupied square, or `limit` if none
+    /// is within `limit` metres.
+    pub fn clearance(&self, x: f64, y: f64, limit: f64) -> f64 {
+        let bound = self.distance_bound(x, y);
+        if bound >= limit {
+            return limit;
+        }
+        if self.blocked(x, y) {
+            return 0.0;
+        }
+        let r = self.resolution;
+        let (ox, oy) = self.origin;
+        let reach = (limit / r).ceil() as i64 + 1;
+        let ci = ((x - ox) / r).floor() as i64;
+        let cj = ((y - oy) / r).floor() as i64;
+        let mut best = limit;
+        for j in cj - reach..=cj + reach {
+            for i in ci - reach..=ci + reach {
+                if !self.occupied(i, j) {
+                    continue;
+                }
+                let (x0, y0) = (ox + i as f64 * r, oy + j as f64 * r);
+                let dx = (x0 - x).max(0.0).max(x - (x0 + r));
+                let dy = (y0 - y).max(0.0).max(y - (y0 + r));
+                best = best.min(dx.hypot(dy));
+            }
+        }
+        best
+    }
+
+    /// Casts a ray from (x, y) along `angle`; the distance to the first occupied square,
+    /// or `None` if there is none within `max` metres.
+    pub fn raycast(&self, x: f64, y: f64, angle: f64, max: f64) -> Option<f64> {
+        let (dx, dy) = (angle.cos(), angle.sin());
+        let r = self.resolution;
+        let (ox, oy) = self.origin;
+        let mut t = 0.0;
+        // Each turn either jumps by the distance bound or walks exactly one cell.
+        while t <= max {
+            let (px, py) = (x + dx * t, y + dy * t);
+            let bound = self.distance_bound(px, py);
+            if bound > 2.0 * r {
+                t += bound;
+                continue;
+            }
+            let i = ((px - ox) / r).floor() as i64;
+            let j = ((py - oy) / r).floor() as i64;
+            if self.occupied(i, j) {
+                return (t <= max).then_some(t);
+            }
+            // Distance along the ray to leave this cell.
+            let tx = if dx > 0.0 {
+                (ox + (i + 1) as f64 * r - px) / dx
+            } else if dx < 0.0 {
+                (ox + i as f64 * r - px) / dx
+            } else {
+                f64::INFINITY
+            };
+            let ty = if dy > 0.0 {
+                (oy + (j + 1) as f64 * r - py) / dy
+            } else if dy < 0.0 {
+                (oy + j as f64 * r - py) / dy
+            } else {
+                f64::INFINITY
+            };
+            // A hair past the boundary so the next cell is the neighbour.
+            t += tx.min(ty).max(0.0) + 1e-9;
+        }
+        None
+    }
+}
+
+struct Grid {
+    w: usize,
+    h: usize,
+    res: f64,
+    cells: Vec<bool>,
+}
+
+impl Grid {
+    fn span(&self, x0: f64, y0: f64, x1: f64, y1: f64) -> (usize, usize, usize, usize) {
+        let c = |v: f64, n: usize| ((v / self.res).round().max(0.0) as usize).min(n);
+        (c(x0, self.w), c(y0, self.h), c(x1, self.w), c(y1, self.h))
+    }
+    fn set(&mut self, x0: f64, y0: f64, x1: f64, y1: f64, v: bool) {
+        let (i0, j0, i1, j1) = self.span(x0, y0, x1, y1);
+        for j in j0..j1.max(j0 + 1).min(self.h) {
+            for i in i0..i1.max(i0 + 1).min(self.w) {
+                self.cells[j * self.w + i] = v;
+            }
+        }
+    }
+    fn rect(&mut self, x0: f64, y0: f64, x1: f64, y1: f64) {
+        self.set(x0, y0, x1, y1, true);
+    }
+    fn clear(&mut self, x0: f64, y0: f64, x1: f64, y1: f64) {
+        self.set(x0, y0, x1, y1, false);
+    }
+}
+
+/// Exact Euclidean distance transform (Felzenszwalb & Huttenlocher), in cells, from
+/// every cell centre to the nearest occupied cell centre.
+fn distance_transform(w: usize, h: usize, occupied: &[bool]) -> Vec<f32> {
+    const INF: f64 = 1e20;
+    let mut f: Vec<f64> = occupied.iter().map(|&o| if o { 0.0 } else { INF }).collect();
+    let n = w.max(h);
+    let (mut d, mut v, mut z, mut col) = (vec![0.0; n], vec![0usize; n], vec![0.0; n + 1], vec![0.0; n]);
+    let mut edt_1d = |src: &[f64], len: usize, out: &mut [f64]| {
+        let mut k = 0usize;
+        v[0] = 0;
+        z[0] = f64::NEG_INFINITY;
+        z[1] = f64::INFINITY;
+        for q in 1..len {
+            loop {
+                let p = v[k];
+                let s = ((src[q] + (q * q) as f64) - (src[p] + (p * p) as f64)) / (2.0 * q as f64 - 2.0 * p as f64);
+                if s <= z[k] && k > 0 {
+                    k -= 1;
+                } else if s <= z[k] {
+                    // k == 0: replace the first parabola.
+                    v[0] = q;
+                    z[0] = f64::NEG_INFINITY;
+                    z[1] = f64::INFINITY;
+                    break;
+                } else {
+                    k += 1;
+                    v[k] = q;
+                    z[k] = s;
+                    z[k + 1] = f64::INFINITY;
+                    break;
+                }
+            }
+        }
+        k = 0;
+        for (q, o) in out.iter_mut().enumerate().take(len) {
+            while z[k + 1] < q as f64 {
+                k += 1;
+            }
+            let p = v[k];
+            *o = (q as f64 - p as f64).powi(2) + src[p];
+        }
+    };
+    // Columns, then rows.
+    for i in 0..w {
+        for j in 0..h {
+            col[j] = f[j * w + i];
+        }
+        edt_1d(&col[..h], h, &mut d[..h]);
+        for j in 0..h {
+            f[j * w + i] = d[j];
+        }
+    }
+    for j in 0..h {
+        let row: Vec<f64> = f[j * w..(j + 1) * w].to_vec();
+        edt_1d(&row, w, &mut d[..w]);
+        f[j * w..(j + 1) * w].copy_from_slice(&d[..w]);
+    }
+    f.into_iter().map(|v| v.min(1e12).sqrt() as f32).collect()
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    /// A 10 m × 10 m room at 0.1 m with 0.1 m walls and a 1-cell pillar at (5.05, 5.05).
+    fn room() -> OccupancyMap {
+        let (w, h) = (100, 100);
+        let mut occ = vec![false; w * h];
+        for k in 0..100 {
+            occ[k] = true;
+            occ[99 * w + k] = true;
+            occ[k * w] = true;
+            occ[k * w + 99] = true;
+        }
+        occ[50 * w + 50] = true;
+        OccupancyMap::from_grid(w, h, 0.1, (0.0, 0.0), occ)
+    }
+
+    #[test]
+    fn distance_transform_matches_brute_force() {
+        let m = room();
+        for &(i, j) in &[(10usize, 10usize), (50, 40), (47, 53), (2, 90), (70, 70)] {
+            let mut best = f64::INFINITY;
+            for jj in 0..100 {
+                for ii in 0..100 {
+                    if m.occupied[jj * 100 + ii] {
+                        best = best.min(((ii as f64 - i as f64).powi(2) + (jj as f64 - j as f64).powi(2)).sqrt());
+                    }
+                }
+            }
+            assert!((f64::from(m.edt[j * 100 + i]) - best).abs() < 1e-4, "({i},{j})");
+        }
+    }
+
+    #[test]
+    fn rays_hit_walls_exactly() {
+        let m = room();
+        // From (2.05, 3.05) east: the wall's inner face is at x = 9.9.
+        let d = m.raycast(2.05, 3.05, 0.0, 20.0).unwrap();
+        assert!((d - (9.9 - 2.05)).abs() < 1e-6, "{d}");
+        // West: inner face at x = 0.1.
+        let d = m.raycast(2.05, 3.05, std::f64::consts::PI, 20.0).unwrap();
+        assert!((d - 1.95).abs() < 1e-6, "{d}");
+        // Diagonal up-right towards the pillar square [5.0, 5.1]²: from (4.0, 4.0) at 45°
+        // the ray enters at (5.0, 5.0), √2 m away.
+        let d = m.raycast(4.0, 4.0, std::f64::consts::FRAC_PI_4, 20.0).unwrap();
+        assert!((d - std::f64::consts::SQRT_2).abs() < 1e-6, "{d}");
+        // Out of range.
+        assert_eq!(m.raycast(2.05, 3.05, 0.0, 5.0), None);
+        // A shallow ray that grazes along the floor wall still ends at the east wall.
+        let d = m.raycast(1.0, 0.15, 0.001, 20.0).unwrap();
+        let expect = (9.9 - 1.0) / 0.001f64.cos();
+        assert!((d - expect).abs() < 1e-3, "{d} vs {expect}");
+    }
+
+    #[test]
+    fn clearance_is_exact_near_walls() {
+        let m = room();
+        assert!((m.clearance(0.35, 5.55, 1.0) - 0.25).abs() < 1e-9);
+        // Corner of the pillar: nearest point (5.0, 5.0) from (4.7, 4.6) is 0.5 away.
+        assert!((m.clearance(4.7, 4.6, 1.0) - 0.5).abs() < 1e-9);
+        assert_eq!(m.clearance(3.0, 3.0, 0.5), 0.5, "capped at the limit");
+        assert_eq!(m.clearance(0.05, 0.05, 1.0), 0.0, "inside a wall");
+    }
+
+    #[test]
+    fn save_and_load_round_trip_and_bad_files_fail_clearly() {
+        let dir = std::env::temp_dir().join(format!("muster-map-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let m = room();
+        let yaml = dir.join("room.yaml");
+        m.save(&yaml).unwrap();
+        let back = OccupancyMap::load(&yaml).unwrap();
+        assert_eq!((back.width(), back.height(), back.resolution()), (100, 100, 0.1));
+        assert_eq!(back.occupied, m.occupied);
+
+        std::fs::write(dir.join("bad1.yaml"), "image: room.pgm\nresolution: 0\norigin: [0, 0, 0]\n").unwrap();
+        assert!(matches!(OccupancyMap::load(&dir.join("bad1.yaml")), Err(MapError::Invalid { .. })));
+        std::fs::write(dir.join("bad2.yaml"), "image: nosuch.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n").unwrap();
+        assert!(matches!(OccupancyMap::load(&dir.join("bad2.yaml")), Err(MapError::Image { .. })));
+        std::fs::write(dir.join("bad3.yaml"), "resolution: [oops\n").unwrap();
+        assert!(matches!(OccupancyMap::load(&dir.join("bad3.yaml")), Err(MapError::Yaml { .. })));
+        std::fs::write(dir.join("bad4.yaml"), "image: room.pgm\nresolution: 0.1\norigin: [0, 0]\n").unwrap();
+        let e = OccupancyMap::load(&dir.join("bad4.yaml")).unwrap_err().to_string();
+        assert!(e.contains("origin must be [x, y, yaw]"), "{e}");
+        std::fs::write(dir.join("notimage.pgm"), "P5 garbage").unwrap();
+        std::fs::write(dir.join("bad5.yaml"), "image: notimage.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n").unwrap();
+        assert!(matches!(OccupancyMap::load(&dir.join("bad5.yaml")), Err(MapError::Image { .. })));
+        assert!(matches!(OccupancyMap::load(&dir.join("missing.yaml")), Err(MapError::Io { .. })));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_office_is_40_by_20_with_corridors() {
+        let m = OccupancyMap::office();
+        assert_eq!(m.size(), (40.0, 20.0));
+        // Corridors are free; office block walls are not.
+        assert!(!m.blocked(3.0, 3.0));
+        assert!(!m.blocked(20.0, 10.0));
+        assert!(!m.blocked(20.0, 17.0));
+        assert!(m.blocked(20.0, 0.1));
+        // A corridor is long: a ray along the middle corridor runs ~30 m before a wall.
+        assert!(m.raycast(3.0, 10.0, 0.0, 50.0).unwrap() > 30.0);
+    }
+}
