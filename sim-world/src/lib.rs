@@ -2,4 +2,8 @@
 //! people they track, in a 2-D building. [`world::World::step`] is the whole simulation,
 //! with no I/O; the `muster sim` process publishes it in shared memory.
 
+pub mod bodies;
+pub mod kinematics;
 pub mod map;
+pub mod scenario;
+pub mod sensors;

@@ -1,0 +1,132 @@
+//! Round bodies (robots and people) in a uniform grid, for collision and occlusion.
+
+use crate::scenario::Colour;
+
+/// A round body at one instant.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Body {
+    /// Centre x, m.
+    pub x: f64,
+    /// Centre y, m.
+    pub y: f64,
+    /// Radius, m.
+    pub r: f64,
+    /// The beacon it carries, if any.
+    pub beacon: Option<Colour>,
+}
+
+/// Bodies bucketed in square cells, built once per step and read by every robot.
+pub struct BodyGrid {
+    bodies: Vec<Body>,
+    cell: f64,
+    origin: (f64, f64),
+    nx: usize,
+    ny: usize,
+    start: Vec<u32>,
+    index: Vec<u32>,
+}
+
+impl BodyGrid {
+    /// Buckets `bodies` in cells of `cell` metres over the rectangle `origin` + `size`.
+    pub fn new(bodies: Vec<Body>, origin: (f64, f64), size: (f64, f64), cell: f64) -> Self {
+        let nx = ((size.0 / cell).ceil() as usize).max(1);
+        let ny = ((size.1 / cell).ceil() as usize).max(1);
+        let mut count = vec![0u32; nx * ny + 1];
+        let key = |b: &Body| {
+            let i = (((b.x - origin.0) / cell).floor().max(0.0) as usize).min(nx - 1);
+            let j = (((b.y - origin.1) / cell).floor().max(0.0) as usize).min(ny - 1);
+            j * nx + i
+        };
+        for b in &bodies {
+            count[key(b) + 1] += 1;
+        }
+        for k in 1..count.len() {
+            count[k] += count[k - 1];
+        }
+        let mut fill = count.clone();
+        let mut index = vec![0u32; bodies.len()];
+        for (n, b) in bodies.iter().enumerate() {
+            let k = key(b);
+            index[fill[k] as usize] = n as u32;
+            fill[k] += 1;
+        }
+        BodyGrid { bodies, cell, origin, nx, ny, start: count, index }
+    }
+
+    /// All bodies.
+    pub fn bodies(&self) -> &[Body] {
+        &self.bodies
+    }
+
+    /// Calls `f(index, body)` for every body whose centre may lie within `radius` of (x, y).
+    pub fn near(&self, x: f64, y: f64, radius: f64, mut f: impl FnMut(usize, &Body)) {
+        let lo_i = (((x - radius - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
+        let hi_i = (((x + radius - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
+        let lo_j = (((y - radius - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
+        let hi_j = (((y + radius - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
+        for j in lo_j..=hi_j {
+            for i in lo_i..=hi_i {
+                let k = j * self.nx + i;
+                for &n in &self.index[self.start[k] as usize..self.start[k + 1] as usize] {
+                    f(n as usize, &self.bodies[n as usize]);
+                }
+            }
+        }
+    }
+
+    /// Half the smallest gap between a body of radius `r` at (x, y) and any other body
+    /// (both may move, so each may close at most half of it), capped at `limit`.
+    pub fn half_gap(&self, skip: usize, x: f64, y: f64, r: f64, limit: f64) -> f64 {
+        let mut best = limit;
+        self.near(x, y, limit * 2.0 + r + 0.5, |n, b| {
+            if n != skip {
+                let gap = ((b.x - x).hypot(b.y - y) - r - b.r) / 2.0;
+                best = best.min(gap);
+            }
+        });
+        best
+    }
+}
+
+/// Distance along a unit ray from (x, y) in direction (dx, dy) to a circle, if it is hit
+/// at a positive distance.
+pub fn ray_circle(x: f64, y: f64, dx: f64, dy: f64, b: &Body) -> Option<f64> {
+    let (ox, oy) = (x - b.x, y - b.y);
+    let bq = ox * dx + oy * dy;
+    let c = ox * ox + oy * oy - b.r * b.r;
+    let disc = bq * bq - c;
+    if disc < 0.0 {
+        return None;
+    }
+    let t = -bq - disc.sqrt();
+    (t > 0.0).then_some(t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn body(x: f64, y: f64) -> Body {
+        Body { x, y, r: 0.25, beacon: None }
+    }
+
+    #[test]
+    fn the_grid_finds_neighbours_and_gaps() {
+        let g = BodyGrid::new(vec![body(1.0, 1.0), body(2.0, 1.0), body(9.0, 9.0)], (0.0, 0.0), (10.0, 10.0), 2.0);
+        let mut seen = Vec::new();
+        g.near(1.0, 1.0, 1.5, |n, _| seen.push(n));
+        seen.sort();
+        assert_eq!(seen, vec![0, 1]);
+        // Centres 1 m apart, radii 0.25: gap 0.5, half 0.25.
+        assert!((g.half_gap(0, 1.0, 1.0, 0.25, 5.0) - 0.25).abs() < 1e-12);
+        assert_eq!(g.half_gap(2, 9.0, 9.0, 0.25, 1.0), 1.0, "nobody near: the cap");
+    }
+
+    #[test]
+    fn rays_hit_circles_at_the_near_side() {
+        let b = body(5.0, 0.0);
+        assert!((ray_circle(0.0, 0.0, 1.0, 0.0, &b).unwrap() - 4.75).abs() < 1e-12);
+        assert_eq!(ray_circle(0.0, 0.0, -1.0, 0.0, &b), None);
+        assert_eq!(ray_circle(0.0, 1.0, 1.0, 0.0, &b), None);
+    }
+}

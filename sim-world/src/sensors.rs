@@ -1,0 +1,333 @@
+//! Sensor models: a laser scanner, a sonar ring and a PTZ camera with a beacon tracker.
+//! Each sees walls (exact ray casts on the map) and every other body.
+
+use crate::bodies::{ray_circle, BodyGrid};
+use crate::kinematics::{wrap, Pose};
+use crate::map::OccupancyMap;
+use crate::scenario::{CameraParams, Colour, LaserParams, SonarParams};
+use rand::RngExt;
+use rand_distr::{Distribution, Normal};
+
+/// Range to the first wall or body along `angle` from `p`, up to `max` (exclusive of `skip`).
+pub fn first_hit(map: &OccupancyMap, bodies: &BodyGrid, skip: usize, p: Pose, angle: f64, max: f64) -> f64 {
+    let mut best = map.raycast(p.x, p.y, angle, max).unwrap_or(max);
+    let (dx, dy) = (angle.cos(), angle.sin());
+    bodies.near(p.x, p.y, best + 0.5, |n, b| {
+        if n != skip {
+            if let Some(t) = ray_circle(p.x, p.y, dx, dy, b) {
+                best = best.min(t);
+            }
+        }
+    });
+    best
+}
+
+fn gaussian(rng: &mut impl rand::Rng, sd: f64) -> f64 {
+    if sd > 0.0 {
+        Normal::new(0.0, sd).map(|n| n.sample(rng)).unwrap_or(0.0)
+    } else {
+        0.0
+    }
+}
+
+/// One laser scan: `beams` ranges from right to left across the field of view. A beam
+/// that hits nothing reads the maximum range.
+pub fn laser_scan(
+    map: &OccupancyMap,
+    bodies: &BodyGrid,
+    skip: usize,
+    p: Pose,
+    params: &LaserParams,
+    rng: &mut impl rand::Rng,
+    out: &mut Vec<f32>,
+) {
+    let n = params.beams;
+    let fov = params.fov_deg.to_radians();
+    let step = if n > 1 { fov / (n - 1) as f64 } else { 0.0 };
+    let first = p.theta - if n > 1 { fov / 2.0 } else { 0.0 };
+    out.clear();
+    for k in 0..n {
+        let a = first + step * k as f64;
+        out.push(map.raycast(p.x, p.y, a, params.range).unwrap_or(params.range) as f32);
+    }
+    // Bodies: each occludes the beams within its angular extent.
+    bodies.near(p.x, p.y, params.range + 0.5, |idx, b| {
+        if idx == skip {
+            return;
+        }
+        let (bx, by) = (b.x - p.x, b.y - p.y);
+        let d = bx.hypot(by);
+        if d <= b.r || d - b.r > params.range {
+            return;
+        }
+        let half = (b.r / d).asin();
+        let centre = by.atan2(bx);
+        let rel = wrap(centre - first);
+        // Beam indices whose angle lies in [rel - half, rel + half] (mod 2π).
+        for (lo, hi) in [(rel - half, rel + half), (rel - half + 2.0 * std::f64::consts::PI, rel + half + 2.0 * std::f64::consts::PI)] {
+            if step == 0.0 {
+                if lo <= 0.0 && hi >= 0.0 {
+                    hit_beam(out, 0, first, p, b);
+                }
+                continue;
+            }
+            let k0 = (lo / step).ceil().max(0.0) as usize;
+            let k1 = (hi / step).floor();
+            if k1 < 0.0 {
+                continue;
+            }
+            for k in k0..=(k1 as usize).min(n - 1) {
+                hit_beam(out, k, first + step * k as f64, p, b);
+            }
+        }
+    });
+    if params.noise > 0.0 {
+        for r in out.iter_mut() {
+            if f64::from(*r) < params.range {
+                *r = (f64::from(*r) + gaussian(rng, params.noise)).clamp(0.0, params.range) as f32;
+            }
+        }
+    }
+}
+
+fn hit_beam(out: &mut [f32], k: usize, angle: f64, p: Pose, b: &crate::bodies::Body) {
+    if let Some(t) = ray_circle(p.x, p.y, angle.cos(), angle.sin(), b) {
+        if (t as f32) < out[k] {
+            out[k] = t as f32;
+        }
+    }
+}
+
+/// One sonar ring reading: per transducer, the nearest echo within its cone.
+pub fn sonar_ring(
+    map: &OccupancyMap,
+    bodies: &BodyGrid,
+    skip: usize,
+    p: Pose,
+    params: &SonarParams,
+    rng: &mut impl rand::Rng,
+    out: &mut Vec<f32>,
+) {
+    out.clear();
+    let cone = params.cone_deg.to_radians();
+    let rays = params.rays_per_cone.max(1);
+    for bearing in &params.bearings_deg {
+        let centre = p.theta + bearing.to_radians();
+        let mut best = params.range;
+        for k in 0..rays {
+            let off = if rays == 1 { 0.0 } else { -cone / 2.0 + cone * k as f64 / (rays - 1) as f64 };
+            best = best.min(first_hit(map, bodies, skip, p, centre + off, params.range));
+        }
+        if best < params.range {
+            best = (best + gaussian(rng, params.noise)).clamp(0.0, params.range);
+        }
+        out.push(best as f32);
+    }
+}
+
+/// Where the camera points and how far it zooms.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ptz {
+    /// Pan, rad, relative to the robot's heading.
+    pub pan: f64,
+    /// Tilt, rad (kept for the interface; the world is 2-D).
+    pub tilt: f64,
+    /// Zoom factor, ≥ 1.
+    pub zoom: f64,
+}
+
+impl Default for Ptz {
+    fn default() -> Self {
+        Ptz { pan: 0.0, tilt: 0.0, zoom: 1.0 }
+    }
+}
+
+/// One detected beacon, as the blob tracker reports it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Detection {
+    /// The beacon's colour.
+    pub colour: Colour,
+    /// Bearing, rad, relative to the robot's heading (positive: left).
+    pub bearing: f64,
+    /// Range, m.
+    pub range: f64,
+}
+
+/// The camera's field of view and range at a zoom.
+pub fn camera_cone(params: &CameraParams, zoom: f64) -> (f64, f64) {
+    let z = zoom.clamp(1.0, params.max_zoom);
+    (params.fov_deg.to_radians() / z, params.range * z.sqrt())
+}
+
+/// One camera frame: every beacon inside the field of view and range, not hidden by a
+/// wall or another body, with noisy bearing and range.
+pub fn camera_frame(
+    map: &OccupancyMap,
+    bodies: &BodyGrid,
+    skip: usize,
+    p: Pose,
+    ptz: Ptz,
+    params: &CameraParams,
+    rng: &mut impl rand::Rng,
+    out: &mut Vec<Detection>,
+) {
+    out.clear();
+    let (fov, range) = camera_cone(params, ptz.zoom);
+    let axis = p.theta + ptz.pan;
+    let mut seen: Vec<(usize, Colour, f64, f64)> = Vec::new();
+    bodies.near(p.x, p.y, range + 0.5, |n, b| {
+        let Some(colour) = b.beacon else { return };
+        if n == skip {
+            return;
+        }
+        let d = (b.x - p.x).hypot(b.y - p.y);
+        let angle = (b.y - p.y).atan2(b.x - p.x);
+        if d > range || wrap(angle - axis).abs() > fov / 2.0 {
+            return;
+        }
+        seen.push((n, colour, angle, d));
+    });
+    for (n, colour, angle, d) in seen {
+        let target = bodies.bodies()[n];
+        let visible_to = d - target.r;
+        if map.raycast(p.x, p.y, angle, visible_to).is_some() {
+            continue; // a wall in between
+        }
+        let (dx, dy) = (angle.cos(), angle.sin());
+        let mut hidden = false;
+        bodies.near(p.x, p.y, d, |m, b| {
+            if m != skip && m != n && !hidden {
+                if let Some(t) = ray_circle(p.x, p.y, dx, dy, b) {
+                    hidden = t < visible_to;
+                }
+            }
+        });
+        if hidden {
+            continue;
+        }
+        let bearing = wrap(angle - p.theta + gaussian(rng, params.bearing_noise_deg.to_radians()));
+        let range = (d * (1.0 + gaussian(rng, params.range_noise))).max(0.0);
+        out.push(Detection { colour, bearing, range });
+    }
+    out.sort_by(|a, b| a.range.total_cmp(&b.range));
+    let _ = rng.random::<u8>(); // keep the stream advancing per frame, seen or not
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::bodies::Body;
+    use rand::SeedableRng;
+
+    /// 10 m × 10 m room, 0.1 m cells, walls on the border; a wall segment from
+    /// (6.0, 2.0) to (6.1, 8.0).
+    fn room() -> OccupancyMap {
+        let (w, h) = (100, 100);
+        let mut occ = vec![false; w * h];
+        for k in 0..100 {
+            occ[k] = true;
+            occ[99 * w + k] = true;
+            occ[k * w] = true;
+            occ[k * w + 99] = true;
+        }
+        for j in 20..80 {
+            occ[j * w + 60] = true;
+        }
+        OccupancyMap::from_grid(w, h, 0.1, (0.0, 0.0), occ)
+    }
+
+    fn quiet_laser() -> LaserParams {
+        LaserParams { noise: 0.0, ..LaserParams::default() }
+    }
+
+    fn rng() -> rand_pcg::Pcg64 {
+        rand_pcg::Pcg64::seed_from_u64(1)
+    }
+
+    #[test]
+    fn laser_ranges_match_hand_geometry() {
+        let map = room();
+        let bodies = BodyGrid::new(vec![Body { x: 3.0, y: 3.0, r: 0.25, beacon: None }], (0.0, 0.0), (10.0, 10.0), 2.0);
+        let p = Pose { x: 3.0, y: 3.0, theta: 0.0 };
+        let mut scan = Vec::new();
+        laser_scan(&map, &bodies, 0, p, &quiet_laser(), &mut rng(), &mut scan);
+        assert_eq!(scan.len(), 181);
+        // Beam 90 points ahead (+x): the wall segment's face at x = 6.0 is 3 m away.
+        assert!((scan[90] - 3.0).abs() < 1e-5, "{}", scan[90]);
+        // Beam 0 points right (-y): the floor wall's face at y = 0.1 is 2.9 m away.
+        assert!((scan[0] - 2.9).abs() < 1e-5, "{}", scan[0]);
+        // Beam 180 points left (+y): the top wall at y = 9.9, 6.9 m away.
+        assert!((scan[180] - 6.9).abs() < 1e-5, "{}", scan[180]);
+        // Beam 45 is at -45°: it reaches the floor at y = 0.1 after 2.9·√2 m.
+        assert!((f64::from(scan[45]) - 2.9 * std::f64::consts::SQRT_2).abs() < 1e-4, "{}", scan[45]);
+    }
+
+    #[test]
+    fn bodies_occlude_laser_beams() {
+        let map = room();
+        let me = Body { x: 3.0, y: 3.0, r: 0.25, beacon: None };
+        let other = Body { x: 5.0, y: 3.0, r: 0.25, beacon: None };
+        let bodies = BodyGrid::new(vec![me, other], (0.0, 0.0), (10.0, 10.0), 2.0);
+        let mut scan = Vec::new();
+        laser_scan(&map, &bodies, 0, Pose { x: 3.0, y: 3.0, theta: 0.0 }, &quiet_laser(), &mut rng(), &mut scan);
+        assert!((scan[90] - 1.75).abs() < 1e-5, "the near side of the other robot: {}", scan[90]);
+        // Half-angle asin(0.25/2) ≈ 7.2°: beams 83..=97 see it, 80 and 100 do not.
+        assert!(scan[84] < 2.0 && scan[96] < 2.0);
+        assert!((scan[80] - 3.0 / 10f32.to_radians().cos()).abs() < 1e-3, "{}", scan[80]);
+    }
+
+    #[test]
+    fn sonar_takes_the_nearest_echo_in_each_cone() {
+        let map = room();
+        let bodies = BodyGrid::new(vec![Body { x: 3.0, y: 3.0, r: 0.25, beacon: None }], (0.0, 0.0), (10.0, 10.0), 2.0);
+        let params = SonarParams { noise: 0.0, bearings_deg: vec![0.0, 90.0, 180.0], ..SonarParams::default() };
+        let mut ring = Vec::new();
+        sonar_ring(&map, &bodies, 0, Pose { x: 3.0, y: 3.0, theta: 0.0 }, &params, &mut rng(), &mut ring);
+        // Ahead: the wall at x = 6.0 is 3 m away straight on (the cone's edge rays are longer).
+        assert!((ring[0] - 3.0).abs() < 1e-5, "{ring:?}");
+        // Left: top wall 6.9 m, beyond the 5 m range.
+        assert_eq!(ring[1], 5.0);
+        // Behind: west wall face at x = 0.1, 2.9 m.
+        assert!((ring[2] - 2.9).abs() < 1e-5);
+    }
+
+    #[test]
+    fn beacons_are_seen_unless_a_wall_or_body_is_in_between() {
+        let map = room();
+        let params = CameraParams { bearing_noise_deg: 0.0, range_noise: 0.0, ..CameraParams::default() };
+        let me = Body { x: 3.0, y: 5.0, r: 0.25, beacon: None };
+        let red = Body { x: 5.0, y: 5.5, r: 0.25, beacon: Some(Colour::Red) };
+        let behind_wall = Body { x: 8.0, y: 5.0, r: 0.25, beacon: Some(Colour::Green) };
+        let bodies = BodyGrid::new(vec![me, red, behind_wall], (0.0, 0.0), (10.0, 10.0), 2.0);
+        let mut det = Vec::new();
+        let p = Pose { x: 3.0, y: 5.0, theta: 0.0 };
+        camera_frame(&map, &bodies, 0, p, Ptz::default(), &params, &mut rng(), &mut det);
+        assert_eq!(det.len(), 1, "green is behind the wall: {det:?}");
+        assert_eq!(det[0].colour, Colour::Red);
+        assert!((det[0].bearing - 0.5f64.atan2(2.0)).abs() < 1e-9);
+        assert!((det[0].range - 2.0f64.hypot(0.5)).abs() < 1e-9);
+        // Panned away, nothing is in view; panned back with a body in between, red is hidden.
+        camera_frame(&map, &bodies, 0, p, Ptz { pan: 1.5, ..Ptz::default() }, &params, &mut rng(), &mut det);
+        assert!(det.is_empty());
+        let blocker = Body { x: 4.0, y: 5.25, r: 0.25, beacon: None };
+        let bodies = BodyGrid::new(vec![me, red, behind_wall, blocker], (0.0, 0.0), (10.0, 10.0), 2.0);
+        camera_frame(&map, &bodies, 0, p, Ptz::default(), &params, &mut rng(), &mut det);
+        assert!(det.is_empty(), "{det:?}");
+        // Without the wall, green would be seen: check from the other side of it.
+        let bodies = BodyGrid::new(vec![Body { x: 7.0, y: 5.0, r: 0.25, beacon: None }, behind_wall], (0.0, 0.0), (10.0, 10.0), 2.0);
+        camera_frame(&map, &bodies, 0, Pose { x: 7.0, y: 5.0, theta: 0.0 }, Ptz::default(), &params, &mut rng(), &mut det);
+        assert_eq!(det.len(), 1);
+        assert_eq!(det[0].colour, Colour::Green);
+    }
+
+    #[test]
+    fn zoom_narrows_the_view_and_reaches_further() {
+        let p = CameraParams::default();
+        let (f1, r1) = camera_cone(&p, 1.0);
+        let (f4, r4) = camera_cone(&p, 4.0);
+        assert!((f1 / f4 - 4.0).abs() < 1e-12);
+        assert!((r4 / r1 - 2.0).abs() < 1e-12);
+        assert_eq!(camera_cone(&p, 100.0), (f4, r4), "zoom is clamped");
+    }
+}
