@@ -50,7 +50,15 @@ impl BodyGrid {
             index[fill[k] as usize] = n as u32;
             fill[k] += 1;
         }
-        BodyGrid { bodies, cell, origin, nx, ny, start: count, index }
+        BodyGrid {
+            bodies,
+            cell,
+            origin,
+            nx,
+            ny,
+            start: count,
+            index,
+        }
     }
 
     /// All bodies.
@@ -60,10 +68,14 @@ impl BodyGrid {
 
     /// Calls `f(index, body)` for every body whose centre may lie within `radius` of (x, y).
     pub fn near(&self, x: f64, y: f64, radius: f64, mut f: impl FnMut(usize, &Body)) {
-        let lo_i = (((x - radius - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
-        let hi_i = (((x + radius - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
-        let lo_j = (((y - radius - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
-        let hi_j = (((y + radius - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
+        let lo_i =
+            (((x - radius - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
+        let hi_i =
+            (((x + radius - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
+        let lo_j =
+            (((y - radius - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
+        let hi_j =
+            (((y + radius - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
         for j in lo_j..=hi_j {
             for i in lo_i..=hi_i {
                 let k = j * self.nx + i;
@@ -107,19 +119,33 @@ mod tests {
     use super::*;
 
     fn body(x: f64, y: f64) -> Body {
-        Body { x, y, r: 0.25, beacon: None }
+        Body {
+            x,
+            y,
+            r: 0.25,
+            beacon: None,
+        }
     }
 
     #[test]
     fn the_grid_finds_neighbours_and_gaps() {
-        let g = BodyGrid::new(vec![body(1.0, 1.0), body(2.0, 1.0), body(9.0, 9.0)], (0.0, 0.0), (10.0, 10.0), 2.0);
+        let g = BodyGrid::new(
+            vec![body(1.0, 1.0), body(2.0, 1.0), body(9.0, 9.0)],
+            (0.0, 0.0),
+            (10.0, 10.0),
+            2.0,
+        );
         let mut seen = Vec::new();
         g.near(1.0, 1.0, 1.5, |n, _| seen.push(n));
         seen.sort();
         assert_eq!(seen, vec![0, 1]);
         // Centres 1 m apart, radii 0.25: gap 0.5, half 0.25.
         assert!((g.half_gap(0, 1.0, 1.0, 0.25, 5.0) - 0.25).abs() < 1e-12);
-        assert_eq!(g.half_gap(2, 9.0, 9.0, 0.25, 1.0), 1.0, "nobody near: the cap");
+        assert_eq!(
+            g.half_gap(2, 9.0, 9.0, 0.25, 1.0),
+            1.0,
+            "nobody near: the cap"
+        );
     }
 
     #[test]

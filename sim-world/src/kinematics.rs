@@ -29,11 +29,19 @@ pub fn wrap(a: f64) -> f64 {
 pub fn integrate(p: Pose, v: f64, w: f64, t: f64) -> Pose {
     let dtheta = w * t;
     if dtheta.abs() < 1e-12 {
-        return Pose { x: p.x + v * t * p.theta.cos(), y: p.y + v * t * p.theta.sin(), theta: p.theta };
+        return Pose {
+            x: p.x + v * t * p.theta.cos(),
+            y: p.y + v * t * p.theta.sin(),
+            theta: p.theta,
+        };
     }
     let r = v / w;
     let th = p.theta + dtheta;
-    Pose { x: p.x + r * (th.sin() - p.theta.sin()), y: p.y - r * (th.cos() - p.theta.cos()), theta: wrap(th) }
+    Pose {
+        x: p.x + r * (th.sin() - p.theta.sin()),
+        y: p.y - r * (th.cos() - p.theta.cos()),
+        theta: wrap(th),
+    }
 }
 
 /// Moves `current` towards `target` by at most `max_step`.
@@ -54,10 +62,17 @@ mod tests {
         // A quarter circle of radius 2 turning left from the origin facing +x ends at (2, 2) facing +y.
         let w = 0.5;
         let p = integrate(Pose::default(), 1.0, w, PI / 2.0 / w);
-        assert!((p.x - 2.0).abs() < 1e-12 && (p.y - 2.0).abs() < 1e-12, "{p:?}");
+        assert!(
+            (p.x - 2.0).abs() < 1e-12 && (p.y - 2.0).abs() < 1e-12,
+            "{p:?}"
+        );
         assert!((p.theta - PI / 2.0).abs() < 1e-12);
         // A full circle returns to the start; many small steps agree with one big one.
-        let start = Pose { x: 1.0, y: -3.0, theta: 0.3 };
+        let start = Pose {
+            x: 1.0,
+            y: -3.0,
+            theta: 0.3,
+        };
         let full = integrate(start, 0.7, 1.1, 2.0 * PI / 1.1);
         assert!((full.x - start.x).abs() < 1e-9 && (full.y - start.y).abs() < 1e-9);
         let mut q = start;
@@ -65,9 +80,22 @@ mod tests {
             q = integrate(q, 0.7, -0.4, 0.01);
         }
         let once = integrate(start, 0.7, -0.4, 10.0);
-        assert!((q.x - once.x).abs() < 1e-9 && (q.y - once.y).abs() < 1e-9 && (wrap(q.theta - once.theta)).abs() < 1e-9);
+        assert!(
+            (q.x - once.x).abs() < 1e-9
+                && (q.y - once.y).abs() < 1e-9
+                && (wrap(q.theta - once.theta)).abs() < 1e-9
+        );
         // Straight line and turning on the spot.
-        let s = integrate(Pose { x: 0.0, y: 0.0, theta: PI / 2.0 }, 2.0, 0.0, 1.5);
+        let s = integrate(
+            Pose {
+                x: 0.0,
+                y: 0.0,
+                theta: PI / 2.0,
+            },
+            2.0,
+            0.0,
+            1.5,
+        );
         assert!(s.x.abs() < 1e-12 && (s.y - 3.0).abs() < 1e-12);
         let spin = integrate(Pose::default(), 0.0, 1.0, 1.0);
         assert_eq!((spin.x, spin.y), (0.0, 0.0));

@@ -5,5 +5,7 @@
 pub mod bodies;
 pub mod kinematics;
 pub mod map;
+pub mod people;
 pub mod scenario;
 pub mod sensors;
+pub mod world;

@@ -85,40 +85,73 @@ pub const MAX_CELLS: usize = 400_000_000;
 
 impl OccupancyMap {
     /// A map from a grid of occupied flags, row 0 at the bottom.
-    pub fn from_grid(width: usize, height: usize, resolution: f64, origin: (f64, f64), occupied: Vec<bool>) -> Self {
+    pub fn from_grid(
+        width: usize,
+        height: usize,
+        resolution: f64,
+        origin: (f64, f64),
+        occupied: Vec<bool>,
+    ) -> Self {
         assert_eq!(occupied.len(), width * height, "grid size");
         assert!(resolution > 0.0, "resolution");
         let edt = distance_transform(width, height, &occupied);
-        OccupancyMap { width, height, resolution, origin, occupied, edt }
+        OccupancyMap {
+            width,
+            height,
+            resolution,
+            origin,
+            occupied,
+            edt,
+        }
     }
 
     /// Loads a ROS map_server YAML and the PGM/PNG image it names (relative to the YAML).
     pub fn load(yaml_path: &Path) -> Result<Self, MapError> {
         let path = yaml_path.display().to_string();
-        let text = std::fs::read_to_string(yaml_path).map_err(|source| MapError::Io { path: path.clone(), source })?;
-        let y: MapYaml =
-            serde_norway::from_str(&text).map_err(|e| MapError::Yaml { path: path.clone(), detail: e.to_string() })?;
-        let invalid = |detail: String| MapError::Invalid { path: path.clone(), detail };
+        let text = std::fs::read_to_string(yaml_path).map_err(|source| MapError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        let y: MapYaml = serde_norway::from_str(&text).map_err(|e| MapError::Yaml {
+            path: path.clone(),
+            detail: e.to_string(),
+        })?;
+        let invalid = |detail: String| MapError::Invalid {
+            path: path.clone(),
+            detail,
+        };
         if !(y.resolution.is_finite() && y.resolution > 0.0) {
-            return Err(invalid(format!("resolution must be > 0, got {}", y.resolution)));
+            return Err(invalid(format!(
+                "resolution must be > 0, got {}",
+                y.resolution
+            )));
         }
         if y.origin.len() != 3 || y.origin.iter().any(|v| !v.is_finite()) {
             return Err(invalid("origin must be [x, y, yaw]".into()));
         }
         if y.origin[2] != 0.0 {
-            return Err(invalid("rotated maps (origin yaw ≠ 0) are not supported".into()));
+            return Err(invalid(
+                "rotated maps (origin yaw ≠ 0) are not supported".into(),
+            ));
         }
         let ok = |t: f64| (0.0..=1.0).contains(&t);
         if !ok(y.occupied_thresh) || !ok(y.free_thresh) || y.free_thresh > y.occupied_thresh {
-            return Err(invalid("thresholds must satisfy 0 ≤ free_thresh ≤ occupied_thresh ≤ 1".into()));
+            return Err(invalid(
+                "thresholds must satisfy 0 ≤ free_thresh ≤ occupied_thresh ≤ 1".into(),
+            ));
         }
         let image_path = yaml_path.parent().unwrap_or(Path::new(".")).join(&y.image);
         let img = image::open(&image_path)
-            .map_err(|e| MapError::Image { path: image_path.display().to_string(), detail: e.to_string() })?
+            .map_err(|e| MapError::Image {
+                path: image_path.display().to_string(),
+                detail: e.to_string(),
+            })?
             .to_luma8();
         let (w, h) = (img.width() as usize, img.height() as usize);
         if w == 0 || h == 0 || w.saturating_mul(h) > MAX_CELLS {
-            return Err(invalid(format!("image of {w}x{h} cells: must be 1..={MAX_CELLS} cells")));
+            return Err(invalid(format!(
+                "image of {w}x{h} cells: must be 1..={MAX_CELLS} cells"
+            )));
         }
         let mut occupied = vec![false; w * h];
         for (x, yy, p) in img.enumerate_pixels() {
@@ -129,17 +162,30 @@ impl OccupancyMap {
             let row = h - 1 - yy as usize; // image row 0 is the top
             occupied[row * w + x as usize] = blocked;
         }
-        Ok(Self::from_grid(w, h, y.resolution, (y.origin[0], y.origin[1]), occupied))
+        Ok(Self::from_grid(
+            w,
+            h,
+            y.resolution,
+            (y.origin[0], y.origin[1]),
+            occupied,
+        ))
     }
 
     /// Writes the map as map_server YAML plus a PGM image named `stem.pgm` beside it.
     pub fn save(&self, yaml_path: &Path) -> std::io::Result<()> {
-        let stem = yaml_path.file_stem().and_then(|s| s.to_str()).unwrap_or("map");
+        let stem = yaml_path
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .unwrap_or("map");
         let pgm = format!("{stem}.pgm");
         let mut img = image::GrayImage::new(self.width as u32, self.height as u32);
         for j in 0..self.height {
             for i in 0..self.width {
-                let v = if self.occupied[j * self.width + i] { 0 } else { 254 };
+                let v = if self.occupied[j * self.width + i] {
+                    0
+                } else {
+                    254
+                };
                 img.put_pixel(i as u32, (self.height - 1 - j) as u32, image::Luma([v]));
             }
         }
@@ -159,7 +205,12 @@ impl OccupancyMap {
     pub fn office() -> Self {
         let res = 0.05;
         let (w, h) = (800usize, 400usize);
-        let mut g = Grid { w, h, res, cells: vec![false; w * h] };
+        let mut g = Grid {
+            w,
+            h,
+            res,
+            cells: vec![false; w * h],
+        };
         // Outer walls, 0.2 m thick.
         g.rect(0.0, 0.0, 40.0, 0.2);
         g.rect(0.0, 19.8, 40.0, 20.0);
@@ -225,7 +276,10 @@ impl OccupancyMap {
     }
     /// Size in metres.
     pub fn size(&self) -> (f64, f64) {
-        (self.width as f64 * self.resolution, self.height as f64 * self.resolution)
+        (
+            self.width as f64 * self.resolution,
+            self.height as f64 * self.resolution,
+        )
     }
 
     /// The cell holding a point, if inside the map.
@@ -296,12 +350,17 @@ impl OccupancyMap {
     /// Casts a ray from (x, y) along `angle`; the distance to the first occupied square,
     /// or `None` if there is none within `max` metres.
     pub fn raycast(&self, x: f64, y: f64, angle: f64, max: f64) -> Option<f64> {
-        let (dx, dy) = (angle.cos(), angle.sin());
+        // Components this small (cos(π/2) ≈ 6e-17) would make a step along them vanish.
+        let tidy = |c: f64| if c.abs() < 1e-12 { 0.0 } else { c };
+        let (dx, dy) = (tidy(angle.cos()), tidy(angle.sin()));
         let r = self.resolution;
         let (ox, oy) = self.origin;
         let mut t = 0.0;
-        // Each turn either jumps by the distance bound or walks exactly one cell.
-        while t <= max {
+        // Each turn either jumps by the distance bound or walks exactly one cell, so a
+        // ray takes at most a few turns per cell it crosses.
+        let mut turns = (4.0 * max / r) as u64 + 64;
+        while t <= max && turns > 0 {
+            turns -= 1;
             let (px, py) = (x + dx * t, y + dy * t);
             let bound = self.distance_bound(px, py);
             if bound > 2.0 * r {
@@ -329,7 +388,7 @@ impl OccupancyMap {
                 f64::INFINITY
             };
             // A hair past the boundary so the next cell is the neighbour.
-            t += tx.min(ty).max(0.0) + 1e-9;
+            t += tx.min(ty).max(0.0) + 1e-9 * (1.0 + t);
         }
         None
     }
@@ -367,9 +426,17 @@ impl Grid {
 /// every cell centre to the nearest occupied cell centre.
 fn distance_transform(w: usize, h: usize, occupied: &[bool]) -> Vec<f32> {
     const INF: f64 = 1e20;
-    let mut f: Vec<f64> = occupied.iter().map(|&o| if o { 0.0 } else { INF }).collect();
+    let mut f: Vec<f64> = occupied
+        .iter()
+        .map(|&o| if o { 0.0 } else { INF })
+        .collect();
     let n = w.max(h);
-    let (mut d, mut v, mut z, mut col) = (vec![0.0; n], vec![0usize; n], vec![0.0; n + 1], vec![0.0; n]);
+    let (mut d, mut v, mut z, mut col) = (
+        vec![0.0; n],
+        vec![0usize; n],
+        vec![0.0; n + 1],
+        vec![0.0; n],
+    );
     let mut edt_1d = |src: &[f64], len: usize, out: &mut [f64]| {
         let mut k = 0usize;
         v[0] = 0;
@@ -378,7 +445,8 @@ fn distance_transform(w: usize, h: usize, occupied: &[bool]) -> Vec<f32> {
         for q in 1..len {
             loop {
                 let p = v[k];
-                let s = ((src[q] + (q * q) as f64) - (src[p] + (p * p) as f64)) / (2.0 * q as f64 - 2.0 * p as f64);
+                let s = ((src[q] + (q * q) as f64) - (src[p] + (p * p) as f64))
+                    / (2.0 * q as f64 - 2.0 * p as f64);
                 if s <= z[k] && k > 0 {
                     k -= 1;
                 } else if s <= z[k] {
@@ -450,11 +518,17 @@ mod tests {
             for jj in 0..100 {
                 for ii in 0..100 {
                     if m.occupied[jj * 100 + ii] {
-                        best = best.min(((ii as f64 - i as f64).powi(2) + (jj as f64 - j as f64).powi(2)).sqrt());
+                        best = best.min(
+                            ((ii as f64 - i as f64).powi(2) + (jj as f64 - j as f64).powi(2))
+                                .sqrt(),
+                        );
                     }
                 }
             }
-            assert!((f64::from(m.edt[j * 100 + i]) - best).abs() < 1e-4, "({i},{j})");
+            assert!(
+                (f64::from(m.edt[j * 100 + i]) - best).abs() < 1e-4,
+                "({i},{j})"
+            );
         }
     }
 
@@ -469,10 +543,21 @@ mod tests {
         assert!((d - 1.95).abs() < 1e-6, "{d}");
         // Diagonal up-right towards the pillar square [5.0, 5.1]²: from (4.0, 4.0) at 45°
         // the ray enters at (5.0, 5.0), √2 m away.
-        let d = m.raycast(4.0, 4.0, std::f64::consts::FRAC_PI_4, 20.0).unwrap();
+        let d = m
+            .raycast(4.0, 4.0, std::f64::consts::FRAC_PI_4, 20.0)
+            .unwrap();
         assert!((d - std::f64::consts::SQRT_2).abs() < 1e-6, "{d}");
         // Out of range.
         assert_eq!(m.raycast(2.05, 3.05, 0.0, 5.0), None);
+        // Axis-aligned rays from exactly on a cell boundary (cos(π/2) is 6e-17, not 0).
+        let d = m
+            .raycast(2.0, 3.0, std::f64::consts::FRAC_PI_2, 20.0)
+            .unwrap();
+        assert!((d - 6.9).abs() < 1e-6, "{d}");
+        let d = m
+            .raycast(2.0, 3.0, -std::f64::consts::FRAC_PI_2, 20.0)
+            .unwrap();
+        assert!((d - 2.9).abs() < 1e-6, "{d}");
         // A shallow ray that grazes along the floor wall still ends at the east wall.
         let d = m.raycast(1.0, 0.15, 0.001, 20.0).unwrap();
         let expect = (9.9 - 1.0) / 0.001f64.cos();
@@ -497,22 +582,58 @@ mod tests {
         let yaml = dir.join("room.yaml");
         m.save(&yaml).unwrap();
         let back = OccupancyMap::load(&yaml).unwrap();
-        assert_eq!((back.width(), back.height(), back.resolution()), (100, 100, 0.1));
+        assert_eq!(
+            (back.width(), back.height(), back.resolution()),
+            (100, 100, 0.1)
+        );
         assert_eq!(back.occupied, m.occupied);
 
-        std::fs::write(dir.join("bad1.yaml"), "image: room.pgm\nresolution: 0\norigin: [0, 0, 0]\n").unwrap();
-        assert!(matches!(OccupancyMap::load(&dir.join("bad1.yaml")), Err(MapError::Invalid { .. })));
-        std::fs::write(dir.join("bad2.yaml"), "image: nosuch.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n").unwrap();
-        assert!(matches!(OccupancyMap::load(&dir.join("bad2.yaml")), Err(MapError::Image { .. })));
+        std::fs::write(
+            dir.join("bad1.yaml"),
+            "image: room.pgm\nresolution: 0\norigin: [0, 0, 0]\n",
+        )
+        .unwrap();
+        assert!(matches!(
+            OccupancyMap::load(&dir.join("bad1.yaml")),
+            Err(MapError::Invalid { .. })
+        ));
+        std::fs::write(
+            dir.join("bad2.yaml"),
+            "image: nosuch.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n",
+        )
+        .unwrap();
+        assert!(matches!(
+            OccupancyMap::load(&dir.join("bad2.yaml")),
+            Err(MapError::Image { .. })
+        ));
         std::fs::write(dir.join("bad3.yaml"), "resolution: [oops\n").unwrap();
-        assert!(matches!(OccupancyMap::load(&dir.join("bad3.yaml")), Err(MapError::Yaml { .. })));
-        std::fs::write(dir.join("bad4.yaml"), "image: room.pgm\nresolution: 0.1\norigin: [0, 0]\n").unwrap();
-        let e = OccupancyMap::load(&dir.join("bad4.yaml")).unwrap_err().to_string();
+        assert!(matches!(
+            OccupancyMap::load(&dir.join("bad3.yaml")),
+            Err(MapError::Yaml { .. })
+        ));
+        std::fs::write(
+            dir.join("bad4.yaml"),
+            "image: room.pgm\nresolution: 0.1\norigin: [0, 0]\n",
+        )
+        .unwrap();
+        let e = OccupancyMap::load(&dir.join("bad4.yaml"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("origin must be [x, y, yaw]"), "{e}");
         std::fs::write(dir.join("notimage.pgm"), "P5 garbage").unwrap();
-        std::fs::write(dir.join("bad5.yaml"), "image: notimage.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n").unwrap();
-        assert!(matches!(OccupancyMap::load(&dir.join("bad5.yaml")), Err(MapError::Image { .. })));
-        assert!(matches!(OccupancyMap::load(&dir.join("missing.yaml")), Err(MapError::Io { .. })));
+        std::fs::write(
+            dir.join("bad5.yaml"),
+            "image: notimage.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n",
+        )
+        .unwrap();
+        assert!(matches!(
+            OccupancyMap::load(&dir.join("bad5.yaml")),
+            Err(MapError::Image { .. })
+        ));
+        assert!(matches!(
+            OccupancyMap::load(&dir.join("missing.yaml")),
+            Err(MapError::Io { .. })
+        ));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -25,8 +25,14 @@ pub enum Colour {
 
 impl Colour {
     /// All colours, in code order.
-    pub const ALL: [Colour; 6] =
-        [Colour::Red, Colour::Green, Colour::Blue, Colour::Yellow, Colour::Magenta, Colour::Cyan];
+    pub const ALL: [Colour; 6] = [
+        Colour::Red,
+        Colour::Green,
+        Colour::Blue,
+        Colour::Yellow,
+        Colour::Magenta,
+        Colour::Cyan,
+    ];
 
     /// A small code for shared memory.
     pub fn code(self) -> u8 {
@@ -106,7 +112,13 @@ pub struct LaserParams {
 
 impl Default for LaserParams {
     fn default() -> Self {
-        LaserParams { beams: 181, fov_deg: 180.0, range: 8.0, rate: 10.0, noise: 0.01 }
+        LaserParams {
+            beams: 181,
+            fov_deg: 180.0,
+            range: 8.0,
+            rate: 10.0,
+            noise: 0.01,
+        }
     }
 }
 
@@ -132,8 +144,8 @@ impl Default for SonarParams {
     fn default() -> Self {
         SonarParams {
             bearings_deg: vec![
-                90.0, 50.0, 30.0, 10.0, -10.0, -30.0, -50.0, -90.0, -90.0, -130.0, -150.0, -170.0, 170.0, 150.0,
-                130.0, 90.0,
+                90.0, 50.0, 30.0, 10.0, -10.0, -30.0, -50.0, -90.0, -90.0, -130.0, -150.0, -170.0,
+                170.0, 150.0, 130.0, 90.0,
             ],
             cone_deg: 15.0,
             range: 5.0,
@@ -284,7 +296,8 @@ impl Scenario {
     pub fn load(path: &std::path::Path) -> Result<Self, ScenarioError> {
         let p = path.display().to_string();
         let text = std::fs::read_to_string(path).map_err(|e| ScenarioError::Io(p.clone(), e))?;
-        let mut s: Scenario = toml::from_str(&text).map_err(|e| ScenarioError::Toml(p, e.to_string()))?;
+        let mut s: Scenario =
+            toml::from_str(&text).map_err(|e| ScenarioError::Toml(p, e.to_string()))?;
         if let Some(m) = &s.map {
             if m.is_relative() {
                 s.map = Some(path.parent().unwrap_or(std::path::Path::new(".")).join(m));
@@ -303,25 +316,45 @@ impl Scenario {
         let mut names = std::collections::BTreeSet::new();
         for r in &self.robots {
             if r.name.is_empty() || r.name.len() > 31 || !names.insert(r.name.as_str()) {
-                return bad(format!("robot name {:?} empty, too long or repeated", r.name));
+                return bad(format!(
+                    "robot name {:?} empty, too long or repeated",
+                    r.name
+                ));
             }
             let d = &r.drive;
-            if !(d.radius > 0.0 && d.max_speed >= 0.0 && d.max_turn >= 0.0 && d.max_accel > 0.0 && d.max_turn_accel > 0.0) {
-                return bad(format!("robot {}: drive parameters must be positive", r.name));
+            if !(d.radius > 0.0
+                && d.max_speed >= 0.0
+                && d.max_turn >= 0.0
+                && d.max_accel > 0.0
+                && d.max_turn_accel > 0.0)
+            {
+                return bad(format!(
+                    "robot {}: drive parameters must be positive",
+                    r.name
+                ));
             }
             if let Some(l) = &r.laser {
                 if l.beams == 0 || l.beams > 1081 || !(l.rate > 0.0) || !(l.range > 0.0) {
-                    return bad(format!("robot {}: laser needs 1..=1081 beams, rate > 0, range > 0", r.name));
+                    return bad(format!(
+                        "robot {}: laser needs 1..=1081 beams, rate > 0, range > 0",
+                        r.name
+                    ));
                 }
             }
             if let Some(s) = &r.sonar {
                 if s.bearings_deg.len() > 32 || s.rays_per_cone == 0 || !(s.rate > 0.0) {
-                    return bad(format!("robot {}: at most 32 sonars, ≥ 1 ray per cone, rate > 0", r.name));
+                    return bad(format!(
+                        "robot {}: at most 32 sonars, ≥ 1 ray per cone, rate > 0",
+                        r.name
+                    ));
                 }
             }
             if let Some(c) = &r.camera {
                 if !(c.rate > 0.0 && c.max_zoom >= 1.0 && c.fov_deg > 0.0) {
-                    return bad(format!("robot {}: camera rate > 0, max_zoom ≥ 1, fov > 0", r.name));
+                    return bad(format!(
+                        "robot {}: camera rate > 0, max_zoom ≥ 1, fov > 0",
+                        r.name
+                    ));
                 }
             }
         }
@@ -362,9 +395,24 @@ impl Scenario {
                 d1,
             ],
             people: vec![
-                PersonSpec { name: "alice".into(), beacon: Colour::Red, start: [10.0, 3.0], speed: 0.7 },
-                PersonSpec { name: "bob".into(), beacon: Colour::Green, start: [20.0, 17.0], speed: 0.6 },
-                PersonSpec { name: "carol".into(), beacon: Colour::Blue, start: [3.0, 10.0], speed: 0.8 },
+                PersonSpec {
+                    name: "alice".into(),
+                    beacon: Colour::Red,
+                    start: [10.0, 3.0],
+                    speed: 0.7,
+                },
+                PersonSpec {
+                    name: "bob".into(),
+                    beacon: Colour::Green,
+                    start: [20.0, 17.0],
+                    speed: 0.6,
+                },
+                PersonSpec {
+                    name: "carol".into(),
+                    beacon: Colour::Blue,
+                    start: [3.0, 10.0],
+                    speed: 0.8,
+                },
             ],
             places: office_places(),
         }
@@ -374,17 +422,41 @@ impl Scenario {
 /// Places of the built-in office: corridor points and the middle of every office.
 pub fn office_places() -> Vec<Place> {
     let mut p = vec![
-        Place { name: "corridor-sw".into(), at: [3.0, 3.0] },
-        Place { name: "corridor-se".into(), at: [37.0, 3.0] },
-        Place { name: "corridor-nw".into(), at: [3.0, 17.0] },
-        Place { name: "corridor-ne".into(), at: [37.0, 17.0] },
-        Place { name: "corridor-mid".into(), at: [20.0, 10.0] },
-        Place { name: "lab".into(), at: [1.0, 2.0] },
-        Place { name: "lobby".into(), at: [38.9, 18.0] },
+        Place {
+            name: "corridor-sw".into(),
+            at: [3.0, 3.0],
+        },
+        Place {
+            name: "corridor-se".into(),
+            at: [37.0, 3.0],
+        },
+        Place {
+            name: "corridor-nw".into(),
+            at: [3.0, 17.0],
+        },
+        Place {
+            name: "corridor-ne".into(),
+            at: [37.0, 17.0],
+        },
+        Place {
+            name: "corridor-mid".into(),
+            at: [20.0, 10.0],
+        },
+        Place {
+            name: "lab".into(),
+            at: [1.0, 2.0],
+        },
+        Place {
+            name: "lobby".into(),
+            at: [38.9, 18.0],
+        },
     ];
     for (row, y) in [("south", 6.5), ("north", 13.5)] {
         for k in 0..8 {
-            p.push(Place { name: format!("office-{row}-{k}"), at: [6.0 + 4.0 * k as f64, y] });
+            p.push(Place {
+                name: format!("office-{row}-{k}"),
+                at: [6.0 + 4.0 * k as f64, y],
+            });
         }
     }
     p
@@ -402,13 +474,21 @@ mod tests {
         let text = toml::to_string(&s).unwrap();
         let back: Scenario = toml::from_str(&text).unwrap();
         assert_eq!(back, s);
-        assert_eq!(s.robots.iter().map(|r| r.name.as_str()).collect::<Vec<_>>(), ["T1", "T2", "T3", "D1"]);
-        assert_eq!(s.people.iter().map(|p| p.beacon).collect::<Vec<_>>(), [Colour::Red, Colour::Green, Colour::Blue]);
+        assert_eq!(
+            s.robots.iter().map(|r| r.name.as_str()).collect::<Vec<_>>(),
+            ["T1", "T2", "T3", "D1"]
+        );
+        assert_eq!(
+            s.people.iter().map(|p| p.beacon).collect::<Vec<_>>(),
+            [Colour::Red, Colour::Green, Colour::Blue]
+        );
     }
 
     #[test]
     fn a_minimal_file_gets_defaults_and_bad_values_are_refused() {
-        let s: Scenario = toml::from_str("[[robots]]\nname = \"r\"\npose = [1.0, 2.0, 90.0]\nlaser = {}\n").unwrap();
+        let s: Scenario =
+            toml::from_str("[[robots]]\nname = \"r\"\npose = [1.0, 2.0, 90.0]\nlaser = {}\n")
+                .unwrap();
         assert_eq!(s.dt, 0.01);
         assert_eq!(s.robots[0].laser.as_ref().unwrap().beams, 181);
         assert_eq!(s.robots[0].drive, DriveParams::default());

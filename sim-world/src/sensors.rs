@@ -9,7 +9,14 @@ use rand::RngExt;
 use rand_distr::{Distribution, Normal};
 
 /// Range to the first wall or body along `angle` from `p`, up to `max` (exclusive of `skip`).
-pub fn first_hit(map: &OccupancyMap, bodies: &BodyGrid, skip: usize, p: Pose, angle: f64, max: f64) -> f64 {
+pub fn first_hit(
+    map: &OccupancyMap,
+    bodies: &BodyGrid,
+    skip: usize,
+    p: Pose,
+    angle: f64,
+    max: f64,
+) -> f64 {
     let mut best = map.raycast(p.x, p.y, angle, max).unwrap_or(max);
     let (dx, dy) = (angle.cos(), angle.sin());
     bodies.near(p.x, p.y, best + 0.5, |n, b| {
@@ -48,7 +55,10 @@ pub fn laser_scan(
     out.clear();
     for k in 0..n {
         let a = first + step * k as f64;
-        out.push(map.raycast(p.x, p.y, a, params.range).unwrap_or(params.range) as f32);
+        out.push(
+            map.raycast(p.x, p.y, a, params.range)
+                .unwrap_or(params.range) as f32,
+        );
     }
     // Bodies: each occludes the beams within its angular extent.
     bodies.near(p.x, p.y, params.range + 0.5, |idx, b| {
@@ -64,7 +74,13 @@ pub fn laser_scan(
         let centre = by.atan2(bx);
         let rel = wrap(centre - first);
         // Beam indices whose angle lies in [rel - half, rel + half] (mod 2π).
-        for (lo, hi) in [(rel - half, rel + half), (rel - half + 2.0 * std::f64::consts::PI, rel + half + 2.0 * std::f64::consts::PI)] {
+        for (lo, hi) in [
+            (rel - half, rel + half),
+            (
+                rel - half + 2.0 * std::f64::consts::PI,
+                rel + half + 2.0 * std::f64::consts::PI,
+            ),
+        ] {
             if step == 0.0 {
                 if lo <= 0.0 && hi >= 0.0 {
                     hit_beam(out, 0, first, p, b);
@@ -115,7 +131,11 @@ pub fn sonar_ring(
         let centre = p.theta + bearing.to_radians();
         let mut best = params.range;
         for k in 0..rays {
-            let off = if rays == 1 { 0.0 } else { -cone / 2.0 + cone * k as f64 / (rays - 1) as f64 };
+            let off = if rays == 1 {
+                0.0
+            } else {
+                -cone / 2.0 + cone * k as f64 / (rays - 1) as f64
+            };
             best = best.min(first_hit(map, bodies, skip, p, centre + off, params.range));
         }
         if best < params.range {
@@ -138,7 +158,11 @@ pub struct Ptz {
 
 impl Default for Ptz {
     fn default() -> Self {
-        Ptz { pan: 0.0, tilt: 0.0, zoom: 1.0 }
+        Ptz {
+            pan: 0.0,
+            tilt: 0.0,
+            zoom: 1.0,
+        }
     }
 }
 
@@ -207,7 +231,11 @@ pub fn camera_frame(
         }
         let bearing = wrap(angle - p.theta + gaussian(rng, params.bearing_noise_deg.to_radians()));
         let range = (d * (1.0 + gaussian(rng, params.range_noise))).max(0.0);
-        out.push(Detection { colour, bearing, range });
+        out.push(Detection {
+            colour,
+            bearing,
+            range,
+        });
     }
     out.sort_by(|a, b| a.range.total_cmp(&b.range));
     let _ = rng.random::<u8>(); // keep the stream advancing per frame, seen or not
@@ -238,7 +266,10 @@ mod tests {
     }
 
     fn quiet_laser() -> LaserParams {
-        LaserParams { noise: 0.0, ..LaserParams::default() }
+        LaserParams {
+            noise: 0.0,
+            ..LaserParams::default()
+        }
     }
 
     fn rng() -> rand_pcg::Pcg64 {
@@ -248,8 +279,22 @@ mod tests {
     #[test]
     fn laser_ranges_match_hand_geometry() {
         let map = room();
-        let bodies = BodyGrid::new(vec![Body { x: 3.0, y: 3.0, r: 0.25, beacon: None }], (0.0, 0.0), (10.0, 10.0), 2.0);
-        let p = Pose { x: 3.0, y: 3.0, theta: 0.0 };
+        let bodies = BodyGrid::new(
+            vec![Body {
+                x: 3.0,
+                y: 3.0,
+                r: 0.25,
+                beacon: None,
+            }],
+            (0.0, 0.0),
+            (10.0, 10.0),
+            2.0,
+        );
+        let p = Pose {
+            x: 3.0,
+            y: 3.0,
+            theta: 0.0,
+        };
         let mut scan = Vec::new();
         laser_scan(&map, &bodies, 0, p, &quiet_laser(), &mut rng(), &mut scan);
         assert_eq!(scan.len(), 181);
@@ -260,30 +305,90 @@ mod tests {
         // Beam 180 points left (+y): the top wall at y = 9.9, 6.9 m away.
         assert!((scan[180] - 6.9).abs() < 1e-5, "{}", scan[180]);
         // Beam 45 is at -45°: it reaches the floor at y = 0.1 after 2.9·√2 m.
-        assert!((f64::from(scan[45]) - 2.9 * std::f64::consts::SQRT_2).abs() < 1e-4, "{}", scan[45]);
+        assert!(
+            (f64::from(scan[45]) - 2.9 * std::f64::consts::SQRT_2).abs() < 1e-4,
+            "{}",
+            scan[45]
+        );
     }
 
     #[test]
     fn bodies_occlude_laser_beams() {
         let map = room();
-        let me = Body { x: 3.0, y: 3.0, r: 0.25, beacon: None };
-        let other = Body { x: 5.0, y: 3.0, r: 0.25, beacon: None };
+        let me = Body {
+            x: 3.0,
+            y: 3.0,
+            r: 0.25,
+            beacon: None,
+        };
+        let other = Body {
+            x: 5.0,
+            y: 3.0,
+            r: 0.25,
+            beacon: None,
+        };
         let bodies = BodyGrid::new(vec![me, other], (0.0, 0.0), (10.0, 10.0), 2.0);
         let mut scan = Vec::new();
-        laser_scan(&map, &bodies, 0, Pose { x: 3.0, y: 3.0, theta: 0.0 }, &quiet_laser(), &mut rng(), &mut scan);
-        assert!((scan[90] - 1.75).abs() < 1e-5, "the near side of the other robot: {}", scan[90]);
+        laser_scan(
+            &map,
+            &bodies,
+            0,
+            Pose {
+                x: 3.0,
+                y: 3.0,
+                theta: 0.0,
+            },
+            &quiet_laser(),
+            &mut rng(),
+            &mut scan,
+        );
+        assert!(
+            (scan[90] - 1.75).abs() < 1e-5,
+            "the near side of the other robot: {}",
+            scan[90]
+        );
         // Half-angle asin(0.25/2) ≈ 7.2°: beams 83..=97 see it, 80 and 100 do not.
         assert!(scan[84] < 2.0 && scan[96] < 2.0);
-        assert!((scan[80] - 3.0 / 10f32.to_radians().cos()).abs() < 1e-3, "{}", scan[80]);
+        assert!(
+            (scan[80] - 3.0 / 10f32.to_radians().cos()).abs() < 1e-3,
+            "{}",
+            scan[80]
+        );
     }
 
     #[test]
     fn sonar_takes_the_nearest_echo_in_each_cone() {
         let map = room();
-        let bodies = BodyGrid::new(vec![Body { x: 3.0, y: 3.0, r: 0.25, beacon: None }], (0.0, 0.0), (10.0, 10.0), 2.0);
-        let params = SonarParams { noise: 0.0, bearings_deg: vec![0.0, 90.0, 180.0], ..SonarParams::default() };
+        let bodies = BodyGrid::new(
+            vec![Body {
+                x: 3.0,
+                y: 3.0,
+                r: 0.25,
+                beacon: None,
+            }],
+            (0.0, 0.0),
+            (10.0, 10.0),
+            2.0,
+        );
+        let params = SonarParams {
+            noise: 0.0,
+            bearings_deg: vec![0.0, 90.0, 180.0],
+            ..SonarParams::default()
+        };
         let mut ring = Vec::new();
-        sonar_ring(&map, &bodies, 0, Pose { x: 3.0, y: 3.0, theta: 0.0 }, &params, &mut rng(), &mut ring);
+        sonar_ring(
+            &map,
+            &bodies,
+            0,
+            Pose {
+                x: 3.0,
+                y: 3.0,
+                theta: 0.0,
+            },
+            &params,
+            &mut rng(),
+            &mut ring,
+        );
         // Ahead: the wall at x = 6.0 is 3 m away straight on (the cone's edge rays are longer).
         assert!((ring[0] - 3.0).abs() < 1e-5, "{ring:?}");
         // Left: top wall 6.9 m, beyond the 5 m range.
@@ -295,28 +400,117 @@ mod tests {
     #[test]
     fn beacons_are_seen_unless_a_wall_or_body_is_in_between() {
         let map = room();
-        let params = CameraParams { bearing_noise_deg: 0.0, range_noise: 0.0, ..CameraParams::default() };
-        let me = Body { x: 3.0, y: 5.0, r: 0.25, beacon: None };
-        let red = Body { x: 5.0, y: 5.5, r: 0.25, beacon: Some(Colour::Red) };
-        let behind_wall = Body { x: 8.0, y: 5.0, r: 0.25, beacon: Some(Colour::Green) };
+        let params = CameraParams {
+            bearing_noise_deg: 0.0,
+            range_noise: 0.0,
+            ..CameraParams::default()
+        };
+        let me = Body {
+            x: 3.0,
+            y: 5.0,
+            r: 0.25,
+            beacon: None,
+        };
+        let red = Body {
+            x: 5.0,
+            y: 5.5,
+            r: 0.25,
+            beacon: Some(Colour::Red),
+        };
+        let behind_wall = Body {
+            x: 8.0,
+            y: 5.0,
+            r: 0.25,
+            beacon: Some(Colour::Green),
+        };
         let bodies = BodyGrid::new(vec![me, red, behind_wall], (0.0, 0.0), (10.0, 10.0), 2.0);
         let mut det = Vec::new();
-        let p = Pose { x: 3.0, y: 5.0, theta: 0.0 };
-        camera_frame(&map, &bodies, 0, p, Ptz::default(), &params, &mut rng(), &mut det);
+        let p = Pose {
+            x: 3.0,
+            y: 5.0,
+            theta: 0.0,
+        };
+        camera_frame(
+            &map,
+            &bodies,
+            0,
+            p,
+            Ptz::default(),
+            &params,
+            &mut rng(),
+            &mut det,
+        );
         assert_eq!(det.len(), 1, "green is behind the wall: {det:?}");
         assert_eq!(det[0].colour, Colour::Red);
         assert!((det[0].bearing - 0.5f64.atan2(2.0)).abs() < 1e-9);
         assert!((det[0].range - 2.0f64.hypot(0.5)).abs() < 1e-9);
         // Panned away, nothing is in view; panned back with a body in between, red is hidden.
-        camera_frame(&map, &bodies, 0, p, Ptz { pan: 1.5, ..Ptz::default() }, &params, &mut rng(), &mut det);
+        camera_frame(
+            &map,
+            &bodies,
+            0,
+            p,
+            Ptz {
+                pan: 1.5,
+                ..Ptz::default()
+            },
+            &params,
+            &mut rng(),
+            &mut det,
+        );
         assert!(det.is_empty());
-        let blocker = Body { x: 4.0, y: 5.25, r: 0.25, beacon: None };
-        let bodies = BodyGrid::new(vec![me, red, behind_wall, blocker], (0.0, 0.0), (10.0, 10.0), 2.0);
-        camera_frame(&map, &bodies, 0, p, Ptz::default(), &params, &mut rng(), &mut det);
+        let blocker = Body {
+            x: 4.0,
+            y: 5.25,
+            r: 0.25,
+            beacon: None,
+        };
+        let bodies = BodyGrid::new(
+            vec![me, red, behind_wall, blocker],
+            (0.0, 0.0),
+            (10.0, 10.0),
+            2.0,
+        );
+        camera_frame(
+            &map,
+            &bodies,
+            0,
+            p,
+            Ptz::default(),
+            &params,
+            &mut rng(),
+            &mut det,
+        );
         assert!(det.is_empty(), "{det:?}");
         // Without the wall, green would be seen: check from the other side of it.
-        let bodies = BodyGrid::new(vec![Body { x: 7.0, y: 5.0, r: 0.25, beacon: None }, behind_wall], (0.0, 0.0), (10.0, 10.0), 2.0);
-        camera_frame(&map, &bodies, 0, Pose { x: 7.0, y: 5.0, theta: 0.0 }, Ptz::default(), &params, &mut rng(), &mut det);
+        let bodies = BodyGrid::new(
+            vec![
+                Body {
+                    x: 7.0,
+                    y: 5.0,
+                    r: 0.25,
+                    beacon: None,
+                },
+                behind_wall,
+            ],
+            (0.0, 0.0),
+            (10.0, 10.0),
+            2.0,
+        );
+        camera_frame(
+            &map,
+            &bodies,
+            0,
+            Pose {
+                x: 7.0,
+                y: 5.0,
+                theta: 0.0,
+            },
+            Ptz::default(),
+            &params,
+            &mut rng(),
+            &mut det,
+        );
         assert_eq!(det.len(), 1);
         assert_eq!(det[0].colour, Colour::Green);
     }
