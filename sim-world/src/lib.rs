@@ -2,6 +2,7 @@
 //! people they track, in a 2-D building. [`world::World::step`] is the whole simulation,
 //! with no I/O; the `muster sim` process publishes it in shared memory.
 
+pub mod bench;
 pub mod bodies;
 pub mod kinematics;
 pub mod map;

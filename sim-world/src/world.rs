@@ -273,6 +273,11 @@ impl World {
         }
     }
 
+    /// Every body (robots, then people) bucketed for queries, as the sensors see them now.
+    pub fn body_grid_snapshot(&self) -> BodyGrid {
+        self.body_grid()
+    }
+
     fn body_grid(&self) -> BodyGrid {
         let mut bodies: Vec<Body> = self
             .robots
