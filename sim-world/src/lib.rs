@@ -7,6 +7,8 @@ pub mod bodies;
 pub mod kinematics;
 pub mod map;
 pub mod people;
+pub mod render;
 pub mod scenario;
 pub mod sensors;
+pub mod shm;
 pub mod world;
