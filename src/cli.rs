@@ -27,6 +27,9 @@ pub enum Command {
     /// Run the main job on the built-in default: a broker and synthetic systems as child
     /// processes, and a user listing, requesting, receiving data and linking.
     Up(UpArgs),
+    /// Run the simulator: every robot's kinematics and sensors, and people, published in
+    /// shared memory. Also renders a picture, exports the map, or benchmarks.
+    Sim(SimArgs),
     /// Benchmarks that print figures.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -195,4 +198,50 @@ pub struct UpArgs {
     /// Stop by itself after this long (default: run until Ctrl-C).
     #[arg(long, value_parser = duration)]
     pub duration: Option<Duration>,
+}
+
+#[derive(Args, Debug)]
+pub struct SimArgs {
+    /// Scenario file (TOML); default: the paper's three trackers, delivery robot, three people.
+    #[arg(long)]
+    pub scenario: Option<std::path::PathBuf>,
+    /// Map (ROS map_server YAML), overriding the scenario's.
+    #[arg(long)]
+    pub map: Option<std::path::PathBuf>,
+    /// Simulated seconds per wall-clock second.
+    #[arg(long, default_value_t = 1.0, conflicts_with = "as_fast_as_possible")]
+    pub speed: f64,
+    /// Run as fast as the machine allows.
+    #[arg(long)]
+    pub as_fast_as_possible: bool,
+    /// Seed of every random draw (overrides the scenario's).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Stop after this much simulated time.
+    #[arg(long, value_parser = duration)]
+    pub duration: Option<Duration>,
+    /// Draw the world into this PNG (after `--at` simulated seconds) and exit.
+    #[arg(long)]
+    pub render: Option<std::path::PathBuf>,
+    /// Simulated seconds to run before `--render`.
+    #[arg(long, default_value_t = 0.0, requires = "render")]
+    pub at: f64,
+    /// Print the real-time factor for 1, 10, 100, 1000 and 10000 wandering robots with all
+    /// sensors on, and the time per laser beam; then exit.
+    #[arg(long)]
+    pub bench: bool,
+    /// Robot counts for `--bench`.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "1,10,100,1000,10000",
+        requires = "bench"
+    )]
+    pub robots: Vec<usize>,
+    /// With `--bench`: one JSON object a line.
+    #[arg(long, requires = "bench")]
+    pub json: bool,
+    /// Write the map (built-in office unless `--map`) as map_server YAML + PGM and exit.
+    #[arg(long)]
+    pub export_map: Option<std::path::PathBuf>,
 }

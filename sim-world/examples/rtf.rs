@@ -1,10 +1,16 @@
 //! Quick look at the real-time factor: `cargo run --release -p muster-sim-world --example rtf N`.
 fn main() {
-    let n: usize = std::env::args().nth(1).and_then(|a| a.parse().ok()).unwrap_or(100);
+    let n: usize = std::env::args()
+        .nth(1)
+        .and_then(|a| a.parse().ok())
+        .unwrap_or(100);
     let t = std::time::Instant::now();
     let mut w = muster_sim_world::bench::world(n, 1);
     eprintln!("built {} robots in {:?}", w.robots().len(), t.elapsed());
     let f = muster_sim_world::bench::realtime_factor(&mut w, 2.0);
     println!("{f:?}");
-    println!("ns per beam: {:.1}", muster_sim_world::bench::ns_per_beam(&w, 3));
+    println!(
+        "ns per beam: {:.1}",
+        muster_sim_world::bench::ns_per_beam(&w, 3)
+    );
 }

@@ -36,7 +36,10 @@ pub fn world(n: usize, seed: u64) -> World {
         let (ci, cj) = ((x / cell) as usize, (y / cell) as usize);
         let crowded = (ci.saturating_sub(1)..=ci + 1).any(|i| {
             (cj.saturating_sub(1)..=cj + 1).any(|j| {
-                grid.get(&(j * gx + i)).is_some_and(|v| v.iter().any(|&k| (placed[k].0 - x).hypot(placed[k].1 - y) < 0.7))
+                grid.get(&(j * gx + i)).is_some_and(|v| {
+                    v.iter()
+                        .any(|&k| (placed[k].0 - x).hypot(placed[k].1 - y) < 0.7)
+                })
             })
         });
         if crowded {
@@ -57,7 +60,14 @@ pub fn world(n: usize, seed: u64) -> World {
             home: None,
         });
     }
-    let scenario = Scenario { map: None, seed, dt: 0.01, robots, people: vec![], places: vec![] };
+    let scenario = Scenario {
+        map: None,
+        seed,
+        dt: 0.01,
+        robots,
+        people: vec![],
+        places: vec![],
+    };
     World::new(&scenario, Some(map)).expect("benchmark robots are placed on free cells")
 }
 

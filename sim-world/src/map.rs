@@ -80,7 +80,14 @@ pub struct OccupancyMap {
     /// the nearest occupied cell's centre: 0 exactly on occupied cells. One byte a cell
     /// keeps ray casts in cache.
     edt: Vec<u8>,
+    /// The same field in 8 × 8-cell tiles of 64 bytes (one cache line each): a ray
+    /// walking cell by cell stays within a line for several steps.
+    edt_tiles: Vec<u8>,
+    /// Tiles per row.
+    tiles_x: usize,
 }
+
+const TILE: usize = 8;
 
 /// Most cells a map may have (≈ 1 km² at 5 cm).
 pub const MAX_CELLS: usize = 400_000_000;
@@ -97,6 +104,14 @@ impl OccupancyMap {
         assert_eq!(occupied.len(), width * height, "grid size");
         assert!(resolution > 0.0, "resolution");
         let edt = distance_transform(width, height, &occupied);
+        let tiles_x = width.div_ceil(TILE);
+        let tiles_y = height.div_ceil(TILE);
+        let mut edt_tiles = vec![0u8; tiles_x * tiles_y * TILE * TILE];
+        for j in 0..height {
+            for i in 0..width {
+                edt_tiles[tile_index(tiles_x, i, j)] = edt[j * width + i];
+            }
+        }
         OccupancyMap {
             width,
             height,
@@ -104,6 +119,8 @@ impl OccupancyMap {
             origin,
             occupied,
             edt,
+            edt_tiles,
+            tiles_x,
         }
     }
 
@@ -380,8 +397,7 @@ impl OccupancyMap {
                 return Some(t * self.resolution); // the map's edge counts as a wall
             }
             let (i, j) = (px as usize, py as usize);
-            let k = j * self.width + i;
-            let e = f64::from(self.edt[k]);
+            let e = f64::from(self.edt_tiles[tile_index(self.tiles_x, i, j)]);
             if e > NEAR {
                 t += e - std::f64::consts::SQRT_2;
                 continue;
@@ -408,6 +424,11 @@ impl OccupancyMap {
         }
         None
     }
+}
+
+#[inline]
+fn tile_index(tiles_x: usize, i: usize, j: usize) -> usize {
+    ((j / TILE) * tiles_x + i / TILE) * (TILE * TILE) + (j % TILE) * TILE + i % TILE
 }
 
 struct Grid {
@@ -504,7 +525,9 @@ fn distance_transform(w: usize, h: usize, occupied: &[bool]) -> Vec<u8> {
         edt_1d(&row, w, &mut d[..w]);
         f[j * w..(j + 1) * w].copy_from_slice(&d[..w]);
     }
-    f.into_iter().map(|v| v.min(1e12).sqrt().floor().min(255.0) as u8).collect()
+    f.into_iter()
+        .map(|v| v.min(1e12).sqrt().floor().min(255.0) as u8)
+        .collect()
 }
 
 #[cfg(test)]

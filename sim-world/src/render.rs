@@ -17,11 +17,19 @@ pub fn render(world: &World) -> RgbImage {
     let (iw, ih) = ((w * scale).ceil() as u32, (h * scale).ceil() as u32);
     let mut img = RgbImage::from_pixel(iw.max(1), ih.max(1), Rgb([255, 255, 255]));
     let (ox, oy) = map.origin();
-    let px = |x: f64, y: f64| (((x - ox) * scale) as f32, (ih as f64 - (y - oy) * scale) as f32);
+    let px = |x: f64, y: f64| {
+        (
+            ((x - ox) * scale) as f32,
+            (ih as f64 - (y - oy) * scale) as f32,
+        )
+    };
     // Walls: every pixel whose centre is in an occupied cell.
     for j in 0..ih {
         for i in 0..iw {
-            let (x, y) = (ox + (f64::from(i) + 0.5) / scale, oy + (f64::from(ih - j) - 0.5) / scale);
+            let (x, y) = (
+                ox + (f64::from(i) + 0.5) / scale,
+                oy + (f64::from(ih - j) - 0.5) / scale,
+            );
             if map.blocked(x, y) {
                 img.put_pixel(i, j, Rgb([40, 40, 40]));
             }
@@ -37,14 +45,24 @@ pub fn render(world: &World) -> RgbImage {
             for (k, range) in r.laser.iter().enumerate().step_by(3) {
                 let a = p.theta - fov / 2.0 + step * k as f64;
                 let d = f64::from(*range);
-                draw_line_segment_mut(&mut img, from, px(p.x + d * a.cos(), p.y + d * a.sin()), Rgb([170, 230, 170]));
+                draw_line_segment_mut(
+                    &mut img,
+                    from,
+                    px(p.x + d * a.cos(), p.y + d * a.sin()),
+                    Rgb([170, 230, 170]),
+                );
             }
         }
         if let Some(c) = &r.spec.camera {
             let (fov, range) = camera_cone(c, r.ptz.zoom);
             let axis = p.theta + r.ptz.pan;
             for a in [axis - fov / 2.0, axis + fov / 2.0] {
-                draw_line_segment_mut(&mut img, from, px(p.x + range * a.cos(), p.y + range * a.sin()), Rgb([120, 120, 230]));
+                draw_line_segment_mut(
+                    &mut img,
+                    from,
+                    px(p.x + range * a.cos(), p.y + range * a.sin()),
+                    Rgb([120, 120, 230]),
+                );
             }
         }
     }
@@ -52,17 +70,30 @@ pub fn render(world: &World) -> RgbImage {
         let p = r.pose;
         let (cx, cy) = px(p.x, p.y);
         let rad = (r.spec.drive.radius * scale).round() as i32;
-        draw_filled_circle_mut(&mut img, (cx as i32, cy as i32), rad.max(2), Rgb([90, 90, 90]));
+        draw_filled_circle_mut(
+            &mut img,
+            (cx as i32, cy as i32),
+            rad.max(2),
+            Rgb([90, 90, 90]),
+        );
         if let Some(b) = r.spec.beacon {
             draw_hollow_circle_mut(&mut img, (cx as i32, cy as i32), rad.max(2), Rgb(b.rgb()));
         }
-        let nose = px(p.x + r.spec.drive.radius * 1.6 * p.theta.cos(), p.y + r.spec.drive.radius * 1.6 * p.theta.sin());
+        let nose = px(
+            p.x + r.spec.drive.radius * 1.6 * p.theta.cos(),
+            p.y + r.spec.drive.radius * 1.6 * p.theta.sin(),
+        );
         draw_line_segment_mut(&mut img, (cx, cy), nose, Rgb([230, 40, 40]));
     }
     for person in world.people() {
         let (cx, cy) = px(person.pose.x, person.pose.y);
         let rad = (PERSON_RADIUS * scale).round() as i32;
-        draw_filled_circle_mut(&mut img, (cx as i32, cy as i32), rad.max(2), Rgb(person.beacon.rgb()));
+        draw_filled_circle_mut(
+            &mut img,
+            (cx as i32, cy as i32),
+            rad.max(2),
+            Rgb(person.beacon.rgb()),
+        );
     }
     img
 }
@@ -88,7 +119,10 @@ mod tests {
         }
         // Each robot's body is grey.
         let t1 = &w.robots()[0];
-        let (x, y) = ((t1.pose.x * SCALE) as u32, (400.0 - t1.pose.y * SCALE) as u32);
+        let (x, y) = (
+            (t1.pose.x * SCALE) as u32,
+            (400.0 - t1.pose.y * SCALE) as u32,
+        );
         assert_ne!(img.get_pixel(x + 2, y + 2), &Rgb([255, 255, 255]));
     }
 }

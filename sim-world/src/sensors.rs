@@ -53,12 +53,18 @@ pub fn laser_scan(
     let step = if n > 1 { fov / (n - 1) as f64 } else { 0.0 };
     let first = p.theta - if n > 1 { fov / 2.0 } else { 0.0 };
     out.clear();
+    // Beam directions by rotating the first one step by step (no sin/cos per beam).
+    let (mut dx, mut dy) = (first.cos(), first.sin());
+    let (cs, sn) = (step.cos(), step.sin());
     for k in 0..n {
-        let a = first + step * k as f64;
-        out.push(
-            map.raycast(p.x, p.y, a, params.range)
-                .unwrap_or(params.range) as f32,
-        );
+        if k % 32 == 0 {
+            // Re-anchor now and then so rounding cannot drift.
+            let a = first + step * k as f64;
+            (dx, dy) = (a.cos(), a.sin());
+        }
+        let hit = map.raycast_dir(p.x, p.y, dx, dy, params.range);
+        out.push(hit.unwrap_or(params.range) as f32);
+        (dx, dy) = (dx * cs - dy * sn, dx * sn + dy * cs);
     }
     // Bodies: each occludes the beams within its angular extent.
     bodies.near(p.x, p.y, params.range + 0.5, |idx, b| {

@@ -49,7 +49,10 @@ impl Name {
         }
         let mut bytes = [0u8; 31];
         bytes[..end].copy_from_slice(&s.as_bytes()[..end]);
-        Name { len: end as u8, bytes }
+        Name {
+            len: end as u8,
+            bytes,
+        }
     }
     /// The text.
     pub fn as_str(&self) -> &str {
@@ -71,7 +74,11 @@ pub struct PoseC {
 
 impl From<crate::kinematics::Pose> for PoseC {
     fn from(p: crate::kinematics::Pose) -> Self {
-        PoseC { x: p.x, y: p.y, theta: p.theta }
+        PoseC {
+            x: p.x,
+            y: p.y,
+            theta: p.theta,
+        }
     }
 }
 
@@ -195,7 +202,10 @@ pub struct ShmError {
 }
 
 fn err(what: &str, e: impl std::fmt::Debug) -> ShmError {
-    ShmError { what: what.to_string(), detail: format!("{e:?}") }
+    ShmError {
+        what: what.to_string(),
+        detail: format!("{e:?}"),
+    }
 }
 
 fn name(s: &str) -> Result<ServiceName, ShmError> {
@@ -228,8 +238,17 @@ fn empty_world() -> WorldState {
         steps: 0,
         n_robots: 0,
         n_people: 0,
-        robots: [RobotBrief { name: Name::new(""), beacon: 0, pose: PoseC::default(), velocity: [0.0; 2] }; MAX_ROBOTS],
-        people: [PersonBrief { name: Name::new(""), beacon: 0, pose: PoseC::default() }; MAX_PEOPLE],
+        robots: [RobotBrief {
+            name: Name::new(""),
+            beacon: 0,
+            pose: PoseC::default(),
+            velocity: [0.0; 2],
+        }; MAX_ROBOTS],
+        people: [PersonBrief {
+            name: Name::new(""),
+            beacon: 0,
+            pose: PoseC::default(),
+        }; MAX_PEOPLE],
     }
 }
 
@@ -267,9 +286,15 @@ impl SimShm {
             .enable_safe_overflow(true)
             .open_or_create()
             .map_err(|e| err(&wname, e))?;
-        let world_pub = svc.publisher_builder().create().map_err(|e| err(&wname, e))?;
+        let world_pub = svc
+            .publisher_builder()
+            .create()
+            .map_err(|e| err(&wname, e))?;
         let ev = format!("muster/{inst}/sim/world/updated");
-        let world_updated = event(node, &ev)?.notifier_builder().create().map_err(|e| err(&ev, e))?;
+        let world_updated = event(node, &ev)?
+            .notifier_builder()
+            .create()
+            .map_err(|e| err(&ev, e))?;
         let mut robots = Vec::new();
         for r in world.robots() {
             let n = &r.spec.name;
@@ -284,12 +309,26 @@ impl SimShm {
                 .enable_safe_overflow(true)
                 .open_or_create()
                 .map_err(|e| err(&sname, e))?;
-            let sensors = svc.publisher_builder().create().map_err(|e| err(&sname, e))?;
+            let sensors = svc
+                .publisher_builder()
+                .create()
+                .map_err(|e| err(&sname, e))?;
             let uname = robot_service(inst, n, "updated");
-            let updated = event(node, &uname)?.notifier_builder().create().map_err(|e| err(&uname, e))?;
+            let updated = event(node, &uname)?
+                .notifier_builder()
+                .create()
+                .map_err(|e| err(&uname, e))?;
             let cname = robot_service(inst, n, "cmd");
-            let commands = command_service(node, &cname)?.subscriber_builder().create().map_err(|e| err(&cname, e))?;
-            robots.push(RobotPorts { sensors, updated, commands, stamp: -1.0 });
+            let commands = command_service(node, &cname)?
+                .subscriber_builder()
+                .create()
+                .map_err(|e| err(&cname, e))?;
+            robots.push(RobotPorts {
+                sensors,
+                updated,
+                commands,
+                stamp: -1.0,
+            });
         }
         Ok(SimShm {
             world: world_pub,
@@ -324,21 +363,31 @@ impl SimShm {
             }
             ports.stamp = newest;
             fill_sensors(&mut self.scratch_sensors, world.time(), r);
-            let s = ports.sensors.loan_uninit().map_err(|e| err("sensors loan", e))?;
-            s.write_payload(*self.scratch_sensors).send().map_err(|e| err("sensors send", e))?;
+            let s = ports
+                .sensors
+                .loan_uninit()
+                .map_err(|e| err("sensors loan", e))?;
+            s.write_payload(*self.scratch_sensors)
+                .send()
+                .map_err(|e| err("sensors send", e))?;
             let _ = ports.updated.notify();
         }
         if with_world {
             fill_world(&mut self.scratch_world, world);
             let s = self.world.loan_uninit().map_err(|e| err("world loan", e))?;
-            s.write_payload(*self.scratch_world).send().map_err(|e| err("world send", e))?;
+            s.write_payload(*self.scratch_world)
+                .send()
+                .map_err(|e| err("world send", e))?;
             let _ = self.world_updated.notify();
         }
         Ok(())
     }
 }
 
-fn event(node: &Node<Ipc>, n: &str) -> Result<iceoryx2::service::port_factory::event::PortFactory<Ipc>, ShmError> {
+fn event(
+    node: &Node<Ipc>,
+    n: &str,
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<Ipc>, ShmError> {
     node.service_builder(&name(n)?)
         .event()
         .max_listeners(64)
@@ -350,7 +399,10 @@ fn event(node: &Node<Ipc>, n: &str) -> Result<iceoryx2::service::port_factory::e
 fn command_service(
     node: &Node<Ipc>,
     n: &str,
-) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, RobotCommand, ()>, ShmError> {
+) -> Result<
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, RobotCommand, ()>,
+    ShmError,
+> {
     node.service_builder(&name(n)?)
         .publish_subscribe::<RobotCommand>()
         .max_publishers(16)
@@ -381,8 +433,16 @@ fn fill_sensors(out: &mut RobotSensors, now: f64, r: &crate::world::Robot) {
     out.ptz = [r.ptz.pan, r.ptz.tilt, r.ptz.zoom];
     let nd = r.detections.len().min(MAX_DETECTIONS);
     out.n_detections = nd as u32;
-    for (o, d) in out.detections.iter_mut().zip(r.detections.iter().map(Some).chain(std::iter::repeat(None))) {
-        *o = d.map_or(DetectionC::default(), |d| DetectionC { colour: d.colour.code(), bearing: d.bearing, range: d.range });
+    for (o, d) in out
+        .detections
+        .iter_mut()
+        .zip(r.detections.iter().map(Some).chain(std::iter::repeat(None)))
+    {
+        *o = d.map_or(DetectionC::default(), |d| DetectionC {
+            colour: d.colour.code(),
+            bearing: d.bearing,
+            range: d.range,
+        });
     }
 }
 
@@ -391,24 +451,41 @@ fn fill_world(out: &mut WorldState, world: &World) {
     out.steps = world.steps();
     let nr = world.robots().len().min(MAX_ROBOTS);
     out.n_robots = nr as u32;
-    let blank_robot = RobotBrief { name: Name::new(""), beacon: 0, pose: PoseC::default(), velocity: [0.0; 2] };
+    let blank_robot = RobotBrief {
+        name: Name::new(""),
+        beacon: 0,
+        pose: PoseC::default(),
+        velocity: [0.0; 2],
+    };
     for (k, o) in out.robots.iter_mut().enumerate() {
-        *o = world.robots().get(k).filter(|_| k < nr).map_or(blank_robot, |r| RobotBrief {
-            name: Name::new(&r.spec.name),
-            beacon: r.spec.beacon.map_or(0, |c| c.code() + 1),
-            pose: r.pose.into(),
-            velocity: [r.velocity.0, r.velocity.1],
-        });
+        *o = world
+            .robots()
+            .get(k)
+            .filter(|_| k < nr)
+            .map_or(blank_robot, |r| RobotBrief {
+                name: Name::new(&r.spec.name),
+                beacon: r.spec.beacon.map_or(0, |c| c.code() + 1),
+                pose: r.pose.into(),
+                velocity: [r.velocity.0, r.velocity.1],
+            });
     }
     let np = world.people().len().min(MAX_PEOPLE);
     out.n_people = np as u32;
-    let blank_person = PersonBrief { name: Name::new(""), beacon: 0, pose: PoseC::default() };
+    let blank_person = PersonBrief {
+        name: Name::new(""),
+        beacon: 0,
+        pose: PoseC::default(),
+    };
     for (k, o) in out.people.iter_mut().enumerate() {
-        *o = world.people().get(k).filter(|_| k < np).map_or(blank_person, |p| PersonBrief {
-            name: Name::new(&p.name),
-            beacon: p.beacon.code(),
-            pose: p.pose.into(),
-        });
+        *o = world
+            .people()
+            .get(k)
+            .filter(|_| k < np)
+            .map_or(blank_person, |p| PersonBrief {
+                name: Name::new(&p.name),
+                beacon: p.beacon.code(),
+                pose: p.pose.into(),
+            });
     }
 }
 
@@ -433,19 +510,38 @@ impl RobotLink {
             .create()
             .map_err(|e| err(&sname, e))?;
         let uname = robot_service(inst, robot, "updated");
-        let updated = event(node, &uname)?.listener_builder().create().map_err(|e| err(&uname, e))?;
+        let updated = event(node, &uname)?
+            .listener_builder()
+            .create()
+            .map_err(|e| err(&uname, e))?;
         let cname = robot_service(inst, robot, "cmd");
-        let commands = command_service(node, &cname)?.publisher_builder().create().map_err(|e| err(&cname, e))?;
-        Ok(RobotLink { sensors, updated, commands })
+        let commands = command_service(node, &cname)?
+            .publisher_builder()
+            .create()
+            .map_err(|e| err(&cname, e))?;
+        Ok(RobotLink {
+            sensors,
+            updated,
+            commands,
+        })
     }
 
     /// Waits up to `timeout` for a sensors sample newer than `after` (sim time); calls
     /// `f` with it, read in place from shared memory.
-    pub fn next<R>(&self, after: f64, timeout: Duration, mut f: impl FnMut(&RobotSensors) -> R) -> Result<Option<R>, ShmError> {
+    pub fn next<R>(
+        &self,
+        after: f64,
+        timeout: Duration,
+        mut f: impl FnMut(&RobotSensors) -> R,
+    ) -> Result<Option<R>, ShmError> {
         let deadline = std::time::Instant::now() + timeout;
         loop {
             let mut newest = None;
-            while let Some(s) = self.sensors.receive().map_err(|e| err("sensors receive", e))? {
+            while let Some(s) = self
+                .sensors
+                .receive()
+                .map_err(|e| err("sensors receive", e))?
+            {
                 newest = Some(s);
             }
             if let Some(s) = newest {
@@ -457,14 +553,21 @@ impl RobotLink {
             if left.is_zero() {
                 return Ok(None);
             }
-            self.updated.timed_wait(|_| {}, left).map_err(|e| err("updated wait", e))?;
+            self.updated
+                .timed_wait(|_| {}, left)
+                .map_err(|e| err("updated wait", e))?;
         }
     }
 
     /// Sends a velocity command (m/s, rad/s).
     pub fn velocity(&self, v: f64, w: f64) -> Result<(), ShmError> {
         self.commands
-            .send_copy(RobotCommand { kind: CMD_VELOCITY, a: v, b: w, c: 0.0 })
+            .send_copy(RobotCommand {
+                kind: CMD_VELOCITY,
+                a: v,
+                b: w,
+                c: 0.0,
+            })
             .map(|_| ())
             .map_err(|e| err("command send", e))
     }
@@ -472,7 +575,12 @@ impl RobotLink {
     /// Points the camera (pan, tilt in rad; zoom ≥ 1).
     pub fn camera(&self, pan: f64, tilt: f64, zoom: f64) -> Result<(), ShmError> {
         self.commands
-            .send_copy(RobotCommand { kind: CMD_CAMERA, a: pan, b: tilt, c: zoom })
+            .send_copy(RobotCommand {
+                kind: CMD_CAMERA,
+                a: pan,
+                b: tilt,
+                c: zoom,
+            })
             .map(|_| ())
             .map_err(|e| err("command send", e))
     }

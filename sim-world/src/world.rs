@@ -33,6 +33,8 @@ pub enum WorldError {
 const SKIN: f64 = 0.002;
 /// Side of the body grid's cells, m.
 const GRID_CELL: f64 = 2.0;
+/// Below this many bodies a step runs on one thread.
+const PARALLEL_FROM: usize = 16;
 /// Radius of a person, m.
 pub const PERSON_RADIUS: f64 = 0.25;
 
@@ -314,11 +316,18 @@ impl World {
         }
     }
 
+    /// Runs until sim time `t` (no-op if already past it).
+    pub fn step_to(&mut self, t: f64) {
+        if t > self.time {
+            self.step(t - self.time);
+        }
+    }
+
     fn kinematics(&mut self, h: f64) {
         let bodies = self.body_grid();
         let map = &*self.map;
         let now = self.time;
-        self.robots.par_iter_mut().enumerate().for_each(|(i, r)| {
+        for_each_maybe_par(&mut self.robots, |(i, r)| {
             if r.spec.wander {
                 wander(r, map, now);
             }
@@ -345,17 +354,16 @@ impl World {
         });
         let offset = self.robots.len();
         let nav = &self.nav;
-        self.people
-            .par_iter_mut()
-            .enumerate()
-            .for_each(|(k, p)| walk(p, nav, map, &bodies, offset + k, now, h));
+        for_each_maybe_par(&mut self.people, |(k, p)| {
+            walk(p, nav, map, &bodies, offset + k, now, h)
+        });
     }
 
     fn sense(&mut self, all: bool) {
         let bodies = self.body_grid();
         let map = &*self.map;
         let now = self.time;
-        self.robots.par_iter_mut().enumerate().for_each(|(i, r)| {
+        for_each_maybe_par(&mut self.robots, |(i, r)| {
             let eps = 1e-9;
             if let Some(l) = &r.spec.laser {
                 if all || now + eps >= r.next[0] {
@@ -388,6 +396,17 @@ impl World {
                 }
             }
         });
+    }
+}
+
+/// Runs `f` over the items; on the thread pool only when there are enough of them to
+/// pay for waking it (for a handful of robots, waking the pool 200 times a simulated
+/// second costs more than the work).
+fn for_each_maybe_par<T: Send>(items: &mut [T], f: impl Fn((usize, &mut T)) + Sync + Send) {
+    if items.len() < PARALLEL_FROM {
+        items.iter_mut().enumerate().for_each(f);
+    } else {
+        items.par_iter_mut().enumerate().for_each(f);
     }
 }
 

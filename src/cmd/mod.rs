@@ -3,6 +3,7 @@
 mod bench;
 mod broker;
 mod children;
+mod sim;
 mod system;
 mod up;
 mod user;
@@ -21,5 +22,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::User(u) => user::run(&inst, u),
         Command::Up(a) => up::run(&inst, a),
         Command::Bench(b) => bench::run(&inst, b),
+        Command::Sim(a) => sim::run(&inst, a),
     }
 }
