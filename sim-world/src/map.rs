@@ -306,7 +306,7 @@ impl OccupancyMap {
         let i = ((x - self.origin.0) / self.resolution).floor();
         let j = ((y - self.origin.1) / self.resolution).floor();
         (i >= 0.0 && j >= 0.0 && (i as usize) < self.width && (j as usize) < self.height)
-            .then(|| (i as usize, j as usize))
+            .then_some((i as usize, j as usize))
     }
 
     /// Whether a cell is occupied (outside the map counts as occupied).
@@ -530,6 +530,25 @@ fn distance_transform(w: usize, h: usize, occupied: &[bool]) -> Vec<u8> {
         .collect()
 }
 
+/// For tests: a `w` × `h` cell room with one-cell walls on its border and extra
+/// occupied cells `inside`.
+#[cfg(test)]
+pub(crate) fn walled_room(w: usize, h: usize, res: f64, inside: &[(usize, usize)]) -> OccupancyMap {
+    let mut occ = vec![false; w * h];
+    for i in 0..w {
+        occ[i] = true;
+        occ[(h - 1) * w + i] = true;
+    }
+    for j in 0..h {
+        occ[j * w] = true;
+        occ[j * w + w - 1] = true;
+    }
+    for &(i, j) in inside {
+        occ[j * w + i] = true;
+    }
+    OccupancyMap::from_grid(w, h, res, (0.0, 0.0), occ)
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -537,16 +556,7 @@ mod tests {
 
     /// A 10 m × 10 m room at 0.1 m with 0.1 m walls and a 1-cell pillar at (5.05, 5.05).
     fn room() -> OccupancyMap {
-        let (w, h) = (100, 100);
-        let mut occ = vec![false; w * h];
-        for k in 0..100 {
-            occ[k] = true;
-            occ[99 * w + k] = true;
-            occ[k * w] = true;
-            occ[k * w + 99] = true;
-        }
-        occ[50 * w + 50] = true;
-        OccupancyMap::from_grid(w, h, 0.1, (0.0, 0.0), occ)
+        walled_room(100, 100, 0.1, &[(50, 50)])
     }
 
     #[test]

@@ -277,6 +277,11 @@ fn default_dt() -> f64 {
     0.01
 }
 
+/// `x > 0`, false for NaN: every rate and range must pass this.
+fn positive(x: f64) -> bool {
+    x > 0.0
+}
+
 /// Why a scenario is unusable.
 #[derive(Debug, thiserror::Error)]
 pub enum ScenarioError {
@@ -334,7 +339,7 @@ impl Scenario {
                 ));
             }
             if let Some(l) = &r.laser {
-                if l.beams == 0 || l.beams > 1081 || !(l.rate > 0.0) || !(l.range > 0.0) {
+                if l.beams == 0 || l.beams > 1081 || !positive(l.rate) || !positive(l.range) {
                     return bad(format!(
                         "robot {}: laser needs 1..=1081 beams, rate > 0, range > 0",
                         r.name
@@ -342,7 +347,7 @@ impl Scenario {
                 }
             }
             if let Some(s) = &r.sonar {
-                if s.bearings_deg.len() > 32 || s.rays_per_cone == 0 || !(s.rate > 0.0) {
+                if s.bearings_deg.len() > 32 || s.rays_per_cone == 0 || !positive(s.rate) {
                     return bad(format!(
                         "robot {}: at most 32 sonars, ≥ 1 ray per cone, rate > 0",
                         r.name

@@ -191,6 +191,7 @@ pub fn camera_cone(params: &CameraParams, zoom: f64) -> (f64, f64) {
 
 /// One camera frame: every beacon inside the field of view and range, not hidden by a
 /// wall or another body, with noisy bearing and range.
+#[allow(clippy::too_many_arguments)] // the sensor's full context, as the others take it
 pub fn camera_frame(
     map: &OccupancyMap,
     bodies: &BodyGrid,
@@ -257,18 +258,8 @@ mod tests {
     /// 10 m × 10 m room, 0.1 m cells, walls on the border; a wall segment from
     /// (6.0, 2.0) to (6.1, 8.0).
     fn room() -> OccupancyMap {
-        let (w, h) = (100, 100);
-        let mut occ = vec![false; w * h];
-        for k in 0..100 {
-            occ[k] = true;
-            occ[99 * w + k] = true;
-            occ[k * w] = true;
-            occ[k * w + 99] = true;
-        }
-        for j in 20..80 {
-            occ[j * w + 60] = true;
-        }
-        OccupancyMap::from_grid(w, h, 0.1, (0.0, 0.0), occ)
+        let wall: Vec<(usize, usize)> = (20..80).map(|j| (60, j)).collect();
+        crate::map::walled_room(100, 100, 0.1, &wall)
     }
 
     fn quiet_laser() -> LaserParams {

@@ -30,18 +30,8 @@ fn scenario(robots: Vec<RobotSpec>) -> Scenario {
 
 /// A 10 m × 4 m room at 0.05 m with a 0.05 m thin wall across it at x = 5.0..5.05.
 fn thin_wall_room() -> OccupancyMap {
-    let (w, h) = (200, 80);
-    let mut occ = vec![false; w * h];
-    for i in 0..w {
-        occ[i] = true;
-        occ[(h - 1) * w + i] = true;
-    }
-    for j in 0..h {
-        occ[j * w] = true;
-        occ[j * w + w - 1] = true;
-        occ[j * w + 100] = true;
-    }
-    OccupancyMap::from_grid(w, h, 0.05, (0.0, 0.0), occ)
+    let wall: Vec<(usize, usize)> = (0..80).map(|j| (100, j)).collect();
+    crate::map::walled_room(200, 80, 0.05, &wall)
 }
 
 #[test]

@@ -109,7 +109,7 @@ fn simulate(
             target.saturating_duration_since(Instant::now())
         };
         // Sleep until the next step is due; a signal wakes us at once.
-        if (!wait.is_zero() || world.steps() % 100 == 0)
+        if (!wait.is_zero() || world.steps().is_multiple_of(100))
             && !reactor.wait(Some(wait))?.is_empty()
             && signals.drain()
         {
