@@ -54,6 +54,7 @@ pub fn laser_scan(
     let first = p.theta - if n > 1 { fov / 2.0 } else { 0.0 };
     out.clear();
     // Beam directions by rotating the first one step by step (no sin/cos per beam).
+    let mut dirs = Vec::with_capacity(n);
     let (mut dx, mut dy) = (first.cos(), first.sin());
     let (cs, sn) = (step.cos(), step.sin());
     for k in 0..n {
@@ -62,10 +63,12 @@ pub fn laser_scan(
             let a = first + step * k as f64;
             (dx, dy) = (a.cos(), a.sin());
         }
-        let hit = map.raycast_dir(p.x, p.y, dx, dy, params.range);
-        out.push(hit.unwrap_or(params.range) as f32);
+        dirs.push((dx, dy));
         (dx, dy) = (dx * cs - dy * sn, dx * sn + dy * cs);
     }
+    let mut ranges = Vec::with_capacity(n);
+    map.raycast_batch(p.x, p.y, &dirs, params.range, &mut ranges);
+    out.extend(ranges.iter().map(|&r| r as f32));
     // Bodies: each occludes the beams within its angular extent.
     bodies.near(p.x, p.y, params.range + 0.5, |idx, b| {
         if idx == skip {
@@ -133,16 +136,37 @@ pub fn sonar_ring(
     out.clear();
     let cone = params.cone_deg.to_radians();
     let rays = params.rays_per_cone.max(1);
+    let mut dirs = Vec::with_capacity(params.bearings_deg.len() * rays);
     for bearing in &params.bearings_deg {
         let centre = p.theta + bearing.to_radians();
-        let mut best = params.range;
         for k in 0..rays {
             let off = if rays == 1 {
                 0.0
             } else {
                 -cone / 2.0 + cone * k as f64 / (rays - 1) as f64
             };
-            best = best.min(first_hit(map, bodies, skip, p, centre + off, params.range));
+            let a = centre + off;
+            dirs.push((a.cos(), a.sin()));
+        }
+    }
+    let mut walls = Vec::with_capacity(dirs.len());
+    map.raycast_batch(p.x, p.y, &dirs, params.range, &mut walls);
+    // Bodies within range, gathered once for the whole ring.
+    let mut near = Vec::new();
+    bodies.near(p.x, p.y, params.range + 0.5, |n, b| {
+        if n != skip {
+            near.push(*b);
+        }
+    });
+    for cone_rays in dirs.chunks(rays).zip(walls.chunks(rays)) {
+        let mut best = params.range;
+        for (&(dx, dy), &wall) in cone_rays.0.iter().zip(cone_rays.1) {
+            best = best.min(wall);
+            for b in &near {
+                if let Some(t) = ray_circle(p.x, p.y, dx, dy, b) {
+                    best = best.min(t);
+                }
+            }
         }
         if best < params.range {
             best = (best + gaussian(rng, params.noise)).clamp(0.0, params.range);
