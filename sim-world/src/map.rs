@@ -401,25 +401,25 @@ impl OccupancyMap {
     }
 
     /// Casts one ray per unit direction in `dirs` from (x, y); `out[k]` is the distance
-    /// to the first occupied square along `dirs[k]`, or `max`. Rays go four at a time,
-    /// interleaved: each ray's walk is one long chain of dependent steps, and four
+    /// to the first occupied square along `dirs[k]`, or `max`. Rays go [`LANES`] at a time,
+    /// interleaved: each ray's walk is one long chain of dependent steps, and several
     /// independent chains keep the CPU busy while each waits for its own.
     pub fn raycast_batch(&self, x: f64, y: f64, dirs: &[(f64, f64)], max: f64, out: &mut Vec<f64>) {
         out.clear();
         out.resize(dirs.len(), max);
-        for (chunk, dirs) in dirs.chunks(4).enumerate() {
-            let mut rays: [Ray; 4] = std::array::from_fn(|l| {
+        for (chunk, dirs) in dirs.chunks(LANES).enumerate() {
+            let mut rays: [Ray; LANES] = std::array::from_fn(|l| {
                 let (dx, dy) = dirs.get(l).copied().unwrap_or((1.0, 0.0));
                 Ray::new(self, x, y, dx, dy, max)
             });
-            let mut live = [false; 4];
+            let mut live = [false; LANES];
             live[..dirs.len()].fill(true);
             while live.iter().any(|&l| l) {
                 for (l, ray) in rays.iter_mut().enumerate() {
                     if live[l] {
                         if let Some(hit) = ray.turn(self) {
                             live[l] = false;
-                            out[chunk * 4 + l] = hit.unwrap_or(max);
+                            out[chunk * LANES + l] = hit.unwrap_or(max);
                         }
                     }
                 }
@@ -442,6 +442,9 @@ struct Ray {
     max_t: f64,
     turns: u64,
 }
+
+/// Rays cast at once, interleaved.
+const LANES: usize = 8;
 
 /// Below this many cells from a wall a ray walks cell by cell.
 const NEAR: f64 = 2.0 + std::f64::consts::SQRT_2;

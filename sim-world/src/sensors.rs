@@ -8,27 +8,6 @@ use crate::scenario::{CameraParams, Colour, LaserParams, SonarParams};
 use rand::RngExt;
 use rand_distr::{Distribution, Normal};
 
-/// Range to the first wall or body along `angle` from `p`, up to `max` (exclusive of `skip`).
-pub fn first_hit(
-    map: &OccupancyMap,
-    bodies: &BodyGrid,
-    skip: usize,
-    p: Pose,
-    angle: f64,
-    max: f64,
-) -> f64 {
-    let mut best = map.raycast(p.x, p.y, angle, max).unwrap_or(max);
-    let (dx, dy) = (angle.cos(), angle.sin());
-    bodies.near(p.x, p.y, best + 0.5, |n, b| {
-        if n != skip {
-            if let Some(t) = ray_circle(p.x, p.y, dx, dy, b) {
-                best = best.min(t);
-            }
-        }
-    });
-    best
-}
-
 fn gaussian(rng: &mut impl rand::Rng, sd: f64) -> f64 {
     if sd > 0.0 {
         Normal::new(0.0, sd).map(|n| n.sample(rng)).unwrap_or(0.0)
