@@ -438,6 +438,10 @@ struct Ray {
     dy: f64,
     inv_dx: f64,
     inv_dy: f64,
+    /// 1 when the ray heads to +x (or runs parallel to x), 0 when to -x: the cell edge
+    /// it leaves through is at `i + off_x`. Likewise for y.
+    off_x: f64,
+    off_y: f64,
     t: f64,
     max_t: f64,
     turns: u64,
@@ -463,6 +467,8 @@ impl Ray {
             dy,
             inv_dx: if dx != 0.0 { 1.0 / dx } else { f64::INFINITY },
             inv_dy: if dy != 0.0 { 1.0 / dy } else { f64::INFINITY },
+            off_x: if dx < 0.0 { 0.0 } else { 1.0 },
+            off_y: if dy < 0.0 { 0.0 } else { 1.0 },
             t: 0.0,
             max_t,
             // A few turns per cell crossed at most.
@@ -497,20 +503,10 @@ impl Ray {
         if e == 0.0 {
             return Some(Some(t * map.resolution)); // occupied
         }
-        let tx = if self.dx > 0.0 {
-            (i as f64 + 1.0 - px) * self.inv_dx
-        } else if self.dx < 0.0 {
-            (i as f64 - px) * self.inv_dx
-        } else {
-            f64::INFINITY
-        };
-        let ty = if self.dy > 0.0 {
-            (j as f64 + 1.0 - py) * self.inv_dy
-        } else if self.dy < 0.0 {
-            (j as f64 - py) * self.inv_dy
-        } else {
-            f64::INFINITY
-        };
+        // Branch-free: for a zero component, off = 1 makes the distance to the edge
+        // positive, so it times an infinite inverse to infinity (never NaN).
+        let tx = (i as f64 + self.off_x - px) * self.inv_dx;
+        let ty = (j as f64 + self.off_y - py) * self.inv_dy;
         // A hair past the boundary so the next cell is the neighbour.
         self.t += tx.min(ty).max(0.0) + 1e-9 * (1.0 + t);
         None
