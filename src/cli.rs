@@ -43,6 +43,22 @@ pub enum BenchCommand {
     /// Time failure detection: SIGKILL of a system until it leaves the list, and SIGKILL
     /// plus restart of the broker until the whole list is back.
     Liveness(LivenessArgs),
+    /// The floor: raw round trips between this process and an echo process through the
+    /// same iceoryx2 inbox + bell wake-up that muster's messages use.
+    Floor(FloorArgs),
+    /// (internal) The echo process of `bench floor`.
+    #[command(hide = true)]
+    Echo,
+}
+
+#[derive(Args, Debug)]
+pub struct FloorArgs {
+    /// Round trips to time.
+    #[arg(long, default_value_t = 2000)]
+    pub round_trips: usize,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Args, Debug)]

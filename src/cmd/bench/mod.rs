@@ -1,5 +1,6 @@
 //! `muster bench ...`: benchmarks that print figures (never assertions).
 
+mod floor;
 mod liveness;
 mod procfs;
 use super::children;
@@ -13,6 +14,8 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
     match cmd {
         BenchCommand::Scale(a) => scale::run(inst, a),
         BenchCommand::Liveness(a) => liveness::run(inst, a),
+        BenchCommand::Floor(a) => floor::run(inst, a),
+        BenchCommand::Echo => floor::echo(inst),
     }
 }
 

@@ -216,6 +216,8 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         }
     }
     client.close();
+    // The floor, in the same run and with everyone still connected.
+    let floor = super::floor::measure(inst, 1000)?;
     let teardown = Instant::now();
     children.stop();
     let teardown = teardown.elapsed();
@@ -241,6 +243,8 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         "list_read": summary(&list_read),
         "service_request": summary(&request),
         "service_request_refused": refused,
+        "floor": summary(&floor),
+        "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64 / floor.value_at_quantile(0.5).max(1) as f64,
         "teardown_s": teardown.as_secs_f64(),
     });
     if a.json {
@@ -268,6 +272,11 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         println!("{}", row("user connect+list (in-proc)", &connect));
         println!("{}", row("list read (shared memory)", &list_read));
         println!("{}", row("service request (to grant)", &request));
+        println!("{}", row("floor (raw 2-process trip)", &floor));
+        println!(
+            "service request p50 / floor p50 = {:.2} (the request crosses 3 processes, the floor 2)",
+            request.value_at_quantile(0.5) as f64 / floor.value_at_quantile(0.5).max(1) as f64
+        );
         if !refused.is_empty() {
             println!("refused requests: {refused:?}");
         }
