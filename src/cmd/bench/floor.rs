@@ -41,61 +41,80 @@ pub fn echo(inst: &Instance) -> anyhow::Result<ExitCode> {
     }
 }
 
-/// Measures `n` round trips against a fresh echo process; returns their histogram (µs).
-pub fn measure(inst: &Instance, n: usize) -> anyhow::Result<Histogram<u64>> {
-    let mut children = Children::default();
-    children.spawn(inst, "echo", &["bench", "echo"], Stdio::null())?;
-    let node = create_node(&format!("muster-probe-{}", std::process::id()), false)?;
-    let mut ep = Endpoint::open(inst, Address::User(UserId(PROBE.into())), node)?;
-    let mut reactor = Reactor::new()?;
-    reactor.add(ep.bell_fd(), TOKEN_BELL)?;
-    let echo = Address::System(ECHO.into());
-    // Wait for the echo to be up.
-    let start = Instant::now();
-    while ep.send(&echo, b"hello").is_err() {
-        if start.elapsed() > Duration::from_secs(10) {
-            bail!("the echo process did not come up");
+/// A probe bouncing frames off an echo process it started.
+pub struct FloorProbe {
+    children: Children,
+    ep: Endpoint,
+    reactor: Reactor,
+    frame: Vec<u8>,
+}
+
+impl FloorProbe {
+    /// Starts the echo process and waits until it answers.
+    pub fn start(inst: &Instance) -> anyhow::Result<Self> {
+        let mut children = Children::default();
+        children.spawn(inst, "echo", &["bench", "echo"], Stdio::null())?;
+        let node = create_node(&format!("muster-probe-{}", std::process::id()), false)?;
+        let mut ep = Endpoint::open(inst, Address::User(UserId(PROBE.into())), node)?;
+        let reactor = Reactor::new()?;
+        reactor.add(ep.bell_fd(), TOKEN_BELL)?;
+        let echo = Address::System(ECHO.into());
+        let start = Instant::now();
+        while ep.send(&echo, b"hello").is_err() {
+            if start.elapsed() > Duration::from_secs(10) {
+                bail!("the echo process did not come up");
+            }
+            std::thread::sleep(Duration::from_millis(10));
         }
-        std::thread::sleep(Duration::from_millis(10));
+        let mut probe = FloorProbe {
+            children,
+            ep,
+            reactor,
+            frame: vec![0x4d_u8; 64],
+        };
+        for _ in 0..100 {
+            probe.round_trip()?; // warm up
+        }
+        Ok(probe)
     }
-    let mut h = Histogram::<u64>::new(3)?;
-    let frame = vec![0x4d_u8; 64];
-    let mut received = 0usize;
-    let mut warm = 100usize;
-    while h.len() < n as u64 {
+
+    /// One round trip, sleeping on the bell as a muster process does.
+    pub fn round_trip(&mut self) -> anyhow::Result<Duration> {
         let t = Instant::now();
-        ep.send(&echo, &frame).context("sending to the echo")?;
-        // Sleep on the bell until the echo arrives, as a muster process does.
+        self.ep
+            .send(&Address::System(ECHO.into()), &self.frame)
+            .context("sending to the echo")?;
         let deadline = t + Duration::from_secs(5);
         loop {
-            ep.drain_bell();
+            self.ep.drain_bell();
             let mut got = false;
-            while let Some(f) = ep.recv()? {
-                received += 1;
-                got |= f.len() == frame.len();
+            while let Some(f) = self.ep.recv()? {
+                got |= f.len() == self.frame.len();
             }
             if got {
-                break;
+                return Ok(t.elapsed());
             }
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
                 bail!("an echo took more than 5 s");
             }
-            reactor.wait(Some(left))?;
-        }
-        if warm > 0 {
-            warm -= 1;
-        } else {
-            h.record(t.elapsed().as_micros().max(1) as u64)?;
+            self.reactor.wait(Some(left))?;
         }
     }
-    tracing::debug!(received, "floor measured");
-    children.stop();
-    Ok(h)
+
+    /// Stops the echo process.
+    pub fn stop(mut self) {
+        self.children.stop();
+    }
 }
 
 pub fn run(inst: &Instance, a: FloorArgs) -> anyhow::Result<ExitCode> {
-    let h = measure(inst, a.round_trips.max(1))?;
+    let mut probe = FloorProbe::start(inst)?;
+    let mut h = Histogram::<u64>::new(3)?;
+    for _ in 0..a.round_trips.max(1) {
+        h.record(probe.round_trip()?.as_micros().max(1) as u64)?;
+    }
+    probe.stop();
     if a.json {
         println!("{}", json!({"floor": summary(&h)}));
     } else {

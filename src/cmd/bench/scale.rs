@@ -190,10 +190,15 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         .into_iter()
         .map(|v| ServiceId(v.id))
         .collect();
+    // Requests interleaved with floor round trips, so both see the same conditions
+    // (on a VM, waking an idle vCPU dominates both, and it varies over a run).
+    let mut probe = super::floor::FloorProbe::start(inst)?;
+    let mut floor = histogram();
     let mut request = histogram();
     let mut refused: std::collections::BTreeMap<&'static str, u64> = Default::default();
     for k in 0..a.requests {
         let id = &ids[k % ids.len()];
+        floor.record(probe.round_trip()?.as_micros().max(1) as u64)?;
         let t = Instant::now();
         let req = client.request(id)?;
         let deadline = t + Duration::from_secs(10);
@@ -216,8 +221,7 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         }
     }
     client.close();
-    // The floor, in the same run and with everyone still connected.
-    let floor = super::floor::measure(inst, 1000)?;
+    probe.stop();
     let teardown = Instant::now();
     children.stop();
     let teardown = teardown.elapsed();
