@@ -114,6 +114,9 @@ pub struct BrokerArgs {
     /// Most requests one service's task queue holds.
     #[arg(long, default_value_t = 32)]
     pub queue_capacity: u16,
+    /// On stopping, print one JSON line: counters and time to handle each message type.
+    #[arg(long)]
+    pub stats_json: bool,
 }
 
 #[derive(Subcommand, Debug)]

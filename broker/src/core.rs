@@ -77,7 +77,7 @@ pub enum Removal {
 }
 
 /// Counters of what the broker did, for status and stress reports.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct BrokerStats {
     /// Registrations accepted.
     pub registrations: u64,

@@ -42,6 +42,33 @@ struct Watch {
     pidfd: PidFd,
 }
 
+/// What a broker did during its run, returned when it stops.
+#[derive(Debug)]
+pub struct BrokerReport {
+    /// Counters from the core.
+    pub stats: crate::core::BrokerStats,
+    /// Time to handle each message type, µs.
+    pub handling: std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>,
+}
+
+impl BrokerReport {
+    /// The report as JSON: counters, and count/p50/p99/max µs per message type.
+    pub fn to_json(&self) -> serde_json::Value {
+        let handling: serde_json::Map<String, serde_json::Value> = self
+            .handling
+            .iter()
+            .map(|(k, h)| {
+                (
+                    k.to_string(),
+                    serde_json::json!({"count": h.len(), "p50_us": h.value_at_quantile(0.5),
+                                       "p99_us": h.value_at_quantile(0.99), "max_us": h.max()}),
+                )
+            })
+            .collect();
+        serde_json::json!({"stats": self.stats, "handling": handling})
+    }
+}
+
 /// The broker process's state outside the core.
 struct Shell {
     endpoint: Endpoint,
@@ -52,6 +79,7 @@ struct Shell {
     by_user: HashMap<UserId, usize>,
     next_token: usize,
     snapshot: Box<ServiceListSnapshot>,
+    handling: std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>,
     /// When list watchers were last rung, and whether a ring is owed.
     last_ring: Option<Instant>,
     ring_owed: bool,
@@ -60,8 +88,8 @@ struct Shell {
 /// List watchers are rung at most this often; the blackboard itself is updated at once.
 const RING_EVERY: Duration = Duration::from_millis(100);
 
-/// Runs a broker on `inst` until SIGINT or SIGTERM.
-pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
+/// Runs a broker on `inst` until SIGINT or SIGTERM; returns what it did.
+pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerError> {
     match raise_fd_limit() {
         Ok(n) if n < 4096 => {
             tracing::warn!(
@@ -102,6 +130,7 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
         snapshot: Box::new(ServiceListSnapshot::empty()),
         last_ring: None,
         ring_owed: false,
+        handling: std::collections::BTreeMap::new(),
     };
     shell.snapshot.epoch = epoch;
     let start = Instant::now();
@@ -128,7 +157,7 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<(), BrokerError> {
                     if signals.drain() {
                         tracing::info!("signal received: broker stopping");
                         presence.ring(bell::BROKER_DOWN);
-                        return Ok(());
+                        return Ok(BrokerReport { stats: core.stats().clone(), handling: shell.handling });
                     }
                 }
                 t => {
@@ -172,7 +201,16 @@ impl Shell {
     fn drain_inbox(&mut self, core: &mut Broker, now: Duration) -> Result<(), BrokerError> {
         while let Some(frame) = self.endpoint.recv()? {
             match decode::<ToBroker>(&frame) {
-                Ok(msg) => core.handle(now, msg),
+                Ok(msg) => {
+                    let kind = msg.kind();
+                    let t = Instant::now();
+                    core.handle(now, msg);
+                    let us = (t.elapsed().as_nanos() as u64).div_ceil(1000).max(1);
+                    let h = self.handling.entry(kind).or_insert_with(|| {
+                        hdrhistogram::Histogram::new(3).expect("3 significant figures is a valid precision")
+                    });
+                    let _ = h.record(us);
+                }
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),
             }
         }

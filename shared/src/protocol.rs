@@ -226,6 +226,27 @@ pub enum ToBroker {
     },
 }
 
+impl ToBroker {
+    /// The message type's name, for statistics.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            ToBroker::Register { .. } => "register",
+            ToBroker::Pong { .. } => "pong",
+            ToBroker::OfferAnswer { .. } => "offer_answer",
+            ToBroker::SessionEnded { .. } => "session_ended",
+            ToBroker::Withdraw { .. } => "withdraw",
+            ToBroker::Restore { .. } => "restore",
+            ToBroker::Unregister { .. } => "unregister",
+            ToBroker::Hello { .. } => "hello",
+            ToBroker::Request { .. } => "request",
+            ToBroker::Cancel { .. } => "cancel",
+            ToBroker::LinkOpened { .. } => "link_opened",
+            ToBroker::LinkClosed { .. } => "link_closed",
+            ToBroker::Goodbye { .. } => "goodbye",
+        }
+    }
+}
+
 /// Messages arriving at a system's inbox.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum ToSystem {

@@ -15,6 +15,9 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         offer_timeout: a.offer_timeout,
         queue_capacity: a.queue_capacity,
     };
-    muster_broker::run::run(inst, cfg)?;
+    let report = muster_broker::run::run(inst, cfg)?;
+    if a.stats_json {
+        println!("{}", report.to_json());
+    }
     Ok(ExitCode::SUCCESS)
 }
