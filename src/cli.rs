@@ -148,6 +148,10 @@ pub struct SyntheticArgs {
     /// Update rate, Hz.
     #[arg(long, default_value_t = 10.0)]
     pub rate: f64,
+    /// On stopping, print one JSON line per service: quota, most sessions at once,
+    /// grants and refusals.
+    #[arg(long)]
+    pub stats_json: bool,
 }
 
 #[derive(Args, Debug)]

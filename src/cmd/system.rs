@@ -29,7 +29,10 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
                 .map(|d| d.as_nanos() as u64)
                 .unwrap_or(0);
             let core = SystemCore::new(&opts.name, std::process::id(), specs, salt);
-            muster_systems::run_system(inst, core, Synthetic::new(&opts))?;
+            let core = muster_systems::run_system(inst, core, Synthetic::new(&opts))?;
+            if a.stats_json {
+                println!("{}", serde_json::json!({"system": core.name(), "services": core.report()}));
+            }
             Ok(ExitCode::SUCCESS)
         }
     }

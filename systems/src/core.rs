@@ -62,6 +62,19 @@ pub enum SystemEvent {
     },
 }
 
+/// What a system saw of one service during its run.
+#[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct ServiceReport {
+    /// Declared quota.
+    pub quota: u16,
+    /// Most sessions held at once.
+    pub max_in_use: usize,
+    /// Offers granted.
+    pub grants: u64,
+    /// Offers refused by the system.
+    pub refusals: u64,
+}
+
 /// Where the system stands with the broker.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BrokerState {
@@ -93,6 +106,7 @@ pub struct SystemCore {
     session_prefix: u64,
     next_session: u64,
     overloaded: bool,
+    report: BTreeMap<String, ServiceReport>,
     out: VecDeque<SystemOutput>,
     events: VecDeque<SystemEvent>,
 }
@@ -111,6 +125,7 @@ impl SystemCore {
             session_prefix: (salt ^ (u64::from(pid) << 16)) << 24,
             next_session: 1,
             overloaded: false,
+            report: BTreeMap::new(),
             out: VecDeque::new(),
             events: VecDeque::new(),
         }
@@ -154,6 +169,15 @@ impl SystemCore {
             .values()
             .filter(|s| s.service == service)
             .count()
+    }
+
+    /// Per service: quota, most sessions at once, grants and refusals so far.
+    pub fn report(&self) -> BTreeMap<String, ServiceReport> {
+        let mut r = self.report.clone();
+        for spec in &self.specs {
+            r.entry(spec.name.clone()).or_default().quota = spec.quota;
+        }
+        r
     }
 
     /// Refuse new offers ("overloaded") while `true`.
@@ -305,11 +329,14 @@ impl SystemCore {
                     service,
                 });
             }
-            Err(reason) => self.send_broker(ToBroker::OfferAnswer {
-                system: self.name.clone(),
-                ticket,
-                answer: Err(reason),
-            }),
+            Err(reason) => {
+                self.report.entry(service.clone()).or_default().refusals += 1;
+                self.send_broker(ToBroker::OfferAnswer {
+                    system: self.name.clone(),
+                    ticket,
+                    answer: Err(reason),
+                });
+            }
         }
     }
 

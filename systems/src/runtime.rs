@@ -123,12 +123,13 @@ struct Shell {
     waiting_logged: bool,
 }
 
-/// Runs `app` as system `core` on instance `inst` until SIGINT/SIGTERM.
+/// Runs `app` as system `core` on instance `inst` until SIGINT/SIGTERM (or a `quit`
+/// control line); returns the final protocol state (its [`SystemCore::report`]).
 pub fn run_system<A: SystemApp>(
     inst: &Instance,
     mut core: SystemCore,
     mut app: A,
-) -> Result<(), SystemError> {
+) -> Result<SystemCore, SystemError> {
     let node = create_node(&format!("muster-system-{}", core.name()), true)?;
     let endpoint = Endpoint::open(inst, Address::System(core.name().to_string()), node)?;
     let presence = Presence::listen(endpoint.node(), inst)?;
@@ -195,7 +196,7 @@ pub fn run_system<A: SystemApp>(
                         tracing::info!(system = core.name(), "signal received: leaving");
                         core.shutdown();
                         shell.flush(&mut core);
-                        return Ok(());
+                        return Ok(core);
                     }
                 }
                 TOKEN_CONTROL => {
@@ -203,7 +204,7 @@ pub fn run_system<A: SystemApp>(
                         if !apply_control(&mut core, &line) {
                             core.shutdown();
                             shell.flush(&mut core);
-                            return Ok(());
+                            return Ok(core);
                         }
                     }
                 }
