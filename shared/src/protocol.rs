@@ -85,6 +85,15 @@ pub fn decode<T: DeserializeOwned>(frame: &[u8]) -> Result<T, DecodeError> {
     Ok(msg)
 }
 
+/// CLOCK_MONOTONIC in nanoseconds: the same clock in every process of a host, so a
+/// stamp taken in one process can be compared in another.
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: valid out-pointer; CLOCK_MONOTONIC always exists on Linux.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    (ts.tv_sec as u64).saturating_mul(1_000_000_000).saturating_add(ts.tv_nsec as u64)
+}
+
 static BAD_FRAMES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
 /// Counts a dropped frame and logs it, rate-limited: the 1st, 2nd, 4th, 8th, ... get a line.
@@ -345,6 +354,9 @@ pub enum ToUser {
         session: SessionId,
         /// Sequence number, from 1, no gaps unless data was dropped.
         seq: u64,
+        /// When the system sent it: CLOCK_MONOTONIC ns (one clock for all processes on
+        /// a host), for update latency; 0 if unknown.
+        sent_ns: u64,
         /// The data.
         payload: Payload,
     },
@@ -419,6 +431,7 @@ mod tests {
     #[test]
     fn refuses_oversized_encode() {
         let msg = ToUser::Update {
+            sent_ns: 0,
             session: SessionId(1),
             seq: 1,
             payload: Payload::Text("x".repeat(MAX_FRAME)),
@@ -445,7 +458,7 @@ mod tests {
 
         #[test]
         fn text_updates_round_trip(s in ".{0,200}", seq in any::<u64>()) {
-            let m = ToUser::Update { session: SessionId(seq ^ 1), seq, payload: Payload::Text(s) };
+            let m = ToUser::Update { session: SessionId(seq ^ 1), seq, sent_ns: seq / 3, payload: Payload::Text(s) };
             prop_assert_eq!(decode::<ToUser>(&encode(&m).unwrap()).unwrap(), m);
         }
     }

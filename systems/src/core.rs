@@ -341,7 +341,10 @@ impl SystemCore {
     }
 
     /// Streams one data update to every session of `service`. Returns how many got it.
-    pub fn publish(&mut self, service: &str, payload: &Payload) -> usize {
+    ///
+    /// `sent_ns` stamps the updates (CLOCK_MONOTONIC ns, see
+    /// [`muster_shared::protocol::monotonic_ns`]) so users can measure update latency.
+    pub fn publish(&mut self, service: &str, payload: &Payload, sent_ns: u64) -> usize {
         let mut n = 0;
         for (id, s) in self
             .sessions
@@ -354,6 +357,7 @@ impl SystemCore {
                 ToUser::Update {
                     session: *id,
                     seq: s.seq,
+                    sent_ns,
                     payload: payload.clone(),
                 },
             ));

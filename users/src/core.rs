@@ -75,6 +75,8 @@ pub enum UserEvent {
         seq: u64,
         /// Updates lost before this one (sequence gap).
         gap: u64,
+        /// When the system sent it (CLOCK_MONOTONIC ns; 0 if unknown).
+        sent_ns: u64,
         /// The data.
         payload: Payload,
     },
@@ -494,8 +496,9 @@ impl UserCore {
             ToUser::Update {
                 session,
                 seq,
+                sent_ns,
                 payload,
-            } => self.update(session, seq, payload),
+            } => self.update(session, seq, sent_ns, payload),
             ToUser::Status {
                 session,
                 seq,
@@ -601,7 +604,7 @@ impl UserCore {
         }
     }
 
-    fn update(&mut self, session: SessionId, seq: u64, payload: Payload) {
+    fn update(&mut self, session: SessionId, seq: u64, sent_ns: u64, payload: Payload) {
         let Some(s) = self.sessions.get_mut(&session) else {
             self.stale_frames += 1;
             return;
@@ -620,6 +623,7 @@ impl UserCore {
             service,
             seq,
             gap,
+            sent_ns,
             payload: payload.clone(),
         });
         let Some(link) = link else { return };
@@ -693,6 +697,7 @@ mod tests {
         u.handle(ToUser::Update {
             session: SessionId(session),
             seq,
+            sent_ns: 0,
             payload: Payload::Pose2d {
                 x: 1.0,
                 y: 2.0,
