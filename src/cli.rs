@@ -201,6 +201,10 @@ pub enum UserVerb {
         #[arg(long, value_parser = duration)]
         duration: Option<Duration>,
     },
+    /// Behave like one of the paper's users for a while (list, refresh, request, hold
+    /// sessions, end them, sometimes link), then print one JSON line of counts and
+    /// latency samples. The stress harness runs hundreds of these.
+    Behave(BehaveArgs),
     /// Link a data service into a command service: data becomes the command's task input.
     Link {
         /// Data service id.
@@ -267,4 +271,29 @@ pub struct SimArgs {
     /// Write the map (built-in office unless `--map`) as map_server YAML + PGM and exit.
     #[arg(long)]
     pub export_map: Option<std::path::PathBuf>,
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct BehaveArgs {
+    /// How long to behave.
+    #[arg(long, default_value = "30s", value_parser = duration)]
+    pub duration: Duration,
+    /// Seed of this user's choices.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Mean time between list refreshes.
+    #[arg(long, default_value = "5s", value_parser = duration)]
+    pub refresh: Duration,
+    /// Mean pause between interactions.
+    #[arg(long, default_value = "2s", value_parser = duration)]
+    pub think: Duration,
+    /// Shortest time a session is held.
+    #[arg(long, default_value = "1s", value_parser = duration)]
+    pub hold_min: Duration,
+    /// Longest time a session is held.
+    #[arg(long, default_value = "5s", value_parser = duration)]
+    pub hold_max: Duration,
+    /// Chance that an interaction is a link instead of a request.
+    #[arg(long, default_value_t = 0.1)]
+    pub link_prob: f64,
 }

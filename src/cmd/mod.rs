@@ -1,5 +1,6 @@
 //! One file per command.
 
+mod behave;
 mod bench;
 mod broker;
 mod children;

@@ -36,6 +36,7 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
         }
         Some(UserVerb::Watch { duration, json }) => watch(client, duration, json),
         Some(UserVerb::Idle { duration }) => idle(client, duration, started),
+        Some(UserVerb::Behave(b)) => super::behave::run(client, &b),
         Some(UserVerb::Link {
             data,
             command,
