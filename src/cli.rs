@@ -33,6 +33,11 @@ pub enum Command {
     /// Benchmarks that print figures.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Stress: a broker, synthetic systems and N separate scripted user processes;
+    /// latency histograms from the users' and the broker's side, the floor measured in
+    /// the same run, and checks (every user got a list, every request answered, no
+    /// quota exceeded as the systems counted it).
+    Stress(StressArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -296,4 +301,30 @@ pub struct BehaveArgs {
     /// Chance that an interaction is a link instead of a request.
     #[arg(long, default_value_t = 0.1)]
     pub link_prob: f64,
+}
+
+#[derive(Args, Debug)]
+pub struct StressArgs {
+    /// User processes.
+    #[arg(long, default_value_t = 900)]
+    pub users: usize,
+    /// Services in the list.
+    #[arg(long, default_value_t = 80)]
+    pub services: usize,
+    /// Systems offering them (even ones data, odd ones command; every third keeps a
+    /// task queue; quotas 1..10).
+    #[arg(long, default_value_t = 10)]
+    pub systems: usize,
+    /// How long the users behave.
+    #[arg(long, default_value = "120s", value_parser = duration)]
+    pub duration: Duration,
+    /// Mean pause between a user's interactions.
+    #[arg(long, default_value = "2s", value_parser = duration)]
+    pub think: Duration,
+    /// Write report.json into this folder.
+    #[arg(long)]
+    pub report: Option<std::path::PathBuf>,
+    /// Print the report as one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
 }

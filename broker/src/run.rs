@@ -157,7 +157,10 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
                     if signals.drain() {
                         tracing::info!("signal received: broker stopping");
                         presence.ring(bell::BROKER_DOWN);
-                        return Ok(BrokerReport { stats: core.stats().clone(), handling: shell.handling });
+                        return Ok(BrokerReport {
+                            stats: core.stats().clone(),
+                            handling: shell.handling,
+                        });
                     }
                 }
                 t => {
@@ -207,7 +210,8 @@ impl Shell {
                     core.handle(now, msg);
                     let us = (t.elapsed().as_nanos() as u64).div_ceil(1000).max(1);
                     let h = self.handling.entry(kind).or_insert_with(|| {
-                        hdrhistogram::Histogram::new(3).expect("3 significant figures is a valid precision")
+                        hdrhistogram::Histogram::new(3)
+                            .expect("3 significant figures is a valid precision")
                     });
                     let _ = h.record(us);
                 }

@@ -67,7 +67,10 @@ struct Run<'a> {
 
 pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
     let seed = args.seed ^ (u64::from(std::process::id()) << 32);
-    let report = BehaveReport { user: client.id().0.clone(), ..BehaveReport::default() };
+    let report = BehaveReport {
+        user: client.id().0.clone(),
+        ..BehaveReport::default()
+    };
     let now = Instant::now();
     let mut r = Run {
         client,
@@ -136,13 +139,21 @@ impl Run<'_> {
             self.report.updates += 1;
             self.report.gaps += gap;
             if *sent_ns > 0 && self.report.update_us.len() < MAX_UPDATE_SAMPLES {
-                self.report.update_us.push((monotonic_ns().saturating_sub(*sent_ns) / 1000).max(1));
+                self.report
+                    .update_us
+                    .push((monotonic_ns().saturating_sub(*sent_ns) / 1000).max(1));
             }
         }
     }
 
     fn hold_time(&mut self) -> Duration {
-        let (a, b) = (self.args.hold_min.as_secs_f64(), self.args.hold_max.as_secs_f64().max(self.args.hold_min.as_secs_f64()));
+        let (a, b) = (
+            self.args.hold_min.as_secs_f64(),
+            self.args
+                .hold_max
+                .as_secs_f64()
+                .max(self.args.hold_min.as_secs_f64()),
+        );
         Duration::from_secs_f64(a + (b - a) * self.rng.random::<f64>())
     }
 
@@ -166,7 +177,9 @@ impl Run<'_> {
         let mut queued = false;
         let session = loop {
             match self.client.next_event(deadline)? {
-                Some(UserEvent::Granted { req: r, session, .. }) if r == req => {
+                Some(UserEvent::Granted {
+                    req: r, session, ..
+                }) if r == req => {
                     if !queued {
                         self.report.request_us.push(us(t.elapsed()));
                     }
@@ -175,7 +188,11 @@ impl Run<'_> {
                 }
                 Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
                     self.report.request_us.push(us(t.elapsed()));
-                    *self.report.refusals.entry(reason.code().to_string()).or_default() += 1;
+                    *self
+                        .report
+                        .refusals
+                        .entry(reason.code().to_string())
+                        .or_default() += 1;
                     break None;
                 }
                 Some(UserEvent::Queued { req: r, .. }) if r == req && !queued => {
@@ -211,11 +228,25 @@ impl Run<'_> {
 
     fn link(&mut self) -> Result<(), UserError> {
         let list = self.client.list()?;
-        let data: Vec<_> = list.entries().iter().filter(|e| e.kind() == ServiceKind::Data && e.withdrawn == 0).copied().collect();
-        let cmds: Vec<_> = list.entries().iter().filter(|e| e.kind() == ServiceKind::Command && e.withdrawn == 0).copied().collect();
+        let data: Vec<_> = list
+            .entries()
+            .iter()
+            .filter(|e| e.kind() == ServiceKind::Data && e.withdrawn == 0)
+            .copied()
+            .collect();
+        let cmds: Vec<_> = list
+            .entries()
+            .iter()
+            .filter(|e| e.kind() == ServiceKind::Command && e.withdrawn == 0)
+            .copied()
+            .collect();
         let pairs: Vec<(ServiceId, ServiceId)> = data
             .iter()
-            .flat_map(|d| cmds.iter().filter(|c| link_compatible(d.payload.as_str(), c.payload.as_str())).map(move |c| (d.id(), c.id())))
+            .flat_map(|d| {
+                cmds.iter()
+                    .filter(|c| link_compatible(d.payload.as_str(), c.payload.as_str()))
+                    .map(move |c| (d.id(), c.id()))
+            })
             .collect();
         if pairs.is_empty() {
             return self.request();

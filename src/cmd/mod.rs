@@ -5,6 +5,7 @@ mod bench;
 mod broker;
 mod children;
 mod sim;
+mod stress;
 mod system;
 mod up;
 mod user;
@@ -24,5 +25,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Up(a) => up::run(&inst, a),
         Command::Bench(b) => bench::run(&inst, b),
         Command::Sim(a) => sim::run(&inst, a),
+        Command::Stress(a) => stress::run(&inst, a),
     }
 }

@@ -31,7 +31,10 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
             let core = SystemCore::new(&opts.name, std::process::id(), specs, salt);
             let core = muster_systems::run_system(inst, core, Synthetic::new(&opts))?;
             if a.stats_json {
-                println!("{}", serde_json::json!({"system": core.name(), "services": core.report()}));
+                println!(
+                    "{}",
+                    serde_json::json!({"system": core.name(), "services": core.report()})
+                );
             }
             Ok(ExitCode::SUCCESS)
         }

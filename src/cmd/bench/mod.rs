@@ -1,8 +1,8 @@
 //! `muster bench ...`: benchmarks that print figures (never assertions).
 
-mod floor;
+pub mod floor;
 mod liveness;
-mod procfs;
+pub mod procfs;
 use super::children;
 mod scale;
 

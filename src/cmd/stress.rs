@@ -1,0 +1,268 @@
+//! `muster stress`: many separate scripted user processes against a broker and
+//! synthetic systems, measured from both sides, with the floor in the same run.
+
+use super::bench::floor::FloorProbe;
+use super::bench::{row, summary};
+use super::children::Children;
+use crate::cli::StressArgs;
+use anyhow::{bail, Context};
+use hdrhistogram::Histogram;
+use muster_shared::ipc::MAX_PARTICIPANTS;
+use muster_shared::reactor::raise_fd_limit;
+use muster_shared::Instance;
+use muster_users::{ConnectOptions, UserClient};
+use serde_json::{json, Value};
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader, Read};
+use std::process::{ChildStdout, ExitCode, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+fn histogram() -> Histogram<u64> {
+    Histogram::new_with_bounds(1, 600_000_000, 3).expect("valid bounds")
+}
+
+fn samples(v: &Value, key: &str, h: &mut Histogram<u64>) {
+    for x in v[key].as_array().into_iter().flatten() {
+        if let Some(x) = x.as_u64() {
+            let _ = h.record(x.clamp(1, 600_000_000));
+        }
+    }
+}
+
+fn read_all(out: Option<ChildStdout>) -> String {
+    let mut s = String::new();
+    if let Some(mut o) = out {
+        let _ = o.read_to_string(&mut s);
+    }
+    s
+}
+
+pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
+    if a.systems == 0 || a.services < a.systems || a.services > 256 {
+        bail!("--services must be between --systems and 256 (and --systems at least 1)");
+    }
+    if a.users == 0 || a.users + a.systems + 8 > MAX_PARTICIPANTS {
+        bail!("--users must be 1..={}", MAX_PARTICIPANTS - a.systems - 8);
+    }
+    let fds = raise_fd_limit().context("raising the file-descriptor limit")?;
+    if fds < (a.users as u64) * 3 + 64 {
+        bail!(
+            "file-descriptor limit {fds} is too low for {} users (raise `ulimit -Hn`)",
+            a.users
+        );
+    }
+    let mut children = Children::default();
+    let broker_out = children
+        .spawn(inst, "broker", &["broker", "--stats-json"], Stdio::piped())?
+        .stdout
+        .take();
+    let mut system_outs = Vec::new();
+    let mut quotas = BTreeMap::new();
+    for i in 0..a.systems {
+        let n = a.services / a.systems + usize::from(i < a.services % a.systems);
+        let name = format!("s{i}");
+        let quota = (1 + (i * 3) % 10).to_string();
+        let kind = if i % 2 == 0 { "data" } else { "command" };
+        let (n_s, rate) = (n.to_string(), "10".to_string());
+        let mut args = vec![
+            "system",
+            "synthetic",
+            "--name",
+            &name,
+            "--services",
+            &n_s,
+            "--kind",
+            kind,
+        ];
+        args.extend(["--quota", &quota, "--rate", &rate, "--stats-json"]);
+        if i % 3 == 2 {
+            args.push("--queue");
+        }
+        quotas.insert(name.clone(), quota.clone());
+        system_outs.push(
+            children
+                .spawn(inst, &name, &args, Stdio::piped())?
+                .stdout
+                .take(),
+        );
+    }
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(20),
+        handle_signals: false,
+        watch_list: false,
+    };
+    let mut client = UserClient::connect(inst, &opts)?;
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while (client.list()?.count as usize) < a.services {
+        if Instant::now() > deadline {
+            bail!(
+                "the systems did not register {} services within 30 s",
+                a.services
+            );
+        }
+        let _ = client.next_event(Instant::now() + Duration::from_millis(50))?;
+    }
+    client.close();
+    let mut probe = FloorProbe::start(inst)?;
+
+    // Users.
+    let (tx, rx) = mpsc::channel::<(usize, Option<Value>)>();
+    let duration = format!("{}ms", a.duration.as_millis());
+    let think = format!("{}ms", a.think.as_millis().max(1));
+    let start = Instant::now();
+    for i in 0..a.users {
+        let seed = i.to_string();
+        let args = [
+            "user",
+            "--wait",
+            "60s",
+            "behave",
+            "--duration",
+            &duration,
+            "--think",
+            &think,
+            "--seed",
+            &seed,
+        ];
+        let child = children.spawn(inst, "user", &args, Stdio::piped())?;
+        let out = child.stdout.take().context("user stdout")?;
+        let tx = tx.clone();
+        std::thread::spawn(move || {
+            let last = BufReader::new(out).lines().map_while(Result::ok).last();
+            let _ = tx.send((i, last.and_then(|l| serde_json::from_str(&l).ok())));
+        });
+    }
+    drop(tx);
+    // While they behave, the floor, every 20 ms, under the same load.
+    let mut floor = histogram();
+    let mut reports: Vec<Option<Value>> = vec![None; a.users];
+    let mut done = 0;
+    let give_up = start + a.duration + Duration::from_secs(120);
+    while done < a.users && Instant::now() < give_up {
+        floor.record((probe.round_trip()?.as_micros() as u64).max(1))?;
+        while let Ok((i, r)) = rx.recv_timeout(Duration::from_millis(20)) {
+            reports[i] = r;
+            done += 1;
+        }
+    }
+    let run_time = start.elapsed();
+    probe.stop();
+    children.stop(); // SIGTERM: systems and broker print their statistics
+    let broker: Value = serde_json::from_str(read_all(broker_out).trim()).unwrap_or(Value::Null);
+    let systems: Vec<Value> = system_outs
+        .into_iter()
+        .filter_map(|o| serde_json::from_str(read_all(o).trim()).ok())
+        .collect();
+
+    // Aggregate.
+    let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
+    let mut totals: BTreeMap<&str, u64> = BTreeMap::new();
+    let mut refusals: BTreeMap<String, u64> = BTreeMap::new();
+    let mut users_with_list = 0;
+    let mut missing = 0;
+    for r in &reports {
+        let Some(r) = r else {
+            missing += 1;
+            continue;
+        };
+        samples(r, "list_us", &mut list);
+        samples(r, "request_us", &mut request);
+        samples(r, "update_us", &mut update);
+        for k in [
+            "lists",
+            "requests",
+            "grants",
+            "abandoned",
+            "updates",
+            "gaps",
+            "links",
+            "link_failures",
+            "errors",
+        ] {
+            *totals.entry(k).or_default() += r[k].as_u64().unwrap_or(0);
+        }
+        for (code, n) in r["refusals"].as_object().into_iter().flatten() {
+            *refusals.entry(code.clone()).or_default() += n.as_u64().unwrap_or(0);
+        }
+        if r["lists"].as_u64().unwrap_or(0) > 0 {
+            users_with_list += 1;
+        }
+    }
+    let refused: u64 = refusals.values().sum();
+    let answered = totals["grants"] + refused + totals["abandoned"] + totals["errors"];
+    let mut over_quota = Vec::new();
+    for s in &systems {
+        for (svc, rep) in s["services"].as_object().into_iter().flatten() {
+            let (max, quota) = (
+                rep["max_in_use"].as_u64().unwrap_or(0),
+                rep["quota"].as_u64().unwrap_or(0),
+            );
+            if max > quota {
+                over_quota.push(format!("{}/{svc}: {max} > {quota}", s["system"]));
+            }
+        }
+    }
+    let checks = json!({
+        "every_user_got_a_list": users_with_list == a.users,
+        "every_request_answered": answered == totals["requests"],
+        "quota_never_exceeded": over_quota.is_empty() && systems.len() == a.systems,
+    });
+    let ok = checks
+        .as_object()
+        .is_some_and(|c| c.values().all(|v| v == true))
+        && missing == 0;
+    let errors = totals["errors"] + missing as u64;
+    let report = json!({
+        "users": a.users, "services": a.services, "systems": a.systems,
+        "duration_s": a.duration.as_secs_f64(), "run_s": run_time.as_secs_f64(),
+        "errors": errors, "missing_user_reports": missing,
+        "totals": totals, "refusals": refusals, "over_quota": over_quota, "checks": checks,
+        "list": summary(&list), "service_request": summary(&request), "update": summary(&update),
+        "floor": summary(&floor),
+        "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64 / floor.value_at_quantile(0.5).max(1) as f64,
+        "broker": broker,
+    });
+    if let Some(dir) = &a.report {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        std::fs::write(
+            dir.join("report.json"),
+            serde_json::to_string_pretty(&report)?,
+        )?;
+    }
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "muster stress: {} user processes, {} services on {} systems, {:.0} s",
+            a.users,
+            a.services,
+            a.systems,
+            a.duration.as_secs_f64()
+        );
+        println!(
+            "\n{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
+            "latency (us)", "count", "p50", "p90", "p99", "max"
+        );
+        println!("{}", row("list request", &list));
+        println!("{}", row("service request", &request));
+        println!("{}", row("session update", &update));
+        println!("{}", row("floor (raw 2-process trip)", &floor));
+        if let Some(h) = broker["handling"].as_object() {
+            println!("\nbroker, time to handle (us):");
+            for (kind, v) in h {
+                println!(
+                    "  {kind:<14} count {:>7}  p50 {:>5}  p99 {:>5}  max {:>6}",
+                    v["count"], v["p50_us"], v["p99_us"], v["max_us"]
+                );
+            }
+        }
+        println!("\ntotals: {totals:?}; refusals: {refusals:?}");
+        println!("checks: {checks}; errors {errors}");
+    }
+    Ok(if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}

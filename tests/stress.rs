@@ -1,0 +1,68 @@
+//! The bounded stress run: real user processes with the paper's behaviour.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{Fed, SEC};
+use serde_json::Value;
+
+#[test]
+fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded() {
+    let f = Fed::new("stress");
+    let dir = std::env::temp_dir().join(format!("muster-stress-{}", std::process::id()));
+    let (code, out) = f.run(
+        &[
+            "stress",
+            "--users",
+            "50",
+            "--services",
+            "10",
+            "--systems",
+            "4",
+            "--duration",
+            "10s",
+            "--think",
+            "500ms",
+            "--json",
+            "--report",
+            dir.to_str().unwrap(),
+        ],
+        240 * SEC,
+    );
+    let r: Value = serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
+    assert_eq!(code, 0, "{r:#}");
+    assert_eq!(r["checks"]["every_user_got_a_list"], true);
+    assert_eq!(r["checks"]["every_request_answered"], true);
+    assert_eq!(r["checks"]["quota_never_exceeded"], true);
+    assert_eq!(r["users"], 50);
+    assert_eq!(r["errors"], 0);
+    let t = &r["totals"];
+    assert!(t["requests"].as_u64().unwrap() > 50, "{t}");
+    assert!(t["lists"].as_u64().unwrap() >= 50);
+    let refused: u64 = r["refusals"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_u64().unwrap())
+        .sum();
+    let answered = t["grants"].as_u64().unwrap() + refused + t["abandoned"].as_u64().unwrap();
+    assert_eq!(answered, t["requests"].as_u64().unwrap());
+    for k in ["list", "service_request", "update", "floor"] {
+        for f in ["count", "p50_us", "p99_us", "max_us"] {
+            assert!(r[k][f].is_u64(), "{k}.{f} in {r:#}");
+        }
+        assert!(r[k]["count"].as_u64().unwrap() > 0, "{k}");
+    }
+    // The broker's side: it handled every request the users sent (plus link halves).
+    assert!(
+        r["broker"]["handling"]["request"]["count"]
+            .as_u64()
+            .unwrap()
+            >= t["requests"].as_u64().unwrap()
+    );
+    let saved: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    assert_eq!(saved["users"], 50);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
