@@ -298,6 +298,19 @@ impl Endpoint {
 
     fn peer(&mut self, to: &Address) -> Result<&mut Peer, TransportError> {
         if !self.peers.contains_key(to) {
+            let started = Instant::now();
+            let opened = self.open_peer(to);
+            let took = started.elapsed();
+            if took > Duration::from_millis(50) {
+                tracing::debug!(peer = %to, ?took, ok = opened.is_ok(), "opening a peer's ports was slow");
+            }
+            opened?;
+        }
+        Ok(self.peers.get_mut(to).expect("inserted above"))
+    }
+
+    fn open_peer(&mut self, to: &Address) -> Result<(), TransportError> {
+        {
             let inbox_name = self.inst.inbox(to);
             let svc = self
                 .node
@@ -338,7 +351,7 @@ impl Endpoint {
                 },
             );
         }
-        Ok(self.peers.get_mut(to).expect("inserted above"))
+        Ok(())
     }
 
     /// Writes a frame into `to`'s inbox and rings its bell.
