@@ -1,7 +1,8 @@
 //! Child `muster` processes started by a command, stopped by PID.
 
-use anyhow::Context;
+use anyhow::{bail, Context};
 use muster_shared::Instance;
+use muster_users::{ConnectOptions, UserClient};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -78,4 +79,27 @@ impl Drop for Children {
     fn drop(&mut self) {
         self.stop();
     }
+}
+
+/// Connects a quiet client (no signal handling, no list watching) and waits until the
+/// list holds at least `services` entries.
+pub fn connect_when_listed(
+    inst: &Instance,
+    services: usize,
+    timeout: Duration,
+) -> anyhow::Result<UserClient> {
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(20),
+        handle_signals: false,
+        watch_list: false,
+    };
+    let mut client = UserClient::connect(inst, &opts)?;
+    let deadline = Instant::now() + timeout;
+    while (client.list()?.count as usize) < services {
+        if Instant::now() > deadline {
+            bail!("the systems did not register {services} services within {timeout:?}");
+        }
+        let _ = client.next_event(Instant::now() + Duration::from_millis(50))?;
+    }
+    Ok(client)
 }

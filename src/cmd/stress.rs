@@ -10,7 +10,6 @@ use hdrhistogram::Histogram;
 use muster_shared::ipc::MAX_PARTICIPANTS;
 use muster_shared::reactor::raise_fd_limit;
 use muster_shared::Instance;
-use muster_users::{ConnectOptions, UserClient};
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Read};
@@ -58,7 +57,6 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .stdout
         .take();
     let mut system_outs = Vec::new();
-    let mut quotas = BTreeMap::new();
     for i in 0..a.systems {
         let n = a.services / a.systems + usize::from(i < a.services % a.systems);
         let name = format!("s{i}");
@@ -79,7 +77,6 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         if i % 3 == 2 {
             args.push("--queue");
         }
-        quotas.insert(name.clone(), quota.clone());
         system_outs.push(
             children
                 .spawn(inst, &name, &args, Stdio::piped())?
@@ -87,23 +84,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
                 .take(),
         );
     }
-    let opts = ConnectOptions {
-        wait_for_broker: Duration::from_secs(20),
-        handle_signals: false,
-        watch_list: false,
-    };
-    let mut client = UserClient::connect(inst, &opts)?;
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while (client.list()?.count as usize) < a.services {
-        if Instant::now() > deadline {
-            bail!(
-                "the systems did not register {} services within 30 s",
-                a.services
-            );
-        }
-        let _ = client.next_event(Instant::now() + Duration::from_millis(50))?;
-    }
-    client.close();
+    super::children::connect_when_listed(inst, a.services, Duration::from_secs(30))?.close();
     let mut probe = FloorProbe::start(inst)?;
 
     // Users.

@@ -13,7 +13,7 @@ use muster_shared::reactor::raise_fd_limit;
 use muster_shared::snapshot::MAX_LISTED_SERVICES;
 use muster_shared::types::{ServiceId, MAX_SERVICES_PER_SYSTEM};
 use muster_shared::Instance;
-use muster_users::{ConnectOptions, UserClient, UserEvent};
+use muster_users::UserEvent;
 use serde_json::json;
 use std::io::{BufRead, BufReader};
 use std::process::{ExitCode, Stdio};
@@ -73,22 +73,8 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         ];
         system_pids.push(children.spawn(inst, &name, &args, Stdio::inherit())?.id());
     }
-    let opts = ConnectOptions {
-        wait_for_broker: Duration::from_secs(20),
-        handle_signals: false,
-        watch_list: false,
-    };
-    let mut client = UserClient::connect(inst, &opts)?;
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while (client.list()?.count as usize) < a.services {
-        if Instant::now() > deadline {
-            bail!(
-                "the systems did not register {} services within 30 s",
-                a.services
-            );
-        }
-        let _ = client.next_event(Instant::now() + Duration::from_millis(50))?;
-    }
+    let mut client =
+        super::children::connect_when_listed(inst, a.services, Duration::from_secs(30))?;
     let shm_systems = (procfs::shm_allocated_bytes(), procfs::shm_reserved_bytes());
 
     // Users: each a separate process; setup = spawn until it has read the list.
