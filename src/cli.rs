@@ -81,15 +81,8 @@ pub struct LivenessArgs {
 
 #[derive(Args, Debug)]
 pub struct ScaleArgs {
-    /// User processes.
-    #[arg(long, default_value_t = 900)]
-    pub users: usize,
-    /// Services in the list.
-    #[arg(long, default_value_t = 80)]
-    pub services: usize,
-    /// Systems offering them.
-    #[arg(long, default_value_t = 10)]
-    pub systems: usize,
+    #[command(flatten)]
+    pub load: LoadArgs,
     /// How long to measure the broker's CPU with every user connected and idle.
     #[arg(long, default_value = "10s", value_parser = duration)]
     pub idle: Duration,
@@ -305,16 +298,10 @@ pub struct BehaveArgs {
 
 #[derive(Args, Debug)]
 pub struct StressArgs {
-    /// User processes.
-    #[arg(long, default_value_t = 900)]
-    pub users: usize,
-    /// Services in the list.
-    #[arg(long, default_value_t = 80)]
-    pub services: usize,
-    /// Systems offering them (even ones data, odd ones command; every third keeps a
-    /// task queue; quotas 1..10).
-    #[arg(long, default_value_t = 10)]
-    pub systems: usize,
+    /// Users, services, and systems (in `stress`, even systems offer data services and
+    /// odd ones command services; every third keeps a task queue; quotas 1..10).
+    #[command(flatten)]
+    pub load: LoadArgs,
     /// How long the users behave.
     #[arg(long, default_value = "120s", value_parser = duration)]
     pub duration: Duration,
@@ -327,4 +314,18 @@ pub struct StressArgs {
     /// Print the report as one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,
+}
+
+/// The size of a load run: how many user processes, services and systems.
+#[derive(Args, Debug, Clone, Copy)]
+pub struct LoadArgs {
+    /// User processes.
+    #[arg(long, default_value_t = 900)]
+    pub users: usize,
+    /// Services in the list.
+    #[arg(long, default_value_t = 80)]
+    pub services: usize,
+    /// Systems offering them.
+    #[arg(long, default_value_t = 10)]
+    pub systems: usize,
 }

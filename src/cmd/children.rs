@@ -103,3 +103,41 @@ pub fn connect_when_listed(
     }
     Ok(client)
 }
+
+impl crate::cli::LoadArgs {
+    /// Checks the sizes against muster's limits and raises the fd limit for them.
+    pub fn check(&self, fds_per_user: u64) -> anyhow::Result<()> {
+        use muster_shared::ipc::MAX_PARTICIPANTS;
+        use muster_shared::snapshot::MAX_LISTED_SERVICES;
+        use muster_shared::types::MAX_SERVICES_PER_SYSTEM;
+        if self.systems == 0 || self.services < self.systems {
+            bail!("--services must be at least --systems (and --systems at least 1)");
+        }
+        if self.services > MAX_LISTED_SERVICES
+            || self.services.div_ceil(self.systems) > MAX_SERVICES_PER_SYSTEM
+        {
+            bail!("at most {MAX_LISTED_SERVICES} services, {MAX_SERVICES_PER_SYSTEM} per system");
+        }
+        if self.users == 0 || self.users + self.systems + 8 > MAX_PARTICIPANTS {
+            bail!(
+                "--users must be 1..={} with {} systems",
+                MAX_PARTICIPANTS - self.systems - 8,
+                self.systems
+            );
+        }
+        let fds = muster_shared::reactor::raise_fd_limit()
+            .context("raising the file-descriptor limit")?;
+        if fds < self.users as u64 * fds_per_user + 64 {
+            bail!(
+                "file-descriptor limit {fds} is too low for {} users (raise `ulimit -Hn`)",
+                self.users
+            );
+        }
+        Ok(())
+    }
+
+    /// How many services system `i` offers, spreading them evenly.
+    pub fn services_of(&self, i: usize) -> usize {
+        self.services / self.systems + usize::from(i < self.services % self.systems)
+    }
+}

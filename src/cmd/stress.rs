@@ -5,10 +5,8 @@ use super::bench::floor::FloorProbe;
 use super::bench::{row, summary};
 use super::children::Children;
 use crate::cli::StressArgs;
-use anyhow::{bail, Context};
+use anyhow::Context;
 use hdrhistogram::Histogram;
-use muster_shared::ipc::MAX_PARTICIPANTS;
-use muster_shared::reactor::raise_fd_limit;
 use muster_shared::Instance;
 use serde_json::{json, Value};
 use std::collections::BTreeMap;
@@ -38,27 +36,15 @@ fn read_all(out: Option<ChildStdout>) -> String {
 }
 
 pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
-    if a.systems == 0 || a.services < a.systems || a.services > 256 {
-        bail!("--services must be between --systems and 256 (and --systems at least 1)");
-    }
-    if a.users == 0 || a.users + a.systems + 8 > MAX_PARTICIPANTS {
-        bail!("--users must be 1..={}", MAX_PARTICIPANTS - a.systems - 8);
-    }
-    let fds = raise_fd_limit().context("raising the file-descriptor limit")?;
-    if fds < (a.users as u64) * 3 + 64 {
-        bail!(
-            "file-descriptor limit {fds} is too low for {} users (raise `ulimit -Hn`)",
-            a.users
-        );
-    }
+    a.load.check(3)?;
     let mut children = Children::default();
     let broker_out = children
         .spawn(inst, "broker", &["broker", "--stats-json"], Stdio::piped())?
         .stdout
         .take();
     let mut system_outs = Vec::new();
-    for i in 0..a.systems {
-        let n = a.services / a.systems + usize::from(i < a.services % a.systems);
+    for i in 0..a.load.systems {
+        let n = a.load.services_of(i);
         let name = format!("s{i}");
         let quota = (1 + (i * 3) % 10).to_string();
         let kind = if i % 2 == 0 { "data" } else { "command" };
@@ -84,7 +70,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
                 .take(),
         );
     }
-    super::children::connect_when_listed(inst, a.services, Duration::from_secs(30))?.close();
+    super::children::connect_when_listed(inst, a.load.services, Duration::from_secs(30))?.close();
     let mut probe = FloorProbe::start(inst)?;
 
     // Users.
@@ -92,7 +78,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let duration = format!("{}ms", a.duration.as_millis());
     let think = format!("{}ms", a.think.as_millis().max(1));
     let start = Instant::now();
-    for i in 0..a.users {
+    for i in 0..a.load.users {
         let seed = i.to_string();
         let args = [
             "user",
@@ -117,10 +103,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     drop(tx);
     // While they behave, the floor, every 20 ms, under the same load.
     let mut floor = histogram();
-    let mut reports: Vec<Option<Value>> = vec![None; a.users];
+    let mut reports: Vec<Option<Value>> = vec![None; a.load.users];
     let mut done = 0;
     let give_up = start + a.duration + Duration::from_secs(120);
-    while done < a.users && Instant::now() < give_up {
+    while done < a.load.users && Instant::now() < give_up {
         floor.record((probe.round_trip()?.as_micros() as u64).max(1))?;
         while let Ok((i, r)) = rx.recv_timeout(Duration::from_millis(20)) {
             reports[i] = r;
@@ -185,9 +171,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         }
     }
     let checks = json!({
-        "every_user_got_a_list": users_with_list == a.users,
+        "every_user_got_a_list": users_with_list == a.load.users,
         "every_request_answered": answered == totals["requests"],
-        "quota_never_exceeded": over_quota.is_empty() && systems.len() == a.systems,
+        "quota_never_exceeded": over_quota.is_empty() && systems.len() == a.load.systems,
     });
     let ok = checks
         .as_object()
@@ -195,7 +181,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         && missing == 0;
     let errors = totals["errors"] + missing as u64;
     let report = json!({
-        "users": a.users, "services": a.services, "systems": a.systems,
+        "users": a.load.users, "services": a.load.services, "systems": a.load.systems,
         "duration_s": a.duration.as_secs_f64(), "run_s": run_time.as_secs_f64(),
         "errors": errors, "missing_user_reports": missing,
         "totals": totals, "refusals": refusals, "over_quota": over_quota, "checks": checks,
@@ -216,9 +202,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     } else {
         println!(
             "muster stress: {} user processes, {} services on {} systems, {:.0} s",
-            a.users,
-            a.services,
-            a.systems,
+            a.load.users,
+            a.load.services,
+            a.load.systems,
             a.duration.as_secs_f64()
         );
         println!(

@@ -8,10 +8,7 @@ use super::{row, summary};
 use crate::cli::ScaleArgs;
 use anyhow::{bail, Context};
 use hdrhistogram::Histogram;
-use muster_shared::ipc::MAX_PARTICIPANTS;
-use muster_shared::reactor::raise_fd_limit;
-use muster_shared::snapshot::MAX_LISTED_SERVICES;
-use muster_shared::types::{ServiceId, MAX_SERVICES_PER_SYSTEM};
+use muster_shared::types::ServiceId;
 use muster_shared::Instance;
 use muster_users::UserEvent;
 use serde_json::json;
@@ -29,34 +26,14 @@ fn mib(bytes: u64) -> f64 {
 }
 
 pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
-    if a.systems == 0 || a.services < a.systems {
-        bail!("--services must be at least --systems (and --systems at least 1)");
-    }
-    if a.services > MAX_LISTED_SERVICES || a.services.div_ceil(a.systems) > MAX_SERVICES_PER_SYSTEM
-    {
-        bail!("at most {MAX_LISTED_SERVICES} services, {MAX_SERVICES_PER_SYSTEM} per system");
-    }
-    if a.users + a.systems + 8 > MAX_PARTICIPANTS {
-        bail!(
-            "at most {} users with {} systems",
-            MAX_PARTICIPANTS - a.systems - 8,
-            a.systems
-        );
-    }
-    let fds = raise_fd_limit().context("raising the file-descriptor limit")?;
-    if fds < (a.users as u64) * 2 + 64 {
-        bail!(
-            "file-descriptor limit {fds} is too low for {} users (raise `ulimit -Hn`)",
-            a.users
-        );
-    }
+    a.load.check(2)?;
     let shm_start = (procfs::shm_allocated_bytes(), procfs::shm_reserved_bytes());
     let mut children = Children::default();
     children.spawn(inst, "broker", &["broker"], Stdio::inherit())?;
     let broker_pid = children.pids().next().expect("broker");
     let mut system_pids = Vec::new();
-    for i in 0..a.systems {
-        let n = a.services / a.systems + usize::from(i < a.services % a.systems);
+    for i in 0..a.load.systems {
+        let n = a.load.services_of(i);
         let name = format!("b{i}");
         let n = n.to_string();
         let args = [
@@ -74,14 +51,14 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         system_pids.push(children.spawn(inst, &name, &args, Stdio::inherit())?.id());
     }
     let mut client =
-        super::children::connect_when_listed(inst, a.services, Duration::from_secs(30))?;
+        super::children::connect_when_listed(inst, a.load.services, Duration::from_secs(30))?;
     let shm_systems = (procfs::shm_allocated_bytes(), procfs::shm_reserved_bytes());
 
     // Users: each a separate process; setup = spawn until it has read the list.
     let (tx, rx) = mpsc::channel::<(usize, Result<(Duration, u64), String>)>();
-    let mut user_pids = Vec::with_capacity(a.users);
+    let mut user_pids = Vec::with_capacity(a.load.users);
     let all_start = Instant::now();
-    for i in 0..a.users {
+    for i in 0..a.load.users {
         let spawned = Instant::now();
         let child = children.spawn(
             inst,
@@ -113,7 +90,7 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
     let mut setup = histogram();
     let mut connect = histogram();
     let mut failures = Vec::new();
-    for _ in 0..a.users {
+    for _ in 0..a.load.users {
         match rx.recv_timeout(Duration::from_secs(180)) {
             Ok((_, Ok((d, c)))) => {
                 setup.record(d.as_micros().max(1) as u64)?;
@@ -213,9 +190,9 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
     let teardown = teardown.elapsed();
 
     let report = json!({
-        "users": a.users,
-        "services": a.services,
-        "systems": a.systems,
+        "users": a.load.users,
+        "services": a.load.services,
+        "systems": a.load.systems,
         "connected": setup.len(),
         "failures": failures,
         "all_connected_s": all_connected.as_secs_f64(),
@@ -223,7 +200,7 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         "connect": summary(&connect),
         "shm_allocated_mib": {"systems": mib(shm_systems.0 - shm_start.0.min(shm_systems.0)),
                                "users": mib(shm_users.0.saturating_sub(shm_systems.0)),
-                               "per_user_kib": shm_users.0.saturating_sub(shm_systems.0) as f64 / 1024.0 / a.users.max(1) as f64},
+                               "per_user_kib": shm_users.0.saturating_sub(shm_systems.0) as f64 / 1024.0 / a.load.users.max(1) as f64},
         "shm_reserved_mib": {"systems": mib(shm_systems.1.saturating_sub(shm_start.1)),
                               "users": mib(shm_users.1.saturating_sub(shm_systems.1))},
         "broker": {"rss_kib": broker_rss, "pss_kib": broker_pss, "idle_cpu_percent": broker_cpu},
@@ -242,12 +219,12 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
     } else {
         println!(
             "muster bench scale: {} user processes, {} services on {} systems",
-            a.users, a.services, a.systems
+            a.load.users, a.load.services, a.load.systems
         );
         println!(
             "connected {} of {} in {:.2} s ({} failures)",
             setup.len(),
-            a.users,
+            a.load.users,
             all_connected.as_secs_f64(),
             failures.len()
         );
@@ -274,7 +251,7 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
             "\nshared memory allocated: systems+broker {:.1} MiB, users {:.1} MiB ({:.0} KiB per user); reserved {:.1} MiB for users",
             mib(shm_systems.0.saturating_sub(shm_start.0)),
             mib(shm_users.0.saturating_sub(shm_systems.0)),
-            shm_users.0.saturating_sub(shm_systems.0) as f64 / 1024.0 / a.users.max(1) as f64,
+            shm_users.0.saturating_sub(shm_systems.0) as f64 / 1024.0 / a.load.users.max(1) as f64,
             mib(shm_users.1.saturating_sub(shm_systems.1)),
         );
         println!("broker: RSS {broker_rss} KiB, PSS {broker_pss} KiB, CPU while all idle {broker_cpu:.2} % over {:.0} s", idle_s);
