@@ -18,6 +18,14 @@ const MAX_UPDATE_SAMPLES: usize = 2000;
 pub struct BehaveReport {
     /// User id.
     pub user: String,
+    /// When it connected and when it stopped: CLOCK_MONOTONIC ms.
+    pub started_ms: u64,
+    /// See `started_ms`.
+    pub ended_ms: u64,
+    /// When each list read happened (CLOCK_MONOTONIC ms), matching `list_us`.
+    pub list_at_ms: Vec<u64>,
+    /// When each request was sent (CLOCK_MONOTONIC ms), matching `request_us`.
+    pub request_at_ms: Vec<u64>,
     /// List reads.
     pub lists: u64,
     /// List read latencies, µs.
@@ -84,6 +92,7 @@ pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
         Ok(()) | Err(UserError::Interrupted) => {}
         Err(_) => r.report.errors += 1,
     }
+    r.report.ended_ms = monotonic_ns() / 1_000_000;
     let Run { client, report, .. } = r;
     client.close();
     println!("{}", serde_json::to_string(&report)?);
@@ -126,8 +135,10 @@ impl Run<'_> {
 
     fn refresh(&mut self) -> Result<(), UserError> {
         let t = Instant::now();
+        let at = monotonic_ns() / 1_000_000;
         let list = self.client.list()?;
         self.report.list_us.push(us(t.elapsed()));
+        self.report.list_at_ms.push(at);
         self.report.lists += 1;
         drop(list);
         self.next_refresh = Instant::now() + pause(&mut self.rng, self.args.refresh);
@@ -171,6 +182,7 @@ impl Run<'_> {
         }
         let id = ids[self.rng.random_range(0..ids.len())].clone();
         let t = Instant::now();
+        let at = monotonic_ns() / 1_000_000;
         let req = self.client.request(&id)?;
         self.report.requests += 1;
         let mut deadline = t + Duration::from_secs(10);
@@ -182,12 +194,14 @@ impl Run<'_> {
                 }) if r == req => {
                     if !queued {
                         self.report.request_us.push(us(t.elapsed()));
+                        self.report.request_at_ms.push(at);
                     }
                     self.report.grants += 1;
                     break Some(session);
                 }
                 Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
                     self.report.request_us.push(us(t.elapsed()));
+                    self.report.request_at_ms.push(at);
                     *self
                         .report
                         .refusals
@@ -198,6 +212,7 @@ impl Run<'_> {
                 Some(UserEvent::Queued { req: r, .. }) if r == req && !queued => {
                     // The answer is "wait": that is the response time; then wait a while.
                     self.report.request_us.push(us(t.elapsed()));
+                    self.report.request_at_ms.push(at);
                     queued = true;
                     deadline = Instant::now() + self.args.hold_max;
                 }

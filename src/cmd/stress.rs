@@ -35,6 +35,64 @@ fn read_all(out: Option<ChildStdout>) -> String {
     s
 }
 
+/// Per-second buckets of the run: online users and latencies by message type.
+#[derive(Default)]
+struct Timeline {
+    online: BTreeMap<u64, i64>,
+    list: BTreeMap<u64, Histogram<u64>>,
+    request: BTreeMap<u64, Histogram<u64>>,
+}
+
+impl Timeline {
+    fn add(&mut self, r: &Value, start_ms: u64) {
+        let sec = |ms: u64| ms.saturating_sub(start_ms) / 1000;
+        if let (Some(a), Some(b)) = (r["started_ms"].as_u64(), r["ended_ms"].as_u64()) {
+            *self.online.entry(sec(a)).or_default() += 1;
+            *self.online.entry(sec(b) + 1).or_default() -= 1;
+        }
+        for (at, us, buckets) in [
+            ("list_at_ms", "list_us", &mut self.list),
+            ("request_at_ms", "request_us", &mut self.request),
+        ] {
+            let ats = r[at].as_array().cloned().unwrap_or_default();
+            let uss = r[us].as_array().cloned().unwrap_or_default();
+            for (a, u) in ats.iter().zip(&uss) {
+                if let (Some(a), Some(u)) = (a.as_u64(), u.as_u64()) {
+                    let _ = buckets
+                        .entry(sec(a))
+                        .or_insert_with(histogram)
+                        .record(u.clamp(1, 600_000_000));
+                }
+            }
+        }
+    }
+
+    /// Service requests sent before and after `secs` seconds.
+    fn split_requests(&self, secs: u64) -> (Histogram<u64>, Histogram<u64>) {
+        let (mut early, mut late) = (histogram(), histogram());
+        for (s, h) in &self.request {
+            let _ = if *s < secs { early.add(h) } else { late.add(h) };
+        }
+        (early, late)
+    }
+
+    fn to_json(&self) -> Value {
+        let last = [&self.list, &self.request]
+            .iter()
+            .filter_map(|m| m.keys().next_back().copied())
+            .max()
+            .unwrap_or(0);
+        let mut online = 0i64;
+        let mut out = Vec::new();
+        for s in 0..=last {
+            online += self.online.get(&s).copied().unwrap_or(0);
+            let cell = |m: &BTreeMap<u64, Histogram<u64>>| m.get(&s).map_or(Value::Null, summary);
+            out.push(json!({"t_s": s, "online": online, "list": cell(&self.list), "service_request": cell(&self.request)}));
+        }
+        Value::Array(out)
+    }
+}
+
 pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     a.load.check(3)?;
     let mut children = Children::default();
@@ -78,6 +136,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let duration = format!("{}ms", a.duration.as_millis());
     let think = format!("{}ms", a.think.as_millis().max(1));
     let start = Instant::now();
+    let start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
     for i in 0..a.load.users {
         let seed = i.to_string();
         let args = [
@@ -124,6 +183,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
 
     // Aggregate.
     let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
+    let mut timeline = Timeline::default();
     let mut totals: BTreeMap<&str, u64> = BTreeMap::new();
     let mut refusals: BTreeMap<String, u64> = BTreeMap::new();
     let mut users_with_list = 0;
@@ -135,6 +195,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         };
         samples(r, "list_us", &mut list);
         samples(r, "request_us", &mut request);
+        timeline.add(r, start_ms);
         samples(r, "update_us", &mut update);
         for k in [
             "lists",
@@ -187,6 +248,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "totals": totals, "refusals": refusals, "over_quota": over_quota, "checks": checks,
         "list": summary(&list), "service_request": summary(&request), "update": summary(&update),
         "floor": summary(&floor),
+        "timeline": timeline.to_json(),
         "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64 / floor.value_at_quantile(0.5).max(1) as f64,
         "broker": broker,
     });
@@ -215,6 +277,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", row("service request", &request));
         println!("{}", row("session update", &update));
         println!("{}", row("floor (raw 2-process trip)", &floor));
+        let (early, late) = timeline.split_requests(10);
+        println!("{}", row("service request, first 10 s", &early));
+        println!("{}", row("service request, after 10 s", &late));
         if let Some(h) = broker["handling"].as_object() {
             println!("\nbroker, time to handle (us):");
             for (kind, v) in h {
