@@ -64,10 +64,21 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
     // Response times over time, with the users online (the paper's Figure 4, as data).
     let timeline = r["timeline"].as_array().unwrap();
     assert!(timeline.len() >= 9, "{} seconds", timeline.len());
-    let peak = timeline.iter().map(|s| s["online"].as_i64().unwrap()).max().unwrap();
+    let peak = timeline
+        .iter()
+        .map(|s| s["online"].as_i64().unwrap())
+        .max()
+        .unwrap();
     assert_eq!(peak, 50, "all 50 users online at some point");
-    assert!(timeline.iter().all(|s| (0..=50).contains(&s["online"].as_i64().unwrap())));
-    let sampled: u64 = timeline.iter().filter_map(|s| s["service_request"]["count"].as_u64()).sum();
+    let last = timeline.last().unwrap()["online"].as_i64().unwrap();
+    assert_eq!(last, 0, "everyone has left by the last second");
+    assert!(timeline
+        .iter()
+        .all(|s| (0..=50).contains(&s["online"].as_i64().unwrap())));
+    let sampled: u64 = timeline
+        .iter()
+        .filter_map(|s| s["service_request"]["count"].as_u64())
+        .sum();
     assert_eq!(sampled, r["service_request"]["count"].as_u64().unwrap());
     let saved: Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();

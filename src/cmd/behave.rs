@@ -77,6 +77,7 @@ pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
     let seed = args.seed ^ (u64::from(std::process::id()) << 32);
     let report = BehaveReport {
         user: client.id().0.clone(),
+        started_ms: monotonic_ns() / 1_000_000,
         ..BehaveReport::default()
     };
     let now = Instant::now();

@@ -77,9 +77,11 @@ impl Timeline {
     }
 
     fn to_json(&self) -> Value {
+        // Up to the last sample or the last departure, whichever is later.
         let last = [&self.list, &self.request]
             .iter()
             .filter_map(|m| m.keys().next_back().copied())
+            .chain(self.online.keys().next_back().copied())
             .max()
             .unwrap_or(0);
         let mut online = 0i64;
