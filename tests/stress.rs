@@ -83,5 +83,18 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
     let saved: Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
     assert_eq!(saved["users"], 50);
+    // The plot: right size, and something drawn in the plotting area.
+    let img = image::open(dir.join("response-times.png"))
+        .unwrap()
+        .to_rgb8();
+    assert_eq!((img.width(), img.height()), (1000, 500));
+    let coloured = img
+        .pixels()
+        .filter(|p| p.0[0] > 150 && p.0[1] < 80 && p.0[2] < 80)
+        .count();
+    assert!(
+        coloured > 50,
+        "the red request-p99 line is drawn: {coloured} pixels"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -6,6 +6,7 @@ mod broker;
 mod children;
 mod sim;
 mod stress;
+mod stress_plot;
 mod system;
 mod up;
 mod user;

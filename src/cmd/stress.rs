@@ -260,6 +260,12 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             dir.join("report.json"),
             serde_json::to_string_pretty(&report)?,
         )?;
+        let title = format!(
+            "muster stress: {} users, {} services",
+            a.load.users, a.load.services
+        );
+        let timeline = report["timeline"].as_array().cloned().unwrap_or_default();
+        super::stress_plot::draw(&timeline, &title, &dir.join("response-times.png"))?;
     }
     if a.json {
         println!("{report}");
