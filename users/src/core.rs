@@ -504,17 +504,9 @@ impl UserCore {
                 seq,
                 status,
             } => {
-                let Some(s) = self.sessions.get_mut(&session) else {
-                    self.stale_frames += 1;
+                let Some((service, _, _)) = self.accept_seq(session, seq) else {
                     return;
                 };
-                if seq <= s.last_seq {
-                    self.stale_frames += 1;
-                    return;
-                }
-                s.gaps += seq - s.last_seq - 1;
-                s.last_seq = seq;
-                let service = s.service.clone();
                 self.events.push_back(UserEvent::Status {
                     session,
                     service,
@@ -604,20 +596,28 @@ impl UserCore {
         }
     }
 
-    fn update(&mut self, session: SessionId, seq: u64, sent_ns: u64, payload: Payload) {
-        let Some(s) = self.sessions.get_mut(&session) else {
+    /// Checks a session frame's sequence number: frames for no session, repeated or out
+    /// of order are dropped (counted as stale); a jump counts the lost ones as a gap.
+    /// Returns the session's service, the gap and its link.
+    fn accept_seq(
+        &mut self,
+        session: SessionId,
+        seq: u64,
+    ) -> Option<(ServiceId, u64, Option<u64>)> {
+        let Some(s) = self.sessions.get_mut(&session).filter(|s| seq > s.last_seq) else {
             self.stale_frames += 1;
-            return;
+            return None;
         };
-        if seq <= s.last_seq {
-            self.stale_frames += 1;
-            return;
-        }
         let gap = seq - s.last_seq - 1;
         s.gaps += gap;
         s.last_seq = seq;
-        let service = s.service.clone();
-        let link = s.link;
+        Some((s.service.clone(), gap, s.link))
+    }
+
+    fn update(&mut self, session: SessionId, seq: u64, sent_ns: u64, payload: Payload) {
+        let Some((service, gap, link)) = self.accept_seq(session, seq) else {
+            return;
+        };
         self.events.push_back(UserEvent::Update {
             session,
             service,
