@@ -175,6 +175,18 @@ pub fn create_node(name: &str, cleanup_dead_nodes: bool) -> Result<Node<Ipc>, Tr
         .map_err(|e| TransportError::Node(format!("{e:?}")))
 }
 
+/// Empties a listener; returns the event ids rung as bits (bit i = id i).
+fn drain_ids(listener: &Listener<Ipc>) -> u64 {
+    let mut rung = 0u64;
+    let _ = listener.try_wait(|a| {
+        let id = a.id.as_value();
+        if id < 64 {
+            rung |= 1 << id;
+        }
+    });
+    rung
+}
+
 struct Peer {
     publisher: Publisher<Ipc, [u8], ()>,
     notifier: Notifier<Ipc>,
@@ -277,14 +289,7 @@ impl Endpoint {
 
     /// Empties the bell; returns the set of event ids rung (bit i = id i).
     pub fn drain_bell(&self) -> u64 {
-        let mut rung = 0u64;
-        let _ = self.bell.try_wait(|a| {
-            let id = a.id.as_value();
-            if id < 64 {
-                rung |= 1 << id;
-            }
-        });
-        rung
+        drain_ids(&self.bell)
     }
 
     /// Takes the next frame from the inbox, copied out (it is decoded right away).
@@ -538,16 +543,7 @@ impl Presence {
 
     /// Empties the listener; returns the ids rung as bits.
     pub fn drain(&self) -> u64 {
-        let mut rung = 0u64;
-        if let Some(l) = &self.listener {
-            let _ = l.try_wait(|a| {
-                let id = a.id.as_value();
-                if id < 64 {
-                    rung |= 1 << id;
-                }
-            });
-        }
-        rung
+        self.listener.as_ref().map_or(0, drain_ids)
     }
 }
 
