@@ -75,6 +75,16 @@ pub struct Robot {
     turning: f64,
 }
 
+impl Robot {
+    /// Whether any fitted sensor is due at `now`.
+    fn sensor_due(&self, now: f64) -> bool {
+        let due = |k: usize| now + 1e-9 >= self.next[k];
+        (self.spec.laser.is_some() && due(0))
+            || (self.spec.sonar.is_some() && due(1))
+            || (self.spec.camera.is_some() && due(2))
+    }
+}
+
 /// One person's state.
 pub struct Person {
     /// Name.
@@ -360,9 +370,12 @@ impl World {
     }
 
     fn sense(&mut self, all: bool) {
+        let now = self.time;
+        if !all && !self.robots.iter().any(|r| r.sensor_due(now)) {
+            return; // sensors run at their own rates, slower than kinematics
+        }
         let bodies = self.body_grid();
         let map = &*self.map;
-        let now = self.time;
         for_each_maybe_par(&mut self.robots, |(i, r)| {
             let eps = 1e-9;
             if let Some(l) = &r.spec.laser {
