@@ -32,13 +32,9 @@ const TOKEN_BELL: usize = 0;
 const TOKEN_SIGNAL: usize = 1;
 const FIRST_WATCH_TOKEN: usize = 16;
 
-enum Watched {
-    System(String),
-    User(UserId),
-}
-
+/// A watched process: a system or a user, by its address.
 struct Watch {
-    who: Watched,
+    who: Address,
     pidfd: PidFd,
 }
 
@@ -75,8 +71,7 @@ struct Shell {
     list: ListWriter,
     reactor: Reactor,
     watches: HashMap<usize, Watch>,
-    by_system: HashMap<String, usize>,
-    by_user: HashMap<UserId, usize>,
+    by_addr: HashMap<Address, usize>,
     next_token: usize,
     snapshot: Box<ServiceListSnapshot>,
     handling: std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>,
@@ -124,8 +119,7 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
         list,
         reactor,
         watches: HashMap::new(),
-        by_system: HashMap::new(),
-        by_user: HashMap::new(),
+        by_addr: HashMap::new(),
         next_token: FIRST_WATCH_TOKEN,
         snapshot: Box::new(ServiceListSnapshot::empty()),
         last_ring: None,
@@ -166,16 +160,9 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
                 t => {
                     if let Some(w) = shell.watches.get(&t) {
                         if w.pidfd.exited() {
-                            match &w.who {
-                                Watched::System(s) => {
-                                    died.push(Address::System(s.clone()));
-                                    core.system_died(now, &s.clone());
-                                }
-                                Watched::User(u) => {
-                                    died.push(Address::User(u.clone()));
-                                    core.user_died(now, &u.clone());
-                                }
-                            }
+                            let who = w.who.clone();
+                            died_in(&mut core, now, &who);
+                            died.push(who);
                             shell.unwatch(t);
                         }
                     }
@@ -230,10 +217,7 @@ impl Shell {
             }
             // A process that registered or said hello but is already gone.
             for who in dead {
-                match who {
-                    Watched::System(s) => core.system_died(now, &s),
-                    Watched::User(u) => core.user_died(now, &u),
-                }
+                died_in(core, now, &who);
             }
         }
     }
@@ -241,45 +225,18 @@ impl Shell {
     fn flush_outputs(
         &mut self,
         core: &mut Broker,
-        dead: &mut Vec<Watched>,
+        dead: &mut Vec<Address>,
     ) -> Result<(), BrokerError> {
         while let Some(out) = core.poll_output() {
             match out {
                 Output::ToSystem(name, msg) => self.send(&Address::System(name), &msg),
                 Output::ToUser(user, msg) => self.send(&Address::User(user), &msg),
                 Output::WatchSystem { system, pid } => {
-                    if let Some(t) = self.by_system.remove(&system) {
-                        self.unwatch(t);
-                    }
-                    if !process_exists(pid) {
-                        dead.push(Watched::System(system));
-                    } else if let Some(t) = self.watch(Watched::System(system.clone()), pid) {
-                        self.by_system.insert(system, t);
-                    }
+                    self.watch(Address::System(system), pid, dead)
                 }
-                Output::WatchUser { user, pid } => {
-                    if let Some(t) = self.by_user.remove(&user) {
-                        self.unwatch(t);
-                    }
-                    if !process_exists(pid) {
-                        dead.push(Watched::User(user));
-                    } else if let Some(t) = self.watch(Watched::User(user.clone()), pid) {
-                        self.by_user.insert(user, t);
-                    }
-                }
-                Output::ForgetSystem(system) => {
-                    if let Some(t) = self.by_system.remove(&system) {
-                        self.unwatch(t);
-                    }
-                    // Linger: a Delinquent notice may just have been sent.
-                    self.endpoint.release(&Address::System(system));
-                }
-                Output::ForgetUser(user) => {
-                    if let Some(t) = self.by_user.remove(&user) {
-                        self.unwatch(t);
-                    }
-                    self.endpoint.release(&Address::User(user));
-                }
+                Output::WatchUser { user, pid } => self.watch(Address::User(user), pid, dead),
+                Output::ForgetSystem(system) => self.forget(Address::System(system)),
+                Output::ForgetUser(user) => self.forget(Address::User(user)),
             }
         }
         if let Some((generation, views)) = core.take_list_change() {
@@ -329,40 +286,56 @@ impl Shell {
         }
     }
 
-    fn watch(&mut self, who: Watched, pid: u32) -> Option<usize> {
-        match PidFd::open(pid) {
-            Ok(pidfd) => {
-                let token = self.next_token;
-                self.next_token += 1;
-                if let Err(e) = self.reactor.add(pidfd.raw(), token) {
-                    tracing::warn!("cannot watch pid {pid}: {e}; relying on pings");
-                    return None;
-                }
-                self.watches.insert(token, Watch { who, pidfd });
-                Some(token)
-            }
+    /// Watches `who`'s process (replacing an older watch); a process already gone is
+    /// reported in `dead` instead.
+    fn watch(&mut self, who: Address, pid: u32, dead: &mut Vec<Address>) {
+        if let Some(t) = self.by_addr.remove(&who) {
+            self.unwatch(t);
+        }
+        if !process_exists(pid) {
+            dead.push(who);
+            return;
+        }
+        let pidfd = match PidFd::open(pid) {
+            Ok(p) => p,
             Err(e) => {
                 tracing::warn!("cannot watch pid {pid}: {e}; relying on pings");
-                None
+                return;
             }
+        };
+        let token = self.next_token;
+        self.next_token += 1;
+        if let Err(e) = self.reactor.add(pidfd.raw(), token) {
+            tracing::warn!("cannot watch pid {pid}: {e}; relying on pings");
+            return;
         }
+        self.by_addr.insert(who.clone(), token);
+        self.watches.insert(token, Watch { who, pidfd });
+    }
+
+    /// Stops watching `who`; its ports linger (a Delinquent notice may just have been sent).
+    fn forget(&mut self, who: Address) {
+        if let Some(t) = self.by_addr.remove(&who) {
+            self.unwatch(t);
+        }
+        self.endpoint.release(&who);
     }
 
     fn unwatch(&mut self, token: usize) {
         if let Some(w) = self.watches.remove(&token) {
             self.reactor.remove(w.pidfd.raw());
-            match w.who {
-                Watched::System(s) => {
-                    if self.by_system.get(&s) == Some(&token) {
-                        self.by_system.remove(&s);
-                    }
-                }
-                Watched::User(u) => {
-                    if self.by_user.get(&u) == Some(&token) {
-                        self.by_user.remove(&u);
-                    }
-                }
+            if self.by_addr.get(&w.who) == Some(&token) {
+                self.by_addr.remove(&w.who);
             }
         }
+    }
+}
+
+/// Tells the core that the process at `who` died.
+fn died_in(core: &mut Broker, now: Duration, who: &Address) {
+    match who {
+        Address::System(s) => core.system_died(now, s),
+        Address::User(u) => core.user_died(now, u),
+        Address::Broker => {}
     }
 }
