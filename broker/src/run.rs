@@ -7,7 +7,7 @@
 use crate::core::{Broker, BrokerConfig, Output};
 use muster_shared::ipc::{bell, create_node, Endpoint, ListWriter, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
-use muster_shared::protocol::{decode, encode, ToBroker};
+use muster_shared::protocol::{decode, ToBroker};
 use muster_shared::reactor::{process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe};
 use muster_shared::snapshot::{ServiceListSnapshot, MAX_LISTED_SERVICES};
 use muster_shared::types::UserId;
@@ -229,8 +229,10 @@ impl Shell {
     ) -> Result<(), BrokerError> {
         while let Some(out) = core.poll_output() {
             match out {
-                Output::ToSystem(name, msg) => self.send(&Address::System(name), &msg),
-                Output::ToUser(user, msg) => self.send(&Address::User(user), &msg),
+                Output::ToSystem(name, msg) => {
+                    self.endpoint.send_or_log(&Address::System(name), &msg)
+                }
+                Output::ToUser(user, msg) => self.endpoint.send_or_log(&Address::User(user), &msg),
                 Output::WatchSystem { system, pid } => {
                     self.watch(Address::System(system), pid, dead)
                 }
@@ -272,17 +274,6 @@ impl Shell {
         let watchers: Vec<UserId> = core.list_watchers().cloned().collect();
         for u in watchers {
             let _ = self.endpoint.ring(&Address::User(u), bell::LIST_CHANGED);
-        }
-    }
-
-    fn send<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
-        match encode(msg) {
-            Ok(frame) => {
-                if let Err(e) = self.endpoint.send(to, &frame) {
-                    tracing::debug!("{e}");
-                }
-            }
-            Err(e) => tracing::error!("cannot encode a message to {to}: {e}"),
         }
     }
 

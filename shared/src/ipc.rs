@@ -75,6 +75,14 @@ pub enum TransportError {
     /// Another live process already owns this address (e.g. a system of the same name).
     #[error("{0} is already running on this instance")]
     InUse(Address),
+    /// The message could not be encoded (too large for a frame); nothing was sent.
+    #[error("cannot encode a message for {peer}: {source}")]
+    Encode {
+        /// The peer.
+        peer: Address,
+        /// Why.
+        source: crate::protocol::EncodeError,
+    },
     /// The peer's inbox is full (it reads slower than we write): this frame was dropped.
     /// The peer is still there; session updates show the loss as a sequence gap.
     #[error("{0}'s inbox is full: frame dropped")]
@@ -357,6 +365,29 @@ impl Endpoint {
             );
         }
         Ok(())
+    }
+
+    /// Encodes `msg` and sends it to `to` (see [`Endpoint::send`]).
+    pub fn send_msg<T: serde::Serialize>(
+        &mut self,
+        to: &Address,
+        msg: &T,
+    ) -> Result<(), TransportError> {
+        let frame = crate::protocol::encode(msg).map_err(|source| TransportError::Encode {
+            peer: to.clone(),
+            source,
+        })?;
+        self.send(to, &frame)
+    }
+
+    /// Encodes and sends `msg`; a failure is logged (an encoding error loudly, a gone or
+    /// busy peer quietly: process death and gaps are handled elsewhere).
+    pub fn send_or_log<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        match self.send_msg(to, msg) {
+            Ok(()) => {}
+            Err(e @ TransportError::Encode { .. }) => tracing::error!("{e}"),
+            Err(e) => tracing::debug!("{e}"),
+        }
     }
 
     /// Writes a frame into `to`'s inbox and rings its bell.

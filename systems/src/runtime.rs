@@ -8,7 +8,7 @@
 use crate::core::{SystemCore, SystemEvent, SystemOutput};
 use muster_shared::ipc::{bell, create_node, Endpoint, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
-use muster_shared::protocol::{decode, encode, ToBroker, ToSystem};
+use muster_shared::protocol::{decode, ToBroker, ToSystem};
 use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
 use muster_shared::types::UserId;
 use std::collections::HashMap;
@@ -275,25 +275,20 @@ impl Shell {
             match out {
                 SystemOutput::ToBroker(msg) => {
                     let is_register = matches!(msg, ToBroker::Register { .. });
-                    match encode(&msg).map(|f| self.endpoint.send(&Address::Broker, &f)) {
-                        Ok(Ok(())) => {}
-                        Ok(Err(TransportError::Unreachable(_))) if is_register => {
+                    match self.endpoint.send_msg(&Address::Broker, &msg) {
+                        Err(TransportError::Unreachable(_)) if is_register => {
                             if !self.waiting_logged {
                                 tracing::info!("no broker yet; waiting for one to announce itself");
                                 self.waiting_logged = true;
                             }
                         }
-                        Ok(Err(e)) => tracing::debug!("{e}"),
-                        Err(e) => tracing::error!("cannot encode: {e}"),
+                        Err(e @ TransportError::Encode { .. }) => tracing::error!("{e}"),
+                        Err(e) => tracing::debug!("{e}"),
+                        Ok(()) => {}
                     }
                 }
                 SystemOutput::ToUser(user, msg) => {
-                    match encode(&msg).map(|f| self.endpoint.send(&Address::User(user.clone()), &f))
-                    {
-                        Ok(Ok(())) => {}
-                        Ok(Err(e)) => tracing::debug!("{e}"),
-                        Err(e) => tracing::error!("cannot encode: {e}"),
-                    }
+                    self.endpoint.send_or_log(&Address::User(user), &msg)
                 }
                 SystemOutput::WatchBroker(pid) => {
                     self.drop_broker_watch();

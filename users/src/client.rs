@@ -4,7 +4,7 @@
 use crate::core::{UserCore, UserEvent, UserOutput};
 use muster_shared::ipc::{bell, create_node, Endpoint, ListReader, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
-use muster_shared::protocol::{decode, encode, ToUser};
+use muster_shared::protocol::{decode, ToUser};
 use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
 use muster_shared::snapshot::ServiceListSnapshot;
 use muster_shared::types::{link_compatible, Payload, ServiceId, ServiceKind, SessionId, UserId};
@@ -351,8 +351,10 @@ impl UserClient {
     fn flush(&mut self) {
         while let Some(out) = self.core.poll_output() {
             match out {
-                UserOutput::ToBroker(msg) => self.send(&Address::Broker, &msg),
-                UserOutput::ToSystem(system, msg) => self.send(&Address::System(system), &msg),
+                UserOutput::ToBroker(msg) => self.endpoint.send_or_log(&Address::Broker, &msg),
+                UserOutput::ToSystem(system, msg) => {
+                    self.endpoint.send_or_log(&Address::System(system), &msg)
+                }
                 UserOutput::WatchBroker(pid) => {
                     if let Some(p) = self.broker.take() {
                         self.reactor.remove(p.raw());
@@ -386,17 +388,6 @@ impl UserClient {
                     self.endpoint.release(&Address::System(system));
                 }
             }
-        }
-    }
-
-    fn send<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
-        match encode(msg) {
-            Ok(frame) => {
-                if let Err(e) = self.endpoint.send(to, &frame) {
-                    tracing::debug!("{e}");
-                }
-            }
-            Err(e) => tracing::error!("cannot encode a message to {to}: {e}"),
         }
     }
 
