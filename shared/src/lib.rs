@@ -7,6 +7,7 @@ pub mod protocol;
 pub mod reactor;
 pub mod snapshot;
 pub mod types;
+pub mod udp;
 
 pub use names::{Address, Instance};
 pub use types::*;

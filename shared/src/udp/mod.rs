@@ -1,0 +1,32 @@
+//! The UDP path for remote users: datagram layout ([`wire`]), keys, handshake and
+//! ciphers ([`crypto`]), the broker's access file ([`access`]) and the messages inside
+//! the encrypted channels ([`msgs`]).
+
+pub mod access;
+pub mod crypto;
+pub mod msgs;
+pub mod wire;
+
+/// Per-reason counters of dropped datagrams, and a rate-limited log line for them: the
+/// 1st, 2nd, 4th, 8th, ... drop of each reason is logged.
+#[derive(Debug, Default, Clone, serde::Serialize)]
+pub struct DropCounters {
+    /// Drops by reason.
+    pub by_reason: std::collections::BTreeMap<&'static str, u64>,
+}
+
+impl DropCounters {
+    /// Counts one drop for `reason`, logging it if the count is a power of two.
+    pub fn drop(&mut self, reason: &'static str, from: &std::net::SocketAddr) {
+        let n = self.by_reason.entry(reason).or_insert(0);
+        *n += 1;
+        if n.is_power_of_two() {
+            tracing::warn!(%from, dropped = *n, "dropped a datagram: {reason}");
+        }
+    }
+
+    /// All drops.
+    pub fn total(&self) -> u64 {
+        self.by_reason.values().sum()
+    }
+}

@@ -1,0 +1,228 @@
+//! What travels inside the encrypted channels, and the list split into datagrams.
+
+use super::wire::MAX_PLAINTEXT;
+use crate::protocol::{ToBroker, ToSystem, ToUser};
+use crate::snapshot::ServiceView;
+use crate::types::{ServiceId, ServiceKind, SessionId, UserId};
+use serde::{Deserialize, Serialize};
+
+/// User → broker, inside a `CHANNEL` datagram.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Up {
+    /// A user message: `Hello`, `Request`, `Cancel`, `LinkOpened`, `LinkClosed` or
+    /// `Goodbye`. The broker replaces its user and pid fields with what it authenticated.
+    Msg(ToBroker),
+    /// Send me the service list (all chunks of the current generation).
+    List,
+    /// Keepalive; answered by [`Down::Pong`].
+    Ping {
+        /// Echoed.
+        nonce: u64,
+    },
+}
+
+/// Broker → user, inside a `CHANNEL` datagram.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Down {
+    /// The hello was accepted; this is the user's id in the federation.
+    Welcome {
+        /// The id the broker gave this connection (`name.suffix`).
+        user: UserId,
+        /// Broker run.
+        epoch: u64,
+    },
+    /// A user message (`Queued`, `Refused`).
+    Msg(ToUser),
+    /// The request was granted; session data comes from the system at `system_addr`,
+    /// sealed with `key`.
+    Granted {
+        /// Request number.
+        req: u64,
+        /// The session.
+        session: SessionId,
+        /// Service.
+        service: ServiceId,
+        /// Data or command.
+        kind: ServiceKind,
+        /// Payload type.
+        payload: String,
+        /// Where the system's UDP endpoint listens.
+        system_addr: String,
+        /// The session key (the channel carrying it is encrypted).
+        key: [u8; 32],
+    },
+    /// One piece of the service list.
+    ListChunk {
+        /// Broker run.
+        epoch: u64,
+        /// List generation.
+        generation: u64,
+        /// Index of this chunk, from 0.
+        index: u16,
+        /// Number of chunks.
+        total: u16,
+        /// The services in it.
+        entries: Vec<ServiceView>,
+    },
+    /// The list changed (rate-limited like the local bell).
+    ListChanged {
+        /// New generation.
+        generation: u64,
+    },
+    /// Answer to [`Up::Ping`], with the list generation so a lost `ListChanged` is noticed.
+    Pong {
+        /// Echo.
+        nonce: u64,
+        /// Current list generation.
+        generation: u64,
+    },
+}
+
+/// User → system, inside a `SESSION` datagram.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum SessionUp {
+    /// `Input` or `End` (the system checks the session and replaces the user field).
+    Msg(ToSystem),
+    /// The user is alive; answered by [`SessionDown::Alive`].
+    Keepalive,
+}
+
+/// System → user, inside a `SESSION` datagram.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum SessionDown {
+    /// `Update`, `Status` or `Ended`.
+    Msg(ToUser),
+    /// The system is alive.
+    Alive,
+}
+
+/// Why a channel message could not be encoded or decoded.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum MsgError {
+    /// Too large for one datagram.
+    #[error("message of {0} bytes does not fit a datagram ({MAX_PLAINTEXT} bytes)")]
+    TooLarge(usize),
+    /// Bytes that are no message.
+    #[error("malformed message: {0}")]
+    Malformed(String),
+}
+
+/// Encodes a channel message; fails if it would not fit one datagram.
+pub fn to_bytes<T: Serialize>(m: &T) -> Result<Vec<u8>, MsgError> {
+    let v = postcard::to_stdvec(m).map_err(|e| MsgError::Malformed(e.to_string()))?;
+    if v.len() > MAX_PLAINTEXT {
+        return Err(MsgError::TooLarge(v.len()));
+    }
+    Ok(v)
+}
+
+/// Decodes a channel message; trailing bytes are an error.
+pub fn from_bytes<'de, T: Deserialize<'de>>(b: &'de [u8]) -> Result<T, MsgError> {
+    let (m, rest) =
+        postcard::take_from_bytes(b).map_err(|e| MsgError::Malformed(e.to_string()))?;
+    if !rest.is_empty() {
+        return Err(MsgError::Malformed(format!("{} trailing bytes", rest.len())));
+    }
+    Ok(m)
+}
+
+/// Splits a list into `ListChunk`s that each fit one datagram.
+pub fn chunk_list(epoch: u64, generation: u64, views: &[ServiceView]) -> Vec<Down> {
+    // Room for the chunk's own fields and postcard's length prefixes.
+    const BUDGET: usize = MAX_PLAINTEXT - 40;
+    let mut groups: Vec<Vec<ServiceView>> = vec![Vec::new()];
+    let mut used = 0;
+    for v in views {
+        let size = postcard::to_stdvec(v).map(|b| b.len()).unwrap_or(BUDGET);
+        if used + size > BUDGET && !groups.last().is_some_and(Vec::is_empty) {
+            groups.push(Vec::new());
+            used = 0;
+        }
+        used += size;
+        groups.last_mut().expect("never empty").push(v.clone());
+    }
+    let total = groups.len() as u16;
+    groups
+        .into_iter()
+        .enumerate()
+        .map(|(i, entries)| Down::ListChunk {
+            epoch,
+            generation,
+            index: i as u16,
+            total,
+            entries,
+        })
+        .collect()
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn view(i: usize) -> ServiceView {
+        ServiceView {
+            id: format!("system{i:02}/service-with-a-long-name-{i:03}"),
+            system: format!("system{i:02}"),
+            name: format!("service-with-a-long-name-{i:03}"),
+            description: "d".repeat(95),
+            kind: "data".into(),
+            queue: i % 2 == 0,
+            quota: 10,
+            in_use: 1,
+            queued: 0,
+            links: 0,
+            withdrawn: false,
+            payload: "pose2d".into(),
+        }
+    }
+
+    #[test]
+    fn lists_split_into_datagrams_and_reassemble_in_order() {
+        let views: Vec<ServiceView> = (0..256).map(view).collect();
+        let chunks = chunk_list(1, 9, &views);
+        assert!(chunks.len() > 10, "256 long entries need many datagrams");
+        let mut back = Vec::new();
+        for (i, c) in chunks.iter().enumerate() {
+            let bytes = to_bytes(c).unwrap();
+            assert!(bytes.len() <= MAX_PLAINTEXT);
+            match from_bytes::<Down>(&bytes).unwrap() {
+                Down::ListChunk {
+                    index,
+                    total,
+                    generation,
+                    entries,
+                    ..
+                } => {
+                    assert_eq!((index as usize, total as usize, generation), (i, chunks.len(), 9));
+                    back.extend(entries);
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        assert_eq!(back, views);
+        assert_eq!(chunk_list(1, 1, &[]).len(), 1, "an empty list is one empty chunk");
+    }
+
+    #[test]
+    fn oversized_messages_are_refused() {
+        let m = SessionDown::Msg(ToUser::Update {
+            session: SessionId(1),
+            seq: 1,
+            sent_ns: 0,
+            payload: crate::types::Payload::Text("x".repeat(2000)),
+        });
+        assert!(matches!(to_bytes(&m), Err(MsgError::TooLarge(_))));
+    }
+
+    proptest! {
+        #[test]
+        fn decoders_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..1200)) {
+            let _ = from_bytes::<Up>(&bytes);
+            let _ = from_bytes::<Down>(&bytes);
+            let _ = from_bytes::<SessionUp>(&bytes);
+            let _ = from_bytes::<SessionDown>(&bytes);
+        }
+    }
+}
