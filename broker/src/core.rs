@@ -63,6 +63,24 @@ pub enum Output {
     },
     /// Stop watching the user; forget its ports.
     ForgetUser(UserId),
+    /// A system granted a user's request (the system told a local user itself; the
+    /// shell tells remote users).
+    Granted {
+        /// The user.
+        user: UserId,
+        /// Its request number.
+        req: u64,
+        /// The session.
+        session: SessionId,
+        /// The service.
+        service: ServiceId,
+        /// Data or command.
+        kind: ServiceKind,
+        /// Payload type.
+        payload: String,
+        /// The system's pid.
+        system_pid: u32,
+    },
 }
 
 /// Why a system left the registry.
@@ -104,6 +122,7 @@ pub struct BrokerStats {
 #[derive(Debug)]
 struct SystemRec {
     pid: u32,
+    udp: Option<String>,
     services: Vec<String>,
     next_ping: Duration,
     awaiting: Option<(u64, Duration)>,
@@ -263,7 +282,8 @@ impl Broker {
                 pid,
                 services,
                 sessions,
-            } => self.register(now, system, pid, services, sessions),
+                udp,
+            } => self.register(now, system, pid, services, sessions, udp),
             ToBroker::Pong { system, nonce } => self.pong(now, &system, nonce),
             ToBroker::OfferAnswer {
                 system,
@@ -304,6 +324,11 @@ impl Broker {
             }
             ToBroker::Goodbye { user } => self.forget_user(now, &user),
         }
+    }
+
+    /// Where system `system`'s UDP endpoint listens, if it registered one.
+    pub fn system_udp(&self, system: &str) -> Option<&str> {
+        self.systems.get(system).and_then(|s| s.udp.as_deref())
     }
 
     /// Runs due pings, delinquency checks and offer timeouts.
@@ -362,6 +387,7 @@ impl Broker {
         pid: u32,
         services: Vec<ServiceSpec>,
         sessions: Vec<ActiveSession>,
+        udp: Option<String>,
     ) {
         if let Err(e) = validate_registration(&system, &services) {
             return self.refuse_registration(&system, e.to_string());
@@ -403,6 +429,7 @@ impl Broker {
         }
         let mut rec = SystemRec {
             pid,
+            udp,
             services: services.iter().map(|s| s.name.clone()).collect(),
             next_ping: now + self.cfg.ping_interval,
             awaiting: None,
@@ -503,7 +530,16 @@ impl Broker {
                     self.systems.get_mut(system),
                 ) {
                     svc.sessions.insert(session);
-                    sys.sessions.insert(session, (svc.spec.name.clone(), user));
+                    sys.sessions.insert(session, (svc.spec.name.clone(), user.clone()));
+                    self.out.push_back(Output::Granted {
+                        user,
+                        req: o.req,
+                        session,
+                        kind: svc.spec.kind,
+                        payload: svc.spec.payload.clone(),
+                        service,
+                        system_pid: sys.pid,
+                    });
                 }
                 self.list_dirty = true;
             }
@@ -555,10 +591,13 @@ impl Broker {
         rec.watch_list = watch_list;
         rec.links = links.into_iter().map(|l| (l.link, l)).collect();
         self.recount_links();
-        self.out.push_back(Output::WatchUser {
-            user: user.clone(),
-            pid,
-        });
+        // pid 0: a remote user, whose liveness its transport tracks.
+        if pid != 0 {
+            self.out.push_back(Output::WatchUser {
+                user: user.clone(),
+                pid,
+            });
+        }
         self.out.push_back(Output::ToUser(
             user,
             ToUser::Welcome {
@@ -643,6 +682,7 @@ impl Broker {
                 user_pid,
                 req,
                 service: name,
+                remote: None,
             },
         ));
     }

@@ -36,6 +36,7 @@ fn register(b: &mut Broker, now: Duration, system: &str, pid: u32, specs: Vec<Se
             pid,
             services: specs,
             sessions: vec![],
+            udp: None,
         },
     );
 }
@@ -537,6 +538,7 @@ fn sessions_reported_at_registration_count_against_the_quota() {
         ToBroker::Register {
             system: "s".into(),
             pid: 7,
+            udp: None,
             services: vec![spec("a", 2, false)],
             sessions: vec![
                 ActiveSession {

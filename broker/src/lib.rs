@@ -4,5 +4,6 @@
 
 pub mod core;
 pub mod run;
+pub mod udp;
 
 pub use crate::core::{Broker, BrokerConfig, BrokerStats, Output};

@@ -26,10 +26,15 @@ pub enum BrokerError {
     /// Another broker already serves this instance.
     #[error("another broker already serves instance {0:?}")]
     AlreadyRunning(String),
+    /// The UDP front could not start.
+    #[error(transparent)]
+    Udp(#[from] crate::udp::UdpError),
 }
 
 const TOKEN_BELL: usize = 0;
 const TOKEN_SIGNAL: usize = 1;
+const TOKEN_UDP: usize = 2;
+const TOKEN_HUP: usize = 3;
 const FIRST_WATCH_TOKEN: usize = 16;
 
 /// A watched process: a system or a user, by its address.
@@ -45,6 +50,8 @@ pub struct BrokerReport {
     pub stats: crate::core::BrokerStats,
     /// Time to handle each message type, µs.
     pub handling: std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>,
+    /// Counters of the UDP front, if it ran.
+    pub udp: Option<crate::udp::UdpStats>,
 }
 
 impl BrokerReport {
@@ -61,7 +68,7 @@ impl BrokerReport {
                 )
             })
             .collect();
-        serde_json::json!({"stats": self.stats, "handling": handling})
+        serde_json::json!({"stats": self.stats, "handling": handling, "udp": self.udp})
     }
 }
 
@@ -78,6 +85,7 @@ struct Shell {
     /// When list watchers were last rung, and whether a ring is owed.
     last_ring: Option<Instant>,
     ring_owed: bool,
+    udp: Option<crate::udp::UdpFront>,
 }
 
 /// List watchers are rung at most this often; the blackboard itself is updated at once.
@@ -85,6 +93,15 @@ const RING_EVERY: Duration = Duration::from_millis(100);
 
 /// Runs a broker on `inst` until SIGINT or SIGTERM; returns what it did.
 pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerError> {
+    run_with(inst, cfg, None)
+}
+
+/// Runs a broker with a UDP front for remote users if `udp` is given.
+pub fn run_with(
+    inst: &Instance,
+    cfg: BrokerConfig,
+    udp: Option<crate::udp::UdpConfig>,
+) -> Result<BrokerReport, BrokerError> {
     match raise_fd_limit() {
         Ok(n) if n < 4096 => {
             tracing::warn!(
@@ -111,9 +128,21 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
         ^ (u64::from(pid) << 40);
     let mut core = Broker::new(cfg, epoch, pid);
     let mut signals = SignalPipe::install()?;
+    let mut hangup = SignalPipe::hangup()?;
     let reactor = Reactor::new()?;
     reactor.add(endpoint.bell_fd(), TOKEN_BELL)?;
     reactor.add(signals.raw(), TOKEN_SIGNAL)?;
+    reactor.add(hangup.raw(), TOKEN_HUP)?;
+    let udp = match udp {
+        Some(c) => {
+            let public = hex_key(&c.key.public);
+            let front = crate::udp::UdpFront::bind(c, epoch)?;
+            reactor.add(front.fd(), TOKEN_UDP)?;
+            tracing::info!(udp = %front.local_addr(), broker_key = %public, "listening for remote users");
+            Some(front)
+        }
+        None => None,
+    };
     let mut shell = Shell {
         endpoint,
         list,
@@ -125,7 +154,9 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
         last_ring: None,
         ring_owed: false,
         handling: std::collections::BTreeMap::new(),
+        udp,
     };
+    let mut last_housekeeping = Instant::now();
     shell.snapshot.epoch = epoch;
     let start = Instant::now();
     shell.flush(&mut core, start.elapsed())?;
@@ -135,7 +166,12 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
     loop {
         let now = start.elapsed();
         let timeout = core.poll_timeout().map(|t| t.saturating_sub(now));
-        let timeout = [timeout, shell.ring_due(), shell.endpoint.sweep()]
+        let housekeeping = shell
+            .udp
+            .as_ref()
+            .and_then(|f| f.poll_timeout())
+            .map(|every| every.saturating_sub(last_housekeeping.elapsed()));
+        let timeout = [timeout, shell.ring_due(), shell.endpoint.sweep(), housekeeping]
             .into_iter()
             .flatten()
             .min();
@@ -154,7 +190,20 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
                         return Ok(BrokerReport {
                             stats: core.stats().clone(),
                             handling: shell.handling,
+                            udp: shell.udp.as_ref().map(|f| f.stats().clone()),
                         });
+                    }
+                }
+                TOKEN_HUP => {
+                    if hangup.drain() {
+                        if let Some(f) = shell.udp.as_mut() {
+                            f.reload(&mut core, now);
+                        }
+                    }
+                }
+                TOKEN_UDP => {
+                    if let Some(f) = shell.udp.as_mut() {
+                        f.on_readable(&mut core, now);
                     }
                 }
                 t => {
@@ -170,6 +219,12 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
             }
         }
         shell.drain_inbox(&mut core, now)?;
+        if let Some(f) = shell.udp.as_mut() {
+            if f.poll_timeout().is_some_and(|e| last_housekeeping.elapsed() >= e) {
+                f.housekeeping(&mut core, now);
+                last_housekeeping = Instant::now();
+            }
+        }
         if core.poll_timeout().is_some_and(|t| t <= now) {
             core.handle_timeout(now);
         }
@@ -228,7 +283,16 @@ impl Shell {
         dead: &mut Vec<Address>,
     ) -> Result<(), BrokerError> {
         while let Some(out) = core.poll_output() {
+            let out = match self.udp.as_mut() {
+                Some(front) => match front.route(core, out) {
+                    Some(o) => o,
+                    None => continue,
+                },
+                None => out,
+            };
             match out {
+                // Local users hear of their grant from the system itself.
+                Output::Granted { .. } => {}
                 Output::ToSystem(name, msg) => {
                     self.endpoint.send_or_log(&Address::System(name), &msg)
                 }
@@ -248,6 +312,9 @@ impl Shell {
                 *slot = v.to_entry();
             }
             self.list.publish(&self.snapshot)?;
+            if let Some(front) = self.udp.as_mut() {
+                front.list_changed(self.snapshot.epoch, generation, &views);
+            }
             self.ring_owed = true;
         }
         Ok(())
@@ -271,7 +338,13 @@ impl Shell {
         }
         self.ring_owed = false;
         self.last_ring = Some(Instant::now());
-        let watchers: Vec<UserId> = core.list_watchers().cloned().collect();
+        let mut watchers: Vec<UserId> = core.list_watchers().cloned().collect();
+        if let Some(front) = self.udp.as_mut() {
+            let (remote, local): (Vec<UserId>, Vec<UserId>) =
+                watchers.into_iter().partition(|u| front.is_remote(u));
+            front.ring(&remote);
+            watchers = local;
+        }
         for u in watchers {
             let _ = self.endpoint.ring(&Address::User(u), bell::LIST_CHANGED);
         }
@@ -329,4 +402,8 @@ fn died_in(core: &mut Broker, now: Duration, who: &Address) {
         Address::User(u) => core.user_died(now, u),
         Address::Broker => {}
     }
+}
+
+fn hex_key(k: &[u8; 32]) -> String {
+    k.iter().map(|b| format!("{b:02x}")).collect()
 }

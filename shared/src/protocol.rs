@@ -12,7 +12,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// First byte of every frame.
 pub const MAGIC: u8 = 0x4d; // 'M'
 /// Protocol version; a frame of another version is refused.
-pub const VERSION: u8 = 1;
+pub const VERSION: u8 = 2;
 /// Largest frame, in bytes, on any transport.
 pub const MAX_FRAME: usize = 64 * 1024;
 
@@ -125,6 +125,16 @@ pub struct ActiveSession {
     pub user: UserId,
 }
 
+/// How a system reaches a remote user: the address the broker authenticated it at and
+/// the key the broker issued for this session (also given to the user).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RemoteContact {
+    /// The user's UDP address (`ip:port`).
+    pub addr: String,
+    /// The session key.
+    pub key: [u8; 32],
+}
+
 /// A link a user runs, reported to the broker so that it is visible.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct LinkInfo {
@@ -149,6 +159,8 @@ pub enum ToBroker {
         services: Vec<ServiceSpec>,
         /// Sessions it holds (after a broker restart or delinquency).
         sessions: Vec<ActiveSession>,
+        /// Where its UDP endpoint for remote users listens (`ip:port`), if it has one.
+        udp: Option<String>,
     },
     /// Answer to [`ToSystem::Ping`].
     Pong {
@@ -295,6 +307,8 @@ pub enum ToSystem {
         req: u64,
         /// Service name.
         service: String,
+        /// Set when the user is remote: where it is and the session key to seal with.
+        remote: Option<RemoteContact>,
     },
     /// Task input on a command session.
     Input {

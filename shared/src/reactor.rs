@@ -119,6 +119,14 @@ impl SignalPipe {
         Ok(SignalPipe { read })
     }
 
+    /// A pipe that SIGHUP writes to (reload configuration).
+    pub fn hangup() -> io::Result<Self> {
+        let (read, write) = UnixStream::pair()?;
+        read.set_nonblocking(true)?;
+        signal_hook::low_level::pipe::register(signal_hook::consts::SIGHUP, write)?;
+        Ok(SignalPipe { read })
+    }
+
     /// The read end, for the reactor.
     pub fn raw(&self) -> RawFd {
         self.read.as_raw_fd()

@@ -92,6 +92,8 @@ struct Session {
     user: UserId,
     service: String,
     seq: u64,
+    /// The user's request it answers: a repeated offer for it re-sends this grant.
+    req: u64,
 }
 
 /// One system's protocol state.
@@ -106,6 +108,7 @@ pub struct SystemCore {
     session_prefix: u64,
     next_session: u64,
     overloaded: bool,
+    udp: Option<String>,
     report: BTreeMap<String, ServiceReport>,
     out: VecDeque<SystemOutput>,
     events: VecDeque<SystemEvent>,
@@ -125,6 +128,7 @@ impl SystemCore {
             session_prefix: (salt ^ (u64::from(pid) << 16)) << 24,
             next_session: 1,
             overloaded: false,
+            udp: None,
             report: BTreeMap::new(),
             out: VecDeque::new(),
             events: VecDeque::new(),
@@ -185,6 +189,11 @@ impl SystemCore {
         self.overloaded = value;
     }
 
+    /// Announce a UDP endpoint for remote users (`ip:port`) in the registration.
+    pub fn set_udp(&mut self, addr: Option<String>) {
+        self.udp = addr;
+    }
+
     /// Sends (or re-sends) the registration, with the sessions already held.
     pub fn register(&mut self) {
         let sessions = self
@@ -202,6 +211,7 @@ impl SystemCore {
                 pid: self.pid,
                 services: self.specs.clone(),
                 sessions,
+                udp: self.udp.clone(),
             }));
     }
 
@@ -252,6 +262,7 @@ impl SystemCore {
                 user_pid,
                 req,
                 service,
+                remote: _,
             } => self.offer(ticket, user, user_pid, req, service),
             ToSystem::Input {
                 user,
@@ -282,6 +293,34 @@ impl SystemCore {
     }
 
     fn offer(&mut self, ticket: u64, user: UserId, user_pid: u32, req: u64, service: String) {
+        // The same request offered again (a retry that crossed a broker restart, or a
+        // duplicate): answer with the session it already has, never a second grant.
+        let existing = self
+            .sessions
+            .iter()
+            .find(|(_, s)| s.user == user && s.req == req && s.service == service)
+            .map(|(id, _)| *id);
+        if let Some(session) = existing {
+            if let Some(spec) = self.specs.iter().find(|s| s.name == service) {
+                self.out.push_back(SystemOutput::ToUser(
+                    user.clone(),
+                    ToUser::Granted {
+                        req,
+                        session,
+                        service: ServiceId::new(&self.name, &service),
+                        kind: spec.kind,
+                        payload: spec.payload.clone(),
+                        system_pid: self.pid,
+                    },
+                ));
+            }
+            self.send_broker(ToBroker::OfferAnswer {
+                system: self.name.clone(),
+                ticket,
+                answer: Ok(session),
+            });
+            return;
+        }
         let answer = match self.specs.iter().find(|s| s.name == service) {
             None => Err(format!("no service {service:?} here")),
             Some(_) if self.withdrawn.contains(&service) => Err("service withdrawn".to_string()),
@@ -301,8 +340,13 @@ impl SystemCore {
                         user: user.clone(),
                         service: service.clone(),
                         seq: 0,
+                        req,
                     },
                 );
+                let in_use = self.sessions_of(&service);
+                let r = self.report.entry(service.clone()).or_default();
+                r.grants += 1;
+                r.max_in_use = r.max_in_use.max(in_use);
                 if user_pid != 0 {
                     self.out
                         .push_back(SystemOutput::WatchUser(user.clone(), user_pid));
@@ -519,6 +563,7 @@ mod tests {
             user_pid: 0,
             req: ticket,
             service: service.into(),
+            remote: None,
         });
         outs(c)
     }
@@ -528,6 +573,29 @@ mod tests {
             SystemOutput::ToBroker(ToBroker::OfferAnswer { answer, .. }) => Some(answer.clone()),
             _ => None,
         })
+    }
+
+    #[test]
+    fn a_repeated_offer_gets_the_same_session_not_a_second_grant() {
+        let mut c = core();
+        let first = answer(&offer(&mut c, 5, "u1", "c")).unwrap().unwrap();
+        // The same request (user u1, req 5) offered again under a new ticket.
+        c.handle(ToSystem::Offer {
+            ticket: 99,
+            user: UserId("u1".into()),
+            user_pid: 0,
+            req: 5,
+            service: "c".into(),
+            remote: None,
+        });
+        let out = outs(&mut c);
+        assert_eq!(answer(&out), Some(Ok(first)));
+        assert_eq!(c.sessions_of("c"), 1);
+        assert_eq!(c.report()["c"].grants, 1);
+        // A new request of the same user is a new session.
+        let second = answer(&offer(&mut c, 6, "u1", "c")).unwrap().unwrap();
+        assert_ne!(first, second);
+        assert_eq!(c.sessions_of("c"), 2);
     }
 
     #[test]

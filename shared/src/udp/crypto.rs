@@ -13,6 +13,9 @@ use sha2::Sha256;
 use std::net::SocketAddr;
 use std::path::Path;
 
+/// Noise handshake state, re-exported for the transports.
+pub use snow::HandshakeState;
+
 /// The Noise protocol the user ↔ broker channel runs: mutual authentication by static
 /// keys, the broker's key learned in the handshake (and checked if the user pins it).
 pub const NOISE_PARAMS: &str = "Noise_XX_25519_ChaChaPoly_BLAKE2s";
@@ -271,6 +274,11 @@ impl Channel {
             next_nonce: 0,
             window: ReplayWindow::default(),
         })
+    }
+
+    /// The static key the other side proved in the handshake.
+    pub fn remote_static(&self) -> Option<&[u8]> {
+        self.state.get_remote_static()
     }
 
     /// Encrypts `plain`; returns the nonce used and the ciphertext.

@@ -6,6 +6,17 @@ use crate::snapshot::ServiceView;
 use crate::types::{ServiceId, ServiceKind, SessionId, UserId};
 use serde::{Deserialize, Serialize};
 
+/// The payload of Noise message 3: who the user says it is. The broker checks the
+/// static key the handshake proved against the access file's key for `name`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Hs3 {
+    /// User name in the access file.
+    pub name: String,
+    /// Chosen by the client once per process: the user id is `name.suffix`, kept across
+    /// reconnections so sessions and links stay the user's.
+    pub suffix: String,
+}
+
 /// User → broker, inside a `CHANNEL` datagram.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Up {

@@ -1,0 +1,900 @@
+//! The broker's UDP front for remote users.
+//!
+//! It turns authenticated datagrams into the same [`ToBroker`] messages local users put
+//! in the broker's inbox (with the user id and pid it authenticated, not the ones the
+//! datagram claims), and the core's outputs for remote users into datagrams. Session data
+//! never passes here: systems send it to remote users from their own UDP endpoints under
+//! a per-session key this front issues.
+//!
+//! Defences, in the order a datagram meets them: size and header checks; a stateless
+//! `RETRY` with an HMAC token for any `INITIAL` without a valid one (no state is kept
+//! for unvalidated sources, and a `RETRY` is ~36 bytes against a 1200-byte padded
+//! `INITIAL`, far under RFC 9000's 3× rule); a token bucket per validated source address;
+//! a cap on pending handshakes, which expire; the Noise XX handshake against the access
+//! file; a token bucket per connection; a replay window on every channel.
+
+use crate::core::{Broker, Output};
+use muster_shared::protocol::{RemoteContact, ToBroker, ToSystem, ToUser};
+use muster_shared::snapshot::ServiceView;
+use muster_shared::types::{Refusal, ServiceId, UserId};
+use muster_shared::udp::access::{valid_user_name, AccessFile};
+use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
+use muster_shared::udp::msgs::{chunk_list, from_bytes, to_bytes, Down, Hs3, Up};
+use muster_shared::udp::wire::{Datagram, WireError, MAX_DATAGRAM};
+use muster_shared::udp::DropCounters;
+use std::collections::{BTreeMap, HashMap};
+use std::net::{IpAddr, Ipv4Addr, SocketAddr, UdpSocket};
+use std::os::fd::{AsRawFd, RawFd};
+use std::path::PathBuf;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// Limits of the UDP front.
+#[derive(Clone, Debug)]
+pub struct UdpLimits {
+    /// Most handshakes in progress at once.
+    pub max_pending: usize,
+    /// A handshake not finished in this time is dropped.
+    pub handshake_timeout: Duration,
+    /// Most connections.
+    pub max_conns: usize,
+    /// A connection silent this long is a dead user.
+    pub idle_timeout: Duration,
+    /// Datagrams per second (and burst) one connection may send.
+    pub conn_rate: (f64, f64),
+    /// Handshake datagrams per second (and burst) from one validated address.
+    pub source_rate: (f64, f64),
+    /// `RETRY`s per second (and burst) for all unvalidated sources together.
+    pub retry_rate: (f64, f64),
+    /// Requests remembered per connection for idempotent answers.
+    pub remembered_requests: usize,
+}
+
+impl Default for UdpLimits {
+    fn default() -> Self {
+        UdpLimits {
+            max_pending: 1024,
+            handshake_timeout: Duration::from_secs(5),
+            max_conns: 4096,
+            idle_timeout: Duration::from_secs(10),
+            conn_rate: (500.0, 1000.0),
+            source_rate: (50.0, 100.0),
+            retry_rate: (50_000.0, 50_000.0),
+            remembered_requests: 256,
+        }
+    }
+}
+
+/// How the front is set up.
+#[derive(Clone, Debug)]
+pub struct UdpConfig {
+    /// Where to listen.
+    pub bind: SocketAddr,
+    /// The broker's static key.
+    pub key: KeyPair,
+    /// The access file (reloaded on SIGHUP); `None` denies every user.
+    pub access_path: Option<PathBuf>,
+    /// Limits.
+    pub limits: UdpLimits,
+}
+
+/// Counters of the UDP front, for `--stats-json` and tests.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct UdpStats {
+    /// Datagrams received.
+    pub datagrams_in: u64,
+    /// Datagrams sent.
+    pub datagrams_out: u64,
+    /// Bytes received from sources not (yet) validated.
+    pub unvalidated_bytes_in: u64,
+    /// Bytes sent to sources not (yet) validated (only `RETRY`s).
+    pub unvalidated_bytes_out: u64,
+    /// `RETRY`s sent.
+    pub retries: u64,
+    /// Handshakes finished and authenticated.
+    pub handshakes: u64,
+    /// Handshakes whose user or key the access file refused.
+    pub auth_failed: u64,
+    /// Connections dropped for silence.
+    pub expired: u64,
+    /// Requests that arrived again and were answered from memory.
+    pub duplicate_requests: u64,
+    /// Requests refused here (not allowed, or no UDP endpoint on the system).
+    pub refused_here: u64,
+    /// Access file reloads.
+    pub reloads: u64,
+    /// Dropped datagrams by reason.
+    pub drops: DropCounters,
+}
+
+struct Bucket {
+    tokens: f64,
+    last: Instant,
+}
+
+impl Bucket {
+    fn new(burst: f64) -> Self {
+        Bucket {
+            tokens: burst,
+            last: Instant::now(),
+        }
+    }
+
+    fn take(&mut self, now: Instant, (rate, burst): (f64, f64)) -> bool {
+        let dt = now.saturating_duration_since(self.last).as_secs_f64();
+        self.last = now;
+        self.tokens = (self.tokens + dt * rate).min(burst);
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            true
+        } else {
+            false
+        }
+    }
+}
+
+struct Pending {
+    addr: SocketAddr,
+    client: u64,
+    hs: HandshakeState,
+    reply: Vec<u8>,
+    deadline: Instant,
+}
+
+enum ReqState {
+    Pending,
+    Queued(u16),
+    Done(Box<Down>),
+}
+
+struct Conn {
+    addr: SocketAddr,
+    name: String,
+    suffix: String,
+    user: Option<UserId>,
+    chan: Channel,
+    last_heard: Instant,
+    bucket: Bucket,
+    reqs: BTreeMap<u64, ReqState>,
+    /// Requests at or below this number were forgotten; repeats of them are dropped.
+    floor: u64,
+    keys: HashMap<u64, [u8; 32]>,
+}
+
+/// The UDP front: socket, handshakes, connections.
+pub struct UdpFront {
+    sock: UdpSocket,
+    local: SocketAddr,
+    key: KeyPair,
+    access: AccessFile,
+    access_path: Option<PathBuf>,
+    cookies: Cookies,
+    limits: UdpLimits,
+    pending: HashMap<u64, Pending>,
+    pending_by: HashMap<(SocketAddr, u64), u64>,
+    conns: HashMap<u64, Conn>,
+    by_user: HashMap<UserId, u64>,
+    sources: HashMap<IpAddr, Bucket>,
+    retry_bucket: Bucket,
+    views: Vec<ServiceView>,
+    epoch: u64,
+    generation: u64,
+    stats: UdpStats,
+}
+
+/// Why the UDP front could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum UdpError {
+    /// The socket could not be bound.
+    #[error("cannot listen on udp {0}: {1}")]
+    Bind(SocketAddr, std::io::Error),
+    /// The access file is unreadable or wrong.
+    #[error("{0}")]
+    Access(String),
+}
+
+fn now_s() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0)
+}
+
+impl UdpFront {
+    /// Binds the socket and reads the access file.
+    pub fn bind(cfg: UdpConfig, epoch: u64) -> Result<Self, UdpError> {
+        let access = match &cfg.access_path {
+            Some(p) => AccessFile::load(p).map_err(UdpError::Access)?,
+            None => AccessFile::default(),
+        };
+        let sock = UdpSocket::bind(cfg.bind).map_err(|e| UdpError::Bind(cfg.bind, e))?;
+        sock.set_nonblocking(true)
+            .map_err(|e| UdpError::Bind(cfg.bind, e))?;
+        let local = sock.local_addr().map_err(|e| UdpError::Bind(cfg.bind, e))?;
+        let retry_bucket = Bucket::new(cfg.limits.retry_rate.1);
+        Ok(UdpFront {
+            sock,
+            local,
+            key: cfg.key,
+            access,
+            access_path: cfg.access_path,
+            cookies: Cookies::new(),
+            limits: cfg.limits,
+            pending: HashMap::new(),
+            pending_by: HashMap::new(),
+            conns: HashMap::new(),
+            by_user: HashMap::new(),
+            sources: HashMap::new(),
+            retry_bucket,
+            views: Vec::new(),
+            epoch,
+            generation: 0,
+            stats: UdpStats::default(),
+        })
+    }
+
+    /// The bound address.
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local
+    }
+
+    /// The socket's descriptor, for the reactor.
+    pub fn fd(&self) -> RawFd {
+        self.sock.as_raw_fd()
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> &UdpStats {
+        &self.stats
+    }
+
+    /// Number of authenticated connections.
+    pub fn connections(&self) -> usize {
+        self.conns.len()
+    }
+
+    /// Whether `user` is one of ours.
+    pub fn is_remote(&self, user: &UserId) -> bool {
+        self.by_user.contains_key(user)
+    }
+
+    /// Re-reads the access file (SIGHUP). Connections whose user left the file or whose
+    /// key changed are closed (their users die to the core); a bad file keeps the old one.
+    pub fn reload(&mut self, core: &mut Broker, now: Duration) {
+        let Some(path) = &self.access_path else {
+            return;
+        };
+        match AccessFile::load(path) {
+            Ok(a) => {
+                tracing::info!(users = a.len(), "access file reloaded");
+                self.access = a;
+                self.stats.reloads += 1;
+                let revoked: Vec<u64> = self
+                    .conns
+                    .iter()
+                    .filter(|(_, c)| {
+                        self.access
+                            .get(&c.name)
+                            .is_none_or(|p| Some(p.key.as_slice()) != c.chan_key())
+                    })
+                    .map(|(id, _)| *id)
+                    .collect();
+                for id in revoked {
+                    tracing::warn!(conn = format!("{id:016x}"), "access revoked: closed");
+                    self.close(core, now, id);
+                }
+            }
+            Err(e) => tracing::error!("{e}; keeping the previous access file"),
+        }
+    }
+
+    /// The list changed: remember it for list requests.
+    pub fn list_changed(&mut self, epoch: u64, generation: u64, views: &[ServiceView]) {
+        self.epoch = epoch;
+        self.generation = generation;
+        self.views = views.to_vec();
+    }
+
+    /// Tells remote list watchers that the list changed.
+    pub fn ring(&mut self, watchers: &[UserId]) {
+        let generation = self.generation;
+        for u in watchers {
+            if let Some(&id) = self.by_user.get(u) {
+                self.send(id, &Down::ListChanged { generation });
+            }
+        }
+    }
+
+    /// When housekeeping is next due.
+    pub fn poll_timeout(&self) -> Option<Duration> {
+        if self.pending.is_empty() && self.conns.is_empty() {
+            None
+        } else {
+            Some(Duration::from_millis(500))
+        }
+    }
+
+    /// Expires handshakes and silent connections.
+    pub fn housekeeping(&mut self, core: &mut Broker, now: Duration) {
+        let t = Instant::now();
+        let expired: Vec<u64> = self
+            .pending
+            .iter()
+            .filter(|(_, p)| t >= p.deadline)
+            .map(|(id, _)| *id)
+            .collect();
+        for id in expired {
+            self.drop_pending(id);
+        }
+        let idle = self.limits.idle_timeout;
+        let silent: Vec<u64> = self
+            .conns
+            .iter()
+            .filter(|(_, c)| t.saturating_duration_since(c.last_heard) >= idle)
+            .map(|(id, _)| *id)
+            .collect();
+        for id in silent {
+            tracing::info!(conn = format!("{id:016x}"), "remote user silent: gone");
+            self.stats.expired += 1;
+            self.close(core, now, id);
+        }
+        if self.sources.len() > 4 * self.limits.max_pending {
+            let (rate, burst) = self.limits.source_rate;
+            self.sources
+                .retain(|_, b| t.saturating_duration_since(b.last).as_secs_f64() * rate < burst);
+        }
+    }
+
+    fn drop_pending(&mut self, id: u64) {
+        if let Some(p) = self.pending.remove(&id) {
+            self.pending_by.remove(&(p.addr, p.client));
+        }
+    }
+
+    fn close(&mut self, core: &mut Broker, now: Duration, id: u64) {
+        if let Some(c) = self.conns.remove(&id) {
+            if let Some(u) = c.user {
+                if self.by_user.get(&u) == Some(&id) {
+                    self.by_user.remove(&u);
+                    core.user_died(now, &u);
+                }
+            }
+        }
+    }
+
+    /// Reads every waiting datagram (at most a few thousand a call, so one flood cannot
+    /// starve the shared-memory side).
+    pub fn on_readable(&mut self, core: &mut Broker, now: Duration) {
+        let mut buf = [0u8; MAX_DATAGRAM + 1];
+        for _ in 0..4096 {
+            let (n, from) = match self.sock.recv_from(&mut buf) {
+                Ok(x) => x,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return,
+                Err(e) => {
+                    tracing::debug!("udp recv: {e}");
+                    return;
+                }
+            };
+            self.stats.datagrams_in += 1;
+            self.on_datagram(core, now, &buf[..n], from);
+        }
+    }
+
+    fn on_datagram(&mut self, core: &mut Broker, now: Duration, bytes: &[u8], from: SocketAddr) {
+        let d = match Datagram::decode(bytes) {
+            Ok(d) => d,
+            Err(e) => {
+                self.stats.unvalidated_bytes_in += bytes.len() as u64;
+                return self.stats.drops.drop(wire_reason(&e), &from);
+            }
+        };
+        match d {
+            Datagram::Initial {
+                client,
+                token,
+                noise,
+            } => self.on_initial(bytes.len(), from, client, token, noise),
+            Datagram::HsFinal { conn, noise } => self.on_final(from, conn, noise),
+            Datagram::Channel {
+                conn,
+                nonce,
+                sealed,
+            } => self.on_channel(core, now, from, conn, nonce, sealed),
+            _ => {
+                self.stats.unvalidated_bytes_in += bytes.len() as u64;
+                self.stats.drops.drop("unexpected_kind", &from)
+            }
+        }
+    }
+
+    fn on_initial(&mut self, len: usize, from: SocketAddr, client: u64, token: &[u8], noise: &[u8]) {
+        let t = Instant::now();
+        let now_s = now_s();
+        if !self.cookies.check(now_s, token, &from, client) {
+            self.stats.unvalidated_bytes_in += len as u64;
+            if !token.is_empty() {
+                return self.stats.drops.drop("bad_token", &from);
+            }
+            if !self.retry_bucket.take(t, self.limits.retry_rate) {
+                return self.stats.drops.drop("retry_budget", &from);
+            }
+            let token = self.cookies.mint(now_s, &from, client);
+            let Ok(bytes) = (Datagram::Retry {
+                client,
+                token: &token,
+            })
+            .encode() else {
+                return;
+            };
+            debug_assert!(bytes.len() * 3 <= len, "a retry never amplifies");
+            self.stats.retries += 1;
+            self.stats.unvalidated_bytes_out += bytes.len() as u64;
+            return self.send_raw(&bytes, from);
+        }
+        // The address is validated: it received our token.
+        let (rate, burst) = self.limits.source_rate;
+        let bucket = self
+            .sources
+            .entry(from.ip())
+            .or_insert_with(|| Bucket::new(burst));
+        if !bucket.take(t, (rate, burst)) {
+            return self.stats.drops.drop("source_rate", &from);
+        }
+        if let Some(id) = self.pending_by.get(&(from, client)) {
+            // A retransmitted INITIAL: answer with the same reply.
+            if let Some(p) = self.pending.get(id) {
+                let reply = p.reply.clone();
+                return self.send_raw(&reply, from);
+            }
+        }
+        if self.pending.len() >= self.limits.max_pending {
+            return self.stats.drops.drop("pending_full", &from);
+        }
+        let mut hs = match crypto::responder(&self.key) {
+            Ok(h) => h,
+            Err(e) => {
+                tracing::error!("cannot start a handshake: {e}");
+                return;
+            }
+        };
+        let mut scratch = [0u8; 1024];
+        if hs.read_message(noise, &mut scratch).is_err() {
+            return self.stats.drops.drop("bad_handshake", &from);
+        }
+        let mut msg2 = [0u8; 1024];
+        let Ok(n) = hs.write_message(&[], &mut msg2) else {
+            return self.stats.drops.drop("bad_handshake", &from);
+        };
+        let conn: u64 = rand::random();
+        let Ok(reply) = (Datagram::HsReply {
+            client,
+            conn,
+            noise: &msg2[..n],
+        })
+        .encode() else {
+            return;
+        };
+        self.send_raw(&reply, from);
+        self.pending_by.insert((from, client), conn);
+        self.pending.insert(
+            conn,
+            Pending {
+                addr: from,
+                client,
+                hs,
+                reply,
+                deadline: t + self.limits.handshake_timeout,
+            },
+        );
+    }
+
+    fn on_final(&mut self, from: SocketAddr, conn: u64, noise: &[u8]) {
+        if self.conns.contains_key(&conn) {
+            return; // a retransmission of a handshake already done
+        }
+        if !self.pending.get(&conn).is_some_and(|p| p.addr == from) {
+            return self.stats.drops.drop("unknown_handshake", &from);
+        }
+        let Some(mut p) = self.pending.remove(&conn) else {
+            return;
+        };
+        self.pending_by.remove(&(p.addr, p.client));
+        let mut payload = [0u8; 1024];
+        let n = match p.hs.read_message(noise, &mut payload) {
+            Ok(n) => n,
+            Err(_) => return self.stats.drops.drop("bad_handshake", &from),
+        };
+        let Ok(hs3) = from_bytes::<Hs3>(&payload[..n]) else {
+            return self.stats.drops.drop("bad_handshake", &from);
+        };
+        let proven = p.hs.get_remote_static().map(<[u8]>::to_vec);
+        let allowed = valid_user_name(&hs3.name)
+            && valid_suffix(&hs3.suffix)
+            && self
+                .access
+                .get(&hs3.name)
+                .is_some_and(|pol| Some(pol.key.as_slice()) == proven.as_deref());
+        if !allowed {
+            self.stats.auth_failed += 1;
+            return self.stats.drops.drop("auth_failed", &from);
+        }
+        if self.conns.len() >= self.limits.max_conns {
+            return self.stats.drops.drop("conns_full", &from);
+        }
+        let chan = match Channel::new(p.hs) {
+            Ok(c) => c,
+            Err(_) => return self.stats.drops.drop("bad_handshake", &from),
+        };
+        let (_, burst) = self.limits.conn_rate;
+        self.stats.handshakes += 1;
+        tracing::debug!(user = %hs3.name, %from, "remote user authenticated");
+        self.conns.insert(
+            conn,
+            Conn {
+                addr: from,
+                name: hs3.name,
+                suffix: hs3.suffix,
+                user: None,
+                chan,
+                last_heard: Instant::now(),
+                bucket: Bucket::new(burst),
+                reqs: BTreeMap::new(),
+                floor: 0,
+                keys: HashMap::new(),
+            },
+        );
+    }
+
+    fn on_channel(
+        &mut self,
+        core: &mut Broker,
+        now: Duration,
+        from: SocketAddr,
+        id: u64,
+        nonce: u64,
+        sealed: &[u8],
+    ) {
+        let t = Instant::now();
+        let rate = self.limits.conn_rate;
+        let Some(c) = self.conns.get_mut(&id) else {
+            return self.stats.drops.drop("unknown_conn", &from);
+        };
+        if !c.bucket.take(t, rate) {
+            return self.stats.drops.drop("conn_rate", &from);
+        }
+        let plain = match c.chan.open(nonce, sealed) {
+            Ok(p) => p,
+            Err(_) => return self.stats.drops.drop("forged_or_replayed", &from),
+        };
+        // Authenticated: the user may have moved (NAT rebinding).
+        c.addr = from;
+        c.last_heard = t;
+        let msg = match from_bytes::<Up>(&plain) {
+            Ok(m) => m,
+            Err(_) => return self.stats.drops.drop("bad_message", &from),
+        };
+        match msg {
+            Up::Ping { nonce } => {
+                let generation = self.generation;
+                self.send(id, &Down::Pong { nonce, generation });
+            }
+            Up::List => self.send_list(id),
+            Up::Msg(m) => self.on_user_msg(core, now, id, m, from),
+        }
+    }
+
+    fn send_list(&mut self, id: u64) {
+        let Some(c) = self.conns.get(&id) else { return };
+        let policy = self.access.get(&c.name);
+        let views: Vec<ServiceView> = self
+            .views
+            .iter()
+            .filter(|v| policy.is_some_and(|p| p.allows(&v.id)))
+            .cloned()
+            .collect();
+        for chunk in chunk_list(self.epoch, self.generation, &views) {
+            self.send(id, &chunk);
+        }
+    }
+
+    fn on_user_msg(
+        &mut self,
+        core: &mut Broker,
+        now: Duration,
+        id: u64,
+        m: ToBroker,
+        from: SocketAddr,
+    ) {
+        let Some(c) = self.conns.get_mut(&id) else {
+            return;
+        };
+        if let ToBroker::Hello {
+            links, watch_list, ..
+        } = m
+        {
+            let user = UserId(format!("{}.{}", c.name, c.suffix));
+            c.user = Some(user.clone());
+            if let Some(old) = self.by_user.insert(user.clone(), id) {
+                if old != id {
+                    // The same user reconnected (new handshake): the old connection goes.
+                    self.conns.remove(&old);
+                }
+            }
+            core.handle(
+                now,
+                ToBroker::Hello {
+                    user,
+                    pid: 0,
+                    links,
+                    watch_list,
+                },
+            );
+            return;
+        }
+        let Some(user) = c.user.clone() else {
+            return self.stats.drops.drop("no_hello", &from);
+        };
+        match m {
+            ToBroker::Request { req, service, .. } => {
+                self.on_request(core, now, id, user, req, service, from)
+            }
+            ToBroker::Cancel { req, .. } => core.handle(now, ToBroker::Cancel { user, req }),
+            ToBroker::LinkOpened { link, .. } => {
+                core.handle(now, ToBroker::LinkOpened { user, link })
+            }
+            ToBroker::LinkClosed { link, .. } => {
+                core.handle(now, ToBroker::LinkClosed { user, link })
+            }
+            ToBroker::Goodbye { .. } => {
+                self.by_user.remove(&user);
+                self.conns.remove(&id);
+                core.handle(now, ToBroker::Goodbye { user });
+            }
+            _ => self.stats.drops.drop("not_a_user_message", &from),
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn on_request(
+        &mut self,
+        core: &mut Broker,
+        now: Duration,
+        id: u64,
+        user: UserId,
+        req: u64,
+        service: ServiceId,
+        from: SocketAddr,
+    ) {
+        let Some(c) = self.conns.get_mut(&id) else {
+            return;
+        };
+        if req <= c.floor {
+            return self.stats.drops.drop("stale_request", &from);
+        }
+        match c.reqs.get(&req) {
+            Some(ReqState::Pending) => {
+                self.stats.duplicate_requests += 1;
+                return;
+            }
+            Some(ReqState::Queued(position)) => {
+                self.stats.duplicate_requests += 1;
+                let m = Down::Msg(ToUser::Queued {
+                    req,
+                    position: *position,
+                });
+                return self.send(id, &m);
+            }
+            Some(ReqState::Done(d)) => {
+                self.stats.duplicate_requests += 1;
+                let d = (**d).clone();
+                return self.send(id, &d);
+            }
+            None => {}
+        }
+        let allowed = self
+            .access
+            .get(&c.name)
+            .is_some_and(|p| p.allows(&service.0));
+        let no_udp = service
+            .split()
+            .is_some_and(|(sys, _)| core.kind_of(&service).is_some() && core.system_udp(sys).is_none());
+        let refusal = if !allowed {
+            // Not allowed looks like not there: the list never showed it either.
+            Some(Refusal::Unknown)
+        } else if no_udp {
+            Some(Refusal::BadRequest(format!(
+                "{service} is on a system without a UDP endpoint: local users only"
+            )))
+        } else {
+            None
+        };
+        c.reqs.insert(req, ReqState::Pending);
+        while c.reqs.len() > self.limits.remembered_requests {
+            let Some((&oldest, _)) = c.reqs.iter().next() else {
+                break;
+            };
+            c.reqs.remove(&oldest);
+            c.keys.remove(&oldest);
+            c.floor = c.floor.max(oldest);
+        }
+        match refusal {
+            Some(reason) => {
+                self.stats.refused_here += 1;
+                self.answer(id, req, Down::Msg(ToUser::Refused { req, reason }), true);
+            }
+            None => core.handle(now, ToBroker::Request { user, req, service }),
+        }
+    }
+
+    /// Records a final or queued answer and sends it.
+    fn answer(&mut self, id: u64, req: u64, d: Down, fin: bool) {
+        if let Some(c) = self.conns.get_mut(&id) {
+            if let Some(slot) = c.reqs.get_mut(&req) {
+                *slot = if fin {
+                    ReqState::Done(Box::new(d.clone()))
+                } else {
+                    match &d {
+                        Down::Msg(ToUser::Queued { position, .. }) => ReqState::Queued(*position),
+                        _ => ReqState::Pending,
+                    }
+                };
+            }
+        }
+        self.send(id, &d);
+    }
+
+    /// Takes the core's outputs meant for remote users (and fills in remote offers);
+    /// gives back the rest for the shared-memory side.
+    pub fn route(&mut self, core: &Broker, out: Output) -> Option<Output> {
+        match out {
+            Output::ToUser(user, msg) => {
+                let Some(&id) = self.by_user.get(&user) else {
+                    return Some(Output::ToUser(user, msg));
+                };
+                match msg {
+                    ToUser::Welcome { epoch, .. } => self.send(id, &Down::Welcome { user, epoch }),
+                    ToUser::Refused { req, reason } => {
+                        self.answer(id, req, Down::Msg(ToUser::Refused { req, reason }), true)
+                    }
+                    ToUser::Queued { req, position } => {
+                        self.answer(id, req, Down::Msg(ToUser::Queued { req, position }), false)
+                    }
+                    other => self.send(id, &Down::Msg(other)),
+                }
+                None
+            }
+            Output::Granted {
+                user,
+                req,
+                session,
+                service,
+                kind,
+                payload,
+                ..
+            } => {
+                let &id = self.by_user.get(&user)?;
+                let key = self.conns.get(&id).and_then(|c| c.keys.get(&req).copied())?;
+                let system = service.split().map(|(s, _)| s.to_string())?;
+                let Some(system_addr) = core.system_udp(&system).map(|a| self.reachable(a)) else {
+                    return None;
+                };
+                let d = Down::Granted {
+                    req,
+                    session,
+                    service,
+                    kind,
+                    payload,
+                    system_addr,
+                    key,
+                };
+                self.answer(id, req, d, true);
+                None
+            }
+            Output::ToSystem(
+                system,
+                ToSystem::Offer {
+                    ticket,
+                    user,
+                    user_pid,
+                    req,
+                    service,
+                    remote: _,
+                },
+            ) => {
+                let remote = self.by_user.get(&user).and_then(|id| {
+                    let c = self.conns.get_mut(id)?;
+                    let key = crypto::random_key();
+                    c.keys.insert(req, key);
+                    Some(RemoteContact {
+                        addr: c.addr.to_string(),
+                        key,
+                    })
+                });
+                Some(Output::ToSystem(
+                    system,
+                    ToSystem::Offer {
+                        ticket,
+                        user,
+                        user_pid,
+                        req,
+                        service,
+                        remote,
+                    },
+                ))
+            }
+            Output::WatchUser { user, .. } | Output::ForgetUser(user)
+                if self.by_user.contains_key(&user) =>
+            {
+                None
+            }
+            other => Some(other),
+        }
+    }
+
+    /// A system's UDP address as a remote user can reach it: an unspecified IP (the
+    /// system listens everywhere) becomes the address users reach this broker at.
+    fn reachable(&self, addr: &str) -> String {
+        match addr.parse::<SocketAddr>() {
+            Ok(a) if a.ip().is_unspecified() => {
+                let ip = if self.local.ip().is_unspecified() {
+                    IpAddr::V4(Ipv4Addr::LOCALHOST)
+                } else {
+                    self.local.ip()
+                };
+                SocketAddr::new(ip, a.port()).to_string()
+            }
+            _ => addr.to_string(),
+        }
+    }
+
+    fn send(&mut self, id: u64, d: &Down) {
+        let Some(c) = self.conns.get_mut(&id) else {
+            return;
+        };
+        let bytes = match to_bytes(d) {
+            Ok(b) => b,
+            Err(e) => return tracing::error!("cannot send to a remote user: {e}"),
+        };
+        let Ok((nonce, sealed)) = c.chan.seal(&bytes) else {
+            return;
+        };
+        let addr = c.addr;
+        if let Ok(dg) = (Datagram::Channel {
+            conn: id,
+            nonce,
+            sealed: &sealed,
+        })
+        .encode()
+        {
+            self.send_raw(&dg, addr);
+        }
+    }
+
+    fn send_raw(&mut self, bytes: &[u8], to: SocketAddr) {
+        match self.sock.send_to(bytes, to) {
+            Ok(_) => self.stats.datagrams_out += 1,
+            Err(_) => self.stats.drops.drop("send_failed", &to),
+        }
+    }
+}
+
+impl Conn {
+    fn chan_key(&self) -> Option<&[u8]> {
+        self.chan.remote_static()
+    }
+}
+
+fn valid_suffix(s: &str) -> bool {
+    !s.is_empty() && s.len() <= 16 && s.bytes().all(|b| b.is_ascii_alphanumeric())
+}
+
+fn wire_reason(e: &WireError) -> &'static str {
+    match e {
+        WireError::Truncated(_) => "truncated",
+        WireError::BadMagic(_) => "bad_magic",
+        WireError::WrongVersion(_) => "wrong_version",
+        WireError::UnknownKind(_) => "unknown_kind",
+        WireError::Oversized(_) => "oversized",
+        WireError::Unpadded(_) => "unpadded_initial",
+        WireError::Trailing(_) => "trailing_bytes",
+    }
+}
