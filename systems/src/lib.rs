@@ -4,8 +4,9 @@
 //! for tests, demos and load.
 
 pub mod core;
+pub mod remote;
 pub mod runtime;
 pub mod synthetic;
 
 pub use crate::core::{BrokerState, SystemCore, SystemEvent, SystemOutput};
-pub use crate::runtime::{run_system, SystemApp, SystemError};
+pub use crate::runtime::{run_system, run_system_with, RunOptions, SystemApp, SystemError};

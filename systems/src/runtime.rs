@@ -6,6 +6,7 @@
 //! sleeps on its bell, the broker's presence event and process-death descriptors.
 
 use crate::core::{SystemCore, SystemEvent, SystemOutput};
+use crate::remote::RemoteSessions;
 use muster_shared::ipc::{bell, create_node, Endpoint, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToBroker, ToSystem};
@@ -43,6 +44,7 @@ const TOKEN_PRESENCE: usize = 1;
 const TOKEN_SIGNAL: usize = 2;
 const TOKEN_BROKER: usize = 3;
 const TOKEN_CONTROL: usize = 4;
+const TOKEN_UDP: usize = 5;
 const FIRST_USER_TOKEN: usize = 16;
 
 /// Operator commands read from standard input, one a line.
@@ -114,6 +116,7 @@ pub fn apply_control(core: &mut SystemCore, line: &str) -> bool {
 }
 
 struct Shell {
+    remote: Option<RemoteSessions>,
     endpoint: Endpoint,
     reactor: Reactor,
     broker: Option<PidFd>,
@@ -123,12 +126,29 @@ struct Shell {
     waiting_logged: bool,
 }
 
+/// How a system runs, beyond its core and app.
+#[derive(Clone, Debug, Default)]
+pub struct RunOptions {
+    /// Listen here for remote users' sessions (e.g. `127.0.0.1:0`); `None`: local users only.
+    pub udp: Option<std::net::SocketAddr>,
+}
+
 /// Runs `app` as system `core` on instance `inst` until SIGINT/SIGTERM (or a `quit`
 /// control line); returns the final protocol state (its [`SystemCore::report`]).
 pub fn run_system<A: SystemApp>(
     inst: &Instance,
+    core: SystemCore,
+    app: A,
+) -> Result<SystemCore, SystemError> {
+    run_system_with(inst, core, app, &RunOptions::default())
+}
+
+/// [`run_system`] with options (a UDP endpoint for remote users).
+pub fn run_system_with<A: SystemApp>(
+    inst: &Instance,
     mut core: SystemCore,
     mut app: A,
+    opts: &RunOptions,
 ) -> Result<SystemCore, SystemError> {
     let node = create_node(&format!("muster-system-{}", core.name()), true)?;
     let endpoint = Endpoint::open(inst, Address::System(core.name().to_string()), node)?;
@@ -145,7 +165,19 @@ pub fn run_system<A: SystemApp>(
         std::os::fd::AsRawFd::as_raw_fd(&control.wake),
         TOKEN_CONTROL,
     )?;
+    let remote = match opts.udp {
+        Some(addr) => {
+            let r = RemoteSessions::bind(addr)?;
+            reactor.add(r.fd(), TOKEN_UDP)?;
+            core.set_udp(Some(r.local_addr().to_string()));
+            tracing::info!(udp = %r.local_addr(), "listening for remote users' sessions");
+            Some(r)
+        }
+        None => None,
+    };
+    let mut last_housekeeping = Instant::now();
     let mut shell = Shell {
+        remote,
         endpoint,
         reactor,
         broker: None,
@@ -166,10 +198,15 @@ pub fn run_system<A: SystemApp>(
     loop {
         let now = start.elapsed();
         let timeout = app.next_tick(&core).map(|t| t.saturating_sub(now));
-        let timeout = match (timeout, shell.endpoint.sweep()) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        };
+        let housekeeping = shell
+            .remote
+            .as_ref()
+            .and_then(RemoteSessions::poll_timeout)
+            .map(|every| every.saturating_sub(last_housekeeping.elapsed()));
+        let timeout = [timeout, shell.endpoint.sweep(), housekeeping]
+            .into_iter()
+            .flatten()
+            .min();
         let tokens = shell.reactor.wait(timeout)?;
         let now = start.elapsed();
         for token in tokens {
@@ -197,6 +234,11 @@ pub fn run_system<A: SystemApp>(
                         core.shutdown();
                         shell.flush(&mut core);
                         return Ok(core);
+                    }
+                }
+                TOKEN_UDP => {
+                    if let Some(r) = shell.remote.as_mut() {
+                        r.on_readable(&mut core);
                     }
                 }
                 TOKEN_CONTROL => {
@@ -231,8 +273,19 @@ pub fn run_system<A: SystemApp>(
         }
         while let Some(frame) = shell.endpoint.recv()? {
             match decode::<ToSystem>(&frame) {
-                Ok(msg) => core.handle(msg),
+                Ok(msg) => {
+                    if let Some(r) = shell.remote.as_mut() {
+                        r.note(&msg);
+                    }
+                    core.handle(msg)
+                }
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),
+            }
+        }
+        if let Some(r) = shell.remote.as_mut() {
+            if r.poll_timeout().is_some_and(|e| last_housekeeping.elapsed() >= e) {
+                r.housekeeping(&mut core);
+                last_housekeeping = Instant::now();
             }
         }
         if app.next_tick(&core).is_some_and(|t| t <= now) {
@@ -272,6 +325,13 @@ impl Shell {
 
     fn flush_outputs(&mut self, core: &mut SystemCore, dead_users: &mut Vec<UserId>) {
         while let Some(out) = core.poll_output() {
+            let out = match self.remote.as_mut() {
+                Some(r) => match r.route(out) {
+                    Some(o) => o,
+                    None => continue,
+                },
+                None => out,
+            };
             match out {
                 SystemOutput::ToBroker(msg) => {
                     let is_register = matches!(msg, ToBroker::Register { .. });

@@ -2,6 +2,7 @@
 //! that takes deadlines. Reads the service list in place from the broker's blackboard.
 
 use crate::core::{UserCore, UserEvent, UserOutput};
+use crate::remote::{RemoteLink, RemoteOptions};
 use muster_shared::ipc::{bell, create_node, Endpoint, ListReader, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToUser};
@@ -33,6 +34,17 @@ pub enum UserError {
     /// SIGINT or SIGTERM arrived.
     #[error("interrupted")]
     Interrupted,
+    /// No broker answered over UDP before the deadline.
+    #[error("no answer from a broker at udp {addr} (is it started with `--udp {addr}`, and is user {name:?} with this key in its --access file?)")]
+    NoRemoteBroker {
+        /// The address tried.
+        addr: String,
+        /// The user name presented.
+        name: String,
+    },
+    /// The remote list did not arrive complete in time.
+    #[error("the service list did not arrive within {0:?}")]
+    ListTimeout(Duration),
 }
 
 /// What [`UserClient::wait`] woke for.
@@ -51,21 +63,37 @@ const TOKEN_PRESENCE: usize = 1;
 const TOKEN_SIGNAL: usize = 2;
 const TOKEN_BROKER: usize = 3;
 const TOKEN_EXTRA: usize = 4;
+const TOKEN_UDP: usize = 5;
+/// How long a remote list request may take, retries included.
+const LIST_WAIT: Duration = Duration::from_secs(5);
 const FIRST_SYSTEM_TOKEN: usize = 16;
 
-/// A connected user.
-pub struct UserClient {
+/// The shared-memory side of a local user.
+struct Local {
     inst: Instance,
-    core: UserCore,
     endpoint: Endpoint,
     presence: Presence,
     list: Option<ListReader>,
-    reactor: Reactor,
-    signals: Option<SignalPipe>,
     broker: Option<PidFd>,
     systems: HashMap<usize, (String, PidFd)>,
     system_tokens: HashMap<String, usize>,
     next_token: usize,
+}
+
+/// How this user reaches the federation.
+enum Transport {
+    /// iceoryx2 shared memory on this host.
+    Local(Box<Local>),
+    /// UDP to the broker's front and to systems' endpoints.
+    Remote(Box<RemoteLink>),
+}
+
+/// A connected user.
+pub struct UserClient {
+    core: UserCore,
+    transport: Transport,
+    reactor: Reactor,
+    signals: Option<SignalPipe>,
     events: VecDeque<UserEvent>,
     extra: Option<RawFd>,
     closed: bool,
@@ -117,34 +145,91 @@ impl UserClient {
         } else {
             None
         };
-        let mut client = UserClient {
-            inst: inst.clone(),
+        let client = UserClient {
             core: UserCore::new(id, pid, opts.watch_list),
-            endpoint,
-            presence,
-            list: None,
+            transport: Transport::Local(Box::new(Local {
+                inst: inst.clone(),
+                endpoint,
+                presence,
+                list: None,
+                broker: None,
+                systems: HashMap::new(),
+                system_tokens: HashMap::new(),
+                next_token: FIRST_SYSTEM_TOKEN,
+            })),
             reactor,
             signals,
-            broker: None,
-            systems: HashMap::new(),
-            system_tokens: HashMap::new(),
-            next_token: FIRST_SYSTEM_TOKEN,
             events: VecDeque::new(),
             extra: None,
             closed: false,
         };
-        client.core.hello();
-        client.flush();
+        client.greet(opts, || UserError::NoBroker(inst.to_string()))
+    }
+
+    /// Connects to a broker's UDP front as a remote user, waiting up to
+    /// `opts.wait_for_broker` for the handshake and welcome.
+    pub fn connect_remote(remote: RemoteOptions, opts: &ConnectOptions) -> Result<Self, UserError> {
+        let broker = remote.broker;
+        let name = remote.name.clone();
+        let link = RemoteLink::new(remote)?;
+        let reactor = Reactor::new()?;
+        reactor.add(link.fd(), TOKEN_UDP)?;
+        let signals = if opts.handle_signals {
+            let s = SignalPipe::install()?;
+            reactor.add(s.raw(), TOKEN_SIGNAL)?;
+            Some(s)
+        } else {
+            None
+        };
+        let client = UserClient {
+            core: UserCore::new(link.user_id(), 0, opts.watch_list),
+            transport: Transport::Remote(Box::new(link)),
+            reactor,
+            signals,
+            events: VecDeque::new(),
+            extra: None,
+            closed: false,
+        };
+        client.greet(opts, || UserError::NoRemoteBroker {
+            addr: broker.to_string(),
+            name: name.clone(),
+        })
+    }
+
+    fn greet(
+        mut self,
+        opts: &ConnectOptions,
+        no_broker: impl Fn() -> UserError,
+    ) -> Result<Self, UserError> {
+        self.core.hello();
+        self.flush();
         let deadline = Instant::now() + opts.wait_for_broker;
-        while client.core.connected().is_none() {
-            match client.wait(deadline)? {
-                Wake::Timeout => return Err(UserError::NoBroker(inst.to_string())),
+        while self.core.connected().is_none() {
+            match self.wait(deadline)? {
+                Wake::Timeout => {
+                    // Nobody to say goodbye to.
+                    self.closed = true;
+                    return Err(no_broker());
+                }
                 Wake::Event(UserEvent::Connected { .. }) => {}
-                Wake::Event(other) => client.events.push_back(other),
+                Wake::Event(other) => self.events.push_back(other),
                 Wake::Extra => {}
             }
         }
-        Ok(client)
+        Ok(self)
+    }
+
+    /// Counters of the UDP link (remote users only).
+    pub fn link_stats(&self) -> Option<&crate::remote::LinkStats> {
+        match &self.transport {
+            Transport::Remote(r) => Some(r.stats()),
+            Transport::Local(_) => None,
+        }
+    }
+
+    /// Whether this user reaches the federation over UDP.
+    pub fn is_remote(&self) -> bool {
+        matches!(self.transport, Transport::Remote(_))
     }
 
     /// This user's id.
@@ -157,12 +242,32 @@ impl UserClient {
         &self.core
     }
 
-    /// Reads the newest service list snapshot from shared memory.
+    /// The newest service list: read in place from shared memory (local), or fetched
+    /// from the broker in datagram-sized chunks (remote, waiting up to 5 s).
     pub fn list(&mut self) -> Result<Box<ServiceListSnapshot>, UserError> {
-        if self.list.is_none() {
-            self.list = Some(ListReader::open(self.endpoint.node(), &self.inst)?);
+        match &mut self.transport {
+            Transport::Local(l) => {
+                if l.list.is_none() {
+                    l.list = Some(ListReader::open(l.endpoint.node(), &l.inst)?);
+                }
+                Ok(l.list.as_ref().expect("opened above").read()?)
+            }
+            Transport::Remote(r) => {
+                r.ask_list();
+                let deadline = Instant::now() + LIST_WAIT;
+                loop {
+                    if let Transport::Remote(r) = &mut self.transport {
+                        if let Some(l) = r.take_list() {
+                            return Ok(l);
+                        }
+                    }
+                    if Instant::now() >= deadline {
+                        return Err(UserError::ListTimeout(LIST_WAIT));
+                    }
+                    self.turn(deadline)?;
+                }
+            }
         }
-        Ok(self.list.as_ref().expect("opened above").read()?)
     }
 
     /// Asks for a service by id; the answer comes as an event.
@@ -256,88 +361,110 @@ impl UserClient {
             if let Some(e) = self.events.pop_front() {
                 return Ok(Wake::Event(e));
             }
-            let now = Instant::now();
-            if now >= deadline {
+            if Instant::now() >= deadline {
                 return Ok(Wake::Timeout);
             }
-            let wait = match self.endpoint.sweep() {
-                Some(linger) => linger.min(deadline - now),
-                None => deadline - now,
-            };
-            let tokens = self.reactor.wait(Some(wait))?;
-            let mut extra = false;
-            for t in tokens {
-                self.on_token(t, &mut extra)?;
-            }
-            self.pump()?;
-            if extra {
+            if self.turn(deadline)? {
                 return Ok(Wake::Extra);
             }
         }
     }
 
+    /// One wait on the reactor (bounded by `deadline` and the transport's own timers)
+    /// and the handling of what woke it. Returns whether the extra fd is readable.
+    fn turn(&mut self, deadline: Instant) -> Result<bool, UserError> {
+        let now = Instant::now();
+        let mut wait = deadline.saturating_duration_since(now);
+        match &mut self.transport {
+            Transport::Local(l) => {
+                if let Some(linger) = l.endpoint.sweep() {
+                    wait = wait.min(linger);
+                }
+            }
+            Transport::Remote(r) => wait = wait.min(r.next_deadline().saturating_duration_since(now)),
+        }
+        let tokens = self.reactor.wait(Some(wait))?;
+        let mut extra = false;
+        for t in tokens {
+            self.on_token(t, &mut extra)?;
+        }
+        if let Transport::Remote(r) = &mut self.transport {
+            r.tick(&mut self.core);
+        }
+        self.pump()?;
+        Ok(extra)
+    }
+
     fn on_token(&mut self, token: usize, extra: &mut bool) -> Result<(), UserError> {
         match token {
-            TOKEN_BELL => {
-                if self.endpoint.drain_bell() & (1 << bell::LIST_CHANGED) != 0 {
-                    self.core.list_changed();
-                }
-            }
-            TOKEN_PRESENCE => {
-                let rung = self.presence.drain();
-                if rung & (1 << bell::BROKER_DOWN) != 0 {
-                    self.lose_broker(true);
-                }
-                if rung & (1 << bell::BROKER_UP) != 0 {
-                    // Keep the publisher: the new broker takes over the same inbox.
-                    self.lose_broker(false);
-                    self.core.hello();
-                }
-            }
             TOKEN_SIGNAL => {
                 if self.signals.as_mut().is_some_and(SignalPipe::drain) {
                     return Err(UserError::Interrupted);
                 }
+                return Ok(());
+            }
+            TOKEN_EXTRA => {
+                *extra = true;
+                return Ok(());
+            }
+            _ => {}
+        }
+        let l = match &mut self.transport {
+            Transport::Remote(r) => {
+                if token == TOKEN_UDP {
+                    r.on_readable(&mut self.core);
+                }
+                return Ok(());
+            }
+            Transport::Local(l) => l,
+        };
+        match token {
+            TOKEN_BELL => {
+                if l.endpoint.drain_bell() & (1 << bell::LIST_CHANGED) != 0 {
+                    self.core.list_changed();
+                }
+            }
+            TOKEN_PRESENCE => {
+                let rung = l.presence.drain();
+                if rung & (1 << bell::BROKER_DOWN) != 0 {
+                    l.lose_broker(&mut self.core, &self.reactor, true);
+                }
+                if rung & (1 << bell::BROKER_UP) != 0 {
+                    // Keep the publisher: the new broker takes over the same inbox.
+                    l.lose_broker(&mut self.core, &self.reactor, false);
+                    self.core.hello();
+                }
             }
             TOKEN_BROKER => {
-                if self.broker.as_ref().is_some_and(PidFd::exited) {
+                if l.broker.as_ref().is_some_and(PidFd::exited) {
                     tracing::warn!(
                         "broker died; sessions go on, new requests wait for a new broker"
                     );
-                    self.lose_broker(true);
+                    l.lose_broker(&mut self.core, &self.reactor, true);
                 }
             }
-            TOKEN_EXTRA => *extra = true,
             t => {
-                let dead = self
+                let dead = l
                     .systems
                     .get(&t)
                     .filter(|(_, p)| p.exited())
                     .map(|(s, _)| s.clone());
                 if let Some(system) = dead {
                     self.core.system_died(&system);
-                    self.unwatch_system(&system);
+                    l.unwatch_system(&self.reactor, &system);
                 }
             }
         }
         Ok(())
     }
 
-    fn lose_broker(&mut self, forget_ports: bool) {
-        self.core.broker_lost();
-        if let Some(p) = self.broker.take() {
-            self.reactor.remove(p.raw());
-        }
-        if forget_ports {
-            self.endpoint.forget(&Address::Broker);
-        }
-    }
-
     fn pump(&mut self) -> Result<(), UserError> {
-        while let Some(frame) = self.endpoint.recv()? {
-            match decode::<ToUser>(&frame) {
-                Ok(msg) => self.core.handle(msg),
-                Err(e) => muster_shared::protocol::log_bad_frame(&e),
+        if let Transport::Local(l) = &mut self.transport {
+            while let Some(frame) = l.endpoint.recv()? {
+                match decode::<ToUser>(&frame) {
+                    Ok(msg) => self.core.handle(msg),
+                    Err(e) => muster_shared::protocol::log_bad_frame(&e),
+                }
             }
         }
         self.flush();
@@ -350,68 +477,115 @@ impl UserClient {
 
     fn flush(&mut self) {
         while let Some(out) = self.core.poll_output() {
-            match out {
-                UserOutput::ToBroker(msg) => self.endpoint.send_or_log(&Address::Broker, &msg),
-                UserOutput::ToSystem(system, msg) => {
-                    self.endpoint.send_or_log(&Address::System(system), &msg)
-                }
-                UserOutput::WatchBroker(pid) => {
-                    if let Some(p) = self.broker.take() {
-                        self.reactor.remove(p.raw());
-                    }
-                    if let Ok(p) = PidFd::open(pid) {
-                        if self.reactor.add(p.raw(), TOKEN_BROKER).is_ok() {
-                            self.broker = Some(p);
-                        }
+            match &mut self.transport {
+                Transport::Local(l) => {
+                    if let Some(system) = l.apply(&self.reactor, out) {
+                        self.core.system_died(&system);
                     }
                 }
-                UserOutput::WatchSystem(system, pid) => {
-                    if self.system_tokens.contains_key(&system) {
-                        continue;
-                    }
-                    match PidFd::open(pid) {
-                        Ok(p) => {
-                            let t = self.next_token;
-                            self.next_token += 1;
-                            if self.reactor.add(p.raw(), t).is_ok() {
-                                self.systems.insert(t, (system.clone(), p));
-                                self.system_tokens.insert(system, t);
-                            }
-                        }
-                        // Gone before we could watch it (but not merely unwatchable).
-                        Err(_) if !process_exists(pid) => self.core.system_died(&system),
-                        Err(e) => tracing::warn!("cannot watch system {system} (pid {pid}): {e}"),
-                    }
-                }
-                UserOutput::ForgetSystem(system) => {
-                    self.unwatch_system(&system);
-                    self.endpoint.release(&Address::System(system));
-                }
-            }
-        }
-    }
-
-    fn unwatch_system(&mut self, system: &str) {
-        if let Some(t) = self.system_tokens.remove(system) {
-            if let Some((_, p)) = self.systems.remove(&t) {
-                self.reactor.remove(p.raw());
+                Transport::Remote(r) => match out {
+                    UserOutput::ToBroker(msg) => r.send_broker(msg),
+                    UserOutput::ToSystem(_, msg) => r.send_system(msg),
+                    // Liveness over UDP is keepalives and silence, not process watches.
+                    UserOutput::WatchBroker(_)
+                    | UserOutput::WatchSystem(..)
+                    | UserOutput::ForgetSystem(_) => {}
+                },
             }
         }
     }
 
     /// Ends everything and says goodbye (dropping the client does the same).
     pub fn close(mut self) {
+        self.shutdown();
+        self.closed = true;
+    }
+
+    fn shutdown(&mut self) {
         self.core.shutdown();
         self.flush();
-        self.closed = true;
+        // Over UDP, wait a little for the systems to confirm the ends (they are retried).
+        let deadline = Instant::now() + Duration::from_millis(500);
+        while matches!(&self.transport, Transport::Remote(r) if r.ending() > 0)
+            && Instant::now() < deadline
+        {
+            if self.turn(deadline).is_err() {
+                break;
+            }
+        }
+        if let Transport::Remote(r) = &mut self.transport {
+            r.flush_held();
+        }
+    }
+}
+
+impl Local {
+    /// Carries out one output over shared memory; returns a system found already dead.
+    fn apply(&mut self, reactor: &Reactor, out: UserOutput) -> Option<String> {
+        match out {
+            UserOutput::ToBroker(msg) => self.endpoint.send_or_log(&Address::Broker, &msg),
+            UserOutput::ToSystem(system, msg) => {
+                self.endpoint.send_or_log(&Address::System(system), &msg)
+            }
+            UserOutput::WatchBroker(pid) => {
+                if let Some(p) = self.broker.take() {
+                    reactor.remove(p.raw());
+                }
+                if let Ok(p) = PidFd::open(pid) {
+                    if reactor.add(p.raw(), TOKEN_BROKER).is_ok() {
+                        self.broker = Some(p);
+                    }
+                }
+            }
+            UserOutput::WatchSystem(system, pid) => {
+                if self.system_tokens.contains_key(&system) {
+                    return None;
+                }
+                match PidFd::open(pid) {
+                    Ok(p) => {
+                        let t = self.next_token;
+                        self.next_token += 1;
+                        if reactor.add(p.raw(), t).is_ok() {
+                            self.systems.insert(t, (system.clone(), p));
+                            self.system_tokens.insert(system, t);
+                        }
+                    }
+                    // Gone before we could watch it (but not merely unwatchable).
+                    Err(_) if !process_exists(pid) => return Some(system),
+                    Err(e) => tracing::warn!("cannot watch system {system} (pid {pid}): {e}"),
+                }
+            }
+            UserOutput::ForgetSystem(system) => {
+                self.unwatch_system(reactor, &system);
+                self.endpoint.release(&Address::System(system));
+            }
+        }
+        None
+    }
+
+    fn lose_broker(&mut self, core: &mut UserCore, reactor: &Reactor, forget_ports: bool) {
+        core.broker_lost();
+        if let Some(p) = self.broker.take() {
+            reactor.remove(p.raw());
+        }
+        if forget_ports {
+            self.endpoint.forget(&Address::Broker);
+        }
+    }
+
+    fn unwatch_system(&mut self, reactor: &Reactor, system: &str) {
+        if let Some(t) = self.system_tokens.remove(system) {
+            if let Some((_, p)) = self.systems.remove(&t) {
+                reactor.remove(p.raw());
+            }
+        }
     }
 }
 
 impl Drop for UserClient {
     fn drop(&mut self) {
         if !self.closed {
-            self.core.shutdown();
-            self.flush();
+            self.shutdown();
         }
     }
 }

@@ -227,6 +227,11 @@ impl UserCore {
         })
     }
 
+    /// Whether request `req` still waits for an answer (pending or queued).
+    pub fn is_pending(&self, req: u64) -> bool {
+        self.pending.contains_key(&req)
+    }
+
     /// Requests not yet answered by a grant or a refusal.
     pub fn pending_requests(&self) -> usize {
         self.pending.len()

@@ -5,6 +5,8 @@
 pub mod client;
 pub mod core;
 pub mod menu;
+pub mod remote;
 
 pub use crate::client::{ConnectOptions, UserClient, UserError, Wake};
 pub use crate::core::{UserCore, UserEvent, UserOutput};
+pub use crate::remote::{Faults, RemoteOptions};

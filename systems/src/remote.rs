@@ -1,0 +1,294 @@
+//! A system's UDP endpoint for remote users' sessions.
+//!
+//! The broker authenticates a remote user, issues a random key for each session it
+//! offers us, and tells us (in the offer) where the user is; the user gets the same key
+//! with its grant. Session traffic then goes straight between this endpoint and the
+//! user, sealed with ChaCha20-Poly1305 under that key, so it never touches the broker
+//! and survives a broker crash like a local session.
+//!
+//! Liveness: the user sends a keepalive on each session every second; a session silent
+//! for [`LEASE`] ends as `PeerGone`. An ended session's key lingers for [`LINGER`] to
+//! answer a repeated `End` with `Ended` again.
+
+use crate::core::{SystemCore, SystemOutput};
+use muster_shared::protocol::{RemoteContact, ToSystem, ToUser};
+use muster_shared::types::{EndReason, SessionId, UserId};
+use muster_shared::udp::crypto::{SessionCipher, Side};
+use muster_shared::udp::msgs::{from_bytes, to_bytes, SessionDown, SessionUp};
+use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
+use muster_shared::udp::DropCounters;
+use std::collections::HashMap;
+use std::net::{SocketAddr, UdpSocket};
+use std::os::fd::{AsRawFd, RawFd};
+use std::time::{Duration, Instant};
+
+/// A remote session silent this long ends (the user is gone).
+pub const LEASE: Duration = Duration::from_secs(5);
+/// An ended session's key is kept this long to answer repeated `End`s.
+pub const LINGER: Duration = Duration::from_secs(10);
+
+struct Remote {
+    user: UserId,
+    addr: SocketAddr,
+    cipher: SessionCipher,
+    last_heard: Instant,
+    ended: Option<(Instant, EndReason)>,
+}
+
+/// Counters of the endpoint.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct RemoteStats {
+    /// Datagrams received.
+    pub datagrams_in: u64,
+    /// Datagrams sent.
+    pub datagrams_out: u64,
+    /// Sessions ended because the user went silent.
+    pub leases_expired: u64,
+    /// Dropped datagrams by reason.
+    pub drops: DropCounters,
+}
+
+/// The endpoint: socket, keys of offers in flight, sessions.
+pub struct RemoteSessions {
+    sock: UdpSocket,
+    local: SocketAddr,
+    offers: HashMap<(UserId, u64), RemoteContact>,
+    sessions: HashMap<u64, Remote>,
+    stats: RemoteStats,
+}
+
+impl RemoteSessions {
+    /// Binds the endpoint.
+    pub fn bind(addr: SocketAddr) -> std::io::Result<Self> {
+        let sock = UdpSocket::bind(addr)?;
+        sock.set_nonblocking(true)?;
+        let local = sock.local_addr()?;
+        Ok(RemoteSessions {
+            sock,
+            local,
+            offers: HashMap::new(),
+            sessions: HashMap::new(),
+            stats: RemoteStats::default(),
+        })
+    }
+
+    /// The bound address (announced in the registration).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local
+    }
+
+    /// The socket, for the reactor.
+    pub fn fd(&self) -> RawFd {
+        self.sock.as_raw_fd()
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> &RemoteStats {
+        &self.stats
+    }
+
+    /// Open remote sessions (not counting ended ones that linger).
+    pub fn open_sessions(&self) -> usize {
+        self.sessions.values().filter(|r| r.ended.is_none()).count()
+    }
+
+    /// Remembers the contact of a remote offer before the core handles it.
+    pub fn note(&mut self, msg: &ToSystem) {
+        if let ToSystem::Offer {
+            user,
+            req,
+            remote: Some(contact),
+            ..
+        } = msg
+        {
+            if self.offers.len() > 4096 {
+                self.offers.clear(); // offers are answered at once; this never grows
+            }
+            self.offers.insert((user.clone(), *req), contact.clone());
+        }
+    }
+
+    /// Takes the core's outputs for remote users; gives back the rest.
+    pub fn route(&mut self, out: SystemOutput) -> Option<SystemOutput> {
+        match out {
+            SystemOutput::ToUser(user, ToUser::Granted { req, session, .. })
+                if self.offers.contains_key(&(user.clone(), req)) =>
+            {
+                let Some(contact) = self.offers.remove(&(user.clone(), req)) else {
+                    return None;
+                };
+                match contact.addr.parse::<SocketAddr>() {
+                    Ok(addr) => {
+                        // A repeated offer for a session we hold keeps its cipher.
+                        self.sessions.entry(session.0).or_insert_with(|| Remote {
+                            user,
+                            addr,
+                            cipher: SessionCipher::new(&contact.key, Side::System),
+                            last_heard: Instant::now(),
+                            ended: None,
+                        });
+                    }
+                    Err(e) => tracing::warn!("bad remote address {:?}: {e}", contact.addr),
+                }
+                // The broker delivers the grant (with the key) to the remote user.
+                None
+            }
+            SystemOutput::ToUser(user, msg) => {
+                let session = match &msg {
+                    ToUser::Update { session, .. }
+                    | ToUser::Status { session, .. }
+                    | ToUser::Ended { session, .. } => *session,
+                    _ => return Some(SystemOutput::ToUser(user, msg)),
+                };
+                if !self.sessions.contains_key(&session.0) {
+                    return Some(SystemOutput::ToUser(user, msg));
+                }
+                if let ToUser::Ended { reason, .. } = &msg {
+                    if let Some(r) = self.sessions.get_mut(&session.0) {
+                        r.ended = Some((Instant::now(), reason.clone()));
+                    }
+                }
+                self.send(session.0, &SessionDown::Msg(msg));
+                None
+            }
+            SystemOutput::WatchUser(user, _) | SystemOutput::ForgetUser(user)
+                if self.is_remote(&user) =>
+            {
+                None
+            }
+            other => Some(other),
+        }
+    }
+
+    fn is_remote(&self, user: &UserId) -> bool {
+        self.sessions.values().any(|r| r.user == *user)
+    }
+
+    /// Reads waiting datagrams and feeds their messages to the core.
+    pub fn on_readable(&mut self, core: &mut SystemCore) {
+        let mut buf = [0u8; MAX_DATAGRAM + 1];
+        for _ in 0..4096 {
+            let (n, from) = match self.sock.recv_from(&mut buf) {
+                Ok(x) => x,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return,
+                Err(e) => {
+                    tracing::debug!("udp recv: {e}");
+                    return;
+                }
+            };
+            self.stats.datagrams_in += 1;
+            self.on_datagram(core, &buf[..n], from);
+        }
+    }
+
+    fn on_datagram(&mut self, core: &mut SystemCore, bytes: &[u8], from: SocketAddr) {
+        let (session, nonce, sealed) = match Datagram::decode(bytes) {
+            Ok(Datagram::Session {
+                session,
+                nonce,
+                sealed,
+            }) => (session, nonce, sealed),
+            Ok(_) => return self.stats.drops.drop("unexpected_kind", &from),
+            Err(_) => return self.stats.drops.drop("malformed", &from),
+        };
+        let Some(r) = self.sessions.get_mut(&session) else {
+            return self.stats.drops.drop("unknown_session", &from);
+        };
+        let Ok(plain) = r.cipher.open(session, nonce, sealed) else {
+            return self.stats.drops.drop("forged_or_replayed", &from);
+        };
+        r.addr = from;
+        r.last_heard = Instant::now();
+        let user = r.user.clone();
+        let ended = r.ended.clone();
+        let msg = match from_bytes::<SessionUp>(&plain) {
+            Ok(m) => m,
+            Err(_) => return self.stats.drops.drop("bad_message", &from),
+        };
+        let id = SessionId(session);
+        match (msg, ended) {
+            (SessionUp::Keepalive, None) => self.send(session, &SessionDown::Alive),
+            (SessionUp::Keepalive, Some((_, reason))) => self.send(
+                session,
+                &SessionDown::Msg(ToUser::Ended {
+                    session: id,
+                    reason,
+                }),
+            ),
+            (SessionUp::Msg(ToSystem::Input { payload, .. }), None) => core.handle(ToSystem::Input {
+                user,
+                session: id,
+                payload,
+            }),
+            (SessionUp::Msg(ToSystem::End { .. }), None) => {
+                core.handle(ToSystem::End { user, session: id })
+            }
+            // Already ended: say so again (the user retries `End` until it hears).
+            (SessionUp::Msg(ToSystem::End { .. }), Some((_, reason))) => self.send(
+                session,
+                &SessionDown::Msg(ToUser::Ended {
+                    session: id,
+                    reason,
+                }),
+            ),
+            (SessionUp::Msg(ToSystem::Input { .. }), Some(_)) => {}
+            (SessionUp::Msg(_), _) => self.stats.drops.drop("not_a_session_message", &from),
+        }
+    }
+
+    /// When housekeeping is next due.
+    pub fn poll_timeout(&self) -> Option<Duration> {
+        (!self.sessions.is_empty()).then_some(Duration::from_millis(500))
+    }
+
+    /// Ends silent sessions and forgets old ended ones.
+    pub fn housekeeping(&mut self, core: &mut SystemCore) {
+        let now = Instant::now();
+        let silent: Vec<u64> = self
+            .sessions
+            .iter()
+            .filter(|(_, r)| r.ended.is_none() && now.duration_since(r.last_heard) >= LEASE)
+            .map(|(id, _)| *id)
+            .collect();
+        for id in silent {
+            tracing::info!(session = format!("{id:x}"), "remote user silent: session ended");
+            self.stats.leases_expired += 1;
+            core.end_session(SessionId(id), EndReason::PeerGone);
+            // A session the core no longer knows still needs its linger mark.
+            if let Some(r) = self.sessions.get_mut(&id) {
+                r.ended.get_or_insert((now, EndReason::PeerGone));
+            }
+        }
+        self.sessions
+            .retain(|_, r| r.ended.as_ref().is_none_or(|(t, _)| now.duration_since(*t) < LINGER));
+    }
+
+    fn send(&mut self, session: u64, m: &SessionDown) {
+        let Some(r) = self.sessions.get_mut(&session) else {
+            return;
+        };
+        let bytes = match to_bytes(m) {
+            Ok(b) => b,
+            Err(_) => {
+                let addr = r.addr;
+                return self.stats.drops.drop("too_large_for_a_datagram", &addr);
+            }
+        };
+        let Ok((nonce, sealed)) = r.cipher.seal(session, &bytes) else {
+            return;
+        };
+        let addr = r.addr;
+        let Ok(dg) = (Datagram::Session {
+            session,
+            nonce,
+            sealed: &sealed,
+        })
+        .encode() else {
+            return;
+        };
+        match self.sock.send_to(&dg, addr) {
+            Ok(_) => self.stats.datagrams_out += 1,
+            Err(_) => self.stats.drops.drop("send_failed", &addr),
+        }
+    }
+}

@@ -1,0 +1,943 @@
+//! The user's side of the UDP path: handshake with the broker, the encrypted channel,
+//! retries, keepalives, reconnection, and sessions straight with systems.
+//!
+//! Reliability is pull-based: the user repeats what it needs until it hears the answer
+//! (hello until welcome, a request until it is granted or refused, an `End` until the
+//! system says `Ended`, the list until every chunk of one generation arrived), with
+//! exponential backoff. The broker and systems answer repeats idempotently, so a
+//! duplicated or retried request never yields two grants.
+
+use crate::core::UserCore;
+use muster_shared::protocol::{ToBroker, ToSystem, ToUser};
+use muster_shared::snapshot::{ServiceListSnapshot, ServiceView, MAX_LISTED_SERVICES};
+use muster_shared::types::{SessionId, UserId};
+use muster_shared::udp::crypto::{self, Channel, HandshakeState, KeyPair, SessionCipher, Side};
+use muster_shared::udp::msgs::{from_bytes, to_bytes, Down, Hs3, SessionDown, SessionUp, Up};
+use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
+use muster_shared::udp::DropCounters;
+use rand::{RngExt, SeedableRng};
+use std::collections::{BTreeMap, HashMap};
+use std::net::{SocketAddr, UdpSocket};
+use std::os::fd::{AsRawFd, RawFd};
+use std::time::{Duration, Instant};
+
+/// First retransmission timeout; doubles up to [`MAX_RTO`].
+pub const RTO: Duration = Duration::from_millis(200);
+/// Longest retransmission timeout.
+pub const MAX_RTO: Duration = Duration::from_secs(2);
+/// Keepalive period towards the broker and on each session.
+pub const KEEPALIVE: Duration = Duration::from_secs(1);
+/// The broker is taken as lost after this long without a datagram from it.
+pub const BROKER_SILENCE: Duration = Duration::from_millis(3500);
+/// A system is taken as dead after this long without a datagram on a session.
+pub const SYSTEM_SILENCE: Duration = Duration::from_secs(5);
+
+/// Seeded loss, duplication and reordering applied to this client's datagrams in both
+/// directions: the network-fault test and benchmark use it.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Faults {
+    /// Probability a datagram is dropped.
+    pub loss: f64,
+    /// Probability a datagram is delivered twice.
+    pub dup: f64,
+    /// Probability a datagram is held back and delivered after the next one.
+    pub reorder: f64,
+    /// Seed.
+    pub seed: u64,
+}
+
+impl std::str::FromStr for Faults {
+    type Err = String;
+    /// `loss=0.05,dup=0.01,reorder=0.02,seed=7`
+    fn from_str(s: &str) -> Result<Self, String> {
+        let mut f = Faults::default();
+        for kv in s.split(',').filter(|x| !x.is_empty()) {
+            let (k, v) = kv.split_once('=').ok_or(format!("expected key=value, got {kv:?}"))?;
+            let p = || -> Result<f64, String> {
+                let x: f64 = v.parse().map_err(|e| format!("{k}: {e}"))?;
+                if (0.0..=1.0).contains(&x) {
+                    Ok(x)
+                } else {
+                    Err(format!("{k} must be in [0, 1]"))
+                }
+            };
+            match k {
+                "loss" => f.loss = p()?,
+                "dup" => f.dup = p()?,
+                "reorder" => f.reorder = p()?,
+                "seed" => f.seed = v.parse().map_err(|e| format!("seed: {e}"))?,
+                _ => return Err(format!("unknown fault {k:?} (loss, dup, reorder, seed)")),
+            }
+        }
+        Ok(f)
+    }
+}
+
+struct Lossy {
+    f: Faults,
+    rng: rand_pcg::Pcg64,
+    held_out: Option<(Vec<u8>, SocketAddr)>,
+    held_in: Option<(Vec<u8>, SocketAddr)>,
+}
+
+impl Lossy {
+    /// What to do with one datagram: 0, 1 or 2 copies, and whether to hold it back.
+    fn fate(&mut self) -> (usize, bool) {
+        if self.rng.random::<f64>() < self.f.loss {
+            return (0, false);
+        }
+        let copies = if self.rng.random::<f64>() < self.f.dup { 2 } else { 1 };
+        (copies, self.rng.random::<f64>() < self.f.reorder)
+    }
+}
+
+/// How to reach the broker over UDP.
+#[derive(Clone, Debug)]
+pub struct RemoteOptions {
+    /// The broker's UDP address.
+    pub broker: SocketAddr,
+    /// The user's name in the broker's access file.
+    pub name: String,
+    /// The user's key.
+    pub key: KeyPair,
+    /// Refuse a broker whose static key is not this one.
+    pub broker_key: Option<[u8; 32]>,
+    /// Injected faults (tests and benchmarks).
+    pub faults: Option<Faults>,
+}
+
+enum Hs {
+    /// Sent an `INITIAL` without a token; waiting for the `RETRY`.
+    Token { client: u64 },
+    /// Sent the `INITIAL` with token and Noise message 1.
+    Reply {
+        client: u64,
+        initial: Vec<u8>,
+        hs: Box<HandshakeState>,
+    },
+    /// Handshake done on our side; the broker confirms with any channel datagram.
+    Up {
+        conn: u64,
+        chan: Box<Channel>,
+        fin: Vec<u8>,
+        confirmed: bool,
+    },
+}
+
+struct Retry {
+    next: Instant,
+    rto: Duration,
+}
+
+impl Retry {
+    fn new(now: Instant) -> Self {
+        Retry {
+            next: now + RTO,
+            rto: RTO,
+        }
+    }
+    fn due(&mut self, now: Instant) -> bool {
+        if now < self.next {
+            return false;
+        }
+        self.rto = (self.rto * 2).min(MAX_RTO);
+        self.next = now + self.rto;
+        true
+    }
+}
+
+struct Session {
+    system: String,
+    addr: SocketAddr,
+    cipher: SessionCipher,
+    last_heard: Instant,
+    next_keepalive: Instant,
+    ending: Option<(Retry, u32)>,
+}
+
+struct ListAssembly {
+    generation: u64,
+    epoch: u64,
+    total: u16,
+    chunks: BTreeMap<u16, Vec<ServiceView>>,
+}
+
+/// Counters of the remote link.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct LinkStats {
+    /// Datagrams sent (before injected faults).
+    pub datagrams_out: u64,
+    /// Datagrams received (after injected faults).
+    pub datagrams_in: u64,
+    /// Retransmissions (hello, requests, ends, list, handshake).
+    pub retransmissions: u64,
+    /// Handshakes completed (1 + reconnections).
+    pub handshakes: u64,
+    /// Grants heard more than once (the same session again): not given to the core.
+    pub duplicate_grants: u64,
+    /// Dropped datagrams by reason.
+    pub drops: DropCounters,
+}
+
+/// The user's UDP link to the broker and to systems.
+pub struct RemoteLink {
+    sock: UdpSocket,
+    opts: RemoteOptions,
+    suffix: String,
+    hs: Option<Hs>,
+    hs_retry: Retry,
+    hs_started: Instant,
+    welcomed: bool,
+    last_from_broker: Instant,
+    next_ping: Instant,
+    hello: Option<(ToBroker, Retry)>,
+    requests: BTreeMap<u64, (ToBroker, Retry)>,
+    sessions: HashMap<u64, Session>,
+    list_want: Option<Retry>,
+    list_part: Option<ListAssembly>,
+    list_done: Option<Box<ServiceListSnapshot>>,
+    generation: u64,
+    lossy: Option<Lossy>,
+    stats: LinkStats,
+    ever_connected: bool,
+}
+
+impl RemoteLink {
+    /// A link for `opts`; binds an ephemeral UDP port on the broker's address family and
+    /// starts the handshake.
+    pub fn new(opts: RemoteOptions) -> std::io::Result<Self> {
+        let bind: SocketAddr = if opts.broker.is_ipv4() {
+            "0.0.0.0:0".parse().expect("literal")
+        } else {
+            "[::]:0".parse().expect("literal")
+        };
+        let sock = UdpSocket::bind(bind)?;
+        sock.set_nonblocking(true)?;
+        let lossy = opts.faults.map(|f| Lossy {
+            f,
+            rng: rand_pcg::Pcg64::seed_from_u64(f.seed),
+            held_out: None,
+            held_in: None,
+        });
+        let suffix = format!("{:08x}", rand::random::<u32>());
+        let now = Instant::now();
+        let mut link = RemoteLink {
+            sock,
+            opts,
+            suffix,
+            hs: None,
+            hs_retry: Retry::new(now),
+            hs_started: now,
+            welcomed: false,
+            last_from_broker: now,
+            next_ping: now + KEEPALIVE,
+            hello: None,
+            requests: BTreeMap::new(),
+            sessions: HashMap::new(),
+            list_want: None,
+            list_part: None,
+            list_done: None,
+            generation: 0,
+            lossy,
+            stats: LinkStats::default(),
+            ever_connected: false,
+        };
+        link.start_handshake();
+        Ok(link)
+    }
+
+    /// The user id the broker will give this link (`name.suffix`).
+    pub fn user_id(&self) -> UserId {
+        UserId(format!("{}.{}", self.opts.name, self.suffix))
+    }
+
+    /// The socket, for the reactor.
+    pub fn fd(&self) -> RawFd {
+        self.sock.as_raw_fd()
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> &LinkStats {
+        &self.stats
+    }
+
+    /// Whether the broker welcomed us on the current connection.
+    pub fn welcomed(&self) -> bool {
+        self.welcomed
+    }
+
+    fn start_handshake(&mut self) {
+        let client: u64 = rand::random();
+        let now = Instant::now();
+        self.hs = Some(Hs::Token { client });
+        self.hs_retry = Retry::new(now);
+        self.hs_started = now;
+        self.welcomed = false;
+        self.send_initial(client, &[], &[]);
+    }
+
+    fn send_initial(&mut self, client: u64, token: &[u8], noise: &[u8]) -> Vec<u8> {
+        let bytes = Datagram::Initial {
+            client,
+            token,
+            noise,
+        }
+        .encode()
+        .unwrap_or_default();
+        let to = self.opts.broker;
+        self.send_raw(&bytes, to);
+        bytes
+    }
+
+    /// Sends a message the core wants at the broker.
+    pub fn send_broker(&mut self, msg: ToBroker) {
+        let now = Instant::now();
+        match &msg {
+            ToBroker::Hello { .. } => self.hello = Some((msg.clone(), Retry::new(now))),
+            ToBroker::Request { req, .. } => {
+                self.requests.insert(*req, (msg.clone(), Retry::new(now)));
+            }
+            ToBroker::Cancel { req, .. } => {
+                self.requests.remove(req);
+            }
+            ToBroker::Goodbye { .. } => {
+                // Unanswered: said twice against loss (the broker also times us out).
+                self.send_up(&Up::Msg(msg.clone()));
+            }
+            _ => {}
+        }
+        self.send_up(&Up::Msg(msg));
+    }
+
+    /// Sends a message the core wants at a system (task input, end of a session).
+    pub fn send_system(&mut self, msg: ToSystem) {
+        let session = match &msg {
+            ToSystem::Input { session, .. } | ToSystem::End { session, .. } => *session,
+            _ => return,
+        };
+        if let ToSystem::End { .. } = &msg {
+            if let Some(s) = self.sessions.get_mut(&session.0) {
+                s.ending = Some((Retry::new(Instant::now()), 0));
+            }
+        }
+        self.send_session(session.0, &SessionUp::Msg(msg));
+    }
+
+    /// Asks the broker for the list; [`RemoteLink::take_list`] returns it once complete.
+    pub fn ask_list(&mut self) {
+        self.list_want = Some(Retry::new(Instant::now()));
+        self.list_part = None;
+        self.list_done = None;
+        self.send_up(&Up::List);
+    }
+
+    /// The list, once every chunk of one generation arrived.
+    pub fn take_list(&mut self) -> Option<Box<ServiceListSnapshot>> {
+        self.list_done.take()
+    }
+
+    /// When [`RemoteLink::tick`] must run next.
+    pub fn next_deadline(&self) -> Instant {
+        let mut t = self.next_ping.min(self.hs_retry.next);
+        if let Some((_, r)) = &self.hello {
+            t = t.min(r.next);
+        }
+        for (_, r) in self.requests.values() {
+            t = t.min(r.next);
+        }
+        if let Some(r) = &self.list_want {
+            t = t.min(r.next);
+        }
+        for s in self.sessions.values() {
+            t = t.min(s.next_keepalive);
+            if let Some((r, _)) = &s.ending {
+                t = t.min(r.next);
+            }
+        }
+        if self.lossy.as_ref().is_some_and(|l| l.held_in.is_some() || l.held_out.is_some()) {
+            t = t.min(Instant::now() + Duration::from_millis(5));
+        }
+        t
+    }
+
+    /// Retransmits what is due, sends keepalives, notices silent peers.
+    pub fn tick(&mut self, core: &mut UserCore) {
+        let now = Instant::now();
+        self.release_held(core);
+        // Handshake.
+        match &self.hs {
+            Some(Hs::Up { confirmed: true, .. }) => {}
+            _ if self.hs_retry.due(now) => {
+                self.stats.retransmissions += 1;
+                match self.hs.take() {
+                    Some(Hs::Token { client }) => {
+                        self.hs = Some(Hs::Token { client });
+                        self.send_initial(client, &[], &[]);
+                    }
+                    Some(Hs::Reply {
+                        client,
+                        initial,
+                        hs,
+                    }) => {
+                        let to = self.opts.broker;
+                        self.send_raw(&initial, to);
+                        self.hs = Some(Hs::Reply {
+                            client,
+                            initial,
+                            hs,
+                        });
+                    }
+                    Some(Hs::Up {
+                        conn,
+                        chan,
+                        fin,
+                        confirmed,
+                    }) => {
+                        let to = self.opts.broker;
+                        self.send_raw(&fin, to);
+                        self.hs = Some(Hs::Up {
+                            conn,
+                            chan,
+                            fin,
+                            confirmed,
+                        });
+                    }
+                    None => self.start_handshake(),
+                }
+                // A handshake that gets nowhere starts over (the broker restarted).
+                if now.duration_since(self.hs_started) > Duration::from_secs(5) {
+                    self.start_handshake();
+                }
+            }
+            _ => {}
+        }
+        if let Some((msg, r)) = self.hello.as_mut() {
+            if r.due(now) {
+                let m = msg.clone();
+                self.stats.retransmissions += 1;
+                self.send_up(&Up::Msg(m));
+            }
+        }
+        let due: Vec<u64> = self
+            .requests
+            .iter_mut()
+            .filter_map(|(req, (_, r))| r.due(now).then_some(*req))
+            .collect();
+        for req in due {
+            if !core.is_pending(req) {
+                self.requests.remove(&req);
+                continue;
+            }
+            if let Some((m, _)) = self.requests.get(&req) {
+                let m = m.clone();
+                self.stats.retransmissions += 1;
+                self.send_up(&Up::Msg(m));
+            }
+        }
+        if self.list_want.as_mut().is_some_and(|r| r.due(now)) {
+            self.stats.retransmissions += 1;
+            self.list_part = None;
+            self.send_up(&Up::List);
+        }
+        // Keepalives and silence.
+        if now >= self.next_ping {
+            self.next_ping = now + KEEPALIVE;
+            if self.welcomed {
+                self.send_up(&Up::Ping { nonce: 0 });
+            }
+        }
+        if self.welcomed && now.duration_since(self.last_from_broker) > BROKER_SILENCE {
+            tracing::warn!("broker silent: lost; sessions go on, reconnecting");
+            core.broker_lost();
+            self.hello = None;
+            self.start_handshake();
+        }
+        let mut keepalive = Vec::new();
+        let mut ends = Vec::new();
+        let mut dead_systems = Vec::new();
+        let mut gone = Vec::new();
+        for (id, s) in self.sessions.iter_mut() {
+            if let Some((r, tries)) = s.ending.as_mut() {
+                if *tries >= 10 {
+                    gone.push(*id);
+                } else if r.due(now) {
+                    *tries += 1;
+                    ends.push(*id);
+                }
+                continue;
+            }
+            if now >= s.next_keepalive {
+                s.next_keepalive = now + KEEPALIVE;
+                keepalive.push(*id);
+            }
+            if now.duration_since(s.last_heard) > SYSTEM_SILENCE {
+                dead_systems.push(s.system.clone());
+            }
+        }
+        for id in gone {
+            self.sessions.remove(&id);
+        }
+        for id in keepalive {
+            self.send_session(id, &SessionUp::Keepalive);
+        }
+        let me = self.user_id();
+        for id in ends {
+            self.stats.retransmissions += 1;
+            let m = ToSystem::End {
+                user: me.clone(),
+                session: SessionId(id),
+            };
+            self.send_session(id, &SessionUp::Msg(m));
+        }
+        dead_systems.sort();
+        dead_systems.dedup();
+        for system in dead_systems {
+            tracing::warn!(%system, "system silent: its sessions are over");
+            self.sessions.retain(|_, s| s.system != system);
+            core.system_died(&system);
+        }
+    }
+
+    /// Reads waiting datagrams and hands their messages to the core.
+    pub fn on_readable(&mut self, core: &mut UserCore) {
+        let mut buf = [0u8; MAX_DATAGRAM + 1];
+        for _ in 0..4096 {
+            let (n, from) = match self.sock.recv_from(&mut buf) {
+                Ok(x) => x,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                Err(e) => {
+                    tracing::debug!("udp recv: {e}");
+                    break;
+                }
+            };
+            let bytes = buf[..n].to_vec();
+            match self.lossy.as_mut() {
+                None => self.on_datagram(core, &bytes, from),
+                Some(l) => {
+                    let (copies, hold) = l.fate();
+                    if copies == 0 {
+                        continue;
+                    }
+                    if hold && l.held_in.is_none() {
+                        l.held_in = Some((bytes.clone(), from));
+                        if copies == 2 {
+                            self.on_datagram(core, &bytes, from);
+                        }
+                        continue;
+                    }
+                    let held = l.held_in.take();
+                    for _ in 0..copies {
+                        self.on_datagram(core, &bytes, from);
+                    }
+                    if let Some((b, f)) = held {
+                        self.on_datagram(core, &b, f);
+                    }
+                }
+            }
+        }
+    }
+
+    fn release_held(&mut self, core: &mut UserCore) {
+        let Some(l) = self.lossy.as_mut() else { return };
+        let (inn, out) = (l.held_in.take(), l.held_out.take());
+        if let Some((b, f)) = inn {
+            self.on_datagram(core, &b, f);
+        }
+        if let Some((b, to)) = out {
+            let _ = self.sock.send_to(&b, to);
+        }
+    }
+
+    fn on_datagram(&mut self, core: &mut UserCore, bytes: &[u8], from: SocketAddr) {
+        self.stats.datagrams_in += 1;
+        let d = match Datagram::decode(bytes) {
+            Ok(d) => d,
+            Err(_) => return self.stats.drops.drop("malformed", &from),
+        };
+        match d {
+            Datagram::Retry { client, token } => self.on_retry(client, token),
+            Datagram::HsReply {
+                client,
+                conn,
+                noise,
+            } => self.on_reply(core, client, conn, noise),
+            Datagram::Channel {
+                conn,
+                nonce,
+                sealed,
+            } => self.on_channel(core, conn, nonce, sealed, from),
+            Datagram::Session {
+                session,
+                nonce,
+                sealed,
+            } => self.on_session(core, session, nonce, sealed, from),
+            _ => self.stats.drops.drop("unexpected_kind", &from),
+        }
+    }
+
+    fn on_retry(&mut self, client: u64, token: &[u8]) {
+        let ok = matches!(&self.hs, Some(Hs::Token { client: c }) if *c == client);
+        if !ok {
+            return;
+        }
+        let mut hs = match crypto::initiator(&self.opts.key) {
+            Ok(h) => h,
+            Err(e) => return tracing::error!("cannot start a handshake: {e}"),
+        };
+        let mut msg1 = [0u8; 256];
+        let Ok(n) = hs.write_message(&[], &mut msg1) else {
+            return;
+        };
+        let initial = self.send_initial(client, token, &msg1[..n]);
+        self.hs = Some(Hs::Reply {
+            client,
+            initial,
+            hs: Box::new(hs),
+        });
+        self.hs_retry = Retry::new(Instant::now());
+    }
+
+    fn on_reply(&mut self, core: &mut UserCore, client: u64, conn: u64, noise: &[u8]) {
+        let Some(Hs::Reply {
+            client: c,
+            initial,
+            mut hs,
+        }) = self.hs.take()
+        else {
+            return;
+        };
+        let restore = |hs, initial| Hs::Reply {
+            client: c,
+            initial,
+            hs,
+        };
+        if c != client {
+            self.hs = Some(restore(hs, initial));
+            return;
+        }
+        let mut scratch = [0u8; 512];
+        if hs.read_message(noise, &mut scratch).is_err() {
+            self.stats
+                .drops
+                .drop("bad_handshake", &self.opts.broker.clone());
+            self.hs = Some(restore(hs, initial));
+            return;
+        }
+        if let Some(pin) = self.opts.broker_key {
+            if hs.get_remote_static() != Some(pin.as_slice()) {
+                tracing::error!("the broker's key is not the one given with --broker-key: refusing it");
+                self.hs = None;
+                return;
+            }
+        }
+        let payload = to_bytes(&Hs3 {
+            name: self.opts.name.clone(),
+            suffix: self.suffix.clone(),
+        })
+        .unwrap_or_default();
+        let mut msg3 = [0u8; 512];
+        let Ok(n) = hs.write_message(&payload, &mut msg3) else {
+            return;
+        };
+        let fin = Datagram::HsFinal {
+            conn,
+            noise: &msg3[..n],
+        }
+        .encode()
+        .unwrap_or_default();
+        let Ok(chan) = Channel::new(*hs) else { return };
+        let to = self.opts.broker;
+        self.send_raw(&fin, to);
+        self.hs = Some(Hs::Up {
+            conn,
+            chan: Box::new(chan),
+            fin,
+            confirmed: false,
+        });
+        self.hs_retry = Retry::new(Instant::now());
+        self.stats.handshakes += 1;
+        // Say hello at once (repeated until the welcome): the first connection's hello
+        // waits in `hello`; after a reconnection the core says it again.
+        match self.hello.as_ref().map(|(m, _)| m.clone()) {
+            Some(m) => self.send_up(&Up::Msg(m)),
+            None => core.hello(),
+        }
+    }
+
+    fn on_channel(
+        &mut self,
+        core: &mut UserCore,
+        conn: u64,
+        nonce: u64,
+        sealed: &[u8],
+        from: SocketAddr,
+    ) {
+        let Some(Hs::Up {
+            conn: c,
+            chan,
+            confirmed,
+            ..
+        }) = self.hs.as_mut()
+        else {
+            return self.stats.drops.drop("no_channel", &from);
+        };
+        if *c != conn {
+            return self.stats.drops.drop("unknown_conn", &from);
+        }
+        let Ok(plain) = chan.open(nonce, sealed) else {
+            return self.stats.drops.drop("forged_or_replayed", &from);
+        };
+        *confirmed = true;
+        self.last_from_broker = Instant::now();
+        let Ok(msg) = from_bytes::<Down>(&plain) else {
+            return self.stats.drops.drop("bad_message", &from);
+        };
+        match msg {
+            Down::Welcome { user, epoch } => {
+                if user != self.user_id() {
+                    tracing::warn!(%user, "broker named us differently");
+                }
+                if !self.welcomed {
+                    self.welcomed = true;
+                    self.ever_connected = true;
+                    self.hello = None;
+                    core.handle(ToUser::Welcome {
+                        epoch,
+                        broker_pid: 0,
+                    });
+                }
+            }
+            Down::Msg(m) => {
+                if let ToUser::Queued { req, .. } = &m {
+                    // Still waiting: keep asking, slowly.
+                    if let Some((_, r)) = self.requests.get_mut(req) {
+                        r.rto = MAX_RTO;
+                        r.next = Instant::now() + MAX_RTO;
+                    }
+                }
+                if let ToUser::Refused { req, .. } = &m {
+                    self.requests.remove(req);
+                }
+                core.handle(m);
+            }
+            Down::Granted {
+                req,
+                session,
+                service,
+                kind,
+                payload,
+                system_addr,
+                key,
+            } => {
+                self.requests.remove(&req);
+                if self.sessions.contains_key(&session.0) {
+                    self.stats.duplicate_grants += 1;
+                    return;
+                }
+                let Ok(addr) = system_addr.parse::<SocketAddr>() else {
+                    return self.stats.drops.drop("bad_system_addr", &from);
+                };
+                let system = service.split().map(|(s, _)| s.to_string()).unwrap_or_default();
+                // A grant the core no longer waits for (cancelled) still gets a cipher:
+                // the core ends it on sight, and the End must reach the system.
+                let now = Instant::now();
+                self.sessions.insert(
+                    session.0,
+                    Session {
+                        system,
+                        addr,
+                        cipher: SessionCipher::new(&key, Side::User),
+                        last_heard: now,
+                        next_keepalive: now,
+                        ending: None,
+                    },
+                );
+                core.handle(ToUser::Granted {
+                    req,
+                    session,
+                    service,
+                    kind,
+                    payload,
+                    system_pid: 0,
+                });
+            }
+            Down::ListChunk {
+                epoch,
+                generation,
+                index,
+                total,
+                entries,
+            } => self.on_chunk(epoch, generation, index, total, entries),
+            Down::ListChanged { generation } | Down::Pong { generation, .. } => {
+                if generation != self.generation {
+                    self.generation = generation;
+                    core.list_changed();
+                }
+            }
+        }
+    }
+
+    fn on_chunk(
+        &mut self,
+        epoch: u64,
+        generation: u64,
+        index: u16,
+        total: u16,
+        entries: Vec<ServiceView>,
+    ) {
+        if self.list_want.is_none() || total == 0 || index >= total {
+            return;
+        }
+        let part = self.list_part.get_or_insert_with(|| ListAssembly {
+            generation,
+            epoch,
+            total,
+            chunks: BTreeMap::new(),
+        });
+        if part.generation != generation || part.epoch != epoch || part.total != total {
+            // A newer list began: start over with it.
+            *part = ListAssembly {
+                generation,
+                epoch,
+                total,
+                chunks: BTreeMap::new(),
+            };
+        }
+        part.chunks.insert(index, entries);
+        if part.chunks.len() == usize::from(part.total) {
+            let mut snap = Box::new(ServiceListSnapshot::empty());
+            snap.generation = part.generation;
+            snap.epoch = part.epoch;
+            let views = part.chunks.values().flatten().take(MAX_LISTED_SERVICES);
+            let mut n = 0;
+            for (slot, v) in snap.entries.iter_mut().zip(views) {
+                *slot = v.to_entry();
+                n += 1;
+            }
+            snap.count = n as u32;
+            self.generation = part.generation;
+            self.list_done = Some(snap);
+            self.list_want = None;
+            self.list_part = None;
+        }
+    }
+
+    fn on_session(
+        &mut self,
+        core: &mut UserCore,
+        session: u64,
+        nonce: u64,
+        sealed: &[u8],
+        from: SocketAddr,
+    ) {
+        let Some(s) = self.sessions.get_mut(&session) else {
+            return self.stats.drops.drop("unknown_session", &from);
+        };
+        let Ok(plain) = s.cipher.open(session, nonce, sealed) else {
+            return self.stats.drops.drop("forged_or_replayed", &from);
+        };
+        s.last_heard = Instant::now();
+        let Ok(msg) = from_bytes::<SessionDown>(&plain) else {
+            return self.stats.drops.drop("bad_message", &from);
+        };
+        match msg {
+            SessionDown::Alive => {}
+            SessionDown::Msg(m) => {
+                if let ToUser::Ended { .. } = &m {
+                    self.sessions.remove(&session);
+                }
+                core.handle(m);
+            }
+        }
+    }
+
+    fn send_up(&mut self, m: &Up) {
+        let Some(Hs::Up { conn, chan, .. }) = self.hs.as_mut() else {
+            return; // not connected: retries go out once the handshake is done
+        };
+        let Ok(bytes) = to_bytes(m) else {
+            return tracing::warn!("message too large for a datagram");
+        };
+        let Ok((nonce, sealed)) = chan.seal(&bytes) else {
+            return;
+        };
+        let conn = *conn;
+        if let Ok(dg) = (Datagram::Channel {
+            conn,
+            nonce,
+            sealed: &sealed,
+        })
+        .encode()
+        {
+            let to = self.opts.broker;
+            self.send_raw(&dg, to);
+        }
+    }
+
+    fn send_session(&mut self, session: u64, m: &SessionUp) {
+        let Some(s) = self.sessions.get_mut(&session) else {
+            return;
+        };
+        let Ok(bytes) = to_bytes(m) else {
+            return tracing::warn!("task input too large for a datagram: dropped");
+        };
+        let Ok((nonce, sealed)) = s.cipher.seal(session, &bytes) else {
+            return;
+        };
+        let to = s.addr;
+        if let Ok(dg) = (Datagram::Session {
+            session,
+            nonce,
+            sealed: &sealed,
+        })
+        .encode()
+        {
+            self.send_raw(&dg, to);
+        }
+    }
+
+    fn send_raw(&mut self, bytes: &[u8], to: SocketAddr) {
+        self.stats.datagrams_out += 1;
+        let Some(l) = self.lossy.as_mut() else {
+            let _ = self.sock.send_to(bytes, to);
+            return;
+        };
+        let (copies, hold) = l.fate();
+        if copies == 0 {
+            return;
+        }
+        if hold && l.held_out.is_none() {
+            l.held_out = Some((bytes.to_vec(), to));
+            if copies == 2 {
+                let _ = self.sock.send_to(bytes, to);
+            }
+            return;
+        }
+        let held = l.held_out.take();
+        for _ in 0..copies {
+            let _ = self.sock.send_to(bytes, to);
+        }
+        if let Some((b, t)) = held {
+            let _ = self.sock.send_to(&b, t);
+        }
+    }
+
+    /// Sessions whose `End` is not yet confirmed.
+    pub fn ending(&self) -> usize {
+        self.sessions.values().filter(|s| s.ending.is_some()).count()
+    }
+
+    /// Whether the connection ever got a welcome (for the first connect's error).
+    pub fn ever_connected(&self) -> bool {
+        self.ever_connected
+    }
+
+    /// Drops held-back datagrams' pending state (used when closing).
+    pub fn flush_held(&mut self) {
+        if let Some(l) = self.lossy.as_mut() {
+            if let Some((b, to)) = l.held_out.take() {
+                let _ = self.sock.send_to(&b, to);
+            }
+        }
+    }
+}
