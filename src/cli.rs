@@ -38,6 +38,45 @@ pub enum Command {
     /// the same run, and checks (every user got a list, every request answered, no
     /// quota exceeded as the systems counted it).
     Stress(StressArgs),
+    /// Make a key pair for a remote user (or the broker) and print the line to add to
+    /// the broker's access file.
+    Keygen(KeygenArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct KeygenArgs {
+    /// The user's name (1 to 24 of [A-Za-z0-9_-]); the key file is DIR/NAME.key.
+    #[arg(long, required_unless_present = "broker", conflicts_with = "broker")]
+    pub user: Option<String>,
+    /// Make the broker's key instead (DIR/broker.key; give it to `muster broker --key`).
+    #[arg(long)]
+    pub broker: bool,
+    /// Folder to write the key file into (created if missing).
+    #[arg(long, default_value = ".")]
+    pub out: std::path::PathBuf,
+    /// Service patterns the printed access line allows (globs over `system/service`,
+    /// e.g. `T1/*`); none prints a line that lets the user connect but see nothing.
+    #[arg(long = "allow")]
+    pub allow: Vec<String>,
+}
+
+/// How a user reaches a broker over UDP (all user verbs).
+#[derive(Args, Debug, Clone)]
+pub struct RemoteArgs {
+    /// Connect to this broker's UDP front (`--udp` of `muster broker`) instead of shared
+    /// memory.
+    #[arg(long, global = true, requires = "key")]
+    pub remote: Option<std::net::SocketAddr>,
+    /// The user's key file (from `muster keygen --user NAME`).
+    #[arg(long, global = true)]
+    pub key: Option<std::path::PathBuf>,
+    /// Refuse a broker whose public key is not this (64 hex digits, printed by the broker
+    /// and by `muster keygen --broker`).
+    #[arg(long, global = true)]
+    pub broker_key: Option<String>,
+    /// (testing) Seeded faults on this user's datagrams: `loss=0.05,dup=0.01,reorder=0.02,seed=7`.
+    #[arg(long, global = true, hide = true)]
+    pub faults: Option<muster_users::Faults>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -115,6 +154,17 @@ pub struct BrokerArgs {
     /// On stopping, print one JSON line: counters and time to handle each message type.
     #[arg(long)]
     pub stats_json: bool,
+    /// Also serve remote users on this UDP address (e.g. `127.0.0.1:7400`).
+    #[arg(long)]
+    pub udp: Option<std::net::SocketAddr>,
+    /// The broker's key file (from `muster keygen --broker`); default: a fresh key each
+    /// start, its public half logged.
+    #[arg(long, requires = "udp")]
+    pub key: Option<std::path::PathBuf>,
+    /// Access file: which remote users (name, public key) may list and request which
+    /// services. Re-read on SIGHUP. Without it every remote user is refused.
+    #[arg(long, requires = "udp")]
+    pub access: Option<std::path::PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -150,6 +200,9 @@ pub struct SyntheticArgs {
     /// grants and refusals.
     #[arg(long)]
     pub stats_json: bool,
+    /// Serve remote users' sessions on this UDP address (e.g. `127.0.0.1:0`).
+    #[arg(long)]
+    pub udp: Option<std::net::SocketAddr>,
 }
 
 #[derive(Args, Debug)]
@@ -157,6 +210,8 @@ pub struct UserArgs {
     /// How long to wait for a broker.
     #[arg(long, default_value = "5s", value_parser = duration, global = true)]
     pub wait: Duration,
+    #[command(flatten)]
+    pub remote: RemoteArgs,
     #[command(subcommand)]
     pub verb: Option<UserVerb>,
 }

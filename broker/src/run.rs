@@ -135,7 +135,7 @@ pub fn run_with(
     reactor.add(hangup.raw(), TOKEN_HUP)?;
     let udp = match udp {
         Some(c) => {
-            let public = hex_key(&c.key.public);
+            let public = hex::encode(c.key.public);
             let front = crate::udp::UdpFront::bind(c, epoch)?;
             reactor.add(front.fd(), TOKEN_UDP)?;
             tracing::info!(udp = %front.local_addr(), broker_key = %public, "listening for remote users");
@@ -402,8 +402,4 @@ fn died_in(core: &mut Broker, now: Duration, who: &Address) {
         Address::User(u) => core.user_died(now, u),
         Address::Broker => {}
     }
-}
-
-fn hex_key(k: &[u8; 32]) -> String {
-    k.iter().map(|b| format!("{b:02x}")).collect()
 }

@@ -1,7 +1,9 @@
 //! `muster broker`.
 
 use crate::cli::BrokerArgs;
+use muster_broker::udp::{UdpConfig, UdpLimits};
 use muster_broker::BrokerConfig;
+use muster_shared::udp::crypto::KeyPair;
 use muster_shared::Instance;
 use std::process::ExitCode;
 
@@ -15,7 +17,25 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         offer_timeout: a.offer_timeout,
         queue_capacity: a.queue_capacity,
     };
-    let report = muster_broker::run::run(inst, cfg)?;
+    let udp = match a.udp {
+        None => None,
+        Some(bind) => {
+            let key = match &a.key {
+                Some(p) => KeyPair::read(p)?.1,
+                None => KeyPair::generate()?,
+            };
+            if a.access.is_none() {
+                tracing::warn!("no --access file: every remote user will be refused");
+            }
+            Some(UdpConfig {
+                bind,
+                key,
+                access_path: a.access.clone(),
+                limits: UdpLimits::default(),
+            })
+        }
+    };
+    let report = muster_broker::run::run_with(inst, cfg, udp)?;
     if a.stats_json {
         println!("{}", report.to_json());
     }

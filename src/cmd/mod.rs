@@ -4,6 +4,7 @@ mod behave;
 mod bench;
 mod broker;
 mod children;
+mod keygen;
 mod sim;
 mod stress;
 mod stress_plot;
@@ -27,5 +28,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(b) => bench::run(&inst, b),
         Command::Sim(a) => sim::run(&inst, a),
         Command::Stress(a) => stress::run(&inst, a),
+        Command::Keygen(a) => keygen::run(a),
     }
 }

@@ -29,7 +29,8 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
                 .map(|d| d.as_nanos() as u64)
                 .unwrap_or(0);
             let core = SystemCore::new(&opts.name, std::process::id(), specs, salt);
-            let core = muster_systems::run_system(inst, core, Synthetic::new(&opts))?;
+            let run = muster_systems::RunOptions { udp: a.udp };
+            let core = muster_systems::run_system_with(inst, core, Synthetic::new(&opts), &run)?;
             if a.stats_json {
                 println!(
                     "{}",

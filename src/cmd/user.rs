@@ -18,7 +18,7 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
         watch_list,
     };
     let started = Instant::now();
-    let client = UserClient::connect(inst, &opts)?;
+    let client = connect(inst, &a.remote, &opts)?;
     match a.verb {
         None => {
             muster_users::menu::run(client)?;
@@ -50,6 +50,36 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             json,
         ),
     }
+}
+
+/// Connects over shared memory, or over UDP with `--remote`.
+pub fn connect(
+    inst: &Instance,
+    r: &crate::cli::RemoteArgs,
+    opts: &ConnectOptions,
+) -> anyhow::Result<UserClient> {
+    let Some(broker) = r.remote else {
+        if r.key.is_some() {
+            anyhow::bail!("--key is for remote users: add --remote ADDR");
+        }
+        return Ok(UserClient::connect(inst, opts)?);
+    };
+    let path = r.key.as_ref().context("--remote needs --key FILE")?;
+    let (name, key) = muster_shared::udp::crypto::KeyPair::read(path)?;
+    let broker_key = r
+        .broker_key
+        .as_deref()
+        .map(muster_shared::udp::crypto::parse_key)
+        .transpose()
+        .map_err(|e| anyhow::anyhow!("--broker-key: {e}"))?;
+    let remote = muster_users::RemoteOptions {
+        broker,
+        name,
+        key,
+        broker_key,
+        faults: r.faults,
+    };
+    Ok(UserClient::connect_remote(remote, opts)?)
 }
 
 fn parse_goal(s: &str) -> anyhow::Result<Payload> {

@@ -200,7 +200,14 @@ pub struct RemoteLink {
     lossy: Option<Lossy>,
     stats: LinkStats,
     ever_connected: bool,
+    /// Session datagrams that arrived before their grant (the system streams as soon as
+    /// it grants; the grant comes through the broker): replayed when the grant arrives.
+    early: Vec<(Instant, Vec<u8>, SocketAddr)>,
 }
+
+/// Most early session datagrams kept, and for how long.
+const EARLY_MAX: usize = 64;
+const EARLY_AGE: Duration = Duration::from_secs(2);
 
 impl RemoteLink {
     /// A link for `opts`; binds an ephemeral UDP port on the broker's address family and
@@ -241,6 +248,7 @@ impl RemoteLink {
             lossy,
             stats: LinkStats::default(),
             ever_connected: false,
+            early: Vec::new(),
         };
         link.start_handshake();
         Ok(link)
@@ -760,6 +768,18 @@ impl RemoteLink {
                     payload,
                     system_pid: 0,
                 });
+                let now = Instant::now();
+                let early = std::mem::take(&mut self.early);
+                let (mine, rest): (Vec<_>, Vec<_>) = early
+                    .into_iter()
+                    .filter(|(t, _, _)| now.duration_since(*t) < EARLY_AGE)
+                    .partition(|(_, b, _)| {
+                        matches!(Datagram::decode(b), Ok(Datagram::Session { session: s, .. }) if s == session.0)
+                    });
+                self.early = rest;
+                for (_, b, f) in mine {
+                    self.on_datagram(core, &b, f);
+                }
             }
             Down::ListChunk {
                 epoch,
@@ -831,7 +851,19 @@ impl RemoteLink {
         from: SocketAddr,
     ) {
         let Some(s) = self.sessions.get_mut(&session) else {
-            return self.stats.drops.drop("unknown_session", &from);
+            if self.early.len() < EARLY_MAX {
+                let bytes = Datagram::Session {
+                    session,
+                    nonce,
+                    sealed,
+                }
+                .encode()
+                .unwrap_or_default();
+                self.early.push((Instant::now(), bytes, from));
+            } else {
+                self.stats.drops.count("unknown_session");
+            }
+            return;
         };
         let Ok(plain) = s.cipher.open(session, nonce, sealed) else {
             return self.stats.drops.drop("forged_or_replayed", &from);

@@ -25,6 +25,12 @@ impl DropCounters {
         }
     }
 
+    /// Counts one drop without logging (expected drops, e.g. updates in flight after a
+    /// session ended).
+    pub fn count(&mut self, reason: &'static str) {
+        *self.by_reason.entry(reason).or_insert(0) += 1;
+    }
+
     /// All drops.
     pub fn total(&self) -> u64 {
         self.by_reason.values().sum()
