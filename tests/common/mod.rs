@@ -255,3 +255,83 @@ pub fn find<'a>(list: &'a [Value], id: &str) -> Option<&'a Value> {
 }
 
 pub const SEC: Duration = Duration::from_secs(1);
+
+/// How a test's users reach the federation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Via {
+    /// iceoryx2 shared memory.
+    Shm,
+    /// UDP to the broker's front, as remote user `alice` (allowed everything).
+    Udp,
+}
+
+/// Keys and an access file for remote users of one federation.
+pub struct RemoteSetup {
+    pub dir: std::path::PathBuf,
+    pub addr: String,
+    pub access: std::path::PathBuf,
+}
+
+impl RemoteSetup {
+    /// Path of a user's key file.
+    pub fn key(&self, name: &str) -> String {
+        self.dir.join(format!("{name}.key")).display().to_string()
+    }
+}
+
+/// A free loopback UDP port (bound and released; tests run on loopback only).
+pub fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .map(|a| a.port())
+        .expect("a free UDP port")
+}
+
+impl Fed {
+    /// Makes keys for `users` (name, allow patterns) and an access file listing them.
+    pub fn remote_setup(&self, users: &[(&str, &[&str])]) -> RemoteSetup {
+        let dir = std::env::temp_dir().join(format!("muster-keys-{}", self.inst));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("key dir");
+        let mut access = String::new();
+        for (name, allow) in users {
+            let mut args = vec!["keygen", "--user", name, "--out", dir.to_str().unwrap()];
+            for a in *allow {
+                args.push("--allow");
+                args.push(a);
+            }
+            let (code, line) = self.run(&args, Duration::from_secs(20));
+            assert_eq!(code, 0, "keygen failed");
+            access.push_str(&line);
+        }
+        let path = dir.join("access");
+        std::fs::write(&path, access).expect("access file");
+        RemoteSetup {
+            addr: format!("127.0.0.1:{}", free_udp_port()),
+            dir,
+            access: path,
+        }
+    }
+
+    /// A broker with a UDP front for `r`.
+    pub fn remote_broker(&mut self, r: &RemoteSetup) -> usize {
+        let access = r.access.display().to_string();
+        self.broker(&["--udp", &r.addr, "--access", &access])
+    }
+
+    /// The arguments of a user command over `via` (adds `--remote`/`--key alice`).
+    pub fn user_args(via: Via, r: Option<&RemoteSetup>, args: &[&str]) -> Vec<String> {
+        let mut v: Vec<String> = args.iter().map(|s| s.to_string()).collect();
+        if via == Via::Udp {
+            let r = r.expect("remote setup");
+            v.extend(["--remote".into(), r.addr.clone(), "--key".into(), r.key("alice")]);
+        }
+        v
+    }
+}
+
+impl Drop for RemoteSetup {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}

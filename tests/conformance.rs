@@ -1,0 +1,249 @@
+//! One protocol, two transports: the same scenarios, run by users over shared memory
+//! and by remote users over UDP (authenticated, through the broker's front and the
+//! systems' own endpoints).
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{find, Fed, RemoteSetup, Via, SEC};
+use serde_json::Value;
+use std::time::Duration;
+
+/// A federation whose broker and systems serve both kinds of user.
+struct Conf {
+    f: Fed,
+    r: RemoteSetup,
+    via: Via,
+    broker: usize,
+}
+
+impl Conf {
+    fn new(name: &str, via: Via) -> Self {
+        let tag = match via {
+            Via::Shm => "s",
+            Via::Udp => "u",
+        };
+        let f = Fed::new(&format!("cf{tag}-{name}"));
+        let r = f.remote_setup(&[("alice", &["*"])]);
+        let mut c = Conf {
+            f,
+            r,
+            via,
+            broker: 0,
+        };
+        c.broker = c.f.remote_broker(&c.r);
+        c
+    }
+
+    fn system(&mut self, name: &str, extra: &[&str]) -> usize {
+        let mut args = vec!["--udp", "127.0.0.1:0"];
+        args.extend_from_slice(extra);
+        self.f.system(name, &args)
+    }
+
+    fn args(&self, args: &[&str]) -> Vec<String> {
+        Fed::user_args(self.via, Some(&self.r), args)
+    }
+
+    fn run_raw(&self, args: &[&str]) -> (i32, String) {
+        let a = self.args(args);
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        self.f.run(&a, 30 * SEC)
+    }
+
+    fn run(&self, args: &[&str]) -> (i32, Vec<Value>) {
+        let (code, out) = self.run_raw(args);
+        let lines = out
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+            .collect();
+        (code, lines)
+    }
+
+    fn spawn(&mut self, args: &[&str]) -> usize {
+        let a = self.args(args);
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        self.f.spawn(&a)
+    }
+
+    /// The list as this transport's user sees it.
+    fn list(&self) -> Vec<Value> {
+        let (code, out) = self.run_raw(&["user", "list", "--json"]);
+        assert_eq!(code, 0, "{out}");
+        serde_json::from_str::<Value>(&out).unwrap().as_array().unwrap().clone()
+    }
+
+    fn wait_list(&self, pred: impl Fn(&[Value]) -> bool) -> Vec<Value> {
+        let deadline = std::time::Instant::now() + 15 * SEC;
+        loop {
+            let l = self.list();
+            if pred(&l) {
+                return l;
+            }
+            assert!(std::time::Instant::now() < deadline, "list condition not met: {l:?}");
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+}
+
+fn seqs(lines: &[Value]) -> Vec<u64> {
+    lines.iter().filter_map(|v| v["seq"].as_u64()).collect()
+}
+
+macro_rules! both {
+    ($name:ident) => {
+        mod $name {
+            use super::*;
+            #[test]
+            fn shm() {
+                super::$name(Via::Shm);
+            }
+            #[test]
+            fn udp() {
+                super::$name(Via::Udp);
+            }
+        }
+    };
+}
+
+fn lists_every_service_with_its_fields(via: Via) {
+    let mut c = Conf::new("list", via);
+    c.system("t1", &["--services", "2"]);
+    c.system("d1", &["--kind", "command", "--quota", "1", "--queue"]);
+    let l = c.wait_list(|l| l.len() == 3);
+    let d = find(&l, "d1/s0").unwrap();
+    assert_eq!(
+        (d["kind"].as_str(), d["quota"].as_u64(), d["queue"].as_bool()),
+        (Some("command"), Some(1), Some(true))
+    );
+    assert_eq!(find(&l, "t1/s1").unwrap()["payload"], "pose2d");
+}
+both!(lists_every_service_with_its_fields);
+
+fn refusals_name_their_reason(via: Via) {
+    let mut c = Conf::new("refuse", via);
+    c.system("t1", &["--quota", "1"]);
+    c.wait_list(|l| l.len() == 1);
+    let (code, lines) = c.run(&["user", "request", "nosuch/s0", "--json"]);
+    assert_eq!((code, lines[0]["code"].as_str()), (3, Some("unknown")));
+    let holder = c.spawn(&["user", "request", "t1/s0", "--duration", "10s", "--json"]);
+    assert_eq!(c.f.proc(holder).json(15 * SEC).unwrap()["granted"], true);
+    let (code, lines) = c.run(&["user", "request", "t1/s0", "--json"]);
+    assert_eq!((code, lines[0]["code"].as_str()), (3, Some("quota_full")));
+}
+both!(refusals_name_their_reason);
+
+fn a_data_session_streams_in_order_and_frees_its_quota(via: Via) {
+    let mut c = Conf::new("data", via);
+    c.system("t1", &["--rate", "20", "--quota", "1"]);
+    c.wait_list(|l| l.len() == 1);
+    let (code, lines) = c.run(&["user", "request", "t1/s0", "--duration", "2s", "--json"]);
+    assert_eq!(code, 0);
+    assert_eq!(lines[0]["granted"], true);
+    let s = seqs(&lines);
+    assert_eq!(s[0], 1, "the first update is not lost");
+    assert!(s.len() >= 20, "about 40 updates at 20 Hz over 2 s, got {}", s.len());
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "in order, no gaps");
+    let last = lines.last().unwrap();
+    assert_eq!(
+        (last["reason"].as_str(), last["gaps"].as_u64()),
+        (Some("duration over"), Some(0))
+    );
+    // The quota is free again: a second user gets the service.
+    c.wait_list(|l| l[0]["in_use"] == 0);
+    let (code, _) = c.run(&["user", "request", "t1/s0", "--duration", "200ms", "--json"]);
+    assert_eq!(code, 0);
+}
+both!(a_data_session_streams_in_order_and_frees_its_quota);
+
+fn the_system_ends_a_session_and_the_user_is_told(via: Via) {
+    let mut c = Conf::new("sysend", via);
+    let t1 = c.system("t1", &[]);
+    c.wait_list(|l| l.len() == 1);
+    let req = c.spawn(&["user", "request", "t1/s0", "--duration", "30s", "--json"]);
+    assert_eq!(c.f.proc(req).json(15 * SEC).unwrap()["granted"], true);
+    c.f.proc(t1).send("end all");
+    let lines = c.f.proc(req).all_json(15 * SEC);
+    let last = lines.last().expect("an end line");
+    assert!(
+        last["reason"].as_str().unwrap().contains("ended by the system"),
+        "{last}"
+    );
+    assert_eq!(c.f.proc(req).wait(5 * SEC), Some(0));
+}
+both!(the_system_ends_a_session_and_the_user_is_told);
+
+fn a_command_session_takes_a_goal_and_reports_arrival(via: Via) {
+    let mut c = Conf::new("command", via);
+    c.system("d1", &["--kind", "command", "--quota", "1", "--rate", "20"]);
+    c.wait_list(|l| l.len() == 1);
+    let (code, lines) = c.run(&[
+        "user", "request", "d1/s0", "--goal", "1.5,-1.5", "--duration", "3s", "--json",
+    ]);
+    assert_eq!(code, 0);
+    let statuses: Vec<&str> = lines.iter().filter_map(|v| v["status"].as_str()).collect();
+    assert!(
+        statuses.iter().any(|s| s.contains("goal (1.50, -1.50) accepted")),
+        "{statuses:?}"
+    );
+    assert_eq!(
+        statuses
+            .iter()
+            .filter(|s| s.starts_with("done: arrived within 1 m"))
+            .count(),
+        1,
+        "{statuses:?}"
+    );
+}
+both!(a_command_session_takes_a_goal_and_reports_arrival);
+
+fn a_queued_request_is_granted_at_the_head_of_the_queue(via: Via) {
+    let mut c = Conf::new("queue", via);
+    c.system("d1", &["--kind", "command", "--quota", "1", "--queue"]);
+    c.wait_list(|l| l.len() == 1);
+    let first = c.spawn(&["user", "request", "d1/s0", "--duration", "2s", "--json"]);
+    assert_eq!(c.f.proc(first).json(15 * SEC).unwrap()["granted"], true);
+    let second = c.spawn(&["user", "request", "d1/s0", "--duration", "1s", "--json"]);
+    let v = c.f.proc(second).json(20 * SEC).expect("granted once the first ends");
+    assert_eq!((v["granted"].as_bool(), v["queue_position"].as_u64()), (Some(true), Some(1)));
+    assert_eq!(c.f.proc(second).wait(10 * SEC), Some(0));
+}
+both!(a_queued_request_is_granted_at_the_head_of_the_queue);
+
+fn sessions_survive_a_broker_crash(via: Via) {
+    let mut c = Conf::new("crash", via);
+    c.system("t1", &["--rate", "20", "--quota", "1"]);
+    c.wait_list(|l| l.len() == 1);
+    let req = c.spawn(&["user", "request", "t1/s0", "--duration", "6s", "--json"]);
+    assert_eq!(c.f.proc(req).json(15 * SEC).unwrap()["granted"], true);
+    std::thread::sleep(Duration::from_millis(1500));
+    let b = c.broker;
+    c.f.proc(b).signal(libc::SIGKILL);
+    assert!(c.f.proc(b).wait(5 * SEC).is_some());
+    std::thread::sleep(Duration::from_millis(1000));
+    c.broker = c.f.remote_broker(&c.r);
+    // The restarted broker learns the old session from the system.
+    c.wait_list(|l| l.len() == 1 && l[0]["in_use"] == 1);
+    let lines = c.f.proc(req).all_json(20 * SEC);
+    let s = seqs(&lines);
+    assert!(s.len() >= 60, "updates through the crash: {}", s.len());
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap");
+    assert_eq!(lines.last().unwrap()["reason"], "duration over");
+}
+both!(sessions_survive_a_broker_crash);
+
+fn a_link_forwards_data_as_task_input(via: Via) {
+    let mut c = Conf::new("link", via);
+    c.system("t1", &["--rate", "20"]);
+    c.system("d1", &["--kind", "command", "--rate", "20"]);
+    c.wait_list(|l| l.len() == 2);
+    let (code, lines) = c.run(&["user", "link", "t1/s0", "d1/s0", "--duration", "2s", "--json"]);
+    assert_eq!(code, 0, "{lines:?}");
+    let forwarded = lines
+        .iter()
+        .filter(|v| v["forwarded"]["type"] == "goal2d")
+        .count();
+    assert!(forwarded >= 10, "data became task input: {forwarded} in {lines:?}");
+}
+both!(a_link_forwards_data_as_task_input);
