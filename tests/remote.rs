@@ -1,0 +1,176 @@
+//! The UDP path against wrong users, wrong keys, denied services and hostile datagrams.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{find, Fed, RemoteSetup, SEC};
+use muster_shared::udp::wire::{Datagram, MIN_INITIAL};
+use serde_json::Value;
+use std::net::UdpSocket;
+use std::time::Duration;
+
+fn remote(f: &Fed, r: &RemoteSetup, key: &str, args: &[&str]) -> (i32, String) {
+    let mut a: Vec<&str> = args.to_vec();
+    a.extend(["--remote", &r.addr, "--key", key, "--wait", "2s"]);
+    f.run(&a, 30 * SEC)
+}
+
+fn ids(out: &str) -> Vec<String> {
+    serde_json::from_str::<Value>(out)
+        .unwrap()
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["id"].as_str().unwrap().to_string())
+        .collect()
+}
+
+#[test]
+fn access_matrix_users_keys_and_services() {
+    let mut f = Fed::new("access");
+    let r = f.remote_setup(&[("alice", &["t1/*"]), ("bob", &[])]);
+    // Keys the access file does not list: an unknown user, and a second "alice" key.
+    let other = r.dir.join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    for name in ["mallory", "alice"] {
+        let (code, _) = f.run(
+            &["keygen", "--user", name, "--out", other.to_str().unwrap()],
+            20 * SEC,
+        );
+        assert_eq!(code, 0);
+    }
+    let wrong_alice = other.join("alice.key").display().to_string();
+    let mallory = other.join("mallory.key").display().to_string();
+    let broker = f.remote_broker(&r);
+    f.system("t1", &["--udp", "127.0.0.1:0"]);
+    f.system("t2", &["--udp", "127.0.0.1:0"]);
+    f.wait_list(10 * SEC, |l| l.len() == 2);
+
+    // Known user, right key: sees and gets exactly what the patterns allow.
+    let (code, out) = remote(&f, &r, &r.key("alice"), &["user", "list", "--json"]);
+    assert_eq!((code, ids(&out)), (0, vec!["t1/s0".to_string()]));
+    let (code, out) = remote(
+        &f,
+        &r,
+        &r.key("alice"),
+        &["user", "request", "t1/s0", "--duration", "300ms", "--json"],
+    );
+    assert_eq!(code, 0, "{out}");
+    let (code, out) = remote(&f, &r, &r.key("alice"), &["user", "request", "t2/s0", "--json"]);
+    assert_eq!(code, 3);
+    assert!(out.contains("\"code\":\"unknown\""), "a denied service looks absent: {out}");
+    // Known user without patterns: connects, sees nothing, gets nothing.
+    let (code, out) = remote(&f, &r, &r.key("bob"), &["user", "list", "--json"]);
+    assert_eq!((code, ids(&out).len()), (0, 0));
+    let (code, _) = remote(&f, &r, &r.key("bob"), &["user", "request", "t1/s0", "--json"]);
+    assert_eq!(code, 3);
+    // Known name with the wrong key, and an unknown user: no list, no grant.
+    for key in [&wrong_alice, &mallory] {
+        for verb in [&["user", "list", "--json"][..], &["user", "request", "t1/s0", "--json"]] {
+            let (code, out) = remote(&f, &r, key, verb);
+            assert_ne!(code, 0, "{key} {verb:?}: {out}");
+            assert_ne!(code, 3, "not even a refusal: {out}");
+            assert!(out.is_empty(), "{out}");
+        }
+    }
+    // Nothing was granted to them (the system counts every session it made).
+    assert_eq!(find(&f.list(), "t1/s0").unwrap()["in_use"], 0);
+
+    // Reload without restart: mallory is added, alice removed.
+    let mut access = std::fs::read_to_string(&r.access).unwrap();
+    access = access
+        .lines()
+        .filter(|l| !l.starts_with("user alice"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let (_, line) = f.run(
+        &["keygen", "--user", "carol", "--out", r.dir.to_str().unwrap(), "--allow", "*"],
+        20 * SEC,
+    );
+    access.push_str(&line);
+    std::fs::write(&r.access, access).unwrap();
+    f.proc(broker).signal(libc::SIGHUP);
+    std::thread::sleep(Duration::from_millis(300));
+    let (code, out) = remote(&f, &r, &r.key("carol"), &["user", "list", "--json"]);
+    assert_eq!((code, ids(&out).len()), (0, 2), "{out}");
+    let (code, _) = remote(&f, &r, &r.key("alice"), &["user", "list", "--json"]);
+    assert_ne!(code, 0, "alice was removed from the access file");
+}
+
+fn stats_of_broker(f: &mut Fed, broker: usize) -> Value {
+    f.proc(broker).signal(libc::SIGTERM);
+    let v = f.proc(broker).json(10 * SEC).expect("broker stats line");
+    v["udp"].clone()
+}
+
+#[test]
+fn hostile_datagrams_get_nothing_and_are_counted() {
+    let mut f = Fed::new("hostile");
+    let r = f.remote_setup(&[("alice", &["*"])]);
+    let access = r.access.display().to_string();
+    let broker = f.broker(&["--udp", &r.addr, "--access", &access, "--stats-json"]);
+    f.system("t1", &["--udp", "127.0.0.1:0"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let s = UdpSocket::bind("127.0.0.1:0").unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(300))).unwrap();
+    let to: std::net::SocketAddr = r.addr.parse().unwrap();
+    let mut buf = [0u8; 2048];
+
+    // Garbage, wrong version, truncated, oversized, unpadded initial: no answer at all.
+    let initial = Datagram::Initial { client: 1, token: b"", noise: b"" }.encode().unwrap();
+    let mut wrong_version = initial.clone();
+    wrong_version[1] = 99;
+    let bad: Vec<Vec<u8>> = vec![
+        b"hello".to_vec(),
+        vec![0u8; 1300],
+        wrong_version,
+        initial[..600].to_vec(),
+        initial[..2].to_vec(),
+        Datagram::Channel { conn: 7, nonce: 0, sealed: &[1; 64] }.encode().unwrap(),
+        Datagram::HsFinal { conn: 7, noise: &[1; 64] }.encode().unwrap(),
+    ];
+    for d in &bad {
+        s.send_to(d, to).unwrap();
+        assert!(s.recv_from(&mut buf).is_err(), "no answer to {} bytes", d.len());
+    }
+    // A padded INITIAL without a token gets a stateless RETRY, at most 3x its size.
+    assert_eq!(initial.len(), MIN_INITIAL);
+    s.send_to(&initial, to).unwrap();
+    let (n, _) = s.recv_from(&mut buf).unwrap();
+    assert!(n * 3 <= initial.len(), "retry of {n} bytes");
+    let reply = buf[..n].to_vec();
+    let Datagram::Retry { client, token } = Datagram::decode(&reply).unwrap() else {
+        panic!("expected a retry");
+    };
+    assert_eq!(client, 1);
+    // A forged token (or one for another client id) is refused without an answer.
+    let mut forged = token.to_vec();
+    forged[10] ^= 1;
+    for (c, t) in [(1, forged.as_slice()), (2, token)] {
+        let d = Datagram::Initial { client: c, token: t, noise: &[0; 32] }.encode().unwrap();
+        s.send_to(&d, to).unwrap();
+        assert!(s.recv_from(&mut buf).is_err());
+    }
+
+    let udp = stats_of_broker(&mut f, broker);
+    let drops = &udp["drops"]["by_reason"];
+    for reason in [
+        "bad_magic",
+        "oversized",
+        "wrong_version",
+        "unpadded_initial",
+        "truncated",
+        "unknown_conn",
+        "unknown_handshake",
+        "bad_token",
+    ] {
+        assert!(drops[reason].as_u64().unwrap_or(0) >= 1, "{reason} in {udp:#}");
+    }
+    assert_eq!(udp["handshakes"], 0);
+    assert!(
+        udp["unvalidated_bytes_out"].as_u64().unwrap() * 3
+            <= udp["unvalidated_bytes_in"].as_u64().unwrap(),
+        "{udp:#}"
+    );
+}
