@@ -90,9 +90,38 @@ pub enum BenchCommand {
     /// The floor: raw round trips between this process and an echo process through the
     /// same iceoryx2 inbox + bell wake-up that muster's messages use.
     Floor(FloorArgs),
+    /// The UDP path: raw UDP round trip (floor), remote list and service request with
+    /// their ratio to it, completion and duplicate grants under seeded loss, duplication
+    /// and reordering, and the same under a flood of hostile datagrams.
+    Remote(RemoteBenchArgs),
+    /// (internal) The echo process of `bench remote`'s UDP floor.
+    #[command(hide = true)]
+    UdpEcho,
     /// (internal) The echo process of `bench floor`.
     #[command(hide = true)]
     Echo,
+}
+
+#[derive(Args, Debug)]
+pub struct RemoteBenchArgs {
+    /// Raw UDP round trips and list requests to time.
+    #[arg(long, default_value_t = 2000)]
+    pub round_trips: usize,
+    /// Service requests per row (clean, each fault level, flood).
+    #[arg(long, default_value_t = 500)]
+    pub requests: usize,
+    /// Fault levels in percent: each is that much loss, duplication and reordering.
+    #[arg(long, value_delimiter = ',', default_value = "1,5,20")]
+    pub faults: Vec<f64>,
+    /// Hostile datagrams per second during the flood row (0: no flood row).
+    #[arg(long, default_value_t = 20000)]
+    pub flood_rate: u64,
+    /// Loopback source addresses the flood comes from.
+    #[arg(long, default_value_t = 500)]
+    pub flood_sources: usize,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Args, Debug)]

@@ -174,3 +174,50 @@ fn hostile_datagrams_get_nothing_and_are_counted() {
         "{udp:#}"
     );
 }
+
+#[test]
+fn under_loss_duplication_reordering_and_a_flood_every_request_completes_once() {
+    let f = Fed::new("rbench");
+    let (code, out) = f.run(
+        &[
+            "bench",
+            "remote",
+            "--requests",
+            "30",
+            "--round-trips",
+            "100",
+            "--faults",
+            "1,5,20",
+            "--flood-rate",
+            "3000",
+            "--flood-sources",
+            "50",
+            "--json",
+        ],
+        300 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let r: Value = serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
+    for k in ["floor_udp_rtt", "list"] {
+        assert_eq!(r[k]["count"], 100, "{k}: {r:#}");
+    }
+    assert_eq!(r["list_entries"], 2);
+    assert_eq!(r["service_request"]["granted"], 30);
+    let faults = r["faults"].as_array().unwrap();
+    assert_eq!(faults.len(), 3);
+    for row in faults {
+        assert_eq!(row["completion"], 1.0, "{row:#}");
+        assert_eq!(row["granted"], 30, "{row:#}");
+    }
+    // 20 % loss forces retransmissions; duplicates never became second grants.
+    assert!(faults[2]["retransmissions"].as_u64().unwrap() > 0);
+    assert_eq!(r["flood"]["granted"], 30, "{:#}", r["flood"]);
+    assert!(r["flood"]["flood_datagrams"].as_u64().unwrap() > 0);
+    assert_eq!(r["system_grants"], 30 * 5, "{r:#}");
+    assert_eq!(r["duplicate_grants"], 0);
+    assert!(r["broker_udp"]["retries"].as_u64().unwrap() > 0, "the flood got retries");
+    // Only our five clients got in (a lossy one may have reconnected once or twice).
+    let hs = r["broker_udp"]["handshakes"].as_u64().unwrap();
+    assert!((5..=10).contains(&hs), "{hs} handshakes");
+    assert_eq!(r["broker_udp"]["auth_failed"], 0);
+}

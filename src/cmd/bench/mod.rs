@@ -2,6 +2,7 @@
 
 pub mod floor;
 mod liveness;
+mod remote;
 pub mod procfs;
 use super::children;
 mod scale;
@@ -15,6 +16,8 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::Scale(a) => scale::run(inst, a),
         BenchCommand::Liveness(a) => liveness::run(inst, a),
         BenchCommand::Floor(a) => floor::run(inst, a),
+        BenchCommand::Remote(a) => remote::run(inst, a),
+        BenchCommand::UdpEcho => remote::echo(),
         BenchCommand::Echo => floor::echo(inst),
     }
 }

@@ -1,0 +1,432 @@
+//! `muster bench remote`: the UDP path measured against its floor, under seeded loss,
+//! duplication and reordering, and under a flood of hostile datagrams.
+//!
+//! One run starts a broker with a UDP front and two synthetic systems with UDP
+//! endpoints (child processes), then from this process: the raw UDP loopback round trip
+//! (an echo thread: the floor), remote list and service-request round trips (request →
+//! grant, then the session is ended), their ratio to the floor; then the same requests
+//! through a seeded lossy link at each fault level; then, optionally, again while other
+//! threads flood the broker from many loopback source addresses.
+
+use super::{row, summary};
+use crate::cli::RemoteBenchArgs;
+use crate::cmd::children::Children;
+use anyhow::{bail, Context};
+use hdrhistogram::Histogram;
+use muster_shared::types::ServiceId;
+use muster_shared::udp::access::access_line;
+use muster_shared::udp::crypto::KeyPair;
+use muster_shared::udp::wire::Datagram;
+use muster_shared::Instance;
+use muster_users::{ConnectOptions, Faults, RemoteOptions, UserClient, UserEvent};
+use serde_json::{json, Value};
+use std::io::Read;
+use std::net::{SocketAddr, UdpSocket};
+use std::process::{ExitCode, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+fn hist() -> Histogram<u64> {
+    Histogram::new(3).expect("3 significant figures is a valid precision")
+}
+
+fn us(d: Duration) -> u64 {
+    (d.as_nanos() as u64).div_ceil(1000).max(1)
+}
+
+/// What one batch of requests did.
+struct Batch {
+    latency: Histogram<u64>,
+    granted: u64,
+    refused: u64,
+    abandoned: u64,
+    retransmissions: u64,
+    duplicate_grants_heard: u64,
+}
+
+fn client(broker: SocketAddr, key: &KeyPair, faults: Option<Faults>) -> anyhow::Result<UserClient> {
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(20),
+        handle_signals: false,
+        watch_list: false,
+    };
+    let remote = RemoteOptions {
+        broker,
+        name: "bench".into(),
+        key: key.clone(),
+        broker_key: None,
+        faults,
+    };
+    Ok(UserClient::connect_remote(remote, &opts)?)
+}
+
+/// `n` requests of `service`, one at a time: time to grant (or refusal), then the
+/// session is ended. A request not answered in `deadline` is abandoned (cancelled).
+fn requests(c: &mut UserClient, service: &ServiceId, n: usize, deadline: Duration) -> anyhow::Result<Batch> {
+    let mut b = Batch {
+        latency: hist(),
+        granted: 0,
+        refused: 0,
+        abandoned: 0,
+        retransmissions: 0,
+        duplicate_grants_heard: 0,
+    };
+    for _ in 0..n {
+        let t = Instant::now();
+        let req = c.request(service)?;
+        let until = t + deadline;
+        loop {
+            match c.next_event(until)? {
+                Some(UserEvent::Granted { req: r, session, .. }) if r == req => {
+                    let _ = b.latency.record(us(t.elapsed()));
+                    b.granted += 1;
+                    c.end(session);
+                    break;
+                }
+                Some(UserEvent::Refused { req: r, .. }) if r == req => {
+                    let _ = b.latency.record(us(t.elapsed()));
+                    b.refused += 1;
+                    break;
+                }
+                Some(_) => {}
+                None => {
+                    b.abandoned += 1;
+                    c.cancel(req);
+                    break;
+                }
+            }
+        }
+    }
+    if let Some(s) = c.link_stats() {
+        b.retransmissions = s.retransmissions;
+        b.duplicate_grants_heard = s.duplicate_grants;
+    }
+    Ok(b)
+}
+
+/// `n` list requests; with a probe, each is paired with a raw UDP round trip (the floor
+/// measured interleaved, under the same conditions).
+fn lists(
+    c: &mut UserClient,
+    n: usize,
+    mut floor: Option<(&mut UdpProbe, &mut Histogram<u64>)>,
+) -> anyhow::Result<(Histogram<u64>, u64)> {
+    let mut h = hist();
+    let mut entries = 0;
+    for _ in 0..n {
+        if let Some((p, fh)) = floor.as_mut() {
+            if let Some(d) = p.round_trip()? {
+                let _ = fh.record(us(d));
+            }
+        }
+        let t = Instant::now();
+        let l = c.list()?;
+        let _ = h.record(us(t.elapsed()));
+        entries = u64::from(l.count);
+    }
+    Ok((h, entries))
+}
+
+/// `muster bench udp-echo`: echoes datagrams on a loopback port (printed first), waking
+/// through epoll like every muster process; the other end of the UDP floor.
+pub fn echo() -> anyhow::Result<ExitCode> {
+    use muster_shared::reactor::{Reactor, SignalPipe};
+    use std::os::fd::AsRawFd;
+    let s = UdpSocket::bind("127.0.0.1:0")?;
+    s.set_nonblocking(true)?;
+    println!("{}", s.local_addr()?.port());
+    let mut signals = SignalPipe::install()?;
+    let mut reactor = Reactor::new()?;
+    reactor.add(s.as_raw_fd(), 0)?;
+    reactor.add(signals.raw(), 1)?;
+    let mut buf = [0u8; 1500];
+    loop {
+        let tokens = reactor.wait(None)?;
+        if tokens.contains(&1) && signals.drain() {
+            return Ok(ExitCode::SUCCESS);
+        }
+        while let Ok((n, from)) = s.recv_from(&mut buf) {
+            let _ = s.send_to(&buf[..n], from);
+        }
+    }
+}
+
+/// One raw UDP round trip to the echo process, waiting in epoll as a user does.
+struct UdpProbe {
+    sock: UdpSocket,
+    to: SocketAddr,
+    reactor: muster_shared::reactor::Reactor,
+}
+
+impl UdpProbe {
+    fn new(to: SocketAddr) -> anyhow::Result<Self> {
+        use std::os::fd::AsRawFd;
+        let sock = UdpSocket::bind("127.0.0.1:0")?;
+        sock.set_nonblocking(true)?;
+        let reactor = muster_shared::reactor::Reactor::new()?;
+        reactor.add(sock.as_raw_fd(), 0)?;
+        Ok(UdpProbe { sock, to, reactor })
+    }
+
+    fn round_trip(&mut self) -> anyhow::Result<Option<Duration>> {
+        let mut buf = [0u8; 1500];
+        let t = Instant::now();
+        self.sock.send_to(&[7u8; 64], self.to)?;
+        while t.elapsed() < Duration::from_secs(1) {
+            if self.sock.recv_from(&mut buf).is_ok() {
+                return Ok(Some(t.elapsed()));
+            }
+            self.reactor.wait(Some(Duration::from_millis(100)))?;
+        }
+        Ok(None)
+    }
+}
+
+/// Flood threads: from `sources` loopback addresses (127.0.0.2, .3, ...), a mix of
+/// garbage, unpadded and token-less initials, forged tokens and channel datagrams with
+/// made-up connection ids, at about `rate` datagrams a second in all.
+fn flood(to: SocketAddr, sources: usize, rate: u64, stop: Arc<AtomicBool>, sent: Arc<AtomicU64>) -> Vec<std::thread::JoinHandle<()>> {
+    let threads = 2.min(sources.max(1));
+    (0..threads)
+        .map(|t| {
+            let stop = stop.clone();
+            let sent = sent.clone();
+            std::thread::spawn(move || {
+                let socks: Vec<UdpSocket> = (0..sources)
+                    .filter(|i| i % threads == t)
+                    .filter_map(|i| {
+                        let ip = format!("127.0.{}.{}", 1 + i / 250, 2 + i % 250);
+                        UdpSocket::bind(format!("{ip}:0")).ok()
+                    })
+                    .collect();
+                if socks.is_empty() {
+                    return;
+                }
+                let initial = Datagram::Initial { client: 1, token: b"", noise: b"" }
+                    .encode()
+                    .unwrap_or_default();
+                let forged = Datagram::Initial { client: 2, token: &[9; 24], noise: &[1; 32] }
+                    .encode()
+                    .unwrap_or_default();
+                let per_thread = (rate / threads as u64).max(1);
+                let gap = Duration::from_secs_f64(1.0 / per_thread as f64);
+                let mut next = Instant::now();
+                let mut i: u64 = 0;
+                while !stop.load(Ordering::Relaxed) {
+                    let s = &socks[(i as usize) % socks.len()];
+                    let conn = i.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+                    let channel = Datagram::Channel { conn, nonce: i, sealed: &[3; 48] }
+                        .encode()
+                        .unwrap_or_default();
+                    let d: &[u8] = match i % 5 {
+                        0 => b"garbage that is no muster datagram",
+                        1 => &initial,
+                        2 => &initial[..300],
+                        3 => &forged,
+                        _ => &channel,
+                    };
+                    let _ = s.send_to(d, to);
+                    sent.fetch_add(1, Ordering::Relaxed);
+                    i += 1;
+                    next += gap;
+                    let now = Instant::now();
+                    if next > now {
+                        std::thread::sleep(next - now);
+                    } else if now - next > Duration::from_millis(100) {
+                        next = now; // fell behind: do not burst to catch up
+                    }
+                }
+            })
+        })
+        .collect()
+}
+
+fn batch_json(b: &Batch, n: usize) -> Value {
+    json!({
+        "requests": n,
+        "granted": b.granted,
+        "refused": b.refused,
+        "abandoned": b.abandoned,
+        "completion": (b.granted + b.refused) as f64 / n.max(1) as f64,
+        "retransmissions": b.retransmissions,
+        "duplicate_grants_heard": b.duplicate_grants_heard,
+        "latency": summary(&b.latency),
+    })
+}
+
+pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
+    if a.requests == 0 || a.round_trips == 0 {
+        bail!("--requests and --round-trips must be at least 1");
+    }
+    let dir = std::env::temp_dir().join(format!("muster-bench-remote-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let key = KeyPair::generate()?;
+    let access = dir.join("access");
+    std::fs::write(&access, access_line("bench", &key.public, &["*".to_string()]) + "\n")?;
+    let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
+    let broker_addr: SocketAddr = format!("127.0.0.1:{port}").parse()?;
+    let mut kids = Children::default();
+    let bstr = broker_addr.to_string();
+    let astr = access.display().to_string();
+    let mut broker_out = kids
+        .spawn(inst, "broker", &["broker", "--udp", &bstr, "--access", &astr, "--stats-json"], Stdio::piped())?
+        .stdout
+        .take()
+        .context("broker stdout")?;
+    let mut sys_out = Vec::new();
+    for (name, kind) in [("t1", "data"), ("d1", "command")] {
+        let out = kids
+            .spawn(
+                inst,
+                name,
+                &["system", "synthetic", "--name", name, "--kind", kind, "--quota", "1000", "--udp", "127.0.0.1:0", "--stats-json"],
+                Stdio::piped(),
+            )?
+            .stdout
+            .take()
+            .context("system stdout")?;
+        sys_out.push(out);
+    }
+    super::children::connect_when_listed(inst, 2, Duration::from_secs(30))?.close();
+
+    let service = ServiceId("t1/s0".into());
+    let echo = kids.spawn(inst, "udp-echo", &["bench", "udp-echo"], Stdio::piped())?;
+    let mut line = String::new();
+    {
+        use std::io::BufRead;
+        let out = echo.stdout.take().context("echo stdout")?;
+        std::io::BufReader::new(out).read_line(&mut line)?;
+    }
+    let echo_port: u16 = line.trim().parse().context("echo port")?;
+    let mut probe = UdpProbe::new(SocketAddr::from(([127, 0, 0, 1], echo_port)))?;
+    let mut floor = hist();
+    let mut c = client(broker_addr, &key, None)?;
+    let (list, entries) = lists(&mut c, a.round_trips, Some((&mut probe, &mut floor)))?;
+    let clean = requests(&mut c, &service, a.requests, Duration::from_secs(10))?;
+    c.close();
+    let floor_p50 = floor.value_at_quantile(0.5).max(1) as f64;
+    let mut out = json!({
+        "floor_udp_rtt": summary(&floor),
+        "list": summary(&list),
+        "list_entries": entries,
+        "service_request": batch_json(&clean, a.requests),
+        "ratio_list_p50": list.value_at_quantile(0.5) as f64 / floor_p50,
+        "ratio_request_p50": clean.latency.value_at_quantile(0.5) as f64 / floor_p50,
+    });
+
+    let mut faults = Vec::new();
+    let mut user_grants = clean.granted;
+    let mut abandoned = clean.abandoned;
+    for (i, p) in a.faults.iter().enumerate() {
+        let f = Faults {
+            loss: p / 100.0,
+            dup: p / 100.0,
+            reorder: p / 100.0,
+            seed: 1000 + i as u64,
+        };
+        let mut c = client(broker_addr, &key, Some(f))?;
+        let (lh, _) = lists(&mut c, 20, None)?;
+        let b = requests(&mut c, &service, a.requests, Duration::from_secs(10))?;
+        user_grants += b.granted;
+        abandoned += b.abandoned;
+        let mut j = batch_json(&b, a.requests);
+        j["percent"] = json!(p);
+        j["list"] = summary(&lh);
+        faults.push(j);
+        c.close();
+    }
+    out["faults"] = json!(faults);
+
+    if a.flood_rate > 0 {
+        let stop = Arc::new(AtomicBool::new(false));
+        let sent = Arc::new(AtomicU64::new(0));
+        let th = flood(broker_addr, a.flood_sources, a.flood_rate, stop.clone(), sent.clone());
+        std::thread::sleep(Duration::from_millis(300));
+        let t = Instant::now();
+        let mut c = client(broker_addr, &key, None)?;
+        let (lh, _) = lists(&mut c, 100, None)?;
+        let b = requests(&mut c, &service, a.requests, Duration::from_secs(10))?;
+        user_grants += b.granted;
+        abandoned += b.abandoned;
+        c.close();
+        let secs = t.elapsed().as_secs_f64();
+        stop.store(true, Ordering::Relaxed);
+        for h in th {
+            let _ = h.join();
+        }
+        let mut j = batch_json(&b, a.requests);
+        j["list"] = summary(&lh);
+        j["flood_sources"] = json!(a.flood_sources);
+        j["flood_datagrams"] = json!(sent.load(Ordering::Relaxed));
+        j["flood_rate_measured"] = json!(sent.load(Ordering::Relaxed) as f64 / secs);
+        out["flood"] = j;
+    }
+
+    // Stop the children and read their counters.
+    std::thread::sleep(Duration::from_millis(600)); // let the last ends reach the systems
+    kids.stop();
+    let mut text = String::new();
+    broker_out.read_to_string(&mut text)?;
+    out["broker_udp"] = serde_json::from_str::<Value>(text.trim())
+        .map(|v| v["udp"].clone())
+        .unwrap_or(Value::Null);
+    let mut system_grants = 0;
+    for mut s in sys_out {
+        let mut text = String::new();
+        s.read_to_string(&mut text)?;
+        if let Ok(v) = serde_json::from_str::<Value>(text.trim()) {
+            if let Some(m) = v["services"].as_object() {
+                system_grants += m.values().filter_map(|r| r["grants"].as_u64()).sum::<u64>();
+            }
+        }
+    }
+    out["system_grants"] = json!(system_grants);
+    out["user_grants"] = json!(user_grants);
+    out["abandoned"] = json!(abandoned);
+    // Every session a system made was heard by exactly one request of ours; with no
+    // abandoned request, any surplus would be a duplicate grant.
+    out["duplicate_grants"] = json!(system_grants.saturating_sub(user_grants + abandoned));
+    let _ = std::fs::remove_dir_all(&dir);
+
+    if a.json {
+        println!("{out}");
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!("remote path on loopback (2 systems, {} requests per row)", a.requests);
+    println!("{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}", "", "count", "p50 µs", "p90 µs", "p99 µs", "max µs");
+    println!("{}", row("raw UDP round trip (floor)", &floor));
+    println!("{}", row("remote list", &list));
+    println!("{}", row("remote service request", &clean.latency));
+    println!(
+        "ratio to floor (p50): list {:.1}, service request {:.1}",
+        out["ratio_list_p50"].as_f64().unwrap_or(0.0),
+        out["ratio_request_p50"].as_f64().unwrap_or(0.0)
+    );
+    for f in out["faults"].as_array().into_iter().flatten() {
+        println!(
+            "{:>4}% loss+dup+reorder: completion {:.3}, p50 {} µs, p99 {} µs, {} retransmissions",
+            f["percent"],
+            f["completion"].as_f64().unwrap_or(0.0),
+            f["latency"]["p50_us"],
+            f["latency"]["p99_us"],
+            f["retransmissions"]
+        );
+    }
+    if let Some(f) = out.get("flood") {
+        println!(
+            "flood {:.0} datagrams/s from {} sources: completion {:.3}, request p50 {} µs, p99 {} µs, list p99 {} µs",
+            f["flood_rate_measured"].as_f64().unwrap_or(0.0),
+            f["flood_sources"],
+            f["completion"].as_f64().unwrap_or(0.0),
+            f["latency"]["p50_us"],
+            f["latency"]["p99_us"],
+            f["list"]["p99_us"]
+        );
+    }
+    println!(
+        "duplicate grants: {} (systems made {} sessions, users were granted {}, abandoned {})",
+        out["duplicate_grants"], system_grants, user_grants, abandoned
+    );
+    Ok(ExitCode::SUCCESS)
+}
