@@ -898,3 +898,7 @@ fn wire_reason(e: &WireError) -> &'static str {
         WireError::Trailing(_) => "trailing_bytes",
     }
 }
+
+#[cfg(test)]
+#[path = "udp_tests.rs"]
+mod tests;

@@ -1,0 +1,175 @@
+//! The UDP front driven from a test socket on loopback.
+
+#![allow(clippy::unwrap_used)]
+
+use super::*;
+use crate::core::BrokerConfig;
+use muster_shared::udp::access::access_line;
+use muster_shared::udp::msgs::{Down, Hs3, Up};
+use muster_shared::udp::wire::Datagram;
+
+struct Rig {
+    front: UdpFront,
+    core: Broker,
+    sock: UdpSocket,
+    user: KeyPair,
+    _dir: std::path::PathBuf,
+}
+
+impl Rig {
+    fn new(limits: UdpLimits) -> Self {
+        let user = KeyPair::generate().unwrap();
+        let dir = std::env::temp_dir().join(format!(
+            "muster-udp-test-{}-{}",
+            std::process::id(),
+            rand::random::<u32>()
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        let access = dir.join("access");
+        std::fs::write(&access, access_line("alice", &user.public, &["*".into()])).unwrap();
+        let front = UdpFront::bind(
+            UdpConfig {
+                bind: "127.0.0.1:0".parse().unwrap(),
+                key: KeyPair::generate().unwrap(),
+                access_path: Some(access),
+                limits,
+            },
+            1,
+        )
+        .unwrap();
+        let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
+        sock.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
+        Rig {
+            front,
+            core: Broker::new(BrokerConfig::default(), 1, 1),
+            sock,
+            user,
+            _dir: dir,
+        }
+    }
+
+    /// Sends, lets the front read, and returns every answer.
+    fn exchange(&mut self, d: &[u8]) -> Vec<Vec<u8>> {
+        self.sock.send_to(d, self.front.local_addr()).unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+        self.front.on_readable(&mut self.core, Duration::ZERO);
+        while let Some(out) = self.core.poll_output() {
+            let _ = self.front.route(&self.core, out);
+        }
+        let mut got = Vec::new();
+        self.sock.set_nonblocking(true).unwrap();
+        let mut buf = [0u8; 2048];
+        while let Ok((n, _)) = self.sock.recv_from(&mut buf) {
+            got.push(buf[..n].to_vec());
+        }
+        self.sock.set_nonblocking(false).unwrap();
+        got
+    }
+
+    fn token(&mut self, client: u64) -> Vec<u8> {
+        let init = Datagram::Initial { client, token: b"", noise: b"" }.encode().unwrap();
+        let got = self.exchange(&init);
+        match Datagram::decode(&got[0]).unwrap() {
+            Datagram::Retry { token, .. } => token.to_vec(),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    /// Token, then message 1; returns the handshake and the reply datagrams.
+    fn start(&mut self, client: u64) -> (HandshakeState, Vec<Vec<u8>>) {
+        let token = self.token(client);
+        let mut hs = crypto::initiator(&self.user).unwrap();
+        let mut m1 = [0u8; 128];
+        let n = hs.write_message(&[], &mut m1).unwrap();
+        let d = Datagram::Initial { client, token: &token, noise: &m1[..n] }
+            .encode()
+            .unwrap();
+        let got = self.exchange(&d);
+        (hs, got)
+    }
+}
+
+#[test]
+fn pending_handshakes_are_capped_and_expire() {
+    let mut r = Rig::new(UdpLimits {
+        max_pending: 4,
+        handshake_timeout: Duration::from_millis(50),
+        ..UdpLimits::default()
+    });
+    let answered = (0..10).filter(|c| !r.start(*c).1.is_empty()).count();
+    assert_eq!(answered, 4);
+    assert_eq!(r.front.stats().drops.by_reason["pending_full"], 6);
+    std::thread::sleep(Duration::from_millis(60));
+    r.front.housekeeping(&mut r.core, Duration::ZERO);
+    assert!(!r.start(99).1.is_empty(), "room again after expiry");
+}
+
+#[test]
+fn a_validated_source_is_rate_limited() {
+    let mut r = Rig::new(UdpLimits {
+        source_rate: (0.001, 3.0),
+        ..UdpLimits::default()
+    });
+    let answered = (0..6).filter(|c| !r.start(*c).1.is_empty()).count();
+    assert_eq!(answered, 3);
+    assert_eq!(r.front.stats().drops.by_reason["source_rate"], 3);
+}
+
+#[test]
+fn a_full_handshake_then_a_duplicated_request_is_answered_once() {
+    let mut r = Rig::new(UdpLimits::default());
+    let (mut hs, got) = r.start(1);
+    let Datagram::HsReply { conn, noise, .. } = Datagram::decode(&got[0]).unwrap() else {
+        panic!()
+    };
+    let mut scratch = [0u8; 256];
+    hs.read_message(noise, &mut scratch).unwrap();
+    let payload = to_bytes(&Hs3 { name: "alice".into(), suffix: "abc".into() }).unwrap();
+    let mut m3 = [0u8; 256];
+    let n = hs.write_message(&payload, &mut m3).unwrap();
+    let fin = Datagram::HsFinal { conn, noise: &m3[..n] }.encode().unwrap();
+    assert!(r.exchange(&fin).is_empty());
+    assert_eq!(r.front.connections(), 1);
+    let mut chan = Channel::new(hs).unwrap();
+    let mut say = |r: &mut Rig, m: &Up| -> Vec<Down> {
+        let (nonce, sealed) = chan.seal(&to_bytes(m).unwrap()).unwrap();
+        let d = Datagram::Channel { conn, nonce, sealed: &sealed }.encode().unwrap();
+        r.exchange(&d)
+            .iter()
+            .map(|b| match Datagram::decode(b).unwrap() {
+                Datagram::Channel { nonce, sealed, .. } => {
+                    from_bytes(&chan.open(nonce, sealed).unwrap()).unwrap()
+                }
+                other => panic!("{other:?}"),
+            })
+            .collect()
+    };
+    let hello = Up::Msg(ToBroker::Hello {
+        user: UserId("claimed-to-be-bob".into()),
+        pid: 4242,
+        links: vec![],
+        watch_list: false,
+    });
+    let welcome = say(&mut r, &hello);
+    assert!(
+        matches!(&welcome[..], [Down::Welcome { user, .. }] if user.0 == "alice.abc"),
+        "the id is the authenticated name, not the claimed one: {welcome:?}"
+    );
+    let req = Up::Msg(ToBroker::Request {
+        user: UserId("bob".into()),
+        req: 1,
+        service: ServiceId::new("nosuch", "s0"),
+    });
+    let first = say(&mut r, &req);
+    let second = say(&mut r, &req);
+    assert_eq!(first, second, "the repeat gets the remembered answer");
+    assert!(matches!(&first[..], [Down::Msg(ToUser::Refused { req: 1, .. })]));
+    assert_eq!(r.core.stats().requests, 1, "the core saw the request once");
+    assert_eq!(r.front.stats().duplicate_requests, 1);
+    // A replayed datagram is dropped.
+    let (nonce, sealed) = chan.seal(&to_bytes(&Up::Ping { nonce: 5 }).unwrap()).unwrap();
+    let d = Datagram::Channel { conn, nonce, sealed: &sealed }.encode().unwrap();
+    assert_eq!(r.exchange(&d).len(), 1);
+    assert!(r.exchange(&d).is_empty());
+    assert_eq!(r.front.stats().drops.by_reason["forged_or_replayed"], 1);
+}
