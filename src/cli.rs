@@ -307,6 +307,12 @@ pub struct UpArgs {
     /// Stop by itself after this long (default: run until Ctrl-C).
     #[arg(long, value_parser = duration)]
     pub duration: Option<Duration>,
+    /// Where the broker serves remote users (port 0: any free port).
+    #[arg(long, default_value = "127.0.0.1:7400")]
+    pub udp: std::net::SocketAddr,
+    /// Serve local users only.
+    #[arg(long)]
+    pub no_udp: bool,
 }
 
 #[derive(Args, Debug)]

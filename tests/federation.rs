@@ -528,7 +528,7 @@ fn the_interactive_menu_lists_requests_links_and_exits() {
 #[test]
 fn up_runs_the_default_scenario_and_stops_cleanly_on_ctrl_c() {
     let mut f = Fed::new("up");
-    let up = f.spawn(&["up"]);
+    let up = f.spawn(&["up", "--udp", "127.0.0.1:0"]);
     let mut seen = Vec::new();
     let deadline = Instant::now() + 30 * SEC;
     while !seen.iter().any(|l: &String| l.contains("forwarded goal2d")) {
@@ -541,6 +541,7 @@ fn up_runs_the_default_scenario_and_stops_cleanly_on_ctrl_c() {
     let text = seen.join("\n");
     for needle in [
         "== service list",
+        "the same list over UDP: 4 services",
         "d1/s0",
         "t1/s2",
         "granted: session",

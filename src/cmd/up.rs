@@ -9,13 +9,62 @@ use super::children::Children;
 use crate::cli::UpArgs;
 use muster_shared::types::ServiceId;
 use muster_shared::Instance;
-use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
+use muster_shared::udp::access::access_line;
+use muster_shared::udp::crypto::KeyPair;
+use muster_users::{ConnectOptions, RemoteOptions, UserClient, UserError, UserEvent};
+use std::net::SocketAddr;
 use std::process::{ExitCode, Stdio};
 use std::time::{Duration, Instant};
 
+/// A guest key and an access file letting it list and request everything, for the
+/// remote users of this run.
+struct Guest {
+    dir: std::path::PathBuf,
+    key: KeyPair,
+    addr: SocketAddr,
+}
+
+impl Guest {
+    fn new(inst: &Instance, mut addr: SocketAddr) -> anyhow::Result<Self> {
+        if addr.port() == 0 {
+            addr = std::net::UdpSocket::bind(addr)?.local_addr()?;
+        }
+        let dir = std::env::temp_dir().join(format!("muster-up-{inst}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir)?;
+        let key = KeyPair::generate()?;
+        key.write("guest", &dir.join("guest.key"))?;
+        std::fs::write(
+            dir.join("access"),
+            access_line("guest", &key.public, &["*".to_string()]) + "\n",
+        )?;
+        Ok(Guest { dir, key, addr })
+    }
+}
+
+impl Drop for Guest {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
 pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     let mut children = Children::default();
-    children.spawn(inst, "broker", &["broker"], Stdio::inherit())?;
+    let guest = if a.no_udp {
+        None
+    } else {
+        Some(Guest::new(inst, a.udp)?)
+    };
+    let (udp, access) = guest
+        .as_ref()
+        .map(|g| (g.addr.to_string(), g.dir.join("access").display().to_string()))
+        .unwrap_or_default();
+    let mut broker = vec!["broker"];
+    let mut sys_udp: Vec<&str> = Vec::new();
+    if guest.is_some() {
+        broker.extend(["--udp", &udp, "--access", &access]);
+        sys_udp.extend(["--udp", "127.0.0.1:0"]);
+    }
+    children.spawn(inst, "broker", &broker, Stdio::inherit())?;
     children.spawn(
         inst,
         "tracker system t1",
@@ -30,7 +79,11 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
             "data",
             "--quota",
             "10",
-        ],
+        ]
+        .iter()
+        .chain(&sys_udp)
+        .copied()
+        .collect::<Vec<_>>(),
         Stdio::inherit(),
     )?;
     children.spawn(
@@ -48,7 +101,11 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
             "--quota",
             "1",
             "--queue",
-        ],
+        ]
+        .iter()
+        .chain(&sys_udp)
+        .copied()
+        .collect::<Vec<_>>(),
         Stdio::inherit(),
     )?;
     let opts = ConnectOptions {
@@ -58,7 +115,13 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     };
     let mut client = UserClient::connect(inst, &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);
-    match demo(&mut client, end) {
+    let shown = wait_for_services(&mut client, 4).and_then(|()| {
+        if let Some(g) = &guest {
+            remote_list(g)?;
+        }
+        Ok(())
+    });
+    match shown.and_then(|()| demo(&mut client, end)) {
         Ok(()) | Err(UserError::Interrupted) => {}
         Err(e) => return Err(e.into()),
     }
@@ -76,8 +139,34 @@ fn wait_for_services(client: &mut UserClient, n: usize) -> Result<(), UserError>
     Ok(())
 }
 
+/// The same list as a remote user sees it, over authenticated UDP.
+fn remote_list(g: &Guest) -> Result<(), UserError> {
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(10),
+        handle_signals: false,
+        watch_list: false,
+    };
+    let remote = RemoteOptions {
+        broker: g.addr,
+        name: "guest".into(),
+        key: g.key.clone(),
+        broker_key: None,
+        faults: None,
+    };
+    let mut c = UserClient::connect_remote(remote, &opts)?;
+    let list = c.list()?;
+    println!(
+        "== remote users: UDP {} (this run's guest key: muster user --remote {} --key {}) ==",
+        g.addr,
+        g.addr,
+        g.dir.join("guest.key").display()
+    );
+    println!("the same list over UDP: {} services, generation {}", list.count, list.generation);
+    c.close();
+    Ok(())
+}
+
 fn demo(client: &mut UserClient, end: Option<Instant>) -> Result<(), UserError> {
-    wait_for_services(client, 4)?;
     let list = client.list()?;
     println!("== service list (generation {}) ==", list.generation);
     println!("{}", muster_users::menu::table(&list.views()));
