@@ -194,6 +194,10 @@ pub struct BrokerArgs {
     /// services. Re-read on SIGHUP. Without it every remote user is refused.
     #[arg(long, requires = "udp")]
     pub access: Option<std::path::PathBuf>,
+    /// Datagrams per second one remote user may send (bursts of twice that); more are
+    /// dropped and counted.
+    #[arg(long, default_value_t = 2000.0, requires = "udp")]
+    pub udp_conn_rate: f64,
 }
 
 #[derive(Subcommand, Debug)]

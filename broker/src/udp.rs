@@ -56,7 +56,7 @@ impl Default for UdpLimits {
             handshake_timeout: Duration::from_secs(5),
             max_conns: 4096,
             idle_timeout: Duration::from_secs(10),
-            conn_rate: (500.0, 1000.0),
+            conn_rate: (2000.0, 4000.0),
             source_rate: (50.0, 100.0),
             retry_rate: (50_000.0, 50_000.0),
             remembered_requests: 256,

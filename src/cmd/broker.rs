@@ -31,7 +31,10 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
                 bind,
                 key,
                 access_path: a.access.clone(),
-                limits: UdpLimits::default(),
+                limits: UdpLimits {
+                    conn_rate: (a.udp_conn_rate, 2.0 * a.udp_conn_rate),
+                    ..UdpLimits::default()
+                },
             })
         }
     };

@@ -221,7 +221,19 @@ impl RemoteSessions {
                 payload,
             }),
             (SessionUp::Msg(ToSystem::End { .. }), None) => {
-                core.handle(ToSystem::End { user, session: id })
+                core.handle(ToSystem::End { user, session: id });
+                // Confirm, so the user stops repeating its End; the key lingers for
+                // repeats that cross this answer.
+                if let Some(r) = self.sessions.get_mut(&session) {
+                    r.ended = Some((Instant::now(), EndReason::ByUser));
+                }
+                self.send(
+                    session,
+                    &SessionDown::Msg(ToUser::Ended {
+                        session: id,
+                        reason: EndReason::ByUser,
+                    }),
+                );
             }
             // Already ended: say so again (the user retries `End` until it hears).
             (SessionUp::Msg(ToSystem::End { .. }), Some((_, reason))) => self.send(

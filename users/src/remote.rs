@@ -21,8 +21,12 @@ use std::net::{SocketAddr, UdpSocket};
 use std::os::fd::{AsRawFd, RawFd};
 use std::time::{Duration, Instant};
 
-/// First retransmission timeout; doubles up to [`MAX_RTO`].
+/// Retransmission timeout before any round trip was measured; doubles up to
+/// [`MAX_RTO`] on each retry. Once keepalives have measured the round trip, the timeout
+/// is RFC 6298's `SRTT + 4·RTTVAR`, at least [`MIN_RTO`].
 pub const RTO: Duration = Duration::from_millis(200);
+/// Shortest retransmission timeout.
+pub const MIN_RTO: Duration = Duration::from_millis(20);
 /// Longest retransmission timeout.
 pub const MAX_RTO: Duration = Duration::from_secs(2);
 /// Keepalive period towards the broker and on each session.
@@ -130,10 +134,10 @@ struct Retry {
 }
 
 impl Retry {
-    fn new(now: Instant) -> Self {
+    fn new(now: Instant, rto: Duration) -> Self {
         Retry {
-            next: now + RTO,
-            rto: RTO,
+            next: now + rto,
+            rto,
         }
     }
     fn due(&mut self, now: Instant) -> bool {
@@ -200,6 +204,10 @@ pub struct RemoteLink {
     lossy: Option<Lossy>,
     stats: LinkStats,
     ever_connected: bool,
+    /// Smoothed round trip and its variation (RFC 6298), from keepalive pongs.
+    srtt: Option<Duration>,
+    rttvar: Duration,
+    born: Instant,
     /// Session datagrams that arrived before their grant (the system streams as soon as
     /// it grants; the grant comes through the broker): replayed when the grant arrives.
     early: Vec<(Instant, Vec<u8>, SocketAddr)>,
@@ -233,7 +241,7 @@ impl RemoteLink {
             opts,
             suffix,
             hs: None,
-            hs_retry: Retry::new(now),
+            hs_retry: Retry::new(now, RTO),
             hs_started: now,
             welcomed: false,
             last_from_broker: now,
@@ -249,6 +257,9 @@ impl RemoteLink {
             stats: LinkStats::default(),
             ever_connected: false,
             early: Vec::new(),
+            srtt: None,
+            rttvar: Duration::ZERO,
+            born: now,
         };
         link.start_handshake();
         Ok(link)
@@ -278,7 +289,7 @@ impl RemoteLink {
         let client: u64 = rand::random();
         let now = Instant::now();
         self.hs = Some(Hs::Token { client });
-        self.hs_retry = Retry::new(now);
+        self.hs_retry = Retry::new(now, RTO);
         self.hs_started = now;
         self.welcomed = false;
         self.send_initial(client, &[], &[]);
@@ -301,9 +312,10 @@ impl RemoteLink {
     pub fn send_broker(&mut self, msg: ToBroker) {
         let now = Instant::now();
         match &msg {
-            ToBroker::Hello { .. } => self.hello = Some((msg.clone(), Retry::new(now))),
+            ToBroker::Hello { .. } => self.hello = Some((msg.clone(), Retry::new(now, self.rto()))),
             ToBroker::Request { req, .. } => {
-                self.requests.insert(*req, (msg.clone(), Retry::new(now)));
+                let rto = self.rto();
+                self.requests.insert(*req, (msg.clone(), Retry::new(now, rto)));
             }
             ToBroker::Cancel { req, .. } => {
                 self.requests.remove(req);
@@ -324,8 +336,9 @@ impl RemoteLink {
             _ => return,
         };
         if let ToSystem::End { .. } = &msg {
+            let rto = self.rto();
             if let Some(s) = self.sessions.get_mut(&session.0) {
-                s.ending = Some((Retry::new(Instant::now()), 0));
+                s.ending = Some((Retry::new(Instant::now(), rto), 0));
             }
         }
         self.send_session(session.0, &SessionUp::Msg(msg));
@@ -333,7 +346,7 @@ impl RemoteLink {
 
     /// Asks the broker for the list; [`RemoteLink::take_list`] returns it once complete.
     pub fn ask_list(&mut self) {
-        self.list_want = Some(Retry::new(Instant::now()));
+        self.list_want = Some(Retry::new(Instant::now(), self.rto()));
         self.list_part = None;
         self.list_done = None;
         self.send_up(&Up::List);
@@ -451,7 +464,7 @@ impl RemoteLink {
         if now >= self.next_ping {
             self.next_ping = now + KEEPALIVE;
             if self.welcomed {
-                self.send_up(&Up::Ping { nonce: 0 });
+                self.ping();
             }
         }
         if self.welcomed && now.duration_since(self.last_from_broker) > BROKER_SILENCE {
@@ -602,7 +615,7 @@ impl RemoteLink {
             initial,
             hs: Box::new(hs),
         });
-        self.hs_retry = Retry::new(Instant::now());
+        self.hs_retry = Retry::new(Instant::now(), RTO);
     }
 
     fn on_reply(&mut self, core: &mut UserCore, client: u64, conn: u64, noise: &[u8]) {
@@ -662,7 +675,7 @@ impl RemoteLink {
             fin,
             confirmed: false,
         });
-        self.hs_retry = Retry::new(Instant::now());
+        self.hs_retry = Retry::new(Instant::now(), RTO);
         self.stats.handshakes += 1;
         // Say hello at once (repeated until the welcome): the first connection's hello
         // waits in `hello`; after a reconnection the core says it again.
@@ -708,6 +721,8 @@ impl RemoteLink {
                 if !self.welcomed {
                     self.welcomed = true;
                     self.ever_connected = true;
+                    // Measure the round trip at once, for the retransmission timeout.
+                    self.ping();
                     self.hello = None;
                     core.handle(ToUser::Welcome {
                         epoch,
@@ -788,7 +803,19 @@ impl RemoteLink {
                 total,
                 entries,
             } => self.on_chunk(epoch, generation, index, total, entries),
-            Down::ListChanged { generation } | Down::Pong { generation, .. } => {
+            Down::Pong { nonce, generation } => {
+                let sent = self.born + Duration::from_nanos(nonce);
+                if let Some(rtt) = Instant::now().checked_duration_since(sent) {
+                    if rtt < Duration::from_secs(10) {
+                        self.sample_rtt(rtt);
+                    }
+                }
+                if generation != self.generation {
+                    self.generation = generation;
+                    core.list_changed();
+                }
+            }
+            Down::ListChanged { generation } => {
                 if generation != self.generation {
                     self.generation = generation;
                     core.list_changed();
@@ -952,6 +979,34 @@ impl RemoteLink {
         if let Some((b, t)) = held {
             let _ = self.sock.send_to(&b, t);
         }
+    }
+
+    /// The current retransmission timeout.
+    pub fn rto(&self) -> Duration {
+        match self.srtt {
+            None => RTO,
+            Some(s) => (s + 4 * self.rttvar).clamp(MIN_RTO, MAX_RTO),
+        }
+    }
+
+    fn sample_rtt(&mut self, r: Duration) {
+        match self.srtt {
+            None => {
+                self.srtt = Some(r);
+                self.rttvar = r / 2;
+            }
+            Some(s) => {
+                let diff = if s > r { s - r } else { r - s };
+                self.rttvar = (self.rttvar * 3 + diff) / 4;
+                self.srtt = Some((s * 7 + r) / 8);
+            }
+        }
+    }
+
+    /// A keepalive stamped with its send time, so its pong is a round-trip sample.
+    fn ping(&mut self) {
+        let nonce = self.born.elapsed().as_nanos() as u64;
+        self.send_up(&Up::Ping { nonce });
     }
 
     /// Sessions whose `End` is not yet confirmed.
