@@ -428,10 +428,10 @@ mod tests {
             Err(DecodeError::BadMagic(0))
         );
         let mut v2 = frame.clone();
-        v2[1] = 2;
+        v2[1] = VERSION + 1;
         assert_eq!(
             decode::<ToBroker>(&v2),
-            Err(DecodeError::WrongVersion { got: 2 })
+            Err(DecodeError::WrongVersion { got: VERSION + 1 })
         );
         let mut trailing = frame.clone();
         trailing.push(0);
