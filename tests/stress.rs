@@ -46,6 +46,17 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
         .values()
         .map(|v| v.as_u64().unwrap())
         .sum();
+    // The systems' own count of sessions they made: every grant a user saw, plus links'
+    // sessions and late grants of abandoned requests; so the quota check has data.
+    let system_grants = r["system_grants"].as_u64().unwrap();
+    assert!(system_grants >= t["grants"].as_u64().unwrap(), "{r:#}");
+    // Links make two sessions each (a failed link at most one before it fails).
+    let link_sessions = 2 * t["links"].as_u64().unwrap() + t["link_failures"].as_u64().unwrap();
+    assert!(
+        system_grants <= t["grants"].as_u64().unwrap() + t["abandoned"].as_u64().unwrap() + link_sessions,
+        "{system_grants} {t}"
+    );
+    assert!(system_grants > 0);
     let answered = t["grants"].as_u64().unwrap() + refused + t["abandoned"].as_u64().unwrap();
     assert_eq!(answered, t["requests"].as_u64().unwrap());
     for k in ["list", "service_request", "update", "floor"] {

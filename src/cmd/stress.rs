@@ -222,8 +222,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let refused: u64 = refusals.values().sum();
     let answered = totals["grants"] + refused + totals["abandoned"] + totals["errors"];
     let mut over_quota = Vec::new();
+    let mut system_grants = 0;
     for s in &systems {
         for (svc, rep) in s["services"].as_object().into_iter().flatten() {
+            system_grants += rep["grants"].as_u64().unwrap_or(0);
             let (max, quota) = (
                 rep["max_in_use"].as_u64().unwrap_or(0),
                 rep["quota"].as_u64().unwrap_or(0),
@@ -247,7 +249,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "users": a.load.users, "services": a.load.services, "systems": a.load.systems,
         "duration_s": a.duration.as_secs_f64(), "run_s": run_time.as_secs_f64(),
         "errors": errors, "missing_user_reports": missing,
-        "totals": totals, "refusals": refusals, "over_quota": over_quota, "checks": checks,
+        "totals": totals, "system_grants": system_grants, "refusals": refusals, "over_quota": over_quota, "checks": checks,
         "list": summary(&list), "service_request": summary(&request), "update": summary(&update),
         "floor": summary(&floor),
         "timeline": timeline.to_json(),
