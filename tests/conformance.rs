@@ -71,7 +71,11 @@ impl Conf {
     fn list(&self) -> Vec<Value> {
         let (code, out) = self.run_raw(&["user", "list", "--json"]);
         assert_eq!(code, 0, "{out}");
-        serde_json::from_str::<Value>(&out).unwrap().as_array().unwrap().clone()
+        serde_json::from_str::<Value>(&out)
+            .unwrap()
+            .as_array()
+            .unwrap()
+            .clone()
     }
 
     fn wait_list(&self, pred: impl Fn(&[Value]) -> bool) -> Vec<Value> {
@@ -81,7 +85,10 @@ impl Conf {
             if pred(&l) {
                 return l;
             }
-            assert!(std::time::Instant::now() < deadline, "list condition not met: {l:?}");
+            assert!(
+                std::time::Instant::now() < deadline,
+                "list condition not met: {l:?}"
+            );
             std::thread::sleep(Duration::from_millis(100));
         }
     }
@@ -114,7 +121,11 @@ fn lists_every_service_with_its_fields(via: Via) {
     let l = c.wait_list(|l| l.len() == 3);
     let d = find(&l, "d1/s0").unwrap();
     assert_eq!(
-        (d["kind"].as_str(), d["quota"].as_u64(), d["queue"].as_bool()),
+        (
+            d["kind"].as_str(),
+            d["quota"].as_u64(),
+            d["queue"].as_bool()
+        ),
         (Some("command"), Some(1), Some(true))
     );
     assert_eq!(find(&l, "t1/s1").unwrap()["payload"], "pose2d");
@@ -143,7 +154,11 @@ fn a_data_session_streams_in_order_and_frees_its_quota(via: Via) {
     assert_eq!(lines[0]["granted"], true);
     let s = seqs(&lines);
     assert_eq!(s[0], 1, "the first update is not lost");
-    assert!(s.len() >= 20, "about 40 updates at 20 Hz over 2 s, got {}", s.len());
+    assert!(
+        s.len() >= 20,
+        "about 40 updates at 20 Hz over 2 s, got {}",
+        s.len()
+    );
     assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "in order, no gaps");
     let last = lines.last().unwrap();
     assert_eq!(
@@ -167,7 +182,10 @@ fn the_system_ends_a_session_and_the_user_is_told(via: Via) {
     let lines = c.f.proc(req).all_json(15 * SEC);
     let last = lines.last().expect("an end line");
     assert!(
-        last["reason"].as_str().unwrap().contains("ended by the system"),
+        last["reason"]
+            .as_str()
+            .unwrap()
+            .contains("ended by the system"),
         "{last}"
     );
     assert_eq!(c.f.proc(req).wait(5 * SEC), Some(0));
@@ -179,12 +197,21 @@ fn a_command_session_takes_a_goal_and_reports_arrival(via: Via) {
     c.system("d1", &["--kind", "command", "--quota", "1", "--rate", "20"]);
     c.wait_list(|l| l.len() == 1);
     let (code, lines) = c.run(&[
-        "user", "request", "d1/s0", "--goal", "1.5,-1.5", "--duration", "3s", "--json",
+        "user",
+        "request",
+        "d1/s0",
+        "--goal",
+        "1.5,-1.5",
+        "--duration",
+        "3s",
+        "--json",
     ]);
     assert_eq!(code, 0);
     let statuses: Vec<&str> = lines.iter().filter_map(|v| v["status"].as_str()).collect();
     assert!(
-        statuses.iter().any(|s| s.contains("goal (1.50, -1.50) accepted")),
+        statuses
+            .iter()
+            .any(|s| s.contains("goal (1.50, -1.50) accepted")),
         "{statuses:?}"
     );
     assert_eq!(
@@ -205,8 +232,14 @@ fn a_queued_request_is_granted_at_the_head_of_the_queue(via: Via) {
     let first = c.spawn(&["user", "request", "d1/s0", "--duration", "2s", "--json"]);
     assert_eq!(c.f.proc(first).json(15 * SEC).unwrap()["granted"], true);
     let second = c.spawn(&["user", "request", "d1/s0", "--duration", "1s", "--json"]);
-    let v = c.f.proc(second).json(20 * SEC).expect("granted once the first ends");
-    assert_eq!((v["granted"].as_bool(), v["queue_position"].as_u64()), (Some(true), Some(1)));
+    let v =
+        c.f.proc(second)
+            .json(20 * SEC)
+            .expect("granted once the first ends");
+    assert_eq!(
+        (v["granted"].as_bool(), v["queue_position"].as_u64()),
+        (Some(true), Some(1))
+    );
     assert_eq!(c.f.proc(second).wait(10 * SEC), Some(0));
 }
 both!(a_queued_request_is_granted_at_the_head_of_the_queue);
@@ -238,12 +271,23 @@ fn a_link_forwards_data_as_task_input(via: Via) {
     c.system("t1", &["--rate", "20"]);
     c.system("d1", &["--kind", "command", "--rate", "20"]);
     c.wait_list(|l| l.len() == 2);
-    let (code, lines) = c.run(&["user", "link", "t1/s0", "d1/s0", "--duration", "2s", "--json"]);
+    let (code, lines) = c.run(&[
+        "user",
+        "link",
+        "t1/s0",
+        "d1/s0",
+        "--duration",
+        "2s",
+        "--json",
+    ]);
     assert_eq!(code, 0, "{lines:?}");
     let forwarded = lines
         .iter()
         .filter(|v| v["forwarded"]["type"] == "goal2d")
         .count();
-    assert!(forwarded >= 10, "data became task input: {forwarded} in {lines:?}");
+    assert!(
+        forwarded >= 10,
+        "data became task input: {forwarded} in {lines:?}"
+    );
 }
 both!(a_link_forwards_data_as_task_input);

@@ -57,17 +57,33 @@ fn access_matrix_users_keys_and_services() {
         &["user", "request", "t1/s0", "--duration", "300ms", "--json"],
     );
     assert_eq!(code, 0, "{out}");
-    let (code, out) = remote(&f, &r, &r.key("alice"), &["user", "request", "t2/s0", "--json"]);
+    let (code, out) = remote(
+        &f,
+        &r,
+        &r.key("alice"),
+        &["user", "request", "t2/s0", "--json"],
+    );
     assert_eq!(code, 3);
-    assert!(out.contains("\"code\":\"unknown\""), "a denied service looks absent: {out}");
+    assert!(
+        out.contains("\"code\":\"unknown\""),
+        "a denied service looks absent: {out}"
+    );
     // Known user without patterns: connects, sees nothing, gets nothing.
     let (code, out) = remote(&f, &r, &r.key("bob"), &["user", "list", "--json"]);
     assert_eq!((code, ids(&out).len()), (0, 0));
-    let (code, _) = remote(&f, &r, &r.key("bob"), &["user", "request", "t1/s0", "--json"]);
+    let (code, _) = remote(
+        &f,
+        &r,
+        &r.key("bob"),
+        &["user", "request", "t1/s0", "--json"],
+    );
     assert_eq!(code, 3);
     // Known name with the wrong key, and an unknown user: no list, no grant.
     for key in [&wrong_alice, &mallory] {
-        for verb in [&["user", "list", "--json"][..], &["user", "request", "t1/s0", "--json"]] {
+        for verb in [
+            &["user", "list", "--json"][..],
+            &["user", "request", "t1/s0", "--json"],
+        ] {
             let (code, out) = remote(&f, &r, key, verb);
             assert_ne!(code, 0, "{key} {verb:?}: {out}");
             assert_ne!(code, 3, "not even a refusal: {out}");
@@ -85,7 +101,15 @@ fn access_matrix_users_keys_and_services() {
         .map(|l| format!("{l}\n"))
         .collect();
     let (_, line) = f.run(
-        &["keygen", "--user", "carol", "--out", r.dir.to_str().unwrap(), "--allow", "*"],
+        &[
+            "keygen",
+            "--user",
+            "carol",
+            "--out",
+            r.dir.to_str().unwrap(),
+            "--allow",
+            "*",
+        ],
         20 * SEC,
     );
     access.push_str(&line);
@@ -113,12 +137,19 @@ fn hostile_datagrams_get_nothing_and_are_counted() {
     f.system("t1", &["--udp", "127.0.0.1:0"]);
     f.wait_list(10 * SEC, |l| l.len() == 1);
     let s = UdpSocket::bind("127.0.0.1:0").unwrap();
-    s.set_read_timeout(Some(Duration::from_millis(300))).unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(300)))
+        .unwrap();
     let to: std::net::SocketAddr = r.addr.parse().unwrap();
     let mut buf = [0u8; 2048];
 
     // Garbage, wrong version, truncated, oversized, unpadded initial: no answer at all.
-    let initial = Datagram::Initial { client: 1, token: b"", noise: b"" }.encode().unwrap();
+    let initial = Datagram::Initial {
+        client: 1,
+        token: b"",
+        noise: b"",
+    }
+    .encode()
+    .unwrap();
     let mut wrong_version = initial.clone();
     wrong_version[1] = 99;
     let bad: Vec<Vec<u8>> = vec![
@@ -127,12 +158,27 @@ fn hostile_datagrams_get_nothing_and_are_counted() {
         wrong_version,
         initial[..600].to_vec(),
         initial[..2].to_vec(),
-        Datagram::Channel { conn: 7, nonce: 0, sealed: &[1; 64] }.encode().unwrap(),
-        Datagram::HsFinal { conn: 7, noise: &[1; 64] }.encode().unwrap(),
+        Datagram::Channel {
+            conn: 7,
+            nonce: 0,
+            sealed: &[1; 64],
+        }
+        .encode()
+        .unwrap(),
+        Datagram::HsFinal {
+            conn: 7,
+            noise: &[1; 64],
+        }
+        .encode()
+        .unwrap(),
     ];
     for d in &bad {
         s.send_to(d, to).unwrap();
-        assert!(s.recv_from(&mut buf).is_err(), "no answer to {} bytes", d.len());
+        assert!(
+            s.recv_from(&mut buf).is_err(),
+            "no answer to {} bytes",
+            d.len()
+        );
     }
     // A padded INITIAL without a token gets a stateless RETRY, at most 3x its size.
     assert_eq!(initial.len(), MIN_INITIAL);
@@ -148,7 +194,13 @@ fn hostile_datagrams_get_nothing_and_are_counted() {
     let mut forged = token.to_vec();
     forged[10] ^= 1;
     for (c, t) in [(1, forged.as_slice()), (2, token)] {
-        let d = Datagram::Initial { client: c, token: t, noise: &[0; 32] }.encode().unwrap();
+        let d = Datagram::Initial {
+            client: c,
+            token: t,
+            noise: &[0; 32],
+        }
+        .encode()
+        .unwrap();
         s.send_to(&d, to).unwrap();
         assert!(s.recv_from(&mut buf).is_err());
     }
@@ -165,7 +217,10 @@ fn hostile_datagrams_get_nothing_and_are_counted() {
         "unknown_handshake",
         "bad_token",
     ] {
-        assert!(drops[reason].as_u64().unwrap_or(0) >= 1, "{reason} in {udp:#}");
+        assert!(
+            drops[reason].as_u64().unwrap_or(0) >= 1,
+            "{reason} in {udp:#}"
+        );
     }
     assert_eq!(udp["handshakes"], 0);
     assert!(
@@ -215,7 +270,10 @@ fn under_loss_duplication_reordering_and_a_flood_every_request_completes_once() 
     assert!(r["flood"]["flood_datagrams"].as_u64().unwrap() > 0);
     assert_eq!(r["system_grants"], 30 * 5, "{r:#}");
     assert_eq!(r["duplicate_grants"], 0);
-    assert!(r["broker_udp"]["retries"].as_u64().unwrap() > 0, "the flood got retries");
+    assert!(
+        r["broker_udp"]["retries"].as_u64().unwrap() > 0,
+        "the flood got retries"
+    );
     // Only our five clients got in (a lossy one may have reconnected once or twice).
     let hs = r["broker_udp"]["handshakes"].as_u64().unwrap();
     assert!((5..=10).contains(&hs), "{hs} handshakes");

@@ -53,7 +53,8 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
     // Links make two sessions each (a failed link at most one before it fails).
     let link_sessions = 2 * t["links"].as_u64().unwrap() + t["link_failures"].as_u64().unwrap();
     assert!(
-        system_grants <= t["grants"].as_u64().unwrap() + t["abandoned"].as_u64().unwrap() + link_sessions,
+        system_grants
+            <= t["grants"].as_u64().unwrap() + t["abandoned"].as_u64().unwrap() + link_sessions,
         "{system_grants} {t}"
     );
     assert!(system_grants > 0);

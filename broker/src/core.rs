@@ -530,7 +530,8 @@ impl Broker {
                     self.systems.get_mut(system),
                 ) {
                     svc.sessions.insert(session);
-                    sys.sessions.insert(session, (svc.spec.name.clone(), user.clone()));
+                    sys.sessions
+                        .insert(session, (svc.spec.name.clone(), user.clone()));
                     self.out.push_back(Output::Granted {
                         user,
                         req: o.req,

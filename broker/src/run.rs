@@ -171,10 +171,15 @@ pub fn run_with(
             .as_ref()
             .and_then(|f| f.poll_timeout())
             .map(|every| every.saturating_sub(last_housekeeping.elapsed()));
-        let timeout = [timeout, shell.ring_due(), shell.endpoint.sweep(), housekeeping]
-            .into_iter()
-            .flatten()
-            .min();
+        let timeout = [
+            timeout,
+            shell.ring_due(),
+            shell.endpoint.sweep(),
+            housekeeping,
+        ]
+        .into_iter()
+        .flatten()
+        .min();
         let tokens = shell.reactor.wait(timeout)?;
         let now = start.elapsed();
         let mut died: Vec<Address> = Vec::new();
@@ -220,7 +225,9 @@ pub fn run_with(
         }
         shell.drain_inbox(&mut core, now)?;
         if let Some(f) = shell.udp.as_mut() {
-            if f.poll_timeout().is_some_and(|e| last_housekeeping.elapsed() >= e) {
+            if f.poll_timeout()
+                .is_some_and(|e| last_housekeeping.elapsed() >= e)
+            {
                 f.housekeeping(&mut core, now);
                 last_housekeeping = Instant::now();
             }

@@ -406,7 +406,14 @@ impl UdpFront {
         }
     }
 
-    fn on_initial(&mut self, len: usize, from: SocketAddr, client: u64, token: &[u8], noise: &[u8]) {
+    fn on_initial(
+        &mut self,
+        len: usize,
+        from: SocketAddr,
+        client: u64,
+        token: &[u8],
+        noise: &[u8],
+    ) {
         let t = Instant::now();
         let now_s = now_s();
         if !self.cookies.check(now_s, token, &from, client) {
@@ -491,7 +498,7 @@ impl UdpFront {
         if self.conns.contains_key(&conn) {
             return; // a retransmission of a handshake already done
         }
-        if !self.pending.get(&conn).is_some_and(|p| p.addr == from) {
+        if self.pending.get(&conn).is_none_or(|p| p.addr != from) {
             return self.stats.drops.drop("unknown_handshake", &from);
         }
         let Some(mut p) = self.pending.remove(&conn) else {
@@ -694,9 +701,9 @@ impl UdpFront {
             .access
             .get(&c.name)
             .is_some_and(|p| p.allows(&service.0));
-        let no_udp = service
-            .split()
-            .is_some_and(|(sys, _)| core.kind_of(&service).is_some() && core.system_udp(sys).is_none());
+        let no_udp = service.split().is_some_and(|(sys, _)| {
+            core.kind_of(&service).is_some() && core.system_udp(sys).is_none()
+        });
         let refusal = if !allowed {
             // Not allowed looks like not there: the list never showed it either.
             Some(Refusal::Unknown)
@@ -772,11 +779,12 @@ impl UdpFront {
                 ..
             } => {
                 let &id = self.by_user.get(&user)?;
-                let key = self.conns.get(&id).and_then(|c| c.keys.get(&req).copied())?;
+                let key = self
+                    .conns
+                    .get(&id)
+                    .and_then(|c| c.keys.get(&req).copied())?;
                 let system = service.split().map(|(s, _)| s.to_string())?;
-                let Some(system_addr) = core.system_udp(&system).map(|a| self.reachable(a)) else {
-                    return None;
-                };
+                let system_addr = core.system_udp(&system).map(|a| self.reachable(a))?;
                 let d = Down::Granted {
                     req,
                     session,

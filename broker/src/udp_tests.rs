@@ -38,7 +38,8 @@ impl Rig {
         )
         .unwrap();
         let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
-        sock.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
+        sock.set_read_timeout(Some(Duration::from_millis(200)))
+            .unwrap();
         Rig {
             front,
             core: Broker::new(BrokerConfig::default(), 1, 1),
@@ -67,7 +68,13 @@ impl Rig {
     }
 
     fn token(&mut self, client: u64) -> Vec<u8> {
-        let init = Datagram::Initial { client, token: b"", noise: b"" }.encode().unwrap();
+        let init = Datagram::Initial {
+            client,
+            token: b"",
+            noise: b"",
+        }
+        .encode()
+        .unwrap();
         let got = self.exchange(&init);
         match Datagram::decode(&got[0]).unwrap() {
             Datagram::Retry { token, .. } => token.to_vec(),
@@ -81,9 +88,13 @@ impl Rig {
         let mut hs = crypto::initiator(&self.user).unwrap();
         let mut m1 = [0u8; 128];
         let n = hs.write_message(&[], &mut m1).unwrap();
-        let d = Datagram::Initial { client, token: &token, noise: &m1[..n] }
-            .encode()
-            .unwrap();
+        let d = Datagram::Initial {
+            client,
+            token: &token,
+            noise: &m1[..n],
+        }
+        .encode()
+        .unwrap();
         let got = self.exchange(&d);
         (hs, got)
     }
@@ -124,16 +135,31 @@ fn a_full_handshake_then_a_duplicated_request_is_answered_once() {
     };
     let mut scratch = [0u8; 256];
     hs.read_message(noise, &mut scratch).unwrap();
-    let payload = to_bytes(&Hs3 { name: "alice".into(), suffix: "abc".into() }).unwrap();
+    let payload = to_bytes(&Hs3 {
+        name: "alice".into(),
+        suffix: "abc".into(),
+    })
+    .unwrap();
     let mut m3 = [0u8; 256];
     let n = hs.write_message(&payload, &mut m3).unwrap();
-    let fin = Datagram::HsFinal { conn, noise: &m3[..n] }.encode().unwrap();
+    let fin = Datagram::HsFinal {
+        conn,
+        noise: &m3[..n],
+    }
+    .encode()
+    .unwrap();
     assert!(r.exchange(&fin).is_empty());
     assert_eq!(r.front.connections(), 1);
     let mut chan = Channel::new(hs).unwrap();
     let mut say = |r: &mut Rig, m: &Up| -> Vec<Down> {
         let (nonce, sealed) = chan.seal(&to_bytes(m).unwrap()).unwrap();
-        let d = Datagram::Channel { conn, nonce, sealed: &sealed }.encode().unwrap();
+        let d = Datagram::Channel {
+            conn,
+            nonce,
+            sealed: &sealed,
+        }
+        .encode()
+        .unwrap();
         r.exchange(&d)
             .iter()
             .map(|b| match Datagram::decode(b).unwrap() {
@@ -163,12 +189,23 @@ fn a_full_handshake_then_a_duplicated_request_is_answered_once() {
     let first = say(&mut r, &req);
     let second = say(&mut r, &req);
     assert_eq!(first, second, "the repeat gets the remembered answer");
-    assert!(matches!(&first[..], [Down::Msg(ToUser::Refused { req: 1, .. })]));
+    assert!(matches!(
+        &first[..],
+        [Down::Msg(ToUser::Refused { req: 1, .. })]
+    ));
     assert_eq!(r.core.stats().requests, 1, "the core saw the request once");
     assert_eq!(r.front.stats().duplicate_requests, 1);
     // A replayed datagram is dropped.
-    let (nonce, sealed) = chan.seal(&to_bytes(&Up::Ping { nonce: 5 }).unwrap()).unwrap();
-    let d = Datagram::Channel { conn, nonce, sealed: &sealed }.encode().unwrap();
+    let (nonce, sealed) = chan
+        .seal(&to_bytes(&Up::Ping { nonce: 5 }).unwrap())
+        .unwrap();
+    let d = Datagram::Channel {
+        conn,
+        nonce,
+        sealed: &sealed,
+    }
+    .encode()
+    .unwrap();
     assert_eq!(r.exchange(&d).len(), 1);
     assert!(r.exchange(&d).is_empty());
     assert_eq!(r.front.stats().drops.by_reason["forged_or_replayed"], 1);

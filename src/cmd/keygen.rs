@@ -24,7 +24,10 @@ pub fn run(a: KeygenArgs) -> anyhow::Result<ExitCode> {
     eprintln!("wrote {}", path.display());
     if a.broker {
         println!("{}", hex::encode(key.public));
-        eprintln!("start the broker with --key {}; users may pin it with --broker-key", path.display());
+        eprintln!(
+            "start the broker with --key {}; users may pin it with --broker-key",
+            path.display()
+        );
     } else {
         println!("{}", access_line(&name, &key.public, &a.allow));
         eprintln!("add the line above to the broker's access file, then `kill -HUP` the broker");

@@ -8,9 +8,9 @@
 use super::children::Children;
 use crate::cli::UpArgs;
 use muster_shared::types::ServiceId;
-use muster_shared::Instance;
 use muster_shared::udp::access::access_line;
 use muster_shared::udp::crypto::KeyPair;
+use muster_shared::Instance;
 use muster_users::{ConnectOptions, RemoteOptions, UserClient, UserError, UserEvent};
 use std::net::SocketAddr;
 use std::process::{ExitCode, Stdio};
@@ -56,7 +56,12 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     };
     let (udp, access) = guest
         .as_ref()
-        .map(|g| (g.addr.to_string(), g.dir.join("access").display().to_string()))
+        .map(|g| {
+            (
+                g.addr.to_string(),
+                g.dir.join("access").display().to_string(),
+            )
+        })
         .unwrap_or_default();
     let mut broker = vec!["broker"];
     let mut sys_udp: Vec<&str> = Vec::new();
@@ -161,7 +166,10 @@ fn remote_list(g: &Guest) -> Result<(), UserError> {
         g.addr,
         g.dir.join("guest.key").display()
     );
-    println!("the same list over UDP: {} services, generation {}", list.count, list.generation);
+    println!(
+        "the same list over UDP: {} services, generation {}",
+        list.count, list.generation
+    );
     c.close();
     Ok(())
 }

@@ -114,9 +114,7 @@ impl RemoteSessions {
             SystemOutput::ToUser(user, ToUser::Granted { req, session, .. })
                 if self.offers.contains_key(&(user.clone(), req)) =>
             {
-                let Some(contact) = self.offers.remove(&(user.clone(), req)) else {
-                    return None;
-                };
+                let contact = self.offers.remove(&(user.clone(), req))?;
                 match contact.addr.parse::<SocketAddr>() {
                     Ok(addr) => {
                         // A repeated offer for a session we hold keeps its cipher.
@@ -215,11 +213,13 @@ impl RemoteSessions {
                     reason,
                 }),
             ),
-            (SessionUp::Msg(ToSystem::Input { payload, .. }), None) => core.handle(ToSystem::Input {
-                user,
-                session: id,
-                payload,
-            }),
+            (SessionUp::Msg(ToSystem::Input { payload, .. }), None) => {
+                core.handle(ToSystem::Input {
+                    user,
+                    session: id,
+                    payload,
+                })
+            }
             (SessionUp::Msg(ToSystem::End { .. }), None) => {
                 core.handle(ToSystem::End { user, session: id });
                 // Confirm, so the user stops repeating its End; the key lingers for
@@ -263,7 +263,10 @@ impl RemoteSessions {
             .map(|(id, _)| *id)
             .collect();
         for id in silent {
-            tracing::info!(session = format!("{id:x}"), "remote user silent: session ended");
+            tracing::info!(
+                session = format!("{id:x}"),
+                "remote user silent: session ended"
+            );
             self.stats.leases_expired += 1;
             core.end_session(SessionId(id), EndReason::PeerGone);
             // A session the core no longer knows still needs its linger mark.
@@ -271,8 +274,11 @@ impl RemoteSessions {
                 r.ended.get_or_insert((now, EndReason::PeerGone));
             }
         }
-        self.sessions
-            .retain(|_, r| r.ended.as_ref().is_none_or(|(t, _)| now.duration_since(*t) < LINGER));
+        self.sessions.retain(|_, r| {
+            r.ended
+                .as_ref()
+                .is_none_or(|(t, _)| now.duration_since(*t) < LINGER)
+        });
     }
 
     fn send(&mut self, session: u64, m: &SessionDown) {

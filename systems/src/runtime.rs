@@ -283,7 +283,9 @@ pub fn run_system_with<A: SystemApp>(
             }
         }
         if let Some(r) = shell.remote.as_mut() {
-            if r.poll_timeout().is_some_and(|e| last_housekeeping.elapsed() >= e) {
+            if r.poll_timeout()
+                .is_some_and(|e| last_housekeeping.elapsed() >= e)
+            {
                 r.housekeeping(&mut core);
                 last_housekeeping = Instant::now();
             }

@@ -324,7 +324,12 @@ impl Fed {
         let mut v: Vec<String> = args.iter().map(|s| s.to_string()).collect();
         if via == Via::Udp {
             let r = r.expect("remote setup");
-            v.extend(["--remote".into(), r.addr.clone(), "--key".into(), r.key("alice")]);
+            v.extend([
+                "--remote".into(),
+                r.addr.clone(),
+                "--key".into(),
+                r.key("alice"),
+            ]);
         }
         v
     }

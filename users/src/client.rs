@@ -381,7 +381,9 @@ impl UserClient {
                     wait = wait.min(linger);
                 }
             }
-            Transport::Remote(r) => wait = wait.min(r.next_deadline().saturating_duration_since(now)),
+            Transport::Remote(r) => {
+                wait = wait.min(r.next_deadline().saturating_duration_since(now))
+            }
         }
         let tokens = self.reactor.wait(Some(wait))?;
         let mut extra = false;

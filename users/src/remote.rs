@@ -56,7 +56,9 @@ impl std::str::FromStr for Faults {
     fn from_str(s: &str) -> Result<Self, String> {
         let mut f = Faults::default();
         for kv in s.split(',').filter(|x| !x.is_empty()) {
-            let (k, v) = kv.split_once('=').ok_or(format!("expected key=value, got {kv:?}"))?;
+            let (k, v) = kv
+                .split_once('=')
+                .ok_or(format!("expected key=value, got {kv:?}"))?;
             let p = || -> Result<f64, String> {
                 let x: f64 = v.parse().map_err(|e| format!("{k}: {e}"))?;
                 if (0.0..=1.0).contains(&x) {
@@ -90,7 +92,11 @@ impl Lossy {
         if self.rng.random::<f64>() < self.f.loss {
             return (0, false);
         }
-        let copies = if self.rng.random::<f64>() < self.f.dup { 2 } else { 1 };
+        let copies = if self.rng.random::<f64>() < self.f.dup {
+            2
+        } else {
+            1
+        };
         (copies, self.rng.random::<f64>() < self.f.reorder)
     }
 }
@@ -315,7 +321,8 @@ impl RemoteLink {
             ToBroker::Hello { .. } => self.hello = Some((msg.clone(), Retry::new(now, self.rto()))),
             ToBroker::Request { req, .. } => {
                 let rto = self.rto();
-                self.requests.insert(*req, (msg.clone(), Retry::new(now, rto)));
+                self.requests
+                    .insert(*req, (msg.clone(), Retry::new(now, rto)));
             }
             ToBroker::Cancel { req, .. } => {
                 self.requests.remove(req);
@@ -375,7 +382,11 @@ impl RemoteLink {
                 t = t.min(r.next);
             }
         }
-        if self.lossy.as_ref().is_some_and(|l| l.held_in.is_some() || l.held_out.is_some()) {
+        if self
+            .lossy
+            .as_ref()
+            .is_some_and(|l| l.held_in.is_some() || l.held_out.is_some())
+        {
             t = t.min(Instant::now() + Duration::from_millis(5));
         }
         t
@@ -387,7 +398,9 @@ impl RemoteLink {
         self.release_held(core);
         // Handshake.
         match &self.hs {
-            Some(Hs::Up { confirmed: true, .. }) => {}
+            Some(Hs::Up {
+                confirmed: true, ..
+            }) => {}
             _ if self.hs_retry.due(now) => {
                 self.stats.retransmissions += 1;
                 match self.hs.take() {
@@ -646,7 +659,9 @@ impl RemoteLink {
         }
         if let Some(pin) = self.opts.broker_key {
             if hs.get_remote_static() != Some(pin.as_slice()) {
-                tracing::error!("the broker's key is not the one given with --broker-key: refusing it");
+                tracing::error!(
+                    "the broker's key is not the one given with --broker-key: refusing it"
+                );
                 self.hs = None;
                 return;
             }
@@ -760,7 +775,10 @@ impl RemoteLink {
                 let Ok(addr) = system_addr.parse::<SocketAddr>() else {
                     return self.stats.drops.drop("bad_system_addr", &from);
                 };
-                let system = service.split().map(|(s, _)| s.to_string()).unwrap_or_default();
+                let system = service
+                    .split()
+                    .map(|(s, _)| s.to_string())
+                    .unwrap_or_default();
                 // A grant the core no longer waits for (cancelled) still gets a cipher:
                 // the core ends it on sight, and the End must reach the system.
                 let now = Instant::now();
@@ -996,7 +1014,7 @@ impl RemoteLink {
                 self.rttvar = r / 2;
             }
             Some(s) => {
-                let diff = if s > r { s - r } else { r - s };
+                let diff = s.abs_diff(r);
                 self.rttvar = (self.rttvar * 3 + diff) / 4;
                 self.srtt = Some((s * 7 + r) / 8);
             }
@@ -1011,7 +1029,10 @@ impl RemoteLink {
 
     /// Sessions whose `End` is not yet confirmed.
     pub fn ending(&self) -> usize {
-        self.sessions.values().filter(|s| s.ending.is_some()).count()
+        self.sessions
+            .values()
+            .filter(|s| s.ending.is_some())
+            .count()
     }
 
     /// Whether the connection ever got a welcome (for the first connect's error).

@@ -87,7 +87,9 @@ impl AccessFile {
                     "bad user name {name:?}: 1 to {MAX_USER_NAME} of [A-Za-z0-9_-]"
                 )));
             }
-            let key = words.next().ok_or_else(|| at("missing public key".into()))?;
+            let key = words
+                .next()
+                .ok_or_else(|| at("missing public key".into()))?;
             let key = super::crypto::parse_key(key).map_err(at)?;
             let mut b = GlobSetBuilder::new();
             let mut patterns = Vec::new();
@@ -141,7 +143,10 @@ mod tests {
         assert!(a.allows("D1/goto"));
         assert!(!a.allows("D1/status"));
         assert!(!a.allows("T2/camera"));
-        assert!(!f.get("bob").unwrap().allows("T1/camera"), "no pattern: deny");
+        assert!(
+            !f.get("bob").unwrap().allows("T1/camera"),
+            "no pattern: deny"
+        );
         assert!(f.get("carol").unwrap().allows("anything/at-all"));
         assert!(f.get("dave").is_none());
     }
@@ -150,11 +155,17 @@ mod tests {
     fn errors_name_the_line() {
         let e = AccessFile::parse(&format!("user alice {K}\nuser al!ce {K}\n")).unwrap_err();
         assert!(e.starts_with("line 2:"), "{e}");
-        assert!(AccessFile::parse("user bob 1234\n").unwrap_err().contains("line 1"));
-        assert!(AccessFile::parse("allow x\n").unwrap_err().contains("unknown directive"));
+        assert!(AccessFile::parse("user bob 1234\n")
+            .unwrap_err()
+            .contains("line 1"));
+        assert!(AccessFile::parse("allow x\n")
+            .unwrap_err()
+            .contains("unknown directive"));
         assert!(AccessFile::parse(&format!("user a {K}\nuser a {K}\n"))
             .unwrap_err()
             .contains("twice"));
-        assert!(AccessFile::parse(&format!("user a {K} [\n")).unwrap_err().contains("pattern"));
+        assert!(AccessFile::parse(&format!("user a {K} [\n"))
+            .unwrap_err()
+            .contains("pattern"));
     }
 }

@@ -152,13 +152,19 @@ fn x25519_public(private: &[u8; 32]) -> Result<[u8; 32], String> {
         .map_err(|e| e.to_string())?;
     let mut buf = [0u8; 256];
     let mut out = [0u8; 256];
-    let n = ini.write_message(&[], &mut buf).map_err(|e| e.to_string())?;
+    let n = ini
+        .write_message(&[], &mut buf)
+        .map_err(|e| e.to_string())?;
     resp.read_message(&buf[..n], &mut out)
         .map_err(|e| e.to_string())?;
-    let n = resp.write_message(&[], &mut buf).map_err(|e| e.to_string())?;
+    let n = resp
+        .write_message(&[], &mut buf)
+        .map_err(|e| e.to_string())?;
     ini.read_message(&buf[..n], &mut out)
         .map_err(|e| e.to_string())?;
-    let n = ini.write_message(&[], &mut buf).map_err(|e| e.to_string())?;
+    let n = ini
+        .write_message(&[], &mut buf)
+        .map_err(|e| e.to_string())?;
     resp.read_message(&buf[..n], &mut out)
         .map_err(|e| e.to_string())?;
     resp.get_remote_static()
@@ -338,7 +344,11 @@ pub struct SessionCipher {
 
 impl std::fmt::Debug for SessionCipher {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "SessionCipher {{ me: {:?}, next: {} }}", self.me, self.next)
+        write!(
+            f,
+            "SessionCipher {{ me: {:?}, next: {} }}",
+            self.me, self.next
+        )
     }
 }
 
@@ -508,7 +518,9 @@ mod tests {
             hex::encode(k.private),
             hex::encode(other.public)
         );
-        assert!(KeyPair::parse(&bad).unwrap_err().contains("does not belong"));
+        assert!(KeyPair::parse(&bad)
+            .unwrap_err()
+            .contains("does not belong"));
         assert!(KeyPair::parse("name a\nprivate zz\n").is_err());
     }
 

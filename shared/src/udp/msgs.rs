@@ -129,10 +129,12 @@ pub fn to_bytes<T: Serialize>(m: &T) -> Result<Vec<u8>, MsgError> {
 
 /// Decodes a channel message; trailing bytes are an error.
 pub fn from_bytes<'de, T: Deserialize<'de>>(b: &'de [u8]) -> Result<T, MsgError> {
-    let (m, rest) =
-        postcard::take_from_bytes(b).map_err(|e| MsgError::Malformed(e.to_string()))?;
+    let (m, rest) = postcard::take_from_bytes(b).map_err(|e| MsgError::Malformed(e.to_string()))?;
     if !rest.is_empty() {
-        return Err(MsgError::Malformed(format!("{} trailing bytes", rest.len())));
+        return Err(MsgError::Malformed(format!(
+            "{} trailing bytes",
+            rest.len()
+        )));
     }
     Ok(m)
 }
@@ -179,7 +181,7 @@ mod tests {
             name: format!("service-with-a-long-name-{i:03}"),
             description: "d".repeat(95),
             kind: "data".into(),
-            queue: i % 2 == 0,
+            queue: i.is_multiple_of(2),
             quota: 10,
             in_use: 1,
             queued: 0,
@@ -206,14 +208,21 @@ mod tests {
                     entries,
                     ..
                 } => {
-                    assert_eq!((index as usize, total as usize, generation), (i, chunks.len(), 9));
+                    assert_eq!(
+                        (index as usize, total as usize, generation),
+                        (i, chunks.len(), 9)
+                    );
                     back.extend(entries);
                 }
                 other => panic!("{other:?}"),
             }
         }
         assert_eq!(back, views);
-        assert_eq!(chunk_list(1, 1, &[]).len(), 1, "an empty list is one empty chunk");
+        assert_eq!(
+            chunk_list(1, 1, &[]).len(),
+            1,
+            "an empty list is one empty chunk"
+        );
     }
 
     #[test]

@@ -413,10 +413,7 @@ mod tests {
     #[test]
     fn refuses_bad_headers_and_limits() {
         assert_eq!(Datagram::decode(&[]), Err(WireError::Truncated(0)));
-        assert_eq!(
-            Datagram::decode(&[0, 1, 2]),
-            Err(WireError::BadMagic(0))
-        );
+        assert_eq!(Datagram::decode(&[0, 1, 2]), Err(WireError::BadMagic(0)));
         assert_eq!(
             Datagram::decode(&[UDP_MAGIC, 9, 1]),
             Err(WireError::WrongVersion(9))

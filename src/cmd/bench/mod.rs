@@ -2,8 +2,8 @@
 
 pub mod floor;
 mod liveness;
-mod remote;
 pub mod procfs;
+mod remote;
 use super::children;
 mod scale;
 

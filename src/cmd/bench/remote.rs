@@ -65,7 +65,12 @@ fn client(broker: SocketAddr, key: &KeyPair, faults: Option<Faults>) -> anyhow::
 
 /// `n` requests of `service`, one at a time: time to grant (or refusal), then the
 /// session is ended. A request not answered in `deadline` is abandoned (cancelled).
-fn requests(c: &mut UserClient, service: &ServiceId, n: usize, deadline: Duration) -> anyhow::Result<Batch> {
+fn requests(
+    c: &mut UserClient,
+    service: &ServiceId,
+    n: usize,
+    deadline: Duration,
+) -> anyhow::Result<Batch> {
     let mut b = Batch {
         latency: hist(),
         granted: 0,
@@ -80,7 +85,9 @@ fn requests(c: &mut UserClient, service: &ServiceId, n: usize, deadline: Duratio
         let until = t + deadline;
         loop {
             match c.next_event(until)? {
-                Some(UserEvent::Granted { req: r, session, .. }) if r == req => {
+                Some(UserEvent::Granted {
+                    req: r, session, ..
+                }) if r == req => {
                     let _ = b.latency.record(us(t.elapsed()));
                     b.granted += 1;
                     c.end(session);
@@ -188,7 +195,13 @@ impl UdpProbe {
 /// Flood threads: from `sources` loopback addresses (127.0.0.2, .3, ...), a mix of
 /// garbage, unpadded and token-less initials, forged tokens and channel datagrams with
 /// made-up connection ids, at about `rate` datagrams a second in all.
-fn flood(to: SocketAddr, sources: usize, rate: u64, stop: Arc<AtomicBool>, sent: Arc<AtomicU64>) -> Vec<std::thread::JoinHandle<()>> {
+fn flood(
+    to: SocketAddr,
+    sources: usize,
+    rate: u64,
+    stop: Arc<AtomicBool>,
+    sent: Arc<AtomicU64>,
+) -> Vec<std::thread::JoinHandle<()>> {
     let threads = 2.min(sources.max(1));
     (0..threads)
         .map(|t| {
@@ -205,12 +218,20 @@ fn flood(to: SocketAddr, sources: usize, rate: u64, stop: Arc<AtomicBool>, sent:
                 if socks.is_empty() {
                     return;
                 }
-                let initial = Datagram::Initial { client: 1, token: b"", noise: b"" }
-                    .encode()
-                    .unwrap_or_default();
-                let forged = Datagram::Initial { client: 2, token: &[9; 24], noise: &[1; 32] }
-                    .encode()
-                    .unwrap_or_default();
+                let initial = Datagram::Initial {
+                    client: 1,
+                    token: b"",
+                    noise: b"",
+                }
+                .encode()
+                .unwrap_or_default();
+                let forged = Datagram::Initial {
+                    client: 2,
+                    token: &[9; 24],
+                    noise: &[1; 32],
+                }
+                .encode()
+                .unwrap_or_default();
                 let per_thread = (rate / threads as u64).max(1);
                 let gap = Duration::from_secs_f64(1.0 / per_thread as f64);
                 let mut next = Instant::now();
@@ -218,9 +239,13 @@ fn flood(to: SocketAddr, sources: usize, rate: u64, stop: Arc<AtomicBool>, sent:
                 while !stop.load(Ordering::Relaxed) {
                     let s = &socks[(i as usize) % socks.len()];
                     let conn = i.wrapping_mul(0x9e37_79b9_7f4a_7c15);
-                    let channel = Datagram::Channel { conn, nonce: i, sealed: &[3; 48] }
-                        .encode()
-                        .unwrap_or_default();
+                    let channel = Datagram::Channel {
+                        conn,
+                        nonce: i,
+                        sealed: &[3; 48],
+                    }
+                    .encode()
+                    .unwrap_or_default();
                     let d: &[u8] = match i % 5 {
                         0 => b"garbage that is no muster datagram",
                         1 => &initial,
@@ -265,14 +290,31 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
     std::fs::create_dir_all(&dir)?;
     let key = KeyPair::generate()?;
     let access = dir.join("access");
-    std::fs::write(&access, access_line("bench", &key.public, &["*".to_string()]) + "\n")?;
+    std::fs::write(
+        &access,
+        access_line("bench", &key.public, &["*".to_string()]) + "\n",
+    )?;
     let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
     let broker_addr: SocketAddr = format!("127.0.0.1:{port}").parse()?;
     let mut kids = Children::default();
     let bstr = broker_addr.to_string();
     let astr = access.display().to_string();
     let mut broker_out = kids
-        .spawn(inst, "broker", &["broker", "--udp", &bstr, "--access", &astr, "--stats-json", "--udp-conn-rate", "1000000"], Stdio::piped())?
+        .spawn(
+            inst,
+            "broker",
+            &[
+                "broker",
+                "--udp",
+                &bstr,
+                "--access",
+                &astr,
+                "--stats-json",
+                "--udp-conn-rate",
+                "1000000",
+            ],
+            Stdio::piped(),
+        )?
         .stdout
         .take()
         .context("broker stdout")?;
@@ -282,7 +324,19 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
             .spawn(
                 inst,
                 name,
-                &["system", "synthetic", "--name", name, "--kind", kind, "--quota", "1000", "--udp", "127.0.0.1:0", "--stats-json"],
+                &[
+                    "system",
+                    "synthetic",
+                    "--name",
+                    name,
+                    "--kind",
+                    kind,
+                    "--quota",
+                    "1000",
+                    "--udp",
+                    "127.0.0.1:0",
+                    "--stats-json",
+                ],
                 Stdio::piped(),
             )?
             .stdout
@@ -344,7 +398,13 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
         let stop = Arc::new(AtomicBool::new(false));
         let sent = Arc::new(AtomicU64::new(0));
         let t = Instant::now();
-        let th = flood(broker_addr, a.flood_sources, a.flood_rate, stop.clone(), sent.clone());
+        let th = flood(
+            broker_addr,
+            a.flood_sources,
+            a.flood_rate,
+            stop.clone(),
+            sent.clone(),
+        );
         std::thread::sleep(Duration::from_millis(300));
         let mut c = client(broker_addr, &key, None)?;
         let (lh, _) = lists(&mut c, 100, None)?;
@@ -395,8 +455,14 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
         println!("{out}");
         return Ok(ExitCode::SUCCESS);
     }
-    println!("remote path on loopback (2 systems, {} requests per row)", a.requests);
-    println!("{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}", "", "count", "p50 µs", "p90 µs", "p99 µs", "max µs");
+    println!(
+        "remote path on loopback (2 systems, {} requests per row)",
+        a.requests
+    );
+    println!(
+        "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
+        "", "count", "p50 µs", "p90 µs", "p99 µs", "max µs"
+    );
     println!("{}", row("raw UDP round trip (floor)", &floor));
     println!("{}", row("remote list", &list));
     println!("{}", row("remote service request", &clean.latency));
