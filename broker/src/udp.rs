@@ -21,7 +21,7 @@ use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
 use muster_shared::udp::msgs::{chunk_list, from_bytes, to_bytes, Down, Hs3, Up};
 use muster_shared::udp::wire::{Datagram, WireError, MAX_DATAGRAM};
-use muster_shared::udp::DropCounters;
+use muster_shared::udp::{recv_one, DropCounters, RECV_BATCH};
 use std::collections::{BTreeMap, HashMap};
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, UdpSocket};
 use std::os::fd::{AsRawFd, RawFd};
@@ -365,14 +365,9 @@ impl UdpFront {
     /// starve the shared-memory side).
     pub fn on_readable(&mut self, core: &mut Broker, now: Duration) {
         let mut buf = [0u8; MAX_DATAGRAM + 1];
-        for _ in 0..4096 {
-            let (n, from) = match self.sock.recv_from(&mut buf) {
-                Ok(x) => x,
-                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return,
-                Err(e) => {
-                    tracing::debug!("udp recv: {e}");
-                    return;
-                }
+        for _ in 0..RECV_BATCH {
+            let Some((n, from)) = recv_one(&self.sock, &mut buf) else {
+                return;
             };
             self.stats.datagrams_in += 1;
             self.on_datagram(core, now, &buf[..n], from);

@@ -292,6 +292,18 @@ impl SystemCore {
         }
     }
 
+    /// The grant a user is sent for `session` of `spec`.
+    fn granted(&self, req: u64, session: SessionId, spec: &ServiceSpec) -> ToUser {
+        ToUser::Granted {
+            req,
+            session,
+            service: ServiceId::new(&self.name, &spec.name),
+            kind: spec.kind,
+            payload: spec.payload.clone(),
+            system_pid: self.pid,
+        }
+    }
+
     fn offer(&mut self, ticket: u64, user: UserId, user_pid: u32, req: u64, service: String) {
         // The same request offered again (a retry that crossed a broker restart, or a
         // duplicate): answer with the session it already has, never a second grant.
@@ -302,17 +314,9 @@ impl SystemCore {
             .map(|(id, _)| *id);
         if let Some(session) = existing {
             if let Some(spec) = self.specs.iter().find(|s| s.name == service) {
-                self.out.push_back(SystemOutput::ToUser(
-                    user.clone(),
-                    ToUser::Granted {
-                        req,
-                        session,
-                        service: ServiceId::new(&self.name, &service),
-                        kind: spec.kind,
-                        payload: spec.payload.clone(),
-                        system_pid: self.pid,
-                    },
-                ));
+                let granted = self.granted(req, session, spec);
+                self.out
+                    .push_back(SystemOutput::ToUser(user.clone(), granted));
             }
             self.send_broker(ToBroker::OfferAnswer {
                 system: self.name.clone(),
@@ -351,17 +355,9 @@ impl SystemCore {
                     self.out
                         .push_back(SystemOutput::WatchUser(user.clone(), user_pid));
                 }
-                self.out.push_back(SystemOutput::ToUser(
-                    user.clone(),
-                    ToUser::Granted {
-                        req,
-                        session,
-                        service: ServiceId::new(&self.name, &service),
-                        kind: spec.kind,
-                        payload: spec.payload.clone(),
-                        system_pid: self.pid,
-                    },
-                ));
+                let granted = self.granted(req, session, &spec);
+                self.out
+                    .push_back(SystemOutput::ToUser(user.clone(), granted));
                 self.send_broker(ToBroker::OfferAnswer {
                     system: self.name.clone(),
                     ticket,

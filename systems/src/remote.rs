@@ -16,7 +16,7 @@ use muster_shared::types::{EndReason, SessionId, UserId};
 use muster_shared::udp::crypto::{SessionCipher, Side};
 use muster_shared::udp::msgs::{from_bytes, to_bytes, SessionDown, SessionUp};
 use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
-use muster_shared::udp::DropCounters;
+use muster_shared::udp::{recv_one, DropCounters, RECV_BATCH};
 use std::collections::HashMap;
 use std::net::{SocketAddr, UdpSocket};
 use std::os::fd::{AsRawFd, RawFd};
@@ -165,14 +165,9 @@ impl RemoteSessions {
     /// Reads waiting datagrams and feeds their messages to the core.
     pub fn on_readable(&mut self, core: &mut SystemCore) {
         let mut buf = [0u8; MAX_DATAGRAM + 1];
-        for _ in 0..4096 {
-            let (n, from) = match self.sock.recv_from(&mut buf) {
-                Ok(x) => x,
-                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return,
-                Err(e) => {
-                    tracing::debug!("udp recv: {e}");
-                    return;
-                }
+        for _ in 0..RECV_BATCH {
+            let Some((n, from)) = recv_one(&self.sock, &mut buf) else {
+                return;
             };
             self.stats.datagrams_in += 1;
             self.on_datagram(core, &buf[..n], from);

@@ -138,13 +138,7 @@ impl UserClient {
         if let Some(fd) = presence.fd() {
             reactor.add(fd, TOKEN_PRESENCE)?;
         }
-        let signals = if opts.handle_signals {
-            let s = SignalPipe::install()?;
-            reactor.add(s.raw(), TOKEN_SIGNAL)?;
-            Some(s)
-        } else {
-            None
-        };
+        let signals = signals_for(&reactor, opts)?;
         let client = UserClient {
             core: UserCore::new(id, pid, opts.watch_list),
             transport: Transport::Local(Box::new(Local {
@@ -174,13 +168,7 @@ impl UserClient {
         let link = RemoteLink::new(remote)?;
         let reactor = Reactor::new()?;
         reactor.add(link.fd(), TOKEN_UDP)?;
-        let signals = if opts.handle_signals {
-            let s = SignalPipe::install()?;
-            reactor.add(s.raw(), TOKEN_SIGNAL)?;
-            Some(s)
-        } else {
-            None
-        };
+        let signals = signals_for(&reactor, opts)?;
         let client = UserClient {
             core: UserCore::new(link.user_id(), 0, opts.watch_list),
             transport: Transport::Remote(Box::new(link)),
@@ -519,6 +507,16 @@ impl UserClient {
             r.flush_held();
         }
     }
+}
+
+/// SIGINT/SIGTERM as a reactor event, if the options ask for it.
+fn signals_for(reactor: &Reactor, opts: &ConnectOptions) -> Result<Option<SignalPipe>, UserError> {
+    if !opts.handle_signals {
+        return Ok(None);
+    }
+    let s = SignalPipe::install()?;
+    reactor.add(s.raw(), TOKEN_SIGNAL)?;
+    Ok(Some(s))
 }
 
 impl Local {

@@ -14,7 +14,7 @@ use muster_shared::types::{SessionId, UserId};
 use muster_shared::udp::crypto::{self, Channel, HandshakeState, KeyPair, SessionCipher, Side};
 use muster_shared::udp::msgs::{from_bytes, to_bytes, Down, Hs3, SessionDown, SessionUp, Up};
 use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
-use muster_shared::udp::DropCounters;
+use muster_shared::udp::{recv_one, DropCounters, RECV_BATCH};
 use rand::{RngExt, SeedableRng};
 use std::collections::{BTreeMap, HashMap};
 use std::net::{SocketAddr, UdpSocket};
@@ -535,14 +535,9 @@ impl RemoteLink {
     /// Reads waiting datagrams and hands their messages to the core.
     pub fn on_readable(&mut self, core: &mut UserCore) {
         let mut buf = [0u8; MAX_DATAGRAM + 1];
-        for _ in 0..4096 {
-            let (n, from) = match self.sock.recv_from(&mut buf) {
-                Ok(x) => x,
-                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
-                Err(e) => {
-                    tracing::debug!("udp recv: {e}");
-                    break;
-                }
+        for _ in 0..RECV_BATCH {
+            let Some((n, from)) = recv_one(&self.sock, &mut buf) else {
+                break;
             };
             let bytes = buf[..n].to_vec();
             match self.lossy.as_mut() {

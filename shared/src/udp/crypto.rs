@@ -432,7 +432,7 @@ impl Cookies {
         }
     }
 
-    fn mac(&self, t: u64, addr: &SocketAddr, client: u64) -> [u8; 16] {
+    fn mac(&self, t: u64, addr: &SocketAddr, client: u64) -> HmacSha256 {
         let mut m = <HmacSha256 as Mac>::new_from_slice(&self.secret)
             .expect("HMAC takes keys of any length");
         m.update(&t.to_le_bytes());
@@ -442,17 +442,14 @@ impl Cookies {
         }
         m.update(&addr.port().to_le_bytes());
         m.update(&client.to_le_bytes());
-        let full = m.finalize().into_bytes();
-        let mut out = [0u8; 16];
-        out.copy_from_slice(&full[..16]);
-        out
+        m
     }
 
     /// A token for `addr` and handshake `client` at time `now_s` (seconds).
     pub fn mint(&self, now_s: u64, addr: &SocketAddr, client: u64) -> [u8; TOKEN_LEN] {
         let mut t = [0u8; TOKEN_LEN];
         t[..8].copy_from_slice(&now_s.to_le_bytes());
-        t[8..].copy_from_slice(&self.mac(now_s, addr, client));
+        t[8..].copy_from_slice(&self.mac(now_s, addr, client).finalize().into_bytes()[..16]);
         t
     }
 
@@ -468,16 +465,9 @@ impl Cookies {
             return false;
         }
         // Constant-time comparison through the MAC crate.
-        let mut m = <HmacSha256 as Mac>::new_from_slice(&self.secret)
-            .expect("HMAC takes keys of any length");
-        m.update(&t.to_le_bytes());
-        match addr {
-            SocketAddr::V4(a) => m.update(&a.ip().octets()),
-            SocketAddr::V6(a) => m.update(&a.ip().octets()),
-        }
-        m.update(&addr.port().to_le_bytes());
-        m.update(&client.to_le_bytes());
-        m.verify_truncated_left(&token[8..]).is_ok()
+        self.mac(t, addr, client)
+            .verify_truncated_left(&token[8..])
+            .is_ok()
     }
 }
 

@@ -7,6 +7,26 @@ pub mod crypto;
 pub mod msgs;
 pub mod wire;
 
+/// Most datagrams one wake-up reads from a socket, so a flood cannot starve the rest of
+/// a process's work.
+pub const RECV_BATCH: usize = 4096;
+
+/// Reads one datagram from a non-blocking socket into `buf`; `None` when none waits
+/// (other errors are logged at debug level and also end the batch).
+pub fn recv_one(
+    sock: &std::net::UdpSocket,
+    buf: &mut [u8],
+) -> Option<(usize, std::net::SocketAddr)> {
+    match sock.recv_from(buf) {
+        Ok(x) => Some(x),
+        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => None,
+        Err(e) => {
+            tracing::debug!("udp recv: {e}");
+            None
+        }
+    }
+}
+
 /// Per-reason counters of dropped datagrams, and a rate-limited log line for them: the
 /// 1st, 2nd, 4th, 8th, ... drop of each reason is logged.
 #[derive(Debug, Default, Clone, serde::Serialize)]
