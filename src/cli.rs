@@ -408,6 +408,14 @@ pub struct StressArgs {
     /// Print the report as one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Users connect over UDP (authenticated, through the broker's front and the
+    /// systems' endpoints); the floor is then also the raw UDP loopback round trip.
+    #[arg(long)]
+    pub remote: bool,
+    /// Idle mode: the users connect and do nothing for `--duration`; reports the CPU of
+    /// the broker, the systems and the users, and memory.
+    #[arg(long)]
+    pub idle: bool,
 }
 
 /// The size of a load run: how many user processes, services and systems.

@@ -64,7 +64,8 @@ impl BrokerReport {
                 (
                     k.to_string(),
                     serde_json::json!({"count": h.len(), "p50_us": h.value_at_quantile(0.5),
-                                       "p99_us": h.value_at_quantile(0.99), "max_us": h.max()}),
+                                       "p99_us": h.value_at_quantile(0.99), "max_us": h.max(),
+                                       "mean_us": h.mean(), "stdev_us": h.stdev()}),
                 )
             })
             .collect();
@@ -192,9 +193,19 @@ pub fn run_with(
                     if signals.drain() {
                         tracing::info!("signal received: broker stopping");
                         presence.ring(bell::BROKER_DOWN);
+                        let mut handling = shell.handling;
+                        if let Some(f) = shell.udp.as_ref() {
+                            for (k, h) in f.handling() {
+                                if let Some(mine) = handling.get_mut(k) {
+                                    let _ = mine.add(h);
+                                } else {
+                                    handling.insert(k, h.clone());
+                                }
+                            }
+                        }
                         return Ok(BrokerReport {
                             stats: core.stats().clone(),
-                            handling: shell.handling,
+                            handling,
                             udp: shell.udp.as_ref().map(|f| f.stats().clone()),
                         });
                     }
@@ -253,17 +264,7 @@ impl Shell {
     fn drain_inbox(&mut self, core: &mut Broker, now: Duration) -> Result<(), BrokerError> {
         while let Some(frame) = self.endpoint.recv()? {
             match decode::<ToBroker>(&frame) {
-                Ok(msg) => {
-                    let kind = msg.kind();
-                    let t = Instant::now();
-                    core.handle(now, msg);
-                    let us = (t.elapsed().as_nanos() as u64).div_ceil(1000).max(1);
-                    let h = self.handling.entry(kind).or_insert_with(|| {
-                        hdrhistogram::Histogram::new(3)
-                            .expect("3 significant figures is a valid precision")
-                    });
-                    let _ = h.record(us);
-                }
+                Ok(msg) => timed_handle(&mut self.handling, core, now, msg),
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),
             }
         }
@@ -409,4 +410,19 @@ fn died_in(core: &mut Broker, now: Duration, who: &Address) {
         Address::User(u) => core.user_died(now, u),
         Address::Broker => {}
     }
+}
+
+/// Time to handle each message type, µs.
+pub type Handling = std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>;
+
+/// Hands `msg` to the core and records how long that took under the message's kind.
+pub fn timed_handle(handling: &mut Handling, core: &mut Broker, now: Duration, msg: ToBroker) {
+    let kind = msg.kind();
+    let t = Instant::now();
+    core.handle(now, msg);
+    let us = (t.elapsed().as_nanos() as u64).div_ceil(1000).max(1);
+    let h = handling.entry(kind).or_insert_with(|| {
+        hdrhistogram::Histogram::new(3).expect("3 significant figures is a valid precision")
+    });
+    let _ = h.record(us);
 }

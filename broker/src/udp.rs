@@ -179,6 +179,7 @@ pub struct UdpFront {
     epoch: u64,
     generation: u64,
     stats: UdpStats,
+    handling: crate::run::Handling,
 }
 
 /// Why the UDP front could not start.
@@ -229,6 +230,7 @@ impl UdpFront {
             epoch,
             generation: 0,
             stats: UdpStats::default(),
+            handling: crate::run::Handling::new(),
         })
     }
 
@@ -245,6 +247,11 @@ impl UdpFront {
     /// Counters.
     pub fn stats(&self) -> &UdpStats {
         &self.stats
+    }
+
+    /// Time the core took for the messages this front handed it, by kind.
+    pub fn handling(&self) -> &crate::run::Handling {
+        &self.handling
     }
 
     /// Number of authenticated connections.
@@ -621,7 +628,9 @@ impl UdpFront {
                     self.conns.remove(&old);
                 }
             }
-            core.handle(
+            crate::run::timed_handle(
+                &mut self.handling,
+                core,
                 now,
                 ToBroker::Hello {
                     user,
@@ -639,17 +648,28 @@ impl UdpFront {
             ToBroker::Request { req, service, .. } => {
                 self.on_request(core, now, id, user, req, service, from)
             }
-            ToBroker::Cancel { req, .. } => core.handle(now, ToBroker::Cancel { user, req }),
-            ToBroker::LinkOpened { link, .. } => {
-                core.handle(now, ToBroker::LinkOpened { user, link })
-            }
-            ToBroker::LinkClosed { link, .. } => {
-                core.handle(now, ToBroker::LinkClosed { user, link })
-            }
+            ToBroker::Cancel { req, .. } => crate::run::timed_handle(
+                &mut self.handling,
+                core,
+                now,
+                ToBroker::Cancel { user, req },
+            ),
+            ToBroker::LinkOpened { link, .. } => crate::run::timed_handle(
+                &mut self.handling,
+                core,
+                now,
+                ToBroker::LinkOpened { user, link },
+            ),
+            ToBroker::LinkClosed { link, .. } => crate::run::timed_handle(
+                &mut self.handling,
+                core,
+                now,
+                ToBroker::LinkClosed { user, link },
+            ),
             ToBroker::Goodbye { .. } => {
                 self.by_user.remove(&user);
                 self.conns.remove(&id);
-                core.handle(now, ToBroker::Goodbye { user });
+                crate::run::timed_handle(&mut self.handling, core, now, ToBroker::Goodbye { user });
             }
             _ => self.stats.drops.drop("not_a_user_message", &from),
         }
@@ -723,7 +743,12 @@ impl UdpFront {
                 self.stats.refused_here += 1;
                 self.answer(id, req, Down::Msg(ToUser::Refused { req, reason }), true);
             }
-            None => core.handle(now, ToBroker::Request { user, req, service }),
+            None => crate::run::timed_handle(
+                &mut self.handling,
+                core,
+                now,
+                ToBroker::Request { user, req, service },
+            ),
         }
     }
 

@@ -2,6 +2,8 @@
 //! synthetic systems, measured from both sides, with the floor in the same run.
 
 use super::bench::floor::FloorProbe;
+use super::bench::procfs;
+use super::bench::remote::UdpProbe;
 use super::bench::{row, summary};
 use super::children::Children;
 use crate::cli::StressArgs;
@@ -95,43 +97,248 @@ impl Timeline {
     }
 }
 
+/// Keys and access for remote stress users (one user name; each process is its own
+/// connection with its own id).
+struct RemoteUsers {
+    dir: std::path::PathBuf,
+    addr: String,
+    access: String,
+    key: String,
+}
+
+impl RemoteUsers {
+    fn new() -> anyhow::Result<Self> {
+        use muster_shared::udp::access::access_line;
+        use muster_shared::udp::crypto::KeyPair;
+        let dir = std::env::temp_dir().join(format!("muster-stress-{}", std::process::id()));
+        std::fs::create_dir_all(&dir)?;
+        let kp = KeyPair::generate()?;
+        let key = dir.join("stress.key");
+        let _ = std::fs::remove_file(&key);
+        kp.write("stress", &key)?;
+        let access = dir.join("access");
+        std::fs::write(
+            &access,
+            access_line("stress", &kp.public, &["*".into()]) + "\n",
+        )?;
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")?
+            .local_addr()?
+            .port();
+        Ok(RemoteUsers {
+            addr: format!("127.0.0.1:{port}"),
+            access: access.display().to_string(),
+            key: key.display().to_string(),
+            dir,
+        })
+    }
+}
+
+impl Drop for RemoteUsers {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// The broker and systems of a stress run.
+struct Setup {
+    children: Children,
+    broker_out: Option<ChildStdout>,
+    system_outs: Vec<Option<ChildStdout>>,
+    broker_pid: u32,
+    system_pids: Vec<u32>,
+    remote: Option<RemoteUsers>,
+}
+
+impl Setup {
+    fn start(inst: &Instance, a: &StressArgs) -> anyhow::Result<Self> {
+        let remote = if a.remote {
+            Some(RemoteUsers::new()?)
+        } else {
+            None
+        };
+        let mut children = Children::default();
+        let mut broker_args = vec!["broker", "--stats-json"];
+        if let Some(r) = &remote {
+            broker_args.extend(["--udp", &r.addr, "--access", &r.access]);
+        }
+        let broker = children.spawn(inst, "broker", &broker_args, Stdio::piped())?;
+        let broker_pid = broker.id();
+        let broker_out = broker.stdout.take();
+        let mut system_outs = Vec::new();
+        let mut system_pids = Vec::new();
+        for i in 0..a.load.systems {
+            let n = a.load.services_of(i);
+            let name = format!("s{i}");
+            let quota = (1 + (i * 3) % 10).to_string();
+            let kind = if i % 2 == 0 { "data" } else { "command" };
+            let (n_s, rate) = (n.to_string(), "10".to_string());
+            let mut args = vec![
+                "system",
+                "synthetic",
+                "--name",
+                &name,
+                "--services",
+                &n_s,
+                "--kind",
+                kind,
+            ];
+            args.extend(["--quota", &quota, "--rate", &rate, "--stats-json"]);
+            if i % 3 == 2 {
+                args.push("--queue");
+            }
+            if remote.is_some() {
+                args.extend(["--udp", "127.0.0.1:0"]);
+            }
+            let child = children.spawn(inst, &name, &args, Stdio::piped())?;
+            system_pids.push(child.id());
+            system_outs.push(child.stdout.take());
+        }
+        super::children::connect_when_listed(inst, a.load.services, Duration::from_secs(30))?
+            .close();
+        Ok(Setup {
+            children,
+            broker_out,
+            system_outs,
+            broker_pid,
+            system_pids,
+            remote,
+        })
+    }
+
+    /// `muster user` arguments up to the verb (the transport).
+    fn user_prefix(&self) -> Vec<String> {
+        let mut v: Vec<String> = ["user", "--wait", "60s"].map(String::from).to_vec();
+        if let Some(r) = &self.remote {
+            v.extend([
+                "--remote".into(),
+                r.addr.clone(),
+                "--key".into(),
+                r.key.clone(),
+            ]);
+        }
+        v
+    }
+
+    fn cpu_ticks(&self) -> (u64, u64) {
+        let b = procfs::cpu_ticks(self.broker_pid).unwrap_or(0);
+        let s = self
+            .system_pids
+            .iter()
+            .filter_map(|p| procfs::cpu_ticks(*p))
+            .sum();
+        (b, s)
+    }
+}
+
+/// CPU percent of one core from clock ticks over `secs`.
+fn cpu_percent(ticks: u64, secs: f64) -> f64 {
+    100.0 * ticks as f64 / procfs::ticks_per_second() as f64 / secs.max(1e-9)
+}
+
+/// Memory of the federation at one moment: broker, systems, users (PSS), shared memory.
+fn memory(setup: &Setup, users: &[u32]) -> Value {
+    let pss: Vec<u64> = users.iter().filter_map(|p| procfs::pss_kib(*p)).collect();
+    let mean = pss.iter().sum::<u64>() as f64 / pss.len().max(1) as f64;
+    json!({
+        "broker_rss_kib": procfs::rss_kib(setup.broker_pid),
+        "broker_pss_kib": procfs::pss_kib(setup.broker_pid),
+        "systems_pss_kib": setup.system_pids.iter().filter_map(|p| procfs::pss_kib(*p)).sum::<u64>(),
+        "user_pss_kib_mean": mean,
+        "user_pss_kib_max": pss.iter().max(),
+        "users_measured": pss.len(),
+        "shm_allocated_bytes": procfs::shm_allocated_bytes(),
+    })
+}
+
+/// Idle mode: users connect and stay idle; CPU over `--duration`, and memory.
+fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result<ExitCode> {
+    let (tx, rx) = mpsc::channel::<bool>();
+    let stay = format!("{}ms", (a.duration + Duration::from_secs(120)).as_millis());
+    let prefix = setup.user_prefix();
+    let mut users = Vec::new();
+    for _ in 0..a.load.users {
+        let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
+        args.extend(["idle", "--duration", &stay]);
+        let child = setup.children.spawn(inst, "user", &args, Stdio::piped())?;
+        users.push(child.id());
+        let out = child.stdout.take().context("user stdout")?;
+        let tx = tx.clone();
+        std::thread::spawn(move || {
+            let first = BufReader::new(out).lines().map_while(Result::ok).next();
+            let _ = tx.send(first.is_some_and(|l| l.contains("\"connected\":true")));
+        });
+    }
+    drop(tx);
+    let t0 = Instant::now();
+    let mut connected = 0;
+    while connected < a.load.users && t0.elapsed() < Duration::from_secs(180) {
+        match rx.recv_timeout(Duration::from_millis(100)) {
+            Ok(true) => connected += 1,
+            Ok(false) | Err(mpsc::RecvTimeoutError::Timeout) => {}
+            Err(mpsc::RecvTimeoutError::Disconnected) => break,
+        }
+    }
+    let setup_s = t0.elapsed().as_secs_f64();
+    std::thread::sleep(Duration::from_secs(2)); // let the connection storm settle
+    let (b0, s0) = setup.cpu_ticks();
+    let u0: u64 = users.iter().filter_map(|p| procfs::cpu_ticks(*p)).sum();
+    let t = Instant::now();
+    std::thread::sleep(a.duration);
+    let secs = t.elapsed().as_secs_f64();
+    let (b1, s1) = setup.cpu_ticks();
+    let u1: u64 = users.iter().filter_map(|p| procfs::cpu_ticks(*p)).sum();
+    let mem = memory(&setup, &users);
+    setup.children.stop();
+    let report = json!({
+        "mode": "idle", "transport": if a.remote { "udp" } else { "shm" },
+        "users": a.load.users, "connected": connected, "services": a.load.services,
+        "connect_all_s": setup_s, "measured_s": secs,
+        "broker_cpu_percent": cpu_percent(b1.saturating_sub(b0), secs),
+        "systems_cpu_percent": cpu_percent(s1.saturating_sub(s0), secs),
+        "users_cpu_percent": cpu_percent(u1.saturating_sub(u0), secs),
+        "memory": mem,
+        "errors": a.load.users - connected,
+    });
+    if let Some(dir) = &a.report {
+        std::fs::create_dir_all(dir)?;
+        std::fs::write(
+            dir.join("report.json"),
+            serde_json::to_string_pretty(&report)?,
+        )?;
+    }
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "muster stress --idle: {connected}/{} users connected over {} in {setup_s:.1} s; over {secs:.0} s idle: broker CPU {:.3} %, systems {:.3} %, all users {:.3} %",
+            a.load.users,
+            report["transport"],
+            report["broker_cpu_percent"].as_f64().unwrap_or(0.0),
+            report["systems_cpu_percent"].as_f64().unwrap_or(0.0),
+            report["users_cpu_percent"].as_f64().unwrap_or(0.0),
+        );
+        println!("memory: {}", report["memory"]);
+    }
+    Ok(if connected == a.load.users {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
 pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     a.load.check(3)?;
-    let mut children = Children::default();
-    let broker_out = children
-        .spawn(inst, "broker", &["broker", "--stats-json"], Stdio::piped())?
-        .stdout
-        .take();
-    let mut system_outs = Vec::new();
-    for i in 0..a.load.systems {
-        let n = a.load.services_of(i);
-        let name = format!("s{i}");
-        let quota = (1 + (i * 3) % 10).to_string();
-        let kind = if i % 2 == 0 { "data" } else { "command" };
-        let (n_s, rate) = (n.to_string(), "10".to_string());
-        let mut args = vec![
-            "system",
-            "synthetic",
-            "--name",
-            &name,
-            "--services",
-            &n_s,
-            "--kind",
-            kind,
-        ];
-        args.extend(["--quota", &quota, "--rate", &rate, "--stats-json"]);
-        if i % 3 == 2 {
-            args.push("--queue");
-        }
-        system_outs.push(
-            children
-                .spawn(inst, &name, &args, Stdio::piped())?
-                .stdout
-                .take(),
-        );
+    let mut setup = Setup::start(inst, &a)?;
+    if a.idle {
+        return run_idle(inst, &a, setup);
     }
-    super::children::connect_when_listed(inst, a.load.services, Duration::from_secs(30))?.close();
     let mut probe = FloorProbe::start(inst)?;
+    let mut udp_probe = match &setup.remote {
+        Some(_) => Some(UdpProbe::start(inst, &mut setup.children)?),
+        None => None,
+    };
+    let prefix = setup.user_prefix();
+    let (b0, s0) = setup.cpu_ticks();
 
     // Users.
     let (tx, rx) = mpsc::channel::<(usize, Option<Value>)>();
@@ -139,12 +346,11 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let think = format!("{}ms", a.think.as_millis().max(1));
     let start = Instant::now();
     let start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
+    let mut user_pids = Vec::new();
     for i in 0..a.load.users {
         let seed = i.to_string();
-        let args = [
-            "user",
-            "--wait",
-            "60s",
+        let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
+        args.extend([
             "behave",
             "--duration",
             &duration,
@@ -152,8 +358,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             &think,
             "--seed",
             &seed,
-        ];
-        let child = children.spawn(inst, "user", &args, Stdio::piped())?;
+        ]);
+        let child = setup.children.spawn(inst, "user", &args, Stdio::piped())?;
+        user_pids.push(child.id());
         let out = child.stdout.take().context("user stdout")?;
         let tx = tx.clone();
         std::thread::spawn(move || {
@@ -164,21 +371,38 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     drop(tx);
     // While they behave, the floor, every 20 ms, under the same load.
     let mut floor = histogram();
+    let mut floor_udp = histogram();
+    let mut mem = Value::Null;
     let mut reports: Vec<Option<Value>> = vec![None; a.load.users];
     let mut done = 0;
     let give_up = start + a.duration + Duration::from_secs(120);
     while done < a.load.users && Instant::now() < give_up {
         floor.record((probe.round_trip()?.as_micros() as u64).max(1))?;
+        if let Some(p) = udp_probe.as_mut() {
+            if let Some(d) = p.round_trip()? {
+                floor_udp.record((d.as_micros() as u64).max(1))?;
+            }
+        }
+        if mem.is_null() && start.elapsed() >= a.duration / 2 {
+            mem = memory(&setup, &user_pids);
+        }
         while let Ok((i, r)) = rx.recv_timeout(Duration::from_millis(20)) {
             reports[i] = r;
             done += 1;
         }
     }
     let run_time = start.elapsed();
+    let (b1, s1) = setup.cpu_ticks();
+    let run_s = run_time.as_secs_f64();
+    let cpu = json!({
+        "broker_percent": cpu_percent(b1.saturating_sub(b0), run_s),
+        "systems_percent": cpu_percent(s1.saturating_sub(s0), run_s),
+    });
     probe.stop();
-    children.stop(); // SIGTERM: systems and broker print their statistics
-    let broker: Value = serde_json::from_str(read_all(broker_out).trim()).unwrap_or(Value::Null);
-    let systems: Vec<Value> = system_outs
+    setup.children.stop(); // SIGTERM: systems and broker print their statistics
+    let broker: Value =
+        serde_json::from_str(read_all(setup.broker_out.take()).trim()).unwrap_or(Value::Null);
+    let systems: Vec<Value> = std::mem::take(&mut setup.system_outs)
         .into_iter()
         .filter_map(|o| serde_json::from_str(read_all(o).trim()).ok())
         .collect();
@@ -252,8 +476,12 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "totals": totals, "system_grants": system_grants, "refusals": refusals, "over_quota": over_quota, "checks": checks,
         "list": summary(&list), "service_request": summary(&request), "update": summary(&update),
         "floor": summary(&floor),
+        "floor_udp": if a.remote { summary(&floor_udp) } else { Value::Null },
+        "transport": if a.remote { "udp" } else { "shm" },
+        "cpu": cpu, "memory": mem,
         "timeline": timeline.to_json(),
-        "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64 / floor.value_at_quantile(0.5).max(1) as f64,
+        "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64
+            / if a.remote { &floor_udp } else { &floor }.value_at_quantile(0.5).max(1) as f64,
         "broker": broker,
     });
     if let Some(dir) = &a.report {
@@ -287,6 +515,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", row("service request", &request));
         println!("{}", row("session update", &update));
         println!("{}", row("floor (raw 2-process trip)", &floor));
+        if a.remote {
+            println!("{}", row("floor (raw UDP round trip)", &floor_udp));
+        }
         let (early, late) = timeline.split_requests(10);
         println!("{}", row("service request, first 10 s", &early));
         println!("{}", row("service request, after 10 s", &late));
@@ -299,7 +530,11 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
                 );
             }
         }
-        println!("\ntotals: {totals:?}; refusals: {refusals:?}");
+        println!(
+            "\ncpu over the run: {}; memory at half time: {}",
+            report["cpu"], report["memory"]
+        );
+        println!("totals: {totals:?}; refusals: {refusals:?}");
         println!("checks: {checks}; errors {errors}");
     }
     Ok(if ok {

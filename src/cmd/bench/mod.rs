@@ -3,7 +3,7 @@
 pub mod floor;
 mod liveness;
 pub mod procfs;
-mod remote;
+pub mod remote;
 use super::children;
 mod scale;
 

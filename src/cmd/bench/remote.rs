@@ -162,14 +162,15 @@ pub fn echo() -> anyhow::Result<ExitCode> {
 }
 
 /// One raw UDP round trip to the echo process, waiting in epoll as a user does.
-struct UdpProbe {
+pub struct UdpProbe {
     sock: UdpSocket,
     to: SocketAddr,
     reactor: muster_shared::reactor::Reactor,
 }
 
 impl UdpProbe {
-    fn new(to: SocketAddr) -> anyhow::Result<Self> {
+    /// A probe bouncing off an echo process at `to`.
+    pub fn new(to: SocketAddr) -> anyhow::Result<Self> {
         use std::os::fd::AsRawFd;
         let sock = UdpSocket::bind("127.0.0.1:0")?;
         sock.set_nonblocking(true)?;
@@ -178,7 +179,19 @@ impl UdpProbe {
         Ok(UdpProbe { sock, to, reactor })
     }
 
-    fn round_trip(&mut self) -> anyhow::Result<Option<Duration>> {
+    /// Starts the echo process (one of `kids`) and a probe aimed at it.
+    pub fn start(inst: &Instance, kids: &mut Children) -> anyhow::Result<Self> {
+        use std::io::BufRead;
+        let echo = kids.spawn(inst, "udp-echo", &["bench", "udp-echo"], Stdio::piped())?;
+        let out = echo.stdout.take().context("echo stdout")?;
+        let mut line = String::new();
+        std::io::BufReader::new(out).read_line(&mut line)?;
+        let port: u16 = line.trim().parse().context("echo port")?;
+        Self::new(SocketAddr::from(([127, 0, 0, 1], port)))
+    }
+
+    /// One round trip; `None` if no answer within a second.
+    pub fn round_trip(&mut self) -> anyhow::Result<Option<Duration>> {
         let mut buf = [0u8; 1500];
         let t = Instant::now();
         self.sock.send_to(&[7u8; 64], self.to)?;
@@ -347,15 +360,7 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
     super::children::connect_when_listed(inst, 2, Duration::from_secs(30))?.close();
 
     let service = ServiceId("t1/s0".into());
-    let echo = kids.spawn(inst, "udp-echo", &["bench", "udp-echo"], Stdio::piped())?;
-    let mut line = String::new();
-    {
-        use std::io::BufRead;
-        let out = echo.stdout.take().context("echo stdout")?;
-        std::io::BufReader::new(out).read_line(&mut line)?;
-    }
-    let echo_port: u16 = line.trim().parse().context("echo port")?;
-    let mut probe = UdpProbe::new(SocketAddr::from(([127, 0, 0, 1], echo_port)))?;
+    let mut probe = UdpProbe::start(inst, &mut kids)?;
     let mut floor = hist();
     let mut c = client(broker_addr, &key, None)?;
     let (list, entries) = lists(&mut c, a.round_trips, Some((&mut probe, &mut floor)))?;
