@@ -38,9 +38,28 @@ pub enum Command {
     /// the same run, and checks (every user got a list, every request answered, no
     /// quota exceeded as the systems counted it).
     Stress(StressArgs),
+    /// Predict utilisation and response times as users grow, from stress reports: a
+    /// broker M/G/1 queue plus processor sharing on the cores, calibrated on the lightest
+    /// report; prints predicted against measured for every report given.
+    Capacity(CapacityArgs),
     /// Make a key pair for a remote user (or the broker) and print the line to add to
     /// the broker's access file.
     Keygen(KeygenArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct CapacityArgs {
+    /// Stress reports (`report.json` files or the folders holding them), any loads.
+    pub reports: Vec<std::path::PathBuf>,
+    /// Further user counts to predict.
+    #[arg(long, value_delimiter = ',', default_value = "100,300,900,2000,5000")]
+    pub users: Vec<u64>,
+    /// Cores (default: this machine's).
+    #[arg(long)]
+    pub cores: Option<f64>,
+    /// One JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Args, Debug)]

@@ -3,6 +3,7 @@
 mod behave;
 mod bench;
 mod broker;
+mod capacity;
 mod children;
 mod keygen;
 mod sim;
@@ -29,5 +30,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Sim(a) => sim::run(&inst, a),
         Command::Stress(a) => stress::run(&inst, a),
         Command::Keygen(a) => keygen::run(a),
+        Command::Capacity(a) => capacity::run(a),
     }
 }

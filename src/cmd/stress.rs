@@ -373,6 +373,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let mut floor = histogram();
     let mut floor_udp = histogram();
     let mut mem = Value::Null;
+    let mut users_cpu = 0.0;
     let mut reports: Vec<Option<Value>> = vec![None; a.load.users];
     let mut done = 0;
     let give_up = start + a.duration + Duration::from_secs(120);
@@ -385,6 +386,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         }
         if mem.is_null() && start.elapsed() >= a.duration / 2 {
             mem = memory(&setup, &user_pids);
+            let ticks: u64 = user_pids.iter().filter_map(|p| procfs::cpu_ticks(*p)).sum();
+            users_cpu = cpu_percent(ticks, start.elapsed().as_secs_f64());
         }
         while let Ok((i, r)) = rx.recv_timeout(Duration::from_millis(20)) {
             reports[i] = r;
@@ -397,6 +400,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let cpu = json!({
         "broker_percent": cpu_percent(b1.saturating_sub(b0), run_s),
         "systems_percent": cpu_percent(s1.saturating_sub(s0), run_s),
+        "users_percent_first_half": users_cpu,
     });
     probe.stop();
     setup.children.stop(); // SIGTERM: systems and broker print their statistics
