@@ -279,3 +279,30 @@ fn under_loss_duplication_reordering_and_a_flood_every_request_completes_once() 
     assert!((5..=10).contains(&hs), "{hs} handshakes");
     assert_eq!(r["broker_udp"]["auth_failed"], 0);
 }
+
+/// User + system CPU of a process so far, in clock ticks (100 per second on Linux).
+fn cpu_ticks(pid: i32) -> u64 {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap();
+    let rest = &stat[stat.rfind(')').unwrap() + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    f[11].parse::<u64>().unwrap() + f[12].parse::<u64>().unwrap()
+}
+
+#[test]
+fn an_idle_remote_user_sleeps() {
+    let mut f = Fed::new("ridle");
+    let r = f.remote_setup(&[("alice", &["*"])]);
+    f.remote_broker(&r);
+    f.system("t1", &["--udp", "127.0.0.1:0"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let key = r.key("alice");
+    let u = f.spawn(&["user", "--remote", &r.addr, "--key", &key, "idle", "--duration", "20s"]);
+    let first = f.proc(u).json(10 * SEC).unwrap();
+    assert_eq!(first["connected"], true);
+    let pid = f.proc(u).pid();
+    let before = cpu_ticks(pid);
+    std::thread::sleep(Duration::from_secs(3));
+    let used = cpu_ticks(pid) - before;
+    // A busy loop would use ~300 ticks; keepalives once a second use next to nothing.
+    assert!(used < 30, "an idle remote user used {used} ticks in 3 s");
+}

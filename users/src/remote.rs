@@ -366,7 +366,10 @@ impl RemoteLink {
 
     /// When [`RemoteLink::tick`] must run next.
     pub fn next_deadline(&self) -> Instant {
-        let mut t = self.next_ping.min(self.hs_retry.next);
+        let mut t = self.next_ping;
+        if !matches!(self.hs, Some(Hs::Up { confirmed: true, .. })) {
+            t = t.min(self.hs_retry.next);
+        }
         if let Some((_, r)) = &self.hello {
             t = t.min(r.next);
         }
