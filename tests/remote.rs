@@ -296,7 +296,16 @@ fn an_idle_remote_user_sleeps() {
     f.system("t1", &["--udp", "127.0.0.1:0"]);
     f.wait_list(10 * SEC, |l| l.len() == 1);
     let key = r.key("alice");
-    let u = f.spawn(&["user", "--remote", &r.addr, "--key", &key, "idle", "--duration", "20s"]);
+    let u = f.spawn(&[
+        "user",
+        "--remote",
+        &r.addr,
+        "--key",
+        &key,
+        "idle",
+        "--duration",
+        "20s",
+    ]);
     let first = f.proc(u).json(10 * SEC).unwrap();
     assert_eq!(first["connected"], true);
     let pid = f.proc(u).pid();
@@ -305,4 +314,40 @@ fn an_idle_remote_user_sleeps() {
     let used = cpu_ticks(pid) - before;
     // A busy loop would use ~300 ticks; keepalives once a second use next to nothing.
     assert!(used < 30, "an idle remote user used {used} ticks in 3 s");
+}
+
+#[test]
+fn a_remote_watcher_reconnects_to_a_restarted_broker() {
+    let mut f = Fed::new("rwatch");
+    let r = f.remote_setup(&[("alice", &["*"])]);
+    let broker = f.remote_broker(&r);
+    f.system("t1", &["--udp", "127.0.0.1:0"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let key = r.key("alice");
+    let w = f.spawn(&[
+        "user",
+        "--remote",
+        &r.addr,
+        "--key",
+        &key,
+        "watch",
+        "--json",
+        "--duration",
+        "60s",
+    ]);
+    let first = f.proc(w).json(10 * SEC).unwrap();
+    assert_eq!(first["services"].as_array().unwrap().len(), 1);
+    f.proc(broker).signal(libc::SIGKILL);
+    assert!(f.proc(broker).wait(5 * SEC).is_some());
+    f.remote_broker(&r);
+    f.system("t2", &["--udp", "127.0.0.1:0"]);
+    // The watcher notices the silence, shakes hands with the new broker, and sees t2.
+    let deadline = std::time::Instant::now() + 40 * SEC;
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        let v = f.proc(w).json(left).expect("a list from the new broker");
+        if v["services"].as_array().unwrap().len() == 2 {
+            break;
+        }
+    }
 }

@@ -55,7 +55,7 @@ impl Default for UdpLimits {
             max_pending: 1024,
             handshake_timeout: Duration::from_secs(5),
             max_conns: 4096,
-            idle_timeout: Duration::from_secs(10),
+            idle_timeout: Duration::from_secs(30),
             conn_rate: (2000.0, 4000.0),
             source_rate: (50.0, 100.0),
             retry_rate: (50_000.0, 50_000.0),
@@ -172,6 +172,9 @@ pub struct UdpFront {
     pending: HashMap<u64, Pending>,
     pending_by: HashMap<(SocketAddr, u64), u64>,
     conns: HashMap<u64, Conn>,
+    /// Connections closed lately (goodbye, expiry, revocation): their stragglers (a
+    /// repeated goodbye, a keepalive in flight) are counted quietly, not as attacks.
+    closed: HashMap<u64, Instant>,
     by_user: HashMap<UserId, u64>,
     sources: HashMap<IpAddr, Bucket>,
     retry_bucket: Bucket,
@@ -223,6 +226,7 @@ impl UdpFront {
             pending: HashMap::new(),
             pending_by: HashMap::new(),
             conns: HashMap::new(),
+            closed: HashMap::new(),
             by_user: HashMap::new(),
             sources: HashMap::new(),
             retry_bucket,
@@ -344,6 +348,8 @@ impl UdpFront {
             self.stats.expired += 1;
             self.close(core, now, id);
         }
+        self.closed
+            .retain(|_, at| t.saturating_duration_since(*at) < Duration::from_secs(10));
         if self.sources.len() > 4 * self.limits.max_pending {
             let (rate, burst) = self.limits.source_rate;
             self.sources
@@ -358,6 +364,7 @@ impl UdpFront {
     }
 
     fn close(&mut self, core: &mut Broker, now: Duration, id: u64) {
+        self.closed.insert(id, Instant::now());
         if let Some(c) = self.conns.remove(&id) {
             if let Some(u) = c.user {
                 if self.by_user.get(&u) == Some(&id) {
@@ -565,6 +572,9 @@ impl UdpFront {
         let t = Instant::now();
         let rate = self.limits.conn_rate;
         let Some(c) = self.conns.get_mut(&id) else {
+            if self.closed.contains_key(&id) {
+                return self.stats.drops.count("after_close");
+            }
             return self.stats.drops.drop("unknown_conn", &from);
         };
         if !c.bucket.take(t, rate) {
@@ -626,6 +636,7 @@ impl UdpFront {
                 if old != id {
                     // The same user reconnected (new handshake): the old connection goes.
                     self.conns.remove(&old);
+                    self.closed.insert(old, Instant::now());
                 }
             }
             crate::run::timed_handle(
@@ -669,6 +680,7 @@ impl UdpFront {
             ToBroker::Goodbye { .. } => {
                 self.by_user.remove(&user);
                 self.conns.remove(&id);
+                self.closed.insert(id, Instant::now());
                 crate::run::timed_handle(&mut self.handling, core, now, ToBroker::Goodbye { user });
             }
             _ => self.stats.drops.drop("not_a_user_message", &from),

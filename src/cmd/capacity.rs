@@ -50,7 +50,12 @@ fn load(path: &std::path::Path) -> anyhow::Result<Run> {
     let num = |v: &Value| v.as_f64().unwrap_or(0.0);
     let kinds = r["broker"]["handling"]
         .as_object()
-        .with_context(|| format!("{}: no broker handling times (rerun `muster stress`)", file.display()))?
+        .with_context(|| {
+            format!(
+                "{}: no broker handling times (rerun `muster stress`)",
+                file.display()
+            )
+        })?
         .iter()
         .map(|(k, v)| {
             let (mean, sd) = (num(&v["mean_us"]), num(&v["stdev_us"]));
@@ -119,7 +124,12 @@ impl Model {
     fn queue(&self, n: f64) -> (f64, f64, f64) {
         // λ·E[S] and λ·E[S²], with λ per µs.
         let es: f64 = self.per_user.iter().map(|(r, m, _)| r * n * m).sum::<f64>() / 1e6;
-        let es2: f64 = self.per_user.iter().map(|(r, _, m2)| r * n * m2).sum::<f64>() / 1e6;
+        let es2: f64 = self
+            .per_user
+            .iter()
+            .map(|(r, _, m2)| r * n * m2)
+            .sum::<f64>()
+            / 1e6;
         let rho = es;
         if rho >= 1.0 {
             return (rho, f64::INFINITY, f64::INFINITY);
@@ -136,7 +146,11 @@ impl Model {
     fn predict(&self, n: f64) -> Prediction {
         let (rho, w, w99) = self.queue(n);
         let cpu = self.cpu(n);
-        let stretch = if cpu < 0.95 { 1.0 / (1.0 - cpu) } else { f64::INFINITY };
+        let stretch = if cpu < 0.95 {
+            1.0 / (1.0 - cpu)
+        } else {
+            f64::INFINITY
+        };
         let p50 = self.no_load_p50 * stretch + w;
         Prediction {
             rho,
@@ -149,7 +163,13 @@ impl Model {
 
     /// Users at which the first resource saturates.
     fn saturation(&self) -> (f64, &'static str) {
-        let broker: f64 = 1e6 / self.per_user.iter().map(|(r, m, _)| r * m).sum::<f64>().max(1e-12);
+        let broker: f64 = 1e6
+            / self
+                .per_user
+                .iter()
+                .map(|(r, m, _)| r * m)
+                .sum::<f64>()
+                .max(1e-12);
         let cpu = (self.cores - self.base_cpu) / self.user_cpu.max(1e-12);
         if broker < cpu {
             (broker, "broker (M/G/1 utilisation reaches 1)")
@@ -163,11 +183,15 @@ pub fn run(a: CapacityArgs) -> anyhow::Result<ExitCode> {
     if a.reports.is_empty() {
         bail!("give at least one stress report (report.json or its folder)");
     }
-    let mut runs: Vec<Run> = a.reports.iter().map(|p| load(p)).collect::<anyhow::Result<_>>()?;
+    let mut runs: Vec<Run> = a
+        .reports
+        .iter()
+        .map(|p| load(p))
+        .collect::<anyhow::Result<_>>()?;
     runs.sort_by(|x, y| x.users.total_cmp(&y.users));
-    let cores = a.cores.unwrap_or_else(|| {
-        std::thread::available_parallelism().map_or(1.0, |n| n.get() as f64)
-    });
+    let cores = a
+        .cores
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1.0, |n| n.get() as f64));
     let m = Model::calibrate(&runs[0], cores);
     let mut rows = Vec::new();
     for r in &runs {

@@ -107,6 +107,12 @@ pub fn connect_when_listed(
 impl crate::cli::LoadArgs {
     /// Checks the sizes against muster's limits and raises the fd limit for them.
     pub fn check(&self, fds_per_user: u64) -> anyhow::Result<()> {
+        self.check_for(fds_per_user, false)
+    }
+
+    /// [`LoadArgs::check`]; remote users hold no shared-memory ports, so the per-instance
+    /// participant limit does not bound them (the UDP front's connection cap does).
+    pub fn check_for(&self, fds_per_user: u64, remote: bool) -> anyhow::Result<()> {
         use muster_shared::ipc::MAX_PARTICIPANTS;
         use muster_shared::snapshot::MAX_LISTED_SERVICES;
         use muster_shared::types::MAX_SERVICES_PER_SYSTEM;
@@ -118,12 +124,13 @@ impl crate::cli::LoadArgs {
         {
             bail!("at most {MAX_LISTED_SERVICES} services, {MAX_SERVICES_PER_SYSTEM} per system");
         }
-        if self.users == 0 || self.users + self.systems + 8 > MAX_PARTICIPANTS {
-            bail!(
-                "--users must be 1..={} with {} systems",
-                MAX_PARTICIPANTS - self.systems - 8,
-                self.systems
-            );
+        let cap = if remote {
+            4096
+        } else {
+            MAX_PARTICIPANTS - self.systems - 8
+        };
+        if self.users == 0 || self.users > cap {
+            bail!("--users must be 1..={cap} with {} systems", self.systems);
         }
         let fds = muster_shared::reactor::raise_fd_limit()
             .context("raising the file-descriptor limit")?;

@@ -327,7 +327,7 @@ fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result
 }
 
 pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
-    a.load.check(3)?;
+    a.load.check_for(3, a.remote)?;
     let mut setup = Setup::start(inst, &a)?;
     if a.idle {
         return run_idle(inst, &a, setup);

@@ -129,9 +129,14 @@ fn watch(
     let deadline = Instant::now() + duration.unwrap_or(Duration::from_secs(100 * 365 * 86400));
     let mut shown = None;
     loop {
-        let snapshot = client.list()?;
-        if shown != Some(snapshot.generation) {
-            shown = Some(snapshot.generation);
+        let snapshot = match client.list() {
+            Ok(s) => Some(s),
+            // Remote, with the broker away: keep waiting for it.
+            Err(UserError::ListTimeout(_)) => None,
+            Err(e) => return Err(e.into()),
+        };
+        if let Some(snapshot) = snapshot.filter(|s| shown != Some((s.epoch, s.generation))) {
+            shown = Some((snapshot.epoch, snapshot.generation));
             let views = snapshot.views();
             emit(
                 as_json,

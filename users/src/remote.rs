@@ -29,10 +29,15 @@ pub const RTO: Duration = Duration::from_millis(200);
 pub const MIN_RTO: Duration = Duration::from_millis(20);
 /// Longest retransmission timeout.
 pub const MAX_RTO: Duration = Duration::from_secs(2);
-/// Keepalive period towards the broker and on each session.
-pub const KEEPALIVE: Duration = Duration::from_secs(1);
-/// The broker is taken as lost after this long without a datagram from it.
-pub const BROKER_SILENCE: Duration = Duration::from_millis(3500);
+/// Keepalive period towards the broker (an idle user costs the broker one small
+/// datagram per period).
+pub const KEEPALIVE: Duration = Duration::from_secs(5);
+/// Keepalive period on each session (the system's lease is 5 s).
+pub const SESSION_KEEPALIVE: Duration = Duration::from_secs(1);
+/// The broker is taken as lost after this long without a datagram from it...
+pub const BROKER_SILENCE: Duration = Duration::from_secs(12);
+/// ...or after this long while something we asked for (a request, the list) is unanswered.
+pub const BROKER_SILENCE_BUSY: Duration = Duration::from_secs(3);
 /// A system is taken as dead after this long without a datagram on a session.
 pub const SYSTEM_SILENCE: Duration = Duration::from_secs(5);
 
@@ -367,7 +372,13 @@ impl RemoteLink {
     /// When [`RemoteLink::tick`] must run next.
     pub fn next_deadline(&self) -> Instant {
         let mut t = self.next_ping;
-        if !matches!(self.hs, Some(Hs::Up { confirmed: true, .. })) {
+        if !matches!(
+            self.hs,
+            Some(Hs::Up {
+                confirmed: true,
+                ..
+            })
+        ) {
             t = t.min(self.hs_retry.next);
         }
         if let Some((_, r)) = &self.hello {
@@ -483,7 +494,13 @@ impl RemoteLink {
                 self.ping();
             }
         }
-        if self.welcomed && now.duration_since(self.last_from_broker) > BROKER_SILENCE {
+        let waiting = !self.requests.is_empty() || self.list_want.is_some();
+        let silence = if waiting {
+            BROKER_SILENCE_BUSY
+        } else {
+            BROKER_SILENCE
+        };
+        if self.welcomed && now.duration_since(self.last_from_broker) > silence {
             tracing::warn!("broker silent: lost; sessions go on, reconnecting");
             core.broker_lost();
             self.hello = None;
@@ -504,7 +521,7 @@ impl RemoteLink {
                 continue;
             }
             if now >= s.next_keepalive {
-                s.next_keepalive = now + KEEPALIVE;
+                s.next_keepalive = now + SESSION_KEEPALIVE;
                 keepalive.push(*id);
             }
             if now.duration_since(s.last_heard) > SYSTEM_SILENCE {
