@@ -57,7 +57,7 @@ impl Default for UdpLimits {
             max_conns: 4096,
             idle_timeout: Duration::from_secs(30),
             conn_rate: (2000.0, 4000.0),
-            source_rate: (50.0, 100.0),
+            source_rate: (1000.0, 2000.0),
             retry_rate: (50_000.0, 50_000.0),
             remembered_requests: 256,
         }

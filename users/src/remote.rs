@@ -37,7 +37,7 @@ pub const SESSION_KEEPALIVE: Duration = Duration::from_secs(1);
 /// The broker is taken as lost after this long without a datagram from it...
 pub const BROKER_SILENCE: Duration = Duration::from_secs(12);
 /// ...or after this long while something we asked for (a request, the list) is unanswered.
-pub const BROKER_SILENCE_BUSY: Duration = Duration::from_secs(3);
+pub const BROKER_SILENCE_BUSY: Duration = Duration::from_secs(6);
 /// A system is taken as dead after this long without a datagram on a session.
 pub const SYSTEM_SILENCE: Duration = Duration::from_secs(5);
 
