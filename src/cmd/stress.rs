@@ -473,12 +473,14 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .is_some_and(|c| c.values().all(|v| v == true))
         && missing == 0;
     let errors = totals["errors"] + missing as u64;
+    let (early, late) = timeline.split_requests(10);
     let report = json!({
         "users": a.load.users, "services": a.load.services, "systems": a.load.systems,
         "duration_s": a.duration.as_secs_f64(), "run_s": run_time.as_secs_f64(),
         "errors": errors, "missing_user_reports": missing,
         "totals": totals, "system_grants": system_grants, "refusals": refusals, "over_quota": over_quota, "checks": checks,
-        "list": summary(&list), "service_request": summary(&request), "update": summary(&update),
+        "list": summary(&list), "service_request": summary(&request),
+        "service_request_first_10s": summary(&early), "service_request_after_10s": summary(&late), "update": summary(&update),
         "floor": summary(&floor),
         "floor_udp": if a.remote { summary(&floor_udp) } else { Value::Null },
         "transport": if a.remote { "udp" } else { "shm" },
@@ -522,7 +524,6 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         if a.remote {
             println!("{}", row("floor (raw UDP round trip)", &floor_udp));
         }
-        let (early, late) = timeline.split_requests(10);
         println!("{}", row("service request, first 10 s", &early));
         println!("{}", row("service request, after 10 s", &late));
         if let Some(h) = broker["handling"].as_object() {
