@@ -60,7 +60,7 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
     assert!(system_grants > 0);
     let answered = t["grants"].as_u64().unwrap() + refused + t["abandoned"].as_u64().unwrap();
     assert_eq!(answered, t["requests"].as_u64().unwrap());
-    for k in ["list", "service_request", "update", "floor"] {
+    for k in ["list", "service_request", "update", "floor", "termination"] {
         for f in ["count", "p50_us", "p99_us", "max_us"] {
             assert!(r[k][f].is_u64(), "{k}.{f} in {r:#}");
         }

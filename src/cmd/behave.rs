@@ -46,6 +46,8 @@ pub struct BehaveReport {
     pub update_us: Vec<u64>,
     /// Updates lost (sequence gaps).
     pub gaps: u64,
+    /// Termination latencies (the user ends a session → the system's confirmation), µs.
+    pub end_us: Vec<u64>,
     /// Links that came up.
     pub links: u64,
     /// Links that failed to come up.
@@ -71,6 +73,8 @@ struct Run<'a> {
     report: BehaveReport,
     end: Instant,
     next_refresh: Instant,
+    /// Sessions this user ended, with when, until the system confirms.
+    ending: BTreeMap<muster_shared::types::SessionId, Instant>,
 }
 
 pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
@@ -88,6 +92,7 @@ pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
         report,
         end: now + args.duration,
         next_refresh: now,
+        ending: BTreeMap::new(),
     };
     match r.behave() {
         Ok(()) | Err(UserError::Interrupted) => {}
@@ -147,6 +152,11 @@ impl Run<'_> {
     }
 
     fn count(&mut self, e: &UserEvent) {
+        if let UserEvent::EndConfirmed { session } = e {
+            if let Some(t) = self.ending.remove(session) {
+                self.report.end_us.push(us(t.elapsed()));
+            }
+        }
         if let UserEvent::Update { gap, sent_ns, .. } = e {
             self.report.updates += 1;
             self.report.gaps += gap;
@@ -237,6 +247,7 @@ impl Run<'_> {
                 }
                 self.count(&e);
             }
+            self.ending.insert(session, Instant::now());
             self.client.end(session);
         }
         Ok(())

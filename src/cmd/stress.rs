@@ -413,6 +413,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
 
     // Aggregate.
     let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
+    let mut termination = histogram();
     let mut timeline = Timeline::default();
     let mut totals: BTreeMap<&str, u64> = BTreeMap::new();
     let mut refusals: BTreeMap<String, u64> = BTreeMap::new();
@@ -427,6 +428,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         samples(r, "request_us", &mut request);
         timeline.add(r, start_ms);
         samples(r, "update_us", &mut update);
+        samples(r, "end_us", &mut termination);
         for k in [
             "lists",
             "requests",
@@ -480,7 +482,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "errors": errors, "missing_user_reports": missing,
         "totals": totals, "system_grants": system_grants, "refusals": refusals, "over_quota": over_quota, "checks": checks,
         "list": summary(&list), "service_request": summary(&request),
-        "service_request_first_10s": summary(&early), "service_request_after_10s": summary(&late), "update": summary(&update),
+        "service_request_first_10s": summary(&early), "service_request_after_10s": summary(&late), "update": summary(&update), "termination": summary(&termination),
         "floor": summary(&floor),
         "floor_udp": if a.remote { summary(&floor_udp) } else { Value::Null },
         "transport": if a.remote { "udp" } else { "shm" },
@@ -520,6 +522,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", row("list request", &list));
         println!("{}", row("service request", &request));
         println!("{}", row("session update", &update));
+        println!("{}", row("termination (end → confirmed)", &termination));
         println!("{}", row("floor (raw 2-process trip)", &floor));
         if a.remote {
             println!("{}", row("floor (raw UDP round trip)", &floor_udp));

@@ -286,7 +286,8 @@ impl SystemCore {
             }
             ToSystem::End { user, session } => {
                 if self.sessions.get(&session).is_some_and(|s| s.user == user) {
-                    self.close(session, EndReason::ByUser, false);
+                    // Confirmed to the user: its termination round trip is measured.
+                    self.close(session, EndReason::ByUser, true);
                 }
             }
         }
@@ -686,11 +687,22 @@ mod tests {
             session: s,
         });
         assert_eq!(c.sessions_of("c"), 0);
+        let out = outs(&mut c);
         assert!(
-            outs(&mut c).contains(&SystemOutput::ToBroker(ToBroker::SessionEnded {
+            out.contains(&SystemOutput::ToBroker(ToBroker::SessionEnded {
                 system: "t1".into(),
                 session: s
             }))
+        );
+        assert!(
+            out.contains(&SystemOutput::ToUser(
+                UserId("u1".into()),
+                ToUser::Ended {
+                    session: s,
+                    reason: EndReason::ByUser
+                }
+            )),
+            "the end is confirmed to the user: {out:?}"
         );
     }
 

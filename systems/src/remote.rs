@@ -215,20 +215,10 @@ impl RemoteSessions {
                     payload,
                 })
             }
+            // The core confirms with `Ended` (routed back here, which marks the session
+            // ended so its key lingers for repeats that cross the answer).
             (SessionUp::Msg(ToSystem::End { .. }), None) => {
-                core.handle(ToSystem::End { user, session: id });
-                // Confirm, so the user stops repeating its End; the key lingers for
-                // repeats that cross this answer.
-                if let Some(r) = self.sessions.get_mut(&session) {
-                    r.ended = Some((Instant::now(), EndReason::ByUser));
-                }
-                self.send(
-                    session,
-                    &SessionDown::Msg(ToUser::Ended {
-                        session: id,
-                        reason: EndReason::ByUser,
-                    }),
-                );
+                core.handle(ToSystem::End { user, session: id })
             }
             // Already ended: say so again (the user retries `End` until it hears).
             (SessionUp::Msg(ToSystem::End { .. }), Some((_, reason))) => self.send(

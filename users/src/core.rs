@@ -56,6 +56,11 @@ pub enum UserEvent {
         /// Data or command.
         kind: ServiceKind,
     },
+    /// The system confirmed a session the user ended (its `Ended` arrived).
+    EndConfirmed {
+        /// The session.
+        session: SessionId,
+    },
     /// A request was refused.
     Refused {
         /// Request number.
@@ -171,12 +176,15 @@ pub struct UserCore {
     out: VecDeque<UserOutput>,
     events: VecDeque<UserEvent>,
     stale_frames: u64,
+    /// Sessions this user ended, until the system confirms.
+    ending: std::collections::BTreeSet<SessionId>,
 }
 
 impl UserCore {
     /// A user `id` in process `pid`; `watch_list` asks the broker to ring on list changes.
     pub fn new(id: UserId, pid: u32, watch_list: bool) -> Self {
         UserCore {
+            ending: std::collections::BTreeSet::new(),
             id,
             pid,
             watch_list,
@@ -317,6 +325,12 @@ impl UserCore {
 
     /// Ends a session from the user's side; the system is told directly.
     pub fn end(&mut self, session: SessionId) {
+        if self.sessions.contains_key(&session) {
+            if self.ending.len() >= 1024 {
+                self.ending.pop_first();
+            }
+            self.ending.insert(session);
+        }
         self.close(session, EndReason::ByUser, true);
     }
 
@@ -519,7 +533,13 @@ impl UserCore {
                     status,
                 });
             }
-            ToUser::Ended { session, reason } => self.close(session, reason, false),
+            ToUser::Ended { session, reason } => {
+                if self.ending.remove(&session) {
+                    self.events.push_back(UserEvent::EndConfirmed { session });
+                } else {
+                    self.close(session, reason, false);
+                }
+            }
         }
     }
 
@@ -741,6 +761,49 @@ mod tests {
         assert_eq!(u.stale_frames(), 2);
         update(&mut u, 404, 1);
         assert_eq!(u.stale_frames(), 3, "updates for no session are dropped");
+    }
+
+    #[test]
+    fn the_systems_confirmation_of_our_end_is_its_own_event() {
+        let mut u = user();
+        let req = u.request(ServiceId::new("t", "a"));
+        grant(&mut u, req, 9, "t/a", ServiceKind::Data, "pose2d");
+        let req2 = u.request(ServiceId::new("t", "b"));
+        grant(&mut u, req2, 10, "t/b", ServiceKind::Data, "pose2d");
+        events(&mut u);
+        u.end(SessionId(9));
+        let ended = |u: &mut UserCore, s: u64, reason: EndReason| {
+            u.handle(ToUser::Ended {
+                session: SessionId(s),
+                reason,
+            });
+        };
+        ended(&mut u, 9, EndReason::ByUser);
+        ended(&mut u, 9, EndReason::ByUser);
+        ended(&mut u, 10, EndReason::BySystem("operator".into()));
+        let got = events(&mut u);
+        assert!(matches!(
+            got[0],
+            UserEvent::Ended {
+                session: SessionId(9),
+                ..
+            }
+        ));
+        assert_eq!(
+            got[1],
+            UserEvent::EndConfirmed {
+                session: SessionId(9)
+            }
+        );
+        // A repeat confirms nothing more; a system's own end is an ordinary end.
+        assert!(matches!(
+            got[2],
+            UserEvent::Ended {
+                session: SessionId(10),
+                ..
+            }
+        ));
+        assert_eq!(got.len(), 3, "{got:?}");
     }
 
     #[test]

@@ -183,7 +183,7 @@ fn show_event(
         UserEvent::LinkEnded { link, reason } => println!("\nlink {link} ended: {reason}"),
         UserEvent::BrokerLost => println!("\n(broker lost: sessions go on; new requests wait)"),
         UserEvent::Connected { .. } => println!("\n(connected to a broker)"),
-        UserEvent::LinkForwarded { .. } => {}
+        UserEvent::LinkForwarded { .. } | UserEvent::EndConfirmed { .. } => {}
     }
 }
 
