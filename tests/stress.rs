@@ -35,6 +35,9 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
     assert_eq!(r["checks"]["every_user_got_a_list"], true);
     assert_eq!(r["checks"]["every_request_answered"], true);
     assert_eq!(r["checks"]["quota_never_exceeded"], true);
+    for k in ["list", "service_request", "update", "termination"] {
+        assert!(r["p50_over_floor_p50"][k].as_f64().unwrap() > 0.0, "{k}");
+    }
     assert_eq!(r["users"], 50);
     assert_eq!(r["errors"], 0);
     let t = &r["totals"];

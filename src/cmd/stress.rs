@@ -4,7 +4,7 @@
 use super::bench::floor::FloorProbe;
 use super::bench::procfs;
 use super::bench::remote::UdpProbe;
-use super::bench::{row, summary};
+use super::bench::summary;
 use super::children::Children;
 use crate::cli::StressArgs;
 use anyhow::Context;
@@ -475,6 +475,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .is_some_and(|c| c.values().all(|v| v == true))
         && missing == 0;
     let errors = totals["errors"] + missing as u64;
+    let floor_base_p50 = if a.remote { &floor_udp } else { &floor }
+        .value_at_quantile(0.5)
+        .max(1) as f64;
     let (early, late) = timeline.split_requests(10);
     let report = json!({
         "users": a.load.users, "services": a.load.services, "systems": a.load.systems,
@@ -490,6 +493,12 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "timeline": timeline.to_json(),
         "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64
             / if a.remote { &floor_udp } else { &floor }.value_at_quantile(0.5).max(1) as f64,
+        "p50_over_floor_p50": {
+            "list": list.value_at_quantile(0.5) as f64 / floor_base_p50,
+            "service_request": request.value_at_quantile(0.5) as f64 / floor_base_p50,
+            "update": update.value_at_quantile(0.5) as f64 / floor_base_p50,
+            "termination": termination.value_at_quantile(0.5) as f64 / floor_base_p50,
+        },
         "broker": broker,
     });
     if let Some(dir) = &a.report {
@@ -515,20 +524,35 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             a.load.systems,
             a.duration.as_secs_f64()
         );
+        // The paper's Table 1 (count, max, median, min) plus p90/p99, and each median
+        // as a multiple of the floor's median measured in the same run.
+        let base = if a.remote { &floor_udp } else { &floor };
+        let line = |name: &str, h: &Histogram<u64>| {
+            format!(
+                "{name:<30} {:>7} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8.1}",
+                h.len(),
+                h.min(),
+                h.value_at_quantile(0.5),
+                h.value_at_quantile(0.9),
+                h.value_at_quantile(0.99),
+                h.max(),
+                h.value_at_quantile(0.5) as f64 / base.value_at_quantile(0.5).max(1) as f64
+            )
+        };
         println!(
-            "\n{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
-            "latency (us)", "count", "p50", "p90", "p99", "max"
+            "\n{:<30} {:>7} {:>9} {:>9} {:>9} {:>9} {:>9} {:>8}",
+            "latency (µs)", "count", "min", "p50", "p90", "p99", "max", "p50/floor"
         );
-        println!("{}", row("list request", &list));
-        println!("{}", row("service request", &request));
-        println!("{}", row("session update", &update));
-        println!("{}", row("termination (end → confirmed)", &termination));
-        println!("{}", row("floor (raw 2-process trip)", &floor));
+        println!("{}", line("list request", &list));
+        println!("{}", line("service request", &request));
+        println!("{}", line("session update", &update));
+        println!("{}", line("termination (end → confirmed)", &termination));
+        println!("{}", line("floor (raw 2-process trip)", &floor));
         if a.remote {
-            println!("{}", row("floor (raw UDP round trip)", &floor_udp));
+            println!("{}", line("floor (raw UDP round trip)", &floor_udp));
         }
-        println!("{}", row("service request, first 10 s", &early));
-        println!("{}", row("service request, after 10 s", &late));
+        println!("{}", line("service request, first 10 s", &early));
+        println!("{}", line("service request, after 10 s", &late));
         if let Some(h) = broker["handling"].as_object() {
             println!("\nbroker, time to handle (us):");
             for (kind, v) in h {
