@@ -19,7 +19,7 @@ use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{Refusal, ServiceId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
-use muster_shared::udp::msgs::{chunk_list, from_bytes, to_bytes, Down, Hs3, Up};
+use muster_shared::udp::msgs::{chunk_list, from_bytes, seal_channel, Down, Hs3, Up};
 use muster_shared::udp::wire::{Datagram, WireError, MAX_DATAGRAM};
 use muster_shared::udp::{recv_one, DropCounters, RECV_BATCH};
 use std::collections::{BTreeMap, HashMap};
@@ -890,22 +890,12 @@ impl UdpFront {
         let Some(c) = self.conns.get_mut(&id) else {
             return;
         };
-        let bytes = match to_bytes(d) {
-            Ok(b) => b,
-            Err(e) => return tracing::error!("cannot send to a remote user: {e}"),
-        };
-        let Ok((nonce, sealed)) = c.chan.seal(&bytes) else {
-            return;
-        };
-        let addr = c.addr;
-        if let Ok(dg) = (Datagram::Channel {
-            conn: id,
-            nonce,
-            sealed: &sealed,
-        })
-        .encode()
-        {
-            self.send_raw(&dg, addr);
+        match seal_channel(&mut c.chan, id, d) {
+            Ok(dg) => {
+                let addr = c.addr;
+                self.send_raw(&dg, addr);
+            }
+            Err(e) => tracing::error!("cannot send to a remote user: {e}"),
         }
     }
 

@@ -5,7 +5,7 @@
 use super::*;
 use crate::core::BrokerConfig;
 use muster_shared::udp::access::access_line;
-use muster_shared::udp::msgs::{Down, Hs3, Up};
+use muster_shared::udp::msgs::{to_bytes, Down, Hs3, Up};
 use muster_shared::udp::wire::Datagram;
 
 struct Rig {

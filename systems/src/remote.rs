@@ -14,7 +14,7 @@ use crate::core::{SystemCore, SystemOutput};
 use muster_shared::protocol::{RemoteContact, ToSystem, ToUser};
 use muster_shared::types::{EndReason, SessionId, UserId};
 use muster_shared::udp::crypto::{SessionCipher, Side};
-use muster_shared::udp::msgs::{from_bytes, to_bytes, SessionDown, SessionUp};
+use muster_shared::udp::msgs::{from_bytes, seal_session, SessionDown, SessionUp};
 use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
 use muster_shared::udp::{recv_one, DropCounters, RECV_BATCH};
 use std::collections::HashMap;
@@ -270,24 +270,9 @@ impl RemoteSessions {
         let Some(r) = self.sessions.get_mut(&session) else {
             return;
         };
-        let bytes = match to_bytes(m) {
-            Ok(b) => b,
-            Err(_) => {
-                let addr = r.addr;
-                return self.stats.drops.drop("too_large_for_a_datagram", &addr);
-            }
-        };
-        let Ok((nonce, sealed)) = r.cipher.seal(session, &bytes) else {
-            return;
-        };
         let addr = r.addr;
-        let Ok(dg) = (Datagram::Session {
-            session,
-            nonce,
-            sealed: &sealed,
-        })
-        .encode() else {
-            return;
+        let Ok(dg) = seal_session(&mut r.cipher, session, m) else {
+            return self.stats.drops.drop("too_large_for_a_datagram", &addr);
         };
         match self.sock.send_to(&dg, addr) {
             Ok(_) => self.stats.datagrams_out += 1,

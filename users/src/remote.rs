@@ -12,7 +12,9 @@ use muster_shared::protocol::{ToBroker, ToSystem, ToUser};
 use muster_shared::snapshot::{ServiceListSnapshot, ServiceView, MAX_LISTED_SERVICES};
 use muster_shared::types::{SessionId, UserId};
 use muster_shared::udp::crypto::{self, Channel, HandshakeState, KeyPair, SessionCipher, Side};
-use muster_shared::udp::msgs::{from_bytes, to_bytes, Down, Hs3, SessionDown, SessionUp, Up};
+use muster_shared::udp::msgs::{
+    from_bytes, seal_channel, seal_session, to_bytes, Down, Hs3, SessionDown, SessionUp, Up,
+};
 use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
 use muster_shared::udp::{recv_one, DropCounters, RECV_BATCH};
 use rand::{RngExt, SeedableRng};
@@ -947,22 +949,12 @@ impl RemoteLink {
         let Some(Hs::Up { conn, chan, .. }) = self.hs.as_mut() else {
             return; // not connected: retries go out once the handshake is done
         };
-        let Ok(bytes) = to_bytes(m) else {
-            return tracing::warn!("message too large for a datagram");
-        };
-        let Ok((nonce, sealed)) = chan.seal(&bytes) else {
-            return;
-        };
-        let conn = *conn;
-        if let Ok(dg) = (Datagram::Channel {
-            conn,
-            nonce,
-            sealed: &sealed,
-        })
-        .encode()
-        {
-            let to = self.opts.broker;
-            self.send_raw(&dg, to);
+        match seal_channel(chan, *conn, m) {
+            Ok(dg) => {
+                let to = self.opts.broker;
+                self.send_raw(&dg, to);
+            }
+            Err(e) => tracing::warn!("not sent to the broker: {e}"),
         }
     }
 
@@ -970,21 +962,12 @@ impl RemoteLink {
         let Some(s) = self.sessions.get_mut(&session) else {
             return;
         };
-        let Ok(bytes) = to_bytes(m) else {
-            return tracing::warn!("task input too large for a datagram: dropped");
-        };
-        let Ok((nonce, sealed)) = s.cipher.seal(session, &bytes) else {
-            return;
-        };
-        let to = s.addr;
-        if let Ok(dg) = (Datagram::Session {
-            session,
-            nonce,
-            sealed: &sealed,
-        })
-        .encode()
-        {
-            self.send_raw(&dg, to);
+        match seal_session(&mut s.cipher, session, m) {
+            Ok(dg) => {
+                let to = s.addr;
+                self.send_raw(&dg, to);
+            }
+            Err(e) => tracing::warn!("task input not sent: {e}"),
         }
     }
 

@@ -139,6 +139,45 @@ pub fn from_bytes<'de, T: Deserialize<'de>>(b: &'de [u8]) -> Result<T, MsgError>
     Ok(m)
 }
 
+/// Encodes `m`, seals it on the user ↔ broker channel and frames it as a `CHANNEL`
+/// datagram of connection `conn`.
+pub fn seal_channel<T: Serialize>(
+    chan: &mut super::crypto::Channel,
+    conn: u64,
+    m: &T,
+) -> Result<Vec<u8>, MsgError> {
+    let plain = to_bytes(m)?;
+    let (nonce, sealed) = chan
+        .seal(&plain)
+        .map_err(|e| MsgError::Malformed(e.to_string()))?;
+    super::wire::Datagram::Channel {
+        conn,
+        nonce,
+        sealed: &sealed,
+    }
+    .encode()
+    .map_err(|e| MsgError::Malformed(e.to_string()))
+}
+
+/// Encodes `m`, seals it under a session's key and frames it as a `SESSION` datagram.
+pub fn seal_session<T: Serialize>(
+    cipher: &mut super::crypto::SessionCipher,
+    session: u64,
+    m: &T,
+) -> Result<Vec<u8>, MsgError> {
+    let plain = to_bytes(m)?;
+    let (nonce, sealed) = cipher
+        .seal(session, &plain)
+        .map_err(|e| MsgError::Malformed(e.to_string()))?;
+    super::wire::Datagram::Session {
+        session,
+        nonce,
+        sealed: &sealed,
+    }
+    .encode()
+    .map_err(|e| MsgError::Malformed(e.to_string()))
+}
+
 /// Splits a list into `ListChunk`s that each fit one datagram.
 pub fn chunk_list(epoch: u64, generation: u64, views: &[ServiceView]) -> Vec<Down> {
     // Room for the chunk's own fields and postcard's length prefixes.
