@@ -26,9 +26,16 @@ struct Guest {
 
 impl Guest {
     fn new(inst: &Instance, mut addr: SocketAddr) -> anyhow::Result<Self> {
-        if addr.port() == 0 {
-            addr = std::net::UdpSocket::bind(addr)?.local_addr()?;
-        }
+        // Resolve port 0, and fall back to a free port if the asked one is taken (another
+        // `muster up` on this machine): the demo must start on a fresh machine.
+        addr = match std::net::UdpSocket::bind(addr) {
+            Ok(s) => s.local_addr()?,
+            Err(e) => {
+                let free = std::net::UdpSocket::bind((addr.ip(), 0))?.local_addr()?;
+                eprintln!("muster up: udp {addr} unavailable ({e}); remote users use {free}");
+                free
+            }
+        };
         let dir = std::env::temp_dir().join(format!("muster-up-{inst}-{}", std::process::id()));
         std::fs::create_dir_all(&dir)?;
         let key = KeyPair::generate()?;
