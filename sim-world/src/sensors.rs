@@ -276,20 +276,25 @@ mod tests {
         rand_pcg::Pcg64::seed_from_u64(1)
     }
 
+    /// The body grid of the 10 m test room.
+    fn grid(bodies: Vec<Body>) -> BodyGrid {
+        BodyGrid::new(bodies, (0.0, 0.0), (10.0, 10.0), 2.0)
+    }
+
+    /// The sensing robot's own body, at (3, 3).
+    fn robot_at_3_3() -> Body {
+        Body {
+            x: 3.0,
+            y: 3.0,
+            r: 0.25,
+            beacon: None,
+        }
+    }
+
     #[test]
     fn laser_ranges_match_hand_geometry() {
         let map = room();
-        let bodies = BodyGrid::new(
-            vec![Body {
-                x: 3.0,
-                y: 3.0,
-                r: 0.25,
-                beacon: None,
-            }],
-            (0.0, 0.0),
-            (10.0, 10.0),
-            2.0,
-        );
+        let bodies = grid(vec![robot_at_3_3()]);
         let p = Pose {
             x: 3.0,
             y: 3.0,
@@ -327,7 +332,7 @@ mod tests {
             r: 0.25,
             beacon: None,
         };
-        let bodies = BodyGrid::new(vec![me, other], (0.0, 0.0), (10.0, 10.0), 2.0);
+        let bodies = grid(vec![me, other]);
         let mut scan = Vec::new();
         laser_scan(
             &map,
@@ -359,17 +364,7 @@ mod tests {
     #[test]
     fn sonar_takes_the_nearest_echo_in_each_cone() {
         let map = room();
-        let bodies = BodyGrid::new(
-            vec![Body {
-                x: 3.0,
-                y: 3.0,
-                r: 0.25,
-                beacon: None,
-            }],
-            (0.0, 0.0),
-            (10.0, 10.0),
-            2.0,
-        );
+        let bodies = grid(vec![robot_at_3_3()]);
         let params = SonarParams {
             noise: 0.0,
             bearings_deg: vec![0.0, 90.0, 180.0],
@@ -423,7 +418,7 @@ mod tests {
             r: 0.25,
             beacon: Some(Colour::Green),
         };
-        let bodies = BodyGrid::new(vec![me, red, behind_wall], (0.0, 0.0), (10.0, 10.0), 2.0);
+        let bodies = grid(vec![me, red, behind_wall]);
         let mut det = Vec::new();
         let p = Pose {
             x: 3.0,
@@ -465,12 +460,7 @@ mod tests {
             r: 0.25,
             beacon: None,
         };
-        let bodies = BodyGrid::new(
-            vec![me, red, behind_wall, blocker],
-            (0.0, 0.0),
-            (10.0, 10.0),
-            2.0,
-        );
+        let bodies = grid(vec![me, red, behind_wall, blocker]);
         camera_frame(
             &map,
             &bodies,
@@ -483,20 +473,15 @@ mod tests {
         );
         assert!(det.is_empty(), "{det:?}");
         // Without the wall, green would be seen: check from the other side of it.
-        let bodies = BodyGrid::new(
-            vec![
-                Body {
-                    x: 7.0,
-                    y: 5.0,
-                    r: 0.25,
-                    beacon: None,
-                },
-                behind_wall,
-            ],
-            (0.0, 0.0),
-            (10.0, 10.0),
-            2.0,
-        );
+        let bodies = grid(vec![
+            Body {
+                x: 7.0,
+                y: 5.0,
+                r: 0.25,
+                beacon: None,
+            },
+            behind_wall,
+        ]);
         camera_frame(
             &map,
             &bodies,
