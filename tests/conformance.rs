@@ -208,6 +208,7 @@ fn a_command_session_takes_a_goal_and_reports_arrival(via: Via) {
     ]);
     assert_eq!(code, 0);
     let statuses: Vec<&str> = lines.iter().filter_map(|v| v["status"].as_str()).collect();
+    assert_eq!(statuses[0], "idle", "{statuses:?}");
     assert!(
         statuses
             .iter()

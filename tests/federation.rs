@@ -216,46 +216,6 @@ fn a_data_session_streams_with_sequence_numbers_and_the_system_can_end_it() {
 }
 
 #[test]
-fn a_command_session_takes_a_goal_and_reports_arrival() {
-    let mut f = Fed::new("command");
-    f.broker(&[]);
-    f.system("d1", &["--kind", "command", "--quota", "1", "--rate", "20"]);
-    f.wait_list(10 * SEC, |l| l.len() == 1);
-    let (code, out) = f.run(
-        &[
-            "user",
-            "request",
-            "d1/s0",
-            "--goal",
-            "1.5,-1.5",
-            "--duration",
-            "3s",
-            "--json",
-        ],
-        20 * SEC,
-    );
-    assert_eq!(code, 0);
-    let statuses: Vec<String> = out
-        .lines()
-        .map(|l| serde_json::from_str::<Value>(l).unwrap())
-        .filter_map(|v| v["status"].as_str().map(String::from))
-        .collect();
-    assert_eq!(statuses[0], "idle");
-    assert!(
-        statuses[1].contains("goal (1.50, -1.50) accepted"),
-        "{statuses:?}"
-    );
-    assert_eq!(
-        statuses
-            .iter()
-            .filter(|s| s.starts_with("done: arrived within 1 m"))
-            .count(),
-        1,
-        "{statuses:?}"
-    );
-}
-
-#[test]
 fn withdraw_and_restore() {
     let mut f = Fed::new("withdraw");
     f.broker(&[]);
