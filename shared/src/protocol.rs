@@ -12,7 +12,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// First byte of every frame.
 pub const MAGIC: u8 = 0x4d; // 'M'
 /// Protocol version; a frame of another version is refused.
-pub const VERSION: u8 = 2;
+pub const VERSION: u8 = 3;
 /// Largest frame, in bytes, on any transport.
 pub const MAX_FRAME: usize = 64 * 1024;
 

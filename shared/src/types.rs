@@ -220,6 +220,33 @@ pub enum Payload {
     Scalar(f64),
     /// Free text.
     Text(String),
+    /// A tracked target in the world frame (a tracking system's estimate).
+    Track2d(Track2d),
+}
+
+/// Most robots a [`Track2d`] names as seeing its target.
+pub const MAX_TRACK_OBSERVERS: usize = 16;
+
+/// A target's tracked state: position, velocity, uncertainty, who sees it, whether lost.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Track2d {
+    /// x, metres.
+    pub x: f64,
+    /// y, metres.
+    pub y: f64,
+    /// Velocity along x, m/s.
+    pub vx: f64,
+    /// Velocity along y, m/s.
+    pub vy: f64,
+    /// Position uncertainty: standard deviation along the worst axis, metres.
+    pub sigma: f64,
+    /// Seconds since the target was last detected (0 when seen in this update).
+    pub age: f64,
+    /// Robots that detected it in the last update window (at most
+    /// [`MAX_TRACK_OBSERVERS`]).
+    pub seen_by: Vec<String>,
+    /// Unseen for longer than the system's timeout: the position is the last known one.
+    pub lost: bool,
 }
 
 impl Payload {
@@ -230,6 +257,7 @@ impl Payload {
             Payload::Goal2d { .. } => "goal2d",
             Payload::Scalar(_) => "scalar",
             Payload::Text(_) => "text",
+            Payload::Track2d(_) => "track2d",
         }
     }
 
@@ -239,6 +267,14 @@ impl Payload {
         match (self, target) {
             (p, t) if p.type_name() == t => Some(p.clone()),
             (Payload::Pose2d { x, y, .. }, "goal2d") => Some(Payload::Goal2d { x: *x, y: *y }),
+            // A lost target gives no goal: the command system keeps its last one.
+            (Payload::Track2d(t), "goal2d") => (!t.lost && t.x.is_finite() && t.y.is_finite())
+                .then_some(Payload::Goal2d { x: t.x, y: t.y }),
+            (Payload::Track2d(t), "pose2d") => (!t.lost).then_some(Payload::Pose2d {
+                x: t.x,
+                y: t.y,
+                theta: t.vy.atan2(t.vx),
+            }),
             (p, "text") => Some(Payload::Text(p.to_string())),
             _ => None,
         }
@@ -254,13 +290,30 @@ impl fmt::Display for Payload {
             Payload::Goal2d { x, y } => write!(f, "goal2d x={x:.3} y={y:.3}"),
             Payload::Scalar(v) => write!(f, "scalar {v}"),
             Payload::Text(t) => write!(f, "text {t}"),
+            Payload::Track2d(t) => {
+                write!(
+                    f,
+                    "track2d x={:.3} y={:.3} v=({:.2}, {:.2}) sigma={:.2}",
+                    t.x, t.y, t.vx, t.vy, t.sigma
+                )?;
+                if t.lost {
+                    write!(f, " lost ({:.0} s unseen)", t.age)
+                } else if t.seen_by.is_empty() {
+                    write!(f, " unseen {:.1} s", t.age)
+                } else {
+                    write!(f, " seen by {}", t.seen_by.join(","))
+                }
+            }
         }
     }
 }
 
 /// Whether data of payload type `data` can drive a command service taking `command`.
 pub fn link_compatible(data: &str, command: &str) -> bool {
-    data == command || (data == "pose2d" && command == "goal2d") || command == "text"
+    data == command
+        || (matches!(data, "pose2d" | "track2d") && command == "goal2d")
+        || (data == "track2d" && command == "pose2d")
+        || command == "text"
 }
 
 /// Why a request was refused. Every refusal names one of these.
@@ -431,6 +484,24 @@ mod tests {
         assert_eq!(Payload::Scalar(1.0).convert_to("goal2d"), None);
         assert!(link_compatible("pose2d", "goal2d"));
         assert!(!link_compatible("scalar", "goal2d"));
+        let mut track = Track2d {
+            x: 3.0,
+            y: 4.0,
+            vx: 0.5,
+            vy: 0.0,
+            sigma: 0.1,
+            age: 0.0,
+            seen_by: vec!["T1".into()],
+            lost: false,
+        };
+        assert!(link_compatible("track2d", "goal2d"));
+        assert_eq!(
+            Payload::Track2d(track.clone()).convert_to("goal2d"),
+            Some(Payload::Goal2d { x: 3.0, y: 4.0 })
+        );
+        track.lost = true;
+        assert_eq!(Payload::Track2d(track.clone()).convert_to("goal2d"), None);
+        assert!(Payload::Track2d(track).to_string().contains("lost"));
     }
 
     #[test]

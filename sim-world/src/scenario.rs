@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
 /// Beacon colours the camera tells apart.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Colour {
     /// Red.
@@ -42,6 +42,23 @@ impl Colour {
     /// Colour from its code.
     pub fn from_code(c: u8) -> Option<Colour> {
         Self::ALL.get(c as usize).copied()
+    }
+
+    /// The colour's name, lower case (as in scenario files).
+    pub fn name(self) -> &'static str {
+        match self {
+            Colour::Red => "red",
+            Colour::Green => "green",
+            Colour::Blue => "blue",
+            Colour::Yellow => "yellow",
+            Colour::Magenta => "magenta",
+            Colour::Cyan => "cyan",
+        }
+    }
+
+    /// The colour called `name` (lower case).
+    pub fn from_name(name: &str) -> Option<Colour> {
+        Self::ALL.into_iter().find(|c| c.name() == name)
     }
 
     /// RGB for drawing.

@@ -94,6 +94,8 @@ pub struct RobotBrief {
     pub pose: PoseC,
     /// Linear and angular velocity.
     pub velocity: [f64; 2],
+    /// Contacts so far (see [`crate::world::Robot::contacts`]).
+    pub contacts: u64,
 }
 
 /// One person in the world sample.
@@ -243,6 +245,7 @@ fn empty_world() -> WorldState {
             beacon: 0,
             pose: PoseC::default(),
             velocity: [0.0; 2],
+            contacts: 0,
         }; MAX_ROBOTS],
         people: [PersonBrief {
             name: Name::new(""),
@@ -456,6 +459,7 @@ fn fill_world(out: &mut WorldState, world: &World) {
         beacon: 0,
         pose: PoseC::default(),
         velocity: [0.0; 2],
+        contacts: 0,
     };
     for (k, o) in out.robots.iter_mut().enumerate() {
         *o = world
@@ -467,6 +471,7 @@ fn fill_world(out: &mut WorldState, world: &World) {
                 beacon: r.spec.beacon.map_or(0, |c| c.code() + 1),
                 pose: r.pose.into(),
                 velocity: [r.velocity.0, r.velocity.1],
+                contacts: r.contacts,
             });
     }
     let np = world.people().len().min(MAX_PEOPLE);
@@ -559,6 +564,39 @@ impl RobotLink {
         }
     }
 
+    /// The descriptor of the robot's "sensors updated" event, for an epoll set (a robot
+    /// system sleeps on it beside its protocol inbox). Call [`RobotLink::drain`] when it
+    /// is readable.
+    pub fn fd(&self) -> std::os::fd::RawFd {
+        // SAFETY: the descriptor stays owned by the listener; we only read its number.
+        unsafe { self.updated.file_descriptor().native_handle() }
+    }
+
+    /// Empties the "sensors updated" event without waiting.
+    pub fn drain(&self) {
+        let _ = self.updated.try_wait(|_| {});
+    }
+
+    /// Calls `f` with the newest sensors sample if it is newer than `after` (sim time),
+    /// without waiting; read in place from shared memory.
+    pub fn latest<R>(
+        &self,
+        after: f64,
+        f: impl FnOnce(&RobotSensors) -> R,
+    ) -> Result<Option<R>, ShmError> {
+        let mut newest = None;
+        while let Some(s) = self
+            .sensors
+            .receive()
+            .map_err(|e| err("sensors receive", e))?
+        {
+            newest = Some(s);
+        }
+        Ok(newest
+            .filter(|s| s.payload().time > after)
+            .map(|s| f(s.payload())))
+    }
+
     /// Sends a velocity command (m/s, rad/s).
     pub fn velocity(&self, v: f64, w: f64) -> Result<(), ShmError> {
         self.commands
@@ -583,6 +621,67 @@ impl RobotLink {
             })
             .map(|_| ())
             .map_err(|e| err("command send", e))
+    }
+}
+
+/// An observer's view of the whole world (ground truth: for experiments, renders and
+/// tools, never for a robot's own decisions).
+pub struct WorldView {
+    world: Subscriber<Ipc, WorldState, ()>,
+    updated: Listener<Ipc>,
+}
+
+impl WorldView {
+    /// Subscribes to instance `inst`'s world sample (the simulator must run).
+    pub fn open(node: &Node<Ipc>, inst: &str) -> Result<Self, ShmError> {
+        let wname = format!("muster/{inst}/sim/world");
+        let world = node
+            .service_builder(&name(&wname)?)
+            .publish_subscribe::<WorldState>()
+            .open()
+            .map_err(|e| err(&wname, e))?
+            .subscriber_builder()
+            .create()
+            .map_err(|e| err(&wname, e))?;
+        let ev = format!("muster/{inst}/sim/world/updated");
+        let updated = event(node, &ev)?
+            .listener_builder()
+            .create()
+            .map_err(|e| err(&ev, e))?;
+        Ok(WorldView { world, updated })
+    }
+
+    /// The descriptor of the "world updated" event, for an epoll set.
+    pub fn fd(&self) -> std::os::fd::RawFd {
+        // SAFETY: the descriptor stays owned by the listener; we only read its number.
+        unsafe { self.updated.file_descriptor().native_handle() }
+    }
+
+    /// Waits up to `timeout` for a world sample newer than `after` (sim time) and calls
+    /// `f` with it, read in place.
+    pub fn next<R>(
+        &self,
+        after: f64,
+        timeout: Duration,
+        f: impl FnOnce(&WorldState) -> R,
+    ) -> Result<Option<R>, ShmError> {
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            let mut newest = None;
+            while let Some(s) = self.world.receive().map_err(|e| err("world receive", e))? {
+                newest = Some(s);
+            }
+            if let Some(s) = newest.filter(|s| s.payload().time > after) {
+                return Ok(Some(f(s.payload())));
+            }
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            self.updated
+                .timed_wait(|_| {}, left)
+                .map_err(|e| err("world wait", e))?;
+        }
     }
 }
 

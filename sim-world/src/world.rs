@@ -70,6 +70,9 @@ pub struct Robot {
     pub camera_time: f64,
     /// Whether the last move was cut short by a wall or body.
     pub bumped: bool,
+    /// Contacts so far: moves cut short by a wall or body after a move that was not
+    /// (a robot pressing on for a second counts once).
+    pub contacts: u64,
     next: [f64; 3],
     rng: Pcg64,
     turning: f64,
@@ -164,6 +167,7 @@ impl World {
                 detections: Vec::new(),
                 camera_time: 0.0,
                 bumped: false,
+                contacts: 0,
                 next: [0.0; 3],
                 rng: seeded(scenario.seed, 1, i),
                 turning: 0.0,
@@ -350,7 +354,11 @@ impl World {
             let v = approach(r.velocity.0, target.0, d.max_accel * h);
             let w = approach(r.velocity.1, target.1, d.max_turn_accel * h);
             let (pose, done) = advance(map, &bodies, i, r.pose, v, w, h, d.radius);
-            r.bumped = done < 1.0;
+            let bumped = done < 1.0;
+            if bumped && !r.bumped {
+                r.contacts += 1;
+            }
+            r.bumped = bumped;
             r.velocity = if r.bumped { (0.0, w) } else { (v, w) };
             odometry(r, pose, &d);
             r.pose = pose;

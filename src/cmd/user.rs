@@ -101,6 +101,8 @@ pub fn payload_json(p: &Payload) -> Value {
         Payload::Goal2d { x, y } => json!({"type": "goal2d", "x": x, "y": y}),
         Payload::Scalar(v) => json!({"type": "scalar", "value": v}),
         Payload::Text(t) => json!({"type": "text", "text": t}),
+        Payload::Track2d(t) => json!({"type": "track2d", "x": t.x, "y": t.y, "vx": t.vx,
+            "vy": t.vy, "sigma": t.sigma, "age": t.age, "seen_by": t.seen_by, "lost": t.lost}),
     }
 }
 

@@ -108,6 +108,7 @@ pub struct SystemCore {
     session_prefix: u64,
     next_session: u64,
     overloaded: bool,
+    session_limit: Option<(usize, String)>,
     udp: Option<String>,
     report: BTreeMap<String, ServiceReport>,
     out: VecDeque<SystemOutput>,
@@ -128,6 +129,7 @@ impl SystemCore {
             session_prefix: (salt ^ (u64::from(pid) << 16)) << 24,
             next_session: 1,
             overloaded: false,
+            session_limit: None,
             udp: None,
             report: BTreeMap::new(),
             out: VecDeque::new(),
@@ -187,6 +189,13 @@ impl SystemCore {
     /// Refuse new offers ("overloaded") while `true`.
     pub fn set_overloaded(&mut self, value: bool) {
         self.overloaded = value;
+    }
+
+    /// Refuse new offers, with `reason`, while the system holds `limit` sessions or more
+    /// over all its services (e.g. a robot's processing budget, which may be smaller than
+    /// the quotas); `None` lifts the limit. Sessions already held are never ended by it.
+    pub fn set_session_limit(&mut self, limit: Option<usize>, reason: &str) {
+        self.session_limit = limit.map(|l| (l, reason.to_string()));
     }
 
     /// Announce a UDP endpoint for remote users (`ip:port`) in the registration.
@@ -330,6 +339,17 @@ impl SystemCore {
             None => Err(format!("no service {service:?} here")),
             Some(_) if self.withdrawn.contains(&service) => Err("service withdrawn".to_string()),
             Some(_) if self.overloaded => Err("overloaded".to_string()),
+            Some(_)
+                if self
+                    .session_limit
+                    .as_ref()
+                    .is_some_and(|(l, _)| self.sessions.len() >= *l) =>
+            {
+                Err(self
+                    .session_limit
+                    .as_ref()
+                    .map_or_else(String::new, |(_, r)| r.clone()))
+            }
             Some(spec) if self.sessions_of(&service) >= spec.quota as usize => {
                 Err(format!("overloaded: all {} sessions in use", spec.quota))
             }
@@ -623,6 +643,24 @@ mod tests {
             answer(&offer(&mut c, 4, "u2", "c")),
             Some(Err("overloaded".into()))
         );
+    }
+
+    #[test]
+    fn a_session_limit_over_all_services_refuses_with_its_reason_and_ends_nothing() {
+        let mut c = core();
+        c.set_session_limit(Some(2), "overburdened: tracking 3 targets");
+        assert!(answer(&offer(&mut c, 1, "u1", "c")).unwrap().is_ok());
+        assert!(answer(&offer(&mut c, 2, "u2", "a")).unwrap().is_ok());
+        assert_eq!(
+            answer(&offer(&mut c, 3, "u3", "c")),
+            Some(Err("overburdened: tracking 3 targets".into()))
+        );
+        // Lowering the limit below what is held ends nothing.
+        c.set_session_limit(Some(1), "overburdened");
+        assert_eq!(c.sessions().count(), 2);
+        assert_eq!(c.report()["c"].refusals, 1);
+        c.set_session_limit(None, "");
+        assert!(answer(&offer(&mut c, 4, "u3", "c")).unwrap().is_ok());
     }
 
     #[test]

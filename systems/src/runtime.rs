@@ -13,6 +13,7 @@ use muster_shared::protocol::{decode, ToBroker, ToSystem};
 use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
 use muster_shared::types::UserId;
 use std::collections::HashMap;
+use std::os::fd::RawFd;
 use std::time::{Duration, Instant};
 
 /// A robot system's own logic.
@@ -23,6 +24,17 @@ pub trait SystemApp {
     fn on_tick(&mut self, core: &mut SystemCore, now: Duration);
     /// When to call [`SystemApp::on_tick`] next; `None` sleeps until an event.
     fn next_tick(&self, core: &SystemCore) -> Option<Duration>;
+    /// The system's own descriptors to sleep on beside the protocol (its robot's sensor
+    /// events, a socket), asked once when the runtime starts. They must stay open while
+    /// the system runs. Readiness is edge-triggered: drain a descriptor in
+    /// [`SystemApp::on_ready`].
+    fn descriptors(&self) -> Vec<RawFd> {
+        Vec::new()
+    }
+    /// Called when descriptor `index` of [`SystemApp::descriptors`] became readable.
+    fn on_ready(&mut self, core: &mut SystemCore, now: Duration, index: usize) {
+        let _ = (core, now, index);
+    }
 }
 
 /// Why a system stopped.
@@ -46,6 +58,9 @@ const TOKEN_BROKER: usize = 3;
 const TOKEN_CONTROL: usize = 4;
 const TOKEN_UDP: usize = 5;
 const FIRST_USER_TOKEN: usize = 16;
+/// The app's descriptors are registered under `FIRST_APP_TOKEN + index`, far above the
+/// users' tokens.
+const FIRST_APP_TOKEN: usize = 1 << 40;
 
 /// Operator commands read from standard input, one a line.
 pub const CONTROL_HELP: &str =
@@ -175,6 +190,9 @@ pub fn run_system_with<A: SystemApp>(
         }
         None => None,
     };
+    for (i, fd) in app.descriptors().into_iter().enumerate() {
+        reactor.add(fd, FIRST_APP_TOKEN + i)?;
+    }
     let mut last_housekeeping = Instant::now();
     let mut shell = Shell {
         remote,
@@ -257,6 +275,7 @@ pub fn run_system_with<A: SystemApp>(
                         shell.drop_broker();
                     }
                 }
+                t if t >= FIRST_APP_TOKEN => app.on_ready(&mut core, now, t - FIRST_APP_TOKEN),
                 t => {
                     let dead = shell
                         .users

@@ -1,0 +1,397 @@
+//! Following a planned path without touching anything: pure pursuit toward a carrot on
+//! the path, with speed limited by the free distance ahead. The free distance is the
+//! robot's footprint (a parry2d `Ball`) cast along its heading against what laser and
+//! sonar see right now (the scan as parry2d polylines, split where the scan jumps, and
+//! sonar echoes as points), so the robot neither slips between two beams nor drives
+//! into a person the map does not know. Blocked for a while, it replans round what it
+//! sees; blocked for good, it waits and says so.
+//!
+//! Pure: fed with sim time, the pose estimate and obstacle points.
+
+use crate::planner::{path_length, PlanError, Planner};
+use muster_sim_world::kinematics::{wrap, Pose};
+use parry2d::math::{Pose2, Vec2};
+use parry2d::query::{cast_shapes, ShapeCastOptions};
+use parry2d::shape::{Ball, Polyline};
+use std::sync::Arc;
+
+/// How the navigator drives.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NavParams {
+    /// Top speed, m/s.
+    pub max_speed: f64,
+    /// Top turn rate, rad/s.
+    pub max_turn: f64,
+    /// Braking the speed limit assumes, m/s² (below the robot's own limit).
+    pub brake: f64,
+    /// Time between a reading and the robot acting on it, s (sensor period plus margin).
+    pub reaction: f64,
+    /// Gap kept to anything ahead, m.
+    pub stop_gap: f64,
+    /// Pure-pursuit carrot distance, m.
+    pub lookahead: f64,
+    /// Turn-rate gain on the heading error, 1/s.
+    pub turn_gain: f64,
+    /// Blocked this long, it replans round what it sees, s.
+    pub replan_after: f64,
+    /// The footprint's radius: the robot's radius plus a skin, m.
+    pub footprint: f64,
+}
+
+impl Default for NavParams {
+    fn default() -> Self {
+        NavParams {
+            max_speed: 0.8,
+            max_turn: 1.5,
+            brake: 0.6,
+            reaction: 0.25,
+            stop_gap: 0.15,
+            lookahead: 0.8,
+            turn_gain: 2.0,
+            replan_after: 2.0,
+            footprint: 0.28,
+        }
+    }
+}
+
+/// One control step's result.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NavStep {
+    /// Velocity command (m/s, rad/s).
+    pub velocity: (f64, f64),
+    /// Path length left to the goal, m.
+    pub remaining: f64,
+    /// Blocked since this sim time (something in the way and no way round yet).
+    pub blocked_since: Option<f64>,
+    /// The last (re)plan failed: why.
+    pub error: Option<PlanError>,
+    /// Free distance ahead along the heading, m (capped at the look distance).
+    pub free_ahead: f64,
+}
+
+/// Drives a robot along planned paths.
+pub struct Navigator {
+    planner: Arc<Planner>,
+    params: NavParams,
+    goal: Option<(f64, f64)>,
+    planned_for: Option<(f64, f64)>,
+    path: Vec<(f64, f64)>,
+    next: usize,
+    blocked_since: Option<f64>,
+    last_replan: f64,
+    error: Option<PlanError>,
+}
+
+/// How far ahead the footprint is cast, m.
+const LOOK: f64 = 3.0;
+
+impl Navigator {
+    /// A navigator planning on `planner`.
+    pub fn new(planner: Arc<Planner>, params: NavParams) -> Self {
+        Navigator {
+            planner,
+            params,
+            goal: None,
+            planned_for: None,
+            path: Vec::new(),
+            next: 0,
+            blocked_since: None,
+            last_replan: f64::NEG_INFINITY,
+            error: None,
+        }
+    }
+
+    /// The goal being driven to.
+    pub fn goal(&self) -> Option<(f64, f64)> {
+        self.goal
+    }
+
+    /// The current path's waypoints.
+    pub fn path(&self) -> &[(f64, f64)] {
+        &self.path
+    }
+
+    /// Drive to `goal` from `pose`. Plans at once unless the goal moved less than
+    /// `replan_within` metres from the one planned for (a followed target's small
+    /// moves just shift the path's end).
+    pub fn set_goal(
+        &mut self,
+        pose: Pose,
+        goal: (f64, f64),
+        replan_within: f64,
+    ) -> Result<(), PlanError> {
+        self.goal = Some(goal);
+        if let Some(p) = self.planned_for {
+            if (p.0 - goal.0).hypot(p.1 - goal.1) < replan_within && !self.path.is_empty() {
+                if let Some(last) = self.path.last_mut() {
+                    *last = goal;
+                }
+                return Ok(());
+            }
+        }
+        self.replan(pose, &[])
+    }
+
+    /// Stop and forget the goal.
+    pub fn clear(&mut self) {
+        self.goal = None;
+        self.planned_for = None;
+        self.path.clear();
+        self.next = 0;
+        self.blocked_since = None;
+        self.error = None;
+    }
+
+    fn replan(&mut self, pose: Pose, obstacles: &[(f64, f64, f64)]) -> Result<(), PlanError> {
+        let Some(goal) = self.goal else { return Ok(()) };
+        self.planned_for = Some(goal);
+        match self.planner.plan((pose.x, pose.y), goal, obstacles) {
+            Ok(path) => {
+                self.path = path;
+                self.next = 0;
+                self.error = None;
+                Ok(())
+            }
+            Err(e) => {
+                self.error = Some(e.clone());
+                Err(e)
+            }
+        }
+    }
+
+    /// The segment the robot is on (index of its end waypoint; the first segment starts
+    /// where the path was planned from) and how far along it (0..=1). Looks a few
+    /// segments ahead only, and never goes back, so a path that doubles back on itself
+    /// is followed in order.
+    fn progress(&self, pose: Pose) -> (usize, f64) {
+        let p = (pose.x, pose.y);
+        let last = self.path.len() - 1;
+        let mut best = (self.next.min(last), 0.0, f64::INFINITY);
+        for k in self.next..=(self.next + 3).min(last) {
+            let (t, d) = project(self.segment_start(k), self.path[k], p);
+            if d < best.2 - 1e-9 {
+                best = (k, t, d);
+            }
+        }
+        let (mut k, mut t, _) = best;
+        if t >= 1.0 - 1e-9 && k < last {
+            k += 1;
+            t = 0.0;
+        }
+        (k, t)
+    }
+
+    fn segment_start(&self, k: usize) -> (f64, f64) {
+        if k == 0 {
+            self.path[0]
+        } else {
+            self.path[k - 1]
+        }
+    }
+
+    /// One control step at sim time `now` from the pose estimate `pose`, with obstacle
+    /// points in the robot's frame (x ahead, y left) from laser and sonar.
+    pub fn step(&mut self, now: f64, pose: Pose, obstacles: &[(f64, f64)]) -> NavStep {
+        let free_ahead = free_distance(self.params.footprint, obstacles, 1.0);
+        let idle = NavStep {
+            velocity: (0.0, 0.0),
+            remaining: 0.0,
+            blocked_since: None,
+            error: self.error.clone(),
+            free_ahead,
+        };
+        if self.goal.is_none() || self.path.is_empty() {
+            return idle;
+        }
+        // Where along the path the robot is: the nearest of the next few segments.
+        let (seg, t) = self.progress(pose);
+        self.next = seg;
+        let here = lerp(self.segment_start(seg), self.path[seg], t);
+        let rest = &self.path[seg..];
+        let remaining =
+            (here.0 - pose.x).hypot(here.1 - pose.y) + path_length(here, rest);
+        let carrot = along(here, rest, self.params.lookahead);
+        let heading = (carrot.1 - pose.y).atan2(carrot.0 - pose.x);
+        let err = wrap(heading - pose.theta);
+        let p = &self.params;
+        let w = (p.turn_gain * err).clamp(-p.max_turn, p.max_turn);
+        let align = err.cos().max(0.0);
+        let mut v = if err.abs() > 1.0 { 0.0 } else { p.max_speed * align * align };
+        // Slow down towards the end of the path.
+        v = v.min((2.0 * p.brake * remaining).sqrt());
+        // Never faster than can stop short of what is ahead, reaction time included.
+        let room = (free_ahead - p.stop_gap).max(0.0);
+        let v_safe = ((p.reaction * p.brake).powi(2) + 2.0 * p.brake * room).sqrt()
+            - p.reaction * p.brake;
+        let wants_forward = v > 0.05 || err.abs() <= 1.0;
+        v = v.min(v_safe.max(0.0));
+        let stuck = wants_forward && room < 0.02 && remaining > 0.3;
+        if stuck {
+            let since = *self.blocked_since.get_or_insert(now);
+            if now - since >= p.replan_after && now - self.last_replan >= p.replan_after {
+                self.last_replan = now;
+                let seen = obstacles_in_map(pose, obstacles, 1.5);
+                // A failed replan keeps the old path: the way may clear.
+                let old = (self.path.clone(), self.next);
+                if self.replan(pose, &seen).is_err() {
+                    (self.path, self.next) = old;
+                }
+            }
+        } else {
+            self.blocked_since = None;
+        }
+        NavStep {
+            velocity: (v, w),
+            remaining,
+            blocked_since: self.blocked_since,
+            error: self.error.clone(),
+            free_ahead,
+        }
+    }
+}
+
+/// The point `distance` metres along the polyline `from` → `path`.
+fn along(from: (f64, f64), path: &[(f64, f64)], distance: f64) -> (f64, f64) {
+    let mut prev = from;
+    let mut left = distance;
+    for &q in path {
+        let len = (q.0 - prev.0).hypot(q.1 - prev.1);
+        if len >= left && len > 1e-12 {
+            return lerp(prev, q, left / len);
+        }
+        left -= len;
+        prev = q;
+    }
+    prev
+}
+
+fn lerp(a: (f64, f64), b: (f64, f64), t: f64) -> (f64, f64) {
+    (a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t)
+}
+
+/// The parameter (0..=1) of the point of a → b nearest to p, and its distance.
+fn project(a: (f64, f64), b: (f64, f64), p: (f64, f64)) -> (f64, f64) {
+    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+    let len2 = dx * dx + dy * dy;
+    let t = if len2 < 1e-12 {
+        1.0
+    } else {
+        (((p.0 - a.0) * dx + (p.1 - a.1) * dy) / len2).clamp(0.0, 1.0)
+    };
+    let q = lerp(a, b, t);
+    (t, (q.0 - p.0).hypot(q.1 - p.1))
+}
+
+/// Obstacle points near the robot, in the map frame, as small circles for the planner.
+fn obstacles_in_map(pose: Pose, pts: &[(f64, f64)], within: f64) -> Vec<(f64, f64, f64)> {
+    let (s, c) = pose.theta.sin_cos();
+    let mut out: Vec<(f64, f64, f64)> = Vec::new();
+    for &(x, y) in pts {
+        if x.hypot(y) > within {
+            continue;
+        }
+        let m = (pose.x + c * x - s * y, pose.y + s * x + c * y);
+        // Thin the points: one circle per 0.15 m.
+        if out.iter().all(|o| (o.0 - m.0).hypot(o.1 - m.1) > 0.15) {
+            out.push((m.0, m.1, 0.15));
+        }
+    }
+    out
+}
+
+/// How far a footprint of radius `radius` can move along `direction` (+1 ahead, -1
+/// back) from the robot's origin before touching an obstacle point, up to [`LOOK`].
+///
+/// The points are joined into parry2d polylines wherever neighbours are closer than the
+/// footprint's diameter (the scan's surfaces; the robot cannot pass between such
+/// points anyway), and the rest stay single points; the footprint `Ball` is cast
+/// against each shape.
+pub fn free_distance(radius: f64, pts: &[(f64, f64)], direction: f64) -> f64 {
+    let ball = Ball::new(radius as f32);
+    let vel = Vec2::new(direction.signum() as f32, 0.0);
+    let opts = ShapeCastOptions::with_max_time_of_impact(LOOK as f32);
+    // Points that cannot be reached within the look distance are skipped.
+    let join = (2.0 * radius) as f32;
+    let mut runs: Vec<Vec<Vec2>> = Vec::new();
+    for &(x, y) in pts {
+        if x * direction.signum() <= -radius || x.hypot(y) >= LOOK + radius {
+            continue;
+        }
+        let p = Vec2::new(x as f32, y as f32);
+        match runs.last_mut() {
+            Some(run) if run.last().is_some_and(|q| q.distance(p) <= join) => run.push(p),
+            _ => runs.push(vec![p]),
+        }
+    }
+    let mut best = LOOK;
+    for run in runs {
+        let hit = if run.len() == 1 {
+            let at = Pose2::from_translation(run[0]);
+            cast_shapes(&Pose2::IDENTITY, vel, &ball, &at, Vec2::ZERO, &Ball::new(0.01), opts)
+        } else {
+            let line = Polyline::new(run, None);
+            cast_shapes(&Pose2::IDENTITY, vel, &ball, &Pose2::IDENTITY, Vec2::ZERO, &line, opts)
+        };
+        if let Ok(Some(hit)) = hit {
+            best = best.min(f64::from(hit.time_of_impact));
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::planner::PlannerParams;
+    use muster_sim_world::map::OccupancyMap;
+
+    #[test]
+    fn free_distance_sees_walls_between_beams_and_single_echoes() {
+        // A wall 2 m ahead made of points 0.3 m apart: the footprint cannot pass.
+        let wall: Vec<(f64, f64)> = (-5..=5).map(|k| (2.0, f64::from(k) * 0.3)).collect();
+        let d = free_distance(0.28, &wall, 1.0);
+        assert!((d - 1.72).abs() < 0.05, "free {d}");
+        // A single echo off to the side does not block; one ahead does.
+        assert_eq!(free_distance(0.28, &[(1.0, 0.5)], 1.0), LOOK);
+        let d = free_distance(0.28, &[(1.0, 0.1)], 1.0);
+        assert!(d > 0.6 && d < 0.75, "free {d}");
+        // Behind the robot does not count going forward.
+        assert_eq!(free_distance(0.28, &[(-1.0, 0.0)], 1.0), LOOK);
+        assert_eq!(free_distance(0.28, &[], 1.0), LOOK);
+    }
+
+    #[test]
+    fn follows_a_path_and_stops_short_of_a_body_in_the_way() {
+        let map = OccupancyMap::office();
+        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let mut nav = Navigator::new(planner, NavParams::default());
+        let mut pose = Pose { x: 5.0, y: 3.0, theta: 0.0 };
+        nav.set_goal(pose, (15.0, 3.0), 0.5).unwrap();
+        // Free corridor: drives forward towards the goal.
+        let s = nav.step(0.0, pose, &[]);
+        assert!(s.velocity.0 > 0.0 && s.blocked_since.is_none());
+        assert!((s.remaining - 10.0).abs() < 0.5);
+        // A body 0.4 m ahead: stops (turning allowed), and reports blocked over time.
+        let body: Vec<(f64, f64)> = (-3..=3).map(|k| (0.4, f64::from(k) * 0.05)).collect();
+        let s = nav.step(1.0, pose, &body);
+        assert_eq!(s.velocity.0, 0.0);
+        assert_eq!(s.blocked_since, Some(1.0));
+        // After the replan delay it plans round the body and turns away from it.
+        let s = nav.step(3.5, pose, &body);
+        assert!(s.error.is_none());
+        let first = nav.path()[1.min(nav.path().len() - 1)];
+        assert!((first.1 - 3.0).abs() > 0.2 || first.0 < 5.4, "path goes round: {:?}", nav.path());
+        // Drive it in a kinematic loop with no obstacles: it reaches the goal.
+        let mut t = 4.0;
+        for _ in 0..400 {
+            let s = nav.step(t, pose, &[]);
+            pose = muster_sim_world::kinematics::integrate(pose, s.velocity.0, s.velocity.1, 0.1);
+            t += 0.1;
+            if s.remaining < 0.2 {
+                break;
+            }
+        }
+        assert!((pose.x - 15.0).hypot(pose.y - 3.0) < 0.5, "ended at {pose:?}");
+    }
+}

@@ -1,0 +1,404 @@
+//! The multi-robot, multi-target tracking system's logic (the paper's T1–T3 after Jung
+//! and Sukhatme): each robot localizes, points its camera at the targets users asked
+//! for (sweeping while it sees none), and every sighting goes into one track per colour.
+//! Mobile trackers patrol while their target is lost and follow it, at a distance, when
+//! seen. The processing budget models what the robot's computer sustains beside
+//! tracking: fewer sessions than the quota when it tracks many targets (the paper: the
+//! client takes 10 requests, the robot about 8).
+//!
+//! Pure: fed with each robot's sensors samples (sim time inside); returns commands.
+
+use crate::localizer::{Localizer, LocalizerParams};
+use crate::navigator::{free_distance, NavParams, Navigator};
+use crate::planner::Planner;
+use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
+use crate::tracker::{MultiTracker, TrackerParams};
+use muster_shared::types::Track2d;
+use muster_sim_world::kinematics::{wrap, Pose};
+use muster_sim_world::map::OccupancyMap;
+use muster_sim_world::scenario::Colour;
+use nalgebra::Matrix3;
+use parry2d::math::Vec2;
+use parry2d::shape::Triangle;
+use std::sync::Arc;
+
+/// What a tracking robot's computer sustains: a budget of 1 shared by tracking (per
+/// target in view) and by sessions.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Budget {
+    /// Cost of serving one session.
+    pub per_session: f64,
+    /// Cost of tracking one target.
+    pub per_target: f64,
+}
+
+impl Default for Budget {
+    fn default() -> Self {
+        // 10 sessions with nothing tracked; 8 with all three of the paper's targets.
+        Budget {
+            per_session: 0.1,
+            per_target: 0.2 / 3.0,
+        }
+    }
+}
+
+impl Budget {
+    /// Sessions sustainable while `tracked` targets are tracked.
+    pub fn sessions(&self, tracked: usize) -> usize {
+        let left = 1.0 - self.per_target * tracked as f64;
+        ((left + 1e-9) / self.per_session).floor().max(0.0) as usize
+    }
+}
+
+/// One tracking robot, as configured.
+#[derive(Clone, Debug)]
+pub struct TrackerRobot {
+    /// Name in the simulator.
+    pub name: String,
+    /// Start pose (the localizer's initial estimate).
+    pub start: Pose,
+    /// Whether it may drive (patrol, follow).
+    pub mobile: bool,
+    /// Its sensors.
+    pub geometry: SensorGeometry,
+    /// Its top speed, m/s.
+    pub max_speed: f64,
+}
+
+/// How the tracking system behaves.
+#[derive(Clone, Debug)]
+pub struct TrackingParams {
+    /// Colours, one service each.
+    pub colours: Vec<Colour>,
+    /// Updates to users every this many seconds (the paper: 1 s).
+    pub period: f64,
+    /// Use ground truth instead of localization (experiments only).
+    pub ground_truth: bool,
+    /// Where mobile trackers patrol while their target is lost.
+    pub patrol: Vec<(f64, f64)>,
+    /// Distance a mobile tracker keeps to the target it follows, m.
+    pub follow_distance: f64,
+    /// The processing budget.
+    pub budget: Budget,
+    /// The track filter.
+    pub tracker: TrackerParams,
+    /// The localization filter.
+    pub localizer: LocalizerParams,
+    /// Period of the camera sweep while no target is in view, s.
+    pub sweep_period: f64,
+}
+
+impl Default for TrackingParams {
+    fn default() -> Self {
+        TrackingParams {
+            colours: vec![Colour::Red, Colour::Green, Colour::Blue],
+            period: 1.0,
+            ground_truth: false,
+            patrol: vec![(3.0, 3.0), (20.0, 3.0), (37.0, 3.0), (37.0, 10.0), (37.0, 17.0), (20.0, 17.0), (3.0, 17.0), (3.0, 10.0)],
+            follow_distance: 2.0,
+            budget: Budget::default(),
+            tracker: TrackerParams::default(),
+            localizer: LocalizerParams::default(),
+            sweep_period: 8.0,
+        }
+    }
+}
+
+/// Commands for one robot after one sample.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RobotCommands {
+    /// Velocity (m/s, rad/s), for mobile robots.
+    pub velocity: Option<(f64, f64)>,
+    /// Camera pan, tilt (rad) and zoom.
+    pub camera: Option<(f64, f64, f64)>,
+}
+
+struct RobotState {
+    cfg: TrackerRobot,
+    localizer: Option<Localizer>,
+    pose: Pose,
+    cov: Matrix3<f64>,
+    nav: Option<Navigator>,
+    patrol_next: usize,
+    following: Option<Colour>,
+    last_camera: f64,
+    samples: u64,
+}
+
+/// The tracking system's logic over all its robots.
+pub struct TrackingCore {
+    params: TrackingParams,
+    map: Arc<OccupancyMap>,
+    robots: Vec<RobotState>,
+    tracker: MultiTracker,
+    next_publish: f64,
+    now: f64,
+}
+
+impl TrackingCore {
+    /// The system for `robots` on `map`.
+    pub fn new(
+        map: Arc<OccupancyMap>,
+        field: Arc<LikelihoodField>,
+        planner: Arc<Planner>,
+        robots: Vec<TrackerRobot>,
+        params: TrackingParams,
+        seed: u64,
+    ) -> Self {
+        let robots = robots
+            .into_iter()
+            .enumerate()
+            .map(|(i, cfg)| RobotState {
+                localizer: (!params.ground_truth && cfg.geometry.laser.is_some()).then(|| {
+                    Localizer::new(
+                        field.clone(),
+                        cfg.start,
+                        params.localizer.clone(),
+                        seed ^ (i as u64 + 1).wrapping_mul(0x9e37_79b9),
+                    )
+                }),
+                pose: cfg.start,
+                cov: Matrix3::from_diagonal_element(1e-4),
+                nav: cfg.mobile.then(|| {
+                    Navigator::new(
+                        planner.clone(),
+                        NavParams {
+                            max_speed: cfg.max_speed.min(0.8),
+                            ..NavParams::default()
+                        },
+                    )
+                }),
+                patrol_next: 0,
+                following: None,
+                last_camera: f64::NEG_INFINITY,
+                samples: 0,
+                cfg,
+            })
+            .collect();
+        TrackingCore {
+            tracker: MultiTracker::new(params.tracker.clone()),
+            params,
+            map,
+            robots,
+            next_publish: 0.0,
+            now: 0.0,
+        }
+    }
+
+    /// The robots' names, in order.
+    pub fn robot_names(&self) -> Vec<String> {
+        self.robots.iter().map(|r| r.cfg.name.clone()).collect()
+    }
+
+    /// Robot `i`'s pose estimate.
+    pub fn pose(&self, i: usize) -> Option<Pose> {
+        self.robots.get(i).map(|r| r.pose)
+    }
+
+    /// The colour robot `i` is following, if it is a mobile tracker following one.
+    pub fn following(&self, i: usize) -> Option<Colour> {
+        self.robots.get(i).and_then(|r| r.following)
+    }
+
+    /// The newest sim time seen.
+    pub fn now(&self) -> f64 {
+        self.now
+    }
+
+    /// The colours offered.
+    pub fn colours(&self) -> &[Colour] {
+        &self.params.colours
+    }
+
+    /// Sessions the robots can sustain now, given what they track.
+    pub fn session_limit(&self) -> usize {
+        self.params.budget.sessions(self.tracker.tracked(self.now))
+    }
+
+    /// Targets tracked now.
+    pub fn tracked(&self) -> usize {
+        self.tracker.tracked(self.now)
+    }
+
+    /// Handles one sensors sample of robot `i`; `wanted` are the colours users hold
+    /// sessions on (most wanted first). Returns the robot's commands.
+    pub fn handle_sample(&mut self, i: usize, s: &SensorSample, wanted: &[Colour]) -> RobotCommands {
+        let Some(r) = self.robots.get_mut(i) else {
+            return RobotCommands::default();
+        };
+        self.now = self.now.max(s.time);
+        r.samples += 1;
+        // Where am I?
+        match (&mut r.localizer, self.params.ground_truth) {
+            (Some(l), false) => {
+                l.handle_odometry(s.odom);
+                if let Some(scan) = r.cfg.geometry.scan(s) {
+                    l.handle_scan(s.laser_time, &scan);
+                }
+                r.pose = l.estimate();
+                r.cov = l.covariance();
+            }
+            _ => {
+                r.pose = s.truth;
+                r.cov = Matrix3::from_diagonal_element(1e-6);
+            }
+        }
+        // What do I see? Each camera frame once.
+        let new_frame = s.camera_time > r.last_camera;
+        if new_frame {
+            r.last_camera = s.camera_time;
+            for sighting in &s.sightings {
+                if self.params.colours.contains(&sighting.colour) {
+                    self.tracker
+                        .handle_sighting(&r.cfg.name, s.camera_time, r.pose, &r.cov, sighting);
+                }
+            }
+        }
+        let mut cmd = RobotCommands::default();
+        if new_frame {
+            cmd.camera = Some(self.point_camera(i, s.time, wanted));
+        }
+        if self.robots[i].cfg.mobile {
+            cmd.velocity = Some(self.drive(i, s, wanted));
+        }
+        cmd
+    }
+
+    /// Where robot `i` should look: at the most wanted target it can see (tracked,
+    /// within range, in line of sight, within pan), else sweeping.
+    fn point_camera(&self, i: usize, now: f64, wanted: &[Colour]) -> (f64, f64, f64) {
+        let r = &self.robots[i];
+        let Some((fov, range, pan_limit)) = r.cfg.geometry.camera else {
+            return (0.0, 0.0, 1.0);
+        };
+        let candidates = wanted
+            .iter()
+            .chain(self.params.colours.iter())
+            .filter(|c| self.tracker.is_tracked(**c, now));
+        for &c in candidates {
+            let Some((x, y)) = self.tracker.predicted(c, now) else { continue };
+            let (dx, dy) = (x - r.pose.x, y - r.pose.y);
+            let d = dx.hypot(dy);
+            let bearing = wrap(dy.atan2(dx) - r.pose.theta);
+            if d > range * 1.8 || bearing.abs() > pan_limit + fov / 2.0 {
+                continue;
+            }
+            if self.map.raycast(r.pose.x, r.pose.y, dy.atan2(dx), (d - 0.3).max(0.0)).is_some() {
+                continue;
+            }
+            // Zoom in on far targets: the range grows with zoom.
+            let zoom = (d / (range * 0.8)).clamp(1.0, 2.0);
+            return (bearing.clamp(-pan_limit, pan_limit), 0.0, zoom);
+        }
+        // Nothing to look at: sweep, each robot at its own phase.
+        let phase = i as f64 * 1.3;
+        let pan = pan_limit * (2.0 * std::f64::consts::PI * now / self.params.sweep_period + phase).sin();
+        (pan, 0.0, 1.0)
+    }
+
+    /// A mobile tracker follows the most wanted tracked target at a distance, and
+    /// patrols while there is none.
+    fn drive(&mut self, i: usize, s: &SensorSample, wanted: &[Colour]) -> (f64, f64) {
+        let now = s.time;
+        let target = wanted
+            .iter()
+            .find(|c| self.tracker.is_tracked(**c, now))
+            .and_then(|c| Some((*c, self.tracker.predicted(*c, now)?)));
+        let follow_distance = self.params.follow_distance;
+        let patrol = &self.params.patrol;
+        let r = &mut self.robots[i];
+        let Some(nav) = r.nav.as_mut() else {
+            return (0.0, 0.0);
+        };
+        let obstacles = r.cfg.geometry.obstacle_points(s, 3.5);
+        match target {
+            Some((colour, (tx, ty))) => {
+                r.following = Some(colour);
+                let (dx, dy) = (r.pose.x - tx, r.pose.y - ty);
+                let d = dx.hypot(dy);
+                if d <= follow_distance + 0.3 {
+                    // Close enough: hold, facing the target.
+                    nav.clear();
+                    let err = wrap((ty - r.pose.y).atan2(tx - r.pose.x) - r.pose.theta);
+                    return (0.0, (1.5 * err).clamp(-1.0, 1.0));
+                }
+                let k = follow_distance / d.max(1e-6);
+                let goal = (tx + dx * k, ty + dy * k);
+                if nav.set_goal(r.pose, goal, 0.75).is_err() {
+                    // Keep-away point unreachable (e.g. behind a wall): head for the target.
+                    let _ = nav.set_goal(r.pose, (tx, ty), 0.75);
+                }
+            }
+            None => {
+                r.following = None;
+                if patrol.is_empty() {
+                    nav.clear();
+                    return (0.0, 0.0);
+                }
+                let at = patrol[r.patrol_next % patrol.len()];
+                if (at.0 - r.pose.x).hypot(at.1 - r.pose.y) < 1.0 || nav.goal() != Some(at) {
+                    if (at.0 - r.pose.x).hypot(at.1 - r.pose.y) < 1.0 {
+                        r.patrol_next = (r.patrol_next + 1) % patrol.len();
+                    }
+                    let next = patrol[r.patrol_next % patrol.len()];
+                    if nav.set_goal(r.pose, next, 0.0).is_err() {
+                        r.patrol_next = (r.patrol_next + 1) % patrol.len();
+                    }
+                }
+            }
+        }
+        let step = nav.step(now, r.pose, &obstacles);
+        // Belt and braces: never forward into something closer than the stop gap.
+        if step.velocity.0 > 0.0 && free_distance(0.28, &obstacles, 1.0) < 0.12 {
+            return (0.0, step.velocity.1);
+        }
+        step.velocity
+    }
+
+    /// Whether updates are due at the newest sim time; if so the next one is scheduled.
+    pub fn publish_due(&mut self) -> bool {
+        if self.now + 1e-9 >= self.next_publish {
+            self.next_publish = (self.next_publish + self.params.period).max(self.now);
+            true
+        } else {
+            false
+        }
+    }
+
+    /// The track of `colour` now, as the service streams it (`None` if never seen).
+    pub fn payload(&self, colour: Colour) -> Option<Track2d> {
+        self.tracker
+            .payload(colour, self.now, self.params.period.max(1.0))
+    }
+
+    /// Whether robot `i`'s camera cone (at its current pan, zoom 1) holds (x, y): the
+    /// cone as a parry2d triangle.
+    pub fn in_view(&self, i: usize, pan: f64, x: f64, y: f64) -> bool {
+        let Some(r) = self.robots.get(i) else { return false };
+        let Some((fov, range, _)) = r.cfg.geometry.camera else { return false };
+        let axis = r.pose.theta + pan;
+        let far = range / (fov / 2.0).cos();
+        let corner = |a: f64| Vec2::new((r.pose.x + far * a.cos()) as f32, (r.pose.y + far * a.sin()) as f32);
+        let cone = Triangle::new(
+            Vec2::new(r.pose.x as f32, r.pose.y as f32),
+            corner(axis - fov / 2.0),
+            corner(axis + fov / 2.0),
+        );
+        cone.contains_point(Vec2::new(x as f32, y as f32))
+            && (x - r.pose.x).hypot(y - r.pose.y) <= range
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_budget_gives_ten_sessions_idle_and_eight_tracking_three_targets() {
+        let b = Budget::default();
+        assert_eq!(b.sessions(0), 10);
+        assert_eq!(b.sessions(3), 8);
+        assert!(b.sessions(6) < 8);
+    }
+}
