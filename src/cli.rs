@@ -223,6 +223,94 @@ pub struct BrokerArgs {
 pub enum SystemCommand {
     /// A generic system offering K services (streaming poses, or driving to goals).
     Synthetic(SyntheticArgs),
+    /// The paper's tracking system on the simulator: robots with PTZ cameras track
+    /// coloured beacons; one data service (`track2d`) per colour.
+    Tracking(TrackingArgs),
+    /// The paper's delivery robot on the simulator: one command service (`goal2d`) with
+    /// a task queue; plans, drives, avoids, reports, goes home when idle.
+    Delivery(DeliveryArgs),
+}
+
+/// What every robot system on the simulator takes.
+#[derive(Args, Debug, Clone)]
+pub struct RobotSystemArgs {
+    /// The simulator's scenario (TOML; default: the paper's). Must match `muster sim`'s.
+    #[arg(long)]
+    pub scenario: Option<std::path::PathBuf>,
+    /// Map (map_server YAML; default: the scenario's, or the built-in office).
+    #[arg(long)]
+    pub map: Option<std::path::PathBuf>,
+    /// Use the simulator's ground-truth poses instead of localizing (experiments only).
+    #[arg(long)]
+    pub ground_truth: bool,
+    /// How long to wait for the simulator to come up.
+    #[arg(long, default_value = "20s", value_parser = duration)]
+    pub wait_sim: Duration,
+    /// Seed of the filters' randomness.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// On stopping, print one JSON line: grants and refusals per service, localization
+    /// error against ground truth per robot.
+    #[arg(long)]
+    pub stats_json: bool,
+    /// Serve remote users' sessions on this UDP address (e.g. `127.0.0.1:0`).
+    #[arg(long)]
+    pub udp: Option<std::net::SocketAddr>,
+}
+
+#[derive(Args, Debug)]
+pub struct TrackingArgs {
+    /// System name.
+    #[arg(long, default_value = "tracking")]
+    pub name: String,
+    /// Robots it drives (default: every robot of the scenario with a camera).
+    #[arg(long, value_delimiter = ',')]
+    pub robots: Vec<String>,
+    /// Robots among them that may drive: they patrol while their target is lost and
+    /// follow it when seen (Experiment 2: T3). Default: all stationary.
+    #[arg(long, value_delimiter = ',')]
+    pub mobile: Vec<String>,
+    /// Beacon colours, one service each.
+    #[arg(long, value_delimiter = ',', default_value = "red,green,blue")]
+    pub colours: Vec<String>,
+    /// Sessions each colour's service accepts at once.
+    #[arg(long, default_value_t = 10)]
+    pub quota: u16,
+    /// Updates per second (sim time; the paper: 1).
+    #[arg(long, default_value_t = 1.0)]
+    pub rate: f64,
+    /// A target unseen this long (sim seconds) is reported lost.
+    #[arg(long, default_value_t = 5.0)]
+    pub lost_after: f64,
+    /// Do not model the robots' processing budget (sessions limited by quota only).
+    #[arg(long)]
+    pub no_budget: bool,
+    #[command(flatten)]
+    pub common: RobotSystemArgs,
+}
+
+#[derive(Args, Debug)]
+pub struct DeliveryArgs {
+    /// System name.
+    #[arg(long, default_value = "delivery")]
+    pub name: String,
+    /// The robot it drives.
+    #[arg(long, default_value = "D1")]
+    pub robot: String,
+    /// The command service's name (default: the robot's).
+    #[arg(long)]
+    pub service: Option<String>,
+    /// Sessions at once (the paper: one user tasks the robot at a time).
+    #[arg(long, default_value_t = 1)]
+    pub quota: u16,
+    /// Refuse requests beyond the quota instead of queueing them.
+    #[arg(long)]
+    pub no_queue: bool,
+    /// Not tasked for this long (sim seconds), it returns home.
+    #[arg(long, default_value_t = 60.0)]
+    pub home_after: f64,
+    #[command(flatten)]
+    pub common: RobotSystemArgs,
 }
 
 #[derive(Args, Debug)]

@@ -1,6 +1,14 @@
 //! `muster system ...`.
 
-use crate::cli::SystemCommand;
+use crate::cli::{DeliveryArgs, RobotSystemArgs, SystemCommand, TrackingArgs};
+use anyhow::Context;
+use muster_robots::shell::{
+    delivery_specs, open_links, tracking_specs, DeliveryApp, DeliveryOptions, TrackingApp,
+    TrackingOptions,
+};
+use muster_sim_world::map::OccupancyMap;
+use muster_sim_world::scenario::{Colour, Scenario};
+use std::sync::Arc;
 use muster_shared::types::validate_registration;
 use muster_shared::Instance;
 use muster_systems::synthetic::{Synthetic, SyntheticOptions};
@@ -24,11 +32,7 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
             }
             let specs = opts.specs();
             validate_registration(&opts.name, &specs)?;
-            let salt = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map(|d| d.as_nanos() as u64)
-                .unwrap_or(0);
-            let core = SystemCore::new(&opts.name, std::process::id(), specs, salt);
+            let core = SystemCore::new(&opts.name, std::process::id(), specs, salt());
             let run = muster_systems::RunOptions { udp: a.udp };
             let core = muster_systems::run_system_with(inst, core, Synthetic::new(&opts), &run)?;
             if a.stats_json {
@@ -39,5 +43,132 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
+        SystemCommand::Tracking(a) => tracking(inst, a),
+        SystemCommand::Delivery(a) => delivery(inst, a),
     }
+}
+
+fn salt() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0)
+}
+
+/// The scenario and map a robot system shares with the simulator.
+fn world_of(a: &RobotSystemArgs) -> anyhow::Result<(Scenario, Arc<OccupancyMap>)> {
+    let scenario = match &a.scenario {
+        Some(p) => Scenario::load(p)?,
+        None => Scenario::paper(),
+    };
+    let map = match (&a.map, &scenario.map) {
+        (Some(p), _) | (None, Some(p)) => {
+            OccupancyMap::load(p).with_context(|| format!("loading {}", p.display()))?
+        }
+        (None, None) => OccupancyMap::office(),
+    };
+    Ok((scenario, Arc::new(map)))
+}
+
+fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
+    let (scenario, map) = world_of(&a.common)?;
+    let robots = if a.robots.is_empty() {
+        scenario
+            .robots
+            .iter()
+            .filter(|r| r.camera.is_some())
+            .map(|r| r.name.clone())
+            .collect()
+    } else {
+        a.robots.clone()
+    };
+    anyhow::ensure!(!robots.is_empty(), "the scenario has no robot with a camera");
+    let colours = a
+        .colours
+        .iter()
+        .map(|c| Colour::from_name(c).with_context(|| format!("unknown colour {c:?}")))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    anyhow::ensure!(
+        a.rate.is_finite() && a.rate > 0.0 && a.rate <= 100.0,
+        "--rate must be in (0, 100] Hz"
+    );
+    anyhow::ensure!(
+        a.lost_after.is_finite() && a.lost_after > 0.0,
+        "--lost-after must be > 0"
+    );
+    let mut params = muster_robots::tracking::TrackingParams {
+        colours: colours.clone(),
+        period: 1.0 / a.rate,
+        ground_truth: a.common.ground_truth,
+        ..Default::default()
+    };
+    params.tracker.lost_after = a.lost_after;
+    let opts = TrackingOptions {
+        robots: robots.clone(),
+        mobile: a.mobile.clone(),
+        params,
+        quota: a.quota,
+        budget: !a.no_budget,
+        seed: a.common.seed,
+    };
+    let specs = tracking_specs(&colours, &robots, a.quota);
+    validate_registration(&a.name, &specs)?;
+    let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
+    let links = open_links(&node, inst.as_str(), &robots, a.common.wait_sim)?;
+    let app = TrackingApp::new(&scenario, map, links, &opts)?;
+    let core = SystemCore::new(&a.name, std::process::id(), specs, salt());
+    let run = muster_systems::RunOptions { udp: a.common.udp };
+    let mut app = app;
+    let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
+    if a.common.stats_json {
+        let loc: serde_json::Map<String, serde_json::Value> = app
+            .localization()
+            .into_iter()
+            .map(|(r, s)| (r, s.summary()))
+            .collect();
+        println!(
+            "{}",
+            serde_json::json!({"system": core.name(), "services": core.report(),
+                "localization": loc, "updates": app.published()})
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
+    let (scenario, map) = world_of(&a.common)?;
+    anyhow::ensure!(
+        a.home_after.is_finite() && a.home_after > 0.0,
+        "--home-after must be > 0"
+    );
+    let opts = DeliveryOptions {
+        robot: a.robot.clone(),
+        service: a.service.clone().unwrap_or_else(|| a.robot.clone()),
+        quota: a.quota,
+        queue: !a.no_queue,
+        ground_truth: a.common.ground_truth,
+        params: muster_robots::delivery::DeliveryParams {
+            home_after: a.home_after,
+            ..Default::default()
+        },
+        seed: a.common.seed,
+    };
+    let specs = delivery_specs(&opts);
+    validate_registration(&a.name, &specs)?;
+    let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
+    let mut links = open_links(&node, inst.as_str(), std::slice::from_ref(&a.robot), a.common.wait_sim)?;
+    let link = links.pop().context("no link")?;
+    let mut app = DeliveryApp::new(&scenario, map, link, &opts)?;
+    let core = SystemCore::new(&a.name, std::process::id(), specs, salt());
+    let run = muster_systems::RunOptions { udp: a.common.udp };
+    let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
+    if a.common.stats_json {
+        println!(
+            "{}",
+            serde_json::json!({"system": core.name(), "services": core.report(),
+                "localization": {a.robot.clone(): app.localization().summary()},
+                "arrivals": app.arrivals()})
+        );
+    }
+    Ok(ExitCode::SUCCESS)
 }

@@ -37,6 +37,25 @@ pub trait SystemApp {
     }
 }
 
+/// A borrowed app runs too, so a caller keeps it (and what it measured) after the run.
+impl<A: SystemApp + ?Sized> SystemApp for &mut A {
+    fn on_event(&mut self, core: &mut SystemCore, now: Duration, event: SystemEvent) {
+        (**self).on_event(core, now, event)
+    }
+    fn on_tick(&mut self, core: &mut SystemCore, now: Duration) {
+        (**self).on_tick(core, now)
+    }
+    fn next_tick(&self, core: &SystemCore) -> Option<Duration> {
+        (**self).next_tick(core)
+    }
+    fn descriptors(&self) -> Vec<RawFd> {
+        (**self).descriptors()
+    }
+    fn on_ready(&mut self, core: &mut SystemCore, now: Duration, index: usize) {
+        (**self).on_ready(core, now, index)
+    }
+}
+
 /// Why a system stopped.
 #[derive(Debug, thiserror::Error)]
 pub enum SystemError {

@@ -16,5 +16,6 @@ pub mod localizer;
 pub mod navigator;
 pub mod planner;
 pub mod sensing;
+pub mod shell;
 pub mod tracker;
 pub mod tracking;

@@ -36,6 +36,13 @@ pub struct NavParams {
     pub replan_after: f64,
     /// The footprint's radius: the robot's radius plus a skin, m.
     pub footprint: f64,
+    /// Depth of the protective field beyond the footprint: anything in it stops the
+    /// robot, m.
+    pub protective_field: f64,
+    /// Depth of the warning field beyond the footprint: anything in it slows the robot, m.
+    pub warning_field: f64,
+    /// Top speed inside the warning field, m/s.
+    pub warning_speed: f64,
 }
 
 impl Default for NavParams {
@@ -45,11 +52,14 @@ impl Default for NavParams {
             max_turn: 1.5,
             brake: 0.6,
             reaction: 0.25,
-            stop_gap: 0.15,
+            stop_gap: 0.3,
             lookahead: 0.8,
             turn_gain: 2.0,
             replan_after: 2.0,
             footprint: 0.28,
+            protective_field: 0.1,
+            warning_field: 0.45,
+            warning_speed: 0.12,
         }
     }
 }
@@ -80,6 +90,8 @@ pub struct Navigator {
     blocked_since: Option<f64>,
     last_replan: f64,
     error: Option<PlanError>,
+    /// Getting clear of something pressing on the robot: a map heading, until a time.
+    escape: Option<(f64, f64)>,
 }
 
 /// How far ahead the footprint is cast, m.
@@ -98,6 +110,7 @@ impl Navigator {
             blocked_since: None,
             last_replan: f64::NEG_INFINITY,
             error: None,
+            escape: None,
         }
     }
 
@@ -140,6 +153,7 @@ impl Navigator {
         self.next = 0;
         self.blocked_since = None;
         self.error = None;
+        self.escape = None;
     }
 
     fn replan(&mut self, pose: Pose, obstacles: &[(f64, f64, f64)]) -> Result<(), PlanError> {
@@ -225,7 +239,47 @@ impl Navigator {
             - p.reaction * p.brake;
         let wants_forward = v > 0.05 || err.abs() <= 1.0;
         v = v.min(v_safe.max(0.0));
-        let stuck = wants_forward && room < 0.02 && remaining > 0.3;
+        // Safety fields, as on industrial vehicles: slow when anything is near in front
+        // (people walk into a robot faster than it can see them coming round a corner),
+        // stop when it is close.
+        // Getting clear: turn to the escape heading and creep out along it.
+        if let Some((heading, until)) = self.escape {
+            if now >= until {
+                self.escape = None;
+            } else {
+                let e = wrap(heading - pose.theta);
+                let w = (p.turn_gain * e).clamp(-p.max_turn, p.max_turn);
+                let v = if e.abs() < 0.3 { v_safe.clamp(0.0, 0.3) } else { 0.0 };
+                return NavStep {
+                    velocity: (v, w),
+                    remaining,
+                    blocked_since: self.blocked_since,
+                    error: self.error.clone(),
+                    free_ahead,
+                };
+            }
+        }
+        // Fields are boxes ahead of the footprint, as wide as it plus a side margin, so
+        // walls alongside a corridor or a door do not slow the robot.
+        let inside = |depth: f64, side: f64| {
+            obstacles.iter().any(|&(x, y)| {
+                x > -0.05 && x < p.footprint + depth && y.abs() < p.footprint + side
+            })
+        };
+        let protective = inside(p.protective_field, 0.05);
+        if protective {
+            v = 0.0;
+        } else if inside(p.warning_field, 0.2) {
+            v = v.min(p.warning_speed);
+        }
+        let stuck = wants_forward && (room < 0.02 || protective) && remaining > 0.3;
+        if stuck && self.blocked_since.is_some_and(|b| now - b >= p.replan_after / 2.0) {
+            // Something presses on the robot where it wants to go: find the free heading
+            // nearest to the wanted one and get clear along it first.
+            if let Some(a) = escape_heading(p.footprint, obstacles, err, p.stop_gap + 0.4) {
+                self.escape = Some((wrap(pose.theta + a), now + 2.0));
+            }
+        }
         if stuck {
             let since = *self.blocked_since.get_or_insert(now);
             if now - since >= p.replan_after && now - self.last_replan >= p.replan_after {
@@ -248,6 +302,30 @@ impl Navigator {
             free_ahead,
         }
     }
+}
+
+/// The heading (relative to the robot's, rad) nearest to `wanted` along which the
+/// footprint moves at least `need` metres free, if any.
+///
+/// Against something in contact, only headings that move away from it count: a body
+/// pressed on the robot side-on lets it neither pass nor slide along (nor, in the
+/// simulator, lets it move past itself).
+fn escape_heading(radius: f64, pts: &[(f64, f64)], wanted: f64, need: f64) -> Option<f64> {
+    let nearest = pts
+        .iter()
+        .map(|&(x, y)| (x.hypot(y), y.atan2(x)))
+        .min_by(|a, b| a.0.total_cmp(&b.0));
+    let touching = nearest.filter(|(d, _)| *d < radius + 0.05).map(|(_, a)| a);
+    (0..24)
+        .map(|k| wrap(f64::from(k) * std::f64::consts::PI / 12.0))
+        .filter(|a| touching.is_none_or(|t| (a - t).cos() < -0.3))
+        .filter(|a| {
+            let (s, c) = (-a).sin_cos();
+            let turned: Vec<(f64, f64)> =
+                pts.iter().map(|&(x, y)| (c * x - s * y, s * x + c * y)).collect();
+            free_distance(radius, &turned, 1.0) >= need
+        })
+        .min_by(|a, b| wrap(a - wanted).abs().total_cmp(&wrap(b - wanted).abs()))
 }
 
 /// The point `distance` metres along the polyline `from` → `path`.
@@ -291,9 +369,9 @@ fn obstacles_in_map(pose: Pose, pts: &[(f64, f64)], within: f64) -> Vec<(f64, f6
             continue;
         }
         let m = (pose.x + c * x - s * y, pose.y + s * x + c * y);
-        // Thin the points: one circle per 0.15 m.
+        // Thin the points: one per 0.15 m.
         if out.iter().all(|o| (o.0 - m.0).hypot(o.1 - m.1) > 0.15) {
-            out.push((m.0, m.1, 0.15));
+            out.push((m.0, m.1, 0.05));
         }
     }
     out
@@ -309,7 +387,11 @@ fn obstacles_in_map(pose: Pose, pts: &[(f64, f64)], within: f64) -> Vec<(f64, f6
 pub fn free_distance(radius: f64, pts: &[(f64, f64)], direction: f64) -> f64 {
     let ball = Ball::new(radius as f32);
     let vel = Vec2::new(direction.signum() as f32, 0.0);
-    let opts = ShapeCastOptions::with_max_time_of_impact(LOOK as f32);
+    // A contact the motion moves away from does not stop it.
+    let opts = ShapeCastOptions {
+        stop_at_penetration: false,
+        ..ShapeCastOptions::with_max_time_of_impact(LOOK as f32)
+    };
     // Points that cannot be reached within the look distance are skipped.
     let join = (2.0 * radius) as f32;
     let mut runs: Vec<Vec<Vec2>> = Vec::new();

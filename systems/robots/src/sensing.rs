@@ -101,6 +101,36 @@ impl SensorSample {
     }
 }
 
+impl SensorSample {
+    /// The same sample taken straight from a robot of an in-process [`World`] (tests and
+    /// benchmarks run the cores on the simulator without processes).
+    ///
+    /// [`World`]: muster_sim_world::world::World
+    pub fn from_robot(r: &muster_sim_world::world::Robot, time: f64) -> Self {
+        SensorSample {
+            time,
+            odom: r.odom,
+            truth: r.pose,
+            laser_time: r.laser_time,
+            laser: r.laser.clone(),
+            sonar_time: r.sonar_time,
+            sonar: r.sonar.clone(),
+            camera_time: r.camera_time,
+            pan: r.ptz.pan,
+            sightings: r
+                .detections
+                .iter()
+                .map(|d| Sighting {
+                    colour: d.colour,
+                    bearing: d.bearing,
+                    range: d.range,
+                })
+                .collect(),
+            bumped: r.bumped,
+        }
+    }
+}
+
 /// The sensor geometry of one robot, from its scenario entry.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct SensorGeometry {

@@ -1,0 +1,575 @@
+//! Thin shells: the tracking and delivery cores as [`SystemApp`]s. Each sleeps on its
+//! robots' "sensors updated" events beside the protocol inbox (the SDK's
+//! [`SystemApp::descriptors`]), reads each sample in place, feeds the core with it and
+//! sends the core's commands back to the simulator. Everything runs on the simulator's
+//! clock (the samples' sim time), so the systems follow a simulator running faster than
+//! real time.
+
+use crate::delivery::{DeliveryCore, DeliveryEvent, DeliveryParams};
+use crate::localizer::{Localizer, LocalizerParams};
+use crate::navigator::NavParams;
+use crate::planner::{Planner, PlannerParams};
+use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
+use crate::tracking::{TrackerRobot, TrackingCore, TrackingParams};
+use muster_shared::protocol::monotonic_ns;
+use muster_shared::types::{Payload, ServiceKind, ServiceSpec, TaskStatus};
+use muster_sim_world::kinematics::{wrap, Pose};
+use muster_sim_world::map::OccupancyMap;
+use muster_sim_world::scenario::{Colour, RobotSpec, Scenario};
+use muster_sim_world::shm::{RobotLink, ShmError};
+use muster_systems::{SystemApp, SystemCore, SystemEvent};
+use std::os::fd::RawFd;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Why a robot system could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum RobotSystemError {
+    /// The scenario has no such robot.
+    #[error("the scenario has no robot {0:?}")]
+    NoRobot(String),
+    /// The robot lacks a sensor the system needs.
+    #[error("robot {0} has no {1}")]
+    MissingSensor(String, &'static str),
+    /// The simulator's shared memory could not be opened (is `muster sim` running on
+    /// this instance?).
+    #[error("{0} (is `muster sim` running on this instance?)")]
+    Sim(#[from] ShmError),
+    /// iceoryx2 refused a node.
+    #[error(transparent)]
+    Transport(#[from] muster_shared::ipc::TransportError),
+    /// A configuration value is unusable; the text says which.
+    #[error("{0}")]
+    Config(String),
+}
+
+/// Opens the links to `robots`, retrying until the simulator is up or `wait` passes.
+pub fn open_links(
+    node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    inst: &str,
+    robots: &[String],
+    wait: Duration,
+) -> Result<Vec<RobotLink>, RobotSystemError> {
+    let deadline = Instant::now() + wait;
+    let mut logged = false;
+    loop {
+        match robots
+            .iter()
+            .map(|r| RobotLink::open(node, inst, r))
+            .collect::<Result<Vec<_>, _>>()
+        {
+            Ok(links) => return Ok(links),
+            Err(e) if Instant::now() >= deadline => return Err(e.into()),
+            Err(e) => {
+                if !logged {
+                    tracing::info!("waiting for the simulator: {e}");
+                    logged = true;
+                }
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
+    }
+}
+
+fn spec_of<'a>(scenario: &'a Scenario, name: &str) -> Result<&'a RobotSpec, RobotSystemError> {
+    scenario
+        .robots
+        .iter()
+        .find(|r| r.name == name)
+        .ok_or_else(|| RobotSystemError::NoRobot(name.to_string()))
+}
+
+fn start_pose(spec: &RobotSpec) -> Pose {
+    Pose {
+        x: spec.pose[0],
+        y: spec.pose[1],
+        theta: wrap(spec.pose[2].to_radians()),
+    }
+}
+
+/// Localization error against ground truth, sampled once per weighed scan (for the
+/// report only: ground truth never steers anything unless `--ground-truth`).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct LocalizationStats {
+    /// Position errors, m.
+    #[serde(skip)]
+    pub position: Vec<f64>,
+    /// Heading errors, degrees.
+    #[serde(skip)]
+    pub heading: Vec<f64>,
+}
+
+impl LocalizationStats {
+    fn add(&mut self, est: Pose, truth: Pose) {
+        self.position
+            .push((est.x - truth.x).hypot(est.y - truth.y));
+        self.heading
+            .push(wrap(est.theta - truth.theta).abs().to_degrees());
+    }
+
+    /// `{samples, position_p50, position_p95, position_max, heading_p50, heading_p95, heading_max}`.
+    pub fn summary(&self) -> serde_json::Value {
+        fn pct(v: &[f64], q: f64) -> f64 {
+            let mut s = v.to_vec();
+            s.sort_by(f64::total_cmp);
+            s.get(((s.len() as f64 - 1.0) * q).round() as usize)
+                .copied()
+                .unwrap_or(f64::NAN)
+        }
+        serde_json::json!({
+            "samples": self.position.len(),
+            "position_p50_m": pct(&self.position, 0.5),
+            "position_p95_m": pct(&self.position, 0.95),
+            "position_max_m": pct(&self.position, 1.0),
+            "heading_p50_deg": pct(&self.heading, 0.5),
+            "heading_p95_deg": pct(&self.heading, 0.95),
+            "heading_max_deg": pct(&self.heading, 1.0),
+        })
+    }
+}
+
+/// How the tracking system runs.
+#[derive(Clone, Debug)]
+pub struct TrackingOptions {
+    /// Robots it drives (default: every robot of the scenario with a camera).
+    pub robots: Vec<String>,
+    /// Those of them that may drive (patrol, follow).
+    pub mobile: Vec<String>,
+    /// The core's parameters (colours, rate, budget, ground truth, ...).
+    pub params: TrackingParams,
+    /// Quota of each colour's service.
+    pub quota: u16,
+    /// Whether the processing budget limits sessions.
+    pub budget: bool,
+    /// Seed of the filters' randomness.
+    pub seed: u64,
+}
+
+/// The tracking system's services: one data service per colour.
+pub fn tracking_specs(colours: &[Colour], robots: &[String], quota: u16) -> Vec<ServiceSpec> {
+    colours
+        .iter()
+        .map(|c| ServiceSpec {
+            name: c.name().to_string(),
+            description: format!(
+                "{} beacon tracked by {}: position, velocity, uncertainty",
+                c.name(),
+                robots.join(",")
+            )
+            .chars()
+            .take(95)
+            .collect(),
+            kind: ServiceKind::Data,
+            queue: false,
+            quota,
+            payload: "track2d".into(),
+        })
+        .collect()
+}
+
+/// The tracking system as a [`SystemApp`].
+pub struct TrackingApp {
+    links: Vec<RobotLink>,
+    core: TrackingCore,
+    after: Vec<f64>,
+    budget: bool,
+    truth_stats: Vec<LocalizationStats>,
+    last_scan: Vec<f64>,
+    published: u64,
+}
+
+impl TrackingApp {
+    /// Builds the system for `opts` on `scenario`/`map`, with `links` opened to
+    /// `opts.robots` in that order.
+    pub fn new(
+        scenario: &Scenario,
+        map: Arc<OccupancyMap>,
+        links: Vec<RobotLink>,
+        opts: &TrackingOptions,
+    ) -> Result<Self, RobotSystemError> {
+        let mut robots = Vec::new();
+        for name in &opts.robots {
+            let spec = spec_of(scenario, name)?;
+            if spec.camera.is_none() {
+                return Err(RobotSystemError::MissingSensor(name.clone(), "camera"));
+            }
+            if spec.laser.is_none() && !opts.params.ground_truth {
+                return Err(RobotSystemError::MissingSensor(
+                    name.clone(),
+                    "laser (needed to localize; or run with --ground-truth)",
+                ));
+            }
+            robots.push(TrackerRobot {
+                name: name.clone(),
+                start: start_pose(spec),
+                mobile: opts.mobile.contains(name),
+                geometry: SensorGeometry::of(spec),
+                max_speed: spec.drive.max_speed,
+            });
+        }
+        if let Some(m) = opts.mobile.iter().find(|m| !opts.robots.contains(m)) {
+            return Err(RobotSystemError::Config(format!(
+                "mobile robot {m} is not one of this system's robots"
+            )));
+        }
+        let field = Arc::new(LikelihoodField::new(&map, 1.0));
+        let radius = robots
+            .iter()
+            .filter_map(|r| spec_of(scenario, &r.name).ok())
+            .map(|s| s.drive.radius)
+            .fold(0.0, f64::max);
+        let planner = Arc::new(Planner::new(
+            &map,
+            PlannerParams {
+                radius,
+                ..PlannerParams::default()
+            },
+        ));
+        let n = robots.len();
+        Ok(TrackingApp {
+            core: TrackingCore::new(map, field, planner, robots, opts.params.clone(), opts.seed),
+            after: vec![f64::NEG_INFINITY; links.len()],
+            links,
+            budget: opts.budget,
+            truth_stats: vec![LocalizationStats::default(); n],
+            last_scan: vec![f64::NEG_INFINITY; n],
+            published: 0,
+        })
+    }
+
+    /// Localization error per robot, against ground truth.
+    pub fn localization(&self) -> Vec<(String, &LocalizationStats)> {
+        self.core
+            .robot_names()
+            .into_iter()
+            .zip(&self.truth_stats)
+            .collect()
+    }
+
+    /// Updates streamed so far.
+    pub fn published(&self) -> u64 {
+        self.published
+    }
+
+    /// Colours users hold sessions on, most sessions first.
+    fn wanted(&self, core: &SystemCore) -> Vec<Colour> {
+        let mut w: Vec<(usize, Colour)> = self
+            .core
+            .colours()
+            .iter()
+            .map(|c| (core.sessions_of(c.name()), *c))
+            .filter(|(n, _)| *n > 0)
+            .collect();
+        w.sort_by(|a, b| b.0.cmp(&a.0));
+        w.into_iter().map(|(_, c)| c).collect()
+    }
+
+    fn publish(&mut self, core: &mut SystemCore, only: Option<Colour>) {
+        for c in self.core.colours().to_vec() {
+            if only.is_some_and(|o| o != c) || core.sessions_of(c.name()) == 0 {
+                continue;
+            }
+            if let Some(t) = self.core.payload(c) {
+                self.published += core.publish(c.name(), &Payload::Track2d(t), monotonic_ns()) as u64;
+            }
+        }
+    }
+}
+
+impl SystemApp for TrackingApp {
+    fn on_event(&mut self, core: &mut SystemCore, _now: Duration, event: SystemEvent) {
+        if let SystemEvent::SessionStarted { service, .. } = event {
+            // The new user sees where the target is at once, not a period later.
+            if let Some(c) = Colour::from_name(&service) {
+                self.publish(core, Some(c));
+            }
+        }
+    }
+
+    fn on_tick(&mut self, _core: &mut SystemCore, _now: Duration) {}
+
+    fn next_tick(&self, _core: &SystemCore) -> Option<Duration> {
+        None // driven by the robots' sensors
+    }
+
+    fn descriptors(&self) -> Vec<RawFd> {
+        self.links.iter().map(RobotLink::fd).collect()
+    }
+
+    fn on_ready(&mut self, core: &mut SystemCore, _now: Duration, index: usize) {
+        let Some(link) = self.links.get(index) else { return };
+        link.drain();
+        let sample = match link.latest(self.after[index], SensorSample::from_shm) {
+            Ok(Some(s)) => s,
+            Ok(None) => return,
+            Err(e) => {
+                tracing::warn!("robot {index}: {e}");
+                return;
+            }
+        };
+        self.after[index] = sample.time;
+        let wanted = self.wanted(core);
+        let cmd = self.core.handle_sample(index, &sample, &wanted);
+        if sample.laser_time > self.last_scan[index] {
+            self.last_scan[index] = sample.laser_time;
+            if let Some(est) = self.core.pose(index) {
+                self.truth_stats[index].add(est, sample.truth);
+            }
+        }
+        if let Some((v, w)) = cmd.velocity {
+            if let Err(e) = link.velocity(v, w) {
+                tracing::warn!("robot {index}: {e}");
+            }
+        }
+        if let Some((pan, tilt, zoom)) = cmd.camera {
+            if let Err(e) = link.camera(pan, tilt, zoom) {
+                tracing::warn!("robot {index}: {e}");
+            }
+        }
+        if self.budget {
+            let limit = self.core.session_limit();
+            let reason = format!(
+                "overburdened: tracking {} targets, the robots sustain {limit} sessions",
+                self.core.tracked()
+            );
+            core.set_session_limit(Some(limit), &reason);
+        }
+        if self.core.publish_due() {
+            self.publish(core, None);
+        }
+    }
+}
+
+/// How the delivery system runs.
+#[derive(Clone, Debug)]
+pub struct DeliveryOptions {
+    /// The robot it drives.
+    pub robot: String,
+    /// The service's name.
+    pub service: String,
+    /// Quota of the service.
+    pub quota: u16,
+    /// Whether it keeps a task queue.
+    pub queue: bool,
+    /// Use ground truth instead of localization (experiments only).
+    pub ground_truth: bool,
+    /// Delivery behaviour (arrival distance, going home, ...); `home` is filled from
+    /// the scenario if empty.
+    pub params: DeliveryParams,
+    /// Seed of the localizer's randomness.
+    pub seed: u64,
+}
+
+/// The delivery system's service: one command service taking `goal2d`.
+pub fn delivery_specs(opts: &DeliveryOptions) -> Vec<ServiceSpec> {
+    vec![ServiceSpec {
+        name: opts.service.clone(),
+        description: format!(
+            "delivery robot {}: give a goal2d; reports pose, distance, ETA, arrival within {} m",
+            opts.robot, opts.params.arrival
+        )
+        .chars()
+        .take(95)
+        .collect(),
+        kind: ServiceKind::Command,
+        queue: opts.queue,
+        quota: opts.quota,
+        payload: "goal2d".into(),
+    }]
+}
+
+/// The delivery system as a [`SystemApp`].
+pub struct DeliveryApp {
+    link: RobotLink,
+    geometry: SensorGeometry,
+    localizer: Option<Localizer>,
+    core: DeliveryCore,
+    service: String,
+    pose: Pose,
+    after: f64,
+    last_scan: f64,
+    now: f64,
+    stats: LocalizationStats,
+}
+
+impl DeliveryApp {
+    /// Builds the system for `opts` on `scenario`/`map`, driving the robot behind `link`.
+    pub fn new(
+        scenario: &Scenario,
+        map: Arc<OccupancyMap>,
+        link: RobotLink,
+        opts: &DeliveryOptions,
+    ) -> Result<Self, RobotSystemError> {
+        let spec = spec_of(scenario, &opts.robot)?;
+        let geometry = SensorGeometry::of(spec);
+        if geometry.laser.is_none() {
+            return Err(RobotSystemError::MissingSensor(opts.robot.clone(), "laser"));
+        }
+        let mut params = opts.params.clone();
+        if params.home.is_none() {
+            params.home = spec.home.as_ref().and_then(|h| {
+                scenario
+                    .places
+                    .iter()
+                    .find(|p| &p.name == h)
+                    .map(|p| (p.at[0], p.at[1]))
+            });
+        }
+        let start = start_pose(spec);
+        let localizer = (!opts.ground_truth).then(|| {
+            Localizer::new(
+                Arc::new(LikelihoodField::new(&map, 1.0)),
+                start,
+                LocalizerParams::default(),
+                opts.seed,
+            )
+        });
+        let planner = Arc::new(Planner::new(
+            &map,
+            PlannerParams {
+                radius: spec.drive.radius,
+                ..PlannerParams::default()
+            },
+        ));
+        let nav = NavParams {
+            max_speed: spec.drive.max_speed.min(0.8),
+            footprint: spec.drive.radius + 0.03,
+            ..NavParams::default()
+        };
+        Ok(DeliveryApp {
+            link,
+            geometry,
+            localizer,
+            core: DeliveryCore::new(planner, nav, params),
+            service: opts.service.clone(),
+            pose: start,
+            after: f64::NEG_INFINITY,
+            last_scan: f64::NEG_INFINITY,
+            now: 0.0,
+            stats: LocalizationStats::default(),
+        })
+    }
+
+    /// Localization error against ground truth.
+    pub fn localization(&self) -> &LocalizationStats {
+        &self.stats
+    }
+
+    /// Goals reached.
+    pub fn arrivals(&self) -> u64 {
+        self.core.arrivals()
+    }
+
+    fn tell(&self, core: &mut SystemCore, events: Vec<DeliveryEvent>) {
+        if events.is_empty() {
+            return;
+        }
+        let sessions: Vec<_> = core
+            .sessions()
+            .filter(|(_, _, s)| *s == self.service)
+            .map(|(id, _, _)| id)
+            .collect();
+        for e in events {
+            tracing::debug!(?e, "delivery");
+            let status = match e {
+                DeliveryEvent::Accepted { goal, distance, eta } => TaskStatus::Working(format!(
+                    "accepted goal ({:.2}, {:.2}): {distance:.1} m, ETA {eta:.0} s",
+                    goal.0, goal.1
+                )),
+                DeliveryEvent::Driving { pose, distance, eta } => TaskStatus::Working(format!(
+                    "driving: at ({:.2}, {:.2}), {distance:.1} m to go, ETA {eta:.0} s",
+                    pose.x, pose.y
+                )),
+                DeliveryEvent::Blocked { pose, for_s } => TaskStatus::Working(format!(
+                    "blocked at ({:.2}, {:.2}) for {for_s:.0} s: waiting or replanning",
+                    pose.x, pose.y
+                )),
+                DeliveryEvent::Arrived { goal, distance } => TaskStatus::Done(format!(
+                    "arrived within {distance:.2} m of ({:.2}, {:.2}); halted",
+                    goal.0, goal.1
+                )),
+                DeliveryEvent::Unreachable { reason, .. } => {
+                    TaskStatus::Rejected(format!("unreachable: {reason}"))
+                }
+                DeliveryEvent::ReturningHome => {
+                    TaskStatus::Working("not tasked: returning home".into())
+                }
+                DeliveryEvent::Home => TaskStatus::Idle,
+            };
+            for &s in &sessions {
+                core.status(s, status.clone());
+            }
+        }
+    }
+}
+
+impl SystemApp for DeliveryApp {
+    fn on_event(&mut self, core: &mut SystemCore, _now: Duration, event: SystemEvent) {
+        match event {
+            SystemEvent::SessionStarted { session, .. } => core.status(session, TaskStatus::Idle),
+            SystemEvent::Input {
+                session, payload, ..
+            } => match payload.convert_to("goal2d") {
+                Some(Payload::Goal2d { x, y }) if x.is_finite() && y.is_finite() => {
+                    let ev = self.core.set_goal(self.now, self.pose, (x, y));
+                    self.tell(core, ev);
+                }
+                _ => core.status(
+                    session,
+                    TaskStatus::Rejected(format!("cannot use {} as a goal", payload.type_name())),
+                ),
+            },
+            SystemEvent::SessionEnded { .. } => {
+                if core.sessions_of(&self.service) == 0 {
+                    self.core.untasked(self.now);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn on_tick(&mut self, _core: &mut SystemCore, _now: Duration) {}
+
+    fn next_tick(&self, _core: &SystemCore) -> Option<Duration> {
+        None // driven by the robot's sensors
+    }
+
+    fn descriptors(&self) -> Vec<RawFd> {
+        vec![self.link.fd()]
+    }
+
+    fn on_ready(&mut self, core: &mut SystemCore, _now: Duration, _index: usize) {
+        self.link.drain();
+        let sample = match self.link.latest(self.after, SensorSample::from_shm) {
+            Ok(Some(s)) => s,
+            Ok(None) => return,
+            Err(e) => {
+                tracing::warn!("{e}");
+                return;
+            }
+        };
+        self.after = sample.time;
+        self.now = sample.time;
+        match &mut self.localizer {
+            Some(l) => {
+                l.handle_odometry(sample.odom);
+                if let Some(scan) = self.geometry.scan(&sample) {
+                    l.handle_scan(sample.laser_time, &scan);
+                }
+                self.pose = l.estimate();
+            }
+            None => self.pose = sample.truth,
+        }
+        if sample.laser_time > self.last_scan {
+            self.last_scan = sample.laser_time;
+            self.stats.add(self.pose, sample.truth);
+        }
+        let obstacles = self.geometry.obstacle_points(&sample, 3.5);
+        let tasked = core.sessions_of(&self.service) > 0;
+        let ((v, w), events) = self.core.step(sample.time, self.pose, &obstacles, tasked);
+        if let Err(e) = self.link.velocity(v, w) {
+            tracing::warn!("{e}");
+        }
+        self.tell(core, events);
+    }
+}
