@@ -42,9 +42,39 @@ pub enum Command {
     /// broker M/G/1 queue plus processor sharing on the cores, calibrated on the lightest
     /// report; prints predicted against measured for every report given.
     Capacity(CapacityArgs),
+    /// The paper's experiments, reproduced on the simulator with reports.
+    #[command(subcommand)]
+    Experiment(ExperimentCommand),
     /// Make a key pair for a remote user (or the broker) and print the line to add to
     /// the broker's access file.
     Keygen(KeygenArgs),
+}
+
+#[derive(Subcommand, Debug)]
+pub enum ExperimentCommand {
+    /// Experiment 2: a user links the red tracker into the delivery robot, which follows
+    /// the person (T3 mobile makes the convoy). Writes report.json, figure3.png and
+    /// distance.png.
+    Link(ExperimentLinkArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct ExperimentLinkArgs {
+    /// Simulator speed: sim seconds per wall second (every process follows its clock).
+    #[arg(long, default_value_t = 10.0)]
+    pub speed: f64,
+    /// Length of the run in sim time.
+    #[arg(long, default_value = "10m", value_parser = duration)]
+    pub duration: Duration,
+    /// Folder for the report.
+    #[arg(long, default_value = "experiment-link")]
+    pub report: std::path::PathBuf,
+    /// Seed of the simulator and the filters.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Show the processes' logs.
+    #[arg(long)]
+    pub verbose: bool,
 }
 
 #[derive(Args, Debug)]
@@ -424,6 +454,16 @@ pub struct UpArgs {
     /// Serve local users only.
     #[arg(long)]
     pub no_udp: bool,
+    /// Today's synthetic demo instead of the paper's robots on the simulator.
+    #[arg(long)]
+    pub synthetic: bool,
+    /// Simulator speed (sim seconds per wall second; every process follows its clock).
+    #[arg(long, default_value_t = 1.0)]
+    pub speed: f64,
+    /// Where to write the picture of the run (default: muster-up-INSTANCE.png in the
+    /// temporary folder).
+    #[arg(long)]
+    pub picture: Option<std::path::PathBuf>,
 }
 
 #[derive(Args, Debug)]

@@ -2,6 +2,7 @@
 //! people with their beacon colours.
 
 use crate::sensors::camera_cone;
+use crate::map::OccupancyMap;
 use crate::world::{World, PERSON_RADIUS};
 use image::{Rgb, RgbImage};
 use imageproc::drawing::{draw_filled_circle_mut, draw_hollow_circle_mut, draw_line_segment_mut};
@@ -11,13 +12,25 @@ pub const SCALE: f64 = 20.0;
 
 /// Renders `world` to an image (at most 4096 px on a side).
 pub fn render(world: &World) -> RgbImage {
-    let map = world.map();
+    let (mut img, px) = map_image(world.map());
+    let scale = scale_of(world.map());
+    draw_world(&mut img, world, scale, &px);
+    img
+}
+
+fn scale_of(map: &OccupancyMap) -> f64 {
+    let (w, h) = map.size();
+    SCALE.min(4096.0 / w.max(h))
+}
+
+/// The map's walls on white, and the metres → pixels mapping.
+fn map_image(map: &OccupancyMap) -> (RgbImage, impl Fn(f64, f64) -> (f32, f32)) {
     let (w, h) = map.size();
     let scale = SCALE.min(4096.0 / w.max(h));
     let (iw, ih) = ((w * scale).ceil() as u32, (h * scale).ceil() as u32);
     let mut img = RgbImage::from_pixel(iw.max(1), ih.max(1), Rgb([255, 255, 255]));
     let (ox, oy) = map.origin();
-    let px = |x: f64, y: f64| {
+    let px = move |x: f64, y: f64| {
         (
             ((x - ox) * scale) as f32,
             (ih as f64 - (y - oy) * scale) as f32,
@@ -35,6 +48,29 @@ pub fn render(world: &World) -> RgbImage {
             }
         }
     }
+    (img, px)
+}
+
+/// Draws paths (polylines in metres, each in its colour, with a dot where it ends) over
+/// the map: the picture of a run, like the paper's Figure 3.
+pub fn render_paths(map: &OccupancyMap, paths: &[(Vec<(f64, f64)>, [u8; 3])]) -> RgbImage {
+    let (mut img, px) = map_image(map);
+    for (path, rgb) in paths {
+        for w in path.windows(2) {
+            let (a, b) = (px(w[0].0, w[0].1), px(w[1].0, w[1].1));
+            // Two pixels wide.
+            draw_line_segment_mut(&mut img, a, b, Rgb(*rgb));
+            draw_line_segment_mut(&mut img, (a.0 + 1.0, a.1), (b.0 + 1.0, b.1), Rgb(*rgb));
+        }
+        if let Some(&(x, y)) = path.last() {
+            let (cx, cy) = px(x, y);
+            draw_filled_circle_mut(&mut img, (cx as i32, cy as i32), 5, Rgb(*rgb));
+        }
+    }
+    img
+}
+
+fn draw_world(img: &mut RgbImage, world: &World, scale: f64, px: &impl Fn(f64, f64) -> (f32, f32)) {
     for r in world.robots() {
         let p = r.pose;
         let from = px(p.x, p.y);
@@ -46,7 +82,7 @@ pub fn render(world: &World) -> RgbImage {
                 let a = p.theta - fov / 2.0 + step * k as f64;
                 let d = f64::from(*range);
                 draw_line_segment_mut(
-                    &mut img,
+                    img,
                     from,
                     px(p.x + d * a.cos(), p.y + d * a.sin()),
                     Rgb([170, 230, 170]),
@@ -58,7 +94,7 @@ pub fn render(world: &World) -> RgbImage {
             let axis = p.theta + r.ptz.pan;
             for a in [axis - fov / 2.0, axis + fov / 2.0] {
                 draw_line_segment_mut(
-                    &mut img,
+                    img,
                     from,
                     px(p.x + range * a.cos(), p.y + range * a.sin()),
                     Rgb([120, 120, 230]),
@@ -71,31 +107,30 @@ pub fn render(world: &World) -> RgbImage {
         let (cx, cy) = px(p.x, p.y);
         let rad = (r.spec.drive.radius * scale).round() as i32;
         draw_filled_circle_mut(
-            &mut img,
+            img,
             (cx as i32, cy as i32),
             rad.max(2),
             Rgb([90, 90, 90]),
         );
         if let Some(b) = r.spec.beacon {
-            draw_hollow_circle_mut(&mut img, (cx as i32, cy as i32), rad.max(2), Rgb(b.rgb()));
+            draw_hollow_circle_mut(img, (cx as i32, cy as i32), rad.max(2), Rgb(b.rgb()));
         }
         let nose = px(
             p.x + r.spec.drive.radius * 1.6 * p.theta.cos(),
             p.y + r.spec.drive.radius * 1.6 * p.theta.sin(),
         );
-        draw_line_segment_mut(&mut img, (cx, cy), nose, Rgb([230, 40, 40]));
+        draw_line_segment_mut(img, (cx, cy), nose, Rgb([230, 40, 40]));
     }
     for person in world.people() {
         let (cx, cy) = px(person.pose.x, person.pose.y);
         let rad = (PERSON_RADIUS * scale).round() as i32;
         draw_filled_circle_mut(
-            &mut img,
+            img,
             (cx as i32, cy as i32),
             rad.max(2),
             Rgb(person.beacon.rgb()),
         );
     }
-    img
 }
 
 #[cfg(test)]

@@ -19,6 +19,18 @@ impl Children {
         args: &[&str],
         stdout: Stdio,
     ) -> anyhow::Result<&mut Child> {
+        self.spawn_with(inst, label, args, stdout, Stdio::inherit())
+    }
+
+    /// [`Children::spawn`] with the child's standard error set too.
+    pub fn spawn_with(
+        &mut self,
+        inst: &Instance,
+        label: &str,
+        args: &[&str],
+        stdout: Stdio,
+        stderr: Stdio,
+    ) -> anyhow::Result<&mut Child> {
         let exe = std::env::current_exe().context("locating the muster binary")?;
         let child = Command::new(exe)
             .arg("--instance")
@@ -26,6 +38,7 @@ impl Children {
             .args(args)
             .stdin(Stdio::null())
             .stdout(stdout)
+            .stderr(stderr)
             .spawn()
             .with_context(|| format!("starting {label}"))?;
         self.0.push((label.to_string(), child));

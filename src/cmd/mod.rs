@@ -5,12 +5,15 @@ mod bench;
 mod broker;
 mod capacity;
 mod children;
+mod experiment;
 mod keygen;
+mod paper;
 mod sim;
 mod stress;
 mod stress_plot;
 mod system;
 mod up;
+mod up_paper;
 mod user;
 
 use crate::cli::{Cli, Command};
@@ -31,5 +34,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Stress(a) => stress::run(&inst, a),
         Command::Keygen(a) => keygen::run(a),
         Command::Capacity(a) => capacity::run(a),
+        Command::Experiment(crate::cli::ExperimentCommand::Link(a)) => experiment::link(&inst, a),
     }
 }

@@ -1,4 +1,5 @@
-//! `muster up`: the main job on the built-in default scenario.
+//! `muster up --synthetic`: the demo on synthetic systems (the default, the paper's
+//! robots on the simulator, is in `up_paper.rs`).
 //!
 //! Starts a broker and synthetic systems as child processes (three tracker-like data
 //! services on `t1`, one delivery-like command service with a task queue on `d1`),
@@ -18,14 +19,14 @@ use std::time::{Duration, Instant};
 
 /// A guest key and an access file letting it list and request everything, for the
 /// remote users of this run.
-struct Guest {
-    dir: std::path::PathBuf,
+pub(super) struct Guest {
+    pub(super) dir: std::path::PathBuf,
     key: KeyPair,
-    addr: SocketAddr,
+    pub(super) addr: SocketAddr,
 }
 
 impl Guest {
-    fn new(inst: &Instance, mut addr: SocketAddr) -> anyhow::Result<Self> {
+    pub(super) fn new(inst: &Instance, mut addr: SocketAddr) -> anyhow::Result<Self> {
         // Resolve port 0, and fall back to a free port if the asked one is taken (another
         // `muster up` on this machine): the demo must start on a fresh machine.
         addr = match std::net::UdpSocket::bind(addr) {
@@ -55,6 +56,9 @@ impl Drop for Guest {
 }
 
 pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
+    if !a.synthetic {
+        return super::up_paper::run(inst, a);
+    }
     let mut children = Children::default();
     let guest = if a.no_udp {
         None
@@ -143,7 +147,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-fn wait_for_services(client: &mut UserClient, n: usize) -> Result<(), UserError> {
+pub(super) fn wait_for_services(client: &mut UserClient, n: usize) -> Result<(), UserError> {
     let deadline = Instant::now() + Duration::from_secs(10);
     while client.list()?.count < n as u32 && Instant::now() < deadline {
         let _ = client.next_event(Instant::now() + Duration::from_millis(200))?;
@@ -152,7 +156,7 @@ fn wait_for_services(client: &mut UserClient, n: usize) -> Result<(), UserError>
 }
 
 /// The same list as a remote user sees it, over authenticated UDP.
-fn remote_list(g: &Guest) -> Result<(), UserError> {
+pub(super) fn remote_list(g: &Guest) -> Result<(), UserError> {
     let opts = ConnectOptions {
         wait_for_broker: Duration::from_secs(10),
         handle_signals: false,

@@ -1,0 +1,217 @@
+//! `muster experiment link`: the paper's Experiment 2. The simulator, the broker, the
+//! tracking system (T3 mobile) and the delivery system run as processes; a person with
+//! a red beacon wanders the floor; a scripted user requests the red tracker, waits until
+//! the target is tracked, and links red tracker → delivery robot. Ground truth from the
+//! simulator measures how well it went; every process follows the simulator's clock, so
+//! the run goes faster than real time.
+
+use super::children::connect_when_listed;
+use super::paper::{PaperOptions, PaperRun, Recorder};
+use crate::cli::ExperimentLinkArgs;
+use muster_shared::types::{Payload, ServiceId, TaskStatus};
+use muster_shared::Instance;
+use muster_sim_world::map::OccupancyMap;
+use muster_sim_world::render::render_paths;
+use muster_users::UserEvent;
+use plotters::prelude::*;
+use serde_json::json;
+use std::path::Path;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+fn pct(v: &[f64], q: f64) -> Option<f64> {
+    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    s.sort_by(f64::total_cmp);
+    s.get(((s.len() as f64 - 1.0) * q).round() as usize).copied()
+}
+
+/// Runs Experiment 2 and writes its report.
+pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> {
+    anyhow::ensure!(a.speed.is_finite() && a.speed > 0.0 && a.speed <= 50.0, "--speed must be in (0, 50]");
+    let duration = a.duration.as_secs_f64();
+    anyhow::ensure!(duration >= 10.0, "--duration must be at least 10 s");
+    std::fs::create_dir_all(&a.report)?;
+    let wall_start = Instant::now();
+    let run = PaperRun::start(
+        inst,
+        &PaperOptions {
+            speed: a.speed,
+            mobile: vec!["T3".into()],
+            broker_args: Vec::new(),
+            system_args: Vec::new(),
+            seed: a.seed,
+            quiet: !a.verbose,
+        },
+    )?;
+    let mut client = connect_when_listed(inst, 4, Duration::from_secs(60))?;
+    let red = ServiceId::new("tracking", "red");
+    let d1 = ServiceId::new("delivery", "D1");
+    let mut rec = Recorder::new(0.25);
+    let wall_limit = wall_start + Duration::from_secs_f64(duration / a.speed * 4.0 + 120.0);
+    let req = client.request(&red)?;
+    let mut red_session = None;
+    let mut link = None;
+    let mut link_at = None;
+    let mut first_sim = None;
+    let (mut updates, mut tracked) = (0u64, 0u64);
+    let mut errors = Vec::new();
+    let mut arrivals = 0u64;
+    let mut forwarded = 0u64;
+    let mut refusal = None;
+    let mut link_ended = None;
+    while Instant::now() < wall_limit {
+        rec.poll(&run.world);
+        let sim_start = *first_sim.get_or_insert(rec.now);
+        if rec.now - sim_start >= duration {
+            break;
+        }
+        let Some(ev) = client.next_event(Instant::now() + Duration::from_millis(20))? else {
+            continue;
+        };
+        match ev {
+            UserEvent::Granted { req: r, session, .. } if r == req => red_session = Some(session),
+            UserEvent::Refused { req: r, reason, .. } if r == req => {
+                refusal = Some(reason.to_string());
+                break;
+            }
+            UserEvent::Update { session, payload: Payload::Track2d(t), .. }
+                if Some(session) == red_session =>
+            {
+                updates += 1;
+                if !t.lost {
+                    tracked += 1;
+                    if let Some(truth) = rec.last() {
+                        errors.push((t.x - truth.person.0).hypot(t.y - truth.person.1));
+                    }
+                    if link.is_none() {
+                        link = Some(client.link(&red, &d1)?);
+                        link_at = Some(rec.now);
+                    }
+                }
+            }
+            UserEvent::LinkForwarded { .. } => forwarded += 1,
+            UserEvent::Status { service, status: TaskStatus::Done(_), .. } if service == d1 => {
+                arrivals += 1
+            }
+            UserEvent::LinkEnded { link: l, reason } if Some(l) == link => {
+                link_ended = Some(reason);
+            }
+            _ => {}
+        }
+    }
+    let wall = wall_start.elapsed().as_secs_f64();
+    client.close();
+    let stats = run.stop();
+    let sim_start = first_sim.unwrap_or(0.0);
+    let sim_seconds = rec.now - sim_start;
+    // Distance between the delivery robot and the person, from the link on.
+    let linked_from = link_at.unwrap_or(f64::INFINITY);
+    let dist: Vec<(f64, f64)> = rec
+        .samples
+        .iter()
+        .filter(|s| s.t >= linked_from)
+        .map(|s| (s.t - sim_start, (s.d1.0 - s.person.0).hypot(s.d1.1 - s.person.1)))
+        .collect();
+    let dvals: Vec<f64> = dist.iter().map(|d| d.1).collect();
+    let t3vals: Vec<f64> = rec
+        .samples
+        .iter()
+        .filter(|s| s.t >= linked_from)
+        .map(|s| (s.t3.0 - s.person.0).hypot(s.t3.1 - s.person.1))
+        .collect();
+    let convoy = rec
+        .samples
+        .iter()
+        .filter(|s| s.t >= linked_from)
+        .filter(|s| {
+            (s.t3.0 - s.person.0).hypot(s.t3.1 - s.person.1) < 5.0
+                && (s.d1.0 - s.person.0).hypot(s.d1.1 - s.person.1) < 5.0
+        })
+        .count() as f64
+        / (dvals.len().max(1) as f64);
+    let contacts: serde_json::Map<String, serde_json::Value> = rec
+        .contacts
+        .iter()
+        .map(|(r, c)| (r.clone(), json!(c)))
+        .collect();
+    let report = json!({
+        "experiment": "link (the paper's Experiment 2)",
+        "clock": "sim seconds unless named wall",
+        "sim_seconds": sim_seconds,
+        "wall_seconds": wall,
+        "sim_seconds_per_wall_second": sim_seconds / wall.max(1e-9),
+        "speed_asked": a.speed,
+        "refused": refusal,
+        "tracking": {
+            "updates": updates,
+            "tracked_updates": tracked,
+            "tracked_fraction": if updates > 0 { tracked as f64 / updates as f64 } else { 0.0 },
+            "error_p50_m": pct(&errors, 0.5),
+            "error_p95_m": pct(&errors, 0.95),
+        },
+        "link": {
+            "linked_at_s": link_at.map(|t| t - sim_start),
+            "forwarded_goals": forwarded,
+            "ended": link_ended.map(|r| r.to_string()),
+        },
+        "delivery": {
+            "arrivals": arrivals,
+            "distance_to_person_p50_m": pct(&dvals, 0.5),
+            "distance_to_person_p90_m": pct(&dvals, 0.9),
+        },
+        "convoy": {
+            "t3_distance_to_person_p50_m": pct(&t3vals, 0.5),
+            "fraction_both_within_5m": convoy,
+        },
+        "contacts": contacts,
+        "contacts_total": rec.total_contacts(),
+        "systems": {"tracking": stats.tracking, "delivery": stats.delivery},
+    });
+    let dir = &a.report;
+    std::fs::write(dir.join("report.json"), serde_json::to_string_pretty(&report)? + "\n")?;
+    let map = OccupancyMap::office();
+    let path = |f: fn(&super::paper::TruthSample) -> (f64, f64)| -> Vec<(f64, f64)> {
+        rec.samples.iter().filter(|s| s.t >= linked_from.min(sim_start + 1.0)).map(f).collect()
+    };
+    render_paths(
+        &map,
+        &[
+            (path(|s| s.t3), [120, 120, 120]),
+            (path(|s| s.person), [220, 30, 30]),
+            (path(|s| s.d1), [30, 90, 230]),
+        ],
+    )
+    .save(dir.join("figure3.png"))?;
+    draw_distance(&dist, &dir.join("distance.png"))?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    println!(
+        "wrote {0}/report.json, {0}/figure3.png (paths: person red, D1 blue, T3 grey), {0}/distance.png",
+        dir.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Distance between the delivery robot and the person over the run.
+fn draw_distance(dist: &[(f64, f64)], path: &Path) -> anyhow::Result<()> {
+    plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular())
+        .map_err(|_| anyhow::anyhow!("cannot load the embedded font"))?;
+    let root = BitMapBackend::new(path, (900, 350)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let t_max = dist.iter().map(|d| d.0).fold(1.0, f64::max);
+    let d_max = dist.iter().map(|d| d.1).fold(2.0, f64::max) * 1.1;
+    let mut chart = ChartBuilder::on(&root)
+        .caption("delivery robot to the followed person", ("sans-serif", 18))
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(45)
+        .build_cartesian_2d(0.0..t_max, 0.0..d_max)?;
+    chart
+        .configure_mesh()
+        .x_desc("sim time, s")
+        .y_desc("distance, m")
+        .draw()?;
+    chart.draw_series(LineSeries::new(dist.iter().copied(), &BLUE))?;
+    chart.draw_series(LineSeries::new([(0.0, 1.0), (t_max, 1.0)], &RED))?;
+    root.present()?;
+    Ok(())
+}

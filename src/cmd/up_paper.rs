@@ -1,0 +1,180 @@
+//! `muster up`: the main job on the built-in default, the paper's setup. Starts the
+//! simulator (the paper's scenario: trackers T1–T3, delivery robot D1, three people with
+//! beacons), the broker (also serving remote users over UDP), the tracking system (T3
+//! mobile) and the delivery system; then acts as a user: lists the four services,
+//! requests the trackers and prints the targets' positions, links the first tracked
+//! colour into the delivery robot and prints the robot following the person. On Ctrl-C
+//! or `--duration` it stops everything and writes a picture of the run.
+
+use super::paper::{PaperOptions, PaperRun, Recorder};
+use super::up::{remote_list, wait_for_services, Guest};
+use crate::cli::UpArgs;
+use muster_shared::types::{Payload, ServiceId};
+use muster_shared::Instance;
+use muster_sim_world::map::OccupancyMap;
+use muster_sim_world::render::render_paths;
+use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+const COLOURS: [&str; 3] = ["red", "green", "blue"];
+
+pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
+    anyhow::ensure!(a.speed.is_finite() && a.speed > 0.0 && a.speed <= 50.0, "--speed must be in (0, 50]");
+    let guest = if a.no_udp { None } else { Some(Guest::new(inst, a.udp)?) };
+    let mut broker_args = Vec::new();
+    let mut system_args = Vec::new();
+    if let Some(g) = &guest {
+        broker_args = vec![
+            "--udp".to_string(),
+            g.addr.to_string(),
+            "--access".to_string(),
+            g.dir.join("access").display().to_string(),
+        ];
+        system_args = vec!["--udp".to_string(), "127.0.0.1:0".to_string()];
+    }
+    let run = PaperRun::start(
+        inst,
+        &PaperOptions {
+            speed: a.speed,
+            mobile: vec!["T3".into()],
+            broker_args,
+            system_args,
+            seed: 1,
+            quiet: false,
+        },
+    )?;
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(20),
+        handle_signals: true,
+        watch_list: false,
+    };
+    let mut client = UserClient::connect(inst, &opts)?;
+    let end = a.duration.map(|d| Instant::now() + d);
+    let mut rec = Recorder::new(0.5);
+    let shown = wait_for_services(&mut client, 4).and_then(|()| {
+        if let Some(g) = &guest {
+            remote_list(g)?;
+        }
+        Ok(())
+    });
+    let followed = match shown.and_then(|()| demo(&mut client, &run, &mut rec, end)) {
+        Ok(c) => c,
+        Err(UserError::Interrupted) => None,
+        Err(e) => return Err(e.into()),
+    };
+    client.close();
+    let stats = run.stop();
+    let picture = a.picture.clone().unwrap_or_else(|| {
+        std::env::temp_dir().join(format!("muster-up-{}.png", inst.as_str()))
+    });
+    let people = |k: usize| -> Vec<(f64, f64)> {
+        rec.samples
+            .iter()
+            .map(|s| if k == 0 { s.person } else { s.others[k - 1] })
+            .collect()
+    };
+    render_paths(
+        &OccupancyMap::office(),
+        &[
+            (people(1), [30, 170, 30]),
+            (people(2), [40, 60, 230]),
+            (people(0), [220, 30, 30]),
+            (rec.samples.iter().map(|s| s.t3).collect(), [120, 120, 120]),
+            (rec.samples.iter().map(|s| s.d1).collect(), [0, 0, 0]),
+        ],
+    )
+    .save(&picture)?;
+    println!(
+        "muster up: stopped after {:.0} sim s; {} contacts; followed {}; picture of the run (people in their beacon colours, T3 grey, D1 black): {}",
+        rec.now,
+        rec.total_contacts(),
+        followed.unwrap_or("nobody"),
+        picture.display()
+    );
+    if let Some(d) = stats.delivery {
+        println!("delivery: {} arrivals", d["arrivals"]);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The user's part; returns the colour it linked into the delivery robot.
+fn demo(
+    client: &mut UserClient,
+    run: &PaperRun,
+    rec: &mut Recorder,
+    end: Option<Instant>,
+) -> Result<Option<&'static str>, UserError> {
+    let list = client.list()?;
+    println!("== service list (generation {}) ==", list.generation);
+    println!("{}", muster_users::menu::table(&list.views()));
+    let delivery = ServiceId::new("delivery", "D1");
+    println!("\n== request the three trackers; link the first target tracked into {delivery} ==");
+    let mut sessions = Vec::new();
+    for c in COLOURS {
+        let id = ServiceId::new("tracking", c);
+        sessions.push((client.request(&id)?, c, None));
+    }
+    let mut link = None;
+    let mut followed = None;
+    let give_up = Instant::now() + Duration::from_secs(60);
+    let mut shown = 0u64;
+    loop {
+        rec.poll(&run.world);
+        let now = Instant::now();
+        if end.is_some_and(|e| now >= e) {
+            break;
+        }
+        if link.is_none() && now >= give_up {
+            // Nobody seen yet: link red anyway; the robot waits for a first position.
+            println!("no target seen for 60 s: linking red anyway");
+            followed = Some("red");
+            link = Some(client.link(&ServiceId::new("tracking", "red"), &delivery)?);
+        }
+        let Some(e) = client.next_event(now + Duration::from_millis(100))? else {
+            continue;
+        };
+        match e {
+            UserEvent::Granted { req, session, service, .. } => {
+                if let Some(s) = sessions.iter_mut().find(|s| s.0 == req) {
+                    s.2 = Some(session);
+                    println!("granted: {service} (session {session})");
+                }
+            }
+            UserEvent::Refused { service, reason, .. } => println!("refused: {service}: {reason}"),
+            UserEvent::Update { session, payload, service, .. } => {
+                let colour = sessions.iter().find(|s| s.2 == Some(session)).map(|s| s.1);
+                if let (Some(c), Payload::Track2d(t)) = (colour, &payload) {
+                    if link.is_none() || shown.is_multiple_of(5) {
+                        println!("  {service}: {payload}");
+                    }
+                    shown += 1;
+                    if link.is_none() && !t.lost {
+                        followed = Some(c);
+                        println!("\n== {c} is tracked: link tracking/{c} -> {delivery} ==");
+                        link = Some(client.link(&ServiceId::new("tracking", c), &delivery)?);
+                    }
+                }
+            }
+            UserEvent::LinkUp { .. } => {
+                println!("link up: the target's positions become the robot's goals (Ctrl-C to stop)")
+            }
+            UserEvent::Status { service, status, .. } if service == delivery => {
+                if let Some(t) = rec.last() {
+                    let d = (t.d1.0 - t.person.0).hypot(t.d1.1 - t.person.1);
+                    println!("  {delivery}: {status}  [sim {:.0} s]", t.t);
+                    let _ = d;
+                } else {
+                    println!("  {delivery}: {status}");
+                }
+            }
+            UserEvent::LinkEnded { reason, .. } => {
+                println!("link ended: {reason}");
+                break;
+            }
+            UserEvent::BrokerLost => println!("(broker lost; sessions and the link go on)"),
+            _ => {}
+        }
+    }
+    Ok(followed)
+}
