@@ -131,7 +131,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     };
     let mut client = UserClient::connect(inst, &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);
-    let shown = wait_for_services(&mut client, 4).and_then(|()| {
+    let shown = wait_for_services(&mut client, 4, Duration::from_secs(10)).and_then(|()| {
         if let Some(g) = &guest {
             remote_list(g)?;
         }
@@ -147,8 +147,12 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-pub(super) fn wait_for_services(client: &mut UserClient, n: usize) -> Result<(), UserError> {
-    let deadline = Instant::now() + Duration::from_secs(10);
+pub(super) fn wait_for_services(
+    client: &mut UserClient,
+    n: usize,
+    wait: Duration,
+) -> Result<(), UserError> {
+    let deadline = Instant::now() + wait;
     while client.list()?.count < n as u32 && Instant::now() < deadline {
         let _ = client.next_event(Instant::now() + Duration::from_millis(200))?;
     }

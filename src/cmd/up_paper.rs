@@ -52,7 +52,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     let mut client = UserClient::connect(inst, &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);
     let mut rec = Recorder::new(0.5);
-    let shown = wait_for_services(&mut client, 4).and_then(|()| {
+    let shown = wait_for_services(&mut client, 4, Duration::from_secs(60)).and_then(|()| {
         if let Some(g) = &guest {
             remote_list(g)?;
         }
@@ -117,8 +117,9 @@ fn demo(
     }
     let mut link = None;
     let mut followed = None;
-    let give_up = Instant::now() + Duration::from_secs(60);
+    let give_up = Instant::now() + Duration::from_secs(20);
     let mut shown = 0u64;
+    let mut forwarded = 0u64;
     loop {
         rec.poll(&run.world);
         let now = Instant::now();
@@ -127,7 +128,7 @@ fn demo(
         }
         if link.is_none() && now >= give_up {
             // Nobody seen yet: link red anyway; the robot waits for a first position.
-            println!("no target seen for 60 s: linking red anyway");
+            println!("no target seen for 20 s: linking red anyway");
             followed = Some("red");
             link = Some(client.link(&ServiceId::new("tracking", "red"), &delivery)?);
         }
@@ -156,14 +157,18 @@ fn demo(
                     }
                 }
             }
+            UserEvent::LinkForwarded { input, .. } => {
+                forwarded += 1;
+                if forwarded % 5 == 1 {
+                    println!("  forwarded {input} (goal {forwarded})");
+                }
+            }
             UserEvent::LinkUp { .. } => {
                 println!("link up: the target's positions become the robot's goals (Ctrl-C to stop)")
             }
             UserEvent::Status { service, status, .. } if service == delivery => {
                 if let Some(t) = rec.last() {
-                    let d = (t.d1.0 - t.person.0).hypot(t.d1.1 - t.person.1);
                     println!("  {delivery}: {status}  [sim {:.0} s]", t.t);
-                    let _ = d;
                 } else {
                     println!("  {delivery}: {status}");
                 }
