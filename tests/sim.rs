@@ -29,9 +29,9 @@ fn a_second_process_reads_sensors_and_drives_a_robot() {
         .unwrap()
         .expect("a sensors sample");
     assert_eq!((beams, sonars), (181, 16));
-    // T3 starts at (20, 10) facing +x in the middle corridor.
+    // T3 starts at (20, 9.4) facing +x, against the middle corridor's south wall.
     assert!(
-        (pose0.x - 20.0).abs() < 0.01 && (pose0.y - 10.0).abs() < 0.01,
+        (pose0.x - 20.0).abs() < 0.01 && (pose0.y - 9.4).abs() < 0.01,
         "{pose0:?}"
     );
     // Drive it: keep commanding (a silent controller stops after 0.5 s).

@@ -414,7 +414,7 @@ impl Scenario {
                 tracker("T1", [3.0, 3.0, 0.0]),
                 tracker("T2", [37.0, 17.0, 180.0]),
                 // Against the middle corridor's south wall, so robots can pass it.
-                tracker("T3", [20.0, 9.4, 90.0]),
+                tracker("T3", [20.0, 9.4, 0.0]),
                 d1,
             ],
             people: vec![

@@ -537,31 +537,9 @@ impl RobotLink {
         &self,
         after: f64,
         timeout: Duration,
-        mut f: impl FnMut(&RobotSensors) -> R,
+        f: impl FnOnce(&RobotSensors) -> R,
     ) -> Result<Option<R>, ShmError> {
-        let deadline = std::time::Instant::now() + timeout;
-        loop {
-            let mut newest = None;
-            while let Some(s) = self
-                .sensors
-                .receive()
-                .map_err(|e| err("sensors receive", e))?
-            {
-                newest = Some(s);
-            }
-            if let Some(s) = newest {
-                if s.payload().time > after {
-                    return Ok(Some(f(s.payload())));
-                }
-            }
-            let left = deadline.saturating_duration_since(std::time::Instant::now());
-            if left.is_zero() {
-                return Ok(None);
-            }
-            self.updated
-                .timed_wait(|_| {}, left)
-                .map_err(|e| err("updated wait", e))?;
-        }
+        wait_newest(&self.sensors, &self.updated, after, timeout, |s| s.time, f)
     }
 
     /// The descriptor of the robot's "sensors updated" event, for an epoll set (a robot
@@ -584,17 +562,7 @@ impl RobotLink {
         after: f64,
         f: impl FnOnce(&RobotSensors) -> R,
     ) -> Result<Option<R>, ShmError> {
-        let mut newest = None;
-        while let Some(s) = self
-            .sensors
-            .receive()
-            .map_err(|e| err("sensors receive", e))?
-        {
-            newest = Some(s);
-        }
-        Ok(newest
-            .filter(|s| s.payload().time > after)
-            .map(|s| f(s.payload())))
+        wait_newest(&self.sensors, &self.updated, after, Duration::ZERO, |s| s.time, f)
     }
 
     /// Sends a velocity command (m/s, rad/s).
@@ -665,23 +633,36 @@ impl WorldView {
         timeout: Duration,
         f: impl FnOnce(&WorldState) -> R,
     ) -> Result<Option<R>, ShmError> {
-        let deadline = std::time::Instant::now() + timeout;
-        loop {
-            let mut newest = None;
-            while let Some(s) = self.world.receive().map_err(|e| err("world receive", e))? {
-                newest = Some(s);
-            }
-            if let Some(s) = newest.filter(|s| s.payload().time > after) {
-                return Ok(Some(f(s.payload())));
-            }
-            let left = deadline.saturating_duration_since(std::time::Instant::now());
-            if left.is_zero() {
-                return Ok(None);
-            }
-            self.updated
-                .timed_wait(|_| {}, left)
-                .map_err(|e| err("world wait", e))?;
+        wait_newest(&self.world, &self.updated, after, timeout, |w| w.time, f)
+    }
+}
+
+/// Waits up to `timeout` (zero: not at all) for a sample of `sub` whose `time` is past
+/// `after`, sleeping on `updated`; calls `f` with the newest one, read in place.
+fn wait_newest<T: std::fmt::Debug + ZeroCopySend, R>(
+    sub: &Subscriber<Ipc, T, ()>,
+    updated: &Listener<Ipc>,
+    after: f64,
+    timeout: Duration,
+    time: impl Fn(&T) -> f64,
+    f: impl FnOnce(&T) -> R,
+) -> Result<Option<R>, ShmError> {
+    let deadline = std::time::Instant::now() + timeout;
+    loop {
+        let mut newest = None;
+        while let Some(s) = sub.receive().map_err(|e| err("receive", e))? {
+            newest = Some(s);
         }
+        if let Some(s) = newest.filter(|s| time(s.payload()) > after) {
+            return Ok(Some(f(s.payload())));
+        }
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return Ok(None);
+        }
+        updated
+            .timed_wait(|_| {}, left)
+            .map_err(|e| err("wait", e))?;
     }
 }
 
