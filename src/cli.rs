@@ -315,6 +315,10 @@ pub struct TrackingArgs {
     /// Do not model the robots' processing budget (sessions limited by quota only).
     #[arg(long)]
     pub no_budget: bool,
+    /// Where mobile trackers patrol while their target is lost: waypoints `X,Y`
+    /// separated by spaces (default: the office's corridor loop).
+    #[arg(long, value_delimiter = ' ')]
+    pub patrol: Vec<String>,
     #[command(flatten)]
     pub common: RobotSystemArgs,
 }

@@ -71,12 +71,12 @@ fn the_link_experiment_tracks_follows_arrives_and_touches_nothing() {
         serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
     let r = &report;
     assert!(r["sim_seconds"].as_f64().unwrap() >= 359.0, "{r:#}");
-    assert!(r["tracking"]["tracked_fraction"].as_f64().unwrap() > 0.0, "{r:#}");
+    assert!(r["tracking"]["red"]["tracked_fraction"].as_f64().unwrap() > 0.0, "{r:#}");
     assert!(r["link"]["forwarded_goals"].as_u64().unwrap() > 0, "{r:#}");
     assert!(r["delivery"]["arrivals"].as_u64().unwrap() >= 1, "{r:#}");
     assert_eq!(r["contacts_total"].as_u64(), Some(0), "{r:#}");
     // Tracking error against ground truth, while tracked, within a metre at the median.
-    assert!(r["tracking"]["error_p50_m"].as_f64().unwrap() < 1.0, "{r:#}");
+    assert!(r["tracking"]["red"]["error_p50_m"].as_f64().unwrap() < 1.0, "{r:#}");
     for png in ["figure3.png", "distance.png"] {
         let img = image::open(dir.join(png)).unwrap();
         assert!(img.width() > 100, "{png}");

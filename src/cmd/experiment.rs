@@ -48,7 +48,15 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     let d1 = ServiceId::new("delivery", "D1");
     let mut rec = Recorder::new(0.25);
     let wall_limit = wall_start + Duration::from_secs_f64(duration / a.speed * 4.0 + 120.0);
+    // The red tracker is the one linked; green and blue are watched too, for each
+    // target's tracking error.
     let req = client.request(&red)?;
+    let others = [
+        (client.request(&ServiceId::new("tracking", "green"))?, 0usize),
+        (client.request(&ServiceId::new("tracking", "blue"))?, 1usize),
+    ];
+    let mut other_sessions: Vec<(muster_shared::types::SessionId, usize)> = Vec::new();
+    let mut other_stats = [(0u64, 0u64, Vec::new()), (0u64, 0u64, Vec::new())];
     let mut red_session = None;
     let mut link = None;
     let mut link_at = None;
@@ -70,6 +78,25 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         };
         match ev {
             UserEvent::Granted { req: r, session, .. } if r == req => red_session = Some(session),
+            UserEvent::Granted { req: r, session, .. } => {
+                if let Some((_, k)) = others.iter().find(|o| o.0 == r) {
+                    other_sessions.push((session, *k));
+                }
+            }
+            UserEvent::Update { session, payload: Payload::Track2d(t), .. }
+                if other_sessions.iter().any(|o| o.0 == session) =>
+            {
+                let k = other_sessions.iter().find(|o| o.0 == session).map_or(0, |o| o.1);
+                let st = &mut other_stats[k];
+                st.0 += 1;
+                if !t.lost {
+                    st.1 += 1;
+                    if let Some(truth) = rec.last() {
+                        let p = truth.others[k];
+                        st.2.push((t.x - p.0).hypot(t.y - p.1));
+                    }
+                }
+            }
             UserEvent::Refused { req: r, reason, .. } if r == req => {
                 refusal = Some(reason.to_string());
                 break;
@@ -143,11 +170,10 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         "speed_asked": a.speed,
         "refused": refusal,
         "tracking": {
-            "updates": updates,
-            "tracked_updates": tracked,
-            "tracked_fraction": if updates > 0 { tracked as f64 / updates as f64 } else { 0.0 },
-            "error_p50_m": pct(&errors, 0.5),
-            "error_p95_m": pct(&errors, 0.95),
+            "red": target_json(updates, tracked, &errors),
+            "green": target_json(other_stats[0].0, other_stats[0].1, &other_stats[0].2),
+            "blue": target_json(other_stats[1].0, other_stats[1].1, &other_stats[1].2),
+            "note": "updates at 1 Hz per target; error against the simulator's ground truth while tracked",
         },
         "link": {
             "linked_at_s": link_at.map(|t| t - sim_start),
@@ -189,6 +215,17 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         dir.display()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// One target's tracking figures.
+fn target_json(updates: u64, tracked: u64, errors: &[f64]) -> serde_json::Value {
+    json!({
+        "updates": updates,
+        "tracked_updates": tracked,
+        "tracked_fraction": if updates > 0 { tracked as f64 / updates as f64 } else { 0.0 },
+        "error_p50_m": pct(errors, 0.5),
+        "error_p95_m": pct(errors, 0.95),
+    })
 }
 
 /// Distance between the delivery robot and the person over the run.

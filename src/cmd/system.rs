@@ -103,6 +103,19 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
         ..Default::default()
     };
     params.tracker.lost_after = a.lost_after;
+    if !a.patrol.is_empty() {
+        params.patrol = a
+            .patrol
+            .iter()
+            .filter(|w| !w.is_empty())
+            .map(|w| {
+                let (x, y) = w.split_once(',').with_context(|| format!("--patrol {w:?}: want X,Y"))?;
+                let (x, y): (f64, f64) = (x.trim().parse()?, y.trim().parse()?);
+                anyhow::ensure!(x.is_finite() && y.is_finite(), "--patrol {w:?}: not finite");
+                Ok((x, y))
+            })
+            .collect::<anyhow::Result<_>>()?;
+    }
     let opts = TrackingOptions {
         robots: robots.clone(),
         mobile: a.mobile.clone(),

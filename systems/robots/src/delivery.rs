@@ -227,14 +227,16 @@ impl DeliveryCore {
             _ => None,
         };
         let Some(target) = target else {
-            return ((0.0, 0.0), events);
+            let v = self.nav.give_way(now, pose, obstacles).unwrap_or((0.0, 0.0));
+            return (v, events);
         };
         let distance = (target.0 - pose.x).hypot(target.1 - pose.y);
         if distance <= self.params.arrival {
+            let was_driving = self.nav.goal().is_some();
             self.nav.clear();
             self.idle_since = now;
             match &mut self.task {
-                Task::Goal { arrived, goal } => {
+                Task::Goal { arrived, goal } if was_driving || !*arrived => {
                     *arrived = true;
                     self.arrivals += 1;
                     events.push(DeliveryEvent::Arrived {
@@ -246,7 +248,7 @@ impl DeliveryCore {
                     *arrived = true;
                     events.push(DeliveryEvent::Home);
                 }
-                Task::None => {}
+                _ => {}
             }
             return ((0.0, 0.0), events);
         }

@@ -173,6 +173,34 @@ impl Navigator {
         }
     }
 
+    /// A halted robot gives way: when something presses on it (closer than the
+    /// footprint plus a few centimetres, e.g. a person who walked into it), it turns
+    /// away and creeps clear. Returns the velocity while it does, `None` when nothing
+    /// presses on it.
+    pub fn give_way(&mut self, now: f64, pose: Pose, obstacles: &[(f64, f64)]) -> Option<(f64, f64)> {
+        let p = &self.params;
+        if let Some((heading, until)) = self.escape {
+            if now < until {
+                let e = wrap(heading - pose.theta);
+                let free = free_distance(p.footprint, obstacles, 1.0);
+                let v = if e.abs() < 0.3 && free > p.stop_gap { 0.2 } else { 0.0 };
+                return Some((v, (p.turn_gain * e).clamp(-p.max_turn, p.max_turn)));
+            }
+            self.escape = None;
+        }
+        let (d, toward) = obstacles
+            .iter()
+            .map(|&(x, y)| (x.hypot(y), y.atan2(x)))
+            .min_by(|a, b| a.0.total_cmp(&b.0))?;
+        if d >= p.footprint + 0.04 {
+            return None;
+        }
+        let away = wrap(toward + std::f64::consts::PI);
+        let a = escape_heading(p.footprint, obstacles, away, 0.4)?;
+        self.escape = Some((wrap(pose.theta + a), now + 3.0));
+        Some((0.0, 0.0))
+    }
+
     /// The segment the robot is on (index of its end waypoint; the first segment starts
     /// where the path was planned from) and how far along it (0..=1). Looks a few
     /// segments ahead only, and never goes back, so a path that doubles back on itself
@@ -441,6 +469,30 @@ mod tests {
         // Behind the robot does not count going forward.
         assert_eq!(free_distance(0.28, &[(-1.0, 0.0)], 1.0), LOOK);
         assert_eq!(free_distance(0.28, &[], 1.0), LOOK);
+    }
+
+    #[test]
+    fn a_halted_robot_gives_way_to_a_body_pressing_on_it() {
+        let map = OccupancyMap::office();
+        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let mut nav = Navigator::new(planner, NavParams::default());
+        let mut pose = Pose { x: 20.0, y: 3.0, theta: 0.0 };
+        assert_eq!(nav.give_way(0.0, pose, &[(1.0, 0.0)]), None, "nothing presses on it");
+        // A body touching the front: turn round, then creep away from it.
+        let body_at = (20.26, 3.0);
+        let mut t = 0.0;
+        let mut moved_away = false;
+        for _ in 0..40 {
+            let (s, c) = pose.theta.sin_cos();
+            let (dx, dy) = (body_at.0 - pose.x, body_at.1 - pose.y);
+            let local = (c * dx + s * dy, -s * dx + c * dy);
+            let Some((v, w)) = nav.give_way(t, pose, &[local]) else { break };
+            pose = muster_sim_world::kinematics::integrate(pose, v, w, 0.1);
+            t += 0.1;
+            moved_away |= v > 0.0;
+        }
+        assert!(moved_away);
+        assert!((pose.x - body_at.0).hypot(pose.y - body_at.1) > 0.35, "{pose:?}");
     }
 
     #[test]

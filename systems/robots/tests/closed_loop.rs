@@ -138,3 +138,112 @@ fn delivery_arrives_across_the_office_among_people_without_contact() {
     assert!(p95 < 0.15, "localization p95 {p95:.3} m");
 }
 
+
+#[test]
+fn localization_converges_from_an_offset_start_while_driving() {
+    // D1's filter starts 0.25 m and 4° off the truth; driving down the corridor it must
+    // find where it is.
+    let mut d = Delivery::new(3);
+    let spec = &d.world.robots()[d.d1].spec;
+    let wrong = Pose {
+        x: spec.pose[0] + 0.2,
+        y: spec.pose[1] - 0.15,
+        theta: wrap(spec.pose[2].to_radians() + 4f64.to_radians()),
+    };
+    d.loc = Localizer::new(
+        Arc::new(LikelihoodField::new(d.world.map(), 1.0)),
+        wrong,
+        LocalizerParams { init_sigma_xy: 0.3, init_sigma_theta: 0.1, ..LocalizerParams::default() },
+        3,
+    );
+    let start_truth = d.truth();
+    let e0 = d.loc.estimate();
+    // Before any scan the estimate is where it was told, about 0.25 m off.
+    assert!((e0.x - start_truth.x).hypot(e0.y - start_truth.y) > 0.15);
+    let mut once = Some((12.0, 3.0));
+    d.run(30.0, true, |_| once.take());
+    let truth = d.truth();
+    let est = d.loc.estimate();
+    let err = (est.x - truth.x).hypot(est.y - truth.y);
+    let heading = wrap(est.theta - truth.theta).abs().to_degrees();
+    assert!(err < 0.1, "position error {err:.3} m after 30 s");
+    assert!(heading < 3.0, "heading error {heading:.2}°");
+}
+
+#[test]
+fn the_tracking_system_tracks_the_people_it_sees_with_localized_robots() {
+    use muster_robots::tracking::{TrackerRobot, TrackingCore, TrackingParams};
+    use muster_sim_world::scenario::Colour;
+    let scenario = Scenario::paper();
+    let map = OccupancyMap::office();
+    let mut world = World::new(&scenario, Some(map.clone())).unwrap();
+    let names = ["T1", "T2", "T3"];
+    let robots: Vec<TrackerRobot> = names
+        .iter()
+        .map(|n| {
+            let spec = &world.robots()[world.robot_index(n).unwrap()].spec;
+            TrackerRobot {
+                name: n.to_string(),
+                start: Pose { x: spec.pose[0], y: spec.pose[1], theta: wrap(spec.pose[2].to_radians()) },
+                mobile: *n == "T3",
+                geometry: SensorGeometry::of(spec),
+                max_speed: spec.drive.max_speed,
+            }
+        })
+        .collect();
+    let map = Arc::new(map);
+    let mut core = TrackingCore::new(
+        map.clone(),
+        Arc::new(LikelihoodField::new(&map, 1.0)),
+        Arc::new(Planner::new(&map, PlannerParams::default())),
+        robots,
+        TrackingParams::default(),
+        5,
+    );
+    let idx: Vec<usize> = names.iter().map(|n| world.robot_index(n).unwrap()).collect();
+    let wanted = [Colour::Red, Colour::Green, Colour::Blue];
+    let mut errors: Vec<(Colour, f64)> = Vec::new();
+    let mut lost_seen = false;
+    let mut tracked_seen = 0;
+    for step in 0..3000 {
+        for (i, &w) in idx.iter().enumerate() {
+            let s = SensorSample::from_robot(&world.robots()[w], world.time());
+            let cmd = core.handle_sample(i, &s, &wanted);
+            if let Some((v, om)) = cmd.velocity {
+                world.command_velocity(w, v, om);
+            }
+            if let Some((pan, tilt, zoom)) = cmd.camera {
+                world.command_camera(w, pan, tilt, zoom);
+            }
+        }
+        if step % 10 == 0 {
+            for c in wanted {
+                let Some(t) = core.payload(c) else { continue };
+                let p = world.people().iter().find(|p| p.beacon == c).unwrap();
+                if t.lost {
+                    lost_seen = true;
+                } else if t.age < 0.5 {
+                    tracked_seen += 1;
+                    errors.push((c, (t.x - p.pose.x).hypot(t.y - p.pose.y)));
+                }
+            }
+        }
+        world.step(0.1);
+    }
+    assert!(tracked_seen >= 30, "tracked in only {tracked_seen} samples");
+    let mut e: Vec<f64> = errors.iter().map(|x| x.1).collect();
+    e.sort_by(f64::total_cmp);
+    let p50 = e[e.len() / 2];
+    let p95 = e[e.len() * 95 / 100];
+    assert!(p50 < 0.3, "tracking error p50 {p50:.2} m");
+    assert!(p95 < 1.0, "tracking error p95 {p95:.2} m");
+    // People leave every camera's view now and then: their tracks are reported lost.
+    assert!(lost_seen);
+    for (i, n) in names.iter().enumerate() {
+        let est = core.pose(i).unwrap();
+        let truth = world.robots()[idx[i]].pose;
+        assert!((est.x - truth.x).hypot(est.y - truth.y) < 0.15, "{n} localized at {est:?}, truly {truth:?}");
+    }
+    let t3 = world.robots()[idx[2]].contacts;
+    assert_eq!(t3, 0, "the mobile tracker touched something");
+}
