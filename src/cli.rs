@@ -315,6 +315,10 @@ pub struct TrackingArgs {
     /// Do not model the robots' processing budget (sessions limited by quota only).
     #[arg(long)]
     pub no_budget: bool,
+    /// The colour mobile trackers follow (default: the most requested one that is
+    /// tracked).
+    #[arg(long)]
+    pub follow: Option<String>,
     /// Where mobile trackers patrol while their target is lost: waypoints `X,Y`
     /// separated by spaces (default: the office's corridor loop).
     #[arg(long, value_delimiter = ' ')]

@@ -102,6 +102,8 @@ pub struct Person {
     pub target: usize,
     /// Standing still until this sim time.
     pub pause_until: f64,
+    /// Where and when the person last made progress (0.3 m) while walking.
+    pub progress: (f64, f64, f64),
     rng: Pcg64,
 }
 
@@ -199,6 +201,7 @@ impl World {
                 speed: p.speed,
                 target,
                 pause_until: 0.0,
+                progress: (p.start[0], p.start[1], 0.0),
                 rng,
             });
         }
@@ -482,7 +485,8 @@ fn advance(
         let walls_after = map.clearance(t.x, t.y, reach + 0.01) - reach;
         let others_after = bodies.half_gap(me, t.x, t.y, r, 0.01);
         let away_from_walls = walls > 1e-6 || walls_after > walls.max(0.0);
-        let away_from_bodies = others > 1e-6 || others_after > budget.max(0.0);
+        // Bodies already overlapping (budget < 0) may still move apart.
+        let away_from_bodies = others > 1e-6 || others_after > budget;
         if away_from_walls && away_from_bodies && walls_after >= 0.0 {
             s += tiny;
             continue;
@@ -561,7 +565,17 @@ fn walk(
     h: f64,
 ) {
     if now < p.pause_until || nav.places() == 0 {
+        p.progress = (p.pose.x, p.pose.y, now);
         return;
+    }
+    // Boxed in (by other people, robots, a crowd in a door) for a while, a person goes
+    // somewhere else instead.
+    if (p.pose.x - p.progress.0).hypot(p.pose.y - p.progress.1) > 0.3 {
+        p.progress = (p.pose.x, p.pose.y, now);
+    } else if now - p.progress.2 > STUCK_GIVE_UP {
+        p.progress = (p.pose.x, p.pose.y, now);
+        let places = nav.places();
+        p.target = (p.target + 1 + p.rng.random_range(0..places.max(2) - 1)) % places;
     }
     let arrived = nav
         .distance(p.target, p.pose.x, p.pose.y)
@@ -595,6 +609,9 @@ fn walk(
         }
     }
 }
+
+/// A person who cannot move on for this long picks another place, s.
+pub const STUCK_GIVE_UP: f64 = 5.0;
 
 /// `n` places spread over the free space of a map, for scenarios that name none.
 pub fn sample_places(map: &OccupancyMap, seed: u64, n: usize) -> Vec<(f64, f64)> {

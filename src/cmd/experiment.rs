@@ -39,6 +39,8 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
             mobile: vec!["T3".into()],
             broker_args: Vec::new(),
             system_args: Vec::new(),
+            // T3 follows the person the user links (the paper's convoy).
+            tracking_args: vec!["--follow".into(), "red".into()],
             seed: a.seed,
             quiet: !a.verbose,
         },
@@ -67,6 +69,7 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     let mut forwarded = 0u64;
     let mut refusal = None;
     let mut link_ended = None;
+    let mut link_attempts = 0u32;
     while Instant::now() < wall_limit {
         rec.poll(&run.world);
         let sim_start = *first_sim.get_or_insert(rec.now);
@@ -110,9 +113,9 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
                     if let Some(truth) = rec.last() {
                         errors.push((t.x - truth.person.0).hypot(t.y - truth.person.1));
                     }
-                    if link.is_none() {
+                    if link.is_none() && link_attempts < 10 {
                         link = Some(client.link(&red, &d1)?);
-                        link_at = Some(rec.now);
+                        link_at.get_or_insert(rec.now);
                     }
                 }
             }
@@ -121,6 +124,10 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
                 arrivals += 1
             }
             UserEvent::LinkEnded { link: l, reason } if Some(l) == link => {
+                // Refused (e.g. the grant of our own red request still pending at the
+                // broker): link again on the next tracked update.
+                link = None;
+                link_attempts += 1;
                 link_ended = Some(reason);
             }
             _ => {}
@@ -179,6 +186,7 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
             "linked_at_s": link_at.map(|t| t - sim_start),
             "forwarded_goals": forwarded,
             "ended": link_ended.map(|r| r.to_string()),
+            "ends_before_the_last": link_attempts,
         },
         "delivery": {
             "arrivals": arrivals,

@@ -22,6 +22,8 @@ pub struct PaperOptions {
     pub broker_args: Vec<String>,
     /// Extra flags for both robot systems (e.g. their UDP endpoints).
     pub system_args: Vec<String>,
+    /// Extra flags for the tracking system only.
+    pub tracking_args: Vec<String>,
     /// Seed of the simulator and the filters.
     pub seed: u64,
     /// Children's standard error: inherited (a demo) or discarded (an experiment).
@@ -66,6 +68,7 @@ impl PaperRun {
             tracking.extend(["--mobile", &mobile]);
         }
         tracking.extend(o.system_args.iter().map(String::as_str));
+        tracking.extend(o.tracking_args.iter().map(String::as_str));
         let t = children.spawn_with(inst, "tracking system", &tracking, Stdio::piped(), err())?;
         let tracking_out = t.stdout.take();
         let mut delivery = vec!["system", "delivery", "--stats-json", "--seed", &seed];

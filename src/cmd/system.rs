@@ -103,6 +103,11 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
         ..Default::default()
     };
     params.tracker.lost_after = a.lost_after;
+    params.follow = a
+        .follow
+        .as_deref()
+        .map(|c| Colour::from_name(c).with_context(|| format!("--follow: unknown colour {c:?}")))
+        .transpose()?;
     if !a.patrol.is_empty() {
         params.patrol = a
             .patrol

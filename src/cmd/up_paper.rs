@@ -40,6 +40,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
             mobile: vec!["T3".into()],
             broker_args,
             system_args,
+            tracking_args: Vec::new(),
             seed: 1,
             quiet: false,
         },
@@ -120,13 +121,14 @@ fn demo(
     let give_up = Instant::now() + Duration::from_secs(20);
     let mut shown = 0u64;
     let mut forwarded = 0u64;
+    let mut link_ends = 0u32;
     loop {
         rec.poll(&run.world);
         let now = Instant::now();
         if end.is_some_and(|e| now >= e) {
             break;
         }
-        if link.is_none() && now >= give_up {
+        if link.is_none() && followed.is_none() && now >= give_up {
             // Nobody seen yet: link red anyway; the robot waits for a first position.
             println!("no target seen for 20 s: linking red anyway");
             followed = Some("red");
@@ -150,7 +152,7 @@ fn demo(
                         println!("  {service}: {payload}");
                     }
                     shown += 1;
-                    if link.is_none() && !t.lost {
+                    if link.is_none() && !t.lost && link_ends < 5 {
                         followed = Some(c);
                         println!("\n== {c} is tracked: link tracking/{c} -> {delivery} ==");
                         link = Some(client.link(&ServiceId::new("tracking", c), &delivery)?);
@@ -174,8 +176,11 @@ fn demo(
                 }
             }
             UserEvent::LinkEnded { reason, .. } => {
+                // E.g. refused while our own request's grant is still pending at the
+                // broker: link again on the next tracked update.
                 println!("link ended: {reason}");
-                break;
+                link = None;
+                link_ends += 1;
             }
             UserEvent::BrokerLost => println!("(broker lost; sessions and the link go on)"),
             _ => {}

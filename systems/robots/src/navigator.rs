@@ -43,6 +43,11 @@ pub struct NavParams {
     pub warning_field: f64,
     /// Top speed inside the warning field, m/s.
     pub warning_speed: f64,
+    /// A body not on the map (a person) closer than this beyond the footprint, in
+    /// front or to the side, stops the robot, m.
+    pub body_protective: f64,
+    /// ... and closer than this slows it, m.
+    pub body_warning: f64,
 }
 
 impl Default for NavParams {
@@ -60,6 +65,8 @@ impl Default for NavParams {
             protective_field: 0.1,
             warning_field: 0.45,
             warning_speed: 0.12,
+            body_protective: 0.3,
+            body_warning: 0.8,
         }
     }
 }
@@ -294,10 +301,22 @@ impl Navigator {
                 x > -0.05 && x < p.footprint + depth && y.abs() < p.footprint + side
             })
         };
-        let protective = inside(p.protective_field, 0.05);
+        // Bodies the map does not know (people, robots) may walk into the robot: they
+        // get wider fields, so that it has stopped before they reach it.
+        let (s, c) = pose.theta.sin_cos();
+        let cell = self.planner.params().cell;
+        let body_near = |reach: f64| {
+            obstacles.iter().any(|&(x, y)| {
+                x > -0.1
+                    && x.hypot(y) < p.footprint + reach
+                    && self.planner.wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
+                        > cell
+            })
+        };
+        let protective = inside(p.protective_field, 0.05) || body_near(p.body_protective);
         if protective {
             v = 0.0;
-        } else if inside(p.warning_field, 0.2) {
+        } else if inside(p.warning_field, 0.2) || body_near(p.body_warning) {
             v = v.min(p.warning_speed);
         }
         let stuck = wants_forward && (room < 0.02 || protective) && remaining > 0.3;

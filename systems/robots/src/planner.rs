@@ -65,6 +65,8 @@ pub struct Planner {
     origin: (f64, f64),
     /// Extra cost per cell (0..=COST_SCALE), `None` where the body does not fit.
     cost: Vec<Option<u32>>,
+    /// Distance from each cell's centre to the nearest wall (capped), m.
+    wall: Vec<f32>,
 }
 
 /// Cost of one straight step.
@@ -83,11 +85,13 @@ impl Planner {
         let origin = map.origin();
         let need = params.radius + params.margin;
         let mut cost = Vec::with_capacity(w * h);
+        let mut wall = Vec::with_capacity(w * h);
         for j in 0..h {
             for i in 0..w {
                 let x = origin.0 + (i as f64 + 0.5) * params.cell;
                 let y = origin.1 + (j as f64 + 0.5) * params.cell;
                 let c = map.clearance(x, y, params.comfort + need);
+                wall.push(c as f32);
                 cost.push(if c < need {
                     None
                 } else {
@@ -102,6 +106,7 @@ impl Planner {
             h,
             origin,
             cost,
+            wall,
         }
     }
 
@@ -133,6 +138,15 @@ impl Planner {
             return None;
         }
         self.cost[k]
+    }
+
+    /// Distance from (x, y) to the nearest wall, to the planning grid's resolution
+    /// (0 outside the map): tells a wall the laser sees from a body the map does not
+    /// know.
+    pub fn wall_distance(&self, x: f64, y: f64) -> f64 {
+        self.cell_of(x, y).map_or(0.0, |c| {
+            f64::from(self.wall[c.1 as usize * self.w + c.0 as usize])
+        })
     }
 
     /// Whether the robot's body fits at (x, y) with its margin (walls only).

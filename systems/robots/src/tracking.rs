@@ -50,6 +50,9 @@ impl Budget {
     }
 }
 
+/// A mobile tracker searches where its target was last seen for this long, s.
+const SEARCH_FOR: f64 = 60.0;
+
 /// One tracking robot, as configured.
 #[derive(Clone, Debug)]
 pub struct TrackerRobot {
@@ -86,6 +89,9 @@ pub struct TrackingParams {
     pub localizer: LocalizerParams,
     /// Period of the camera sweep while no target is in view, s.
     pub sweep_period: f64,
+    /// The colour mobile trackers follow (and look at first); `None`: the most wanted
+    /// tracked colour.
+    pub follow: Option<Colour>,
 }
 
 impl Default for TrackingParams {
@@ -100,6 +106,7 @@ impl Default for TrackingParams {
             tracker: TrackerParams::default(),
             localizer: LocalizerParams::default(),
             sweep_period: 8.0,
+            follow: None,
         }
     }
 }
@@ -121,6 +128,8 @@ struct RobotState {
     nav: Option<Navigator>,
     patrol_next: usize,
     following: Option<Colour>,
+    /// The last-seen place already searched.
+    searched: Option<(f64, f64)>,
     last_camera: f64,
     samples: u64,
 }
@@ -170,6 +179,7 @@ impl TrackingCore {
                 }),
                 patrol_next: 0,
                 following: None,
+                searched: None,
                 last_camera: f64::NEG_INFINITY,
                 samples: 0,
                 cfg,
@@ -271,8 +281,11 @@ impl TrackingCore {
         let Some((fov, range, pan_limit)) = r.cfg.geometry.camera else {
             return (0.0, 0.0, 1.0);
         };
-        let candidates = wanted
+        let candidates = self
+            .params
+            .follow
             .iter()
+            .chain(wanted.iter())
             .chain(self.params.colours.iter())
             .filter(|c| self.tracker.is_tracked(**c, now));
         for &c in candidates {
@@ -300,10 +313,22 @@ impl TrackingCore {
     /// patrols while there is none.
     fn drive(&mut self, i: usize, s: &SensorSample, wanted: &[Colour]) -> (f64, f64) {
         let now = s.time;
-        let target = wanted
+        let follow: Vec<Colour> = match self.params.follow {
+            Some(c) => vec![c],
+            None => wanted.to_vec(),
+        };
+        let target = follow
             .iter()
             .find(|c| self.tracker.is_tracked(**c, now))
             .and_then(|c| Some((*c, self.tracker.predicted(*c, now)?)));
+        // Lost a while ago: search where it was last seen (once), then patrol.
+        let search = follow.iter().find_map(|c| {
+            let t = self.tracker.track(*c)?;
+            (now - t.last_seen < SEARCH_FOR).then(|| {
+                let dt = (t.last_seen - t.time).max(0.0);
+                (t.state[0] + t.state[2] * dt, t.state[1] + t.state[3] * dt)
+            })
+        });
         let follow_distance = self.params.follow_distance;
         let patrol = &self.params.patrol;
         let r = &mut self.robots[i];
@@ -314,11 +339,16 @@ impl TrackingCore {
         match target {
             Some((colour, (tx, ty))) => {
                 r.following = Some(colour);
+                r.searched = None;
                 let (dx, dy) = (r.pose.x - tx, r.pose.y - ty);
                 let d = dx.hypot(dy);
                 if d <= follow_distance + 0.3 {
-                    // Close enough: hold, facing the target.
+                    // Close enough: hold, facing the target, and give way to anyone
+                    // (the target included) who walks into the robot.
                     nav.clear();
+                    if let Some(v) = nav.give_way(now, r.pose, &obstacles) {
+                        return v;
+                    }
                     let err = wrap((ty - r.pose.y).atan2(tx - r.pose.x) - r.pose.theta);
                     return (0.0, (1.5 * err).clamp(-1.0, 1.0));
                 }
@@ -329,7 +359,20 @@ impl TrackingCore {
                     let _ = nav.set_goal(r.pose, (tx, ty), 0.75);
                 }
             }
+            None if search.is_some_and(|(x, y)| {
+                (x - r.pose.x).hypot(y - r.pose.y) > 1.0 && r.searched != search
+            }) =>
+            {
+                r.following = None;
+                let at = search.unwrap_or_default();
+                if nav.goal() != Some(at) && nav.set_goal(r.pose, at, 0.0).is_err() {
+                    r.searched = search;
+                }
+            }
             None => {
+                if search.is_some() {
+                    r.searched = search; // been there
+                }
                 r.following = None;
                 if patrol.is_empty() {
                     nav.clear();

@@ -247,3 +247,20 @@ fn the_tracking_system_tracks_the_people_it_sees_with_localized_robots() {
     let t3 = world.robots()[idx[2]].contacts;
     assert_eq!(t3, 0, "the mobile tracker touched something");
 }
+
+#[test]
+fn delivery_follows_a_walking_person_without_contact() {
+    for seed in [1, 2, 3] {
+        let mut d = Delivery::new(seed);
+        let mut k = 0u64;
+        // The red person's position every second, as a link forwards it.
+        d.run(600.0, false, |w| {
+            k += 1;
+            (k % 10 == 0).then(|| {
+                let p = w.people().iter().find(|p| p.name == "alice").unwrap();
+                (p.pose.x, p.pose.y)
+            })
+        });
+        assert_eq!(d.contacts(), 0, "seed {seed}: contacts while following");
+    }
+}
