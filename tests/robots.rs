@@ -28,7 +28,11 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         "--picture",
         pic.to_str().unwrap(),
     ]);
-    assert_eq!(f.proc(up).wait(120 * SEC), Some(0), "up exits 0 after --duration");
+    assert_eq!(
+        f.proc(up).wait(120 * SEC),
+        Some(0),
+        "up exits 0 after --duration"
+    );
     let text = f.proc(up).rest_lines(5 * SEC).join("\n");
     for needle in [
         "the same list over UDP: 4 services",
@@ -49,7 +53,10 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
     assert_eq!((img.width(), img.height()), (800, 400));
     let _ = std::fs::remove_file(&pic);
     // Everything it started is gone.
-    let out = f.command(&["user", "list", "--wait", "300ms"]).output().unwrap();
+    let out = f
+        .command(&["user", "list", "--wait", "300ms"])
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(1), "the broker is gone too");
 }
 
@@ -61,7 +68,13 @@ fn the_link_experiment_tracks_follows_arrives_and_touches_nothing() {
     let started = Instant::now();
     let (code, _) = f.run(
         &[
-            "experiment", "link", "--duration", "10m", "--speed", "10", "--report",
+            "experiment",
+            "link",
+            "--duration",
+            "10m",
+            "--speed",
+            "10",
+            "--report",
             dir.to_str().unwrap(),
         ],
         300 * SEC,
@@ -71,7 +84,10 @@ fn the_link_experiment_tracks_follows_arrives_and_touches_nothing() {
         serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
     let r = &report;
     assert!(r["sim_seconds"].as_f64().unwrap() >= 599.0, "{r:#}");
-    assert!(r["tracking"]["red"]["tracked_fraction"].as_f64().unwrap() > 0.0, "{r:#}");
+    assert!(
+        r["tracking"]["red"]["tracked_fraction"].as_f64().unwrap() > 0.0,
+        "{r:#}"
+    );
     assert!(r["link"]["forwarded_goals"].as_u64().unwrap() > 0, "{r:#}");
     assert!(r["delivery"]["arrivals"].as_u64().unwrap() >= 1, "{r:#}");
     // The in-process closed-loop tests hold the robots to 0 contacts deterministically;
@@ -79,7 +95,10 @@ fn the_link_experiment_tracks_follows_arrives_and_touches_nothing() {
     // seen about once in three 10-minute runs, so this run allows one.
     assert!(r["contacts_total"].as_u64().unwrap() <= 1, "{r:#}");
     // Tracking error against ground truth, while tracked, within a metre at the median.
-    assert!(r["tracking"]["red"]["error_p50_m"].as_f64().unwrap() < 1.0, "{r:#}");
+    assert!(
+        r["tracking"]["red"]["error_p50_m"].as_f64().unwrap() < 1.0,
+        "{r:#}"
+    );
     for png in ["figure3.png", "distance.png"] {
         let img = image::open(dir.join(png)).unwrap();
         assert!(img.width() > 100, "{png}");

@@ -1,8 +1,8 @@
 //! Draws the world as a PNG: walls, robots with headings, laser and camera coverage,
 //! people with their beacon colours.
 
-use crate::sensors::camera_cone;
 use crate::map::OccupancyMap;
+use crate::sensors::camera_cone;
 use crate::world::{World, PERSON_RADIUS};
 use image::{Rgb, RgbImage};
 use imageproc::drawing::{draw_filled_circle_mut, draw_hollow_circle_mut, draw_line_segment_mut};
@@ -51,9 +51,12 @@ fn map_image(map: &OccupancyMap) -> (RgbImage, impl Fn(f64, f64) -> (f32, f32)) 
     (img, px)
 }
 
+/// A path to draw: points in metres and an RGB colour.
+pub type Path = (Vec<(f64, f64)>, [u8; 3]);
+
 /// Draws paths (polylines in metres, each in its colour, with a dot where it ends) over
 /// the map: the picture of a run, like the paper's Figure 3.
-pub fn render_paths(map: &OccupancyMap, paths: &[(Vec<(f64, f64)>, [u8; 3])]) -> RgbImage {
+pub fn render_paths(map: &OccupancyMap, paths: &[Path]) -> RgbImage {
     let (mut img, px) = map_image(map);
     for (path, rgb) in paths {
         for w in path.windows(2) {
@@ -106,12 +109,7 @@ fn draw_world(img: &mut RgbImage, world: &World, scale: f64, px: &impl Fn(f64, f
         let p = r.pose;
         let (cx, cy) = px(p.x, p.y);
         let rad = (r.spec.drive.radius * scale).round() as i32;
-        draw_filled_circle_mut(
-            img,
-            (cx as i32, cy as i32),
-            rad.max(2),
-            Rgb([90, 90, 90]),
-        );
+        draw_filled_circle_mut(img, (cx as i32, cy as i32), rad.max(2), Rgb([90, 90, 90]));
         if let Some(b) = r.spec.beacon {
             draw_hollow_circle_mut(img, (cx as i32, cy as i32), rad.max(2), Rgb(b.rgb()));
         }

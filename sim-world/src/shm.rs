@@ -562,7 +562,14 @@ impl RobotLink {
         after: f64,
         f: impl FnOnce(&RobotSensors) -> R,
     ) -> Result<Option<R>, ShmError> {
-        wait_newest(&self.sensors, &self.updated, after, Duration::ZERO, |s| s.time, f)
+        wait_newest(
+            &self.sensors,
+            &self.updated,
+            after,
+            Duration::ZERO,
+            |s| s.time,
+            f,
+        )
     }
 
     /// Sends a velocity command (m/s, rad/s).

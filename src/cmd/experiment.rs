@@ -22,12 +22,16 @@ use std::time::{Duration, Instant};
 fn pct(v: &[f64], q: f64) -> Option<f64> {
     let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
     s.sort_by(f64::total_cmp);
-    s.get(((s.len() as f64 - 1.0) * q).round() as usize).copied()
+    s.get(((s.len() as f64 - 1.0) * q).round() as usize)
+        .copied()
 }
 
 /// Runs Experiment 2 and writes its report.
 pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> {
-    anyhow::ensure!(a.speed.is_finite() && a.speed > 0.0 && a.speed <= 50.0, "--speed must be in (0, 50]");
+    anyhow::ensure!(
+        a.speed.is_finite() && a.speed > 0.0 && a.speed <= 50.0,
+        "--speed must be in (0, 50]"
+    );
     let duration = a.duration.as_secs_f64();
     anyhow::ensure!(duration >= 10.0, "--duration must be at least 10 s");
     std::fs::create_dir_all(&a.report)?;
@@ -54,7 +58,10 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     // target's tracking error.
     let req = client.request(&red)?;
     let others = [
-        (client.request(&ServiceId::new("tracking", "green"))?, 0usize),
+        (
+            client.request(&ServiceId::new("tracking", "green"))?,
+            0usize,
+        ),
         (client.request(&ServiceId::new("tracking", "blue"))?, 1usize),
     ];
     let mut other_sessions: Vec<(muster_shared::types::SessionId, usize)> = Vec::new();
@@ -80,16 +87,25 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
             continue;
         };
         match ev {
-            UserEvent::Granted { req: r, session, .. } if r == req => red_session = Some(session),
-            UserEvent::Granted { req: r, session, .. } => {
+            UserEvent::Granted {
+                req: r, session, ..
+            } if r == req => red_session = Some(session),
+            UserEvent::Granted {
+                req: r, session, ..
+            } => {
                 if let Some((_, k)) = others.iter().find(|o| o.0 == r) {
                     other_sessions.push((session, *k));
                 }
             }
-            UserEvent::Update { session, payload: Payload::Track2d(t), .. }
-                if other_sessions.iter().any(|o| o.0 == session) =>
-            {
-                let k = other_sessions.iter().find(|o| o.0 == session).map_or(0, |o| o.1);
+            UserEvent::Update {
+                session,
+                payload: Payload::Track2d(t),
+                ..
+            } if other_sessions.iter().any(|o| o.0 == session) => {
+                let k = other_sessions
+                    .iter()
+                    .find(|o| o.0 == session)
+                    .map_or(0, |o| o.1);
                 let st = &mut other_stats[k];
                 st.0 += 1;
                 if !t.lost {
@@ -104,9 +120,11 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
                 refusal = Some(reason.to_string());
                 break;
             }
-            UserEvent::Update { session, payload: Payload::Track2d(t), .. }
-                if Some(session) == red_session =>
-            {
+            UserEvent::Update {
+                session,
+                payload: Payload::Track2d(t),
+                ..
+            } if Some(session) == red_session => {
                 updates += 1;
                 if !t.lost {
                     tracked += 1;
@@ -120,9 +138,11 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
                 }
             }
             UserEvent::LinkForwarded { .. } => forwarded += 1,
-            UserEvent::Status { service, status: TaskStatus::Done(_), .. } if service == d1 => {
-                arrivals += 1
-            }
+            UserEvent::Status {
+                service,
+                status: TaskStatus::Done(_),
+                ..
+            } if service == d1 => arrivals += 1,
             UserEvent::LinkEnded { link: l, reason } if Some(l) == link => {
                 // Refused (e.g. the grant of our own red request still pending at the
                 // broker): link again on the next tracked update.
@@ -144,7 +164,12 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         .samples
         .iter()
         .filter(|s| s.t >= linked_from)
-        .map(|s| (s.t - sim_start, (s.d1.0 - s.person.0).hypot(s.d1.1 - s.person.1)))
+        .map(|s| {
+            (
+                s.t - sim_start,
+                (s.d1.0 - s.person.0).hypot(s.d1.1 - s.person.1),
+            )
+        })
         .collect();
     let dvals: Vec<f64> = dist.iter().map(|d| d.1).collect();
     let t3vals: Vec<f64> = rec
@@ -202,10 +227,17 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         "systems": {"tracking": stats.tracking, "delivery": stats.delivery},
     });
     let dir = &a.report;
-    std::fs::write(dir.join("report.json"), serde_json::to_string_pretty(&report)? + "\n")?;
+    std::fs::write(
+        dir.join("report.json"),
+        serde_json::to_string_pretty(&report)? + "\n",
+    )?;
     let map = OccupancyMap::office();
     let path = |f: fn(&super::paper::TruthSample) -> (f64, f64)| -> Vec<(f64, f64)> {
-        rec.samples.iter().filter(|s| s.t >= linked_from.min(sim_start + 1.0)).map(f).collect()
+        rec.samples
+            .iter()
+            .filter(|s| s.t >= linked_from.min(sim_start + 1.0))
+            .map(f)
+            .collect()
     };
     render_paths(
         &map,

@@ -56,8 +56,20 @@ impl PaperRun {
         let mut children = Children::default();
         let speed = o.speed.to_string();
         let seed = o.seed.to_string();
-        let err = || if o.quiet { Stdio::null() } else { Stdio::inherit() };
-        children.spawn_with(inst, "simulator", &["sim", "--speed", &speed, "--seed", &seed], Stdio::null(), err())?;
+        let err = || {
+            if o.quiet {
+                Stdio::null()
+            } else {
+                Stdio::inherit()
+            }
+        };
+        children.spawn_with(
+            inst,
+            "simulator",
+            &["sim", "--speed", &speed, "--seed", &seed],
+            Stdio::null(),
+            err(),
+        )?;
         let broker: Vec<&str> = std::iter::once("broker")
             .chain(o.broker_args.iter().map(String::as_str))
             .collect();
@@ -75,7 +87,10 @@ impl PaperRun {
         delivery.extend(o.system_args.iter().map(String::as_str));
         let d = children.spawn_with(inst, "delivery system", &delivery, Stdio::piped(), err())?;
         let delivery_out = d.stdout.take();
-        let node = muster_shared::ipc::create_node(&format!("muster-observer-{}", std::process::id()), false)?;
+        let node = muster_shared::ipc::create_node(
+            &format!("muster-observer-{}", std::process::id()),
+            false,
+        )?;
         let deadline = std::time::Instant::now() + Duration::from_secs(30);
         let world = loop {
             match WorldView::open(&node, inst.as_str()) {
@@ -101,7 +116,9 @@ impl PaperRun {
         let read = |out: Option<ChildStdout>| {
             let mut text = String::new();
             out?.read_to_string(&mut text).ok()?;
-            text.lines().rev().find_map(|l| serde_json::from_str(l).ok())
+            text.lines()
+                .rev()
+                .find_map(|l| serde_json::from_str(l).ok())
         };
         SystemStats {
             tracking: read(self.tracking_out.take()),
@@ -164,7 +181,10 @@ impl Recorder {
 
     /// Takes the newest world sample if one is due (never waits).
     pub fn poll(&mut self, view: &WorldView) {
-        let after = self.samples.last().map_or(-1.0, |s| s.t + self.period - 1e-9);
+        let after = self
+            .samples
+            .last()
+            .map_or(-1.0, |s| s.t + self.period - 1e-9);
         let taken = view.next(after, Duration::ZERO, |w| {
             let s = TruthSample {
                 t: w.time,

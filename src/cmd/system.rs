@@ -6,14 +6,14 @@ use muster_robots::shell::{
     delivery_specs, open_links, tracking_specs, DeliveryApp, DeliveryOptions, TrackingApp,
     TrackingOptions,
 };
-use muster_sim_world::map::OccupancyMap;
-use muster_sim_world::scenario::{Colour, Scenario};
-use std::sync::Arc;
 use muster_shared::types::validate_registration;
 use muster_shared::Instance;
+use muster_sim_world::map::OccupancyMap;
+use muster_sim_world::scenario::{Colour, Scenario};
 use muster_systems::synthetic::{Synthetic, SyntheticOptions};
 use muster_systems::SystemCore;
 use std::process::ExitCode;
+use std::sync::Arc;
 
 pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
     match cmd {
@@ -82,7 +82,10 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
     } else {
         a.robots.clone()
     };
-    anyhow::ensure!(!robots.is_empty(), "the scenario has no robot with a camera");
+    anyhow::ensure!(
+        !robots.is_empty(),
+        "the scenario has no robot with a camera"
+    );
     let colours = a
         .colours
         .iter()
@@ -114,7 +117,9 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
             .iter()
             .filter(|w| !w.is_empty())
             .map(|w| {
-                let (x, y) = w.split_once(',').with_context(|| format!("--patrol {w:?}: want X,Y"))?;
+                let (x, y) = w
+                    .split_once(',')
+                    .with_context(|| format!("--patrol {w:?}: want X,Y"))?;
                 let (x, y): (f64, f64) = (x.trim().parse()?, y.trim().parse()?);
                 anyhow::ensure!(x.is_finite() && y.is_finite(), "--patrol {w:?}: not finite");
                 Ok((x, y))
@@ -174,7 +179,12 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
     let specs = delivery_specs(&opts);
     validate_registration(&a.name, &specs)?;
     let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
-    let mut links = open_links(&node, inst.as_str(), std::slice::from_ref(&a.robot), a.common.wait_sim)?;
+    let mut links = open_links(
+        &node,
+        inst.as_str(),
+        std::slice::from_ref(&a.robot),
+        a.common.wait_sim,
+    )?;
     let link = links.pop().context("no link")?;
     let mut app = DeliveryApp::new(&scenario, map, link, &opts)?;
     let core = SystemCore::new(&a.name, std::process::id(), specs, salt());

@@ -20,8 +20,15 @@ use std::time::{Duration, Instant};
 const COLOURS: [&str; 3] = ["red", "green", "blue"];
 
 pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
-    anyhow::ensure!(a.speed.is_finite() && a.speed > 0.0 && a.speed <= 50.0, "--speed must be in (0, 50]");
-    let guest = if a.no_udp { None } else { Some(Guest::new(inst, a.udp)?) };
+    anyhow::ensure!(
+        a.speed.is_finite() && a.speed > 0.0 && a.speed <= 50.0,
+        "--speed must be in (0, 50]"
+    );
+    let guest = if a.no_udp {
+        None
+    } else {
+        Some(Guest::new(inst, a.udp)?)
+    };
     let mut broker_args = Vec::new();
     let mut system_args = Vec::new();
     if let Some(g) = &guest {
@@ -66,9 +73,10 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     };
     client.close();
     let stats = run.stop();
-    let picture = a.picture.clone().unwrap_or_else(|| {
-        std::env::temp_dir().join(format!("muster-up-{}.png", inst.as_str()))
-    });
+    let picture = a
+        .picture
+        .clone()
+        .unwrap_or_else(|| std::env::temp_dir().join(format!("muster-up-{}.png", inst.as_str())));
     let people = |k: usize| -> Vec<(f64, f64)> {
         rec.samples
             .iter()
@@ -138,14 +146,26 @@ fn demo(
             continue;
         };
         match e {
-            UserEvent::Granted { req, session, service, .. } => {
+            UserEvent::Granted {
+                req,
+                session,
+                service,
+                ..
+            } => {
                 if let Some(s) = sessions.iter_mut().find(|s| s.0 == req) {
                     s.2 = Some(session);
                     println!("granted: {service} (session {session})");
                 }
             }
-            UserEvent::Refused { service, reason, .. } => println!("refused: {service}: {reason}"),
-            UserEvent::Update { session, payload, service, .. } => {
+            UserEvent::Refused {
+                service, reason, ..
+            } => println!("refused: {service}: {reason}"),
+            UserEvent::Update {
+                session,
+                payload,
+                service,
+                ..
+            } => {
                 let colour = sessions.iter().find(|s| s.2 == Some(session)).map(|s| s.1);
                 if let (Some(c), Payload::Track2d(t)) = (colour, &payload) {
                     if link.is_none() || shown.is_multiple_of(5) {
@@ -166,9 +186,13 @@ fn demo(
                 }
             }
             UserEvent::LinkUp { .. } => {
-                println!("link up: the target's positions become the robot's goals (Ctrl-C to stop)")
+                println!(
+                    "link up: the target's positions become the robot's goals (Ctrl-C to stop)"
+                )
             }
-            UserEvent::Status { service, status, .. } if service == delivery => {
+            UserEvent::Status {
+                service, status, ..
+            } if service == delivery => {
                 if let Some(t) = rec.last() {
                     println!("  {delivery}: {status}  [sim {:.0} s]", t.t);
                 } else {

@@ -147,7 +147,10 @@ impl DeliveryCore {
         if let Some((_, true)) = previous {
             let d = (goal.0 - pose.x).hypot(goal.1 - pose.y);
             if d <= self.params.arrival {
-                self.task = Task::Goal { goal, arrived: true };
+                self.task = Task::Goal {
+                    goal,
+                    arrived: true,
+                };
                 return Vec::new();
             }
         }
@@ -157,7 +160,10 @@ impl DeliveryCore {
         };
         match self.nav.set_goal(pose, goal, replan_within) {
             Ok(()) => {
-                self.task = Task::Goal { goal, arrived: false };
+                self.task = Task::Goal {
+                    goal,
+                    arrived: false,
+                };
                 self.blocked_reported = false;
                 // A goal that moved a little (a followed person) is not a new task.
                 let announce = previous.is_none_or(|(g, _)| {
@@ -222,12 +228,18 @@ impl DeliveryCore {
             self.idle_since = now;
         }
         let target = match self.task {
-            Task::Goal { goal, arrived: false } => Some(goal),
+            Task::Goal {
+                goal,
+                arrived: false,
+            } => Some(goal),
             Task::Home { arrived: false } => self.params.home,
             _ => None,
         };
         let Some(target) = target else {
-            let v = self.nav.give_way(now, pose, obstacles).unwrap_or((0.0, 0.0));
+            let v = self
+                .nav
+                .give_way(now, pose, obstacles)
+                .unwrap_or((0.0, 0.0));
             return (v, events);
         };
         let distance = (target.0 - pose.x).hypot(target.1 - pose.y);
@@ -327,16 +339,31 @@ mod tests {
     #[test]
     fn arrives_within_a_metre_for_goals_across_the_office_and_halts() {
         let mut c = core(None);
-        let mut pose = Pose { x: 30.0, y: 3.0, theta: std::f64::consts::PI };
+        let mut pose = Pose {
+            x: 30.0,
+            y: 3.0,
+            theta: std::f64::consts::PI,
+        };
         let mut t = 0.0;
         for goal in [(6.0, 6.5), (20.0, 10.0), (37.0, 17.0), (14.0, 13.5)] {
             let ev = c.set_goal(t, pose, goal);
-            assert!(matches!(ev[0], DeliveryEvent::Accepted { distance, .. } if distance > 3.0), "{ev:?}");
+            assert!(
+                matches!(ev[0], DeliveryEvent::Accepted { distance, .. } if distance > 3.0),
+                "{ev:?}"
+            );
             let ev = drive(&mut c, &mut pose, &mut t, 150.0, |_| None);
-            let arrived = ev.iter().filter(|e| matches!(e, DeliveryEvent::Arrived { .. })).count();
+            let arrived = ev
+                .iter()
+                .filter(|e| matches!(e, DeliveryEvent::Arrived { .. }))
+                .count();
             assert_eq!(arrived, 1, "goal {goal:?}: {ev:?}");
-            assert!((pose.x - goal.0).hypot(pose.y - goal.1) <= 1.05, "goal {goal:?} pose {pose:?}");
-            assert!(ev.iter().any(|e| matches!(e, DeliveryEvent::Driving { .. })));
+            assert!(
+                (pose.x - goal.0).hypot(pose.y - goal.1) <= 1.05,
+                "goal {goal:?} pose {pose:?}"
+            );
+            assert!(ev
+                .iter()
+                .any(|e| matches!(e, DeliveryEvent::Driving { .. })));
         }
         assert_eq!(c.arrivals(), 4);
         // Halted: no more motion.
@@ -347,7 +374,11 @@ mod tests {
     #[test]
     fn follows_a_moving_goal() {
         let mut c = core(None);
-        let mut pose = Pose { x: 3.0, y: 3.0, theta: 0.0 };
+        let mut pose = Pose {
+            x: 3.0,
+            y: 3.0,
+            theta: 0.0,
+        };
         let mut t = 0.0;
         // A person walking east along the corridor at 0.5 m/s, goal updated every second.
         let person = |t: f64| (6.0 + 0.5 * t.min(50.0), 2.5);
@@ -355,19 +386,32 @@ mod tests {
             ((t * 10.0).round() as i64 % 10 == 0).then(|| person(t))
         });
         let p = person(t);
-        assert!((pose.x - p.0).hypot(pose.y - p.1) <= 1.5, "robot {pose:?} person {p:?}");
+        assert!(
+            (pose.x - p.0).hypot(pose.y - p.1) <= 1.5,
+            "robot {pose:?} person {p:?}"
+        );
         // Only the first goal is announced; the moving goal does not spam "accepted".
-        let accepted = ev.iter().filter(|e| matches!(e, DeliveryEvent::Accepted { .. })).count();
+        let accepted = ev
+            .iter()
+            .filter(|e| matches!(e, DeliveryEvent::Accepted { .. }))
+            .count();
         assert!(accepted <= 2, "{accepted} accepted");
     }
 
     #[test]
     fn goes_home_when_idle_and_reports_unreachable_goals() {
         let mut c = core(Some((30.0, 6.5)));
-        let mut pose = Pose { x: 20.0, y: 10.0, theta: 0.0 };
+        let mut pose = Pose {
+            x: 20.0,
+            y: 10.0,
+            theta: 0.0,
+        };
         let mut t = 0.0;
         let ev = c.set_goal(t, pose, (60.0, 3.0));
-        assert!(matches!(&ev[0], DeliveryEvent::Unreachable { reason, .. } if reason.contains("outside")), "{ev:?}");
+        assert!(
+            matches!(&ev[0], DeliveryEvent::Unreachable { reason, .. } if reason.contains("outside")),
+            "{ev:?}"
+        );
         let ev = drive(&mut c, &mut pose, &mut t, 120.0, |_| None);
         assert!(ev.contains(&DeliveryEvent::ReturningHome), "{ev:?}");
         assert!(ev.contains(&DeliveryEvent::Home), "{ev:?}");

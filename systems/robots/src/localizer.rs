@@ -91,7 +91,12 @@ fn gaussian(rng: &mut Pcg64, sd: f64) -> f64 {
 impl Localizer {
     /// A filter on `field` whose particles start around `start` (the scenario's start
     /// pose, as AMCL's initial pose).
-    pub fn new(field: Arc<LikelihoodField>, start: Pose, params: LocalizerParams, seed: u64) -> Self {
+    pub fn new(
+        field: Arc<LikelihoodField>,
+        start: Pose,
+        params: LocalizerParams,
+        seed: u64,
+    ) -> Self {
         let mut rng = Pcg64::seed_from_u64(seed);
         let n = params.particles.max(1);
         let particles = (0..n)
@@ -148,7 +153,11 @@ impl Localizer {
             return;
         }
         // Odometry motion model: rotate, translate, rotate; backwards motion keeps its sign.
-        let mut rot1 = if trans < 0.01 { 0.0 } else { wrap(dy.atan2(dx) - prev.theta) };
+        let mut rot1 = if trans < 0.01 {
+            0.0
+        } else {
+            wrap(dy.atan2(dx) - prev.theta)
+        };
         let mut trans_signed = trans;
         if rot1.abs() > std::f64::consts::FRAC_PI_2 {
             rot1 = wrap(rot1 + std::f64::consts::PI);
@@ -235,7 +244,12 @@ impl Localizer {
         } else {
             self.particles.iter_mut().for_each(|p| p.weight /= total);
         }
-        let n_eff = 1.0 / self.particles.iter().map(|p| p.weight * p.weight).sum::<f64>();
+        let n_eff = 1.0
+            / self
+                .particles
+                .iter()
+                .map(|p| p.weight * p.weight)
+                .sum::<f64>();
         if n_eff < self.particles.len() as f64 / 2.0 {
             self.resample();
         }

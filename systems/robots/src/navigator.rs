@@ -184,13 +184,22 @@ impl Navigator {
     /// footprint plus a few centimetres, e.g. a person who walked into it), it turns
     /// away and creeps clear. Returns the velocity while it does, `None` when nothing
     /// presses on it.
-    pub fn give_way(&mut self, now: f64, pose: Pose, obstacles: &[(f64, f64)]) -> Option<(f64, f64)> {
+    pub fn give_way(
+        &mut self,
+        now: f64,
+        pose: Pose,
+        obstacles: &[(f64, f64)],
+    ) -> Option<(f64, f64)> {
         let p = &self.params;
         if let Some((heading, until)) = self.escape {
             if now < until {
                 let e = wrap(heading - pose.theta);
                 let free = free_distance(p.footprint, obstacles, 1.0);
-                let v = if e.abs() < 0.3 && free > p.stop_gap { 0.2 } else { 0.0 };
+                let v = if e.abs() < 0.3 && free > p.stop_gap {
+                    0.2
+                } else {
+                    0.0
+                };
                 return Some((v, (p.turn_gain * e).clamp(-p.max_turn, p.max_turn)));
             }
             self.escape = None;
@@ -257,21 +266,24 @@ impl Navigator {
         self.next = seg;
         let here = lerp(self.segment_start(seg), self.path[seg], t);
         let rest = &self.path[seg..];
-        let remaining =
-            (here.0 - pose.x).hypot(here.1 - pose.y) + path_length(here, rest);
+        let remaining = (here.0 - pose.x).hypot(here.1 - pose.y) + path_length(here, rest);
         let carrot = along(here, rest, self.params.lookahead);
         let heading = (carrot.1 - pose.y).atan2(carrot.0 - pose.x);
         let err = wrap(heading - pose.theta);
         let p = &self.params;
         let w = (p.turn_gain * err).clamp(-p.max_turn, p.max_turn);
         let align = err.cos().max(0.0);
-        let mut v = if err.abs() > 1.0 { 0.0 } else { p.max_speed * align * align };
+        let mut v = if err.abs() > 1.0 {
+            0.0
+        } else {
+            p.max_speed * align * align
+        };
         // Slow down towards the end of the path.
         v = v.min((2.0 * p.brake * remaining).sqrt());
         // Never faster than can stop short of what is ahead, reaction time included.
         let room = (free_ahead - p.stop_gap).max(0.0);
-        let v_safe = ((p.reaction * p.brake).powi(2) + 2.0 * p.brake * room).sqrt()
-            - p.reaction * p.brake;
+        let v_safe =
+            ((p.reaction * p.brake).powi(2) + 2.0 * p.brake * room).sqrt() - p.reaction * p.brake;
         let wants_forward = v > 0.05 || err.abs() <= 1.0;
         v = v.min(v_safe.max(0.0));
         // Safety fields, as on industrial vehicles: slow when anything is near in front
@@ -284,7 +296,11 @@ impl Navigator {
             } else {
                 let e = wrap(heading - pose.theta);
                 let w = (p.turn_gain * e).clamp(-p.max_turn, p.max_turn);
-                let v = if e.abs() < 0.3 { v_safe.clamp(0.0, 0.3) } else { 0.0 };
+                let v = if e.abs() < 0.3 {
+                    v_safe.clamp(0.0, 0.3)
+                } else {
+                    0.0
+                };
                 return NavStep {
                     velocity: (v, w),
                     remaining,
@@ -297,9 +313,9 @@ impl Navigator {
         // Fields are boxes ahead of the footprint, as wide as it plus a side margin, so
         // walls alongside a corridor or a door do not slow the robot.
         let inside = |depth: f64, side: f64| {
-            obstacles.iter().any(|&(x, y)| {
-                x > -0.05 && x < p.footprint + depth && y.abs() < p.footprint + side
-            })
+            obstacles
+                .iter()
+                .any(|&(x, y)| x > -0.05 && x < p.footprint + depth && y.abs() < p.footprint + side)
         };
         // Bodies the map does not know (people, robots) may walk into the robot: they
         // get wider fields, so that it has stopped before they reach it.
@@ -309,7 +325,9 @@ impl Navigator {
             obstacles.iter().any(|&(x, y)| {
                 x > -0.1
                     && x.hypot(y) < p.footprint + reach
-                    && self.planner.wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
+                    && self
+                        .planner
+                        .wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
                         > cell
             })
         };
@@ -320,7 +338,11 @@ impl Navigator {
             v = v.min(p.warning_speed);
         }
         let stuck = wants_forward && (room < 0.02 || protective) && remaining > 0.3;
-        if stuck && self.blocked_since.is_some_and(|b| now - b >= p.replan_after / 2.0) {
+        if stuck
+            && self
+                .blocked_since
+                .is_some_and(|b| now - b >= p.replan_after / 2.0)
+        {
             // Something presses on the robot where it wants to go: find the free heading
             // nearest to the wanted one and get clear along it first.
             if let Some(a) = escape_heading(p.footprint, obstacles, err, p.stop_gap + 0.4) {
@@ -368,8 +390,10 @@ fn escape_heading(radius: f64, pts: &[(f64, f64)], wanted: f64, need: f64) -> Op
         .filter(|a| touching.is_none_or(|t| (a - t).cos() < -0.3))
         .filter(|a| {
             let (s, c) = (-a).sin_cos();
-            let turned: Vec<(f64, f64)> =
-                pts.iter().map(|&(x, y)| (c * x - s * y, s * x + c * y)).collect();
+            let turned: Vec<(f64, f64)> = pts
+                .iter()
+                .map(|&(x, y)| (c * x - s * y, s * x + c * y))
+                .collect();
             free_distance(radius, &turned, 1.0) >= need
         })
         .min_by(|a, b| wrap(a - wanted).abs().total_cmp(&wrap(b - wanted).abs()))
@@ -456,10 +480,26 @@ pub fn free_distance(radius: f64, pts: &[(f64, f64)], direction: f64) -> f64 {
     for run in runs {
         let hit = if run.len() == 1 {
             let at = Pose2::from_translation(run[0]);
-            cast_shapes(&Pose2::IDENTITY, vel, &ball, &at, Vec2::ZERO, &Ball::new(0.01), opts)
+            cast_shapes(
+                &Pose2::IDENTITY,
+                vel,
+                &ball,
+                &at,
+                Vec2::ZERO,
+                &Ball::new(0.01),
+                opts,
+            )
         } else {
             let line = Polyline::new(run, None);
-            cast_shapes(&Pose2::IDENTITY, vel, &ball, &Pose2::IDENTITY, Vec2::ZERO, &line, opts)
+            cast_shapes(
+                &Pose2::IDENTITY,
+                vel,
+                &ball,
+                &Pose2::IDENTITY,
+                Vec2::ZERO,
+                &line,
+                opts,
+            )
         };
         if let Ok(Some(hit)) = hit {
             best = best.min(f64::from(hit.time_of_impact));
@@ -495,8 +535,16 @@ mod tests {
         let map = OccupancyMap::office();
         let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
         let mut nav = Navigator::new(planner, NavParams::default());
-        let mut pose = Pose { x: 20.0, y: 3.0, theta: 0.0 };
-        assert_eq!(nav.give_way(0.0, pose, &[(1.0, 0.0)]), None, "nothing presses on it");
+        let mut pose = Pose {
+            x: 20.0,
+            y: 3.0,
+            theta: 0.0,
+        };
+        assert_eq!(
+            nav.give_way(0.0, pose, &[(1.0, 0.0)]),
+            None,
+            "nothing presses on it"
+        );
         // A body touching the front: turn round, then creep away from it.
         let body_at = (20.26, 3.0);
         let mut t = 0.0;
@@ -505,13 +553,18 @@ mod tests {
             let (s, c) = pose.theta.sin_cos();
             let (dx, dy) = (body_at.0 - pose.x, body_at.1 - pose.y);
             let local = (c * dx + s * dy, -s * dx + c * dy);
-            let Some((v, w)) = nav.give_way(t, pose, &[local]) else { break };
+            let Some((v, w)) = nav.give_way(t, pose, &[local]) else {
+                break;
+            };
             pose = muster_sim_world::kinematics::integrate(pose, v, w, 0.1);
             t += 0.1;
             moved_away |= v > 0.0;
         }
         assert!(moved_away);
-        assert!((pose.x - body_at.0).hypot(pose.y - body_at.1) > 0.35, "{pose:?}");
+        assert!(
+            (pose.x - body_at.0).hypot(pose.y - body_at.1) > 0.35,
+            "{pose:?}"
+        );
     }
 
     #[test]
@@ -519,7 +572,11 @@ mod tests {
         let map = OccupancyMap::office();
         let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
         let mut nav = Navigator::new(planner, NavParams::default());
-        let mut pose = Pose { x: 5.0, y: 3.0, theta: 0.0 };
+        let mut pose = Pose {
+            x: 5.0,
+            y: 3.0,
+            theta: 0.0,
+        };
         nav.set_goal(pose, (15.0, 3.0), 0.5).unwrap();
         // Free corridor: drives forward towards the goal.
         let s = nav.step(0.0, pose, &[]);
@@ -534,7 +591,11 @@ mod tests {
         let s = nav.step(3.5, pose, &body);
         assert!(s.error.is_none());
         let first = nav.path()[1.min(nav.path().len() - 1)];
-        assert!((first.1 - 3.0).abs() > 0.2 || first.0 < 5.4, "path goes round: {:?}", nav.path());
+        assert!(
+            (first.1 - 3.0).abs() > 0.2 || first.0 < 5.4,
+            "path goes round: {:?}",
+            nav.path()
+        );
         // Drive it in a kinematic loop with no obstacles: it reaches the goal.
         let mut t = 4.0;
         for _ in 0..400 {
@@ -545,6 +606,9 @@ mod tests {
                 break;
             }
         }
-        assert!((pose.x - 15.0).hypot(pose.y - 3.0) < 0.5, "ended at {pose:?}");
+        assert!(
+            (pose.x - 15.0).hypot(pose.y - 3.0) < 0.5,
+            "ended at {pose:?}"
+        );
     }
 }

@@ -186,8 +186,12 @@ impl Planner {
         to: (f64, f64),
         obstacles: &[(f64, f64, f64)],
     ) -> Result<Vec<(f64, f64)>, PlanError> {
-        let goal_cell = self.cell_of(to.0, to.1).ok_or(PlanError::OutsideMap(to.0, to.1))?;
-        let start_cell = self.cell_of(from.0, from.1).ok_or(PlanError::StartBlocked)?;
+        let goal_cell = self
+            .cell_of(to.0, to.1)
+            .ok_or(PlanError::OutsideMap(to.0, to.1))?;
+        let start_cell = self
+            .cell_of(from.0, from.1)
+            .ok_or(PlanError::StartBlocked)?;
         let blocked = self.blocked_by(obstacles, from);
         let goal = self
             .snap(goal_cell, &blocked)
@@ -255,7 +259,9 @@ impl Planner {
         for &(ox, oy, r) in obstacles {
             let grow = r + need;
             let reach = (grow / self.params.cell).ceil() as i32 + 1;
-            let Some(c) = self.cell_of(ox, oy) else { continue };
+            let Some(c) = self.cell_of(ox, oy) else {
+                continue;
+            };
             for dj in -reach..=reach {
                 for di in -reach..=reach {
                     let n = (c.0 + di, c.1 + dj);
@@ -353,20 +359,29 @@ mod tests {
                     let (x, y) = (prev.0 + (q.0 - prev.0) * t, prev.1 + (q.1 - prev.1) * t);
                     // The last segment may end at the exact goal, a little closer to a wall.
                     let c = map.clearance(x, y, 2.0);
-                    assert!(c >= need - 0.08, "{from:?} -> {to:?}: clearance {c:.3} at ({x:.2}, {y:.2})");
+                    assert!(
+                        c >= need - 0.08,
+                        "{from:?} -> {to:?}: clearance {c:.3} at ({x:.2}, {y:.2})"
+                    );
                 }
                 prev = q;
             }
             let straight = (to.0 - from.0).hypot(to.1 - from.1);
             let len = path_length(from, &path);
-            assert!(len >= straight - 1e-9 && len < straight * 2.5, "length {len} vs {straight}");
+            assert!(
+                len >= straight - 1e-9 && len < straight * 2.5,
+                "length {len} vs {straight}"
+            );
         }
     }
 
     #[test]
     fn goals_in_walls_or_outside_are_reported() {
         let (_, p) = office();
-        assert_eq!(p.plan((3.0, 3.0), (50.0, 3.0), &[]), Err(PlanError::OutsideMap(50.0, 3.0)));
+        assert_eq!(
+            p.plan((3.0, 3.0), (50.0, 3.0), &[]),
+            Err(PlanError::OutsideMap(50.0, 3.0))
+        );
         // Deep inside the block of wall between two offices is snapped if near enough...
         assert!(p.plan((3.0, 3.0), (8.0, 6.5), &[]).is_ok());
         // ...and a goal in a closed-off place is refused.
@@ -379,8 +394,17 @@ mod tests {
             }
         }
         let map = OccupancyMap::from_grid(100, 100, 0.1, (0.0, 0.0), cells);
-        let p = Planner::new(&map, PlannerParams { snap: 0.2, ..PlannerParams::default() });
-        assert_eq!(p.plan((2.0, 2.0), (8.0, 8.0), &[]), Err(PlanError::NoPath(8.0, 8.0)));
+        let p = Planner::new(
+            &map,
+            PlannerParams {
+                snap: 0.2,
+                ..PlannerParams::default()
+            },
+        );
+        assert_eq!(
+            p.plan((2.0, 2.0), (8.0, 8.0), &[]),
+            Err(PlanError::NoPath(8.0, 8.0))
+        );
     }
 
     #[test]
@@ -394,13 +418,18 @@ mod tests {
         let blocked = p.plan((10.0, 10.0), inside, &[(10.0, 9.0, 0.3)]);
         assert_eq!(blocked, Err(PlanError::NoPath(10.0, 6.5)));
         // In a wide corridor a body in the way is passed round.
-        let round = p.plan((5.0, 3.0), (15.0, 3.0), &[(10.0, 3.0, 0.3)]).unwrap();
+        let round = p
+            .plan((5.0, 3.0), (15.0, 3.0), &[(10.0, 3.0, 0.3)])
+            .unwrap();
         let closest = round
             .windows(2)
             .flat_map(|w| {
                 (0..=50).map(move |k| {
                     let t = f64::from(k) / 50.0;
-                    (w[0].0 + (w[1].0 - w[0].0) * t, w[0].1 + (w[1].1 - w[0].1) * t)
+                    (
+                        w[0].0 + (w[1].0 - w[0].0) * t,
+                        w[0].1 + (w[1].1 - w[0].1) * t,
+                    )
                 })
             })
             .map(|(x, y)| (x - 10.0).hypot(y - 3.0))

@@ -148,7 +148,11 @@ impl SensorGeometry {
         SensorGeometry {
             laser: spec.laser.as_ref().map(|l| {
                 let fov = l.fov_deg.to_radians();
-                let step = if l.beams > 1 { fov / (l.beams - 1) as f64 } else { 0.0 };
+                let step = if l.beams > 1 {
+                    fov / (l.beams - 1) as f64
+                } else {
+                    0.0
+                };
                 let first = if l.beams > 1 { -fov / 2.0 } else { 0.0 };
                 (first, step, l.range)
             }),

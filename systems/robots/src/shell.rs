@@ -101,8 +101,7 @@ pub struct LocalizationStats {
 
 impl LocalizationStats {
     fn add(&mut self, est: Pose, truth: Pose) {
-        self.position
-            .push((est.x - truth.x).hypot(est.y - truth.y));
+        self.position.push((est.x - truth.x).hypot(est.y - truth.y));
         self.heading
             .push(wrap(est.theta - truth.theta).abs().to_degrees());
     }
@@ -260,7 +259,7 @@ impl TrackingApp {
             .map(|c| (core.sessions_of(c.name()), *c))
             .filter(|(n, _)| *n > 0)
             .collect();
-        w.sort_by(|a, b| b.0.cmp(&a.0));
+        w.sort_by_key(|x| std::cmp::Reverse(x.0));
         w.into_iter().map(|(_, c)| c).collect()
     }
 
@@ -270,7 +269,8 @@ impl TrackingApp {
                 continue;
             }
             if let Some(t) = self.core.payload(c) {
-                self.published += core.publish(c.name(), &Payload::Track2d(t), monotonic_ns()) as u64;
+                self.published +=
+                    core.publish(c.name(), &Payload::Track2d(t), monotonic_ns()) as u64;
             }
         }
     }
@@ -297,7 +297,9 @@ impl SystemApp for TrackingApp {
     }
 
     fn on_ready(&mut self, core: &mut SystemCore, _now: Duration, index: usize) {
-        let Some(link) = self.links.get(index) else { return };
+        let Some(link) = self.links.get(index) else {
+            return;
+        };
         link.drain();
         let sample = match link.latest(self.after[index], SensorSample::from_shm) {
             Ok(Some(s)) => s,
@@ -472,11 +474,19 @@ impl DeliveryApp {
         for e in events {
             tracing::debug!(?e, "delivery");
             let status = match e {
-                DeliveryEvent::Accepted { goal, distance, eta } => TaskStatus::Working(format!(
+                DeliveryEvent::Accepted {
+                    goal,
+                    distance,
+                    eta,
+                } => TaskStatus::Working(format!(
                     "accepted goal ({:.2}, {:.2}): {distance:.1} m, ETA {eta:.0} s",
                     goal.0, goal.1
                 )),
-                DeliveryEvent::Driving { pose, distance, eta } => TaskStatus::Working(format!(
+                DeliveryEvent::Driving {
+                    pose,
+                    distance,
+                    eta,
+                } => TaskStatus::Working(format!(
                     "driving: at ({:.2}, {:.2}), {distance:.1} m to go, ETA {eta:.0} s",
                     pose.x, pose.y
                 )),
@@ -519,10 +529,8 @@ impl SystemApp for DeliveryApp {
                     TaskStatus::Rejected(format!("cannot use {} as a goal", payload.type_name())),
                 ),
             },
-            SystemEvent::SessionEnded { .. } => {
-                if core.sessions_of(&self.service) == 0 {
-                    self.core.untasked(self.now);
-                }
+            SystemEvent::SessionEnded { .. } if core.sessions_of(&self.service) == 0 => {
+                self.core.untasked(self.now);
             }
             _ => {}
         }

@@ -143,10 +143,7 @@ impl MultiTracker {
                 sightings: 0,
             }
         };
-        let track = self
-            .tracks
-            .entry(s.colour)
-            .or_insert_with(|| restart(z, r));
+        let track = self.tracks.entry(s.colour).or_insert_with(|| restart(z, r));
         if time - track.last_seen > lost_after {
             *track = restart(z, r);
         }
@@ -167,8 +164,7 @@ impl MultiTracker {
             track.state += k * innovation;
             let i_kh = Matrix4::identity() - k * h;
             // Joseph form: stays symmetric and positive.
-            track.covariance =
-                i_kh * track.covariance * i_kh.transpose() + k * r * k.transpose();
+            track.covariance = i_kh * track.covariance * i_kh.transpose() + k * r * k.transpose();
             let speed = track.state[2].hypot(track.state[3]);
             if speed > p.max_speed {
                 track.state[2] *= p.max_speed / speed;
@@ -264,14 +260,22 @@ mod tests {
     }
 
     fn still_cov() -> Matrix3<f64> {
-        Matrix3::from_diagonal(&nalgebra::Vector3::new(0.03f64.powi(2), 0.03f64.powi(2), 0.01f64.powi(2)))
+        Matrix3::from_diagonal(&nalgebra::Vector3::new(
+            0.03f64.powi(2),
+            0.03f64.powi(2),
+            0.01f64.powi(2),
+        ))
     }
 
     #[test]
     fn converges_on_a_target_moving_along_a_known_path() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         let mut tr = MultiTracker::new(TrackerParams::default());
-        let robot = Pose { x: 0.0, y: 0.0, theta: 0.0 };
+        let robot = Pose {
+            x: 0.0,
+            y: 0.0,
+            theta: 0.0,
+        };
         let mut errors = Vec::new();
         for k in 0..200 {
             let t = k as f64 * 0.1;
@@ -298,8 +302,16 @@ mod tests {
     #[test]
     fn two_robots_sightings_fuse_into_a_tighter_estimate() {
         let target = (5.0, 5.0);
-        let a = Pose { x: 0.0, y: 5.0, theta: 0.0 };
-        let b = Pose { x: 5.0, y: 0.0, theta: std::f64::consts::FRAC_PI_2 };
+        let a = Pose {
+            x: 0.0,
+            y: 5.0,
+            theta: 0.0,
+        };
+        let b = Pose {
+            x: 5.0,
+            y: 0.0,
+            theta: std::f64::consts::FRAC_PI_2,
+        };
         let run = |robots: &[(&str, Pose)]| {
             let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
             let mut tr = MultiTracker::new(TrackerParams::default());
@@ -314,7 +326,12 @@ mod tests {
         };
         let one = run(&[("T1", a)]);
         let two = run(&[("T1", a), ("T2", b)]);
-        assert!(two.sigma < one.sigma * 0.8, "fused sigma {} vs {}", two.sigma, one.sigma);
+        assert!(
+            two.sigma < one.sigma * 0.8,
+            "fused sigma {} vs {}",
+            two.sigma,
+            one.sigma
+        );
         assert_eq!(two.seen_by, vec!["T1".to_string(), "T2".to_string()]);
         assert!((two.x - 5.0).hypot(two.y - 5.0) < 0.3);
     }

@@ -100,7 +100,16 @@ impl Default for TrackingParams {
             colours: vec![Colour::Red, Colour::Green, Colour::Blue],
             period: 1.0,
             ground_truth: false,
-            patrol: vec![(3.0, 3.0), (20.0, 3.0), (37.0, 3.0), (37.0, 10.0), (37.0, 17.0), (20.0, 17.0), (3.0, 17.0), (3.0, 10.0)],
+            patrol: vec![
+                (3.0, 3.0),
+                (20.0, 3.0),
+                (37.0, 3.0),
+                (37.0, 10.0),
+                (37.0, 17.0),
+                (20.0, 17.0),
+                (3.0, 17.0),
+                (3.0, 10.0),
+            ],
             follow_distance: 2.0,
             budget: Budget::default(),
             tracker: TrackerParams::default(),
@@ -232,7 +241,12 @@ impl TrackingCore {
 
     /// Handles one sensors sample of robot `i`; `wanted` are the colours users hold
     /// sessions on (most wanted first). Returns the robot's commands.
-    pub fn handle_sample(&mut self, i: usize, s: &SensorSample, wanted: &[Colour]) -> RobotCommands {
+    pub fn handle_sample(
+        &mut self,
+        i: usize,
+        s: &SensorSample,
+        wanted: &[Colour],
+    ) -> RobotCommands {
         let Some(r) = self.robots.get_mut(i) else {
             return RobotCommands::default();
         };
@@ -259,8 +273,13 @@ impl TrackingCore {
             r.last_camera = s.camera_time;
             for sighting in &s.sightings {
                 if self.params.colours.contains(&sighting.colour) {
-                    self.tracker
-                        .handle_sighting(&r.cfg.name, s.camera_time, r.pose, &r.cov, sighting);
+                    self.tracker.handle_sighting(
+                        &r.cfg.name,
+                        s.camera_time,
+                        r.pose,
+                        &r.cov,
+                        sighting,
+                    );
                 }
             }
         }
@@ -289,14 +308,20 @@ impl TrackingCore {
             .chain(self.params.colours.iter())
             .filter(|c| self.tracker.is_tracked(**c, now));
         for &c in candidates {
-            let Some((x, y)) = self.tracker.predicted(c, now) else { continue };
+            let Some((x, y)) = self.tracker.predicted(c, now) else {
+                continue;
+            };
             let (dx, dy) = (x - r.pose.x, y - r.pose.y);
             let d = dx.hypot(dy);
             let bearing = wrap(dy.atan2(dx) - r.pose.theta);
             if d > range * 1.8 || bearing.abs() > pan_limit + fov / 2.0 {
                 continue;
             }
-            if self.map.raycast(r.pose.x, r.pose.y, dy.atan2(dx), (d - 0.3).max(0.0)).is_some() {
+            if self
+                .map
+                .raycast(r.pose.x, r.pose.y, dy.atan2(dx), (d - 0.3).max(0.0))
+                .is_some()
+            {
                 continue;
             }
             // Zoom in on far targets: the range grows with zoom.
@@ -305,7 +330,8 @@ impl TrackingCore {
         }
         // Nothing to look at: sweep, each robot at its own phase.
         let phase = i as f64 * 1.3;
-        let pan = pan_limit * (2.0 * std::f64::consts::PI * now / self.params.sweep_period + phase).sin();
+        let pan =
+            pan_limit * (2.0 * std::f64::consts::PI * now / self.params.sweep_period + phase).sin();
         (pan, 0.0, 1.0)
     }
 
@@ -417,11 +443,20 @@ impl TrackingCore {
     /// Whether robot `i`'s camera cone (at its current pan, zoom 1) holds (x, y): the
     /// cone as a parry2d triangle.
     pub fn in_view(&self, i: usize, pan: f64, x: f64, y: f64) -> bool {
-        let Some(r) = self.robots.get(i) else { return false };
-        let Some((fov, range, _)) = r.cfg.geometry.camera else { return false };
+        let Some(r) = self.robots.get(i) else {
+            return false;
+        };
+        let Some((fov, range, _)) = r.cfg.geometry.camera else {
+            return false;
+        };
         let axis = r.pose.theta + pan;
         let far = range / (fov / 2.0).cos();
-        let corner = |a: f64| Vec2::new((r.pose.x + far * a.cos()) as f32, (r.pose.y + far * a.sin()) as f32);
+        let corner = |a: f64| {
+            Vec2::new(
+                (r.pose.x + far * a.cos()) as f32,
+                (r.pose.y + far * a.sin()) as f32,
+            )
+        };
         let cone = Triangle::new(
             Vec2::new(r.pose.x as f32, r.pose.y as f32),
             corner(axis - fov / 2.0),

@@ -55,7 +55,16 @@ impl Delivery {
                 ..DeliveryParams::default()
             },
         );
-        Delivery { world, d1, geometry, loc, core, pose: start, t: 0.0, errors: Vec::new() }
+        Delivery {
+            world,
+            d1,
+            geometry,
+            loc,
+            core,
+            pose: start,
+            t: 0.0,
+            errors: Vec::new(),
+        }
     }
 
     /// Runs `seconds` of sim time at the sensors' 10 Hz (or until an arrival, if
@@ -76,7 +85,8 @@ impl Delivery {
                 self.loc.handle_scan(s.laser_time, &scan);
             }
             self.pose = self.loc.estimate();
-            self.errors.push((self.pose.x - s.truth.x).hypot(self.pose.y - s.truth.y));
+            self.errors
+                .push((self.pose.x - s.truth.x).hypot(self.pose.y - s.truth.y));
             let tasked = if let Some(g) = goal(&self.world) {
                 events.extend(self.core.set_goal(self.t, self.pose, g));
                 true
@@ -85,7 +95,9 @@ impl Delivery {
             };
             let obstacles = self.geometry.obstacle_points(&s, 3.5);
             let ((v, w), ev) = self.core.step(self.t, self.pose, &obstacles, tasked);
-            let arrived = ev.iter().any(|e| matches!(e, DeliveryEvent::Arrived { .. }));
+            let arrived = ev
+                .iter()
+                .any(|e| matches!(e, DeliveryEvent::Arrived { .. }));
             events.extend(ev);
             if arrived && until_arrival {
                 break;
@@ -95,8 +107,22 @@ impl Delivery {
             self.world.step(0.1);
             if self.contacts() > before {
                 let r = &self.world.robots()[self.d1];
-                let near = obstacles.iter().map(|(x, y)| (x.hypot(*y), y.atan2(*x))).min_by(|a, b| a.0.total_cmp(&b.0));
-                let people: Vec<_> = self.world.people().iter().map(|p| ((p.pose.x - r.pose.x).hypot(p.pose.y - r.pose.y), p.pose.x, p.pose.y)).collect();
+                let near = obstacles
+                    .iter()
+                    .map(|(x, y)| (x.hypot(*y), y.atan2(*x)))
+                    .min_by(|a, b| a.0.total_cmp(&b.0));
+                let people: Vec<_> = self
+                    .world
+                    .people()
+                    .iter()
+                    .map(|p| {
+                        (
+                            (p.pose.x - r.pose.x).hypot(p.pose.y - r.pose.y),
+                            p.pose.x,
+                            p.pose.y,
+                        )
+                    })
+                    .collect();
                 eprintln!("CONTACT t {:.1} cmd ({v:.2},{w:.2}) vel {:?} truth {:?} nearest {near:?} people {people:?}", self.t, r.velocity, r.pose);
             }
             self.t += 0.1;
@@ -116,28 +142,55 @@ impl Delivery {
 #[test]
 fn delivery_arrives_across_the_office_among_people_without_contact() {
     let mut d = Delivery::new(1);
-    for goal in [(20.0, 3.0), (10.0, 6.5), (20.0, 10.0), (37.0, 17.0), (3.0, 17.0)] {
+    for goal in [
+        (20.0, 3.0),
+        (10.0, 6.5),
+        (20.0, 10.0),
+        (37.0, 17.0),
+        (3.0, 17.0),
+    ] {
         let mut once = Some(goal);
         let ev = d.run(150.0, true, |_| once.take());
         let truth = d.truth();
-        let arrived = ev.iter().any(|e| matches!(e, DeliveryEvent::Arrived { .. }));
+        let arrived = ev
+            .iter()
+            .any(|e| matches!(e, DeliveryEvent::Arrived { .. }));
         if !arrived {
             let r = &d.world.robots()[d.d1];
             let s = SensorSample::from_robot(r, d.world.time());
             let pts = d.geometry.obstacle_points(&s, 1.0);
-            eprintln!("STUCK path {:?} pts {:?}", d.core.path(), pts.iter().map(|(x, y)| ((x.hypot(*y) * 100.0).round() / 100.0, (y.atan2(*x) * 10.0).round() / 10.0)).collect::<Vec<_>>());
-            for p in d.world.people() { eprintln!("person {} {:?}", p.name, p.pose); }
-            for r in d.world.robots() { eprintln!("robot {} {:?}", r.spec.name, r.pose); }
+            eprintln!(
+                "STUCK path {:?} pts {:?}",
+                d.core.path(),
+                pts.iter()
+                    .map(|(x, y)| (
+                        (x.hypot(*y) * 100.0).round() / 100.0,
+                        (y.atan2(*x) * 10.0).round() / 10.0
+                    ))
+                    .collect::<Vec<_>>()
+            );
+            for p in d.world.people() {
+                eprintln!("person {} {:?}", p.name, p.pose);
+            }
+            for r in d.world.robots() {
+                eprintln!("robot {} {:?}", r.spec.name, r.pose);
+            }
         }
-        assert!(arrived, "goal {goal:?}: at {truth:?}, last events {:?}", &ev[ev.len().saturating_sub(5)..]);
-        assert!((truth.x - goal.0).hypot(truth.y - goal.1) <= 1.1, "goal {goal:?}: truly at {truth:?}");
+        assert!(
+            arrived,
+            "goal {goal:?}: at {truth:?}, last events {:?}",
+            &ev[ev.len().saturating_sub(5)..]
+        );
+        assert!(
+            (truth.x - goal.0).hypot(truth.y - goal.1) <= 1.1,
+            "goal {goal:?}: truly at {truth:?}"
+        );
     }
     assert_eq!(d.contacts(), 0, "contacts");
     d.errors.sort_by(f64::total_cmp);
     let p95 = d.errors[d.errors.len() * 95 / 100];
     assert!(p95 < 0.15, "localization p95 {p95:.3} m");
 }
-
 
 #[test]
 fn localization_converges_from_an_offset_start_while_driving() {
@@ -153,7 +206,11 @@ fn localization_converges_from_an_offset_start_while_driving() {
     d.loc = Localizer::new(
         Arc::new(LikelihoodField::new(d.world.map(), 1.0)),
         wrong,
-        LocalizerParams { init_sigma_xy: 0.3, init_sigma_theta: 0.1, ..LocalizerParams::default() },
+        LocalizerParams {
+            init_sigma_xy: 0.3,
+            init_sigma_theta: 0.1,
+            ..LocalizerParams::default()
+        },
         3,
     );
     let start_truth = d.truth();
@@ -184,7 +241,11 @@ fn the_tracking_system_tracks_the_people_it_sees_with_localized_robots() {
             let spec = &world.robots()[world.robot_index(n).unwrap()].spec;
             TrackerRobot {
                 name: n.to_string(),
-                start: Pose { x: spec.pose[0], y: spec.pose[1], theta: wrap(spec.pose[2].to_radians()) },
+                start: Pose {
+                    x: spec.pose[0],
+                    y: spec.pose[1],
+                    theta: wrap(spec.pose[2].to_radians()),
+                },
                 mobile: *n == "T3",
                 geometry: SensorGeometry::of(spec),
                 max_speed: spec.drive.max_speed,
@@ -200,7 +261,10 @@ fn the_tracking_system_tracks_the_people_it_sees_with_localized_robots() {
         TrackingParams::default(),
         5,
     );
-    let idx: Vec<usize> = names.iter().map(|n| world.robot_index(n).unwrap()).collect();
+    let idx: Vec<usize> = names
+        .iter()
+        .map(|n| world.robot_index(n).unwrap())
+        .collect();
     let wanted = [Colour::Red, Colour::Green, Colour::Blue];
     let mut errors: Vec<(Colour, f64)> = Vec::new();
     let mut lost_seen = false;
@@ -242,7 +306,10 @@ fn the_tracking_system_tracks_the_people_it_sees_with_localized_robots() {
     for (i, n) in names.iter().enumerate() {
         let est = core.pose(i).unwrap();
         let truth = world.robots()[idx[i]].pose;
-        assert!((est.x - truth.x).hypot(est.y - truth.y) < 0.15, "{n} localized at {est:?}, truly {truth:?}");
+        assert!(
+            (est.x - truth.x).hypot(est.y - truth.y) < 0.15,
+            "{n} localized at {est:?}, truly {truth:?}"
+        );
     }
     let t3 = world.robots()[idx[2]].contacts;
     assert_eq!(t3, 0, "the mobile tracker touched something");
@@ -256,7 +323,7 @@ fn delivery_follows_a_walking_person_without_contact() {
         // The red person's position every second, as a link forwards it.
         d.run(600.0, false, |w| {
             k += 1;
-            (k % 10 == 0).then(|| {
+            k.is_multiple_of(10).then(|| {
                 let p = w.people().iter().find(|p| p.name == "alice").unwrap();
                 (p.pose.x, p.pose.y)
             })
