@@ -392,6 +392,8 @@ pub struct DeliveryApp {
     last_scan: f64,
     now: f64,
     stats: LocalizationStats,
+    bumped: bool,
+    last_command: (f64, f64),
 }
 
 impl DeliveryApp {
@@ -449,6 +451,8 @@ impl DeliveryApp {
             last_scan: f64::NEG_INFINITY,
             now: 0.0,
             stats: LocalizationStats::default(),
+            bumped: false,
+            last_command: (0.0, 0.0),
         })
     }
 
@@ -573,8 +577,24 @@ impl SystemApp for DeliveryApp {
             self.stats.add(self.pose, sample.truth);
         }
         let obstacles = self.geometry.obstacle_points(&sample, 3.5);
+        if sample.bumped && !self.bumped {
+            // A contact: say what the robot saw and did, to find out why.
+            let nearest = obstacles
+                .iter()
+                .map(|(x, y)| (x.hypot(*y), y.atan2(*x).to_degrees()))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            tracing::warn!(
+                t = sample.time,
+                pose = ?self.pose,
+                last_command = ?self.last_command,
+                ?nearest,
+                "contact: the robot's move was cut short"
+            );
+        }
+        self.bumped = sample.bumped;
         let tasked = core.sessions_of(&self.service) > 0;
         let ((v, w), events) = self.core.step(sample.time, self.pose, &obstacles, tasked);
+        self.last_command = (v, w);
         if let Err(e) = self.link.velocity(v, w) {
             tracing::warn!("{e}");
         }
