@@ -26,7 +26,7 @@ fn scale_of(map: &OccupancyMap) -> f64 {
 /// The map's walls on white, and the metres → pixels mapping.
 fn map_image(map: &OccupancyMap) -> (RgbImage, impl Fn(f64, f64) -> (f32, f32)) {
     let (w, h) = map.size();
-    let scale = SCALE.min(4096.0 / w.max(h));
+    let scale = scale_of(map);
     let (iw, ih) = ((w * scale).ceil() as u32, (h * scale).ceil() as u32);
     let mut img = RgbImage::from_pixel(iw.max(1), ih.max(1), Rgb([255, 255, 255]));
     let (ox, oy) = map.origin();

@@ -626,12 +626,6 @@ impl WorldView {
         Ok(WorldView { world, updated })
     }
 
-    /// The descriptor of the "world updated" event, for an epoll set.
-    pub fn fd(&self) -> std::os::fd::RawFd {
-        // SAFETY: the descriptor stays owned by the listener; we only read its number.
-        unsafe { self.updated.file_descriptor().native_handle() }
-    }
-
     /// Waits up to `timeout` for a world sample newer than `after` (sim time) and calls
     /// `f` with it, read in place.
     pub fn next<R>(

@@ -6,9 +6,10 @@
 //! the run goes faster than real time.
 
 use super::children::connect_when_listed;
-use super::paper::{PaperOptions, PaperRun, Recorder};
+use super::paper::{PaperOptions, PaperRun, Recorder, BEACONS};
 use crate::cli::ExperimentLinkArgs;
-use muster_shared::types::{Payload, ServiceId, TaskStatus};
+use muster_robots::percentile as pct;
+use muster_shared::types::{Payload, ServiceId, SessionId, TaskStatus};
 use muster_shared::Instance;
 use muster_sim_world::map::OccupancyMap;
 use muster_sim_world::render::render_paths;
@@ -18,13 +19,6 @@ use serde_json::json;
 use std::path::Path;
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
-
-fn pct(v: &[f64], q: f64) -> Option<f64> {
-    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    s.sort_by(f64::total_cmp);
-    s.get(((s.len() as f64 - 1.0) * q).round() as usize)
-        .copied()
-}
 
 /// Runs Experiment 2 and writes its report.
 pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> {
@@ -54,24 +48,16 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     let d1 = ServiceId::new("delivery", "D1");
     let mut rec = Recorder::new(0.25);
     let wall_limit = wall_start + Duration::from_secs_f64(duration / a.speed * 4.0 + 120.0);
-    // The red tracker is the one linked; green and blue are watched too, for each
-    // target's tracking error.
-    let req = client.request(&red)?;
-    let others = [
-        (
-            client.request(&ServiceId::new("tracking", "green"))?,
-            0usize,
-        ),
-        (client.request(&ServiceId::new("tracking", "blue"))?, 1usize),
-    ];
-    let mut other_sessions: Vec<(muster_shared::types::SessionId, usize)> = Vec::new();
-    let mut other_stats = [(0u64, 0u64, Vec::new()), (0u64, 0u64, Vec::new())];
-    let mut red_session = None;
+    // Every colour is watched for its tracking error; red is the one linked.
+    let mut requests = Vec::new();
+    for (k, c) in BEACONS.iter().enumerate() {
+        requests.push((client.request(&ServiceId::new("tracking", c.name()))?, k));
+    }
+    let mut sessions: Vec<(SessionId, usize)> = Vec::new();
+    let mut targets: [TargetStats; 3] = Default::default();
     let mut link = None;
     let mut link_at = None;
     let mut first_sim = None;
-    let (mut updates, mut tracked) = (0u64, 0u64);
-    let mut errors = Vec::new();
     let mut arrivals = 0u64;
     let mut forwarded = 0u64;
     let mut refusal = None;
@@ -89,34 +75,12 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         match ev {
             UserEvent::Granted {
                 req: r, session, ..
-            } if r == req => red_session = Some(session),
-            UserEvent::Granted {
-                req: r, session, ..
             } => {
-                if let Some((_, k)) = others.iter().find(|o| o.0 == r) {
-                    other_sessions.push((session, *k));
+                if let Some((_, k)) = requests.iter().find(|q| q.0 == r) {
+                    sessions.push((session, *k));
                 }
             }
-            UserEvent::Update {
-                session,
-                payload: Payload::Track2d(t),
-                ..
-            } if other_sessions.iter().any(|o| o.0 == session) => {
-                let k = other_sessions
-                    .iter()
-                    .find(|o| o.0 == session)
-                    .map_or(0, |o| o.1);
-                let st = &mut other_stats[k];
-                st.0 += 1;
-                if !t.lost {
-                    st.1 += 1;
-                    if let Some(truth) = rec.last() {
-                        let p = truth.others[k];
-                        st.2.push((t.x - p.0).hypot(t.y - p.1));
-                    }
-                }
-            }
-            UserEvent::Refused { req: r, reason, .. } if r == req => {
+            UserEvent::Refused { req: r, reason, .. } if r == requests[0].0 => {
                 refusal = Some(reason.to_string());
                 break;
             }
@@ -124,14 +88,19 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
                 session,
                 payload: Payload::Track2d(t),
                 ..
-            } if Some(session) == red_session => {
-                updates += 1;
+            } => {
+                let Some(&(_, k)) = sessions.iter().find(|q| q.0 == session) else {
+                    continue; // the link's own data session
+                };
+                let st = &mut targets[k];
+                st.updates += 1;
                 if !t.lost {
-                    tracked += 1;
+                    st.tracked += 1;
                     if let Some(truth) = rec.last() {
-                        errors.push((t.x - truth.person.0).hypot(t.y - truth.person.1));
+                        let p = truth.people[k];
+                        st.errors.push((t.x - p.0).hypot(t.y - p.1));
                     }
-                    if link.is_none() && link_attempts < 10 {
+                    if k == 0 && link.is_none() && link_attempts < 10 {
                         link = Some(client.link(&red, &d1)?);
                         link_at.get_or_insert(rec.now);
                     }
@@ -167,7 +136,7 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         .map(|s| {
             (
                 s.t - sim_start,
-                (s.d1.0 - s.person.0).hypot(s.d1.1 - s.person.1),
+                (s.d1.0 - s.person().0).hypot(s.d1.1 - s.person().1),
             )
         })
         .collect();
@@ -176,15 +145,15 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         .samples
         .iter()
         .filter(|s| s.t >= linked_from)
-        .map(|s| (s.t3.0 - s.person.0).hypot(s.t3.1 - s.person.1))
+        .map(|s| (s.t3.0 - s.person().0).hypot(s.t3.1 - s.person().1))
         .collect();
     let convoy = rec
         .samples
         .iter()
         .filter(|s| s.t >= linked_from)
         .filter(|s| {
-            (s.t3.0 - s.person.0).hypot(s.t3.1 - s.person.1) < 5.0
-                && (s.d1.0 - s.person.0).hypot(s.d1.1 - s.person.1) < 5.0
+            (s.t3.0 - s.person().0).hypot(s.t3.1 - s.person().1) < 5.0
+                && (s.d1.0 - s.person().0).hypot(s.d1.1 - s.person().1) < 5.0
         })
         .count() as f64
         / (dvals.len().max(1) as f64);
@@ -202,9 +171,9 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         "speed_asked": a.speed,
         "refused": refusal,
         "tracking": {
-            "red": target_json(updates, tracked, &errors),
-            "green": target_json(other_stats[0].0, other_stats[0].1, &other_stats[0].2),
-            "blue": target_json(other_stats[1].0, other_stats[1].1, &other_stats[1].2),
+            "red": targets[0].json(),
+            "green": targets[1].json(),
+            "blue": targets[2].json(),
             "note": "updates at 1 Hz per target; error against the simulator's ground truth while tracked",
         },
         "link": {
@@ -243,7 +212,7 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         &map,
         &[
             (path(|s| s.t3), [120, 120, 120]),
-            (path(|s| s.person), [220, 30, 30]),
+            (path(|s| s.person()), [220, 30, 30]),
             (path(|s| s.d1), [30, 90, 230]),
         ],
     )
@@ -257,15 +226,25 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     Ok(ExitCode::SUCCESS)
 }
 
-/// One target's tracking figures.
-fn target_json(updates: u64, tracked: u64, errors: &[f64]) -> serde_json::Value {
-    json!({
-        "updates": updates,
-        "tracked_updates": tracked,
-        "tracked_fraction": if updates > 0 { tracked as f64 / updates as f64 } else { 0.0 },
-        "error_p50_m": pct(errors, 0.5),
-        "error_p95_m": pct(errors, 0.95),
-    })
+/// One target's tracking figures: updates, those with the target tracked, and the
+/// error against ground truth of each of those.
+#[derive(Default)]
+struct TargetStats {
+    updates: u64,
+    tracked: u64,
+    errors: Vec<f64>,
+}
+
+impl TargetStats {
+    fn json(&self) -> serde_json::Value {
+        json!({
+            "updates": self.updates,
+            "tracked_updates": self.tracked,
+            "tracked_fraction": if self.updates > 0 { self.tracked as f64 / self.updates as f64 } else { 0.0 },
+            "error_p50_m": pct(&self.errors, 0.5),
+            "error_p95_m": pct(&self.errors, 0.95),
+        })
+    }
 }
 
 /// Distance between the delivery robot and the person over the run.

@@ -127,19 +127,28 @@ impl PaperRun {
     }
 }
 
+/// The beacons of the paper's scenario, in the order samples keep them: the first is
+/// the person a run follows.
+pub const BEACONS: [Colour; 3] = [Colour::Red, Colour::Green, Colour::Blue];
+
 /// One ground-truth sample.
 #[derive(Clone, Copy, Debug)]
 pub struct TruthSample {
     /// Sim time, s.
     pub t: f64,
-    /// The followed person (red beacon).
-    pub person: (f64, f64),
-    /// The people with green and blue beacons.
-    pub others: [(f64, f64); 2],
+    /// The people wearing the [`BEACONS`], in that order.
+    pub people: [(f64, f64); 3],
     /// The delivery robot.
     pub d1: (f64, f64),
     /// The mobile tracker.
     pub t3: (f64, f64),
+}
+
+impl TruthSample {
+    /// The followed person (red beacon).
+    pub fn person(&self) -> (f64, f64) {
+        self.people[0]
+    }
 }
 
 /// Ground truth over a run, sampled every `period` sim seconds.
@@ -188,11 +197,7 @@ impl Recorder {
         let taken = view.next(after, Duration::ZERO, |w| {
             let s = TruthSample {
                 t: w.time,
-                person: person(w, Colour::Red).unwrap_or_default(),
-                others: [
-                    person(w, Colour::Green).unwrap_or_default(),
-                    person(w, Colour::Blue).unwrap_or_default(),
-                ],
+                people: BEACONS.map(|c| person(w, c).unwrap_or_default()),
                 d1: find(w, "D1").unwrap_or_default(),
                 t3: find(w, "T3").unwrap_or_default(),
             };

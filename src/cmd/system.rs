@@ -116,14 +116,7 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
             .patrol
             .iter()
             .filter(|w| !w.is_empty())
-            .map(|w| {
-                let (x, y) = w
-                    .split_once(',')
-                    .with_context(|| format!("--patrol {w:?}: want X,Y"))?;
-                let (x, y): (f64, f64) = (x.trim().parse()?, y.trim().parse()?);
-                anyhow::ensure!(x.is_finite() && y.is_finite(), "--patrol {w:?}: not finite");
-                Ok((x, y))
-            })
+            .map(|w| super::user::parse_point("--patrol", w))
             .collect::<anyhow::Result<_>>()?;
     }
     let opts = TrackingOptions {
@@ -138,10 +131,9 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
     validate_registration(&a.name, &specs)?;
     let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
     let links = open_links(&node, inst.as_str(), &robots, a.common.wait_sim)?;
-    let app = TrackingApp::new(&scenario, map, links, &opts)?;
+    let mut app = TrackingApp::new(&scenario, map, links, &opts)?;
     let core = SystemCore::new(&a.name, std::process::id(), specs, salt());
     let run = muster_systems::RunOptions { udp: a.common.udp };
-    let mut app = app;
     let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
     if a.common.stats_json {
         let loc: serde_json::Map<String, serde_json::Value> = app

@@ -77,12 +77,8 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         .picture
         .clone()
         .unwrap_or_else(|| std::env::temp_dir().join(format!("muster-up-{}.png", inst.as_str())));
-    let people = |k: usize| -> Vec<(f64, f64)> {
-        rec.samples
-            .iter()
-            .map(|s| if k == 0 { s.person } else { s.others[k - 1] })
-            .collect()
-    };
+    let people =
+        |k: usize| -> Vec<(f64, f64)> { rec.samples.iter().map(|s| s.people[k]).collect() };
     render_paths(
         &OccupancyMap::office(),
         &[

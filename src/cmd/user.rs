@@ -83,13 +83,19 @@ pub fn connect(
 }
 
 fn parse_goal(s: &str) -> anyhow::Result<Payload> {
+    let (x, y) = parse_point("--goal", s)?;
+    Ok(Payload::Goal2d { x, y })
+}
+
+/// A point given to flag `flag` as `X,Y` (metres, finite).
+pub fn parse_point(flag: &str, s: &str) -> anyhow::Result<(f64, f64)> {
     let (x, y) = s
         .split_once(',')
-        .context("--goal takes X,Y (metres), e.g. 3.5,-2")?;
-    let x: f64 = x.trim().parse().context("--goal X")?;
-    let y: f64 = y.trim().parse().context("--goal Y")?;
-    anyhow::ensure!(x.is_finite() && y.is_finite(), "--goal must be finite");
-    Ok(Payload::Goal2d { x, y })
+        .with_context(|| format!("{flag} takes X,Y (metres), e.g. 3.5,-2"))?;
+    let x: f64 = x.trim().parse().with_context(|| format!("{flag} X"))?;
+    let y: f64 = y.trim().parse().with_context(|| format!("{flag} Y"))?;
+    anyhow::ensure!(x.is_finite() && y.is_finite(), "{flag} must be finite");
+    Ok((x, y))
 }
 
 /// A payload as JSON: `{"type": "pose2d", "x": ..}`.

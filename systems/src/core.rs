@@ -335,21 +335,16 @@ impl SystemCore {
             });
             return;
         }
+        let over_budget = self
+            .session_limit
+            .as_ref()
+            .filter(|(l, _)| self.sessions.len() >= *l)
+            .map(|(_, reason)| reason.clone());
         let answer = match self.specs.iter().find(|s| s.name == service) {
             None => Err(format!("no service {service:?} here")),
             Some(_) if self.withdrawn.contains(&service) => Err("service withdrawn".to_string()),
             Some(_) if self.overloaded => Err("overloaded".to_string()),
-            Some(_)
-                if self
-                    .session_limit
-                    .as_ref()
-                    .is_some_and(|(l, _)| self.sessions.len() >= *l) =>
-            {
-                Err(self
-                    .session_limit
-                    .as_ref()
-                    .map_or_else(String::new, |(_, r)| r.clone()))
-            }
+            Some(_) if over_budget.is_some() => Err(over_budget.unwrap_or_default()),
             Some(spec) if self.sessions_of(&service) >= spec.quota as usize => {
                 Err(format!("overloaded: all {} sessions in use", spec.quota))
             }

@@ -197,12 +197,9 @@ impl DeliveryCore {
         self.idle_since = now;
     }
 
+    /// Time to drive `distance` at 80 % of the top speed (turns, doors, people).
     fn eta(&self, distance: f64) -> f64 {
-        distance / (self.nav_speed() * 0.8)
-    }
-
-    fn nav_speed(&self) -> f64 {
-        0.8
+        distance / (self.nav.params().max_speed * 0.8)
     }
 
     /// One control step at sim time `now`.

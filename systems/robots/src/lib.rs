@@ -19,3 +19,18 @@ pub mod sensing;
 pub mod shell;
 pub mod tracker;
 pub mod tracking;
+
+/// The `q` quantile (0..=1, nearest rank) of the finite values in `v`; `None` if there
+/// are none. For reports: localization and tracking errors, distances.
+pub fn percentile(v: &[f64], q: f64) -> Option<f64> {
+    let mut s: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    s.sort_by(f64::total_cmp);
+    quantile_of_sorted(&s, q)
+}
+
+/// [`percentile`] of values already sorted and finite.
+pub fn quantile_of_sorted(sorted: &[f64], q: f64) -> Option<f64> {
+    sorted
+        .get(((sorted.len() as f64 - 1.0) * q).round() as usize)
+        .copied()
+}

@@ -121,6 +121,11 @@ impl Navigator {
         }
     }
 
+    /// How it drives.
+    pub fn params(&self) -> &NavParams {
+        &self.params
+    }
+
     /// The goal being driven to.
     pub fn goal(&self) -> Option<(f64, f64)> {
         self.goal
@@ -190,20 +195,18 @@ impl Navigator {
         pose: Pose,
         obstacles: &[(f64, f64)],
     ) -> Option<(f64, f64)> {
-        let p = &self.params;
-        if let Some((heading, until)) = self.escape {
-            if now < until {
-                let e = wrap(heading - pose.theta);
-                let free = free_distance(p.footprint, obstacles, 1.0);
-                let v = if e.abs() < 0.3 && free > p.stop_gap {
-                    0.2
-                } else {
-                    0.0
-                };
-                return Some((v, (p.turn_gain * e).clamp(-p.max_turn, p.max_turn)));
+        let (footprint, stop_gap) = (self.params.footprint, self.params.stop_gap);
+        let creep = || {
+            if free_distance(footprint, obstacles, 1.0) > stop_gap {
+                0.2
+            } else {
+                0.0
             }
-            self.escape = None;
+        };
+        if let Some(v) = self.escaping(now, pose, creep) {
+            return Some(v);
         }
+        let p = &self.params;
         let (d, toward) = obstacles
             .iter()
             .map(|&(x, y)| (x.hypot(y), y.atan2(x)))
@@ -215,6 +218,26 @@ impl Navigator {
         let a = escape_heading(p.footprint, obstacles, away, 0.4)?;
         self.escape = Some((wrap(pose.theta + a), now + 3.0));
         Some((0.0, 0.0))
+    }
+
+    /// While getting clear: turn to the escape heading, and once facing it (within
+    /// 0.3 rad) move at `speed()`. `None` when not escaping (any more).
+    fn escaping(
+        &mut self,
+        now: f64,
+        pose: Pose,
+        speed: impl FnOnce() -> f64,
+    ) -> Option<(f64, f64)> {
+        let (heading, until) = self.escape?;
+        if now >= until {
+            self.escape = None;
+            return None;
+        }
+        let p = &self.params;
+        let e = wrap(heading - pose.theta);
+        let w = (p.turn_gain * e).clamp(-p.max_turn, p.max_turn);
+        let v = if e.abs() < 0.3 { speed() } else { 0.0 };
+        Some((v, w))
     }
 
     /// The segment the robot is on (index of its end waypoint; the first segment starts
@@ -286,32 +309,21 @@ impl Navigator {
             ((p.reaction * p.brake).powi(2) + 2.0 * p.brake * room).sqrt() - p.reaction * p.brake;
         let wants_forward = v > 0.05 || err.abs() <= 1.0;
         v = v.min(v_safe.max(0.0));
+        // Getting clear: turn to the escape heading and creep out along it.
+        if let Some(velocity) = self.escaping(now, pose, || v_safe.clamp(0.0, 0.3)) {
+            return NavStep {
+                velocity,
+                remaining,
+                blocked_since: self.blocked_since,
+                error: self.error.clone(),
+                free_ahead,
+            };
+        }
+        let p = &self.params;
         // Safety fields, as on industrial vehicles: slow when anything is near in front
         // (people walk into a robot faster than it can see them coming round a corner),
-        // stop when it is close.
-        // Getting clear: turn to the escape heading and creep out along it.
-        if let Some((heading, until)) = self.escape {
-            if now >= until {
-                self.escape = None;
-            } else {
-                let e = wrap(heading - pose.theta);
-                let w = (p.turn_gain * e).clamp(-p.max_turn, p.max_turn);
-                let v = if e.abs() < 0.3 {
-                    v_safe.clamp(0.0, 0.3)
-                } else {
-                    0.0
-                };
-                return NavStep {
-                    velocity: (v, w),
-                    remaining,
-                    blocked_since: self.blocked_since,
-                    error: self.error.clone(),
-                    free_ahead,
-                };
-            }
-        }
-        // Fields are boxes ahead of the footprint, as wide as it plus a side margin, so
-        // walls alongside a corridor or a door do not slow the robot.
+        // stop when it is close. They are boxes ahead of the footprint, as wide as it
+        // plus a side margin, so walls alongside a corridor or a door do not slow it.
         let inside = |depth: f64, side: f64| {
             obstacles
                 .iter()

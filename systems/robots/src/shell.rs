@@ -89,13 +89,11 @@ fn start_pose(spec: &RobotSpec) -> Pose {
 
 /// Localization error against ground truth, sampled once per weighed scan (for the
 /// report only: ground truth never steers anything unless `--ground-truth`).
-#[derive(Clone, Debug, Default, serde::Serialize)]
+#[derive(Clone, Debug, Default)]
 pub struct LocalizationStats {
     /// Position errors, m.
-    #[serde(skip)]
     pub position: Vec<f64>,
     /// Heading errors, degrees.
-    #[serde(skip)]
     pub heading: Vec<f64>,
 }
 
@@ -108,21 +106,21 @@ impl LocalizationStats {
 
     /// `{samples, position_p50, position_p95, position_max, heading_p50, heading_p95, heading_max}`.
     pub fn summary(&self) -> serde_json::Value {
-        fn pct(v: &[f64], q: f64) -> f64 {
+        let sorted = |v: &[f64]| {
             let mut s = v.to_vec();
             s.sort_by(f64::total_cmp);
-            s.get(((s.len() as f64 - 1.0) * q).round() as usize)
-                .copied()
-                .unwrap_or(f64::NAN)
-        }
+            s
+        };
+        let (pos, head) = (sorted(&self.position), sorted(&self.heading));
+        let q = |s: &[f64], q: f64| crate::quantile_of_sorted(s, q);
         serde_json::json!({
             "samples": self.position.len(),
-            "position_p50_m": pct(&self.position, 0.5),
-            "position_p95_m": pct(&self.position, 0.95),
-            "position_max_m": pct(&self.position, 1.0),
-            "heading_p50_deg": pct(&self.heading, 0.5),
-            "heading_p95_deg": pct(&self.heading, 0.95),
-            "heading_max_deg": pct(&self.heading, 1.0),
+            "position_p50_m": q(&pos, 0.5),
+            "position_p95_m": q(&pos, 0.95),
+            "position_max_m": q(&pos, 1.0),
+            "heading_p50_deg": q(&head, 0.5),
+            "heading_p95_deg": q(&head, 0.95),
+            "heading_max_deg": q(&head, 1.0),
         })
     }
 }
@@ -172,6 +170,8 @@ pub struct TrackingApp {
     core: TrackingCore,
     after: Vec<f64>,
     budget: bool,
+    /// The number of tracked targets the session limit was last set for.
+    budgeted_for: Option<usize>,
     truth_stats: Vec<LocalizationStats>,
     last_scan: Vec<f64>,
     published: u64,
@@ -230,6 +230,7 @@ impl TrackingApp {
             after: vec![f64::NEG_INFINITY; links.len()],
             links,
             budget: opts.budget,
+            budgeted_for: None,
             truth_stats: vec![LocalizationStats::default(); n],
             last_scan: vec![f64::NEG_INFINITY; n],
             published: 0,
@@ -328,11 +329,13 @@ impl SystemApp for TrackingApp {
                 tracing::warn!("robot {index}: {e}");
             }
         }
-        if self.budget {
+        // The limit follows the number of targets tracked; set it when that changes.
+        let tracked = self.core.tracked();
+        if self.budget && self.budgeted_for != Some(tracked) {
+            self.budgeted_for = Some(tracked);
             let limit = self.core.session_limit();
             let reason = format!(
-                "overburdened: tracking {} targets, the robots sustain {limit} sessions",
-                self.core.tracked()
+                "overburdened: tracking {tracked} targets, the robots sustain {limit} sessions"
             );
             core.set_session_limit(Some(limit), &reason);
         }

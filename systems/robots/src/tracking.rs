@@ -9,7 +9,7 @@
 //! Pure: fed with each robot's sensors samples (sim time inside); returns commands.
 
 use crate::localizer::{Localizer, LocalizerParams};
-use crate::navigator::{free_distance, NavParams, Navigator};
+use crate::navigator::{NavParams, Navigator};
 use crate::planner::Planner;
 use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
 use crate::tracker::{MultiTracker, TrackerParams};
@@ -18,8 +18,6 @@ use muster_sim_world::kinematics::{wrap, Pose};
 use muster_sim_world::map::OccupancyMap;
 use muster_sim_world::scenario::Colour;
 use nalgebra::Matrix3;
-use parry2d::math::Vec2;
-use parry2d::shape::Triangle;
 use std::sync::Arc;
 
 /// What a tracking robot's computer sustains: a budget of 1 shared by tracking (per
@@ -136,11 +134,9 @@ struct RobotState {
     cov: Matrix3<f64>,
     nav: Option<Navigator>,
     patrol_next: usize,
-    following: Option<Colour>,
     /// The last-seen place already searched.
     searched: Option<(f64, f64)>,
     last_camera: f64,
-    samples: u64,
 }
 
 /// The tracking system's logic over all its robots.
@@ -187,10 +183,8 @@ impl TrackingCore {
                     )
                 }),
                 patrol_next: 0,
-                following: None,
                 searched: None,
                 last_camera: f64::NEG_INFINITY,
-                samples: 0,
                 cfg,
             })
             .collect();
@@ -212,16 +206,6 @@ impl TrackingCore {
     /// Robot `i`'s pose estimate.
     pub fn pose(&self, i: usize) -> Option<Pose> {
         self.robots.get(i).map(|r| r.pose)
-    }
-
-    /// The colour robot `i` is following, if it is a mobile tracker following one.
-    pub fn following(&self, i: usize) -> Option<Colour> {
-        self.robots.get(i).and_then(|r| r.following)
-    }
-
-    /// The newest sim time seen.
-    pub fn now(&self) -> f64 {
-        self.now
     }
 
     /// The colours offered.
@@ -251,7 +235,6 @@ impl TrackingCore {
             return RobotCommands::default();
         };
         self.now = self.now.max(s.time);
-        r.samples += 1;
         // Where am I?
         match (&mut r.localizer, self.params.ground_truth) {
             (Some(l), false) => {
@@ -350,10 +333,9 @@ impl TrackingCore {
         // Lost a while ago: search where it was last seen (once), then patrol.
         let search = follow.iter().find_map(|c| {
             let t = self.tracker.track(*c)?;
-            (now - t.last_seen < SEARCH_FOR).then(|| {
-                let dt = (t.last_seen - t.time).max(0.0);
-                (t.state[0] + t.state[2] * dt, t.state[1] + t.state[3] * dt)
-            })
+            (now - t.last_seen < SEARCH_FOR)
+                .then(|| self.tracker.predicted(*c, now))
+                .flatten()
         });
         let follow_distance = self.params.follow_distance;
         let patrol = &self.params.patrol;
@@ -363,8 +345,7 @@ impl TrackingCore {
         };
         let obstacles = r.cfg.geometry.obstacle_points(s, 3.5);
         match target {
-            Some((colour, (tx, ty))) => {
-                r.following = Some(colour);
+            Some((_, (tx, ty))) => {
                 r.searched = None;
                 let (dx, dy) = (r.pose.x - tx, r.pose.y - ty);
                 let d = dx.hypot(dy);
@@ -389,7 +370,6 @@ impl TrackingCore {
                 (x - r.pose.x).hypot(y - r.pose.y) > 1.0 && r.searched != search
             }) =>
             {
-                r.following = None;
                 let at = search.unwrap_or_default();
                 if nav.goal() != Some(at) && nav.set_goal(r.pose, at, 0.0).is_err() {
                     r.searched = search;
@@ -399,26 +379,23 @@ impl TrackingCore {
                 if search.is_some() {
                     r.searched = search; // been there
                 }
-                r.following = None;
                 if patrol.is_empty() {
                     nav.clear();
                     return (0.0, 0.0);
                 }
                 let at = patrol[r.patrol_next % patrol.len()];
-                if (at.0 - r.pose.x).hypot(at.1 - r.pose.y) < 1.0 || nav.goal() != Some(at) {
-                    if (at.0 - r.pose.x).hypot(at.1 - r.pose.y) < 1.0 {
-                        r.patrol_next = (r.patrol_next + 1) % patrol.len();
-                    }
-                    let next = patrol[r.patrol_next % patrol.len()];
-                    if nav.set_goal(r.pose, next, 0.0).is_err() {
-                        r.patrol_next = (r.patrol_next + 1) % patrol.len();
-                    }
+                if (at.0 - r.pose.x).hypot(at.1 - r.pose.y) < 1.0 {
+                    r.patrol_next = (r.patrol_next + 1) % patrol.len();
+                }
+                let next = patrol[r.patrol_next];
+                if nav.goal() != Some(next) && nav.set_goal(r.pose, next, 0.0).is_err() {
+                    r.patrol_next = (r.patrol_next + 1) % patrol.len();
                 }
             }
         }
         let step = nav.step(now, r.pose, &obstacles);
         // Belt and braces: never forward into something closer than the stop gap.
-        if step.velocity.0 > 0.0 && free_distance(0.28, &obstacles, 1.0) < 0.12 {
+        if step.velocity.0 > 0.0 && step.free_ahead < 0.12 {
             return (0.0, step.velocity.1);
         }
         step.velocity
@@ -438,32 +415,6 @@ impl TrackingCore {
     pub fn payload(&self, colour: Colour) -> Option<Track2d> {
         self.tracker
             .payload(colour, self.now, self.params.period.max(1.0))
-    }
-
-    /// Whether robot `i`'s camera cone (at its current pan, zoom 1) holds (x, y): the
-    /// cone as a parry2d triangle.
-    pub fn in_view(&self, i: usize, pan: f64, x: f64, y: f64) -> bool {
-        let Some(r) = self.robots.get(i) else {
-            return false;
-        };
-        let Some((fov, range, _)) = r.cfg.geometry.camera else {
-            return false;
-        };
-        let axis = r.pose.theta + pan;
-        let far = range / (fov / 2.0).cos();
-        let corner = |a: f64| {
-            Vec2::new(
-                (r.pose.x + far * a.cos()) as f32,
-                (r.pose.y + far * a.sin()) as f32,
-            )
-        };
-        let cone = Triangle::new(
-            Vec2::new(r.pose.x as f32, r.pose.y as f32),
-            corner(axis - fov / 2.0),
-            corner(axis + fov / 2.0),
-        );
-        cone.contains_point(Vec2::new(x as f32, y as f32))
-            && (x - r.pose.x).hypot(y - r.pose.y) <= range
     }
 }
 
