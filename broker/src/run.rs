@@ -5,13 +5,21 @@
 //! deadline (a ping, a ping timeout, an offer timeout).
 
 use crate::core::{Broker, BrokerConfig, Output};
+use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
 use muster_shared::ipc::{bell, create_node, Endpoint, ListWriter, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToBroker};
 use muster_shared::reactor::{process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe};
 use muster_shared::snapshot::{ServiceListSnapshot, MAX_LISTED_SERVICES};
 use muster_shared::types::UserId;
+use muster_shared::udp::access::AccessFile;
+use muster_shared::udp::wire::MAX_DATAGRAM;
+use muster_shared::udp::{recv_one, send_transmit, size_recv_buffer, RECV_BATCH};
+use rand::RngExt;
 use std::collections::HashMap;
+use std::net::UdpSocket;
+use std::os::fd::AsRawFd;
+use std::path::PathBuf;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 /// Why the broker could not start or had to stop.
@@ -86,7 +94,98 @@ struct Shell {
     /// When list watchers were last rung, and whether a ring is owed.
     last_ring: Option<Instant>,
     ring_owed: bool,
-    udp: Option<crate::udp::UdpFront>,
+    udp: Option<UdpDriver>,
+}
+
+/// The UDP front's socket and access file around the sans-IO [`UdpFront`].
+struct UdpDriver {
+    sock: UdpSocket,
+    front: UdpFront,
+    access_path: Option<PathBuf>,
+}
+
+impl UdpDriver {
+    fn bind(cfg: UdpConfig, epoch: u64) -> Result<Self, UdpError> {
+        let access = match &cfg.access_path {
+            Some(p) => AccessFile::load(p).map_err(UdpError::Access)?,
+            None => AccessFile::default(),
+        };
+        let sock = UdpSocket::bind(cfg.bind).map_err(|e| UdpError::Bind(cfg.bind, e))?;
+        sock.set_nonblocking(true)
+            .map_err(|e| UdpError::Bind(cfg.bind, e))?;
+        match size_recv_buffer(&sock) {
+            Ok(n) if n < muster_shared::udp::RECV_BUFFER => tracing::info!(
+                "udp receive buffer {n} bytes (asked {}): raise net.core.rmem_max for bursts of handshakes",
+                muster_shared::udp::RECV_BUFFER
+            ),
+            Ok(_) => {}
+            Err(e) => tracing::warn!("cannot size the udp receive buffer: {e}"),
+        }
+        let local = sock.local_addr().map_err(|e| UdpError::Bind(cfg.bind, e))?;
+        let seed: [u8; 32] = rand::rng().random();
+        let front = UdpFront::new(
+            cfg.key,
+            access,
+            cfg.limits,
+            local,
+            epoch,
+            Instant::now(),
+            seed,
+        );
+        Ok(UdpDriver {
+            sock,
+            front,
+            access_path: cfg.access_path,
+        })
+    }
+
+    /// Reads every waiting datagram (at most a few thousand a call, so one flood cannot
+    /// starve the shared-memory side), handing the front's messages to the core.
+    fn on_readable(&mut self, handling: &mut Handling, core: &mut Broker, now: Duration) {
+        let mut buf = [0u8; MAX_DATAGRAM + 1];
+        for _ in 0..RECV_BATCH {
+            let Some((n, from)) = recv_one(&self.sock, &mut buf) else {
+                break;
+            };
+            self.front.handle(Instant::now(), from, &buf[..n], core);
+            self.events(handling, core, now);
+        }
+        self.transmit();
+    }
+
+    /// Re-reads the access file (SIGHUP); a bad file keeps the old one.
+    fn reload(&mut self, handling: &mut Handling, core: &mut Broker, now: Duration) {
+        let Some(path) = &self.access_path else {
+            return;
+        };
+        match AccessFile::load(path) {
+            Ok(a) => self.front.reload(Instant::now(), a),
+            Err(e) => tracing::error!("{e}; keeping the previous access file"),
+        }
+        self.events(handling, core, now);
+        self.transmit();
+    }
+
+    fn housekeeping(&mut self, handling: &mut Handling, core: &mut Broker, now: Duration) {
+        self.front.handle_timeout(Instant::now());
+        self.events(handling, core, now);
+        self.transmit();
+    }
+
+    fn events(&mut self, handling: &mut Handling, core: &mut Broker, now: Duration) {
+        while let Some(ev) = self.front.poll_event() {
+            match ev {
+                FrontEvent::ToCore(msg) => timed_handle(handling, core, now, msg),
+                FrontEvent::UserGone(u) => core.user_died(now, &u),
+            }
+        }
+    }
+
+    fn transmit(&mut self) {
+        while let Some(t) = self.front.poll_transmit() {
+            send_transmit(&self.sock, &t, &mut self.front.stats_mut().drops);
+        }
+    }
 }
 
 /// List watchers are rung at most this often; the blackboard itself is updated at once.
@@ -101,7 +200,7 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
 pub fn run_with(
     inst: &Instance,
     cfg: BrokerConfig,
-    udp: Option<crate::udp::UdpConfig>,
+    udp: Option<UdpConfig>,
 ) -> Result<BrokerReport, BrokerError> {
     match raise_fd_limit() {
         Ok(n) if n < 4096 => {
@@ -137,10 +236,10 @@ pub fn run_with(
     let udp = match udp {
         Some(c) => {
             let public = hex::encode(c.key.public);
-            let front = crate::udp::UdpFront::bind(c, epoch)?;
-            reactor.add(front.fd(), TOKEN_UDP)?;
-            tracing::info!(udp = %front.local_addr(), broker_key = %public, "listening for remote users");
-            Some(front)
+            let driver = UdpDriver::bind(c, epoch)?;
+            reactor.add(driver.sock.as_raw_fd(), TOKEN_UDP)?;
+            tracing::info!(udp = %driver.front.local_addr(), broker_key = %public, "listening for remote users");
+            Some(driver)
         }
         None => None,
     };
@@ -157,7 +256,6 @@ pub fn run_with(
         handling: std::collections::BTreeMap::new(),
         udp,
     };
-    let mut last_housekeeping = Instant::now();
     shell.snapshot.epoch = epoch;
     let start = Instant::now();
     shell.flush(&mut core, start.elapsed())?;
@@ -170,8 +268,8 @@ pub fn run_with(
         let housekeeping = shell
             .udp
             .as_ref()
-            .and_then(|f| f.poll_timeout())
-            .map(|every| every.saturating_sub(last_housekeeping.elapsed()));
+            .and_then(|d| d.front.poll_timeout())
+            .map(|t| t.saturating_duration_since(Instant::now()));
         let timeout = [
             timeout,
             shell.ring_due(),
@@ -193,33 +291,23 @@ pub fn run_with(
                     if signals.drain() {
                         tracing::info!("signal received: broker stopping");
                         presence.ring(bell::BROKER_DOWN);
-                        let mut handling = shell.handling;
-                        if let Some(f) = shell.udp.as_ref() {
-                            for (k, h) in f.handling() {
-                                if let Some(mine) = handling.get_mut(k) {
-                                    let _ = mine.add(h);
-                                } else {
-                                    handling.insert(k, h.clone());
-                                }
-                            }
-                        }
                         return Ok(BrokerReport {
                             stats: core.stats().clone(),
-                            handling,
-                            udp: shell.udp.as_ref().map(|f| f.stats().clone()),
+                            handling: shell.handling,
+                            udp: shell.udp.as_ref().map(|d| d.front.stats().clone()),
                         });
                     }
                 }
                 TOKEN_HUP => {
                     if hangup.drain() {
-                        if let Some(f) = shell.udp.as_mut() {
-                            f.reload(&mut core, now);
+                        if let Some(d) = shell.udp.as_mut() {
+                            d.reload(&mut shell.handling, &mut core, now);
                         }
                     }
                 }
                 TOKEN_UDP => {
-                    if let Some(f) = shell.udp.as_mut() {
-                        f.on_readable(&mut core, now);
+                    if let Some(d) = shell.udp.as_mut() {
+                        d.on_readable(&mut shell.handling, &mut core, now);
                     }
                 }
                 t => {
@@ -235,13 +323,8 @@ pub fn run_with(
             }
         }
         shell.drain_inbox(&mut core, now)?;
-        if let Some(f) = shell.udp.as_mut() {
-            if f.poll_timeout()
-                .is_some_and(|e| last_housekeeping.elapsed() >= e)
-            {
-                f.housekeeping(&mut core, now);
-                last_housekeeping = Instant::now();
-            }
+        if let Some(d) = shell.udp.as_mut() {
+            d.housekeeping(&mut shell.handling, &mut core, now);
         }
         if core.poll_timeout().is_some_and(|t| t <= now) {
             core.handle_timeout(now);
@@ -292,9 +375,12 @@ impl Shell {
     ) -> Result<(), BrokerError> {
         while let Some(out) = core.poll_output() {
             let out = match self.udp.as_mut() {
-                Some(front) => match front.route(core, out) {
+                Some(d) => match d.front.route(core, out) {
                     Some(o) => o,
-                    None => continue,
+                    None => {
+                        d.transmit();
+                        continue;
+                    }
                 },
                 None => out,
             };
@@ -320,8 +406,9 @@ impl Shell {
                 *slot = v.to_entry();
             }
             self.list.publish(&self.snapshot)?;
-            if let Some(front) = self.udp.as_mut() {
-                front.list_changed(self.snapshot.epoch, generation, &views);
+            if let Some(d) = self.udp.as_mut() {
+                d.front
+                    .list_changed(self.snapshot.epoch, generation, &views);
             }
             self.ring_owed = true;
         }
@@ -347,10 +434,11 @@ impl Shell {
         self.ring_owed = false;
         self.last_ring = Some(Instant::now());
         let mut watchers: Vec<UserId> = core.list_watchers().cloned().collect();
-        if let Some(front) = self.udp.as_mut() {
+        if let Some(d) = self.udp.as_mut() {
             let (remote, local): (Vec<UserId>, Vec<UserId>) =
-                watchers.into_iter().partition(|u| front.is_remote(u));
-            front.ring(&remote);
+                watchers.into_iter().partition(|u| d.front.is_remote(u));
+            d.front.ring(&remote);
+            d.transmit();
             watchers = local;
         }
         for u in watchers {

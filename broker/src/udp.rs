@@ -12,6 +12,13 @@
 //! `INITIAL`, far under RFC 9000's 3× rule); a token bucket per validated source address;
 //! a cap on pending handshakes, which expire; the Noise XX handshake against the access
 //! file; a token bucket per connection; a replay window on every channel.
+//!
+//! The front is sans IO, in the manner of quinn-proto's `Endpoint`: it is handed
+//! datagrams ([`UdpFront::handle`]) and the time ([`UdpFront::handle_timeout`]) and
+//! gives back datagrams to send ([`UdpFront::poll_transmit`]) and messages for the core
+//! ([`UdpFront::poll_event`]); randomness comes from a seed. It never calls the core:
+//! `run.rs` owns the socket and is the only caller of the core, and the in-memory
+//! harness drives the same front over a simulated network on a virtual clock.
 
 use crate::core::{Broker, Output};
 use muster_shared::protocol::{RemoteContact, ToBroker, ToSystem, ToUser};
@@ -20,13 +27,14 @@ use muster_shared::types::{Refusal, ServiceId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
 use muster_shared::udp::msgs::{chunk_list, from_bytes, seal_channel, Down, Hs3, Up};
-use muster_shared::udp::wire::{Datagram, WireError, MAX_DATAGRAM};
-use muster_shared::udp::{recv_one, DropCounters, RECV_BATCH};
-use std::collections::{BTreeMap, HashMap};
-use std::net::{IpAddr, Ipv4Addr, SocketAddr, UdpSocket};
-use std::os::fd::{AsRawFd, RawFd};
+use muster_shared::udp::wire::{Datagram, WireError};
+use muster_shared::udp::{DropCounters, Transmit};
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 /// Limits of the UDP front.
 #[derive(Clone, Debug)]
@@ -112,10 +120,10 @@ struct Bucket {
 }
 
 impl Bucket {
-    fn new(burst: f64) -> Self {
+    fn new(now: Instant, burst: f64) -> Self {
         Bucket {
             tokens: burst,
-            last: Instant::now(),
+            last: now,
         }
     }
 
@@ -160,14 +168,45 @@ struct Conn {
     keys: HashMap<u64, [u8; 32]>,
 }
 
-/// The UDP front: socket, handshakes, connections.
+/// What the front hands the core (through `run.rs`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum FrontEvent {
+    /// A message from an authenticated remote user, with the id the front gave it.
+    ToCore(ToBroker),
+    /// A remote user is gone (silence, revocation, a newer connection of the same id).
+    UserGone(UserId),
+}
+
+/// What the front asks of the broker's state (read only): [`Broker`] answers it, and
+/// tests may answer it themselves.
+pub trait Directory {
+    /// Whether `service` is registered.
+    fn knows(&self, service: &ServiceId) -> bool;
+    /// The UDP endpoint `system` registered, if any.
+    fn system_udp(&self, system: &str) -> Option<&str>;
+}
+
+impl Directory for Broker {
+    fn knows(&self, service: &ServiceId) -> bool {
+        self.kind_of(service).is_some()
+    }
+    fn system_udp(&self, system: &str) -> Option<&str> {
+        Broker::system_udp(self, system)
+    }
+}
+
+/// The UDP front: handshakes and connections, sans IO.
 pub struct UdpFront {
-    sock: UdpSocket,
     local: SocketAddr,
     key: KeyPair,
     access: AccessFile,
-    access_path: Option<PathBuf>,
     cookies: Cookies,
+    /// The clock's origin, for the address-validation tokens' time stamps.
+    born: Instant,
+    rng: StdRng,
+    out: VecDeque<Transmit>,
+    events: VecDeque<FrontEvent>,
+    next_housekeeping: Option<Instant>,
     limits: UdpLimits,
     pending: HashMap<u64, Pending>,
     pending_by: HashMap<(SocketAddr, u64), u64>,
@@ -182,7 +221,6 @@ pub struct UdpFront {
     epoch: u64,
     generation: u64,
     stats: UdpStats,
-    handling: crate::run::Handling,
 }
 
 /// Why the UDP front could not start.
@@ -196,33 +234,35 @@ pub enum UdpError {
     Access(String),
 }
 
-fn now_s() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0)
-}
+/// Housekeeping period (expiring handshakes and silent connections).
+const HOUSEKEEPING: Duration = Duration::from_millis(500);
 
 impl UdpFront {
-    /// Binds the socket and reads the access file.
-    pub fn bind(cfg: UdpConfig, epoch: u64) -> Result<Self, UdpError> {
-        let access = match &cfg.access_path {
-            Some(p) => AccessFile::load(p).map_err(UdpError::Access)?,
-            None => AccessFile::default(),
-        };
-        let sock = UdpSocket::bind(cfg.bind).map_err(|e| UdpError::Bind(cfg.bind, e))?;
-        sock.set_nonblocking(true)
-            .map_err(|e| UdpError::Bind(cfg.bind, e))?;
-        let local = sock.local_addr().map_err(|e| UdpError::Bind(cfg.bind, e))?;
-        let retry_bucket = Bucket::new(cfg.limits.retry_rate.1);
-        Ok(UdpFront {
-            sock,
+    /// A front that says it listens at `local` (for the systems' addresses it gives
+    /// out), with the broker's static key, the access file's contents and a seed for
+    /// its randomness (connection ids, session keys, the token secret).
+    pub fn new(
+        key: KeyPair,
+        access: AccessFile,
+        limits: UdpLimits,
+        local: SocketAddr,
+        epoch: u64,
+        now: Instant,
+        seed: [u8; 32],
+    ) -> Self {
+        let mut rng = StdRng::from_seed(seed);
+        let retry_bucket = Bucket::new(now, limits.retry_rate.1);
+        UdpFront {
             local,
-            key: cfg.key,
+            key,
             access,
-            access_path: cfg.access_path,
-            cookies: Cookies::new(),
-            limits: cfg.limits,
+            cookies: Cookies::with_secret(rng.random()),
+            born: now,
+            rng,
+            out: VecDeque::new(),
+            events: VecDeque::new(),
+            next_housekeeping: None,
+            limits,
             pending: HashMap::new(),
             pending_by: HashMap::new(),
             conns: HashMap::new(),
@@ -234,18 +274,22 @@ impl UdpFront {
             epoch,
             generation: 0,
             stats: UdpStats::default(),
-            handling: crate::run::Handling::new(),
-        })
+        }
     }
 
-    /// The bound address.
+    /// The next datagram to send.
+    pub fn poll_transmit(&mut self) -> Option<Transmit> {
+        self.out.pop_front()
+    }
+
+    /// The next message for the core.
+    pub fn poll_event(&mut self) -> Option<FrontEvent> {
+        self.events.pop_front()
+    }
+
+    /// The address the front says it listens at.
     pub fn local_addr(&self) -> SocketAddr {
         self.local
-    }
-
-    /// The socket's descriptor, for the reactor.
-    pub fn fd(&self) -> RawFd {
-        self.sock.as_raw_fd()
     }
 
     /// Counters.
@@ -253,9 +297,9 @@ impl UdpFront {
         &self.stats
     }
 
-    /// Time the core took for the messages this front handed it, by kind.
-    pub fn handling(&self) -> &crate::run::Handling {
-        &self.handling
+    /// Counters, for the driver's own drops (a failed send).
+    pub fn stats_mut(&mut self) -> &mut UdpStats {
+        &mut self.stats
     }
 
     /// Number of authenticated connections.
@@ -268,33 +312,25 @@ impl UdpFront {
         self.by_user.contains_key(user)
     }
 
-    /// Re-reads the access file (SIGHUP). Connections whose user left the file or whose
-    /// key changed are closed (their users die to the core); a bad file keeps the old one.
-    pub fn reload(&mut self, core: &mut Broker, now: Duration) {
-        let Some(path) = &self.access_path else {
-            return;
-        };
-        match AccessFile::load(path) {
-            Ok(a) => {
-                tracing::info!(users = a.len(), "access file reloaded");
-                self.access = a;
-                self.stats.reloads += 1;
-                let revoked: Vec<u64> = self
-                    .conns
-                    .iter()
-                    .filter(|(_, c)| {
-                        self.access
-                            .get(&c.name)
-                            .is_none_or(|p| Some(p.key.as_slice()) != c.chan_key())
-                    })
-                    .map(|(id, _)| *id)
-                    .collect();
-                for id in revoked {
-                    tracing::warn!(conn = format!("{id:016x}"), "access revoked: closed");
-                    self.close(core, now, id);
-                }
-            }
-            Err(e) => tracing::error!("{e}; keeping the previous access file"),
+    /// A new access file (SIGHUP). Connections whose user left the file or whose key
+    /// changed are closed (their users die to the core).
+    pub fn reload(&mut self, now: Instant, access: AccessFile) {
+        tracing::info!(users = access.len(), "access file reloaded");
+        self.access = access;
+        self.stats.reloads += 1;
+        let revoked: Vec<u64> = self
+            .conns
+            .iter()
+            .filter(|(_, c)| {
+                self.access
+                    .get(&c.name)
+                    .is_none_or(|p| Some(p.key.as_slice()) != c.chan_key())
+            })
+            .map(|(id, _)| *id)
+            .collect();
+        for id in revoked {
+            tracing::warn!(conn = format!("{id:016x}"), "access revoked: closed");
+            self.close(now, id);
         }
     }
 
@@ -315,18 +351,22 @@ impl UdpFront {
         }
     }
 
-    /// When housekeeping is next due.
-    pub fn poll_timeout(&self) -> Option<Duration> {
+    /// When [`UdpFront::handle_timeout`] is next due.
+    pub fn poll_timeout(&self) -> Option<Instant> {
         if self.pending.is_empty() && self.conns.is_empty() {
             None
         } else {
-            Some(Duration::from_millis(500))
+            Some(self.next_housekeeping.unwrap_or(self.born))
         }
     }
 
-    /// Expires handshakes and silent connections.
-    pub fn housekeeping(&mut self, core: &mut Broker, now: Duration) {
-        let t = Instant::now();
+    /// Expires handshakes and silent connections, if due.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        if self.poll_timeout().is_none_or(|t| now < t) {
+            return;
+        }
+        self.next_housekeeping = Some(now + HOUSEKEEPING);
+        let t = now;
         let expired: Vec<u64> = self
             .pending
             .iter()
@@ -346,7 +386,7 @@ impl UdpFront {
         for id in silent {
             tracing::info!(conn = format!("{id:016x}"), "remote user silent: gone");
             self.stats.expired += 1;
-            self.close(core, now, id);
+            self.close(now, id);
         }
         self.closed
             .retain(|_, at| t.saturating_duration_since(*at) < Duration::from_secs(10));
@@ -363,32 +403,22 @@ impl UdpFront {
         }
     }
 
-    fn close(&mut self, core: &mut Broker, now: Duration, id: u64) {
-        self.closed.insert(id, Instant::now());
+    fn close(&mut self, now: Instant, id: u64) {
+        self.closed.insert(id, now);
         if let Some(c) = self.conns.remove(&id) {
             if let Some(u) = c.user {
                 if self.by_user.get(&u) == Some(&id) {
                     self.by_user.remove(&u);
-                    core.user_died(now, &u);
+                    self.events.push_back(FrontEvent::UserGone(u));
                 }
             }
         }
     }
 
-    /// Reads every waiting datagram (at most a few thousand a call, so one flood cannot
-    /// starve the shared-memory side).
-    pub fn on_readable(&mut self, core: &mut Broker, now: Duration) {
-        let mut buf = [0u8; MAX_DATAGRAM + 1];
-        for _ in 0..RECV_BATCH {
-            let Some((n, from)) = recv_one(&self.sock, &mut buf) else {
-                return;
-            };
-            self.stats.datagrams_in += 1;
-            self.on_datagram(core, now, &buf[..n], from);
-        }
-    }
-
-    fn on_datagram(&mut self, core: &mut Broker, now: Duration, bytes: &[u8], from: SocketAddr) {
+    /// One datagram from `from` at `now`. What it means for the core comes out of
+    /// [`UdpFront::poll_event`]; `dir` answers questions about the registry.
+    pub fn handle(&mut self, now: Instant, from: SocketAddr, bytes: &[u8], dir: &impl Directory) {
+        self.stats.datagrams_in += 1;
         let d = match Datagram::decode(bytes) {
             Ok(d) => d,
             Err(e) => {
@@ -401,13 +431,13 @@ impl UdpFront {
                 client,
                 token,
                 noise,
-            } => self.on_initial(bytes.len(), from, client, token, noise),
-            Datagram::HsFinal { conn, noise } => self.on_final(from, conn, noise),
+            } => self.on_initial(now, bytes.len(), from, client, token, noise),
+            Datagram::HsFinal { conn, noise } => self.on_final(now, from, conn, noise),
             Datagram::Channel {
                 conn,
                 nonce,
                 sealed,
-            } => self.on_channel(core, now, from, conn, nonce, sealed),
+            } => self.on_channel(dir, now, from, conn, nonce, sealed),
             _ => {
                 self.stats.unvalidated_bytes_in += bytes.len() as u64;
                 self.stats.drops.drop("unexpected_kind", &from)
@@ -417,14 +447,14 @@ impl UdpFront {
 
     fn on_initial(
         &mut self,
+        t: Instant,
         len: usize,
         from: SocketAddr,
         client: u64,
         token: &[u8],
         noise: &[u8],
     ) {
-        let t = Instant::now();
-        let now_s = now_s();
+        let now_s = t.saturating_duration_since(self.born).as_secs();
         if !self.cookies.check(now_s, token, &from, client) {
             self.stats.unvalidated_bytes_in += len as u64;
             if !token.is_empty() {
@@ -451,7 +481,7 @@ impl UdpFront {
         let bucket = self
             .sources
             .entry(from.ip())
-            .or_insert_with(|| Bucket::new(burst));
+            .or_insert_with(|| Bucket::new(t, burst));
         if !bucket.take(t, (rate, burst)) {
             return self.stats.drops.drop("source_rate", &from);
         }
@@ -480,7 +510,7 @@ impl UdpFront {
         let Ok(n) = hs.write_message(&[], &mut msg2) else {
             return self.stats.drops.drop("bad_handshake", &from);
         };
-        let conn: u64 = rand::random();
+        let conn: u64 = self.rng.random();
         let Ok(reply) = (Datagram::HsReply {
             client,
             conn,
@@ -503,7 +533,7 @@ impl UdpFront {
         );
     }
 
-    fn on_final(&mut self, from: SocketAddr, conn: u64, noise: &[u8]) {
+    fn on_final(&mut self, now: Instant, from: SocketAddr, conn: u64, noise: &[u8]) {
         if self.conns.contains_key(&conn) {
             return; // a retransmission of a handshake already done
         }
@@ -551,8 +581,8 @@ impl UdpFront {
                 suffix: hs3.suffix,
                 user: None,
                 chan,
-                last_heard: Instant::now(),
-                bucket: Bucket::new(burst),
+                last_heard: now,
+                bucket: Bucket::new(now, burst),
                 reqs: BTreeMap::new(),
                 floor: 0,
                 keys: HashMap::new(),
@@ -562,14 +592,13 @@ impl UdpFront {
 
     fn on_channel(
         &mut self,
-        core: &mut Broker,
-        now: Duration,
+        dir: &impl Directory,
+        t: Instant,
         from: SocketAddr,
         id: u64,
         nonce: u64,
         sealed: &[u8],
     ) {
-        let t = Instant::now();
         let rate = self.limits.conn_rate;
         let Some(c) = self.conns.get_mut(&id) else {
             if self.closed.contains_key(&id) {
@@ -597,7 +626,7 @@ impl UdpFront {
                 self.send(id, &Down::Pong { nonce, generation });
             }
             Up::List => self.send_list(id),
-            Up::Msg(m) => self.on_user_msg(core, now, id, m, from),
+            Up::Msg(m) => self.on_user_msg(dir, t, id, m, from),
         }
     }
 
@@ -617,8 +646,8 @@ impl UdpFront {
 
     fn on_user_msg(
         &mut self,
-        core: &mut Broker,
-        now: Duration,
+        dir: &impl Directory,
+        now: Instant,
         id: u64,
         m: ToBroker,
         from: SocketAddr,
@@ -636,20 +665,15 @@ impl UdpFront {
                 if old != id {
                     // The same user reconnected (new handshake): the old connection goes.
                     self.conns.remove(&old);
-                    self.closed.insert(old, Instant::now());
+                    self.closed.insert(old, now);
                 }
             }
-            crate::run::timed_handle(
-                &mut self.handling,
-                core,
-                now,
-                ToBroker::Hello {
-                    user,
-                    pid: 0,
-                    links,
-                    watch_list,
-                },
-            );
+            self.events.push_back(FrontEvent::ToCore(ToBroker::Hello {
+                user,
+                pid: 0,
+                links,
+                watch_list,
+            }));
             return;
         }
         let Some(user) = c.user.clone() else {
@@ -657,41 +681,31 @@ impl UdpFront {
         };
         match m {
             ToBroker::Request { req, service, .. } => {
-                self.on_request(core, now, id, user, req, service, from)
+                self.on_request(dir, id, user, req, service, from)
             }
-            ToBroker::Cancel { req, .. } => crate::run::timed_handle(
-                &mut self.handling,
-                core,
-                now,
-                ToBroker::Cancel { user, req },
-            ),
-            ToBroker::LinkOpened { link, .. } => crate::run::timed_handle(
-                &mut self.handling,
-                core,
-                now,
-                ToBroker::LinkOpened { user, link },
-            ),
-            ToBroker::LinkClosed { link, .. } => crate::run::timed_handle(
-                &mut self.handling,
-                core,
-                now,
-                ToBroker::LinkClosed { user, link },
-            ),
+            ToBroker::Cancel { req, .. } => self
+                .events
+                .push_back(FrontEvent::ToCore(ToBroker::Cancel { user, req })),
+            ToBroker::LinkOpened { link, .. } => self
+                .events
+                .push_back(FrontEvent::ToCore(ToBroker::LinkOpened { user, link })),
+            ToBroker::LinkClosed { link, .. } => self
+                .events
+                .push_back(FrontEvent::ToCore(ToBroker::LinkClosed { user, link })),
             ToBroker::Goodbye { .. } => {
                 self.by_user.remove(&user);
                 self.conns.remove(&id);
-                self.closed.insert(id, Instant::now());
-                crate::run::timed_handle(&mut self.handling, core, now, ToBroker::Goodbye { user });
+                self.closed.insert(id, now);
+                self.events
+                    .push_back(FrontEvent::ToCore(ToBroker::Goodbye { user }));
             }
             _ => self.stats.drops.drop("not_a_user_message", &from),
         }
     }
 
-    #[allow(clippy::too_many_arguments)]
     fn on_request(
         &mut self,
-        core: &mut Broker,
-        now: Duration,
+        dir: &impl Directory,
         id: u64,
         user: UserId,
         req: u64,
@@ -728,9 +742,9 @@ impl UdpFront {
             .access
             .get(&c.name)
             .is_some_and(|p| p.allows(&service.0));
-        let no_udp = service.split().is_some_and(|(sys, _)| {
-            core.kind_of(&service).is_some() && core.system_udp(sys).is_none()
-        });
+        let no_udp = service
+            .split()
+            .is_some_and(|(sys, _)| dir.knows(&service) && dir.system_udp(sys).is_none());
         let refusal = if !allowed {
             // Not allowed looks like not there: the list never showed it either.
             Some(Refusal::Unknown)
@@ -755,12 +769,10 @@ impl UdpFront {
                 self.stats.refused_here += 1;
                 self.answer(id, req, Down::Msg(ToUser::Refused { req, reason }), true);
             }
-            None => crate::run::timed_handle(
-                &mut self.handling,
-                core,
-                now,
-                ToBroker::Request { user, req, service },
-            ),
+            None => {
+                self.events
+                    .push_back(FrontEvent::ToCore(ToBroker::Request { user, req, service }))
+            }
         }
     }
 
@@ -783,7 +795,7 @@ impl UdpFront {
 
     /// Takes the core's outputs meant for remote users (and fills in remote offers);
     /// gives back the rest for the shared-memory side.
-    pub fn route(&mut self, core: &Broker, out: Output) -> Option<Output> {
+    pub fn route(&mut self, dir: &impl Directory, out: Output) -> Option<Output> {
         match out {
             Output::ToUser(user, msg) => {
                 let Some(&id) = self.by_user.get(&user) else {
@@ -816,7 +828,7 @@ impl UdpFront {
                     .get(&id)
                     .and_then(|c| c.keys.get(&req).copied())?;
                 let system = service.split().map(|(s, _)| s.to_string())?;
-                let system_addr = core.system_udp(&system).map(|a| self.reachable(a))?;
+                let system_addr = dir.system_udp(&system).map(|a| self.reachable(a))?;
                 let d = Down::Granted {
                     req,
                     session,
@@ -840,9 +852,9 @@ impl UdpFront {
                     remote: _,
                 },
             ) => {
-                let remote = self.by_user.get(&user).and_then(|id| {
-                    let c = self.conns.get_mut(id)?;
-                    let key = crypto::random_key();
+                let remote = self.by_user.get(&user).copied().and_then(|id| {
+                    let key: [u8; 32] = self.rng.random();
+                    let c = self.conns.get_mut(&id)?;
                     c.keys.insert(req, key);
                     Some(RemoteContact {
                         addr: c.addr.to_string(),
@@ -900,10 +912,11 @@ impl UdpFront {
     }
 
     fn send_raw(&mut self, bytes: &[u8], to: SocketAddr) {
-        match self.sock.send_to(bytes, to) {
-            Ok(_) => self.stats.datagrams_out += 1,
-            Err(_) => self.stats.drops.drop("send_failed", &to),
-        }
+        self.stats.datagrams_out += 1;
+        self.out.push_back(Transmit {
+            to,
+            bytes: bytes.to_vec(),
+        });
     }
 }
 

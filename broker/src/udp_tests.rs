@@ -1,4 +1,4 @@
-//! The UDP front driven from a test socket on loopback.
+//! The UDP front driven by hand: datagrams in, datagrams and core messages out.
 
 #![allow(clippy::unwrap_used)]
 
@@ -11,59 +11,52 @@ use muster_shared::udp::wire::Datagram;
 struct Rig {
     front: UdpFront,
     core: Broker,
-    sock: UdpSocket,
+    now: Instant,
+    addr: SocketAddr,
     user: KeyPair,
-    _dir: std::path::PathBuf,
 }
 
 impl Rig {
     fn new(limits: UdpLimits) -> Self {
         let user = KeyPair::generate().unwrap();
-        let dir = std::env::temp_dir().join(format!(
-            "muster-udp-test-{}-{}",
-            std::process::id(),
-            rand::random::<u32>()
-        ));
-        std::fs::create_dir_all(&dir).unwrap();
-        let access = dir.join("access");
-        std::fs::write(&access, access_line("alice", &user.public, &["*".into()])).unwrap();
-        let front = UdpFront::bind(
-            UdpConfig {
-                bind: "127.0.0.1:0".parse().unwrap(),
-                key: KeyPair::generate().unwrap(),
-                access_path: Some(access),
-                limits,
-            },
+        let access = AccessFile::parse(&access_line("alice", &user.public, &["*".into()])).unwrap();
+        let now = Instant::now();
+        let front = UdpFront::new(
+            KeyPair::generate().unwrap(),
+            access,
+            limits,
+            "127.0.0.1:7000".parse().unwrap(),
             1,
-        )
-        .unwrap();
-        let sock = UdpSocket::bind("127.0.0.1:0").unwrap();
-        sock.set_read_timeout(Some(Duration::from_millis(200)))
-            .unwrap();
+            now,
+            [7; 32],
+        );
         Rig {
             front,
             core: Broker::new(BrokerConfig::default(), 1, 1),
-            sock,
+            now,
+            addr: "127.0.0.1:40000".parse().unwrap(),
             user,
-            _dir: dir,
         }
     }
 
-    /// Sends, lets the front read, and returns every answer.
+    /// Hands the front a datagram, the core what the front made of it, and returns
+    /// every datagram sent back.
     fn exchange(&mut self, d: &[u8]) -> Vec<Vec<u8>> {
-        self.sock.send_to(d, self.front.local_addr()).unwrap();
-        std::thread::sleep(Duration::from_millis(5));
-        self.front.on_readable(&mut self.core, Duration::ZERO);
+        self.front.handle(self.now, self.addr, d, &self.core);
+        while let Some(ev) = self.front.poll_event() {
+            match ev {
+                FrontEvent::ToCore(m) => self.core.handle(Duration::ZERO, m),
+                FrontEvent::UserGone(u) => self.core.user_died(Duration::ZERO, &u),
+            }
+        }
         while let Some(out) = self.core.poll_output() {
             let _ = self.front.route(&self.core, out);
         }
         let mut got = Vec::new();
-        self.sock.set_nonblocking(true).unwrap();
-        let mut buf = [0u8; 2048];
-        while let Ok((n, _)) = self.sock.recv_from(&mut buf) {
-            got.push(buf[..n].to_vec());
+        while let Some(t) = self.front.poll_transmit() {
+            assert_eq!(t.to, self.addr);
+            got.push(t.bytes);
         }
-        self.sock.set_nonblocking(false).unwrap();
         got
     }
 
@@ -110,8 +103,8 @@ fn pending_handshakes_are_capped_and_expire() {
     let answered = (0..10).filter(|c| !r.start(*c).1.is_empty()).count();
     assert_eq!(answered, 4);
     assert_eq!(r.front.stats().drops.by_reason["pending_full"], 6);
-    std::thread::sleep(Duration::from_millis(60));
-    r.front.housekeeping(&mut r.core, Duration::ZERO);
+    r.now += Duration::from_millis(60);
+    r.front.handle_timeout(r.now);
     assert!(!r.start(99).1.is_empty(), "room again after expiry");
 }
 

@@ -9,6 +9,9 @@
 //! Liveness: the user sends a keepalive on each session every second; a session silent
 //! for [`LEASE`] ends as `PeerGone`. An ended session's key lingers for [`LINGER`] to
 //! answer a repeated `End` with `Ended` again.
+//!
+//! [`RemoteSessions`] is sans IO (datagrams and the time are handed in, datagrams to
+//! send are taken out); [`UdpSessions`] drives it over a socket.
 
 use crate::core::{SystemCore, SystemOutput};
 use muster_shared::protocol::{RemoteContact, ToSystem, ToUser};
@@ -16,8 +19,10 @@ use muster_shared::types::{EndReason, SessionId, UserId};
 use muster_shared::udp::crypto::{SessionCipher, Side};
 use muster_shared::udp::msgs::{from_bytes, seal_session, SessionDown, SessionUp};
 use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
-use muster_shared::udp::{recv_one, DropCounters, RECV_BATCH};
-use std::collections::HashMap;
+use muster_shared::udp::{
+    recv_one, send_transmit, size_recv_buffer, DropCounters, Transmit, RECV_BATCH,
+};
+use std::collections::{HashMap, VecDeque};
 use std::net::{SocketAddr, UdpSocket};
 use std::os::fd::{AsRawFd, RawFd};
 use std::time::{Duration, Instant};
@@ -48,38 +53,19 @@ pub struct RemoteStats {
     pub drops: DropCounters,
 }
 
-/// The endpoint: socket, keys of offers in flight, sessions.
+/// The endpoint's logic: keys of offers in flight, sessions, datagrams to send.
+#[derive(Default)]
 pub struct RemoteSessions {
-    sock: UdpSocket,
-    local: SocketAddr,
+    out: VecDeque<Transmit>,
     offers: HashMap<(UserId, u64), RemoteContact>,
     sessions: HashMap<u64, Remote>,
     stats: RemoteStats,
 }
 
 impl RemoteSessions {
-    /// Binds the endpoint.
-    pub fn bind(addr: SocketAddr) -> std::io::Result<Self> {
-        let sock = UdpSocket::bind(addr)?;
-        sock.set_nonblocking(true)?;
-        let local = sock.local_addr()?;
-        Ok(RemoteSessions {
-            sock,
-            local,
-            offers: HashMap::new(),
-            sessions: HashMap::new(),
-            stats: RemoteStats::default(),
-        })
-    }
-
-    /// The bound address (announced in the registration).
-    pub fn local_addr(&self) -> SocketAddr {
-        self.local
-    }
-
-    /// The socket, for the reactor.
-    pub fn fd(&self) -> RawFd {
-        self.sock.as_raw_fd()
+    /// The next datagram to send.
+    pub fn poll_transmit(&mut self) -> Option<Transmit> {
+        self.out.pop_front()
     }
 
     /// Counters.
@@ -109,7 +95,7 @@ impl RemoteSessions {
     }
 
     /// Takes the core's outputs for remote users; gives back the rest.
-    pub fn route(&mut self, out: SystemOutput) -> Option<SystemOutput> {
+    pub fn route(&mut self, now: Instant, out: SystemOutput) -> Option<SystemOutput> {
         match out {
             SystemOutput::ToUser(user, ToUser::Granted { req, session, .. })
                 if self.offers.contains_key(&(user.clone(), req)) =>
@@ -122,7 +108,7 @@ impl RemoteSessions {
                             user,
                             addr,
                             cipher: SessionCipher::new(&contact.key, Side::System),
-                            last_heard: Instant::now(),
+                            last_heard: now,
                             ended: None,
                         });
                     }
@@ -143,7 +129,7 @@ impl RemoteSessions {
                 }
                 if let ToUser::Ended { reason, .. } = &msg {
                     if let Some(r) = self.sessions.get_mut(&session.0) {
-                        r.ended = Some((Instant::now(), reason.clone()));
+                        r.ended = Some((now, reason.clone()));
                     }
                 }
                 self.send(session.0, &SessionDown::Msg(msg));
@@ -162,19 +148,9 @@ impl RemoteSessions {
         self.sessions.values().any(|r| r.user == *user)
     }
 
-    /// Reads waiting datagrams and feeds their messages to the core.
-    pub fn on_readable(&mut self, core: &mut SystemCore) {
-        let mut buf = [0u8; MAX_DATAGRAM + 1];
-        for _ in 0..RECV_BATCH {
-            let Some((n, from)) = recv_one(&self.sock, &mut buf) else {
-                return;
-            };
-            self.stats.datagrams_in += 1;
-            self.on_datagram(core, &buf[..n], from);
-        }
-    }
-
-    fn on_datagram(&mut self, core: &mut SystemCore, bytes: &[u8], from: SocketAddr) {
+    /// One datagram from `from` at `now`: its messages go to `core`.
+    pub fn handle(&mut self, now: Instant, from: SocketAddr, bytes: &[u8], core: &mut SystemCore) {
+        self.stats.datagrams_in += 1;
         let (session, nonce, sealed) = match Datagram::decode(bytes) {
             Ok(Datagram::Session {
                 session,
@@ -191,7 +167,7 @@ impl RemoteSessions {
             return self.stats.drops.drop("forged_or_replayed", &from);
         };
         r.addr = from;
-        r.last_heard = Instant::now();
+        r.last_heard = now;
         let user = r.user.clone();
         let ended = r.ended.clone();
         let msg = match from_bytes::<SessionUp>(&plain) {
@@ -239,8 +215,7 @@ impl RemoteSessions {
     }
 
     /// Ends silent sessions and forgets old ended ones.
-    pub fn housekeeping(&mut self, core: &mut SystemCore) {
-        let now = Instant::now();
+    pub fn housekeeping(&mut self, now: Instant, core: &mut SystemCore) {
         let silent: Vec<u64> = self
             .sessions
             .iter()
@@ -274,9 +249,64 @@ impl RemoteSessions {
         let Ok(dg) = seal_session(&mut r.cipher, session, m) else {
             return self.stats.drops.drop("too_large_for_a_datagram", &addr);
         };
-        match self.sock.send_to(&dg, addr) {
-            Ok(_) => self.stats.datagrams_out += 1,
-            Err(_) => self.stats.drops.drop("send_failed", &addr),
+        self.stats.datagrams_out += 1;
+        self.out.push_back(Transmit {
+            to: addr,
+            bytes: dg,
+        });
+    }
+}
+
+/// A socket driving [`RemoteSessions`].
+pub struct UdpSessions {
+    sock: UdpSocket,
+    local: SocketAddr,
+    /// The sessions' logic.
+    pub logic: RemoteSessions,
+}
+
+impl UdpSessions {
+    /// Binds the endpoint.
+    pub fn bind(addr: SocketAddr) -> std::io::Result<Self> {
+        let sock = UdpSocket::bind(addr)?;
+        sock.set_nonblocking(true)?;
+        if let Err(e) = size_recv_buffer(&sock) {
+            tracing::debug!("cannot size the receive buffer: {e}");
+        }
+        let local = sock.local_addr()?;
+        Ok(UdpSessions {
+            sock,
+            local,
+            logic: RemoteSessions::default(),
+        })
+    }
+
+    /// The bound address (announced in the registration).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local
+    }
+
+    /// The socket, for the reactor.
+    pub fn fd(&self) -> RawFd {
+        self.sock.as_raw_fd()
+    }
+
+    /// Reads waiting datagrams and feeds their messages to the core.
+    pub fn on_readable(&mut self, core: &mut SystemCore) {
+        let mut buf = [0u8; MAX_DATAGRAM + 1];
+        for _ in 0..RECV_BATCH {
+            let Some((n, from)) = recv_one(&self.sock, &mut buf) else {
+                break;
+            };
+            self.logic.handle(Instant::now(), from, &buf[..n], core);
+        }
+        self.transmit();
+    }
+
+    /// Sends what the logic queued.
+    pub fn transmit(&mut self) {
+        while let Some(t) = self.logic.poll_transmit() {
+            send_transmit(&self.sock, &t, &mut self.logic.stats.drops);
         }
     }
 }

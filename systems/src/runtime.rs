@@ -6,7 +6,7 @@
 //! sleeps on its bell, the broker's presence event and process-death descriptors.
 
 use crate::core::{SystemCore, SystemEvent, SystemOutput};
-use crate::remote::RemoteSessions;
+use crate::remote::UdpSessions;
 use muster_shared::ipc::{bell, create_node, Endpoint, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToBroker, ToSystem};
@@ -150,7 +150,7 @@ pub fn apply_control(core: &mut SystemCore, line: &str) -> bool {
 }
 
 struct Shell {
-    remote: Option<RemoteSessions>,
+    remote: Option<UdpSessions>,
     endpoint: Endpoint,
     reactor: Reactor,
     broker: Option<PidFd>,
@@ -201,7 +201,7 @@ pub fn run_system_with<A: SystemApp>(
     )?;
     let remote = match opts.udp {
         Some(addr) => {
-            let r = RemoteSessions::bind(addr)?;
+            let r = UdpSessions::bind(addr)?;
             reactor.add(r.fd(), TOKEN_UDP)?;
             core.set_udp(Some(r.local_addr().to_string()));
             tracing::info!(udp = %r.local_addr(), "listening for remote users' sessions");
@@ -238,7 +238,7 @@ pub fn run_system_with<A: SystemApp>(
         let housekeeping = shell
             .remote
             .as_ref()
-            .and_then(RemoteSessions::poll_timeout)
+            .and_then(|r| r.logic.poll_timeout())
             .map(|every| every.saturating_sub(last_housekeeping.elapsed()));
         let timeout = [timeout, shell.endpoint.sweep(), housekeeping]
             .into_iter()
@@ -313,7 +313,7 @@ pub fn run_system_with<A: SystemApp>(
             match decode::<ToSystem>(&frame) {
                 Ok(msg) => {
                     if let Some(r) = shell.remote.as_mut() {
-                        r.note(&msg);
+                        r.logic.note(&msg);
                     }
                     core.handle(msg)
                 }
@@ -321,10 +321,12 @@ pub fn run_system_with<A: SystemApp>(
             }
         }
         if let Some(r) = shell.remote.as_mut() {
-            if r.poll_timeout()
+            if r.logic
+                .poll_timeout()
                 .is_some_and(|e| last_housekeeping.elapsed() >= e)
             {
-                r.housekeeping(&mut core);
+                r.logic.housekeeping(Instant::now(), &mut core);
+                r.transmit();
                 last_housekeeping = Instant::now();
             }
         }
@@ -366,9 +368,12 @@ impl Shell {
     fn flush_outputs(&mut self, core: &mut SystemCore, dead_users: &mut Vec<UserId>) {
         while let Some(out) = core.poll_output() {
             let out = match self.remote.as_mut() {
-                Some(r) => match r.route(out) {
+                Some(r) => match r.logic.route(Instant::now(), out) {
                     Some(o) => o,
-                    None => continue,
+                    None => {
+                        r.transmit();
+                        continue;
+                    }
                 },
                 None => out,
             };

@@ -3,10 +3,12 @@
 //! API, and [`menu`] is the paper's interactive terminal menu.
 
 pub mod client;
+pub mod conn;
 pub mod core;
 pub mod menu;
 pub mod remote;
 
 pub use crate::client::{ConnectOptions, UserClient, UserError, Wake};
+pub use crate::conn::RemoteConn;
 pub use crate::core::{UserCore, UserEvent, UserOutput};
 pub use crate::remote::{Faults, RemoteOptions};

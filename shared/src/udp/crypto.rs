@@ -426,8 +426,13 @@ pub const TOKEN_LEN: usize = 24;
 impl Cookies {
     /// A fresh secret.
     pub fn new() -> Self {
+        Self::with_secret(random_key())
+    }
+
+    /// Tokens under `secret` (drawn by the caller, e.g. from a seeded CSPRNG).
+    pub fn with_secret(secret: [u8; 32]) -> Self {
         Cookies {
-            secret: random_key(),
+            secret,
             lifetime_s: 30,
         }
     }

@@ -11,6 +11,66 @@ pub mod wire;
 /// a process's work.
 pub const RECV_BATCH: usize = 4096;
 
+/// A datagram a sans-IO endpoint wants sent: the driver owns the socket and sends it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Transmit {
+    /// Where to.
+    pub to: std::net::SocketAddr,
+    /// The whole datagram.
+    pub bytes: Vec<u8>,
+}
+
+/// Sends `t` on `sock`; a failure (full buffer, unreachable) is counted as a drop, since
+/// every datagram may be lost anyway and the endpoints retransmit what matters.
+pub fn send_transmit(sock: &std::net::UdpSocket, t: &Transmit, drops: &mut DropCounters) {
+    if sock.send_to(&t.bytes, t.to).is_err() {
+        drops.drop("send_failed", &t.to);
+    }
+}
+
+/// Receive buffer asked of the kernel for every muster UDP socket: a burst of a thousand
+/// 1200-byte handshakes fits. The kernel caps it at `net.core.rmem_max` (the README says
+/// how to raise that); the size obtained is returned.
+pub const RECV_BUFFER: usize = 4 << 20;
+
+/// Asks for [`RECV_BUFFER`] bytes of receive buffer on `sock`; returns what the kernel
+/// granted (Linux reports twice the usable size).
+pub fn size_recv_buffer(sock: &std::net::UdpSocket) -> std::io::Result<usize> {
+    use std::os::fd::AsRawFd;
+    let fd = sock.as_raw_fd();
+    let want = RECV_BUFFER as libc::c_int;
+    // SAFETY: fd is a valid socket for the lifetime of `sock`; the option value is a
+    // c_int on the stack, of the size passed.
+    let rc = unsafe {
+        libc::setsockopt(
+            fd,
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&want as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+    if rc != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    let mut got: libc::c_int = 0;
+    let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+    // SAFETY: as above; `got` and `len` are valid for writes.
+    let rc = unsafe {
+        libc::getsockopt(
+            fd,
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&mut got as *mut libc::c_int).cast(),
+            &mut len,
+        )
+    };
+    if rc != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    Ok(got.max(0) as usize)
+}
+
 /// Reads one datagram from a non-blocking socket into `buf`; `None` when none waits
 /// (other errors are logged at debug level and also end the batch).
 pub fn recv_one(
