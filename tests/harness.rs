@@ -1,20 +1,35 @@
 //! A deterministic in-memory federation: the broker core, system cores (with the
 //! synthetic system's logic) and user cores wired together on a virtual clock. Frames
 //! still go through the wire codec. Hours of virtual time run in milliseconds.
+//!
+//! Remote users ride the sans-IO UDP path (the broker's front, the user's connection,
+//! the systems' session endpoints) over a seeded network with delay, loss, duplication
+//! and reordering, where an attacker can forge and replay datagrams.
 
 #![allow(clippy::unwrap_used)]
 
+mod udpnet;
+
 use muster_broker::core::{Broker, BrokerConfig, Output};
+use muster_broker::udp::{FrontEvent, UdpFront, UdpLimits};
 use muster_shared::protocol::{decode, encode, ToBroker, ToSystem, ToUser};
 use muster_shared::types::{
     EndReason, Payload, Refusal, ServiceId, ServiceKind, SessionId, TaskStatus, UserId,
 };
+use muster_shared::udp::access::{access_line, AccessFile};
+use muster_shared::udp::crypto::KeyPair;
 use muster_systems::core::{SystemCore, SystemOutput};
+use muster_systems::remote::RemoteSessions;
 use muster_systems::runtime::SystemApp;
 use muster_systems::synthetic::{Synthetic, SyntheticOptions};
 use muster_users::core::{UserCore, UserEvent, UserOutput};
+use muster_users::remote::RemoteOptions;
+use muster_users::RemoteConn;
 use std::collections::{BTreeMap, VecDeque};
+use std::net::SocketAddr;
 use std::time::Duration;
+use std::time::Instant;
+use udpnet::{Network, PathFaults};
 
 enum Frame {
     Broker(Vec<u8>),
@@ -27,10 +42,24 @@ struct Sys {
     app: Synthetic,
     alive: bool,
     frozen: bool,
+    udp: SocketAddr,
+    remote: RemoteSessions,
 }
+
+/// A remote user: its core and its sans-IO connection, at an address of its own.
+struct RUser {
+    core: UserCore,
+    conn: RemoteConn,
+    addr: SocketAddr,
+}
+
+/// The broker's UDP address in the simulated network.
+const BROKER_UDP: &str = "10.0.0.1:7000";
 
 struct Net {
     now: Duration,
+    /// The virtual clock's origin as an `Instant`, for the sans-IO endpoints.
+    base: Instant,
     broker: Option<Broker>,
     epoch: u64,
     systems: BTreeMap<String, Sys>,
@@ -38,12 +67,29 @@ struct Net {
     events: BTreeMap<UserId, Vec<UserEvent>>,
     wire: VecDeque<Frame>,
     delivered: u64,
+    /// The UDP path: the network, the broker's front (while the broker runs), its key,
+    /// limits and access file, and the remote users.
+    udp: Network,
+    front: Option<UdpFront>,
+    broker_key: KeyPair,
+    limits: UdpLimits,
+    access: String,
+    remote: BTreeMap<UserId, RUser>,
+    /// Datagrams that reached an address nobody here listens at (an attacker's, or a
+    /// spoofed victim's): what the federation sent there.
+    strays: Vec<udpnet::InFlight>,
 }
 
 impl Net {
     fn new() -> Self {
+        Self::with_udp(UdpLimits::default(), 1)
+    }
+
+    /// A federation whose UDP front has `limits`, its network's faults drawn from `seed`.
+    fn with_udp(limits: UdpLimits, seed: u64) -> Self {
         let mut n = Net {
             now: Duration::ZERO,
+            base: Instant::now(),
             broker: None,
             epoch: 0,
             systems: BTreeMap::new(),
@@ -51,14 +97,40 @@ impl Net {
             events: BTreeMap::new(),
             wire: VecDeque::new(),
             delivered: 0,
+            udp: Network::new(seed),
+            front: None,
+            broker_key: KeyPair::generate().unwrap(),
+            limits,
+            access: String::new(),
+            remote: BTreeMap::new(),
+            strays: Vec::new(),
         };
         n.start_broker();
         n
     }
 
+    fn at(&self, d: Duration) -> Instant {
+        self.base + d
+    }
+
+    fn broker_udp() -> SocketAddr {
+        BROKER_UDP.parse().unwrap()
+    }
+
     fn start_broker(&mut self) {
         self.epoch += 1;
         self.broker = Some(Broker::new(BrokerConfig::default(), self.epoch, 1));
+        let mut seed = [0u8; 32];
+        seed[..8].copy_from_slice(&self.epoch.to_le_bytes());
+        self.front = Some(UdpFront::new(
+            self.broker_key.clone(),
+            AccessFile::parse(&self.access).unwrap(),
+            self.limits.clone(),
+            Self::broker_udp(),
+            self.epoch,
+            self.at(self.now),
+            seed,
+        ));
         // The presence event: everyone re-registers / says hello.
         for s in self.systems.values_mut().filter(|s| s.alive && !s.frozen) {
             s.core.broker_lost();
@@ -73,6 +145,7 @@ impl Net {
 
     fn kill_broker(&mut self) {
         self.broker = None;
+        self.front = None;
         for s in self.systems.values_mut().filter(|s| s.alive) {
             s.core.broker_lost();
         }
@@ -83,8 +156,10 @@ impl Net {
     }
 
     fn add_system(&mut self, opts: SyntheticOptions) {
-        let mut core =
-            SystemCore::new(&opts.name, 100 + self.systems.len() as u32, opts.specs(), 9);
+        let k = self.systems.len();
+        let mut core = SystemCore::new(&opts.name, 100 + k as u32, opts.specs(), 9);
+        let udp: SocketAddr = format!("10.0.1.{}:9000", k + 1).parse().unwrap();
+        core.set_udp(Some(udp.to_string()));
         core.register();
         let app = Synthetic::new(&opts);
         self.systems.insert(
@@ -94,6 +169,8 @@ impl Net {
                 app,
                 alive: true,
                 frozen: false,
+                udp,
+                remote: RemoteSessions::default(),
             },
         );
         self.settle();
@@ -108,8 +185,48 @@ impl Net {
         id
     }
 
+    /// A remote user `n` named `name` in the access file (allowed every service), on a
+    /// path with `faults`; it starts its handshake at once. Not settled: run the clock.
+    fn add_remote_user(&mut self, n: u32, name: &str, faults: PathFaults) -> UserId {
+        let key = KeyPair::generate().unwrap();
+        self.access += &access_line(name, &key.public, &["*".into()]);
+        if let Some(f) = self.front.as_mut() {
+            f.reload(
+                self.base + self.now,
+                AccessFile::parse(&self.access).unwrap(),
+            );
+        }
+        let addr: SocketAddr = format!("10.0.2.{}:{}", 1 + n / 200, 5000 + n % 200)
+            .parse()
+            .unwrap();
+        self.udp.set_faults(addr.ip(), faults);
+        let mut seed = [0u8; 32];
+        seed[..4].copy_from_slice(&n.to_le_bytes());
+        let opts = RemoteOptions {
+            broker: Self::broker_udp(),
+            name: name.into(),
+            key,
+            broker_key: Some(self.broker_key.public),
+            faults: None,
+        };
+        let conn = RemoteConn::new(opts, self.at(self.now), seed);
+        let id = conn.user_id();
+        let mut core = UserCore::new(id.clone(), 0, false);
+        core.hello();
+        self.remote.insert(id.clone(), RUser { core, conn, addr });
+        self.settle();
+        id
+    }
+
+    fn ruser(&mut self, id: &UserId) -> &mut RUser {
+        self.remote.get_mut(id).expect("remote user")
+    }
+
     fn user(&mut self, id: &UserId) -> &mut UserCore {
-        self.users.get_mut(id).expect("user")
+        match self.users.get_mut(id) {
+            Some(u) => u,
+            None => &mut self.remote.get_mut(id).expect("user").core,
+        }
     }
 
     fn take_events(&mut self, id: &UserId) -> Vec<UserEvent> {
@@ -118,9 +235,13 @@ impl Net {
 
     /// Moves frames and outputs until nothing is left to deliver.
     fn settle(&mut self) {
-        for _ in 0..100_000 {
+        for _ in 0..1_000_000 {
             self.collect();
             let Some(frame) = self.wire.pop_front() else {
+                if let Some(d) = self.udp.pop_due(self.now) {
+                    self.deliver_datagram(d);
+                    continue;
+                }
                 return;
             };
             self.delivered += 1;
@@ -134,6 +255,7 @@ impl Net {
                 Frame::System(name, f) => {
                     let msg: ToSystem = decode(&f).expect("valid frame");
                     if let Some(s) = self.systems.get_mut(&name).filter(|s| s.alive && !s.frozen) {
+                        s.remote.note(&msg);
                         s.core.handle(msg);
                     }
                 }
@@ -148,10 +270,42 @@ impl Net {
         panic!("the federation did not settle");
     }
 
+    /// Hands a datagram to whoever listens at its address.
+    fn deliver_datagram(&mut self, d: udpnet::InFlight) {
+        let now = self.now;
+        let t = self.at(now);
+        if d.to == Self::broker_udp() {
+            if let (Some(f), Some(b)) = (self.front.as_mut(), self.broker.as_mut()) {
+                f.handle(t, d.from, &d.bytes, b);
+                front_events(f, b, now);
+            }
+            return;
+        }
+        if let Some(s) = self.systems.values_mut().find(|s| s.udp == d.to) {
+            if s.alive && !s.frozen {
+                s.remote.handle(t, d.from, &d.bytes, &mut s.core);
+            }
+            return;
+        }
+        if let Some(u) = self.remote.values_mut().find(|u| u.addr == d.to) {
+            u.conn.handle(t, d.from, &d.bytes, &mut u.core);
+            return;
+        }
+        self.strays.push(d);
+    }
+
     fn collect(&mut self) {
         let now = self.now;
+        let t = self.at(now);
         if let Some(b) = self.broker.as_mut() {
             while let Some(o) = b.poll_output() {
+                let o = match self.front.as_mut() {
+                    Some(f) => match f.route(&*b, o) {
+                        Some(o) => o,
+                        None => continue,
+                    },
+                    None => o,
+                };
                 match o {
                     Output::ToSystem(s, m) => {
                         self.wire.push_back(Frame::System(s, encode(&m).unwrap()))
@@ -162,12 +316,26 @@ impl Net {
                     _ => {}
                 }
             }
-            let _ = b.take_list_change();
+            if let Some((generation, views)) = b.take_list_change() {
+                if let Some(f) = self.front.as_mut() {
+                    f.list_changed(self.epoch, generation, &views);
+                    let watchers: Vec<UserId> = b.list_watchers().cloned().collect();
+                    f.ring(&watchers);
+                }
+            }
+        }
+        if let Some(f) = self.front.as_mut() {
+            while let Some(x) = f.poll_transmit() {
+                self.udp.send(now, Self::broker_udp(), x.to, x.bytes);
+            }
         }
         let broker_up = self.broker.is_some();
         for s in self.systems.values_mut().filter(|s| s.alive && !s.frozen) {
             loop {
                 while let Some(o) = s.core.poll_output() {
+                    let Some(o) = s.remote.route(t, o) else {
+                        continue;
+                    };
                     match o {
                         SystemOutput::ToBroker(m) if broker_up => {
                             self.wire.push_back(Frame::Broker(encode(&m).unwrap()))
@@ -180,6 +348,24 @@ impl Net {
                 }
                 let Some(ev) = s.core.poll_event() else { break };
                 s.app.on_event(&mut s.core, now, ev);
+            }
+            while let Some(x) = s.remote.poll_transmit() {
+                self.udp.send(now, s.udp, x.to, x.bytes);
+            }
+        }
+        for (id, u) in self.remote.iter_mut() {
+            while let Some(o) = u.core.poll_output() {
+                match o {
+                    UserOutput::ToBroker(m) => u.conn.send_broker(t, m),
+                    UserOutput::ToSystem(_, m) => u.conn.send_system(t, m),
+                    _ => {}
+                }
+            }
+            while let Some(e) = u.core.poll_event() {
+                self.events.entry(id.clone()).or_default().push(e);
+            }
+            while let Some(x) = u.conn.poll_transmit() {
+                self.udp.send(now, u.addr, x.to, x.bytes);
             }
         }
         for (id, u) in self.users.iter_mut() {
@@ -202,6 +388,7 @@ impl Net {
 
     /// Advances virtual time to `until`, running every deadline on the way.
     fn run_until(&mut self, until: Duration) {
+        let mut spins = 0u32;
         loop {
             let broker_t = self.broker.as_ref().and_then(Broker::poll_timeout);
             let sys_t = self
@@ -210,19 +397,55 @@ impl Net {
                 .filter(|s| s.alive && !s.frozen)
                 .filter_map(|s| s.app.next_tick(&s.core))
                 .min();
-            let next = [broker_t, sys_t].into_iter().flatten().min();
+            let base = self.base;
+            let rel = |i: Instant| i.saturating_duration_since(base);
+            let udp_t = [
+                self.front
+                    .as_ref()
+                    .and_then(UdpFront::poll_timeout)
+                    .map(rel),
+                self.systems
+                    .values()
+                    .filter(|s| s.alive && !s.frozen)
+                    .filter_map(|s| s.remote.poll_timeout())
+                    .map(rel)
+                    .min(),
+                self.remote
+                    .values()
+                    .map(|u| rel(u.conn.poll_timeout()))
+                    .min(),
+                self.udp.next_at(),
+            ];
+            let next = [broker_t, sys_t].into_iter().chain(udp_t).flatten().min();
             match next {
                 Some(t) if t <= until => {
+                    if t <= self.now {
+                        spins += 1;
+                        assert!(spins < 10_000, "a deadline at {t:?} is never handled");
+                    } else {
+                        spins = 0;
+                    }
                     self.now = self.now.max(t);
+                    let now = self.now;
+                    let it = self.at(now);
                     if let Some(b) = self.broker.as_mut() {
-                        if b.poll_timeout().is_some_and(|bt| bt <= self.now) {
-                            b.handle_timeout(self.now);
+                        if b.poll_timeout().is_some_and(|bt| bt <= now) {
+                            b.handle_timeout(now);
+                        }
+                        if let Some(f) = self.front.as_mut() {
+                            f.handle_timeout(it);
+                            front_events(f, b, now);
                         }
                     }
-                    let now = self.now;
                     for s in self.systems.values_mut().filter(|s| s.alive && !s.frozen) {
                         if s.app.next_tick(&s.core).is_some_and(|st| st <= now) {
                             s.app.on_tick(&mut s.core, now);
+                        }
+                        s.remote.handle_timeout(it, &mut s.core);
+                    }
+                    for u in self.remote.values_mut() {
+                        if u.conn.poll_timeout() <= it {
+                            u.conn.handle_timeout(it, &mut u.core);
                         }
                     }
                     self.settle();
@@ -237,6 +460,16 @@ impl Net {
 
     fn list(&self) -> Vec<muster_shared::snapshot::ServiceView> {
         self.broker.as_ref().map(Broker::views).unwrap_or_default()
+    }
+}
+
+/// Hands the front's messages to the broker core, as `run.rs` does.
+fn front_events(f: &mut UdpFront, b: &mut Broker, now: Duration) {
+    while let Some(ev) = f.poll_event() {
+        match ev {
+            FrontEvent::ToCore(m) => b.handle(now, m),
+            FrontEvent::UserGone(u) => b.user_died(now, &u),
+        }
     }
 }
 
@@ -579,4 +812,216 @@ fn withdraw_ends_sessions_and_refuses_then_restore_reopens() {
     net.user(&u).request(ServiceId::new("t1", "s0"));
     net.settle();
     assert_eq!(granted(&net.take_events(&u)).len(), 1);
+}
+
+/// Runs the clock in steps until `done` holds or `within` passes; returns whether it held.
+fn run_while(net: &mut Net, within: Duration, mut done: impl FnMut(&mut Net) -> bool) -> bool {
+    let limit = net.now + within;
+    while net.now < limit {
+        if done(net) {
+            return true;
+        }
+        let step = net.now + secs(0.05);
+        net.run_until(step);
+    }
+    done(net)
+}
+
+/// A remote user on a path with `faults` connects, lists, takes a data session, links
+/// a data service into a command service, ends its session; returns its events and
+/// the link's counters.
+fn remote_user_works(
+    faults: PathFaults,
+    seed: u64,
+) -> (Vec<UserEvent>, muster_users::remote::LinkStats) {
+    let mut net = Net::with_udp(UdpLimits::default(), seed);
+    net.add_system(data("t1", 2, 10));
+    net.add_system(command("d1", 1, false));
+    let u = net.add_remote_user(1, "alice", faults);
+    let mut events = Vec::new();
+    let connected = run_while(&mut net, secs(30.0), |n| {
+        events.extend(n.take_events(&u));
+        events
+            .iter()
+            .any(|e| matches!(e, UserEvent::Connected { .. }))
+    });
+    assert!(
+        connected,
+        "connected within 30 s: {:?}",
+        net.ruser(&u).conn.stats()
+    );
+    // The list, in chunks over the channel.
+    let t = net.at(net.now);
+    net.ruser(&u).conn.ask_list(t);
+    let mut list = None;
+    assert!(run_while(&mut net, secs(30.0), |n| {
+        list = n.ruser(&u).conn.take_list();
+        list.is_some()
+    }));
+    let list = list.unwrap();
+    assert_eq!(list.count, 3, "two data services and one command service");
+    // A data session.
+    net.user(&u).request(ServiceId::new("t1", "s0"));
+    net.settle();
+    let mut session = None;
+    assert!(run_while(&mut net, secs(30.0), |n| {
+        let ev = n.take_events(&u);
+        session = session.or(granted(&ev).first().copied());
+        events.extend(ev);
+        session.is_some()
+    }));
+    let session = session.unwrap();
+    let from = net.now;
+    net.run_until(from + secs(10.0));
+    events.extend(net.take_events(&u));
+    let updates = events
+        .iter()
+        .filter(|e| matches!(e, UserEvent::Update { session: s, .. } if *s == session))
+        .count();
+    assert!(
+        updates >= 70,
+        "10 s at 10 Hz arrive, less what the path loses: {updates}"
+    );
+    // A link: t1/s1 into d1/s0, straight between the user and both systems.
+    let link = net
+        .user(&u)
+        .link(ServiceId::new("t1", "s1"), ServiceId::new("d1", "s0"));
+    net.settle();
+    let mut forwarded = 0;
+    assert!(
+        run_while(&mut net, secs(30.0), |n| {
+            let ev = n.take_events(&u);
+            forwarded += ev
+                .iter()
+                .filter(|e| matches!(e, UserEvent::LinkForwarded { link: l, .. } if *l == link))
+                .count();
+            events.extend(ev);
+            forwarded >= 10
+        }),
+        "the link forwards: {forwarded}"
+    );
+    assert_eq!(net.systems["d1"].core.sessions_of("s0"), 1);
+    // End the data session: the system confirms, the broker's quota is free again.
+    net.user(&u).end(session);
+    net.settle();
+    assert!(run_while(&mut net, secs(30.0), |n| {
+        events.extend(n.take_events(&u));
+        events
+            .iter()
+            .any(|e| matches!(e, UserEvent::EndConfirmed { session: s, .. } if *s == session))
+            && n.list().iter().find(|v| v.id == "t1/s0").unwrap().in_use == 0
+    }));
+    let stats = net.ruser(&u).conn.stats().clone();
+    (events, stats)
+}
+
+#[test]
+fn a_remote_user_connects_and_works_at_1s_rtt() {
+    let (_, stats) = remote_user_works(
+        PathFaults {
+            rtt: secs(1.0),
+            jitter: secs(0.02),
+            ..PathFaults::default()
+        },
+        11,
+    );
+    assert_eq!(
+        stats.handshakes, 1,
+        "one handshake, never torn down: {stats:?}"
+    );
+}
+
+#[test]
+fn a_remote_user_connects_and_works_at_300ms_rtt_with_5_percent_loss() {
+    for seed in [1, 2, 3] {
+        let (_, stats) = remote_user_works(
+            PathFaults {
+                rtt: secs(0.3),
+                jitter: secs(0.02),
+                loss: 0.05,
+                ..PathFaults::default()
+            },
+            seed,
+        );
+        assert_eq!(stats.handshakes, 1, "seed {seed}: {stats:?}");
+    }
+}
+
+#[test]
+fn a_remote_user_works_on_a_clean_path() {
+    let (_, stats) = remote_user_works(PathFaults::default(), 5);
+    assert_eq!(stats.handshakes, 1);
+    assert_eq!(
+        stats.retransmissions, 0,
+        "nothing lost, nothing repeated: {stats:?}"
+    );
+}
+
+#[test]
+fn forged_handshake_datagrams_leave_a_working_channel_alone() {
+    let mut net = Net::new();
+    net.add_system(data("t1", 1, 10));
+    net.udp.tapping = true;
+    let u = net.add_remote_user(1, "alice", PathFaults::default());
+    assert!(run_while(&mut net, secs(5.0), |n| n
+        .take_events(&u)
+        .iter()
+        .any(|e| matches!(e, UserEvent::Connected { .. }))));
+    // The attacker saw the user's INITIAL, so it knows the handshake id; it forges
+    // every handshake answer, from its own address and from the broker's.
+    let addr = net.ruser(&u).addr;
+    let client = net
+        .udp
+        .tap
+        .iter()
+        .find_map(
+            |d| match muster_shared::udp::wire::Datagram::decode(&d.bytes) {
+                Ok(muster_shared::udp::wire::Datagram::Initial { client, .. })
+                    if d.from == addr =>
+                {
+                    Some(client)
+                }
+                _ => None,
+            },
+        )
+        .unwrap();
+    let reply = muster_shared::udp::wire::Datagram::HsReply {
+        client,
+        conn: 7,
+        noise: &[0u8; 48],
+    }
+    .encode()
+    .unwrap();
+    assert_eq!(reply.len(), 69, "the size the review forged");
+    let retry = muster_shared::udp::wire::Datagram::Retry {
+        client,
+        token: &[1u8; 24],
+    }
+    .encode()
+    .unwrap();
+    let attacker: SocketAddr = "10.9.9.9:4444".parse().unwrap();
+    for from in [attacker, Net::broker_udp()] {
+        for d in [&reply, &retry] {
+            let at = net.now;
+            net.udp.inject(at, from, addr, d.clone());
+        }
+    }
+    net.run_until(net.now + secs(1.0));
+    // The channel still works: a request is granted and data flows, on the first
+    // handshake.
+    net.user(&u).request(ServiceId::new("t1", "s0"));
+    net.settle();
+    let mut got = Vec::new();
+    assert!(run_while(&mut net, secs(5.0), |n| {
+        got.extend(n.take_events(&u));
+        got.iter()
+            .filter(|e| matches!(e, UserEvent::Update { .. }))
+            .count()
+            >= 10
+    }));
+    assert!(!granted(&got).is_empty());
+    let stats = net.ruser(&u).conn.stats().clone();
+    assert_eq!(stats.handshakes, 1, "{stats:?}");
+    assert_eq!(stats.drops.by_reason["stale_handshake"], 4, "{stats:?}");
+    assert!(net.ruser(&u).conn.welcomed());
 }

@@ -210,6 +210,9 @@ pub struct UdpFront {
     limits: UdpLimits,
     pending: HashMap<u64, Pending>,
     pending_by: HashMap<(SocketAddr, u64), u64>,
+    /// Handshakes finished lately, by source and handshake id: a late repeat of their
+    /// INITIAL (a slow link) is dropped instead of starting another one.
+    finished: HashMap<(SocketAddr, u64), Instant>,
     conns: HashMap<u64, Conn>,
     /// Connections closed lately (goodbye, expiry, revocation): their stragglers (a
     /// repeated goodbye, a keepalive in flight) are counted quietly, not as attacks.
@@ -265,6 +268,7 @@ impl UdpFront {
             limits,
             pending: HashMap::new(),
             pending_by: HashMap::new(),
+            finished: HashMap::new(),
             conns: HashMap::new(),
             closed: HashMap::new(),
             by_user: HashMap::new(),
@@ -390,6 +394,9 @@ impl UdpFront {
         }
         self.closed
             .retain(|_, at| t.saturating_duration_since(*at) < Duration::from_secs(10));
+        let keep = self.limits.handshake_timeout * 2;
+        self.finished
+            .retain(|_, at| t.saturating_duration_since(*at) < keep);
         if self.sources.len() > 4 * self.limits.max_pending {
             let (rate, burst) = self.limits.source_rate;
             self.sources
@@ -485,6 +492,9 @@ impl UdpFront {
         if !bucket.take(t, (rate, burst)) {
             return self.stats.drops.drop("source_rate", &from);
         }
+        if self.finished.contains_key(&(from, client)) {
+            return self.stats.drops.count("handshake_done");
+        }
         if let Some(id) = self.pending_by.get(&(from, client)) {
             // A retransmitted INITIAL: answer with the same reply.
             if let Some(p) = self.pending.get(id) {
@@ -572,6 +582,7 @@ impl UdpFront {
         };
         let (_, burst) = self.limits.conn_rate;
         self.stats.handshakes += 1;
+        self.finished.insert((from, p.client), now);
         tracing::debug!(user = %hs3.name, %from, "remote user authenticated");
         self.conns.insert(
             conn,

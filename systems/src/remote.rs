@@ -31,6 +31,8 @@ use std::time::{Duration, Instant};
 pub const LEASE: Duration = Duration::from_secs(5);
 /// An ended session's key is kept this long to answer repeated `End`s.
 pub const LINGER: Duration = Duration::from_secs(10);
+/// How often silent sessions are looked for.
+const HOUSEKEEPING: Duration = Duration::from_millis(500);
 
 struct Remote {
     user: UserId,
@@ -57,6 +59,7 @@ pub struct RemoteStats {
 #[derive(Default)]
 pub struct RemoteSessions {
     out: VecDeque<Transmit>,
+    next_housekeeping: Option<Instant>,
     offers: HashMap<(UserId, u64), RemoteContact>,
     sessions: HashMap<u64, Remote>,
     stats: RemoteStats,
@@ -103,6 +106,7 @@ impl RemoteSessions {
                 let contact = self.offers.remove(&(user.clone(), req))?;
                 match contact.addr.parse::<SocketAddr>() {
                     Ok(addr) => {
+                        self.next_housekeeping.get_or_insert(now + HOUSEKEEPING);
                         // A repeated offer for a session we hold keeps its cipher.
                         self.sessions.entry(session.0).or_insert_with(|| Remote {
                             user,
@@ -209,13 +213,21 @@ impl RemoteSessions {
         }
     }
 
-    /// When housekeeping is next due.
-    pub fn poll_timeout(&self) -> Option<Duration> {
-        (!self.sessions.is_empty()).then_some(Duration::from_millis(500))
+    /// When [`RemoteSessions::handle_timeout`] is next due.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        if self.sessions.is_empty() {
+            None
+        } else {
+            self.next_housekeeping
+        }
     }
 
-    /// Ends silent sessions and forgets old ended ones.
-    pub fn housekeeping(&mut self, now: Instant, core: &mut SystemCore) {
+    /// Ends silent sessions and forgets old ended ones, if due.
+    pub fn handle_timeout(&mut self, now: Instant, core: &mut SystemCore) {
+        if self.poll_timeout().is_none_or(|t| now < t) {
+            return;
+        }
+        self.next_housekeeping = Some(now + HOUSEKEEPING);
         let silent: Vec<u64> = self
             .sessions
             .iter()

@@ -212,7 +212,6 @@ pub fn run_system_with<A: SystemApp>(
     for (i, fd) in app.descriptors().into_iter().enumerate() {
         reactor.add(fd, FIRST_APP_TOKEN + i)?;
     }
-    let mut last_housekeeping = Instant::now();
     let mut shell = Shell {
         remote,
         endpoint,
@@ -239,7 +238,7 @@ pub fn run_system_with<A: SystemApp>(
             .remote
             .as_ref()
             .and_then(|r| r.logic.poll_timeout())
-            .map(|every| every.saturating_sub(last_housekeeping.elapsed()));
+            .map(|t| t.saturating_duration_since(Instant::now()));
         let timeout = [timeout, shell.endpoint.sweep(), housekeeping]
             .into_iter()
             .flatten()
@@ -321,14 +320,8 @@ pub fn run_system_with<A: SystemApp>(
             }
         }
         if let Some(r) = shell.remote.as_mut() {
-            if r.logic
-                .poll_timeout()
-                .is_some_and(|e| last_housekeeping.elapsed() >= e)
-            {
-                r.logic.housekeeping(Instant::now(), &mut core);
-                r.transmit();
-                last_housekeeping = Instant::now();
-            }
+            r.logic.handle_timeout(Instant::now(), &mut core);
+            r.transmit();
         }
         if app.next_tick(&core).is_some_and(|t| t <= now) {
             app.on_tick(&mut core, now);

@@ -35,6 +35,9 @@ pub const RTO: Duration = Duration::from_millis(200);
 pub const MIN_RTO: Duration = Duration::from_millis(20);
 /// Longest retransmission timeout.
 pub const MAX_RTO: Duration = Duration::from_secs(2);
+/// A handshake that has not finished after this long starts over (the broker may have
+/// restarted and forgotten it). Three round trips of a satellite link fit many times.
+pub const HANDSHAKE_GIVE_UP: Duration = Duration::from_secs(15);
 /// Keepalive period towards the broker (an idle user costs the broker one small
 /// datagram per period).
 pub const KEEPALIVE: Duration = Duration::from_secs(5);
@@ -133,6 +136,9 @@ pub struct RemoteConn {
     hs: Option<Hs>,
     hs_retry: Retry,
     hs_started: Instant,
+    /// When the current handshake message was first sent, while it was not repeated:
+    /// its answer is a round-trip sample (Karn's rule).
+    hs_sent: Option<Instant>,
     welcomed: bool,
     last_from_broker: Instant,
     next_ping: Instant,
@@ -172,6 +178,7 @@ impl RemoteConn {
             hs: None,
             hs_retry: Retry::new(now, RTO),
             hs_started: now,
+            hs_sent: None,
             welcomed: false,
             last_from_broker: now,
             next_ping: now + KEEPALIVE,
@@ -221,8 +228,9 @@ impl RemoteConn {
     fn start_handshake(&mut self, now: Instant) {
         let client: u64 = self.rng.random();
         self.hs = Some(Hs::Token { client });
-        self.hs_retry = Retry::new(now, RTO);
+        self.hs_retry = Retry::new(now, self.rto());
         self.hs_started = now;
+        self.hs_sent = Some(now);
         self.welcomed = false;
         self.send_initial(client, &[], &[]);
     }
@@ -311,9 +319,10 @@ impl RemoteConn {
             t = t.min(r.next);
         }
         for s in self.sessions.values() {
-            t = t.min(s.next_keepalive);
-            if let Some((r, _)) = &s.ending {
-                t = t.min(r.next);
+            // An ending session sends no keepalives, only its repeated End.
+            match &s.ending {
+                Some((r, _)) => t = t.min(r.next),
+                None => t = t.min(s.next_keepalive),
             }
         }
         t
@@ -328,6 +337,7 @@ impl RemoteConn {
             }) => {}
             _ if self.hs_retry.due(now) => {
                 self.stats.retransmissions += 1;
+                self.hs_sent = None;
                 match self.hs.take() {
                     Some(Hs::Token { client }) => {
                         self.hs = Some(Hs::Token { client });
@@ -364,7 +374,7 @@ impl RemoteConn {
                     None => self.start_handshake(now),
                 }
                 // A handshake that gets nowhere starts over (the broker restarted).
-                if now.duration_since(self.hs_started) > Duration::from_secs(5) {
+                if now.duration_since(self.hs_started) > HANDSHAKE_GIVE_UP {
                     self.start_handshake(now);
                 }
             }
@@ -471,12 +481,12 @@ impl RemoteConn {
             Err(_) => return self.stats.drops.drop("malformed", &from),
         };
         match d {
-            Datagram::Retry { client, token } => self.on_retry(now, client, token),
+            Datagram::Retry { client, token } => self.on_retry(now, client, token, from),
             Datagram::HsReply {
                 client,
                 conn,
                 noise,
-            } => self.on_reply(now, core, client, conn, noise),
+            } => self.on_reply(now, core, client, conn, noise, from),
             Datagram::Channel {
                 conn,
                 nonce,
@@ -491,11 +501,14 @@ impl RemoteConn {
         }
     }
 
-    fn on_retry(&mut self, now: Instant, client: u64, token: &[u8]) {
+    fn on_retry(&mut self, now: Instant, client: u64, token: &[u8], from: SocketAddr) {
         let ok = matches!(&self.hs, Some(Hs::Token { client: c }) if *c == client);
-        if !ok {
-            return;
+        if !ok || from != self.opts.broker {
+            // A repeat (our INITIAL went out more than once) or a forgery: it changes
+            // nothing.
+            return self.stats.drops.count("stale_handshake");
         }
+        self.hs_rtt_sample(now);
         let mut hs = match crypto::initiator(&self.opts.key) {
             Ok(h) => h,
             Err(e) => return tracing::error!("cannot start a handshake: {e}"),
@@ -510,7 +523,18 @@ impl RemoteConn {
             initial,
             hs: Box::new(hs),
         });
-        self.hs_retry = Retry::new(now, RTO);
+        self.hs_retry = Retry::new(now, self.rto());
+        self.hs_sent = Some(now);
+    }
+
+    /// The answer to a handshake message sent once is a round-trip sample.
+    fn hs_rtt_sample(&mut self, now: Instant) {
+        if let Some(sent) = self.hs_sent.take() {
+            let rtt = now.saturating_duration_since(sent);
+            if rtt < Duration::from_secs(10) {
+                self.sample_rtt(rtt);
+            }
+        }
     }
 
     fn on_reply(
@@ -520,7 +544,15 @@ impl RemoteConn {
         client: u64,
         conn: u64,
         noise: &[u8],
+        from: SocketAddr,
     ) {
+        // Only the reply we wait for, from the broker's address, may move the handshake:
+        // a repeat (the broker answered our repeated INITIAL again) or a forgery leaves
+        // the state, and above all a working channel, as it is.
+        let waiting = matches!(&self.hs, Some(Hs::Reply { client: c, .. }) if *c == client);
+        if !waiting || from != self.opts.broker {
+            return self.stats.drops.count("stale_handshake");
+        }
         let Some(Hs::Reply {
             client: c,
             initial,
@@ -534,10 +566,6 @@ impl RemoteConn {
             initial,
             hs,
         };
-        if c != client {
-            self.hs = Some(restore(hs, initial));
-            return;
-        }
         let mut scratch = [0u8; 512];
         if hs.read_message(noise, &mut scratch).is_err() {
             self.stats
@@ -579,7 +607,8 @@ impl RemoteConn {
             fin,
             confirmed: false,
         });
-        self.hs_retry = Retry::new(now, RTO);
+        self.hs_rtt_sample(now);
+        self.hs_retry = Retry::new(now, self.rto());
         self.stats.handshakes += 1;
         // Say hello at once (repeated until the welcome): the first connection's hello
         // waits in `hello`; after a reconnection the core says it again.
