@@ -102,6 +102,8 @@ pub struct UdpStats {
     pub handshakes: u64,
     /// Handshakes whose user or key the access file refused.
     pub auth_failed: u64,
+    /// Pending handshakes dropped to make room for another source's (fair sharing).
+    pub evicted: u64,
     /// Connections dropped for silence.
     pub expired: u64,
     /// Requests that arrived again and were answered from memory.
@@ -210,6 +212,8 @@ pub struct UdpFront {
     limits: UdpLimits,
     pending: HashMap<u64, Pending>,
     pending_by: HashMap<(SocketAddr, u64), u64>,
+    /// Pending handshakes by source, oldest first (for fair sharing of the table).
+    pending_of: HashMap<Source, VecDeque<u64>>,
     /// Handshakes finished lately, by source and handshake id: a late repeat of their
     /// INITIAL (a slow link) is dropped instead of starting another one.
     finished: HashMap<(SocketAddr, u64), Instant>,
@@ -268,6 +272,7 @@ impl UdpFront {
             limits,
             pending: HashMap::new(),
             pending_by: HashMap::new(),
+            pending_of: HashMap::new(),
             finished: HashMap::new(),
             conns: HashMap::new(),
             closed: HashMap::new(),
@@ -405,9 +410,43 @@ impl UdpFront {
     }
 
     fn drop_pending(&mut self, id: u64) {
-        if let Some(p) = self.pending.remove(&id) {
-            self.pending_by.remove(&(p.addr, p.client));
+        let _ = self.take_pending(id);
+    }
+
+    fn take_pending(&mut self, id: u64) -> Option<Pending> {
+        let p = self.pending.remove(&id)?;
+        self.pending_by.remove(&(p.addr, p.client));
+        let src = source_of(&p.addr);
+        if let Some(q) = self.pending_of.get_mut(&src) {
+            q.retain(|c| *c != id);
+            if q.is_empty() {
+                self.pending_of.remove(&src);
+            }
         }
+        Some(p)
+    }
+
+    /// Makes room for a handshake from `src` when the table is full: the source holding
+    /// the most pending handshakes loses its oldest, if it holds more than `src` would
+    /// after this one. So a flood from one or a few addresses only ever competes with
+    /// itself, and every other source still gets its handshake in.
+    fn make_room(&mut self, src: &Source) -> bool {
+        if self.pending.len() < self.limits.max_pending {
+            return true;
+        }
+        let mine = self.pending_of.get(src).map_or(0, VecDeque::len);
+        let Some(victim) = self
+            .pending_of
+            .iter()
+            .filter(|(_, q)| q.len() > mine + 1)
+            .max_by_key(|(s, q)| (q.len(), **s))
+            .and_then(|(_, q)| q.front().copied())
+        else {
+            return false;
+        };
+        self.stats.evicted += 1;
+        self.drop_pending(victim);
+        true
     }
 
     fn close(&mut self, now: Instant, id: u64) {
@@ -502,7 +541,8 @@ impl UdpFront {
                 return self.send_raw(&reply, from);
             }
         }
-        if self.pending.len() >= self.limits.max_pending {
+        let src = source_of(&from);
+        if !self.make_room(&src) {
             return self.stats.drops.drop("pending_full", &from);
         }
         let mut hs = match crypto::responder(&self.key) {
@@ -531,6 +571,7 @@ impl UdpFront {
         };
         self.send_raw(&reply, from);
         self.pending_by.insert((from, client), conn);
+        self.pending_of.entry(src).or_default().push_back(conn);
         self.pending.insert(
             conn,
             Pending {
@@ -550,10 +591,9 @@ impl UdpFront {
         if self.pending.get(&conn).is_none_or(|p| p.addr != from) {
             return self.stats.drops.drop("unknown_handshake", &from);
         }
-        let Some(mut p) = self.pending.remove(&conn) else {
+        let Some(mut p) = self.take_pending(conn) else {
             return;
         };
-        self.pending_by.remove(&(p.addr, p.client));
         let mut payload = [0u8; 1024];
         let n = match p.hs.read_message(noise, &mut payload) {
             Ok(n) => n,
@@ -934,6 +974,16 @@ impl UdpFront {
 impl Conn {
     fn chan_key(&self) -> Option<&[u8]> {
         self.chan.remote_static()
+    }
+}
+
+/// A source for fair sharing: an IPv4 address, or an IPv6 /64 (one host's share).
+type Source = u128;
+
+fn source_of(addr: &SocketAddr) -> Source {
+    match addr.ip() {
+        IpAddr::V4(a) => u128::from(u32::from(a)),
+        IpAddr::V6(a) => (u128::from(a) >> 64 << 64) | (1 << 32),
     }
 }
 
