@@ -1135,3 +1135,107 @@ fn real_users_log_in_during_a_handshake_flood_from_a_few_addresses() {
     assert!(ok >= 99, "{ok} of 100 logged in");
     assert!(p99 < 0.5, "login p99 {p99} s");
 }
+
+/// A remote user, connected on a clean path, with a data system `t1`.
+fn connected_remote_user(net: &mut Net) -> UserId {
+    net.add_system(data("t1", 1, 10));
+    let u = net.add_remote_user(1, "alice", PathFaults::default());
+    assert!(run_while(net, secs(5.0), |n| n
+        .take_events(&u)
+        .iter()
+        .any(|e| matches!(e, UserEvent::Connected { .. }))));
+    u
+}
+
+#[test]
+fn a_late_duplicate_grant_of_an_ended_session_builds_no_second_cipher() {
+    let mut net = Net::new();
+    let u = connected_remote_user(&mut net);
+    let service = ServiceId::new("t1", "s0");
+    let req = net.user(&u).request(service.clone());
+    net.settle();
+    let mut session = None;
+    assert!(run_while(&mut net, secs(5.0), |n| {
+        session = session.or(granted(&n.take_events(&u)).first().copied());
+        session.is_some()
+    }));
+    let session = session.unwrap();
+    net.user(&u).end(session);
+    net.settle();
+    assert!(run_while(&mut net, secs(5.0), |n| n
+        .ruser(&u)
+        .conn
+        .sessions()
+        == 0));
+    // The request goes out again (a retransmission that crossed the grant): the broker
+    // answers from memory with the same grant and key.
+    let t = net.at(net.now);
+    let me = u.clone();
+    net.ruser(&u).conn.send_broker(
+        t,
+        ToBroker::Request {
+            user: me,
+            req,
+            service,
+        },
+    );
+    net.run_until(net.now + secs(1.0));
+    let stats = net.ruser(&u).conn.stats().clone();
+    assert_eq!(stats.duplicate_grants, 1, "{stats:?}");
+    assert_eq!(
+        net.ruser(&u).conn.sessions(),
+        0,
+        "no cipher rebuilt at counter 0"
+    );
+    assert!(granted(&net.take_events(&u)).is_empty());
+}
+
+#[test]
+fn junk_before_a_grant_does_not_push_out_the_systems_first_updates() {
+    let mut net = Net::new();
+    let u = connected_remote_user(&mut net);
+    // The broker's path is slow, the system's fast: the stream starts before the grant.
+    net.udp.set_faults(
+        Net::broker_udp().ip(),
+        PathFaults {
+            rtt: secs(0.6),
+            ..PathFaults::default()
+        },
+    );
+    let addr = net.ruser(&u).addr;
+    let attacker: SocketAddr = "10.9.9.9:4444".parse().unwrap();
+    for i in 0..500u64 {
+        let junk = muster_shared::udp::wire::Datagram::Session {
+            session: 1000 + i,
+            nonce: i,
+            sealed: &[0u8; 40],
+        }
+        .encode()
+        .unwrap();
+        let at = net.now + secs(0.001 * i as f64);
+        net.udp.inject(at, attacker, addr, junk);
+    }
+    net.user(&u).request(ServiceId::new("t1", "s0"));
+    net.settle();
+    let mut got = Vec::new();
+    assert!(run_while(&mut net, secs(5.0), |n| {
+        got.extend(n.take_events(&u));
+        got.iter()
+            .filter(|e| matches!(e, UserEvent::Update { .. }))
+            .count()
+            >= 20
+    }));
+    let seqs: Vec<u64> = got
+        .iter()
+        .filter_map(|e| match e {
+            UserEvent::Update { seq, .. } => Some(*seq),
+            _ => None,
+        })
+        .collect();
+    let session = granted(&got)[0];
+    assert_eq!(
+        net.user(&u).counters(session).unwrap().gaps,
+        0,
+        "the updates streamed before the grant were kept: {seqs:?}"
+    );
+}

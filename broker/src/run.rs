@@ -345,7 +345,7 @@ pub fn run_with(
 
 impl Shell {
     fn drain_inbox(&mut self, core: &mut Broker, now: Duration) -> Result<(), BrokerError> {
-        while let Some(frame) = self.endpoint.recv()? {
+        while let Some(frame) = self.endpoint.recv() {
             match decode::<ToBroker>(&frame) {
                 Ok(msg) => timed_handle(&mut self.handling, core, now, msg),
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),

@@ -657,13 +657,15 @@ impl UdpFront {
             }
             return self.stats.drops.drop("unknown_conn", &from);
         };
-        if !c.bucket.take(t, rate) {
-            return self.stats.drops.drop("conn_rate", &from);
-        }
+        // Authenticate first: forged datagrams carrying a live connection id (it is on
+        // the wire) must not spend the real user's rate.
         let plain = match c.chan.open(nonce, sealed) {
             Ok(p) => p,
             Err(_) => return self.stats.drops.drop("forged_or_replayed", &from),
         };
+        if !c.bucket.take(t, rate) {
+            return self.stats.drops.drop("conn_rate", &from);
+        }
         // Authenticated: the user may have moved (NAT rebinding).
         c.addr = from;
         c.last_heard = t;

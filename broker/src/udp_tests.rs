@@ -93,6 +93,85 @@ impl Rig {
     }
 }
 
+impl Rig {
+    /// A whole handshake as alice; returns the connection id and the user's channel.
+    fn connect(&mut self, client: u64) -> (u64, Channel) {
+        let (mut hs, got) = self.start(client);
+        let Datagram::HsReply { conn, noise, .. } = Datagram::decode(&got[0]).unwrap() else {
+            panic!()
+        };
+        let mut scratch = [0u8; 256];
+        hs.read_message(noise, &mut scratch).unwrap();
+        let payload = to_bytes(&Hs3 {
+            name: "alice".into(),
+            suffix: "abc".into(),
+        })
+        .unwrap();
+        let mut m3 = [0u8; 256];
+        let n = hs.write_message(&payload, &mut m3).unwrap();
+        let fin = Datagram::HsFinal {
+            conn,
+            noise: &m3[..n],
+        }
+        .encode()
+        .unwrap();
+        assert!(self.exchange(&fin).is_empty());
+        (conn, Channel::new(hs).unwrap())
+    }
+
+    /// Sends `m` on the channel; returns the answers, opened.
+    fn say(&mut self, conn: u64, chan: &mut Channel, m: &Up) -> Vec<Down> {
+        let (nonce, sealed) = chan.seal(&to_bytes(m).unwrap()).unwrap();
+        let d = Datagram::Channel {
+            conn,
+            nonce,
+            sealed: &sealed,
+        }
+        .encode()
+        .unwrap();
+        self.exchange(&d)
+            .iter()
+            .map(|b| match Datagram::decode(b).unwrap() {
+                Datagram::Channel { nonce, sealed, .. } => {
+                    from_bytes(&chan.open(nonce, sealed).unwrap()).unwrap()
+                }
+                other => panic!("{other:?}"),
+            })
+            .collect()
+    }
+}
+
+#[test]
+fn forged_channel_datagrams_do_not_spend_the_users_rate() {
+    let mut r = Rig::new(UdpLimits {
+        conn_rate: (0.001, 10.0),
+        ..UdpLimits::default()
+    });
+    let (conn, mut chan) = r.connect(1);
+    // 1000 forgeries carrying the live connection id.
+    for i in 0..1000u64 {
+        let d = Datagram::Channel {
+            conn,
+            nonce: i,
+            sealed: &[0u8; 40],
+        }
+        .encode()
+        .unwrap();
+        assert!(r.exchange(&d).is_empty());
+    }
+    assert_eq!(r.front.stats().drops.by_reason["forged_or_replayed"], 1000);
+    // The user still has its whole burst.
+    for k in 0..10 {
+        let got = r.say(conn, &mut chan, &Up::Ping { nonce: k });
+        assert!(
+            matches!(&got[..], [Down::Pong { nonce, .. }] if *nonce == k),
+            "ping {k}: {got:?}"
+        );
+    }
+    assert!(r.say(conn, &mut chan, &Up::Ping { nonce: 10 }).is_empty());
+    assert_eq!(r.front.stats().drops.by_reason["conn_rate"], 1);
+}
+
 #[test]
 fn pending_handshakes_are_capped_and_expire() {
     let mut r = Rig::new(UdpLimits {

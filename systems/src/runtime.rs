@@ -308,7 +308,7 @@ pub fn run_system_with<A: SystemApp>(
                 }
             }
         }
-        while let Some(frame) = shell.endpoint.recv()? {
+        while let Some(frame) = shell.endpoint.recv() {
             match decode::<ToSystem>(&frame) {
                 Ok(msg) => {
                     if let Some(r) = shell.remote.as_mut() {

@@ -450,7 +450,7 @@ impl UserClient {
 
     fn pump(&mut self) -> Result<(), UserError> {
         if let Transport::Local(l) = &mut self.transport {
-            while let Some(frame) = l.endpoint.recv()? {
+            while let Some(frame) = l.endpoint.recv() {
                 match decode::<ToUser>(&frame) {
                     Ok(msg) => self.core.handle(msg),
                     Err(e) => muster_shared::protocol::log_bad_frame(&e),

@@ -23,7 +23,7 @@ use muster_shared::udp::wire::Datagram;
 use muster_shared::udp::{DropCounters, Transmit};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
@@ -158,10 +158,15 @@ pub struct RemoteConn {
     /// Session datagrams that arrived before their grant (the system streams as soon as
     /// it grants; the grant comes through the broker): replayed when the grant arrives.
     early: Vec<(Instant, Vec<u8>, SocketAddr)>,
+    /// Sessions ended lately, oldest first.
+    retired: HashSet<u64>,
+    retired_order: VecDeque<u64>,
 }
 
 /// Most early session datagrams kept, and for how long.
 const EARLY_MAX: usize = 64;
+/// Most ended session ids remembered (a duplicate grant can lag by a few round trips).
+const RETIRED_MAX: usize = 4096;
 const EARLY_AGE: Duration = Duration::from_secs(2);
 
 impl RemoteConn {
@@ -192,6 +197,8 @@ impl RemoteConn {
             stats: LinkStats::default(),
             ever_connected: false,
             early: Vec::new(),
+            retired: HashSet::new(),
+            retired_order: VecDeque::new(),
             srtt: None,
             rttvar: Duration::ZERO,
             born: now,
@@ -450,7 +457,7 @@ impl RemoteConn {
             }
         }
         for id in gone {
-            self.sessions.remove(&id);
+            self.retire(id);
         }
         for id in keepalive {
             self.send_session(id, &SessionUp::Keepalive);
@@ -468,7 +475,15 @@ impl RemoteConn {
         dead_systems.dedup();
         for system in dead_systems {
             tracing::warn!(%system, "system silent: its sessions are over");
-            self.sessions.retain(|_, s| s.system != system);
+            let ids: Vec<u64> = self
+                .sessions
+                .iter()
+                .filter(|(_, s)| s.system == system)
+                .map(|(id, _)| *id)
+                .collect();
+            for id in ids {
+                self.retire(id);
+            }
             core.system_died(&system);
         }
     }
@@ -687,7 +702,7 @@ impl RemoteConn {
                 key,
             } => {
                 self.requests.remove(&req);
-                if self.sessions.contains_key(&session.0) {
+                if self.sessions.contains_key(&session.0) || self.retired.contains(&session.0) {
                     self.stats.duplicate_grants += 1;
                     return;
                 }
@@ -814,19 +829,17 @@ impl RemoteConn {
         from: SocketAddr,
     ) {
         let Some(s) = self.sessions.get_mut(&session) else {
-            if self.early.len() < EARLY_MAX {
-                let bytes = Datagram::Session {
-                    session,
-                    nonce,
-                    sealed,
-                }
-                .encode()
-                .unwrap_or_default();
-                self.early.push((now, bytes, from));
-            } else {
-                self.stats.drops.count("unknown_session");
+            if self.retired.contains(&session) {
+                return self.stats.drops.count("after_end");
             }
-            return;
+            let bytes = Datagram::Session {
+                session,
+                nonce,
+                sealed,
+            }
+            .encode()
+            .unwrap_or_default();
+            return self.keep_early(now, bytes, from);
         };
         let Ok(plain) = s.cipher.open(session, nonce, sealed) else {
             return self.stats.drops.drop("forged_or_replayed", &from);
@@ -839,9 +852,50 @@ impl RemoteConn {
             SessionDown::Alive => {}
             SessionDown::Msg(m) => {
                 if let ToUser::Ended { .. } = &m {
-                    self.sessions.remove(&session);
+                    self.retire(session);
                 }
                 core.handle(m);
+            }
+        }
+    }
+
+    /// Keeps a session datagram that came before its grant. It cannot be authenticated
+    /// yet, so junk may fill the buffer: old entries expire, and when it is full the
+    /// source holding the most entries loses its oldest (if it holds more than `from`
+    /// would), so junk from a few addresses cannot push out a system's stream.
+    fn keep_early(&mut self, now: Instant, bytes: Vec<u8>, from: SocketAddr) {
+        self.early
+            .retain(|(t, _, _)| now.saturating_duration_since(*t) < EARLY_AGE);
+        if self.early.len() >= EARLY_MAX {
+            let mut by_source: HashMap<SocketAddr, usize> = HashMap::new();
+            for (_, _, f) in &self.early {
+                *by_source.entry(*f).or_default() += 1;
+            }
+            let mine = by_source.get(&from).copied().unwrap_or(0);
+            let top = by_source
+                .into_iter()
+                .filter(|(_, n)| *n > mine + 1)
+                .max_by_key(|(a, n)| (*n, *a));
+            let Some((victim, _)) = top else {
+                return self.stats.drops.count("unknown_session");
+            };
+            if let Some(i) = self.early.iter().position(|(_, _, f)| *f == victim) {
+                self.early.remove(i);
+            }
+            self.stats.drops.count("unknown_session");
+        }
+        self.early.push((now, bytes, from));
+    }
+
+    /// Forgets a session; its id stays retired, so a late duplicate grant of it never
+    /// builds a second cipher under the same key (nonce reuse).
+    fn retire(&mut self, id: u64) {
+        if self.sessions.remove(&id).is_some() && self.retired.insert(id) {
+            self.retired_order.push_back(id);
+            while self.retired_order.len() > RETIRED_MAX {
+                if let Some(old) = self.retired_order.pop_front() {
+                    self.retired.remove(&old);
+                }
             }
         }
     }
@@ -906,6 +960,11 @@ impl RemoteConn {
     fn ping(&mut self, now: Instant) {
         let nonce = now.saturating_duration_since(self.born).as_nanos() as u64;
         self.send_up(&Up::Ping { nonce });
+    }
+
+    /// Sessions held (with a cipher), ending ones included.
+    pub fn sessions(&self) -> usize {
+        self.sessions.len()
     }
 
     /// Sessions whose `End` is not yet confirmed.
