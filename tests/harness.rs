@@ -78,6 +78,9 @@ struct Net {
     /// Datagrams that reached an address nobody here listens at (an attacker's, or a
     /// spoofed victim's): what the federation sent there.
     strays: Vec<udpnet::InFlight>,
+    /// How many `SessionEnded` frames still to lose on the way to the broker (a full
+    /// inbox in the old transport).
+    lose_session_ended: usize,
 }
 
 impl Net {
@@ -104,6 +107,7 @@ impl Net {
             access: String::new(),
             remote: BTreeMap::new(),
             strays: Vec::new(),
+            lose_session_ended: 0,
         };
         n.start_broker();
         n
@@ -249,6 +253,10 @@ impl Net {
             match frame {
                 Frame::Broker(f) => {
                     let msg: ToBroker = decode(&f).expect("valid frame");
+                    if self.lose_session_ended > 0 && matches!(msg, ToBroker::SessionEnded { .. }) {
+                        self.lose_session_ended -= 1;
+                        continue;
+                    }
                     if let Some(b) = self.broker.as_mut() {
                         b.handle(self.now, msg);
                     }
@@ -1238,4 +1246,38 @@ fn junk_before_a_grant_does_not_push_out_the_systems_first_updates() {
         0,
         "the updates streamed before the grant were kept: {seqs:?}"
     );
+}
+
+#[test]
+fn lost_session_ends_are_reconciled_from_the_systems_own_set() {
+    let mut net = Net::new();
+    net.add_system(data("t1", 1, 10));
+    let users: Vec<UserId> = (0..8).map(|i| net.add_user(i)).collect();
+    for u in &users {
+        net.user(u).request(ServiceId::new("t1", "s0"));
+    }
+    net.settle();
+    let in_use = |n: &Net| n.list().iter().find(|v| v.id == "t1/s0").unwrap().in_use;
+    assert_eq!(in_use(&net), 8);
+    // The system ends all eight; six of the notices are lost.
+    net.lose_session_ended = 6;
+    let sys = net.systems.get_mut("t1").unwrap();
+    let ids: Vec<SessionId> = sys.core.sessions().map(|(id, _, _)| id).collect();
+    for id in ids {
+        sys.core
+            .end_session(id, EndReason::BySystem("operator".into()));
+    }
+    net.settle();
+    assert_eq!(in_use(&net), 6, "the broker missed six ends");
+    assert_eq!(net.systems["t1"].core.sessions_of("s0"), 0);
+    // At the next ping (every 20 s, the paper's rate) the system's own set (empty) wins.
+    assert!(run_while(&mut net, secs(25.0), |n| in_use(n) == 0));
+    assert_eq!(net.broker.as_ref().unwrap().stats().reconciliations, 1);
+    // And a new request is granted against the freed quota.
+    for u in &users {
+        net.take_events(u);
+        net.user(u).request(ServiceId::new("t1", "s0"));
+    }
+    net.settle();
+    assert_eq!(in_use(&net), 8);
 }

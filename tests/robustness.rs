@@ -137,3 +137,44 @@ fn a_user_that_dies_before_its_grant_does_not_leak_quota() {
     );
     assert_eq!(code, 0, "the quota of 1 is free again: {out}");
 }
+
+#[test]
+fn control_frames_beyond_a_full_inbox_are_held_back_and_arrive_in_order() {
+    let inst = format!("backlog{}", std::process::id());
+    let mut broker = fake(&inst, Address::Broker);
+    let mut system = fake(&inst, Address::System("t1".into()));
+    // 200 session ends at once: far more than the broker's inbox holds for one writer.
+    for n in 0..200u64 {
+        system.send_control(
+            &Address::Broker,
+            &ToBroker::SessionEnded {
+                system: "t1".into(),
+                session: muster_shared::types::SessionId(n),
+            },
+        );
+    }
+    assert!(system.backlog() > 0, "the inbox filled up");
+    let mut got = Vec::new();
+    for _ in 0..10_000 {
+        while let Some(f) = broker.recv() {
+            got.push(muster_shared::protocol::decode::<ToBroker>(&f).unwrap());
+        }
+        if got.len() == 200 {
+            break;
+        }
+        system.sweep();
+    }
+    let ids: Vec<u64> = got
+        .iter()
+        .map(|m| match m {
+            ToBroker::SessionEnded { session, .. } => session.0,
+            other => panic!("{other:?}"),
+        })
+        .collect();
+    assert_eq!(ids, (0..200).collect::<Vec<_>>(), "all of them, in order");
+    assert_eq!(system.backlog(), 0);
+    assert_eq!(system.dropped_sends(), 0);
+    drop(system);
+    drop(broker);
+    common::cleanup_dead_nodes();
+}

@@ -6,7 +6,7 @@
 //! with [`Broker::poll_output`] and the new list with [`Broker::take_list_change`].
 //! Time is a [`Duration`] since any fixed origin the driver chooses.
 
-use muster_shared::protocol::{ActiveSession, LinkInfo, ToBroker, ToSystem, ToUser};
+use muster_shared::protocol::{ActiveSession, LinkInfo, SessionDigest, ToBroker, ToSystem, ToUser};
 use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
 use muster_shared::types::{
     validate_registration, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId, UserId,
@@ -99,6 +99,8 @@ pub enum Removal {
 pub struct BrokerStats {
     /// Registrations accepted.
     pub registrations: u64,
+    /// Times a system's session digest differed from the broker's and its set was asked.
+    pub reconciliations: u64,
     /// Registrations refused.
     pub registrations_refused: u64,
     /// Requests received.
@@ -284,7 +286,12 @@ impl Broker {
                 sessions,
                 udp,
             } => self.register(now, system, pid, services, sessions, udp),
-            ToBroker::Pong { system, nonce } => self.pong(now, &system, nonce),
+            ToBroker::Pong {
+                system,
+                nonce,
+                held,
+            } => self.pong(now, &system, nonce, held),
+            ToBroker::Sessions { system, sessions } => self.reconcile(now, &system, sessions),
             ToBroker::OfferAnswer {
                 system,
                 ticket,
@@ -492,12 +499,21 @@ impl Broker {
         ));
     }
 
-    fn pong(&mut self, now: Duration, system: &str, nonce: u64) {
+    fn pong(&mut self, now: Duration, system: &str, nonce: u64, held: Option<SessionDigest>) {
         match self.systems.get_mut(system) {
             Some(s) => {
                 if matches!(s.awaiting, Some((n, _)) if n == nonce) {
                     s.awaiting = None;
                     s.next_ping = now + self.cfg.ping_interval;
+                }
+                let mine = SessionDigest::of(s.sessions.keys().copied());
+                if held.is_some_and(|h| h != mine) {
+                    // A control frame was lost somewhere: the system's set is the truth.
+                    self.stats.reconciliations += 1;
+                    self.out.push_back(Output::ToSystem(
+                        system.to_string(),
+                        ToSystem::ReportSessions,
+                    ));
                 }
             }
             // Found alive after removal: tell it, so it re-registers.
@@ -550,6 +566,49 @@ impl Broker {
                     self.dispatch_queue(now, &o.service);
                 }
             }
+        }
+    }
+
+    /// Makes the broker's sessions of `system` the system's own set: sessions it no
+    /// longer holds free their quota (and move queues), sessions it holds that the broker
+    /// missed are counted.
+    fn reconcile(&mut self, now: Duration, system: &str, sessions: Vec<ActiveSession>) {
+        let Some(sys) = self.systems.get(system) else {
+            return;
+        };
+        let theirs: BTreeMap<SessionId, ActiveSession> =
+            sessions.into_iter().map(|a| (a.session, a)).collect();
+        let gone: Vec<SessionId> = sys
+            .sessions
+            .keys()
+            .filter(|id| !theirs.contains_key(id))
+            .copied()
+            .collect();
+        let missed: Vec<ActiveSession> = theirs
+            .into_values()
+            .filter(|a| !sys.sessions.contains_key(&a.session))
+            .collect();
+        if !gone.is_empty() || !missed.is_empty() {
+            tracing::warn!(
+                system,
+                freed = gone.len(),
+                counted = missed.len(),
+                "sessions reconciled with the system's own set"
+            );
+        }
+        for a in missed {
+            let id = ServiceId::new(system, &a.service);
+            let Some(svc) = self.services.get_mut(&id) else {
+                continue;
+            };
+            svc.sessions.insert(a.session);
+            if let Some(sys) = self.systems.get_mut(system) {
+                sys.sessions.insert(a.session, (a.service, a.user));
+            }
+            self.list_dirty = true;
+        }
+        for session in gone {
+            self.session_ended(now, system, session);
         }
     }
 

@@ -219,7 +219,14 @@ fn ten_hours_of_pings_keep_an_answering_system() {
             if let Output::ToSystem(s, ToSystem::Ping { nonce }) = o {
                 pings += 1;
                 // Answer one second later.
-                b.handle(t + S, ToBroker::Pong { system: s, nonce });
+                b.handle(
+                    t + S,
+                    ToBroker::Pong {
+                        system: s,
+                        nonce,
+                        held: None,
+                    },
+                );
             }
         }
     }
@@ -265,6 +272,7 @@ fn a_silent_system_becomes_delinquent_and_can_come_back() {
         ToBroker::Pong {
             system: "t1".into(),
             nonce: ping.unwrap(),
+            held: None,
         },
     );
     assert_eq!(
@@ -748,7 +756,14 @@ proptest! {
                         outstanding.push((sys, ticket, user, req));
                     }
                     Output::ToSystem(sys, ToSystem::Ping { nonce }) => {
-                        b.handle(now, ToBroker::Pong { system: sys, nonce });
+                        b.handle(
+                            now,
+                            ToBroker::Pong {
+                                system: sys,
+                                nonce,
+                                held: None,
+                            },
+                        );
                     }
                     Output::ToUser(user, ToUser::Refused { req, .. }) => {
                         // A timed-out offer is refused; the system can no longer grant it.

@@ -388,9 +388,9 @@ impl Shell {
                 // Local users hear of their grant from the system itself.
                 Output::Granted { .. } => {}
                 Output::ToSystem(name, msg) => {
-                    self.endpoint.send_or_log(&Address::System(name), &msg)
+                    self.endpoint.send_control(&Address::System(name), &msg)
                 }
-                Output::ToUser(user, msg) => self.endpoint.send_or_log(&Address::User(user), &msg),
+                Output::ToUser(user, msg) => self.endpoint.send_control(&Address::User(user), &msg),
                 Output::WatchSystem { system, pid } => {
                     self.watch(Address::System(system), pid, dead)
                 }

@@ -16,7 +16,7 @@ use iceoryx2::port::reader::Reader;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::port::writer::Writer;
 use iceoryx2::prelude::*;
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::os::fd::RawFd;
 use std::time::{Duration, Instant};
 
@@ -212,7 +212,16 @@ pub struct Endpoint {
     lingering: HashMap<Address, Instant>,
     dropped_sends: u64,
     recv_errors: u64,
+    /// Control frames a full inbox could not take yet, per peer, in order: retried by
+    /// [`Endpoint::sweep`], so no control message is lost to a burst.
+    backlog: HashMap<Address, VecDeque<Vec<u8>>>,
 }
+
+/// Most control frames held back for one peer whose inbox is full; beyond it the peer
+/// is taken as hung and the oldest are dropped, loudly.
+pub const MAX_BACKLOG: usize = 4096;
+/// How soon a held-back control frame is tried again.
+const BACKLOG_RETRY: Duration = Duration::from_millis(2);
 
 impl Endpoint {
     /// Creates (or takes over, after a crash) the inbox and bell of `me`.
@@ -278,6 +287,7 @@ impl Endpoint {
             lingering: HashMap::new(),
             dropped_sends: 0,
             recv_errors: 0,
+            backlog: HashMap::new(),
         })
     }
 
@@ -408,9 +418,89 @@ impl Endpoint {
         }
     }
 
+    /// Encodes and sends a control message (anything but a data update): if `to`'s
+    /// inbox is full it is held back and retried in order by [`Endpoint::sweep`], never
+    /// dropped (up to [`MAX_BACKLOG`] frames per peer). Errors other than a full inbox
+    /// are logged as in [`Endpoint::send_or_log`].
+    pub fn send_control<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        let frame = match crate::protocol::encode(msg) {
+            Ok(f) => f,
+            Err(source) => {
+                let e = TransportError::Encode {
+                    peer: to.clone(),
+                    source,
+                };
+                return tracing::error!("{e}");
+            }
+        };
+        if let Some(q) = self.backlog.get_mut(to) {
+            // Behind earlier frames: keep the order.
+            return Self::hold(q, to, frame, &mut self.dropped_sends);
+        }
+        match self.send(to, &frame) {
+            Ok(()) => {}
+            Err(TransportError::Full(_)) => {
+                self.dropped_sends -= 1; // not dropped: held back
+                let q = self.backlog.entry(to.clone()).or_default();
+                Self::hold(q, to, frame, &mut self.dropped_sends);
+            }
+            Err(e) => tracing::debug!("{e}"),
+        }
+    }
+
+    fn hold(q: &mut VecDeque<Vec<u8>>, to: &Address, frame: Vec<u8>, dropped: &mut u64) {
+        if q.len() >= MAX_BACKLOG {
+            q.pop_front();
+            *dropped += 1;
+            if dropped.is_power_of_two() {
+                tracing::warn!(peer = %to, "{to}'s inbox stays full: dropped a held-back control frame");
+            }
+        }
+        q.push_back(frame);
+    }
+
+    /// Tries the held-back control frames again, in order.
+    fn flush_backlog(&mut self) {
+        let peers: Vec<Address> = self.backlog.keys().cloned().collect();
+        for to in peers {
+            let Some(mut q) = self.backlog.remove(&to) else {
+                continue;
+            };
+            while let Some(frame) = q.front() {
+                match self.try_send(&to, frame) {
+                    Ok(()) => {
+                        q.pop_front();
+                    }
+                    Err(TransportError::Full(_)) => break,
+                    Err(e) => {
+                        // Gone: whatever it restarts as re-registers or says hello.
+                        tracing::debug!("{e}; dropping {} held-back frames", q.len());
+                        self.dropped_sends += q.len() as u64;
+                        self.peers.remove(&to);
+                        q.clear();
+                    }
+                }
+            }
+            if !q.is_empty() {
+                self.backlog.insert(to, q);
+            }
+        }
+    }
+
+    /// Control frames held back for full inboxes.
+    pub fn backlog(&self) -> usize {
+        self.backlog.values().map(VecDeque::len).sum()
+    }
+
     /// Writes a frame into `to`'s inbox and rings its bell.
+    /// Behind held-back control frames, it is not sent (a data update overtaking them
+    /// would break their order) and counts as full.
     pub fn send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
         self.lingering.remove(to);
+        if self.backlog.contains_key(to) {
+            self.dropped_sends += 1;
+            return Err(TransportError::Full(to.clone()));
+        }
         let result = self.try_send(to, frame);
         match &result {
             Ok(()) => {}
@@ -495,8 +585,10 @@ impl Endpoint {
         }
     }
 
-    /// Drops lingering ports whose time is up; returns how long until the next one is due.
+    /// Retries held-back control frames and drops lingering ports whose time is up;
+    /// returns how long until either is due again.
     pub fn sweep(&mut self) -> Option<Duration> {
+        self.flush_backlog();
         let now = Instant::now();
         let due: Vec<Address> = self
             .lingering
@@ -508,10 +600,13 @@ impl Endpoint {
             self.lingering.remove(&a);
             self.peers.remove(&a);
         }
-        self.lingering
+        let linger = self
+            .lingering
             .values()
             .min()
-            .map(|t| t.saturating_duration_since(now))
+            .map(|t| t.saturating_duration_since(now));
+        let retry = (!self.backlog.is_empty()).then_some(BACKLOG_RETRY);
+        [linger, retry].into_iter().flatten().min()
     }
 
     /// Peers with open ports (including lingering ones).

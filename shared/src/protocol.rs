@@ -12,7 +12,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// First byte of every frame.
 pub const MAGIC: u8 = 0x4d; // 'M'
 /// Protocol version; a frame of another version is refused.
-pub const VERSION: u8 = 3;
+pub const VERSION: u8 = 4;
 /// Largest frame, in bytes, on any transport.
 pub const MAX_FRAME: usize = 64 * 1024;
 
@@ -114,6 +114,31 @@ pub fn bad_frames() -> u64 {
     BAD_FRAMES.load(std::sync::atomic::Ordering::Relaxed)
 }
 
+/// A digest of a set of sessions: how many, and the xor of a mix of their ids (order
+/// does not matter; a difference in either means the sets differ).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SessionDigest {
+    /// Number of sessions.
+    pub count: u32,
+    /// Xor of each id's splitmix64 mix.
+    pub mix: u64,
+}
+
+impl SessionDigest {
+    /// The digest of `ids`.
+    pub fn of(ids: impl IntoIterator<Item = SessionId>) -> Self {
+        let mut d = SessionDigest::default();
+        for id in ids {
+            let mut z = id.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            d.mix ^= z ^ (z >> 31);
+            d.count += 1;
+        }
+        d
+    }
+}
+
 /// A session a system holds, reported when it (re-)registers so a new broker counts it.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ActiveSession {
@@ -168,6 +193,17 @@ pub enum ToBroker {
         system: String,
         /// The ping's nonce.
         nonce: u64,
+        /// A digest of the sessions the system holds: if the broker's differs (a
+        /// control frame was lost), it asks for the whole set ([`ToSystem::ReportSessions`]).
+        held: Option<SessionDigest>,
+    },
+    /// Every session the system holds, asked for by [`ToSystem::ReportSessions`]: the
+    /// system's set is the truth, and the broker's counts follow it.
+    Sessions {
+        /// System name.
+        system: String,
+        /// The sessions.
+        sessions: Vec<ActiveSession>,
     },
     /// The system's answer to a forwarded request.
     OfferAnswer {
@@ -258,6 +294,7 @@ impl ToBroker {
         match self {
             ToBroker::Register { .. } => "register",
             ToBroker::Pong { .. } => "pong",
+            ToBroker::Sessions { .. } => "sessions",
             ToBroker::OfferAnswer { .. } => "offer_answer",
             ToBroker::SessionEnded { .. } => "session_ended",
             ToBroker::Withdraw { .. } => "withdraw",
@@ -295,6 +332,9 @@ pub enum ToSystem {
     },
     /// The broker removed the system as delinquent (or does not know it); re-register.
     Delinquent,
+    /// The broker's sessions of this system differ from the system's digest: send them
+    /// all ([`ToBroker::Sessions`]).
+    ReportSessions,
     /// A user's request the broker forwards; answer with [`ToBroker::OfferAnswer`].
     Offer {
         /// Echo this.

@@ -1,7 +1,7 @@
 //! A robot system's side of the protocol as a pure state machine: registration,
 //! pings, offers, sessions with sequence numbers, withdrawal. No I/O, no clock.
 
-use muster_shared::protocol::{ActiveSession, ToBroker, ToSystem, ToUser};
+use muster_shared::protocol::{ActiveSession, SessionDigest, ToBroker, ToSystem, ToUser};
 use muster_shared::types::{
     EndReason, Payload, ServiceId, ServiceKind, ServiceSpec, SessionId, TaskStatus, UserId,
 };
@@ -203,17 +203,20 @@ impl SystemCore {
         self.udp = addr;
     }
 
-    /// Sends (or re-sends) the registration, with the sessions already held.
-    pub fn register(&mut self) {
-        let sessions = self
-            .sessions
+    fn active_sessions(&self) -> Vec<ActiveSession> {
+        self.sessions
             .iter()
             .map(|(id, s)| ActiveSession {
                 session: *id,
                 service: s.service.clone(),
                 user: s.user.clone(),
             })
-            .collect();
+            .collect()
+    }
+
+    /// Sends (or re-sends) the registration, with the sessions already held.
+    pub fn register(&mut self) {
+        let sessions = self.active_sessions();
         self.out
             .push_back(SystemOutput::ToBroker(ToBroker::Register {
                 system: self.name.clone(),
@@ -255,9 +258,18 @@ impl SystemCore {
                     .push_back(SystemEvent::RegistrationRefused(reason));
             }
             ToSystem::Ping { nonce } => {
+                let held = SessionDigest::of(self.sessions.keys().copied());
                 self.send_broker(ToBroker::Pong {
                     system: self.name.clone(),
                     nonce,
+                    held: Some(held),
+                });
+            }
+            ToSystem::ReportSessions => {
+                let sessions = self.active_sessions();
+                self.send_broker(ToBroker::Sessions {
+                    system: self.name.clone(),
+                    sessions,
                 });
             }
             ToSystem::Delinquent => {
@@ -787,7 +799,8 @@ mod tests {
         assert!(
             outs(&mut c).contains(&SystemOutput::ToBroker(ToBroker::Pong {
                 system: "t1".into(),
-                nonce: 5
+                nonce: 5,
+                held: Some(SessionDigest::default()),
             }))
         );
     }

@@ -372,9 +372,14 @@ impl Shell {
             };
             match out {
                 SystemOutput::ToBroker(msg) => {
-                    let is_register = matches!(msg, ToBroker::Register { .. });
+                    if !matches!(msg, ToBroker::Register { .. }) {
+                        // Session ended, offer answers, withdraw, pong...: held back
+                        // when the broker's inbox is full, never dropped.
+                        self.endpoint.send_control(&Address::Broker, &msg);
+                        continue;
+                    }
                     match self.endpoint.send_msg(&Address::Broker, &msg) {
-                        Err(TransportError::Unreachable(_)) if is_register => {
+                        Err(TransportError::Unreachable(_)) => {
                             if !self.waiting_logged {
                                 tracing::info!("no broker yet; waiting for one to announce itself");
                                 self.waiting_logged = true;
@@ -386,7 +391,13 @@ impl Shell {
                     }
                 }
                 SystemOutput::ToUser(user, msg) => {
-                    self.endpoint.send_or_log(&Address::User(user), &msg)
+                    // Updates are a stream (a full inbox drops one, counted as a gap);
+                    // everything else is control and is held back, never dropped.
+                    if matches!(msg, muster_shared::protocol::ToUser::Update { .. }) {
+                        self.endpoint.send_or_log(&Address::User(user), &msg)
+                    } else {
+                        self.endpoint.send_control(&Address::User(user), &msg)
+                    }
                 }
                 SystemOutput::WatchBroker(pid) => {
                     self.drop_broker_watch();

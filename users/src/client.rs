@@ -523,9 +523,9 @@ impl Local {
     /// Carries out one output over shared memory; returns a system found already dead.
     fn apply(&mut self, reactor: &Reactor, out: UserOutput) -> Option<String> {
         match out {
-            UserOutput::ToBroker(msg) => self.endpoint.send_or_log(&Address::Broker, &msg),
+            UserOutput::ToBroker(msg) => self.endpoint.send_control(&Address::Broker, &msg),
             UserOutput::ToSystem(system, msg) => {
-                self.endpoint.send_or_log(&Address::System(system), &msg)
+                self.endpoint.send_control(&Address::System(system), &msg)
             }
             UserOutput::WatchBroker(pid) => {
                 if let Some(p) = self.broker.take() {
