@@ -25,6 +25,8 @@ pub struct BrokerConfig {
     pub offer_timeout: Duration,
     /// Most requests one service's task queue holds.
     pub queue_capacity: u16,
+    /// Most links one user may have counted in the list.
+    pub max_links_per_user: usize,
 }
 
 impl Default for BrokerConfig {
@@ -34,9 +36,13 @@ impl Default for BrokerConfig {
             ping_timeout: Duration::from_secs(10),
             offer_timeout: Duration::from_secs(10),
             queue_capacity: 32,
+            max_links_per_user: MAX_LINKS_PER_USER,
         }
     }
 }
+
+/// Default bound on the links one user may have counted ([`BrokerConfig::max_links_per_user`]).
+pub const MAX_LINKS_PER_USER: usize = 16;
 
 /// What the broker wants done.
 #[derive(Clone, Debug, PartialEq)]
@@ -101,6 +107,8 @@ pub struct BrokerStats {
     pub registrations: u64,
     /// Times a system's session digest differed from the broker's and its set was asked.
     pub reconciliations: u64,
+    /// Links not counted: wrong kinds, or over the user's bound.
+    pub links_refused: u64,
     /// Registrations refused.
     pub registrations_refused: u64,
     /// Requests received.
@@ -145,7 +153,7 @@ struct ServiceRec {
     sessions: BTreeSet<SessionId>,
     pending: u16,
     queue: VecDeque<Waiting>,
-    links: u16,
+    links: u32,
 }
 
 impl ServiceRec {
@@ -259,7 +267,7 @@ impl Broker {
                 quota: s.spec.quota,
                 in_use: u16::try_from(s.used()).unwrap_or(u16::MAX),
                 queued: u16::try_from(s.queue.len()).unwrap_or(u16::MAX),
-                links: s.links,
+                links: u16::try_from(s.links).unwrap_or(u16::MAX),
                 withdrawn: s.withdrawn,
                 payload: s.spec.payload.clone(),
             })
@@ -317,17 +325,15 @@ impl Broker {
             } => self.hello(user, pid, links, watch_list),
             ToBroker::Request { user, req, service } => self.request(now, user, req, service),
             ToBroker::Cancel { user, req } => self.cancel(now, &user, req),
-            ToBroker::LinkOpened { user, link } => {
-                if let Some(u) = self.users.get_mut(&user) {
-                    u.links.insert(link.link, link);
-                    self.recount_links();
-                }
-            }
+            ToBroker::LinkOpened { user, link } => self.link_opened(&user, link),
             ToBroker::LinkClosed { user, link } => {
-                if let Some(u) = self.users.get_mut(&user) {
-                    u.links.remove(&link);
+                if let Some(old) = self
+                    .users
+                    .get_mut(&user)
+                    .and_then(|u| u.links.remove(&link))
+                {
+                    self.count_link(&old, false);
                 }
-                self.recount_links();
             }
             ToBroker::Goodbye { user } => self.forget_user(now, &user),
         }
@@ -649,8 +655,13 @@ impl Broker {
         let rec = self.users.entry(user.clone()).or_default();
         rec.pid = pid;
         rec.watch_list = watch_list;
-        rec.links = links.into_iter().map(|l| (l.link, l)).collect();
-        self.recount_links();
+        let old = std::mem::take(&mut rec.links);
+        for l in old.values() {
+            self.count_link(l, false);
+        }
+        for l in links {
+            self.link_opened(&user, l);
+        }
         // pid 0: a remote user, whose liveness its transport tracks.
         if pid != 0 {
             self.out.push_back(Output::WatchUser {
@@ -752,10 +763,12 @@ impl Broker {
     }
 
     fn forget_user(&mut self, now: Duration, user: &UserId) {
-        let had = self.users.remove(user).is_some();
+        let had = self.users.remove(user);
         self.remove_waiting(now, |w| w.user == *user);
-        if had {
-            self.recount_links();
+        if let Some(rec) = had {
+            for l in rec.links.values() {
+                self.count_link(l, false);
+            }
             self.out.push_back(Output::ForgetUser(user.clone()));
         }
     }
@@ -870,15 +883,63 @@ impl Broker {
         self.list_dirty = true;
     }
 
+    /// Records a user's link, if it joins a data service to a command service and the
+    /// user is within its bound; anything else is ignored and counted.
+    fn link_opened(&mut self, user: &UserId, link: LinkInfo) {
+        let Some(u) = self.users.get(user) else {
+            return;
+        };
+        // A service not (yet) listed is fine: after a broker restart users may say hello
+        // before their systems register; the link counts once they do.
+        let valid = self
+            .kind_of(&link.data)
+            .is_none_or(|k| k == ServiceKind::Data)
+            && self
+                .kind_of(&link.command)
+                .is_none_or(|k| k == ServiceKind::Command);
+        let replaces = u.links.contains_key(&link.link);
+        if !valid || (!replaces && u.links.len() >= self.cfg.max_links_per_user) {
+            self.stats.links_refused += 1;
+            if self.stats.links_refused.is_power_of_two() {
+                tracing::warn!(%user, data = %link.data, command = %link.command,
+                    "link not counted (wrong kinds or over the user's bound)");
+            }
+            return;
+        }
+        let old = self
+            .users
+            .get_mut(user)
+            .and_then(|u| u.links.insert(link.link, link.clone()));
+        if let Some(old) = old {
+            self.count_link(&old, false);
+        }
+        self.count_link(&link, true);
+    }
+
+    /// Adds or removes one link's share of its two services' counts.
+    fn count_link(&mut self, l: &LinkInfo, add: bool) {
+        for id in [&l.data, &l.command] {
+            if let Some(svc) = self.services.get_mut(id) {
+                svc.links = if add {
+                    svc.links.saturating_add(1)
+                } else {
+                    svc.links.saturating_sub(1)
+                };
+                self.list_dirty = true;
+            }
+        }
+    }
+
+    /// Counts every link again (a system's services came or went: rare).
     fn recount_links(&mut self) {
-        let mut counts: BTreeMap<&ServiceId, u16> = BTreeMap::new();
+        let mut counts: BTreeMap<&ServiceId, u32> = BTreeMap::new();
         for u in self.users.values() {
             for l in u.links.values() {
                 *counts.entry(&l.data).or_default() += 1;
                 *counts.entry(&l.command).or_default() += 1;
             }
         }
-        let counts: BTreeMap<ServiceId, u16> =
+        let counts: BTreeMap<ServiceId, u32> =
             counts.into_iter().map(|(k, v)| (k.clone(), v)).collect();
         for (id, svc) in self.services.iter_mut() {
             let n = counts.get(id).copied().unwrap_or(0);

@@ -672,6 +672,97 @@ fn links_are_visible_and_go_with_their_user() {
     assert!(drain(&mut b).contains(&Output::ForgetUser(user(1))));
 }
 
+#[test]
+fn links_are_bounded_per_user_checked_and_counted_incrementally() {
+    let mut b = broker();
+    register(
+        &mut b,
+        S,
+        "t",
+        7,
+        vec![spec("a", 5, false), spec("b", 5, false)],
+    );
+    let mut cmd = spec("go", 1, true);
+    cmd.kind = ServiceKind::Command;
+    register(&mut b, S, "d", 8, vec![cmd]);
+    b.handle(
+        S,
+        ToBroker::Hello {
+            user: user(1),
+            pid: 99,
+            links: vec![],
+            watch_list: false,
+        },
+    );
+    let link = |n: u64, data: &str, command: &str| ToBroker::LinkOpened {
+        user: user(1),
+        link: LinkInfo {
+            link: n,
+            data: ServiceId::new("t", data),
+            command: ServiceId::new("d", command),
+        },
+    };
+    // 6,000 links from one user: only the bound is counted.
+    for n in 0..6000 {
+        b.handle(S, link(n, "a", "go"));
+    }
+    let views = b.views();
+    assert_eq!(view(&views, "t/a").links, MAX_LINKS_PER_USER as u16);
+    assert_eq!(view(&views, "d/go").links, MAX_LINKS_PER_USER as u16);
+    assert_eq!(b.stats().links_refused, 6000 - MAX_LINKS_PER_USER as u64);
+    // A link the wrong way round (command into data) is not counted.
+    b.handle(
+        S,
+        ToBroker::LinkClosed {
+            user: user(1),
+            link: 0,
+        },
+    );
+    b.handle(
+        S,
+        ToBroker::LinkOpened {
+            user: user(1),
+            link: LinkInfo {
+                link: 0,
+                data: ServiceId::new("d", "go"),
+                command: ServiceId::new("t", "b"),
+            },
+        },
+    );
+    let views = b.views();
+    assert_eq!(view(&views, "t/b").links, 0);
+    assert_eq!(view(&views, "t/a").links, MAX_LINKS_PER_USER as u16 - 1);
+    // Re-opening the same link number replaces it: counts move, never double.
+    b.handle(S, link(1, "b", "go"));
+    let views = b.views();
+    assert_eq!(view(&views, "t/a").links, MAX_LINKS_PER_USER as u16 - 2);
+    assert_eq!(view(&views, "t/b").links, 1);
+    assert_eq!(view(&views, "d/go").links, MAX_LINKS_PER_USER as u16 - 1);
+    // Hello replaces the user's links (a reconnect).
+    b.handle(
+        S,
+        ToBroker::Hello {
+            user: user(1),
+            pid: 99,
+            links: vec![LinkInfo {
+                link: 9,
+                data: ServiceId::new("t", "b"),
+                command: ServiceId::new("d", "go"),
+            }],
+            watch_list: false,
+        },
+    );
+    let views = b.views();
+    assert_eq!(
+        (
+            view(&views, "t/a").links,
+            view(&views, "t/b").links,
+            view(&views, "d/go").links
+        ),
+        (0, 1, 1)
+    );
+}
+
 #[derive(Clone, Debug)]
 enum Op {
     Request(u32, usize),

@@ -21,7 +21,7 @@
 //! harness drives the same front over a simulated network on a virtual clock.
 
 use crate::core::{Broker, Output};
-use muster_shared::protocol::{RemoteContact, ToBroker, ToSystem, ToUser};
+use muster_shared::protocol::{LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser};
 use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{Refusal, ServiceId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
@@ -708,10 +708,15 @@ impl UdpFront {
         let Some(c) = self.conns.get_mut(&id) else {
             return;
         };
+        let policy = self.access.get(&c.name);
+        let allowed =
+            |l: &LinkInfo| policy.is_some_and(|p| p.allows(&l.data.0) && p.allows(&l.command.0));
         if let ToBroker::Hello {
             links, watch_list, ..
         } = m
         {
+            // Links over services the user may not use do not show in anyone's list.
+            let links: Vec<LinkInfo> = links.into_iter().filter(|l| allowed(l)).collect();
             let user = UserId(format!("{}.{}", c.name, c.suffix));
             c.user = Some(user.clone());
             if let Some(old) = self.by_user.insert(user.clone(), id) {
@@ -739,6 +744,9 @@ impl UdpFront {
             ToBroker::Cancel { req, .. } => self
                 .events
                 .push_back(FrontEvent::ToCore(ToBroker::Cancel { user, req })),
+            ToBroker::LinkOpened { link, .. } if !allowed(&link) => {
+                self.stats.drops.drop("link_not_allowed", &from)
+            }
             ToBroker::LinkOpened { link, .. } => self
                 .events
                 .push_back(FrontEvent::ToCore(ToBroker::LinkOpened { user, link })),

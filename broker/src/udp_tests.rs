@@ -18,8 +18,14 @@ struct Rig {
 
 impl Rig {
     fn new(limits: UdpLimits) -> Self {
+        Self::allowing(limits, &["*"])
+    }
+
+    /// A rig where alice may use the services matching `patterns`.
+    fn allowing(limits: UdpLimits, patterns: &[&str]) -> Self {
         let user = KeyPair::generate().unwrap();
-        let access = AccessFile::parse(&access_line("alice", &user.public, &["*".into()])).unwrap();
+        let patterns: Vec<String> = patterns.iter().map(|p| p.to_string()).collect();
+        let access = AccessFile::parse(&access_line("alice", &user.public, &patterns)).unwrap();
         let now = Instant::now();
         let front = UdpFront::new(
             KeyPair::generate().unwrap(),
@@ -201,47 +207,9 @@ fn a_validated_source_is_rate_limited() {
 #[test]
 fn a_full_handshake_then_a_duplicated_request_is_answered_once() {
     let mut r = Rig::new(UdpLimits::default());
-    let (mut hs, got) = r.start(1);
-    let Datagram::HsReply { conn, noise, .. } = Datagram::decode(&got[0]).unwrap() else {
-        panic!()
-    };
-    let mut scratch = [0u8; 256];
-    hs.read_message(noise, &mut scratch).unwrap();
-    let payload = to_bytes(&Hs3 {
-        name: "alice".into(),
-        suffix: "abc".into(),
-    })
-    .unwrap();
-    let mut m3 = [0u8; 256];
-    let n = hs.write_message(&payload, &mut m3).unwrap();
-    let fin = Datagram::HsFinal {
-        conn,
-        noise: &m3[..n],
-    }
-    .encode()
-    .unwrap();
-    assert!(r.exchange(&fin).is_empty());
+    let (conn, mut chan) = r.connect(1);
     assert_eq!(r.front.connections(), 1);
-    let mut chan = Channel::new(hs).unwrap();
-    let mut say = |r: &mut Rig, m: &Up| -> Vec<Down> {
-        let (nonce, sealed) = chan.seal(&to_bytes(m).unwrap()).unwrap();
-        let d = Datagram::Channel {
-            conn,
-            nonce,
-            sealed: &sealed,
-        }
-        .encode()
-        .unwrap();
-        r.exchange(&d)
-            .iter()
-            .map(|b| match Datagram::decode(b).unwrap() {
-                Datagram::Channel { nonce, sealed, .. } => {
-                    from_bytes(&chan.open(nonce, sealed).unwrap()).unwrap()
-                }
-                other => panic!("{other:?}"),
-            })
-            .collect()
-    };
+    let mut say = |r: &mut Rig, m: &Up| r.say(conn, &mut chan, m);
     let hello = Up::Msg(ToBroker::Hello {
         user: UserId("claimed-to-be-bob".into()),
         pid: 4242,
@@ -281,4 +249,61 @@ fn a_full_handshake_then_a_duplicated_request_is_answered_once() {
     assert_eq!(r.exchange(&d).len(), 1);
     assert!(r.exchange(&d).is_empty());
     assert_eq!(r.front.stats().drops.by_reason["forged_or_replayed"], 1);
+}
+
+#[test]
+fn links_over_services_a_user_may_not_use_are_not_counted() {
+    use muster_shared::protocol::LinkInfo;
+    use muster_shared::types::{ServiceKind, ServiceSpec};
+    let mut r = Rig::allowing(UdpLimits::default(), &["s/s0", "d/*"]);
+    let spec = |name: &str, kind: ServiceKind| ServiceSpec {
+        name: name.into(),
+        description: String::new(),
+        kind,
+        queue: false,
+        quota: 5,
+        payload: "pose2d".into(),
+    };
+    for (system, specs) in [
+        (
+            "s",
+            vec![spec("s0", ServiceKind::Data), spec("s1", ServiceKind::Data)],
+        ),
+        ("d", vec![spec("go", ServiceKind::Command)]),
+    ] {
+        r.core.handle(
+            Duration::ZERO,
+            ToBroker::Register {
+                system: system.into(),
+                pid: 1,
+                services: specs,
+                sessions: vec![],
+                udp: None,
+            },
+        );
+    }
+    let (conn, mut chan) = r.connect(1);
+    let link = |n: u64, data: &str| LinkInfo {
+        link: n,
+        data: ServiceId::new("s", data),
+        command: ServiceId::new("d", "go"),
+    };
+    let hello = Up::Msg(ToBroker::Hello {
+        user: UserId("x".into()),
+        pid: 0,
+        links: vec![link(1, "s1")],
+        watch_list: false,
+    });
+    r.say(conn, &mut chan, &hello);
+    for (n, data) in [(2, "s1"), (3, "s0")] {
+        let m = Up::Msg(ToBroker::LinkOpened {
+            user: UserId("x".into()),
+            link: link(n, data),
+        });
+        r.say(conn, &mut chan, &m);
+    }
+    let views = r.core.views();
+    let links = |id: &str| views.iter().find(|v| v.id == id).unwrap().links;
+    assert_eq!((links("s/s0"), links("s/s1"), links("d/go")), (1, 0, 1));
+    assert_eq!(r.front.stats().drops.by_reason["link_not_allowed"], 1);
 }
