@@ -229,6 +229,9 @@ pub struct BrokerArgs {
     /// Most requests one service's task queue holds.
     #[arg(long, default_value_t = 32)]
     pub queue_capacity: u16,
+    /// Most links one user may have counted in the list.
+    #[arg(long, default_value_t = muster_broker::core::MAX_LINKS_PER_USER)]
+    pub max_links_per_user: usize,
     /// On stopping, print one JSON line: counters and time to handle each message type.
     #[arg(long)]
     pub stats_json: bool,

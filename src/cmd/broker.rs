@@ -16,6 +16,7 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         ping_timeout: a.ping_timeout,
         offer_timeout: a.offer_timeout,
         queue_capacity: a.queue_capacity,
+        max_links_per_user: a.max_links_per_user,
     };
     let udp = match a.udp {
         None => None,
