@@ -478,6 +478,7 @@ fn front_events(f: &mut UdpFront, b: &mut Broker, now: Duration) {
         match ev {
             FrontEvent::ToCore(m) => b.handle(now, m),
             FrontEvent::UserGone(u) => b.user_died(now, &u),
+            FrontEvent::Revoked(u) => b.revoke(now, &u),
         }
     }
 }
@@ -1280,4 +1281,38 @@ fn lost_session_ends_are_reconciled_from_the_systems_own_set() {
     }
     net.settle();
     assert_eq!(in_use(&net), 8);
+}
+
+#[test]
+fn revocation_ends_a_remote_users_sessions_at_the_systems() {
+    let mut net = Net::new();
+    let u = connected_remote_user(&mut net);
+    net.user(&u).request(ServiceId::new("t1", "s0"));
+    net.settle();
+    assert!(run_while(&mut net, secs(5.0), |n| n.systems["t1"]
+        .core
+        .sessions_of("s0")
+        == 1));
+    // The operator removes alice from the access file and sends SIGHUP.
+    net.access.clear();
+    let t = net.at(net.now);
+    net.front
+        .as_mut()
+        .unwrap()
+        .reload(t, AccessFile::parse("").unwrap());
+    let (f, b) = (net.front.as_mut().unwrap(), net.broker.as_mut().unwrap());
+    front_events(f, b, net.now);
+    net.settle();
+    assert_eq!(net.systems["t1"].core.sessions_of("s0"), 0, "ended at once");
+    net.take_events(&u);
+    net.run_until(net.now + secs(3.0));
+    let ev = net.take_events(&u);
+    assert!(
+        !ev.iter().any(|e| matches!(e, UserEvent::Update { .. })),
+        "no more updates after the revocation: {ev:?}"
+    );
+    assert_eq!(
+        net.list().iter().find(|v| v.id == "t1/s0").unwrap().in_use,
+        0
+    );
 }

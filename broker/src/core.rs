@@ -393,6 +393,25 @@ impl Broker {
         self.forget_user(now, user);
     }
 
+    /// A user's access was revoked: every system holding a session of it is told to end
+    /// them (a remote user's sessions run straight with systems, past the broker), and
+    /// the user is forgotten.
+    pub fn revoke(&mut self, now: Duration, user: &UserId) {
+        let systems: Vec<String> = self
+            .systems
+            .iter()
+            .filter(|(_, s)| s.sessions.values().any(|(_, u)| u == user))
+            .map(|(name, _)| name.clone())
+            .collect();
+        for system in systems {
+            self.out.push_back(Output::ToSystem(
+                system,
+                ToSystem::Revoked { user: user.clone() },
+            ));
+        }
+        self.forget_user(now, user);
+    }
+
     fn register(
         &mut self,
         now: Duration,

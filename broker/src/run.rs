@@ -177,6 +177,7 @@ impl UdpDriver {
             match ev {
                 FrontEvent::ToCore(msg) => timed_handle(handling, core, now, msg),
                 FrontEvent::UserGone(u) => core.user_died(now, &u),
+                FrontEvent::Revoked(u) => core.revoke(now, &u),
             }
         }
     }

@@ -175,8 +175,10 @@ struct Conn {
 pub enum FrontEvent {
     /// A message from an authenticated remote user, with the id the front gave it.
     ToCore(ToBroker),
-    /// A remote user is gone (silence, revocation, a newer connection of the same id).
+    /// A remote user is gone (silence).
     UserGone(UserId),
+    /// A remote user's access was revoked: its sessions must end at the systems.
+    Revoked(UserId),
 }
 
 /// What the front asks of the broker's state (read only): [`Broker`] answers it, and
@@ -339,7 +341,7 @@ impl UdpFront {
             .collect();
         for id in revoked {
             tracing::warn!(conn = format!("{id:016x}"), "access revoked: closed");
-            self.close(now, id);
+            self.close(now, id, true);
         }
     }
 
@@ -395,7 +397,7 @@ impl UdpFront {
         for id in silent {
             tracing::info!(conn = format!("{id:016x}"), "remote user silent: gone");
             self.stats.expired += 1;
-            self.close(now, id);
+            self.close(now, id, false);
         }
         self.closed
             .retain(|_, at| t.saturating_duration_since(*at) < Duration::from_secs(10));
@@ -449,13 +451,17 @@ impl UdpFront {
         true
     }
 
-    fn close(&mut self, now: Instant, id: u64) {
+    fn close(&mut self, now: Instant, id: u64, revoked: bool) {
         self.closed.insert(id, now);
         if let Some(c) = self.conns.remove(&id) {
             if let Some(u) = c.user {
                 if self.by_user.get(&u) == Some(&id) {
                     self.by_user.remove(&u);
-                    self.events.push_back(FrontEvent::UserGone(u));
+                    self.events.push_back(if revoked {
+                        FrontEvent::Revoked(u)
+                    } else {
+                        FrontEvent::UserGone(u)
+                    });
                 }
             }
         }

@@ -53,6 +53,7 @@ impl Rig {
             match ev {
                 FrontEvent::ToCore(m) => self.core.handle(Duration::ZERO, m),
                 FrontEvent::UserGone(u) => self.core.user_died(Duration::ZERO, &u),
+                FrontEvent::Revoked(u) => self.core.revoke(Duration::ZERO, &u),
             }
         }
         while let Some(out) = self.core.poll_output() {

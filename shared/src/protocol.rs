@@ -366,6 +366,11 @@ pub enum ToSystem {
         /// The session.
         session: SessionId,
     },
+    /// The user's access was revoked: end every session it holds here.
+    Revoked {
+        /// The user.
+        user: UserId,
+    },
 }
 
 /// Messages arriving at a user's inbox.

@@ -311,6 +311,17 @@ impl SystemCore {
                     self.close(session, EndReason::ByUser, true);
                 }
             }
+            ToSystem::Revoked { user } => {
+                let ids: Vec<SessionId> = self
+                    .sessions
+                    .iter()
+                    .filter(|(_, s)| s.user == user)
+                    .map(|(id, _)| *id)
+                    .collect();
+                for id in ids {
+                    self.close(id, EndReason::BySystem("access revoked".into()), true);
+                }
+            }
         }
     }
 
