@@ -107,6 +107,8 @@ pub struct BrokerStats {
     pub registrations: u64,
     /// Times a system's session digest differed from the broker's and its set was asked.
     pub reconciliations: u64,
+    /// Answers to an offer from a system it did not go to (ignored).
+    pub foreign_answers: u64,
     /// Links not counted: wrong kinds, or over the user's bound.
     pub links_refused: u64,
     /// Registrations refused.
@@ -206,7 +208,9 @@ impl Broker {
             services: BTreeMap::new(),
             users: BTreeMap::new(),
             offers: BTreeMap::new(),
-            next_ticket: 1,
+            // Tickets of different broker runs never meet: a late answer crossing a
+            // restart matches no offer of the new run.
+            next_ticket: (epoch.rotate_left(29) ^ 0x5851_F42D_4C95_7F2D) & (u64::MAX >> 2),
             next_nonce: epoch.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1,
             generation: 0,
             list_dirty: true,
@@ -555,6 +559,20 @@ impl Broker {
         ticket: u64,
         answer: Result<SessionId, String>,
     ) {
+        // Only the system the offer went to may answer it.
+        if self
+            .offers
+            .get(&ticket)
+            .is_some_and(|o| o.service.split().is_none_or(|(s, _)| s != system))
+        {
+            self.stats.foreign_answers += 1;
+            tracing::warn!(
+                system,
+                ticket,
+                "an answer to another system's offer: ignored"
+            );
+            return;
+        }
         let offer = self.offers.remove(&ticket);
         if let Some(o) = &offer {
             self.release_pending(&o.service);

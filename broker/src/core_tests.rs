@@ -886,3 +886,30 @@ proptest! {
         prop_assert!(unanswered >= queued + live_offers);
     }
 }
+
+#[test]
+fn only_the_offered_system_may_answer_and_tickets_differ_across_runs() {
+    let mut b = broker();
+    register(&mut b, S, "t", 7, vec![spec("a", 5, false)]);
+    register(&mut b, S, "u", 8, vec![spec("a", 5, false)]);
+    drain(&mut b);
+    request(&mut b, S, 1, 1, "t/a");
+    let (_, ticket, _, _) = offers(&drain(&mut b))[0].clone();
+    // Another system answers t's offer.
+    grant(&mut b, S, "u", ticket, 77);
+    assert!(answers(&drain(&mut b), 1, 1).is_empty(), "no grant from u");
+    assert_eq!(b.stats().foreign_answers, 1);
+    assert_eq!(view(&b.views(), "u/a").in_use, 0);
+    grant(&mut b, S, "t", ticket, 5);
+    let out = drain(&mut b);
+    assert!(out
+        .iter()
+        .any(|o| matches!(o, Output::Granted { session, .. } if session.0 == 5)));
+    // A broker of another run numbers its offers elsewhere.
+    let mut other = Broker::new(BrokerConfig::default(), 43, 1000);
+    register(&mut other, S, "t", 7, vec![spec("a", 5, false)]);
+    request(&mut other, S, 1, 1, "t/a");
+    let (_, t2, _, _) = offers(&drain(&mut other))[0].clone();
+    assert_ne!(t2, ticket);
+    assert!(ticket.abs_diff(t2) > 1 << 20);
+}

@@ -126,7 +126,10 @@ impl SystemCore {
             withdrawn: BTreeSet::new(),
             sessions: BTreeMap::new(),
             state: BrokerState::Unregistered,
-            session_prefix: (salt ^ (u64::from(pid) << 16)) << 24,
+            session_prefix: mix64(
+                salt ^ (u64::from(pid) << 32)
+                    ^ name.bytes().fold(0u64, |h, b| mix64(h ^ u64::from(b))),
+            ),
             next_session: 1,
             overloaded: false,
             session_limit: None,
@@ -375,7 +378,10 @@ impl SystemCore {
         };
         match answer {
             Ok(spec) => {
-                let session = SessionId(self.session_prefix | self.next_session);
+                // A bijection of a counter: ids never repeat in a run however many sessions
+                // it grants (no aliasing after 2^24), and runs and systems start at
+                // unrelated points of the 64-bit space.
+                let session = SessionId(mix64(self.session_prefix.wrapping_add(self.next_session)));
                 self.next_session += 1;
                 self.sessions.insert(
                     session,
@@ -557,6 +563,13 @@ impl SystemCore {
     fn send_broker(&mut self, msg: ToBroker) {
         self.out.push_back(SystemOutput::ToBroker(msg));
     }
+}
+
+/// The splitmix64 finalizer: a bijection on `u64` that scatters neighbours.
+fn mix64(mut z: u64) -> u64 {
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
 }
 
 #[cfg(test)]
@@ -814,5 +827,19 @@ mod tests {
                 held: Some(SessionDigest::default()),
             }))
         );
+    }
+
+    #[test]
+    fn session_ids_never_alias_in_a_run_or_across_systems() {
+        let a = SystemCore::new("t1", 100, vec![], 9).session_prefix;
+        let b = SystemCore::new("t2", 101, vec![], 9).session_prefix;
+        let id = |p: u64, n: u64| mix64(p.wrapping_add(n));
+        // The old layout aliased counter n with n + 2^24.
+        assert_ne!(id(a, 1), id(a, 1 + (1 << 24)));
+        let mut seen = std::collections::HashSet::new();
+        for n in 1..=50_000u64 {
+            assert!(seen.insert(id(a, n)));
+            assert!(seen.insert(id(b, n)));
+        }
     }
 }
