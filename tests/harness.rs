@@ -1316,3 +1316,51 @@ fn revocation_ends_a_remote_users_sessions_at_the_systems() {
         0
     );
 }
+
+#[test]
+fn a_request_retried_through_a_restarted_broker_gets_a_usable_grant() {
+    let mut net = Net::new();
+    let u = connected_remote_user(&mut net);
+    // The grant never reaches the user: everything the broker sends is lost for a while.
+    net.udp.blackhole = Some((Net::broker_udp(), net.now + secs(2.0)));
+    net.user(&u).request(ServiceId::new("t1", "s0"));
+    net.settle();
+    net.run_until(net.now + secs(0.5));
+    assert_eq!(
+        net.systems["t1"].core.sessions_of("s0"),
+        1,
+        "the system granted"
+    );
+    assert_eq!(
+        net.systems["t1"].remote.open_sessions(),
+        1,
+        "a remote session"
+    );
+    assert!(
+        granted(&net.take_events(&u)).is_empty(),
+        "the user never heard"
+    );
+    // The broker restarts (a new key for every offer); the user reconnects and asks again.
+    net.kill_broker();
+    net.start_broker();
+    let mut got = Vec::new();
+    assert!(
+        run_while(&mut net, secs(30.0), |n| {
+            got.extend(n.take_events(&u));
+            got.iter()
+                .filter(|e| matches!(e, UserEvent::Update { .. }))
+                .count()
+                >= 20
+        }),
+        "updates flow under the key the user got: {:?}",
+        net.ruser(&u).conn.stats()
+    );
+    assert_eq!(granted(&got).len(), 1);
+    assert_eq!(
+        net.systems["t1"].core.sessions_of("s0"),
+        1,
+        "still one session"
+    );
+    // No silence: the user never declared the system dead.
+    assert!(!got.iter().any(|e| matches!(e, UserEvent::Ended { .. })));
+}

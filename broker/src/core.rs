@@ -729,6 +729,25 @@ impl Broker {
         if svc.withdrawn {
             return self.refuse(&user, req, Refusal::Withdrawn);
         }
+        // The same request again (the user reconnected, or its retry crossed our
+        // answer): the answer on its way covers it; a queued one hears its place again.
+        if let Some(i) = svc
+            .queue
+            .iter()
+            .position(|w| w.user == user && w.req == req)
+        {
+            let position = u16::try_from(i + 1).unwrap_or(u16::MAX);
+            self.out
+                .push_back(Output::ToUser(user, ToUser::Queued { req, position }));
+            return;
+        }
+        if self
+            .offers
+            .values()
+            .any(|o| o.user == user && o.req == req && o.service == service)
+        {
+            return;
+        }
         let already = svc.queue.iter().any(|w| w.user == user)
             || self
                 .offers

@@ -913,3 +913,24 @@ fn only_the_offered_system_may_answer_and_tickets_differ_across_runs() {
     assert_ne!(t2, ticket);
     assert!(ticket.abs_diff(t2) > 1 << 20);
 }
+
+#[test]
+fn the_same_request_again_while_its_offer_is_out_is_not_a_duplicate() {
+    let mut b = broker();
+    register(&mut b, S, "t", 7, vec![spec("a", 5, false)]);
+    drain(&mut b);
+    request(&mut b, S, 1, 1, "t/a");
+    assert_eq!(offers(&drain(&mut b)).len(), 1);
+    // The user reconnected and asks again with the same request number.
+    request(&mut b, S, 1, 1, "t/a");
+    assert!(drain(&mut b).is_empty(), "no already_pending, no second offer");
+    // Another request number for the same service still is a duplicate.
+    request(&mut b, S, 1, 2, "t/a");
+    assert!(matches!(
+        &answers(&drain(&mut b), 1, 2)[..],
+        [ToUser::Refused {
+            reason: Refusal::AlreadyPending,
+            ..
+        }]
+    ));
+}

@@ -727,8 +727,16 @@ impl UdpFront {
             c.user = Some(user.clone());
             if let Some(old) = self.by_user.insert(user.clone(), id) {
                 if old != id {
-                    // The same user reconnected (new handshake): the old connection goes.
-                    self.conns.remove(&old);
+                    // The same user reconnected (new handshake): the old connection goes,
+                    // its requests' memory and keys move over (an offer in flight must
+                    // reach the user with the key the system got).
+                    if let Some(o) = self.conns.remove(&old) {
+                        if let Some(c) = self.conns.get_mut(&id) {
+                            c.reqs = o.reqs;
+                            c.keys = o.keys;
+                            c.floor = o.floor;
+                        }
+                    }
                     self.closed.insert(old, now);
                 }
             }

@@ -37,6 +37,7 @@ const HOUSEKEEPING: Duration = Duration::from_millis(500);
 struct Remote {
     user: UserId,
     addr: SocketAddr,
+    key: [u8; 32],
     cipher: SessionCipher,
     last_heard: Instant,
     ended: Option<(Instant, EndReason)>,
@@ -107,14 +108,32 @@ impl RemoteSessions {
                 match contact.addr.parse::<SocketAddr>() {
                     Ok(addr) => {
                         self.next_housekeeping.get_or_insert(now + HOUSEKEEPING);
-                        // A repeated offer for a session we hold keeps its cipher.
-                        self.sessions.entry(session.0).or_insert_with(|| Remote {
-                            user,
+                        // A repeated offer for a session we hold (the user asked again
+                        // through a new broker or connection, so it never got the first
+                        // grant) carries the key the user now gets: take it. The same key
+                        // keeps its cipher (a fresh one would reuse nonces).
+                        let fresh = || Remote {
+                            user: user.clone(),
                             addr,
+                            key: contact.key,
                             cipher: SessionCipher::new(&contact.key, Side::System),
                             last_heard: now,
                             ended: None,
-                        });
+                        };
+                        match self.sessions.get_mut(&session.0) {
+                            Some(r) if r.key == contact.key => {}
+                            Some(r) if r.ended.is_none() => {
+                                tracing::info!(
+                                    session = format!("{:x}", session.0),
+                                    "a repeated offer brings a new session key: taken"
+                                );
+                                *r = fresh();
+                            }
+                            Some(_) => {}
+                            None => {
+                                self.sessions.insert(session.0, fresh());
+                            }
+                        }
                     }
                     Err(e) => tracing::warn!("bad remote address {:?}: {e}", contact.addr),
                 }
@@ -320,5 +339,83 @@ impl UdpSessions {
         while let Some(t) = self.logic.poll_transmit() {
             send_transmit(&self.sock, &t, &mut self.logic.stats.drops);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use muster_shared::types::{ServiceKind, ServiceSpec};
+
+    fn offer(core: &mut SystemCore, r: &mut RemoteSessions, now: Instant, ticket: u64, key: u8) {
+        let msg = ToSystem::Offer {
+            ticket,
+            user: UserId("alice.x".into()),
+            user_pid: 0,
+            req: 1,
+            service: "s0".into(),
+            remote: Some(RemoteContact {
+                addr: "10.0.2.1:5000".into(),
+                key: [key; 32],
+            }),
+        };
+        r.note(&msg);
+        core.handle(msg);
+        while let Some(o) = core.poll_output() {
+            let _ = r.route(now, o);
+        }
+    }
+
+    /// A keepalive from the user under cipher `c`: whether the endpoint answers it.
+    fn alive(
+        core: &mut SystemCore,
+        r: &mut RemoteSessions,
+        now: Instant,
+        c: &mut SessionCipher,
+    ) -> bool {
+        let id = core.sessions().next().unwrap().0 .0;
+        let d = seal_session(c, id, &SessionUp::Keepalive).unwrap();
+        let from: SocketAddr = "10.0.2.1:5000".parse().unwrap();
+        r.handle(now, from, &d, core);
+        std::iter::from_fn(|| r.poll_transmit()).count() == 1
+    }
+
+    #[test]
+    fn a_repeated_offer_with_a_new_key_moves_the_session_to_it() {
+        let spec = ServiceSpec {
+            name: "s0".into(),
+            description: String::new(),
+            kind: ServiceKind::Data,
+            queue: false,
+            quota: 5,
+            payload: "pose2d".into(),
+        };
+        let mut core = SystemCore::new("t1", 1, vec![spec], 9);
+        let mut r = RemoteSessions::default();
+        let now = Instant::now();
+        let mut k1 = SessionCipher::new(&[1; 32], Side::User);
+        let mut k2 = SessionCipher::new(&[2; 32], Side::User);
+        offer(&mut core, &mut r, now, 1, 1);
+        assert!(alive(&mut core, &mut r, now, &mut k1));
+        // The same request through a new broker: the same session, the user's new key.
+        offer(&mut core, &mut r, now, 2, 2);
+        assert_eq!(core.sessions().count(), 1);
+        assert!(
+            alive(&mut core, &mut r, now, &mut k2),
+            "the user's key works"
+        );
+        assert!(
+            !alive(&mut core, &mut r, now, &mut k1),
+            "the old one no longer"
+        );
+        // The same key again keeps the cipher: its replay window still holds.
+        offer(&mut core, &mut r, now, 3, 2);
+        assert!(alive(&mut core, &mut r, now, &mut k2));
+        let mut replay = SessionCipher::new(&[2; 32], Side::User);
+        assert!(
+            !alive(&mut core, &mut r, now, &mut replay),
+            "nonce 0 again is a replay"
+        );
     }
 }

@@ -52,6 +52,8 @@ pub struct Network {
     pub sent: u64,
     /// Datagrams lost to faults.
     pub lost: u64,
+    /// Everything `from` sends is lost until the given time (a cut in one direction).
+    pub blackhole: Option<(SocketAddr, Duration)>,
 }
 
 impl Network {
@@ -66,6 +68,7 @@ impl Network {
             tapping: false,
             sent: 0,
             lost: 0,
+            blackhole: None,
         }
     }
 
@@ -99,7 +102,10 @@ impl Network {
                 bytes: bytes.clone(),
             });
         }
-        if self.rng.random::<f64>() < p.loss {
+        let cut = self
+            .blackhole
+            .is_some_and(|(who, until)| who == from && now < until);
+        if cut || self.rng.random::<f64>() < p.loss {
             self.lost += 1;
             return;
         }
