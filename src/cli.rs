@@ -162,6 +162,10 @@ pub struct RemoteBenchArgs {
     /// Fault levels in percent: each is that much loss, duplication and reordering.
     #[arg(long, value_delimiter = ',', default_value = "1,5,20")]
     pub faults: Vec<f64>,
+    /// Slow-link rows: round trips added on the user's side (5 % loss on each), e.g.
+    /// `300ms,1s`; empty for none.
+    #[arg(long, value_delimiter = ',', default_value = "300ms,1s")]
+    pub slow: Vec<humantime::Duration>,
     /// Hostile datagrams per second during the flood row (0: no flood row).
     #[arg(long, default_value_t = 20000)]
     pub flood_rate: u64,

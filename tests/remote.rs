@@ -351,3 +351,43 @@ fn a_remote_watcher_reconnects_to_a_restarted_broker() {
         }
     }
 }
+
+#[test]
+fn slow_links_connect_list_and_request_at_300ms_and_1s_round_trips_with_loss() {
+    let f = Fed::new("rslow");
+    let (code, out) = f.run(
+        &[
+            "bench",
+            "remote",
+            "--requests",
+            "5",
+            "--round-trips",
+            "20",
+            "--faults",
+            "1",
+            "--flood-rate",
+            "0",
+            "--slow",
+            "300ms,1s",
+            "--json",
+        ],
+        300 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let r: Value = serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
+    let slow = r["slow"].as_array().unwrap();
+    assert_eq!(slow.len(), 2);
+    for (row, rtt) in slow.iter().zip([300, 1000]) {
+        assert_eq!(row["rtt_ms"], rtt);
+        assert_eq!(row["granted"], 5, "{row:#}");
+        assert_eq!(row["completion"], 1.0, "{row:#}");
+        // Connected on the first handshake: a slow answer never tore it down.
+        assert_eq!(row["handshakes"], 1, "{row:#}");
+        // A request takes at least the added round trip.
+        assert!(
+            row["latency"]["p50_us"].as_u64().unwrap() >= rtt * 1000,
+            "{row:#}"
+        );
+    }
+    assert_eq!(r["duplicate_grants"], 0);
+}

@@ -923,7 +923,10 @@ fn the_same_request_again_while_its_offer_is_out_is_not_a_duplicate() {
     assert_eq!(offers(&drain(&mut b)).len(), 1);
     // The user reconnected and asks again with the same request number.
     request(&mut b, S, 1, 1, "t/a");
-    assert!(drain(&mut b).is_empty(), "no already_pending, no second offer");
+    assert!(
+        drain(&mut b).is_empty(),
+        "no already_pending, no second offer"
+    );
     // Another request number for the same service still is a duplicate.
     request(&mut b, S, 1, 2, "t/a");
     assert!(matches!(

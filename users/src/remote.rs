@@ -19,15 +19,18 @@ pub use crate::conn::{
     SESSION_KEEPALIVE, SYSTEM_SILENCE,
 };
 
-/// Seeded loss, duplication and reordering applied to this client's datagrams in both
-/// directions: the network-fault test and benchmark use it.
+/// Seeded delay, loss, duplication and reordering applied to this client's datagrams in
+/// both directions (a wrapper around its socket, outside the protocol logic): the
+/// slow-network tests and `bench remote` use it, since this kernel has no netem.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Faults {
+    /// Round trip added: half on the way out, half on the way in.
+    pub rtt: Duration,
     /// Probability a datagram is dropped.
     pub loss: f64,
     /// Probability a datagram is delivered twice.
     pub dup: f64,
-    /// Probability a datagram is held back and delivered after the next one.
+    /// Probability a datagram is held back a little longer than the others (reordered).
     pub reorder: f64,
     /// Seed.
     pub seed: u64,
@@ -35,7 +38,7 @@ pub struct Faults {
 
 impl std::str::FromStr for Faults {
     type Err = String;
-    /// `loss=0.05,dup=0.01,reorder=0.02,seed=7`
+    /// `rtt=300ms,loss=0.05,dup=0.01,reorder=0.02,seed=7`
     fn from_str(s: &str) -> Result<Self, String> {
         let mut f = Faults::default();
         for kv in s.split(',').filter(|x| !x.is_empty()) {
@@ -51,37 +54,85 @@ impl std::str::FromStr for Faults {
                 }
             };
             match k {
+                "rtt" => f.rtt = parse_duration(v).map_err(|e| format!("rtt: {e}"))?,
                 "loss" => f.loss = p()?,
                 "dup" => f.dup = p()?,
                 "reorder" => f.reorder = p()?,
                 "seed" => f.seed = v.parse().map_err(|e| format!("seed: {e}"))?,
-                _ => return Err(format!("unknown fault {k:?} (loss, dup, reorder, seed)")),
+                _ => {
+                    return Err(format!(
+                        "unknown fault {k:?} (rtt, loss, dup, reorder, seed)"
+                    ))
+                }
             }
         }
         Ok(f)
     }
 }
 
-/// The fault injector: a wrapper around the transport, outside the protocol logic.
+/// `250ms`, `1s`, `1.5s`: at most a minute.
+fn parse_duration(v: &str) -> Result<Duration, String> {
+    let (num, unit) = match v.strip_suffix("ms") {
+        Some(n) => (n, 1e-3),
+        None => (v.strip_suffix('s').ok_or("expected e.g. 300ms or 1s")?, 1.0),
+    };
+    let x: f64 = num.parse().map_err(|e| format!("{e}"))?;
+    if !(0.0..=60.0).contains(&(x * unit)) {
+        return Err("must be between 0 and 60 s".into());
+    }
+    Ok(Duration::from_secs_f64(x * unit))
+}
+
+/// The fault injector: datagrams wait in time-ordered queues until their (delayed)
+/// delivery, lost ones never enter, duplicated ones enter twice.
 struct Lossy {
     f: Faults,
     rng: rand_pcg::Pcg64,
-    held_out: Option<Transmit>,
-    held_in: Option<(Vec<u8>, SocketAddr)>,
+    seq: u64,
+    inq: std::collections::BTreeMap<(Instant, u64), (Vec<u8>, SocketAddr)>,
+    outq: std::collections::BTreeMap<(Instant, u64), Transmit>,
 }
 
 impl Lossy {
-    /// What to do with one datagram: 0, 1 or 2 copies, and whether to hold it back.
-    fn fate(&mut self) -> (usize, bool) {
+    fn new(f: Faults) -> Self {
+        Lossy {
+            f,
+            rng: rand_pcg::Pcg64::seed_from_u64(f.seed),
+            seq: 0,
+            inq: Default::default(),
+            outq: Default::default(),
+        }
+    }
+
+    /// When each copy of one datagram sent at `now` arrives (none if it is lost).
+    fn fate(&mut self, now: Instant) -> Vec<(Instant, u64)> {
         if self.rng.random::<f64>() < self.f.loss {
-            return (0, false);
+            return Vec::new();
         }
         let copies = if self.rng.random::<f64>() < self.f.dup {
             2
         } else {
             1
         };
-        (copies, self.rng.random::<f64>() < self.f.reorder)
+        (0..copies)
+            .map(|_| {
+                let mut at = now + self.f.rtt / 2;
+                if self.rng.random::<f64>() < self.f.reorder {
+                    at += Duration::from_millis(1)
+                        + (Duration::from_millis(5) + self.f.rtt / 4)
+                            .mul_f64(self.rng.random::<f64>());
+                }
+                self.seq += 1;
+                (at, self.seq)
+            })
+            .collect()
+    }
+
+    /// When the next held datagram is due.
+    fn next(&self) -> Option<Instant> {
+        let a = self.inq.keys().next().map(|k| k.0);
+        let b = self.outq.keys().next().map(|k| k.0);
+        a.into_iter().chain(b).min()
     }
 }
 
@@ -122,12 +173,7 @@ impl RemoteLink {
         if let Err(e) = size_recv_buffer(&sock) {
             tracing::debug!("cannot size the receive buffer: {e}");
         }
-        let lossy = opts.faults.map(|f| Lossy {
-            f,
-            rng: rand_pcg::Pcg64::seed_from_u64(f.seed),
-            held_out: None,
-            held_in: None,
-        });
+        let lossy = opts.faults.map(Lossy::new);
         let seed: [u8; 32] = rand::rng().random();
         let conn = RemoteConn::new(opts, Instant::now(), seed);
         let mut link = RemoteLink { sock, conn, lossy };
@@ -196,28 +242,16 @@ impl RemoteLink {
     /// When [`RemoteLink::tick`] must run next.
     pub fn next_deadline(&self) -> Instant {
         let t = self.conn.poll_timeout();
-        if self
-            .lossy
-            .as_ref()
-            .is_some_and(|l| l.held_in.is_some() || l.held_out.is_some())
-        {
-            return t.min(Instant::now() + Duration::from_millis(5));
+        match self.lossy.as_ref().and_then(Lossy::next) {
+            Some(held) => t.min(held),
+            None => t,
         }
-        t
     }
 
     /// Retransmits what is due, sends keepalives, notices silent peers.
     pub fn tick(&mut self, core: &mut UserCore) {
         let now = Instant::now();
-        if let Some(l) = self.lossy.as_mut() {
-            let (inn, out) = (l.held_in.take(), l.held_out.take());
-            if let Some((b, f)) = inn {
-                self.conn.handle(now, f, &b, core);
-            }
-            if let Some(t) = out {
-                send_transmit(&self.sock, &t, &mut self.conn.stats_mut().drops);
-            }
-        }
+        self.deliver_held(now, core);
         self.conn.handle_timeout(now, core);
         self.transmit();
     }
@@ -234,63 +268,59 @@ impl RemoteLink {
             match self.lossy.as_mut() {
                 None => self.conn.handle(now, from, bytes, core),
                 Some(l) => {
-                    let (copies, hold) = l.fate();
-                    if copies == 0 {
-                        continue;
-                    }
-                    if hold && l.held_in.is_none() {
-                        l.held_in = Some((bytes.to_vec(), from));
-                        if copies == 2 {
-                            self.conn.handle(now, from, bytes, core);
-                        }
-                        continue;
-                    }
-                    let held = l.held_in.take();
-                    for _ in 0..copies {
-                        self.conn.handle(now, from, bytes, core);
-                    }
-                    if let Some((b, f)) = held {
-                        self.conn.handle(now, f, &b, core);
+                    for k in l.fate(now) {
+                        l.inq.insert(k, (bytes.to_vec(), from));
                     }
                 }
             }
         }
+        self.deliver_held(Instant::now(), core);
         self.transmit();
+    }
+
+    /// Hands the connection the delayed datagrams that are due, and sends the due ones.
+    fn deliver_held(&mut self, now: Instant, core: &mut UserCore) {
+        let Some(l) = self.lossy.as_mut() else { return };
+        let later_in = l.inq.split_off(&(now, u64::MAX));
+        let due_in = std::mem::replace(&mut l.inq, later_in);
+        let later_out = l.outq.split_off(&(now, u64::MAX));
+        let due_out = std::mem::replace(&mut l.outq, later_out);
+        for t in due_out.into_values() {
+            send_transmit(&self.sock, &t, &mut self.conn.stats_mut().drops);
+        }
+        for ((at, _), (b, f)) in due_in {
+            self.conn.handle(at.max(now), f, &b, core);
+        }
     }
 
     /// Sends what the connection has queued, through the fault injector if any.
     fn transmit(&mut self) {
+        let now = Instant::now();
         while let Some(t) = self.conn.poll_transmit() {
-            let Some(l) = self.lossy.as_mut() else {
-                send_transmit(&self.sock, &t, &mut self.conn.stats_mut().drops);
-                continue;
-            };
-            let (copies, hold) = l.fate();
-            if copies == 0 {
-                continue;
-            }
-            let drops = &mut self.conn.stats_mut().drops;
-            if hold && l.held_out.is_none() {
-                if copies == 2 {
-                    send_transmit(&self.sock, &t, drops);
+            match self.lossy.as_mut() {
+                None => send_transmit(&self.sock, &t, &mut self.conn.stats_mut().drops),
+                Some(l) => {
+                    for k in l.fate(now) {
+                        l.outq.insert(k, t.clone());
+                    }
                 }
-                l.held_out = Some(t);
-                continue;
             }
-            let held = l.held_out.take();
-            for _ in 0..copies {
-                send_transmit(&self.sock, &t, drops);
-            }
-            if let Some(h) = held {
-                send_transmit(&self.sock, &h, drops);
+        }
+        // Undelayed datagrams leave at once.
+        if let Some(l) = self.lossy.as_mut() {
+            let later = l.outq.split_off(&(now, u64::MAX));
+            for t in std::mem::replace(&mut l.outq, later).into_values() {
+                send_transmit(&self.sock, &t, &mut self.conn.stats_mut().drops);
             }
         }
     }
 
-    /// Sends a held-back datagram at once (used when closing).
+    /// Sends every held-back datagram at once (used when closing).
     pub fn flush_held(&mut self) {
-        if let Some(t) = self.lossy.as_mut().and_then(|l| l.held_out.take()) {
-            send_transmit(&self.sock, &t, &mut self.conn.stats_mut().drops);
+        if let Some(l) = self.lossy.as_mut() {
+            for t in std::mem::take(&mut l.outq).into_values() {
+                send_transmit(&self.sock, &t, &mut self.conn.stats_mut().drops);
+            }
         }
     }
 }

@@ -381,6 +381,7 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
     let mut abandoned = clean.abandoned;
     for (i, p) in a.faults.iter().enumerate() {
         let f = Faults {
+            rtt: Duration::ZERO,
             loss: p / 100.0,
             dup: p / 100.0,
             reorder: p / 100.0,
@@ -398,6 +399,35 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
         c.close();
     }
     out["faults"] = json!(faults);
+
+    // Slow links: connect, list and request over an added round trip with 5 % loss.
+    let mut slow = Vec::new();
+    for (i, rtt) in a.slow.iter().enumerate() {
+        let rtt: Duration = (*rtt).into();
+        let f = Faults {
+            rtt,
+            loss: 0.05,
+            seed: 2000 + i as u64,
+            ..Faults::default()
+        };
+        let t = Instant::now();
+        let mut c = client(broker_addr, &key, Some(f))?;
+        let connect_ms = t.elapsed().as_secs_f64() * 1e3;
+        let (lh, _) = lists(&mut c, 5, None)?;
+        let n = a.requests.min(10);
+        let b = requests(&mut c, &service, n, Duration::from_secs(30))?;
+        user_grants += b.granted;
+        abandoned += b.abandoned;
+        let mut j = batch_json(&b, n);
+        j["rtt_ms"] = json!(rtt.as_millis() as u64);
+        j["loss"] = json!(0.05);
+        j["connect_ms"] = json!(connect_ms);
+        j["list"] = summary(&lh);
+        j["handshakes"] = json!(c.link_stats().map_or(0, |s| s.handshakes));
+        slow.push(j);
+        c.close();
+    }
+    out["slow"] = json!(slow);
 
     if a.flood_rate > 0 {
         let stop = Arc::new(AtomicBool::new(false));
@@ -484,6 +514,18 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
             f["latency"]["p50_us"],
             f["latency"]["p99_us"],
             f["retransmissions"]
+        );
+    }
+    for s in out["slow"].as_array().into_iter().flatten() {
+        println!(
+            "+{} ms RTT, 5% loss: connect {:.0} ms, list p50 {} µs, request p50 {} µs, p99 {} µs, completion {:.3}, handshakes {}",
+            s["rtt_ms"],
+            s["connect_ms"].as_f64().unwrap_or(0.0),
+            s["list"]["p50_us"],
+            s["latency"]["p50_us"],
+            s["latency"]["p99_us"],
+            s["completion"].as_f64().unwrap_or(0.0),
+            s["handshakes"]
         );
     }
     if let Some(f) = out.get("flood") {
