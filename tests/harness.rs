@@ -1364,3 +1364,94 @@ fn a_request_retried_through_a_restarted_broker_gets_a_usable_grant() {
     // No silence: the user never declared the system dead.
     assert!(!got.iter().any(|e| matches!(e, UserEvent::Ended { .. })));
 }
+
+#[test]
+fn a_replayed_datagram_from_elsewhere_draws_one_challenge_and_a_real_move_is_followed() {
+    let mut net = Net::new();
+    let u = connected_remote_user(&mut net);
+    net.user(&u).request(ServiceId::new("t1", "s0"));
+    net.settle();
+    assert!(run_while(&mut net, secs(5.0), |n| !granted(
+        &n.take_events(&u)
+    )
+    .is_empty()));
+    let addr = net.ruser(&u).addr;
+    // The path gets slow; the attacker races the user's own datagrams to the broker and
+    // the system from its address.
+    net.udp.set_faults(
+        addr.ip(),
+        PathFaults {
+            rtt: secs(0.4),
+            ..PathFaults::default()
+        },
+    );
+    net.udp.tapping = true;
+    let t = net.at(net.now);
+    net.ruser(&u).conn.ask_list(t);
+    let attacker: SocketAddr = "10.9.9.9:4444".parse().unwrap();
+    net.strays.clear();
+    let (mut bytes_in, mut to_broker, mut to_system) = (0, 0, 0);
+    let system_udp = net.systems["t1"].udp;
+    // For 1.5 s every datagram of the user's (a list request, session keepalives) is
+    // copied and arrives from the attacker's address 0.2 s ahead of the original.
+    for _ in 0..150 {
+        for d in std::mem::take(&mut net.udp.tap) {
+            if d.from == addr {
+                bytes_in += d.bytes.len();
+                to_broker += usize::from(d.to == Net::broker_udp());
+                to_system += usize::from(d.to == system_udp);
+                let at = net.now;
+                net.udp.inject(at, attacker, d.to, d.bytes);
+            }
+        }
+        let step = net.now + secs(0.01);
+        net.run_until(step);
+    }
+    assert!(to_broker >= 1 && to_system >= 1, "{to_broker} {to_system}");
+    net.udp.tapping = false;
+    let tn = net.now;
+    net.run_until(tn + secs(3.0));
+    let to_attacker: Vec<_> = net.strays.iter().filter(|d| d.to == attacker).collect();
+    let bytes_out: usize = to_attacker.iter().map(|d| d.bytes.len()).sum();
+    assert!(
+        bytes_out <= bytes_in,
+        "the attacker's address got {bytes_out} bytes for {bytes_in} sent: {} datagrams",
+        to_attacker.len()
+    );
+    assert!(net.front.as_ref().unwrap().stats().path_challenges >= 1);
+    // The user still gets its stream and the broker's answers at its own address.
+    net.take_events(&u);
+    net.run_until(net.now + secs(2.0));
+    let ev = net.take_events(&u);
+    assert!(
+        ev.iter()
+            .filter(|e| matches!(e, UserEvent::Update { .. }))
+            .count()
+            >= 10
+    );
+    assert!(net.ruser(&u).conn.welcomed());
+    // Now the user really moves (NAT rebinding): both the broker and the system follow
+    // once it answers their challenges from there.
+    let moved: SocketAddr = "10.0.2.9:6000".parse().unwrap();
+    net.ruser(&u).addr = moved;
+    let t = net.at(net.now);
+    net.ruser(&u).conn.ask_list(t);
+    net.strays.clear();
+    let mut list = None;
+    assert!(run_while(&mut net, secs(10.0), |n| {
+        list = list.take().or(n.ruser(&u).conn.take_list());
+        list.is_some()
+    }));
+    net.take_events(&u);
+    net.run_until(net.now + secs(3.0));
+    let ev = net.take_events(&u);
+    assert!(
+        ev.iter()
+            .filter(|e| matches!(e, UserEvent::Update { .. }))
+            .count()
+            >= 20,
+        "the stream follows the user"
+    );
+    assert_eq!(net.front.as_ref().unwrap().stats().migrations, 1);
+    assert_eq!(net.systems["t1"].remote.stats().migrations, 1);
+}

@@ -106,6 +106,10 @@ pub struct UdpStats {
     pub evicted: u64,
     /// Connections dropped for silence.
     pub expired: u64,
+    /// Path challenges sent to new addresses of authenticated users.
+    pub path_challenges: u64,
+    /// Users that moved to a validated new address.
+    pub migrations: u64,
     /// Requests that arrived again and were answered from memory.
     pub duplicate_requests: u64,
     /// Requests refused here (not allowed, or no UDP endpoint on the system).
@@ -168,6 +172,8 @@ struct Conn {
     /// Requests at or below this number were forgotten; repeats of them are dropped.
     floor: u64,
     keys: HashMap<u64, [u8; 32]>,
+    /// A new address the user's datagrams came from, the challenge sent there, and when.
+    probe: Option<(SocketAddr, u64, Instant)>,
 }
 
 /// What the front hands the core (through `run.rs`).
@@ -242,6 +248,9 @@ pub enum UdpError {
     #[error("{0}")]
     Access(String),
 }
+
+/// Least time between two path challenges of one connection.
+const PROBE_EVERY: Duration = Duration::from_millis(200);
 
 /// Housekeeping period (expiring handshakes and silent connections).
 const HOUSEKEEPING: Duration = Duration::from_millis(500);
@@ -643,6 +652,7 @@ impl UdpFront {
                 reqs: BTreeMap::new(),
                 floor: 0,
                 keys: HashMap::new(),
+                probe: None,
             },
         );
     }
@@ -672,19 +682,44 @@ impl UdpFront {
         if !c.bucket.take(t, rate) {
             return self.stats.drops.drop("conn_rate", &from);
         }
-        // Authenticated: the user may have moved (NAT rebinding).
-        c.addr = from;
         c.last_heard = t;
         let msg = match from_bytes::<Up>(&plain) {
             Ok(m) => m,
             Err(_) => return self.stats.drops.drop("bad_message", &from),
         };
+        // Authenticated, but maybe from a new address: the user moved (NAT rebinding),
+        // or someone replays its datagrams from elsewhere. The path is validated first
+        // (RFC 9000 §9): a challenge goes there, smaller than what came; answers keep
+        // going to the old address until the new one echoes the challenge.
+        if from != c.addr {
+            if let Up::PathResponse { token } = msg {
+                if c.probe.is_some_and(|(a, tk, _)| a == from && tk == token) {
+                    tracing::debug!(conn = format!("{id:016x}"), %from, "remote user moved");
+                    c.addr = from;
+                    c.probe = None;
+                    self.stats.migrations += 1;
+                }
+                return;
+            }
+            let due = c.probe.is_none_or(|(a, _, at)| {
+                a != from || t.saturating_duration_since(at) >= PROBE_EVERY
+            });
+            if due {
+                let token: u64 = self.rng.random();
+                if let Some(c) = self.conns.get_mut(&id) {
+                    c.probe = Some((from, token, t));
+                }
+                self.stats.path_challenges += 1;
+                self.send_to(id, from, &Down::PathChallenge { token });
+            }
+        }
         match msg {
             Up::Ping { nonce } => {
                 let generation = self.generation;
                 self.send(id, &Down::Pong { nonce, generation });
             }
             Up::List => self.send_list(id),
+            Up::PathResponse { .. } => {}
             Up::Msg(m) => self.on_user_msg(dir, t, id, m, from),
         }
     }
@@ -974,14 +1009,18 @@ impl UdpFront {
     }
 
     fn send(&mut self, id: u64, d: &Down) {
+        let Some(addr) = self.conns.get(&id).map(|c| c.addr) else {
+            return;
+        };
+        self.send_to(id, addr, d);
+    }
+
+    fn send_to(&mut self, id: u64, addr: SocketAddr, d: &Down) {
         let Some(c) = self.conns.get_mut(&id) else {
             return;
         };
         match seal_channel(&mut c.chan, id, d) {
-            Ok(dg) => {
-                let addr = c.addr;
-                self.send_raw(&dg, addr);
-            }
+            Ok(dg) => self.send_raw(&dg, addr),
             Err(e) => tracing::error!("cannot send to a remote user: {e}"),
         }
     }

@@ -31,6 +31,9 @@ use std::time::{Duration, Instant};
 pub const LEASE: Duration = Duration::from_secs(5);
 /// An ended session's key is kept this long to answer repeated `End`s.
 pub const LINGER: Duration = Duration::from_secs(10);
+/// Least time between two path challenges of one session.
+const PROBE_EVERY: Duration = Duration::from_millis(200);
+
 /// How often silent sessions are looked for.
 const HOUSEKEEPING: Duration = Duration::from_millis(500);
 
@@ -38,6 +41,8 @@ struct Remote {
     user: UserId,
     addr: SocketAddr,
     key: [u8; 32],
+    /// A new address the user's datagrams came from, the challenge sent there, and when.
+    probe: Option<(SocketAddr, u64, Instant)>,
     cipher: SessionCipher,
     last_heard: Instant,
     ended: Option<(Instant, EndReason)>,
@@ -52,6 +57,10 @@ pub struct RemoteStats {
     pub datagrams_out: u64,
     /// Sessions ended because the user went silent.
     pub leases_expired: u64,
+    /// Path challenges sent to new addresses of a session's user.
+    pub path_challenges: u64,
+    /// Sessions moved to a validated new address.
+    pub migrations: u64,
     /// Dropped datagrams by reason.
     pub drops: DropCounters,
 }
@@ -119,6 +128,7 @@ impl RemoteSessions {
                             cipher: SessionCipher::new(&contact.key, Side::System),
                             last_heard: now,
                             ended: None,
+                            probe: None,
                         };
                         match self.sessions.get_mut(&session.0) {
                             Some(r) if r.key == contact.key => {}
@@ -189,7 +199,6 @@ impl RemoteSessions {
         let Ok(plain) = r.cipher.open(session, nonce, sealed) else {
             return self.stats.drops.drop("forged_or_replayed", &from);
         };
-        r.addr = from;
         r.last_heard = now;
         let user = r.user.clone();
         let ended = r.ended.clone();
@@ -197,6 +206,29 @@ impl RemoteSessions {
             Ok(m) => m,
             Err(_) => return self.stats.drops.drop("bad_message", &from),
         };
+        // From a new address: validate the path before streaming there (RFC 9000 §9);
+        // the stream stays on the old address until the challenge is echoed from it.
+        if from != r.addr {
+            if let SessionUp::PathResponse { token } = msg {
+                if r.probe.is_some_and(|(a, tk, _)| a == from && tk == token) {
+                    r.addr = from;
+                    r.probe = None;
+                    self.stats.migrations += 1;
+                }
+                return;
+            }
+            let due = r.probe.is_none_or(|(a, _, at)| {
+                a != from || now.saturating_duration_since(at) >= PROBE_EVERY
+            });
+            if due {
+                // The challenge is sealed: only the key's holder can echo it, so the
+                // token needs to be unique, not secret.
+                let token = nonce;
+                r.probe = Some((from, token, now));
+                self.stats.path_challenges += 1;
+                self.send_to(session, from, &SessionDown::PathChallenge { token });
+            }
+        }
         let id = SessionId(session);
         match (msg, ended) {
             (SessionUp::Keepalive, None) => self.send(session, &SessionDown::Alive),
@@ -229,6 +261,7 @@ impl RemoteSessions {
             ),
             (SessionUp::Msg(ToSystem::Input { .. }), Some(_)) => {}
             (SessionUp::Msg(_), _) => self.stats.drops.drop("not_a_session_message", &from),
+            (SessionUp::PathResponse { .. }, _) => {}
         }
     }
 
@@ -273,10 +306,16 @@ impl RemoteSessions {
     }
 
     fn send(&mut self, session: u64, m: &SessionDown) {
+        let Some(addr) = self.sessions.get(&session).map(|r| r.addr) else {
+            return;
+        };
+        self.send_to(session, addr, m);
+    }
+
+    fn send_to(&mut self, session: u64, addr: SocketAddr, m: &SessionDown) {
         let Some(r) = self.sessions.get_mut(&session) else {
             return;
         };
-        let addr = r.addr;
         let Ok(dg) = seal_session(&mut r.cipher, session, m) else {
             return self.stats.drops.drop("too_large_for_a_datagram", &addr);
         };

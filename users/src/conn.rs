@@ -771,6 +771,7 @@ impl RemoteConn {
                     core.list_changed();
                 }
             }
+            Down::PathChallenge { token } => self.send_up(&Up::PathResponse { token }),
         }
     }
 
@@ -850,6 +851,9 @@ impl RemoteConn {
         };
         match msg {
             SessionDown::Alive => {}
+            SessionDown::PathChallenge { token } => {
+                self.send_session(session, &SessionUp::PathResponse { token })
+            }
             SessionDown::Msg(m) => {
                 if let ToUser::Ended { .. } = &m {
                     self.retire(session);

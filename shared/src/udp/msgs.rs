@@ -30,6 +30,11 @@ pub enum Up {
         /// Echoed.
         nonce: u64,
     },
+    /// Answer to [`Down::PathChallenge`], from the address it reached.
+    PathResponse {
+        /// The challenge's token.
+        token: u64,
+    },
 }
 
 /// Broker → user, inside a `CHANNEL` datagram.
@@ -87,6 +92,12 @@ pub enum Down {
         /// Current list generation.
         generation: u64,
     },
+    /// An authenticated datagram came from a new address: prove you are there (RFC 9000
+    /// §8.2). Until the answer comes back from it, nothing else is sent there.
+    PathChallenge {
+        /// Echo this in [`Up::PathResponse`].
+        token: u64,
+    },
 }
 
 /// User → system, inside a `SESSION` datagram.
@@ -96,6 +107,11 @@ pub enum SessionUp {
     Msg(ToSystem),
     /// The user is alive; answered by [`SessionDown::Alive`].
     Keepalive,
+    /// Answer to [`SessionDown::PathChallenge`].
+    PathResponse {
+        /// The challenge's token.
+        token: u64,
+    },
 }
 
 /// System → user, inside a `SESSION` datagram.
@@ -105,6 +121,11 @@ pub enum SessionDown {
     Msg(ToUser),
     /// The system is alive.
     Alive,
+    /// A datagram of this session came from a new address: prove you are there.
+    PathChallenge {
+        /// Echo this in [`SessionUp::PathResponse`].
+        token: u64,
+    },
 }
 
 /// Why a channel message could not be encoded or decoded.
