@@ -166,6 +166,11 @@ pub struct RemoteBenchArgs {
     /// `300ms,1s`; empty for none.
     #[arg(long, value_delimiter = ',', default_value = "300ms,1s")]
     pub slow: Vec<humantime::Duration>,
+    /// Handshakes per second from one address (each with a valid token and a Noise
+    /// message, costing the broker a Diffie-Hellman and a pending slot) while real users
+    /// log in (0: no handshake-flood row).
+    #[arg(long, default_value_t = 400)]
+    pub handshake_flood: u64,
     /// Hostile datagrams per second during the flood row (0: no flood row).
     #[arg(long, default_value_t = 20000)]
     pub flood_rate: u64,

@@ -208,6 +208,57 @@ impl UdpProbe {
 /// Flood threads: from `sources` loopback addresses (127.0.0.2, .3, ...), a mix of
 /// garbage, unpadded and token-less initials, forged tokens and channel datagrams with
 /// made-up connection ids, at about `rate` datagrams a second in all.
+/// One address does the address-validation round trip honestly and then sends Noise
+/// message 1 for a fresh handshake id, `rate` times a second: every one costs the broker
+/// a Diffie-Hellman and a pending slot.
+fn handshake_flood(
+    to: SocketAddr,
+    rate: u64,
+    stop: Arc<AtomicBool>,
+    sent: Arc<AtomicU64>,
+) -> anyhow::Result<std::thread::JoinHandle<()>> {
+    let sock = UdpSocket::bind("127.0.0.250:0")?;
+    sock.set_nonblocking(true)?;
+    let key = KeyPair::generate()?;
+    let mut hs = muster_shared::udp::crypto::initiator(&key)?;
+    let mut m1 = [0u8; 128];
+    let n = hs.write_message(&[], &mut m1)?;
+    let msg1 = m1[..n].to_vec();
+    Ok(std::thread::spawn(move || {
+        let gap = Duration::from_secs_f64(1.0 / rate.max(1) as f64);
+        let mut next = Instant::now();
+        let mut client: u64 = 1 << 50;
+        let mut buf = [0u8; 2048];
+        while !stop.load(Ordering::Relaxed) {
+            client += 1;
+            let init = Datagram::Initial {
+                client,
+                token: b"",
+                noise: b"",
+            }
+            .encode()
+            .unwrap_or_default();
+            let _ = sock.send_to(&init, to);
+            while let Ok((len, _)) = sock.recv_from(&mut buf) {
+                if let Ok(Datagram::Retry { client, token }) = Datagram::decode(&buf[..len]) {
+                    let i = Datagram::Initial {
+                        client,
+                        token,
+                        noise: &msg1,
+                    }
+                    .encode()
+                    .unwrap_or_default();
+                    if sock.send_to(&i, to).is_ok() {
+                        sent.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            }
+            next += gap;
+            std::thread::sleep(next.saturating_duration_since(Instant::now()));
+        }
+    }))
+}
+
 fn flood(
     to: SocketAddr,
     sources: usize,
@@ -429,6 +480,49 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
     }
     out["slow"] = json!(slow);
 
+    // Real users log in while one address floods the broker with handshakes.
+    if a.handshake_flood > 0 {
+        let stop = Arc::new(AtomicBool::new(false));
+        let sent = Arc::new(AtomicU64::new(0));
+        let t = Instant::now();
+        let th = handshake_flood(broker_addr, a.handshake_flood, stop.clone(), sent.clone())?;
+        std::thread::sleep(Duration::from_secs(3)); // the pending table fills
+        let mut logins = hist();
+        let users = 20;
+        let mut ok = 0;
+        for _ in 0..users {
+            let t0 = Instant::now();
+            let opts = ConnectOptions {
+                wait_for_broker: Duration::from_secs(5),
+                handle_signals: false,
+                watch_list: false,
+            };
+            let remote = RemoteOptions {
+                broker: broker_addr,
+                name: "bench".into(),
+                key: key.clone(),
+                broker_key: None,
+                faults: None,
+            };
+            if let Ok(c) = UserClient::connect_remote(remote, &opts) {
+                ok += 1;
+                let _ = logins.record(t0.elapsed().as_micros() as u64);
+                c.close();
+            }
+        }
+        stop.store(true, Ordering::Relaxed);
+        let _ = th.join();
+        let secs = t.elapsed().as_secs_f64();
+        out["handshake_flood"] = json!({
+            "rate": a.handshake_flood,
+            "rate_measured": sent.load(Ordering::Relaxed) as f64 / secs,
+            "logins": users,
+            "succeeded": ok,
+            "success": ok as f64 / users as f64,
+            "login": summary(&logins),
+        });
+    }
+
     if a.flood_rate > 0 {
         let stop = Arc::new(AtomicBool::new(false));
         let sent = Arc::new(AtomicU64::new(0));
@@ -526,6 +620,16 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
             s["latency"]["p99_us"],
             s["completion"].as_f64().unwrap_or(0.0),
             s["handshakes"]
+        );
+    }
+    if let Some(f) = out.get("handshake_flood") {
+        println!(
+            "handshake flood {:.0}/s from one address: {} of {} logins within 5 s, login p50 {} µs, p99 {} µs",
+            f["rate_measured"].as_f64().unwrap_or(0.0),
+            f["succeeded"],
+            f["logins"],
+            f["login"]["p50_us"],
+            f["login"]["p99_us"]
         );
     }
     if let Some(f) = out.get("flood") {
