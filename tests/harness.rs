@@ -1019,16 +1019,7 @@ fn forged_handshake_datagrams_leave_a_working_channel_alone() {
     net.run_until(net.now + secs(1.0));
     // The channel still works: a request is granted and data flows, on the first
     // handshake.
-    net.user(&u).request(ServiceId::new("t1", "s0"));
-    net.settle();
-    let mut got = Vec::new();
-    assert!(run_while(&mut net, secs(5.0), |n| {
-        got.extend(n.take_events(&u));
-        got.iter()
-            .filter(|e| matches!(e, UserEvent::Update { .. }))
-            .count()
-            >= 10
-    }));
+    let got = request_until_updates(&mut net, &u, 10);
     assert!(!granted(&got).is_empty());
     let stats = net.ruser(&u).conn.stats().clone();
     assert_eq!(stats.handshakes, 1, "{stats:?}");
@@ -1145,6 +1136,21 @@ fn real_users_log_in_during_a_handshake_flood_from_a_few_addresses() {
     assert!(p99 < 0.5, "login p99 {p99} s");
 }
 
+/// User `u` requests `t1/s0`; runs until `n` updates came (5 s at most); its events.
+fn request_until_updates(net: &mut Net, u: &UserId, n: usize) -> Vec<UserEvent> {
+    net.user(u).request(ServiceId::new("t1", "s0"));
+    net.settle();
+    let mut got = Vec::new();
+    assert!(run_while(net, secs(5.0), |net| {
+        got.extend(net.take_events(u));
+        got.iter()
+            .filter(|e| matches!(e, UserEvent::Update { .. }))
+            .count()
+            >= n
+    }));
+    got
+}
+
 /// A remote user, connected on a clean path, with a data system `t1`.
 fn connected_remote_user(net: &mut Net) -> UserId {
     net.add_system(data("t1", 1, 10));
@@ -1224,16 +1230,7 @@ fn junk_before_a_grant_does_not_push_out_the_systems_first_updates() {
         let at = net.now + secs(0.001 * i as f64);
         net.udp.inject(at, attacker, addr, junk);
     }
-    net.user(&u).request(ServiceId::new("t1", "s0"));
-    net.settle();
-    let mut got = Vec::new();
-    assert!(run_while(&mut net, secs(5.0), |n| {
-        got.extend(n.take_events(&u));
-        got.iter()
-            .filter(|e| matches!(e, UserEvent::Update { .. }))
-            .count()
-            >= 20
-    }));
+    let got = request_until_updates(&mut net, &u, 20);
     let seqs: Vec<u64> = got
         .iter()
         .filter_map(|e| match e {

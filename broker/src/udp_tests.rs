@@ -128,14 +128,7 @@ impl Rig {
 
     /// Sends `m` on the channel; returns the answers, opened.
     fn say(&mut self, conn: u64, chan: &mut Channel, m: &Up) -> Vec<Down> {
-        let (nonce, sealed) = chan.seal(&to_bytes(m).unwrap()).unwrap();
-        let d = Datagram::Channel {
-            conn,
-            nonce,
-            sealed: &sealed,
-        }
-        .encode()
-        .unwrap();
+        let d = sealed(conn, chan, m);
         self.exchange(&d)
             .iter()
             .map(|b| match Datagram::decode(b).unwrap() {
@@ -146,6 +139,18 @@ impl Rig {
             })
             .collect()
     }
+}
+
+/// A `CHANNEL` datagram carrying `m`.
+fn sealed(conn: u64, chan: &mut Channel, m: &Up) -> Vec<u8> {
+    let (nonce, sealed) = chan.seal(&to_bytes(m).unwrap()).unwrap();
+    Datagram::Channel {
+        conn,
+        nonce,
+        sealed: &sealed,
+    }
+    .encode()
+    .unwrap()
 }
 
 #[test]
@@ -237,16 +242,7 @@ fn a_full_handshake_then_a_duplicated_request_is_answered_once() {
     assert_eq!(r.core.stats().requests, 1, "the core saw the request once");
     assert_eq!(r.front.stats().duplicate_requests, 1);
     // A replayed datagram is dropped.
-    let (nonce, sealed) = chan
-        .seal(&to_bytes(&Up::Ping { nonce: 5 }).unwrap())
-        .unwrap();
-    let d = Datagram::Channel {
-        conn,
-        nonce,
-        sealed: &sealed,
-    }
-    .encode()
-    .unwrap();
+    let d = sealed(conn, &mut chan, &Up::Ping { nonce: 5 });
     assert_eq!(r.exchange(&d).len(), 1);
     assert!(r.exchange(&d).is_empty());
     assert_eq!(r.front.stats().drops.by_reason["forged_or_replayed"], 1);
