@@ -129,7 +129,8 @@ fn a_user_that_dies_before_its_grant_does_not_leak_quota() {
     ep.send(&Address::Broker, &encode(&hello).unwrap()).unwrap();
     ep.send(&Address::Broker, &encode(&request).unwrap())
         .unwrap();
-    // The system granted a session to a process that is gone; it must notice and end it.
+    // The hello claims a pid that is not the writer's: refused, so the request is from an
+    // unknown user and refused too. Either way no quota may leak.
     f.wait_list(10 * SEC, |l| l[0]["in_use"] == 0);
     let (code, out) = f.run(
         &["user", "request", "t1/s0", "--duration", "200ms", "--json"],
@@ -176,5 +177,68 @@ fn control_frames_beyond_a_full_inbox_are_held_back_and_arrive_in_order() {
     assert_eq!(system.dropped_sends(), 0);
     drop(system);
     drop(broker);
+    common::cleanup_dead_nodes();
+}
+
+#[test]
+fn a_local_process_can_speak_only_as_itself() {
+    let mut f = Fed::new("impostor");
+    f.broker(&[]);
+    f.system("t1", &["--services", "2", "--quota", "1"]);
+    f.wait_list(10 * SEC, |l| l.len() == 2);
+    // A process that is not t1 writes into the broker's inbox as t1, and as a user with
+    // another process's pid.
+    let mut ep = fake(&f.inst, Address::User(UserId("mallory".into())));
+    let forged = [
+        ToBroker::Withdraw {
+            system: "t1".into(),
+            service: "s0".into(),
+        },
+        ToBroker::Unregister {
+            system: "t1".into(),
+        },
+        ToBroker::Hello {
+            user: UserId("mallory".into()),
+            pid: 1,
+            links: vec![],
+            watch_list: false,
+        },
+    ];
+    for m in &forged {
+        ep.send(&Address::Broker, &encode(m).unwrap()).unwrap();
+    }
+    // And it offers itself t1's only s1 session, past arbitration, as if it were the broker.
+    let offer = muster_shared::protocol::ToSystem::Offer {
+        ticket: 1,
+        user: UserId("mallory".into()),
+        user_pid: std::process::id(),
+        req: 1,
+        service: "s1".into(),
+        remote: None,
+    };
+    ep.send(&Address::System("t1".into()), &encode(&offer).unwrap())
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(500));
+    let list = f.list();
+    assert_eq!(list.len(), 2, "t1 is still registered: {list:?}");
+    assert!(
+        list.iter().all(|s| s["withdrawn"] == false),
+        "nothing withdrawn: {list:?}"
+    );
+    // Speaking as itself works: a hello with its own pid, then a request.
+    let me = std::process::id();
+    let hello = ToBroker::Hello {
+        user: UserId("mallory".into()),
+        pid: me,
+        links: vec![],
+        watch_list: false,
+    };
+    ep.send(&Address::Broker, &encode(&hello).unwrap()).unwrap();
+    let (code, out) = f.run(
+        &["user", "request", "t1/s1", "--duration", "200ms", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    drop(ep);
     common::cleanup_dead_nodes();
 }

@@ -41,6 +41,9 @@ impl Default for BrokerConfig {
     }
 }
 
+/// Most user ids one local process may hold at once (a process may run a few clients).
+pub const MAX_USERS_PER_PROCESS: usize = 16;
+
 /// Default bound on the links one user may have counted ([`BrokerConfig::max_links_per_user`]).
 pub const MAX_LINKS_PER_USER: usize = 16;
 
@@ -107,6 +110,8 @@ pub struct BrokerStats {
     pub registrations: u64,
     /// Times a system's session digest differed from the broker's and its set was asked.
     pub reconciliations: u64,
+    /// Local frames refused because their writer spoke for another process.
+    pub impersonations: u64,
     /// Answers to an offer from a system it did not go to (ignored).
     pub foreign_answers: u64,
     /// Links not counted: wrong kinds, or over the user's bound.
@@ -286,6 +291,56 @@ impl Broker {
         });
         let offers = self.offers.values().map(|o| o.deadline);
         pings.chain(offers).min()
+    }
+
+    /// Whether a local frame written by process `pid` may say `msg`: a process speaks
+    /// only as itself. It registers or says hello with its own pid, and speaks for a
+    /// system or user only if that system or user is its own (the registry's pid). A
+    /// refused frame is counted and logged (1st, 2nd, 4th, ...); `None` (the transport
+    /// could not tell the writer) is let through.
+    pub fn sender_allowed(&mut self, pid: Option<u32>, msg: &ToBroker) -> bool {
+        let Some(pid) = pid else { return true };
+        let ok = match msg {
+            ToBroker::Register { pid: claimed, .. } => *claimed == pid,
+            ToBroker::Hello {
+                user, pid: claimed, ..
+            } => {
+                let others_of_pid = self
+                    .users
+                    .iter()
+                    .filter(|(u, r)| r.pid == pid && *u != user)
+                    .count();
+                *claimed == pid
+                    && self.users.get(user).is_none_or(|r| r.pid == pid)
+                    && others_of_pid < MAX_USERS_PER_PROCESS
+            }
+            ToBroker::Pong { system, .. }
+            | ToBroker::OfferAnswer { system, .. }
+            | ToBroker::SessionEnded { system, .. }
+            | ToBroker::Withdraw { system, .. }
+            | ToBroker::Restore { system, .. }
+            | ToBroker::Unregister { system, .. }
+            | ToBroker::Sessions { system, .. } => {
+                self.systems.get(system).is_none_or(|s| s.pid == pid)
+            }
+            ToBroker::Request { user, .. }
+            | ToBroker::Cancel { user, .. }
+            | ToBroker::LinkOpened { user, .. }
+            | ToBroker::LinkClosed { user, .. }
+            | ToBroker::Goodbye { user } => self.users.get(user).is_none_or(|u| u.pid == pid),
+        };
+        if !ok {
+            self.stats.impersonations += 1;
+            if self.stats.impersonations.is_power_of_two() {
+                tracing::warn!(
+                    pid,
+                    kind = msg.kind(),
+                    refused = self.stats.impersonations,
+                    "a local process spoke for another: frame refused"
+                );
+            }
+        }
+        ok
     }
 
     /// Handles one message.

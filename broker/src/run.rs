@@ -346,9 +346,12 @@ pub fn run_with(
 
 impl Shell {
     fn drain_inbox(&mut self, core: &mut Broker, now: Duration) -> Result<(), BrokerError> {
-        while let Some(frame) = self.endpoint.recv() {
+        while let Some((frame, pid)) = self.endpoint.recv_from() {
             match decode::<ToBroker>(&frame) {
-                Ok(msg) => timed_handle(&mut self.handling, core, now, msg),
+                Ok(msg) if core.sender_allowed(pid, &msg) => {
+                    timed_handle(&mut self.handling, core, now, msg)
+                }
+                Ok(_) => {}
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),
             }
         }

@@ -215,6 +215,11 @@ pub struct Endpoint {
     /// Control frames a full inbox could not take yet, per peer, in order: retried by
     /// [`Endpoint::sweep`], so no control message is lost to a burst.
     backlog: HashMap<Address, VecDeque<Vec<u8>>>,
+    /// This endpoint's own inbox service, to look up who is behind a publisher.
+    inbox_svc: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+    /// The process behind each publisher writing to this inbox (iceoryx2 records the
+    /// node, and the node id the pid of the process that created it).
+    senders: HashMap<iceoryx2::identifiers::UniquePublisherId, Option<u32>>,
 }
 
 /// Most control frames held back for one peer whose inbox is full; beyond it the peer
@@ -288,6 +293,8 @@ impl Endpoint {
             dropped_sends: 0,
             recv_errors: 0,
             backlog: HashMap::new(),
+            inbox_svc: svc,
+            senders: HashMap::new(),
         })
     }
 
@@ -318,8 +325,20 @@ impl Endpoint {
     /// this drain and is counted and logged (1st, 2nd, 4th, ... time); it never stops
     /// the process: one bad peer must not take a long-running broker or system down.
     pub fn recv(&mut self) -> Option<Vec<u8>> {
+        self.recv_from().map(|(f, _)| f)
+    }
+
+    /// [`Endpoint::recv`], with the pid of the process that wrote the frame (from the
+    /// iceoryx2 publisher and node behind it; `None` if it cannot be told), so that a
+    /// process can be held to speak only as itself.
+    pub fn recv_from(&mut self) -> Option<(Vec<u8>, Option<u32>)> {
         match self.inbox.receive() {
-            Ok(Some(sample)) => Some(sample.payload().to_vec()),
+            Ok(Some(sample)) => {
+                let publisher = sample.header().publisher_id();
+                let frame = sample.payload().to_vec();
+                drop(sample);
+                Some((frame, self.sender_pid(publisher)))
+            }
             Ok(None) => None,
             Err(e) => {
                 self.recv_errors += 1;
@@ -330,6 +349,26 @@ impl Endpoint {
                 None
             }
         }
+    }
+
+    fn sender_pid(&mut self, publisher: iceoryx2::identifiers::UniquePublisherId) -> Option<u32> {
+        if let Some(pid) = self.senders.get(&publisher) {
+            return *pid;
+        }
+        if self.senders.len() > 4096 {
+            self.senders.clear(); // publishers come and go; rebuild from the live ones
+        }
+        let senders = &mut self.senders;
+        self.inbox_svc.dynamic_config().list_publishers(|d| {
+            let pid = d
+                .node_id
+                .pid::<Ipc>()
+                .ok()
+                .and_then(|p| u32::try_from(p.value()).ok());
+            senders.insert(d.publisher_id, pid);
+            iceoryx2::prelude::CallbackProgression::Continue
+        });
+        self.senders.get(&publisher).copied().flatten()
     }
 
     /// Receive errors so far (see [`Endpoint::recv`]).

@@ -94,6 +94,8 @@ struct Session {
     seq: u64,
     /// The user's request it answers: a repeated offer for it re-sends this grant.
     req: u64,
+    /// The user's process (0: a remote user, who speaks over UDP, never here).
+    user_pid: u32,
 }
 
 /// One system's protocol state.
@@ -107,6 +109,9 @@ pub struct SystemCore {
     state: BrokerState,
     session_prefix: u64,
     next_session: u64,
+    /// The pid of the broker that registered us (from its `Registered`).
+    broker_pid: Option<u32>,
+    impersonations: u64,
     overloaded: bool,
     session_limit: Option<(usize, String)>,
     udp: Option<String>,
@@ -131,6 +136,8 @@ impl SystemCore {
                     ^ name.bytes().fold(0u64, |h, b| mix64(h ^ u64::from(b))),
             ),
             next_session: 1,
+            broker_pid: None,
+            impersonations: 0,
             overloaded: false,
             session_limit: None,
             udp: None,
@@ -230,8 +237,41 @@ impl SystemCore {
             }));
     }
 
+    /// Whether a local frame written by process `pid` may say `msg`: the broker's
+    /// messages only from the broker that registered us (or, before that, from whoever
+    /// answers our registration with its own pid), a session's input or end only from
+    /// the process the session was granted to. `None` (the writer cannot be told) is let
+    /// through. Refusals are counted ([`SystemCore::impersonations`]) and logged.
+    pub fn sender_allowed(&mut self, pid: Option<u32>, msg: &ToSystem) -> bool {
+        let Some(pid) = pid else { return true };
+        let ok = match msg {
+            ToSystem::Registered { broker_pid, .. } => *broker_pid == pid,
+            ToSystem::Input { session, .. } | ToSystem::End { session, .. } => {
+                self.sessions.get(session).is_none_or(|s| s.user_pid == pid)
+            }
+            _ => self.broker_pid.is_none_or(|b| b == pid),
+        };
+        if !ok {
+            self.impersonations += 1;
+            if self.impersonations.is_power_of_two() {
+                tracing::warn!(
+                    pid,
+                    refused = self.impersonations,
+                    "a local process spoke for the broker or another user: frame refused"
+                );
+            }
+        }
+        ok
+    }
+
+    /// Local frames refused by [`SystemCore::sender_allowed`].
+    pub fn impersonations(&self) -> u64 {
+        self.impersonations
+    }
+
     /// The broker's process died: sessions go on; re-register when a broker announces itself.
     pub fn broker_lost(&mut self) {
+        self.broker_pid = None;
         if self.state != BrokerState::Unregistered {
             self.state = BrokerState::Unregistered;
             self.events.push_back(SystemEvent::BrokerLost);
@@ -246,6 +286,7 @@ impl SystemCore {
                     return; // a duplicate answer (we registered twice while a broker started)
                 }
                 self.state = BrokerState::Registered { epoch };
+                self.broker_pid = Some(broker_pid);
                 self.out.push_back(SystemOutput::WatchBroker(broker_pid));
                 for service in self.withdrawn.clone() {
                     self.send_broker(ToBroker::Withdraw {
@@ -390,6 +431,7 @@ impl SystemCore {
                         service: service.clone(),
                         seq: 0,
                         req,
+                        user_pid,
                     },
                 );
                 let in_use = self.sessions_of(&service);
