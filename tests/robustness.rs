@@ -183,12 +183,22 @@ fn control_frames_beyond_a_full_inbox_are_held_back_and_arrive_in_order() {
 #[test]
 fn a_local_process_can_speak_only_as_itself() {
     let mut f = Fed::new("impostor");
-    f.broker(&[]);
-    f.system("t1", &["--services", "2", "--quota", "1"]);
+    let b = f.broker(&[]);
+    let t1 = f.system("t1", &["--services", "2", "--quota", "1"]);
     f.wait_list(10 * SEC, |l| l.len() == 2);
     // A process that is not t1 writes into the broker's inbox as t1, and as a user with
     // another process's pid.
     let mut ep = fake(&f.inst, Address::User(UserId("mallory".into())));
+    // Who owns an address's inbox is who may speak as it (users and systems check the
+    // broker's and systems' frames against it).
+    let (b_pid, t1_pid) = (f.proc(b).pid() as u32, f.proc(t1).pid() as u32);
+    assert_eq!(ep.owner_pid(&Address::Broker), Some(b_pid));
+    assert_eq!(ep.owner_pid(&Address::System("t1".into())), Some(t1_pid));
+    assert_eq!(ep.owner_pid(&Address::System("nobody".into())), None);
+    assert_eq!(
+        ep.owner_pid(&Address::User(UserId("mallory".into()))),
+        Some(std::process::id())
+    );
     let forged = [
         ToBroker::Withdraw {
             system: "t1".into(),

@@ -371,6 +371,38 @@ impl Endpoint {
         self.senders.get(&publisher).copied().flatten()
     }
 
+    /// The pid of the process that owns `of`'s inbox (its one subscriber), or `None` if
+    /// nobody does or it cannot be told. A process that claims to be `of` (a broker
+    /// announcing itself, a system granting a session) is believed only if it is this
+    /// process: an inbox has one reader, so a running broker or system cannot be posed as.
+    pub fn owner_pid(&mut self, of: &Address) -> Option<u32> {
+        fn reader_pid(
+            svc: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+        ) -> Option<u32> {
+            let mut pid = None;
+            svc.dynamic_config().list_subscribers(|d| {
+                pid = d
+                    .node_id
+                    .pid::<Ipc>()
+                    .ok()
+                    .and_then(|p| u32::try_from(p.value()).ok());
+                iceoryx2::prelude::CallbackProgression::Stop
+            });
+            pid
+        }
+        if let Some(peer) = self.peers.get(of) {
+            return reader_pid(&peer.inbox);
+        }
+        let name = service_name(&self.inst.inbox(of)).ok()?;
+        let svc = self
+            .node
+            .service_builder(&name)
+            .publish_subscribe::<[u8]>()
+            .open()
+            .ok()?;
+        reader_pid(&svc)
+    }
+
     /// Receive errors so far (see [`Endpoint::recv`]).
     pub fn recv_errors(&self) -> u64 {
         self.recv_errors

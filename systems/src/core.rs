@@ -1,6 +1,7 @@
 //! A robot system's side of the protocol as a pure state machine: registration,
 //! pings, offers, sessions with sequence numbers, withdrawal. No I/O, no clock.
 
+use muster_shared::names::Address;
 use muster_shared::protocol::{ActiveSession, SessionDigest, ToBroker, ToSystem, ToUser};
 use muster_shared::types::{
     EndReason, Payload, ServiceId, ServiceKind, ServiceSpec, SessionId, TaskStatus, UserId,
@@ -238,14 +239,23 @@ impl SystemCore {
     }
 
     /// Whether a local frame written by process `pid` may say `msg`: the broker's
-    /// messages only from the broker that registered us (or, before that, from whoever
-    /// answers our registration with its own pid), a session's input or end only from
-    /// the process the session was granted to. `None` (the writer cannot be told) is let
-    /// through. Refusals are counted ([`SystemCore::impersonations`]) and logged.
-    pub fn sender_allowed(&mut self, pid: Option<u32>, msg: &ToSystem) -> bool {
+    /// messages only from the broker that registered us, and a registration's answer
+    /// only from the process that owns the broker's inbox (`owner` tells who owns an
+    /// address's inbox: [`muster_shared::ipc::Endpoint::owner_pid`]); a session's input or end
+    /// only from the process the session was granted to. `None` (the writer cannot be
+    /// told) is let through. Refusals are counted ([`SystemCore::impersonations`]) and
+    /// logged.
+    pub fn sender_allowed(
+        &mut self,
+        pid: Option<u32>,
+        msg: &ToSystem,
+        mut owner: impl FnMut(&Address) -> Option<u32>,
+    ) -> bool {
         let Some(pid) = pid else { return true };
         let ok = match msg {
-            ToSystem::Registered { broker_pid, .. } => *broker_pid == pid,
+            ToSystem::Registered { broker_pid, .. } => {
+                *broker_pid == pid && owner(&Address::Broker) == Some(pid)
+            }
             ToSystem::Input { session, .. } | ToSystem::End { session, .. } => {
                 self.sessions.get(session).is_none_or(|s| s.user_pid == pid)
             }
@@ -663,6 +673,43 @@ mod tests {
             SystemOutput::ToBroker(ToBroker::OfferAnswer { answer, .. }) => Some(answer.clone()),
             _ => None,
         })
+    }
+
+    #[test]
+    fn only_the_broker_inbox_owner_registers_us_and_speaks_for_the_broker() {
+        let mut c = core();
+        c.register();
+        outs(&mut c);
+        // The broker is pid 3; pid 66 answers our registration first, as itself.
+        let owner = |a: &Address| matches!(a, Address::Broker).then_some(3);
+        let registered = |pid| ToSystem::Registered {
+            epoch: 1,
+            broker_pid: pid,
+        };
+        assert!(
+            !c.sender_allowed(Some(66), &registered(66), owner),
+            "not the broker"
+        );
+        assert!(
+            !c.sender_allowed(Some(66), &registered(3), owner),
+            "claims another pid"
+        );
+        assert!(c.sender_allowed(Some(3), &registered(3), owner));
+        c.handle(registered(3));
+        let offer = ToSystem::Offer {
+            ticket: 1,
+            user: UserId("m".into()),
+            user_pid: 66,
+            req: 1,
+            service: "a".into(),
+            remote: None,
+        };
+        assert!(
+            !c.sender_allowed(Some(66), &offer, owner),
+            "offers come from the broker"
+        );
+        assert!(c.sender_allowed(Some(3), &offer, owner));
+        assert_eq!(c.impersonations(), 3);
     }
 
     #[test]

@@ -310,7 +310,7 @@ pub fn run_system_with<A: SystemApp>(
         }
         while let Some((frame, pid)) = shell.endpoint.recv_from() {
             match decode::<ToSystem>(&frame) {
-                Ok(msg) if !core.sender_allowed(pid, &msg) => {}
+                Ok(msg) if !core.sender_allowed(pid, &msg, |a| shell.endpoint.owner_pid(a)) => {}
                 Ok(msg) => {
                     if let Some(r) = shell.remote.as_mut() {
                         r.logic.note(&msg);

@@ -450,8 +450,12 @@ impl UserClient {
 
     fn pump(&mut self) -> Result<(), UserError> {
         if let Transport::Local(l) = &mut self.transport {
-            while let Some(frame) = l.endpoint.recv() {
+            while let Some((frame, pid)) = l.endpoint.recv_from() {
                 match decode::<ToUser>(&frame) {
+                    Ok(msg)
+                        if !self
+                            .core
+                            .sender_allowed(pid, &msg, |a| l.endpoint.owner_pid(a)) => {}
                     Ok(msg) => self.core.handle(msg),
                     Err(e) => muster_shared::protocol::log_bad_frame(&e),
                 }

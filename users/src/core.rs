@@ -2,6 +2,7 @@
 //! counting, task input, and links (data session → command session), run in the user's
 //! own client so they survive a broker crash. No I/O, no clock.
 
+use muster_shared::names::Address;
 use muster_shared::protocol::{LinkInfo, ToBroker, ToSystem, ToUser};
 use muster_shared::types::{
     link_compatible, EndReason, Payload, Refusal, ServiceId, ServiceKind, SessionId, TaskStatus,
@@ -141,6 +142,8 @@ struct SessionInfo {
     last_seq: u64,
     gaps: u64,
     link: Option<u64>,
+    /// The process that granted it: the only one whose frames about it are believed.
+    system_pid: u32,
 }
 
 #[derive(Clone, Debug)]
@@ -176,6 +179,10 @@ pub struct UserCore {
     out: VecDeque<UserOutput>,
     events: VecDeque<UserEvent>,
     stale_frames: u64,
+    /// The broker that welcomed us: the only process whose queue answers are believed.
+    broker_pid: Option<u32>,
+    /// Local frames refused because their writer was not who they claimed to be.
+    impersonations: u64,
     /// Sessions this user ended, until the system confirms.
     ending: std::collections::BTreeSet<SessionId>,
 }
@@ -197,6 +204,8 @@ impl UserCore {
             out: VecDeque::new(),
             events: VecDeque::new(),
             stale_frames: 0,
+            broker_pid: None,
+            impersonations: 0,
         }
     }
 
@@ -248,6 +257,63 @@ impl UserCore {
     /// Links currently set up or being set up.
     pub fn links(&self) -> impl Iterator<Item = &LinkInfo> {
         self.links.values().map(|l| &l.info)
+    }
+
+    /// Whether a local frame written by process `pid` may say `msg`. The broker's
+    /// answers only from the process that owns the broker's inbox; a grant only from the
+    /// process that owns the granting system's inbox and names itself; a session's
+    /// updates, status and end only from the process that granted it (`owner` tells who
+    /// owns an address's inbox: [`muster_shared::ipc::Endpoint::owner_pid`]). `None` (the
+    /// writer cannot be told) is let through. Refusals are counted
+    /// ([`UserCore::impersonations`]) and logged.
+    pub fn sender_allowed(
+        &mut self,
+        pid: Option<u32>,
+        msg: &ToUser,
+        mut owner: impl FnMut(&Address) -> Option<u32>,
+    ) -> bool {
+        let Some(pid) = pid else { return true };
+        let ok = match msg {
+            ToUser::Welcome { broker_pid, .. } => {
+                *broker_pid == pid && owner(&Address::Broker) == Some(pid)
+            }
+            ToUser::Queued { .. } | ToUser::Refused { .. } => {
+                self.broker_pid == Some(pid) || owner(&Address::Broker) == Some(pid)
+            }
+            ToUser::Granted {
+                service,
+                system_pid,
+                ..
+            } => {
+                let system = service
+                    .split()
+                    .map(|(s, _)| s.to_string())
+                    .unwrap_or_default();
+                *system_pid == pid && owner(&Address::System(system)) == Some(pid)
+            }
+            ToUser::Update { session, .. }
+            | ToUser::Status { session, .. }
+            | ToUser::Ended { session, .. } => self
+                .sessions
+                .get(session)
+                .is_none_or(|s| s.system_pid == pid),
+        };
+        if !ok {
+            self.impersonations += 1;
+            if self.impersonations.is_power_of_two() {
+                tracing::warn!(
+                    pid,
+                    refused = self.impersonations,
+                    "a local process spoke for the broker or a system: frame refused"
+                );
+            }
+        }
+        ok
+    }
+
+    /// Local frames refused by [`UserCore::sender_allowed`].
+    pub fn impersonations(&self) -> u64 {
+        self.impersonations
     }
 
     /// Frames dropped because they belonged to no session or were out of order.
@@ -479,6 +545,7 @@ impl UserCore {
         match msg {
             ToUser::Welcome { epoch, broker_pid } => {
                 self.connected = Some(epoch);
+                self.broker_pid = Some(broker_pid);
                 self.out.push_back(UserOutput::WatchBroker(broker_pid));
                 self.events.push_back(UserEvent::Connected { epoch });
             }
@@ -579,6 +646,7 @@ impl UserCore {
                 last_seq: 0,
                 gaps: 0,
                 link: p.link,
+                system_pid,
             },
         );
         self.events.push_back(UserEvent::Granted {
@@ -729,6 +797,71 @@ mod tests {
                 theta: 0.0,
             },
         });
+    }
+
+    #[test]
+    fn only_the_broker_and_the_granting_system_are_believed() {
+        let mut u = user();
+        // The broker is pid 3, system `s` pid 50; pid 66 poses as each.
+        let owner = |a: &Address| match a {
+            Address::Broker => Some(3),
+            Address::System(s) if s == "s" => Some(50),
+            _ => None,
+        };
+        let welcome = |pid| ToUser::Welcome {
+            epoch: 1,
+            broker_pid: pid,
+        };
+        assert!(
+            !u.sender_allowed(Some(66), &welcome(66), owner),
+            "not the broker's inbox owner"
+        );
+        assert!(
+            !u.sender_allowed(Some(66), &welcome(3), owner),
+            "claims another pid"
+        );
+        assert!(u.sender_allowed(Some(3), &welcome(3), owner));
+        u.handle(welcome(3));
+        let req = u.request(ServiceId::new("s", "a"));
+        let refused = ToUser::Refused {
+            req,
+            reason: Refusal::Unknown,
+        };
+        assert!(!u.sender_allowed(Some(66), &refused, owner));
+        assert!(u.sender_allowed(Some(3), &refused, owner));
+        let granted = |pid| ToUser::Granted {
+            req,
+            session: SessionId(7),
+            service: ServiceId::new("s", "a"),
+            kind: ServiceKind::Data,
+            payload: "pose2d".into(),
+            system_pid: pid,
+        };
+        assert!(
+            !u.sender_allowed(Some(66), &granted(66), owner),
+            "not s's inbox owner"
+        );
+        assert!(
+            !u.sender_allowed(Some(3), &granted(50), owner),
+            "the broker cannot grant"
+        );
+        assert!(u.sender_allowed(Some(50), &granted(50), owner));
+        u.handle(granted(50));
+        let ended = ToUser::Ended {
+            session: SessionId(7),
+            reason: EndReason::BySystem("done".into()),
+        };
+        assert!(!u.sender_allowed(Some(66), &ended, owner));
+        assert!(
+            !u.sender_allowed(Some(3), &ended, owner),
+            "only the granting system ends it"
+        );
+        assert!(u.sender_allowed(Some(50), &ended, owner));
+        assert!(
+            u.sender_allowed(None, &ended, owner),
+            "an unknown writer is let through"
+        );
+        assert_eq!(u.impersonations(), 7);
     }
 
     #[test]
