@@ -360,6 +360,7 @@ impl World {
             let bumped = done < 1.0;
             if bumped && !r.bumped {
                 r.contacts += 1;
+                log_contact(map, &bodies, i, r, v, w, now);
             }
             r.bumped = bumped;
             r.velocity = if r.bumped { (0.0, w) } else { (v, w) };
@@ -441,6 +442,39 @@ fn next_time(prev: f64, now: f64, rate: f64) -> f64 {
         t = now + period; // fell behind (large step): resync
     }
     t
+}
+
+/// Says what a robot touched, where, and how it was moving, for diagnosing contacts.
+fn log_contact(map: &OccupancyMap, bodies: &BodyGrid, me: usize, r: &Robot, v: f64, w: f64, now: f64) {
+    let p = r.pose;
+    let radius = r.spec.drive.radius;
+    let wall = map.clearance(p.x, p.y, radius + 1.0) - radius;
+    let mut nearest: Option<(usize, f64, f64)> = None;
+    bodies.near(p.x, p.y, radius + 1.0, |n, b| {
+        if n != me {
+            let gap = (b.x - p.x).hypot(b.y - p.y) - radius - b.r;
+            let bearing = wrap((b.y - p.y).atan2(b.x - p.x) - p.theta).to_degrees();
+            if nearest.is_none_or(|(_, g, _)| gap < g) {
+                nearest = Some((n, gap, bearing));
+            }
+        }
+    });
+    let (body, gap, bearing) = nearest.map_or((None, f64::INFINITY, 0.0), |(n, g, b)| (Some(n), g, b));
+    tracing::info!(
+        robot = %r.spec.name,
+        t = format!("{now:.2}"),
+        x = format!("{:.2}", p.x),
+        y = format!("{:.2}", p.y),
+        theta_deg = format!("{:.0}", p.theta.to_degrees()),
+        v = format!("{v:.3}"),
+        w = format!("{w:.3}"),
+        commanded = format!("{:.3},{:.3}", r.command.0, r.command.1),
+        wall_gap = format!("{wall:.3}"),
+        body = ?body,
+        body_gap = format!("{gap:.3}"),
+        body_bearing_deg = format!("{bearing:.0}"),
+        "contact"
+    );
 }
 
 /// Moves a body along the arc (v, w, h) as far as it can without touching a wall or
