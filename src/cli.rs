@@ -11,6 +11,11 @@ pub struct Cli {
     /// Instance name: prefixes everything this process creates in shared memory.
     #[arg(long, global = true, default_value = "default")]
     pub instance: String,
+    /// Scenario seconds per wall second, the same on every process of an instance:
+    /// broker pings and their deadline, systems' update rates, scripted users' think and
+    /// hold times and the simulator follow it; infrastructure latencies stay wall time.
+    #[arg(long, global = true, default_value = "1")]
+    pub time_scale: muster_shared::clock::TimeScale,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -226,10 +231,11 @@ fn duration(s: &str) -> Result<Duration, String> {
 
 #[derive(Args, Debug)]
 pub struct BrokerArgs {
-    /// How often each system is pinged.
+    /// How often each system is pinged (scenario time: see `--time-scale`).
     #[arg(long, default_value = "20s", value_parser = duration)]
     pub ping_interval: Duration,
-    /// How long a system has to answer a ping before it is delinquent.
+    /// How long a system has to answer a ping before it is delinquent (scenario time,
+    /// never under 500 ms of wall time).
     #[arg(long, default_value = "10s", value_parser = duration)]
     pub ping_timeout: Duration,
     /// How long a system has to answer a forwarded request.
@@ -383,7 +389,7 @@ pub struct SyntheticArgs {
     /// Payload type name (default pose2d for data, goal2d for command).
     #[arg(long)]
     pub payload: Option<String>,
-    /// Update rate, Hz.
+    /// Update rate, Hz of scenario time (see `--time-scale`).
     #[arg(long, default_value_t = 10.0)]
     pub rate: f64,
     /// On stopping, print one JSON line per service: quota, most sessions at once,
@@ -494,9 +500,9 @@ pub struct SimArgs {
     /// Map (ROS map_server YAML), overriding the scenario's.
     #[arg(long)]
     pub map: Option<std::path::PathBuf>,
-    /// Simulated seconds per wall-clock second.
-    #[arg(long, default_value_t = 1.0, conflicts_with = "as_fast_as_possible")]
-    pub speed: f64,
+    /// Simulated seconds per wall-clock second (default: `--time-scale`).
+    #[arg(long, conflicts_with = "as_fast_as_possible")]
+    pub speed: Option<f64>,
     /// Run as fast as the machine allows.
     #[arg(long)]
     pub as_fast_as_possible: bool,
@@ -534,7 +540,7 @@ pub struct SimArgs {
 
 #[derive(Args, Debug, Clone)]
 pub struct BehaveArgs {
-    /// How long to behave.
+    /// How long to behave (scenario time, like every duration here: see `--time-scale`).
     #[arg(long, default_value = "30s", value_parser = duration)]
     pub duration: Duration,
     /// Seed of this user's choices.

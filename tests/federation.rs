@@ -524,3 +524,31 @@ fn up_synthetic_runs_the_demo_and_stops_cleanly_on_ctrl_c() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1), "the broker is gone too");
 }
+
+/// Updates a user received in a 2 s (wall) session with a 1 Hz (scenario) system at `scale`.
+fn updates_at_time_scale(scale: &str) -> usize {
+    let mut f = Fed::new(&format!("clock{}", scale.replace('.', "_")));
+    f.broker(&[]);
+    f.system(
+        "s",
+        &["--services", "1", "--rate", "1", "--time-scale", scale],
+    );
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let (code, out) = f.run(
+        &["user", "request", "s/s0", "--duration", "2s", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    out.lines().filter(|l| l.contains("\"seq\"")).count()
+}
+
+#[test]
+fn a_systems_rate_follows_the_time_scale() {
+    let real = updates_at_time_scale("1");
+    let fast = updates_at_time_scale("10");
+    assert!(real <= 3, "1 Hz for 2 s: {real} updates");
+    assert!(
+        fast >= 12,
+        "1 Hz at ten times real time for 2 s: {fast} updates"
+    );
+}

@@ -41,6 +41,20 @@ impl Default for BrokerConfig {
     }
 }
 
+impl BrokerConfig {
+    /// This configuration on a scenario clock running `scale` times faster than wall
+    /// time: pings come `scale` times as often and their deadline shrinks alike (never
+    /// under [`muster_shared::clock::MIN_WALL_DEADLINE`]). The offer timeout measures a
+    /// system's answer, which is infrastructure, and stays wall time.
+    pub fn scaled(self, scale: muster_shared::clock::TimeScale) -> Self {
+        BrokerConfig {
+            ping_interval: scale.wall(self.ping_interval),
+            ping_timeout: scale.wall_deadline(self.ping_timeout),
+            ..self
+        }
+    }
+}
+
 /// Most user ids one local process may hold at once (a process may run a few clients).
 pub const MAX_USERS_PER_PROCESS: usize = 16;
 

@@ -236,6 +236,55 @@ fn ten_hours_of_pings_keep_an_answering_system() {
     assert_eq!(b.views().len(), 1);
 }
 
+/// Pings (answered at once) in `span` of wall time, on a broker at `scale`.
+fn pings_in(scale: f64, span: Duration) -> u64 {
+    let cfg = BrokerConfig::default().scaled(muster_shared::clock::TimeScale::new(scale).unwrap());
+    let mut b = Broker::new(cfg, 42, 1000);
+    register(&mut b, Duration::ZERO, "t1", 7, vec![spec("a", 1, false)]);
+    drain(&mut b);
+    let mut pings = 0;
+    while let Some(t) = b.poll_timeout() {
+        if t > span {
+            break;
+        }
+        b.handle_timeout(t);
+        for o in drain(&mut b) {
+            if let Output::ToSystem(s, ToSystem::Ping { nonce }) = o {
+                pings += 1;
+                b.handle(
+                    t,
+                    ToBroker::Pong {
+                        system: s,
+                        nonce,
+                        held: None,
+                    },
+                );
+            }
+        }
+    }
+    pings
+}
+
+#[test]
+fn a_broker_at_time_scale_ten_pings_ten_times_as_often() {
+    let hour = Duration::from_secs(3600);
+    assert_eq!(pings_in(1.0, hour), 180, "every 20 s");
+    assert_eq!(pings_in(10.0, hour), 1800, "every 2 s of wall time");
+    let cfg = BrokerConfig::default().scaled(muster_shared::clock::TimeScale::new(10.0).unwrap());
+    assert_eq!(
+        cfg.ping_timeout,
+        muster_shared::clock::MIN_WALL_DEADLINE,
+        "floored"
+    );
+    assert_eq!(
+        cfg.offer_timeout,
+        Duration::from_secs(10),
+        "infrastructure: wall time"
+    );
+    let x2 = BrokerConfig::default().scaled(muster_shared::clock::TimeScale::new(2.0).unwrap());
+    assert_eq!(x2.ping_timeout, Duration::from_secs(5));
+}
+
 #[test]
 fn a_silent_system_becomes_delinquent_and_can_come_back() {
     let mut b = broker();

@@ -1,6 +1,7 @@
 //! What every muster process shares: the protocol's types and messages, the wire codec,
 //! the service list snapshot layout, instance naming, and the iceoryx2 transport.
 
+pub mod clock;
 pub mod ipc;
 pub mod names;
 pub mod protocol;

@@ -445,7 +445,15 @@ fn next_time(prev: f64, now: f64, rate: f64) -> f64 {
 }
 
 /// Says what a robot touched, where, and how it was moving, for diagnosing contacts.
-fn log_contact(map: &OccupancyMap, bodies: &BodyGrid, me: usize, r: &Robot, v: f64, w: f64, now: f64) {
+fn log_contact(
+    map: &OccupancyMap,
+    bodies: &BodyGrid,
+    me: usize,
+    r: &Robot,
+    v: f64,
+    w: f64,
+    now: f64,
+) {
     let p = r.pose;
     let radius = r.spec.drive.radius;
     let wall = map.clearance(p.x, p.y, radius + 1.0) - radius;
@@ -459,7 +467,8 @@ fn log_contact(map: &OccupancyMap, bodies: &BodyGrid, me: usize, r: &Robot, v: f
             }
         }
     });
-    let (body, gap, bearing) = nearest.map_or((None, f64::INFINITY, 0.0), |(n, g, b)| (Some(n), g, b));
+    let (body, gap, bearing) =
+        nearest.map_or((None, f64::INFINITY, 0.0), |(n, g, b)| (Some(n), g, b));
     tracing::info!(
         robot = %r.spec.name,
         t = format!("{now:.2}"),

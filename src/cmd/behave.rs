@@ -78,6 +78,16 @@ struct Run<'a> {
 }
 
 pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
+    // The flags are scenario time; this process waits them in wall time.
+    let scale = muster_shared::clock::global();
+    let args = &BehaveArgs {
+        duration: scale.wall(args.duration),
+        refresh: scale.wall(args.refresh),
+        think: scale.wall(args.think),
+        hold_min: scale.wall(args.hold_min),
+        hold_max: scale.wall(args.hold_max),
+        ..args.clone()
+    };
     let seed = args.seed ^ (u64::from(std::process::id()) << 32);
     let report = BehaveReport {
         user: client.id().0.clone(),

@@ -35,6 +35,8 @@ impl Children {
         let child = Command::new(exe)
             .arg("--instance")
             .arg(inst.as_str())
+            .arg("--time-scale")
+            .arg(muster_shared::clock::global().to_string())
             .args(args)
             .stdin(Stdio::null())
             .stdout(stdout)

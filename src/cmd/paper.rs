@@ -53,6 +53,10 @@ pub struct SystemStats {
 impl PaperRun {
     /// Starts the simulator, the broker and both robot systems on `inst`.
     pub fn start(inst: &Instance, o: &PaperOptions) -> anyhow::Result<Self> {
+        // One clock: every child (broker pings, scripted users) runs at the simulator's speed.
+        muster_shared::clock::set_global(
+            muster_shared::clock::TimeScale::new(o.speed).map_err(anyhow::Error::msg)?,
+        );
         let mut children = Children::default();
         let speed = o.speed.to_string();
         let seed = o.seed.to_string();

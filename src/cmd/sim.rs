@@ -58,11 +58,12 @@ pub fn run(inst: &Instance, a: SimArgs) -> anyhow::Result<ExitCode> {
         );
         return Ok(ExitCode::SUCCESS);
     }
+    let speed = a.speed.unwrap_or(muster_shared::clock::global().factor());
     anyhow::ensure!(
-        a.as_fast_as_possible || (a.speed.is_finite() && a.speed > 0.0),
+        a.as_fast_as_possible || (speed.is_finite() && speed > 0.0),
         "--speed must be > 0"
     );
-    simulate(inst, &mut world, &scenario, &a)
+    simulate(inst, &mut world, &scenario, &a, speed)
 }
 
 fn simulate(
@@ -70,6 +71,7 @@ fn simulate(
     world: &mut World,
     scenario: &Scenario,
     a: &SimArgs,
+    speed: f64,
 ) -> anyhow::Result<ExitCode> {
     let node = create_node(&format!("muster-sim-{inst}"), true)?;
     let mut shm = SimShm::open(&node, inst.as_str(), world)?;
@@ -82,7 +84,7 @@ fn simulate(
         speed = if a.as_fast_as_possible {
             "as fast as possible".to_string()
         } else {
-            format!("{}x", a.speed)
+            format!("{}x", speed)
         },
         "simulator up"
     );
@@ -105,7 +107,7 @@ fn simulate(
         let wait = if a.as_fast_as_possible {
             Duration::ZERO
         } else {
-            let target = start + Duration::from_secs_f64(world.time() / a.speed);
+            let target = start + Duration::from_secs_f64(world.time() / speed);
             target.saturating_duration_since(Instant::now())
         };
         // Sleep until the next step is due; a signal wakes us at once.

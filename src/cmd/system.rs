@@ -25,10 +25,11 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
                 quota: a.quota,
                 queue: a.queue,
                 payload: a.payload,
-                rate_hz: a.rate,
+                // Updates per scenario second, sent at that rate on the scenario clock.
+                rate_hz: muster_shared::clock::global().wall_rate(a.rate),
             };
-            if !(a.rate.is_finite() && a.rate > 0.0 && a.rate <= 10_000.0) {
-                anyhow::bail!("--rate must be in (0, 10000] Hz");
+            if !(opts.rate_hz.is_finite() && opts.rate_hz > 0.0 && opts.rate_hz <= 10_000.0) {
+                anyhow::bail!("--rate times --time-scale must be in (0, 10000] Hz");
             }
             let specs = opts.specs();
             validate_registration(&opts.name, &specs)?;
