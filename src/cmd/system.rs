@@ -188,7 +188,8 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
             "{}",
             serde_json::json!({"system": core.name(), "services": core.report(),
                 "localization": {a.robot.clone(): app.localization().summary()},
-                "arrivals": app.arrivals()})
+                "arrivals": app.arrivals(),
+                "control_latency": app.latency_summary()})
         );
     }
     Ok(ExitCode::SUCCESS)

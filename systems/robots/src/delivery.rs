@@ -136,6 +136,11 @@ impl DeliveryCore {
         self.arrivals
     }
 
+    /// How late the robot acts on a command (see [`Navigator::set_latency`]).
+    pub fn set_latency(&mut self, latency: f64) {
+        self.nav.set_latency(latency);
+    }
+
     /// A new goal at sim time `now` (it replaces the current one).
     pub fn set_goal(&mut self, now: f64, pose: Pose, goal: (f64, f64)) -> Vec<DeliveryEvent> {
         let previous = match self.task {

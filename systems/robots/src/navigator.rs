@@ -48,6 +48,18 @@ pub struct NavParams {
     pub body_protective: f64,
     /// ... and closer than this slows it, m.
     pub body_warning: f64,
+    /// The fastest a body not on the map is taken to walk, m/s: the body fields grow by
+    /// the distance it walks in the controller's latency ([`Navigator::set_latency`]),
+    /// and with one in its lane ahead the robot is never faster than it can stop at
+    /// before that body, walking straight at it, could reach it (speed and separation
+    /// monitoring, as in ISO/TS 15066), down to the warning speed; the protective field
+    /// does the rest.
+    pub body_speed: f64,
+    /// Half-width of that lane beyond the footprint, m.
+    pub body_lane: f64,
+    /// Time from a reading to the robot acting on it in that speed limit, s (the sensor
+    /// period and the drive's lag; the measured latency is added).
+    pub body_reaction: f64,
 }
 
 impl Default for NavParams {
@@ -67,6 +79,9 @@ impl Default for NavParams {
             warning_speed: 0.12,
             body_protective: 0.3,
             body_warning: 0.8,
+            body_speed: 0.8,
+            body_lane: 0.3,
+            body_reaction: 0.35,
         }
     }
 }
@@ -99,6 +114,9 @@ pub struct Navigator {
     error: Option<PlanError>,
     /// Getting clear of something pressing on the robot: a map heading, until a time.
     escape: Option<(f64, f64)>,
+    /// Time from a reading to the robot acting on the command made from it, beyond the
+    /// sensor period (a process's wake-up, scheduling, the simulator's step), s.
+    latency: f64,
 }
 
 /// How far ahead the footprint is cast, m.
@@ -118,6 +136,7 @@ impl Navigator {
             last_replan: f64::NEG_INFINITY,
             error: None,
             escape: None,
+            latency: 0.0,
         }
     }
 
@@ -270,6 +289,45 @@ impl Navigator {
         }
     }
 
+    /// Tells the navigator how late its commands act (measured by its shell): the
+    /// reaction time of the speed limit and the body fields grow with it, so that a
+    /// slower controller keeps the same margins.
+    pub fn set_latency(&mut self, latency: f64) {
+        self.latency = latency.clamp(0.0, 2.0);
+    }
+
+    /// The speed at which the robot can still stop before any body the map does not know,
+    /// in its lane ahead, could reach it walking straight at it: gap g > vb·(T + v/a) +
+    /// v·T + v²/2a, with T the body reaction time plus the latency and a the braking.
+    fn body_speed_limit(&self, pose: Pose, obstacles: &[(f64, f64)]) -> f64 {
+        let p = &self.params;
+        let (s, c) = pose.theta.sin_cos();
+        let cell = self.planner.params().cell;
+        let gap = obstacles
+            .iter()
+            .filter(|&&(x, y)| {
+                x > 0.0
+                    && y.abs() < p.footprint + p.body_lane
+                    && x.hypot(y) < p.footprint + LOOK
+                    && self
+                        .planner
+                        .wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
+                        > cell
+            })
+            .map(|&(x, y)| x.hypot(y) - p.footprint)
+            .fold(f64::INFINITY, f64::min);
+        let (a, t, vb) = (p.brake, p.body_reaction + self.latency, p.body_speed);
+        let room = gap - vb * t;
+        if room <= 0.0 {
+            return 0.0;
+        }
+        if !room.is_finite() {
+            return f64::INFINITY;
+        }
+        let b = t + vb / a;
+        a * ((b * b + 2.0 * room / a).sqrt() - b)
+    }
+
     /// One control step at sim time `now` from the pose estimate `pose`, with obstacle
     /// points in the robot's frame (x ahead, y left) from laser and sonar.
     pub fn step(&mut self, now: f64, pose: Pose, obstacles: &[(f64, f64)]) -> NavStep {
@@ -305,20 +363,11 @@ impl Navigator {
         v = v.min((2.0 * p.brake * remaining).sqrt());
         // Never faster than can stop short of what is ahead, reaction time included.
         let room = (free_ahead - p.stop_gap).max(0.0);
+        let reaction = p.reaction + self.latency;
         let v_safe =
-            ((p.reaction * p.brake).powi(2) + 2.0 * p.brake * room).sqrt() - p.reaction * p.brake;
+            ((reaction * p.brake).powi(2) + 2.0 * p.brake * room).sqrt() - reaction * p.brake;
         let wants_forward = v > 0.05 || err.abs() <= 1.0;
         v = v.min(v_safe.max(0.0));
-        // Getting clear: turn to the escape heading and creep out along it.
-        if let Some(velocity) = self.escaping(now, pose, || v_safe.clamp(0.0, 0.3)) {
-            return NavStep {
-                velocity,
-                remaining,
-                blocked_since: self.blocked_since,
-                error: self.error.clone(),
-                free_ahead,
-            };
-        }
         let p = &self.params;
         // Safety fields, as on industrial vehicles: slow when anything is near in front
         // (people walk into a robot faster than it can see them coming round a corner),
@@ -343,10 +392,32 @@ impl Navigator {
                         > cell
             })
         };
-        let protective = inside(p.protective_field, 0.05) || body_near(p.body_protective);
+        // A body walks this far towards the robot before a command acts.
+        let late = p.body_speed * self.latency;
+        let body_stop = body_near(p.body_protective + late);
+        let body_slow = body_near(p.body_warning + late);
+        let in_protective = inside(p.protective_field, 0.05);
+        let in_warning = inside(p.warning_field, 0.2);
+        let lane_limit = self.body_speed_limit(pose, obstacles).max(p.warning_speed);
+        v = v.min(lane_limit);
+        // Getting clear: turn to the escape heading and creep out along it.
+        if let Some(velocity) = self.escaping(now, pose, || {
+            // Getting clear never runs into someone else: the lane limit holds here too.
+            v_safe.clamp(0.0, 0.3).min(lane_limit)
+        }) {
+            return NavStep {
+                velocity,
+                remaining,
+                blocked_since: self.blocked_since,
+                error: self.error.clone(),
+                free_ahead,
+            };
+        }
+        let p = &self.params;
+        let protective = in_protective || body_stop;
         if protective {
             v = 0.0;
-        } else if inside(p.warning_field, 0.2) || body_near(p.body_warning) {
+        } else if in_warning || body_slow {
             v = v.min(p.warning_speed);
         }
         let stuck = wants_forward && (room < 0.02 || protective) && remaining > 0.3;

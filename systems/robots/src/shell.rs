@@ -397,6 +397,11 @@ pub struct DeliveryApp {
     stats: LocalizationStats,
     bumped: bool,
     last_command: (f64, f64),
+    /// How far the simulator had run past the sample a command was made from, when it
+    /// was sent (sim s): the controller's own latency, fed to the navigator as a
+    /// slowly decaying peak.
+    latency: f64,
+    latencies: Vec<f64>,
 }
 
 impl DeliveryApp {
@@ -456,12 +461,22 @@ impl DeliveryApp {
             stats: LocalizationStats::default(),
             bumped: false,
             last_command: (0.0, 0.0),
+            latency: 0.0,
+            latencies: Vec::new(),
         })
     }
 
     /// Localization error against ground truth.
     pub fn localization(&self) -> &LocalizationStats {
         &self.stats
+    }
+
+    /// The controller's latency (see `latency` above): `{samples, p50_s, p99_s, max_s}`.
+    pub fn latency_summary(&self) -> serde_json::Value {
+        let mut s = self.latencies.clone();
+        s.sort_by(f64::total_cmp);
+        let q = |q: f64| crate::quantile_of_sorted(&s, q);
+        serde_json::json!({"samples": s.len(), "p50_s": q(0.5), "p99_s": q(0.99), "max_s": q(1.0)})
     }
 
     /// Goals reached.
@@ -601,6 +616,16 @@ impl SystemApp for DeliveryApp {
         if let Err(e) = self.link.velocity(v, w) {
             tracing::warn!("{e}");
         }
+        // The newest sample now says how far the simulator ran while we worked.
+        let lag = match self.link.latest(sample.time, |s| s.time) {
+            Ok(Some(t)) => (t - sample.time).max(0.0),
+            _ => 0.0,
+        };
+        if self.latencies.len() < 200_000 {
+            self.latencies.push(lag);
+        }
+        self.latency = lag.max(self.latency * 0.995);
+        self.core.set_latency(self.latency);
         self.tell(core, events);
     }
 }

@@ -23,6 +23,10 @@ struct Delivery {
     pose: Pose,
     t: f64,
     errors: Vec<f64>,
+    /// Sim seconds between a sensor sample and the command computed from it reaching
+    /// the robot (a process's wake-up and scheduling, times the simulator's speed).
+    latency: f64,
+    pending: std::collections::VecDeque<(f64, f64, f64)>,
 }
 
 impl Delivery {
@@ -64,6 +68,8 @@ impl Delivery {
             pose: start,
             t: 0.0,
             errors: Vec::new(),
+            latency: 0.0,
+            pending: std::collections::VecDeque::new(),
         }
     }
 
@@ -102,9 +108,25 @@ impl Delivery {
             if arrived && until_arrival {
                 break;
             }
-            self.world.command_velocity(self.d1, v, w);
             let before = self.contacts();
-            self.world.step(0.1);
+            if self.latency == 0.0 {
+                self.world.command_velocity(self.d1, v, w);
+                self.world.step(0.1);
+            } else {
+                self.pending.push_back((self.t + self.latency, v, w));
+                for k in 1..=5 {
+                    let at = self.t + 0.02 * f64::from(k);
+                    while self
+                        .pending
+                        .front()
+                        .is_some_and(|c| c.0 <= at - 0.02 + 1e-9)
+                    {
+                        let (_, v, w) = self.pending.pop_front().unwrap();
+                        self.world.command_velocity(self.d1, v, w);
+                    }
+                    self.world.step(0.02);
+                }
+            }
             if self.contacts() > before {
                 let r = &self.world.robots()[self.d1];
                 let near = obstacles
@@ -152,6 +174,7 @@ fn delivery_arrives_across_the_office_among_people_without_contact() {
         let mut once = Some(goal);
         let ev = d.run(150.0, true, |_| once.take());
         let truth = d.truth();
+        eprintln!("goal {goal:?} reached or given up at t {:.1}", d.t);
         let arrived = ev
             .iter()
             .any(|e| matches!(e, DeliveryEvent::Arrived { .. }));
@@ -330,4 +353,28 @@ fn delivery_follows_a_walking_person_without_contact() {
         });
         assert_eq!(d.contacts(), 0, "seed {seed}: contacts while following");
     }
+}
+
+#[test]
+fn delivery_follows_a_walking_person_without_contact_despite_latency() {
+    let mut contacts = Vec::new();
+    // Before the lane speed limit and the measured latency, seeds 1 and 5 touched her 3 times.
+    for seed in 1..=5 {
+        let mut d = Delivery::new(seed);
+        d.latency = 0.25;
+        d.core.set_latency(d.latency);
+        let mut k = 0u64;
+        d.run(600.0, false, |w| {
+            k += 1;
+            k.is_multiple_of(10).then(|| {
+                let p = w.people().iter().find(|p| p.name == "alice").unwrap();
+                (p.pose.x, p.pose.y)
+            })
+        });
+        contacts.push(d.contacts());
+    }
+    assert!(
+        contacts.iter().all(|&c| c == 0),
+        "contacts per seed: {contacts:?}"
+    );
 }
