@@ -14,8 +14,9 @@ pub struct Cli {
     /// Scenario seconds per wall second, the same on every process of an instance:
     /// broker pings and their deadline, systems' update rates, scripted users' think and
     /// hold times and the simulator follow it; infrastructure latencies stay wall time.
-    #[arg(long, global = true, default_value = "1")]
-    pub time_scale: muster_shared::clock::TimeScale,
+    /// (Default 1; `experiment scalability` defaults to 10.)
+    #[arg(long, global = true)]
+    pub time_scale: Option<muster_shared::clock::TimeScale>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -61,6 +62,42 @@ pub enum ExperimentCommand {
     /// the person (T3 mobile makes the convoy). Writes report.json, figure3.png and
     /// distance.png.
     Link(ExperimentLinkArgs),
+    /// Experiment 1: stationary trackers T1-T3, the delivery robot wearing the red
+    /// beacon, and scripted users arriving and leaving over the run, listing, requesting
+    /// and ending services and tasking the robot. Writes Tables 1-2, figure4.png,
+    /// report.json and report.md (beside the paper's figures).
+    Scalability(ExperimentScalabilityArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct ExperimentScalabilityArgs {
+    /// Scripted user processes over the run.
+    #[arg(long, default_value_t = 10)]
+    pub users: usize,
+    /// Length of the run, scenario minutes.
+    #[arg(long, default_value_t = 50.0)]
+    pub minutes: f64,
+    /// Folder for the report.
+    #[arg(long, default_value = "experiment-scalability")]
+    pub report: std::path::PathBuf,
+    /// Seed of the simulator, the filters and the users.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Mean pause between a user's interactions (scenario time).
+    #[arg(long, default_value = "5m", value_parser = duration)]
+    pub think: Duration,
+    /// Shortest and longest time a user holds a session (scenario time).
+    #[arg(long, default_value = "2m", value_parser = duration)]
+    pub hold_min: Duration,
+    /// See `--hold-min`.
+    #[arg(long, default_value = "25m", value_parser = duration)]
+    pub hold_max: Duration,
+    /// Mean time between a user's list refreshes (scenario time).
+    #[arg(long, default_value = "10m", value_parser = duration)]
+    pub refresh: Duration,
+    /// Show the processes' logs.
+    #[arg(long)]
+    pub verbose: bool,
 }
 
 #[derive(Args, Debug)]
@@ -231,6 +268,10 @@ fn duration(s: &str) -> Result<Duration, String> {
 
 #[derive(Args, Debug)]
 pub struct BrokerArgs {
+    /// On stopping, write every message's handling time to this CSV (`at_ms,kind,us`:
+    /// CLOCK_MONOTONIC ms, message kind or `list_write`, µs), for plots over a run.
+    #[arg(long)]
+    pub handling_log: Option<std::path::PathBuf>,
     /// How often each system is pinged (scenario time: see `--time-scale`).
     #[arg(long, default_value = "20s", value_parser = duration)]
     pub ping_interval: Duration,
@@ -561,6 +602,41 @@ pub struct BehaveArgs {
     /// Chance that an interaction is a link instead of a request.
     #[arg(long, default_value_t = 0.1)]
     pub link_prob: f64,
+    /// Chance that a request takes two services of one system at once.
+    #[arg(long, default_value_t = 0.0)]
+    pub multi_prob: f64,
+    /// Goals (x,y;x,y;...) sent into command sessions: one at the grant, then another
+    /// every `--goal-every`.
+    #[arg(long, value_parser = goals, default_value = "")]
+    pub goals: Goals,
+    /// Time between goals sent into a command session.
+    #[arg(long, default_value = "60s", value_parser = duration)]
+    pub goal_every: Duration,
+}
+
+/// Goal points for scripted users.
+pub type Goals = Vec<(f64, f64)>;
+
+fn goals(s: &str) -> Result<Goals, String> {
+    s.split(';')
+        .filter(|p| !p.trim().is_empty())
+        .map(|p| {
+            let (x, y) = p.split_once(',').ok_or(format!("{p:?} is not x,y"))?;
+            let x: f64 = x
+                .trim()
+                .parse()
+                .map_err(|_| format!("{x:?} is not a number"))?;
+            let y: f64 = y
+                .trim()
+                .parse()
+                .map_err(|_| format!("{y:?} is not a number"))?;
+            if x.is_finite() && y.is_finite() {
+                Ok((x, y))
+            } else {
+                Err(format!("{p:?} is not a finite point"))
+            }
+        })
+        .collect()
 }
 
 #[derive(Args, Debug)]

@@ -7,7 +7,7 @@ use clap::Parser;
 
 fn main() -> std::process::ExitCode {
     let cli = cli::Cli::parse();
-    muster_shared::clock::set_global(cli.time_scale);
+    muster_shared::clock::set_global(cli.time_scale.unwrap_or_default());
     // iceoryx2's own log: errors only, unless IOX2_LOG_LEVEL says otherwise.
     iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
     tracing_subscriber::fmt()

@@ -56,8 +56,8 @@ struct Watch {
 pub struct BrokerReport {
     /// Counters from the core.
     pub stats: crate::core::BrokerStats,
-    /// Time to handle each message type, µs.
-    pub handling: std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>,
+    /// Time to handle each message type, µs, and the log if one was kept.
+    pub handling: Handling,
     /// Counters of the UDP front, if it ran.
     pub udp: Option<crate::udp::UdpStats>,
 }
@@ -67,6 +67,7 @@ impl BrokerReport {
     pub fn to_json(&self) -> serde_json::Value {
         let handling: serde_json::Map<String, serde_json::Value> = self
             .handling
+            .hist
             .iter()
             .map(|(k, h)| {
                 (
@@ -90,7 +91,7 @@ struct Shell {
     by_addr: HashMap<Address, usize>,
     next_token: usize,
     snapshot: Box<ServiceListSnapshot>,
-    handling: std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>,
+    handling: Handling,
     /// When list watchers were last rung, and whether a ring is owed.
     last_ring: Option<Instant>,
     ring_owed: bool,
@@ -194,7 +195,7 @@ const RING_EVERY: Duration = Duration::from_millis(100);
 
 /// Runs a broker on `inst` until SIGINT or SIGTERM; returns what it did.
 pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerError> {
-    run_with(inst, cfg, None)
+    run_with(inst, cfg, None, false)
 }
 
 /// Runs a broker with a UDP front for remote users if `udp` is given.
@@ -202,6 +203,7 @@ pub fn run_with(
     inst: &Instance,
     cfg: BrokerConfig,
     udp: Option<UdpConfig>,
+    keep_log: bool,
 ) -> Result<BrokerReport, BrokerError> {
     match raise_fd_limit() {
         Ok(n) if n < 4096 => {
@@ -254,7 +256,7 @@ pub fn run_with(
         snapshot: Box::new(ServiceListSnapshot::empty()),
         last_ring: None,
         ring_owed: false,
-        handling: std::collections::BTreeMap::new(),
+        handling: Handling::new(keep_log),
         udp,
     };
     shell.snapshot.epoch = epoch;
@@ -409,7 +411,9 @@ impl Shell {
             for (slot, v) in self.snapshot.entries.iter_mut().zip(views.iter()) {
                 *slot = v.to_entry();
             }
+            let t = Instant::now();
             self.list.publish(&self.snapshot)?;
+            self.handling.record("list_write", t, t.elapsed());
             if let Some(d) = self.udp.as_mut() {
                 d.front
                     .list_changed(self.snapshot.epoch, generation, &views);
@@ -504,17 +508,79 @@ fn died_in(core: &mut Broker, now: Duration, who: &Address) {
     }
 }
 
-/// Time to handle each message type, µs.
-pub type Handling = std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>;
+/// Most handling records kept for `--handling-log` (16 bytes each); later ones are
+/// counted, not kept.
+pub const MAX_HANDLING_LOG: usize = 2_000_000;
+
+/// One message handled: when (CLOCK_MONOTONIC ms, one clock for every process on the
+/// host), its kind, and how long the core took, µs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HandlingRecord {
+    /// CLOCK_MONOTONIC ms when handling began.
+    pub at_ms: u64,
+    /// The message kind (`ToBroker::kind`), or `list_write` for a list snapshot write.
+    pub kind: &'static str,
+    /// Handling time, µs.
+    pub us: u64,
+}
+
+/// Time to handle each message type (µs histograms), and, if asked, every handling.
+#[derive(Debug)]
+pub struct Handling {
+    /// Per kind.
+    pub hist: std::collections::BTreeMap<&'static str, hdrhistogram::Histogram<u64>>,
+    /// Every handling in order (only with `keep_log`), at most [`MAX_HANDLING_LOG`].
+    pub log: Vec<HandlingRecord>,
+    /// Handlings not logged because the log was full.
+    pub log_dropped: u64,
+    keep_log: bool,
+}
+
+impl Handling {
+    /// Empty; `keep_log` keeps every handling for a time series.
+    pub fn new(keep_log: bool) -> Self {
+        Handling {
+            hist: std::collections::BTreeMap::new(),
+            log: Vec::new(),
+            log_dropped: 0,
+            keep_log,
+        }
+    }
+
+    /// Records one handling of `kind` that began at `began` and took `took`.
+    pub fn record(&mut self, kind: &'static str, began: Instant, took: Duration) {
+        let us = (took.as_nanos() as u64).div_ceil(1000).max(1);
+        let h = self.hist.entry(kind).or_insert_with(|| {
+            hdrhistogram::Histogram::new(3).expect("3 significant figures is a valid precision")
+        });
+        let _ = h.record(us);
+        if self.keep_log {
+            if self.log.len() < MAX_HANDLING_LOG {
+                let ago = began.elapsed().as_nanos() as u64;
+                let at_ms = muster_shared::protocol::monotonic_ns().saturating_sub(ago) / 1_000_000;
+                self.log.push(HandlingRecord { at_ms, kind, us });
+            } else {
+                self.log_dropped += 1;
+            }
+        }
+    }
+
+    /// Writes the log as CSV (`at_ms,kind,us`).
+    pub fn write_log(&self, path: &std::path::Path) -> std::io::Result<()> {
+        use std::io::Write;
+        let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
+        writeln!(f, "at_ms,kind,us")?;
+        for r in &self.log {
+            writeln!(f, "{},{},{}", r.at_ms, r.kind, r.us)?;
+        }
+        f.flush()
+    }
+}
 
 /// Hands `msg` to the core and records how long that took under the message's kind.
 pub fn timed_handle(handling: &mut Handling, core: &mut Broker, now: Duration, msg: ToBroker) {
     let kind = msg.kind();
     let t = Instant::now();
     core.handle(now, msg);
-    let us = (t.elapsed().as_nanos() as u64).div_ceil(1000).max(1);
-    let h = handling.entry(kind).or_insert_with(|| {
-        hdrhistogram::Histogram::new(3).expect("3 significant figures is a valid precision")
-    });
-    let _ = h.record(us);
+    handling.record(kind, t, t.elapsed());
 }

@@ -2,10 +2,10 @@
 
 use crate::cli::BehaveArgs;
 use muster_shared::protocol::monotonic_ns;
-use muster_shared::types::{link_compatible, ServiceId, ServiceKind};
+use muster_shared::types::{link_compatible, Payload, ServiceId, ServiceKind, SessionId};
 use muster_users::{UserClient, UserError, UserEvent};
 use rand::{RngExt, SeedableRng};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 const MAX_UPDATE_SAMPLES: usize = 2000;
 
 /// What one user did and saw; printed as one JSON line.
-#[derive(Debug, Default, Serialize)]
+#[derive(Debug, Default, Serialize, Deserialize)]
 pub struct BehaveReport {
     /// User id.
     pub user: String,
@@ -54,6 +54,42 @@ pub struct BehaveReport {
     pub link_failures: u64,
     /// Errors (no answer in time, transport failures).
     pub errors: u64,
+    /// Every request: what was asked, when, and what came of it.
+    pub request_log: Vec<RequestRecord>,
+    /// Every session granted: how long it ran.
+    pub session_log: Vec<SessionRecord>,
+    /// Goals sent into command sessions.
+    pub goals: u64,
+}
+
+/// One request, as the user saw it.
+#[derive(Debug, Default, Serialize, Deserialize)]
+pub struct RequestRecord {
+    /// The service.
+    pub service: String,
+    /// When it was sent: CLOCK_MONOTONIC ms.
+    pub at_ms: u64,
+    /// `granted`, `queued` (then granted or abandoned: see `granted_us`), a refusal's
+    /// code, or `no_answer`.
+    pub answer: String,
+    /// Request to first answer, µs (wall).
+    pub answer_us: u64,
+    /// Request to grant, µs (wall), queue wait included; `None` if never granted.
+    pub granted_us: Option<u64>,
+}
+
+/// One granted session.
+#[derive(Debug, Default, Serialize, Deserialize)]
+pub struct SessionRecord {
+    /// The service.
+    pub service: String,
+    /// When it was granted: CLOCK_MONOTONIC ms.
+    pub granted_at_ms: u64,
+    /// How long it ran, wall ms (times `--time-scale` for scenario time).
+    pub ran_ms: u64,
+    /// `user` (this user ended it, hold time over or leaving) or `system` (ended by
+    /// the other side: the system, withdrawal, a death).
+    pub ended_by: String,
 }
 
 fn us(d: Duration) -> u64 {
@@ -86,6 +122,7 @@ pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
         think: scale.wall(args.think),
         hold_min: scale.wall(args.hold_min),
         hold_max: scale.wall(args.hold_max),
+        goal_every: scale.wall(args.goal_every),
         ..args.clone()
     };
     let seed = args.seed ^ (u64::from(std::process::id()) << 32);
@@ -201,64 +238,144 @@ impl Run<'_> {
         if ids.is_empty() {
             return Ok(());
         }
-        let id = ids[self.rng.random_range(0..ids.len())].clone();
-        let t = Instant::now();
-        let at = monotonic_ns() / 1_000_000;
-        let req = self.client.request(&id)?;
-        self.report.requests += 1;
-        let mut deadline = t + Duration::from_secs(10);
-        let mut queued = false;
-        let session = loop {
-            match self.client.next_event(deadline)? {
-                Some(UserEvent::Granted {
-                    req: r, session, ..
-                }) if r == req => {
-                    if !queued {
-                        self.report.request_us.push(us(t.elapsed()));
-                        self.report.request_at_ms.push(at);
-                    }
-                    self.report.grants += 1;
-                    break Some(session);
-                }
-                Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
-                    self.report.request_us.push(us(t.elapsed()));
-                    self.report.request_at_ms.push(at);
-                    *self
-                        .report
-                        .refusals
-                        .entry(reason.code().to_string())
-                        .or_default() += 1;
-                    break None;
-                }
-                Some(UserEvent::Queued { req: r, .. }) if r == req && !queued => {
-                    // The answer is "wait": that is the response time; then wait a while.
-                    self.report.request_us.push(us(t.elapsed()));
-                    self.report.request_at_ms.push(at);
-                    queued = true;
-                    deadline = Instant::now() + self.args.hold_max;
-                }
-                Some(e) => self.count(&e),
-                None => {
-                    self.client.cancel(req);
-                    if queued {
+        let first = ids[self.rng.random_range(0..ids.len())].clone();
+        let mut want = vec![first.clone()];
+        // Sometimes several services of one system at once (the paper's footnote).
+        if self.rng.random::<f64>() < self.args.multi_prob {
+            let system = first.split().map(|(s, _)| s.to_string());
+            let more: Vec<&ServiceId> = ids
+                .iter()
+                .filter(|i| **i != first && i.split().map(|(s, _)| s.to_string()) == system)
+                .collect();
+            if !more.is_empty() {
+                want.push(more[self.rng.random_range(0..more.len())].clone());
+            }
+        }
+        let mut asked = Vec::new();
+        for id in &want {
+            let t = Instant::now();
+            let at = monotonic_ns() / 1_000_000;
+            let req = self.client.request(id)?;
+            self.report.requests += 1;
+            self.report.request_log.push(RequestRecord {
+                service: id.0.clone(),
+                at_ms: at,
+                answer: "no_answer".into(),
+                ..RequestRecord::default()
+            });
+            asked.push((req, t, self.report.request_log.len() - 1, false));
+        }
+        let mut deadline = Instant::now() + Duration::from_secs(10);
+        let mut sessions: Vec<(SessionId, String, Instant, u64, bool)> = Vec::new();
+        while asked.iter().any(|a| !a.3) {
+            let Some(e) = self.client.next_event(deadline)? else {
+                for a in asked.iter_mut().filter(|a| !a.3) {
+                    self.client.cancel(a.0);
+                    a.3 = true;
+                    if self.report.request_log[a.2].answer == "queued" {
                         self.report.abandoned += 1;
                     } else {
                         self.report.errors += 1;
                     }
-                    break None;
+                }
+                break;
+            };
+            let (r, answer, session) = match &e {
+                UserEvent::Granted { req, session, .. } => {
+                    (*req, "granted".to_string(), Some(*session))
+                }
+                UserEvent::Refused { req, reason, .. } => (*req, reason.code().to_string(), None),
+                UserEvent::Queued { req, .. } => (*req, "queued".to_string(), None),
+                _ => {
+                    self.count(&e);
+                    continue;
+                }
+            };
+            let Some(a) = asked.iter_mut().find(|a| a.0 == r && !a.3) else {
+                continue;
+            };
+            let took = us(a.1.elapsed());
+            let rec = &mut self.report.request_log[a.2];
+            let first_answer = rec.answer == "no_answer";
+            if first_answer {
+                rec.answer = answer.clone();
+                rec.answer_us = took;
+                self.report.request_us.push(took);
+                self.report.request_at_ms.push(rec.at_ms);
+            }
+            match (answer.as_str(), session) {
+                ("granted", Some(session)) => {
+                    rec.granted_us = Some(took);
+                    self.report.grants += 1;
+                    a.3 = true;
+                    let service = rec.service.clone();
+                    sessions.push((
+                        session,
+                        service,
+                        Instant::now(),
+                        monotonic_ns() / 1_000_000,
+                        false,
+                    ));
+                }
+                ("queued", _) => {
+                    // The answer is "wait": then wait a while for the grant.
+                    deadline = deadline.max(Instant::now() + self.args.hold_max);
+                }
+                _ => {
+                    *self.report.refusals.entry(answer).or_default() += 1;
+                    a.3 = true;
                 }
             }
-        };
-        if let Some(session) = session {
-            let until = (Instant::now() + self.hold_time()).min(self.end);
-            while let Some(e) = self.client.next_event(until)? {
-                if matches!(&e, UserEvent::Ended { session: s, .. } if *s == session) {
-                    return Ok(());
+        }
+        if sessions.is_empty() {
+            return Ok(());
+        }
+        let until = (Instant::now() + self.hold_time()).min(self.end);
+        let mut next_goal = Instant::now();
+        while sessions.iter().any(|s| !s.4) {
+            let now = Instant::now();
+            if now >= until {
+                break;
+            }
+            if now >= next_goal && !self.args.goals.is_empty() {
+                let (x, y) = self.args.goals[self.rng.random_range(0..self.args.goals.len())];
+                for s in sessions.iter().filter(|s| !s.4) {
+                    if self.client.input(s.0, Payload::Goal2d { x, y }).is_ok() {
+                        self.report.goals += 1;
+                    }
+                }
+                next_goal = now + self.args.goal_every;
+            }
+            let wake = if self.args.goals.is_empty() {
+                until
+            } else {
+                until.min(next_goal)
+            };
+            if let Some(e) = self.client.next_event(wake)? {
+                if let UserEvent::Ended { session, .. } = &e {
+                    if let Some(s) = sessions.iter_mut().find(|s| s.0 == *session && !s.4) {
+                        s.4 = true;
+                        self.report.session_log.push(SessionRecord {
+                            service: s.1.clone(),
+                            granted_at_ms: s.3,
+                            ran_ms: s.2.elapsed().as_millis() as u64,
+                            ended_by: "system".into(),
+                        });
+                        continue;
+                    }
                 }
                 self.count(&e);
             }
-            self.ending.insert(session, Instant::now());
-            self.client.end(session);
+        }
+        for s in sessions.iter().filter(|s| !s.4) {
+            self.report.session_log.push(SessionRecord {
+                service: s.1.clone(),
+                granted_at_ms: s.3,
+                ran_ms: s.2.elapsed().as_millis() as u64,
+                ended_by: "user".into(),
+            });
+            self.ending.insert(s.0, Instant::now());
+            self.client.end(s.0);
         }
         Ok(())
     }

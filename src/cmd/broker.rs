@@ -40,7 +40,19 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
             })
         }
     };
-    let report = muster_broker::run::run_with(inst, cfg, udp)?;
+    let report = muster_broker::run::run_with(inst, cfg, udp, a.handling_log.is_some())?;
+    if let Some(path) = &a.handling_log {
+        report
+            .handling
+            .write_log(path)
+            .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
+        if report.handling.log_dropped > 0 {
+            tracing::warn!(
+                dropped = report.handling.log_dropped,
+                "the handling log was full"
+            );
+        }
+    }
     if a.stats_json {
         println!("{}", report.to_json());
     }

@@ -47,6 +47,11 @@ impl Children {
         Ok(&mut self.0.last_mut().expect("pushed").1)
     }
 
+    /// The child labelled `label`, if we started it and have not stopped it.
+    pub fn child_mut(&mut self, label: &str) -> Option<&mut Child> {
+        self.0.iter_mut().find(|(l, _)| l == label).map(|(_, c)| c)
+    }
+
     /// SIGKILLs the child labelled `label` (one we started) and reaps it.
     pub fn kill(&mut self, label: &str) {
         if let Some(i) = self.0.iter().position(|(l, _)| l == label) {

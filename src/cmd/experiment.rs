@@ -36,6 +36,7 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
             speed: a.speed,
             mobile: vec!["T3".into()],
             broker_args: Vec::new(),
+            sim_args: Vec::new(),
             system_args: Vec::new(),
             // T3 follows the person the user links (the paper's convoy).
             tracking_args: vec!["--follow".into(), "red".into()],
@@ -249,8 +250,7 @@ impl TargetStats {
 
 /// Distance between the delivery robot and the person over the run.
 fn draw_distance(dist: &[(f64, f64)], path: &Path) -> anyhow::Result<()> {
-    plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular())
-        .map_err(|_| anyhow::anyhow!("cannot load the embedded font"))?;
+    super::stress_plot::register_font()?;
     let root = BitMapBackend::new(path, (900, 350)).into_drawing_area();
     root.fill(&WHITE)?;
     let t_max = dist.iter().map(|d| d.0).fold(1.0, f64::max);

@@ -8,6 +8,7 @@ mod children;
 mod experiment;
 mod keygen;
 mod paper;
+mod scalability;
 mod sim;
 mod stress;
 mod stress_plot;
@@ -35,5 +36,12 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Keygen(a) => keygen::run(a),
         Command::Capacity(a) => capacity::run(a),
         Command::Experiment(crate::cli::ExperimentCommand::Link(a)) => experiment::link(&inst, a),
+        Command::Experiment(crate::cli::ExperimentCommand::Scalability(a)) => {
+            let scale = match cli.time_scale {
+                Some(s) => s,
+                None => muster_shared::clock::TimeScale::new(10.0).map_err(anyhow::Error::msg)?,
+            };
+            scalability::run(&inst, a, scale)
+        }
     }
 }

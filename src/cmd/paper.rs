@@ -20,6 +20,8 @@ pub struct PaperOptions {
     pub mobile: Vec<String>,
     /// Extra broker flags (e.g. UDP for remote users).
     pub broker_args: Vec<String>,
+    /// Extra simulator flags (e.g. a scenario file).
+    pub sim_args: Vec<String>,
     /// Extra flags for both robot systems (e.g. their UDP endpoints).
     pub system_args: Vec<String>,
     /// Extra flags for the tracking system only.
@@ -70,7 +72,10 @@ impl PaperRun {
         children.spawn_with(
             inst,
             "simulator",
-            &["sim", "--speed", &speed, "--seed", &seed],
+            &["sim", "--speed", &speed, "--seed", &seed]
+                .into_iter()
+                .chain(o.sim_args.iter().map(String::as_str))
+                .collect::<Vec<_>>(),
             Stdio::null(),
             err(),
         )?;

@@ -16,11 +16,16 @@ fn series(timeline: &[Value], kind: &str, q: &str) -> Vec<(f64, f64)> {
         .collect()
 }
 
+/// Registers the font every plot uses: it ships inside the binary, so no system fonts
+/// are needed.
+pub fn register_font() -> anyhow::Result<()> {
+    plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular())
+        .map_err(|_| anyhow!("cannot load the embedded font"))
+}
+
 /// Draws the timeline of a stress report into a PNG at `path`.
 pub fn draw(timeline: &[Value], title: &str, path: &Path) -> anyhow::Result<()> {
-    // The font ships inside the binary: no system fonts needed.
-    plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular())
-        .map_err(|_| anyhow!("cannot load the embedded font"))?;
+    register_font()?;
     let last_t = timeline
         .iter()
         .filter_map(|s| s["t_s"].as_f64())

@@ -46,6 +46,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
             speed: a.speed,
             mobile: vec!["T3".into()],
             broker_args,
+            sim_args: Vec::new(),
             system_args,
             tracking_args: Vec::new(),
             seed: 1,
