@@ -106,3 +106,83 @@ fn the_link_experiment_tracks_follows_arrives_and_touches_nothing() {
     eprintln!("experiment took {:?}", started.elapsed());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_scalability_experiment_writes_tables_that_add_up() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let f = Fed::new("expscal");
+    let dir = std::env::temp_dir().join(format!("muster-expscal-{}", std::process::id()));
+    let (code, out) = f.run(
+        &[
+            "experiment",
+            "scalability",
+            "--users",
+            "3",
+            "--minutes",
+            "3",
+            "--time-scale",
+            "20",
+            "--think",
+            "20s",
+            "--hold-min",
+            "20s",
+            "--hold-max",
+            "60s",
+            "--refresh",
+            "30s",
+            "--report",
+            dir.to_str().unwrap(),
+        ],
+        300 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    let c = &r["checks"];
+    assert_eq!(c["failed_users"], 0, "{r:#}");
+    assert_eq!(c["answers_add_up"], true, "{r:#}");
+    assert_eq!(c["quota_never_exceeded"], true, "{r:#}");
+    assert_eq!(c["sessions_within_run"], true, "{r:#}");
+    let requests = c["requests"].as_u64().unwrap();
+    assert!(requests >= 3, "{r:#}");
+    // Table 1 counts what the users did; Table 2 splits the same requests by service.
+    let t1 = &r["table1"];
+    assert!(
+        t1["list_requests_ms"]["count"].as_u64().unwrap() >= 3,
+        "a list per user at least"
+    );
+    let answered = t1["service_requests_ms"]["count"].as_u64().unwrap();
+    assert_eq!(answered, requests - c["errors"].as_u64().unwrap(), "{r:#}");
+    let by_kind: u64 = ["delivery", "tracking"]
+        .iter()
+        .map(|k| r["table2"][k]["requested"].as_u64().unwrap())
+        .sum();
+    assert_eq!(by_kind, requests, "{r:#}");
+    let granted: u64 = ["delivery", "tracking"]
+        .iter()
+        .map(|k| r["table2"][k]["granted"].as_u64().unwrap())
+        .sum();
+    assert_eq!(granted, c["granted"].as_u64().unwrap(), "{r:#}");
+    // Every running time lies within the run (scenario seconds).
+    for k in ["delivery", "tracking"] {
+        if let Some(max) = r["table2"][k]["running_s"]["max"].as_f64() {
+            assert!(max <= 3.0 * 60.0 + 1.0, "{k}: {max}");
+        }
+    }
+    // Figure 4: the broker handled the requests it logged, and users came and went.
+    assert_eq!(
+        r["figure4_server_ms"]["request"]["count"].as_u64().unwrap(),
+        requests,
+        "{r:#}"
+    );
+    let online = r["users_online"].as_array().unwrap();
+    assert!(online.iter().any(|p| p[1].as_u64().unwrap() >= 1), "{r:#}");
+    assert_eq!(online.last().unwrap()[1], 0, "all users left");
+    let img = image::open(dir.join("figure4.png")).unwrap();
+    assert!(img.width() > 100);
+    let md = std::fs::read_to_string(dir.join("report.md")).unwrap();
+    for part in ["Table 1", "Table 2", "Figure 4", "paper"] {
+        assert!(md.contains(part), "report.md lacks {part}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
