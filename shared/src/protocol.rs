@@ -109,6 +109,23 @@ pub fn log_bad_frame(e: &DecodeError) {
     }
 }
 
+/// Counts a local frame refused because its writer was not who it claimed to be (see
+/// `sender_allowed` in each core) and logs it, rate-limited like [`log_bad_frame`]; returns
+/// `ok` so a check can end with it.
+pub fn note_impersonation(ok: bool, count: &mut u64, pid: u32, who: &str) -> bool {
+    if !ok {
+        *count += 1;
+        if count.is_power_of_two() {
+            tracing::warn!(
+                pid,
+                refused = *count,
+                "a local process spoke for {who}: frame refused"
+            );
+        }
+    }
+    ok
+}
+
 /// Frames dropped as malformed by this process so far.
 pub fn bad_frames() -> u64 {
     BAD_FRAMES.load(std::sync::atomic::Ordering::Relaxed)

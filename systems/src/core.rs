@@ -261,17 +261,12 @@ impl SystemCore {
             }
             _ => self.broker_pid.is_none_or(|b| b == pid),
         };
-        if !ok {
-            self.impersonations += 1;
-            if self.impersonations.is_power_of_two() {
-                tracing::warn!(
-                    pid,
-                    refused = self.impersonations,
-                    "a local process spoke for the broker or another user: frame refused"
-                );
-            }
-        }
-        ok
+        muster_shared::protocol::note_impersonation(
+            ok,
+            &mut self.impersonations,
+            pid,
+            "the broker or another user",
+        )
     }
 
     /// Local frames refused by [`SystemCore::sender_allowed`].

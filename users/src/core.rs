@@ -298,17 +298,12 @@ impl UserCore {
                 .get(session)
                 .is_none_or(|s| s.system_pid == pid),
         };
-        if !ok {
-            self.impersonations += 1;
-            if self.impersonations.is_power_of_two() {
-                tracing::warn!(
-                    pid,
-                    refused = self.impersonations,
-                    "a local process spoke for the broker or a system: frame refused"
-                );
-            }
-        }
-        ok
+        muster_shared::protocol::note_impersonation(
+            ok,
+            &mut self.impersonations,
+            pid,
+            "the broker or a system",
+        )
     }
 
     /// Local frames refused by [`UserCore::sender_allowed`].

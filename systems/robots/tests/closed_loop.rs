@@ -338,19 +338,23 @@ fn the_tracking_system_tracks_the_people_it_sees_with_localized_robots() {
     assert_eq!(t3, 0, "the mobile tracker touched something");
 }
 
+/// Ten minutes of D1 following alice, her position every second as a link forwards it.
+fn follow_alice(d: &mut Delivery) {
+    let mut k = 0u64;
+    d.run(600.0, false, |w| {
+        k += 1;
+        k.is_multiple_of(10).then(|| {
+            let p = w.people().iter().find(|p| p.name == "alice").unwrap();
+            (p.pose.x, p.pose.y)
+        })
+    });
+}
+
 #[test]
 fn delivery_follows_a_walking_person_without_contact() {
     for seed in [1, 2, 3] {
         let mut d = Delivery::new(seed);
-        let mut k = 0u64;
-        // The red person's position every second, as a link forwards it.
-        d.run(600.0, false, |w| {
-            k += 1;
-            k.is_multiple_of(10).then(|| {
-                let p = w.people().iter().find(|p| p.name == "alice").unwrap();
-                (p.pose.x, p.pose.y)
-            })
-        });
+        follow_alice(&mut d);
         assert_eq!(d.contacts(), 0, "seed {seed}: contacts while following");
     }
 }
@@ -363,14 +367,7 @@ fn delivery_follows_a_walking_person_without_contact_despite_latency() {
         let mut d = Delivery::new(seed);
         d.latency = 0.25;
         d.core.set_latency(d.latency);
-        let mut k = 0u64;
-        d.run(600.0, false, |w| {
-            k += 1;
-            k.is_multiple_of(10).then(|| {
-                let p = w.people().iter().find(|p| p.name == "alice").unwrap();
-                (p.pose.x, p.pose.y)
-            })
-        });
+        follow_alice(&mut d);
         contacts.push(d.contacts());
     }
     assert!(
