@@ -90,9 +90,10 @@ fn the_link_experiment_tracks_follows_arrives_and_touches_nothing() {
     );
     assert!(r["link"]["forwarded_goals"].as_u64().unwrap() > 0, "{r:#}");
     assert!(r["delivery"]["arrivals"].as_u64().unwrap() >= 1, "{r:#}");
-    // The in-process closed-loop tests hold the robots to 0 contacts deterministically;
-    // across processes, timing varies and a person walking into a braking D1 is still
-    // seen about once in three 10-minute runs, so this run allows one.
+    // The in-process closed-loop tests hold the robots to 0 contacts deterministically,
+    // with and without command latency; across processes timing varies: before the
+    // navigator measured its latency, 1 contact in 14 such runs, since then 0 in 10.
+    // Until that record is longer, this run allows one.
     assert!(r["contacts_total"].as_u64().unwrap() <= 1, "{r:#}");
     // Tracking error against ground truth, while tracked, within a metre at the median.
     assert!(
