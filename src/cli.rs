@@ -95,6 +95,15 @@ pub struct ExperimentScalabilityArgs {
     /// Mean time between a user's list refreshes (scenario time).
     #[arg(long, default_value = "10m", value_parser = duration)]
     pub refresh: Duration,
+    /// Stationary tracking robots (the paper: 3). Beyond three, each further three are
+    /// one more tracking system (`tracking-2`, ...) with its own red, green and blue
+    /// services, standing along the corridors.
+    #[arg(long, default_value_t = 3)]
+    pub trackers: usize,
+    /// Delivery robots (the paper: 1), each its own system (`delivery-2`, ...) starting in
+    /// an office, its home.
+    #[arg(long, default_value_t = 1)]
+    pub deliveries: usize,
     /// Show the processes' logs.
     #[arg(long)]
     pub verbose: bool,
@@ -602,9 +611,12 @@ pub struct BehaveArgs {
     /// Chance that an interaction is a link instead of a request.
     #[arg(long, default_value_t = 0.1)]
     pub link_prob: f64,
-    /// Chance that a request takes two services of one system at once.
+    /// Chance that a request takes several services of one system at once.
     #[arg(long, default_value_t = 0.0)]
     pub multi_prob: f64,
+    /// Most services such a request takes beside the first (1 to this many, at random).
+    #[arg(long, default_value_t = 1)]
+    pub multi_extra: usize,
     /// Goals (x,y;x,y;...) sent into command sessions: one at the grant, then another
     /// every `--goal-every`.
     #[arg(long, value_parser = goals, default_value = "")]

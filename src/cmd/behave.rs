@@ -243,12 +243,17 @@ impl Run<'_> {
         // Sometimes several services of one system at once (the paper's footnote).
         if self.rng.random::<f64>() < self.args.multi_prob {
             let system = first.split().map(|(s, _)| s.to_string());
-            let more: Vec<&ServiceId> = ids
+            let mut more: Vec<ServiceId> = ids
                 .iter()
                 .filter(|i| **i != first && i.split().map(|(s, _)| s.to_string()) == system)
+                .cloned()
                 .collect();
-            if !more.is_empty() {
-                want.push(more[self.rng.random_range(0..more.len())].clone());
+            let extra = self.rng.random_range(1..=self.args.multi_extra.max(1));
+            for _ in 0..extra {
+                if more.is_empty() {
+                    break;
+                }
+                want.push(more.swap_remove(self.rng.random_range(0..more.len())));
             }
         }
         let mut asked = Vec::new();

@@ -39,6 +39,7 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
             sim_args: Vec::new(),
             system_args: Vec::new(),
             // T3 follows the person the user links (the paper's convoy).
+            extra_systems: Vec::new(),
             tracking_args: vec!["--follow".into(), "red".into()],
             seed: a.seed,
             quiet: !a.verbose,

@@ -26,6 +26,9 @@ pub struct PaperOptions {
     pub system_args: Vec<String>,
     /// Extra flags for the tracking system only.
     pub tracking_args: Vec<String>,
+    /// Further robot systems, each its arguments after `muster` (e.g. `system tracking
+    /// --name tracking-2 --robots T4,T5,T6`); `--stats-json` and `--seed` are added.
+    pub extra_systems: Vec<Vec<String>>,
     /// Seed of the simulator and the filters.
     pub seed: u64,
     /// Children's standard error: inherited (a demo) or discarded (an experiment).
@@ -38,6 +41,7 @@ pub struct PaperRun {
     pub children: Children,
     tracking_out: Option<ChildStdout>,
     delivery_out: Option<ChildStdout>,
+    extra_out: Vec<Option<ChildStdout>>,
     _node: iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
     /// The simulator's world, for the recorder.
     pub world: WorldView,
@@ -50,6 +54,8 @@ pub struct SystemStats {
     pub tracking: Option<Value>,
     /// The delivery system's line.
     pub delivery: Option<Value>,
+    /// The further systems' lines, in [`PaperOptions::extra_systems`] order.
+    pub extra: Vec<Option<Value>>,
 }
 
 impl PaperRun {
@@ -96,6 +102,18 @@ impl PaperRun {
         delivery.extend(o.system_args.iter().map(String::as_str));
         let d = children.spawn_with(inst, "delivery system", &delivery, Stdio::piped(), err())?;
         let delivery_out = d.stdout.take();
+        let mut extra_out = Vec::new();
+        for (k, args) in o.extra_systems.iter().enumerate() {
+            let args: Vec<&str> = args
+                .iter()
+                .map(String::as_str)
+                .chain(["--stats-json", "--seed", &seed])
+                .chain(o.system_args.iter().map(String::as_str))
+                .collect();
+            let label = format!("system {k}");
+            let c = children.spawn_with(inst, &label, &args, Stdio::piped(), err())?;
+            extra_out.push(c.stdout.take());
+        }
         let node = muster_shared::ipc::create_node(
             &format!("muster-observer-{}", std::process::id()),
             false,
@@ -114,6 +132,7 @@ impl PaperRun {
             children,
             tracking_out,
             delivery_out,
+            extra_out,
             _node: node,
             world,
         })
@@ -132,6 +151,7 @@ impl PaperRun {
         SystemStats {
             tracking: read(self.tracking_out.take()),
             delivery: read(self.delivery_out.take()),
+            extra: self.extra_out.drain(..).map(read).collect(),
         }
     }
 }

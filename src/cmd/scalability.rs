@@ -85,14 +85,13 @@ pub fn run(
     let run_s = a.minutes * 60.0;
     // The paper's setup: no mobile tracker, the delivery robot wears the red beacon (it
     // is the target), the people wear the other colours.
-    let mut scenario = Scenario::paper();
-    scenario.seed = a.seed;
-    scenario.people.retain(|p| p.beacon != Colour::Red);
-    for r in &mut scenario.robots {
-        if r.name == "D1" {
-            r.beacon = Some(Colour::Red);
-        }
-    }
+    anyhow::ensure!(
+        (3..=30).contains(&a.trackers) && (1..=16).contains(&a.deliveries),
+        "--trackers must be in 3..=30 and --deliveries in 1..=16"
+    );
+    let scenario = scenario(a.trackers, a.deliveries, a.seed)?;
+    let (tracking_args, extra_systems) = systems(a.trackers, a.deliveries);
+    let services = 3 * a.trackers.div_ceil(3) + a.deliveries;
     let scenario_path = report_dir.join("scenario.toml");
     std::fs::write(&scenario_path, toml::to_string(&scenario)?)?;
     let handling_path = report_dir.join("broker-handling.csv");
@@ -106,13 +105,18 @@ pub fn run(
             broker_args: vec!["--handling-log".into(), handling_path.display().to_string()],
             sim_args: vec!["--scenario".into(), scenario_arg.clone()],
             system_args: vec!["--scenario".into(), scenario_arg],
-            tracking_args: Vec::new(),
+            tracking_args,
+            extra_systems,
             seed: a.seed,
             quiet: !a.verbose,
         },
     )?;
-    // The four services are up before the first user arrives.
-    drop(connect_when_listed(inst, 4, Duration::from_secs(60))?);
+    // Every service is up before the first user arrives.
+    drop(connect_when_listed(
+        inst,
+        services,
+        Duration::from_secs(120),
+    )?);
     let t0_ms = monotonic_ns() / 1_000_000;
     let t0 = Instant::now();
     // Arrivals over the first 45 % of the run, departures over the last 45 %: the
@@ -160,7 +164,9 @@ pub fn run(
                 "--link-prob".into(),
                 "0".into(),
                 "--multi-prob".into(),
-                "0.2".into(),
+                "0.3".into(),
+                "--multi-extra".into(),
+                "2".into(),
                 "--goals".into(),
                 goals.clone(),
                 "--goal-every".into(),
@@ -242,7 +248,11 @@ pub fn run(
         .filter_map(|r| r.granted_us.map(|u| u as f64 / 1000.0))
         .collect();
     // Table 2: per service type, granted/requested and running times (scenario s).
-    let kind_of = |service: &str| service.split('/').next().unwrap_or("").to_string();
+    // `tracking-2/red` counts as tracking, `delivery-3/D3` as delivery.
+    let kind_of = |service: &str| {
+        let system = service.split('/').next().unwrap_or("");
+        system.split('-').next().unwrap_or("").to_string()
+    };
     let mut table2 = serde_json::Map::new();
     for kind in ["delivery", "tracking"] {
         let asked: Vec<&&RequestRecord> = requests
@@ -310,7 +320,9 @@ pub fn run(
         .sum();
     let abandoned: u64 = reports.iter().map(|r| r.abandoned).sum();
     let errors: u64 = reports.iter().map(|r| r.errors).sum();
-    let quota_ok = quota_respected(&systems.tracking) && quota_respected(&systems.delivery);
+    let quota_ok = quota_respected(&systems.tracking)
+        && quota_respected(&systems.delivery)
+        && systems.extra.iter().all(quota_respected);
     let max_running = reports
         .iter()
         .flat_map(|r| &r.session_log)
@@ -342,7 +354,9 @@ pub fn run(
             "sessions_within_run": max_running <= scenario_s + 1.0,
         },
         "goals_sent": reports.iter().map(|r| r.goals).sum::<u64>(),
-        "systems": {"tracking": systems.tracking, "delivery": systems.delivery},
+        "robots": {"trackers": a.trackers, "deliveries": a.deliveries, "services": services},
+        "systems": {"tracking": systems.tracking, "delivery": systems.delivery,
+                    "more": systems.extra},
         "paper": paper(),
     });
     std::fs::write(
@@ -356,6 +370,98 @@ pub fn run(
         anyhow::bail!("{failed_users} user process(es) failed or overran the run");
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The paper's scenario for Experiment 1, with `trackers` stationary trackers and
+/// `deliveries` delivery robots: D1 wears the red beacon (it is the target), the people
+/// the other colours. Trackers beyond T1-T3 stand against the corridors' walls, clear of
+/// T3's stretch of the middle corridor; delivery robots beyond D1 start in offices,
+/// which are their homes.
+fn scenario(trackers: usize, deliveries: usize, seed: u64) -> anyhow::Result<Scenario> {
+    let mut s = Scenario::paper();
+    s.seed = seed;
+    s.people.retain(|p| p.beacon != Colour::Red);
+    let template = s
+        .robots
+        .iter()
+        .find(|r| r.name == "T1")
+        .cloned()
+        .ok_or_else(|| anyhow::anyhow!("the paper's scenario has no T1"))?;
+    let d1 = s
+        .robots
+        .iter_mut()
+        .find(|r| r.name == "D1")
+        .ok_or_else(|| anyhow::anyhow!("the paper's scenario has no D1"))?;
+    d1.beacon = Some(Colour::Red);
+    let d1 = d1.clone();
+    // South corridor against its south wall, north against its north wall, the middle
+    // one against its north wall (T3 stands against the south one at x 20).
+    let corridors = [(2.4, 0.0), (17.6, 180.0), (10.6, 180.0)];
+    let xs = [5.5, 8.5, 11.5, 14.5, 17.0, 23.0, 26.0, 29.0, 32.0];
+    for k in 4..=trackers {
+        let j = k - 4;
+        let (y, heading) = corridors[j % 3];
+        let x = xs[(j / 3) % xs.len()];
+        let mut t = template.clone();
+        t.name = format!("T{k}");
+        t.pose = [x, y, heading];
+        s.robots.push(t);
+    }
+    let offices: Vec<_> = s
+        .places
+        .iter()
+        .filter(|p| p.name.starts_with("office-") && d1.home.as_deref() != Some(p.name.as_str()))
+        .cloned()
+        .collect();
+    for k in 2..=deliveries {
+        let home = &offices[(k - 2) % offices.len()];
+        let mut d = d1.clone();
+        d.name = format!("D{k}");
+        d.pose = [home.at[0], home.at[1], 90.0];
+        d.home = Some(home.name.clone());
+        d.beacon = None;
+        s.robots.push(d);
+    }
+    s.validate()
+        .map_err(|e| anyhow::anyhow!("the generated scenario: {e}"))?;
+    Ok(s)
+}
+
+/// The first tracking system's flags, and the further systems: a tracking system for
+/// every further three trackers, a delivery system for every further delivery robot.
+fn systems(trackers: usize, deliveries: usize) -> (Vec<String>, Vec<Vec<String>>) {
+    let names = |from: usize, to: usize| {
+        (from..=to)
+            .map(|k| format!("T{k}"))
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    let first = vec!["--robots".to_string(), names(1, 3.min(trackers))];
+    let mut extra = Vec::new();
+    let mut from = 4;
+    while from <= trackers {
+        let to = (from + 2).min(trackers);
+        extra.push(vec![
+            "system".into(),
+            "tracking".into(),
+            "--name".into(),
+            format!("tracking-{}", from.div_ceil(3)),
+            "--robots".into(),
+            names(from, to),
+        ]);
+        from = to + 1;
+    }
+    for k in 2..=deliveries {
+        extra.push(vec![
+            "system".into(),
+            "delivery".into(),
+            "--name".into(),
+            format!("delivery-{k}"),
+            "--robot".into(),
+            format!("D{k}"),
+        ]);
+    }
+    (first, extra)
 }
 
 /// Whether no service held more sessions than its quota, as the system counted them.
@@ -558,4 +664,44 @@ fn markdown(r: &Value) -> String {
         c["quota_never_exceeded"], fmt(&c["longest_session_s"]), c["sessions_within_run"],
     ));
     s
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn more_robots_make_a_valid_scenario_and_one_system_per_three_trackers() {
+        let s = scenario(30, 10, 1).unwrap();
+        let trackers = s.robots.iter().filter(|r| r.camera.is_some()).count();
+        let deliveries = s.robots.iter().filter(|r| r.name.starts_with('D')).count();
+        assert_eq!((trackers, deliveries), (30, 10));
+        // Only D1 wears red; no person does.
+        let red: Vec<_> = s
+            .robots
+            .iter()
+            .filter(|r| r.beacon == Some(Colour::Red))
+            .map(|r| r.name.as_str())
+            .collect();
+        assert_eq!(red, ["D1"]);
+        assert!(s.people.iter().all(|p| p.beacon != Colour::Red));
+        let (first, extra) = systems(30, 10);
+        assert_eq!(first, ["--robots", "T1,T2,T3"]);
+        assert_eq!(extra.len(), 9 + 9);
+        // Every tracker beyond T3 is driven by exactly one further tracking system.
+        let mut driven: Vec<String> = extra
+            .iter()
+            .filter(|a| a[1] == "tracking")
+            .flat_map(|a| a[5].split(',').map(str::to_string).collect::<Vec<_>>())
+            .collect();
+        driven.sort_by_key(|n| n[1..].parse::<usize>().unwrap());
+        let want: Vec<String> = (4..=30).map(|k| format!("T{k}")).collect();
+        assert_eq!(driven, want);
+        assert_eq!(extra[8][3], "tracking-10");
+        assert_eq!(extra[17][5], "D10");
+        // The paper's own setup needs no further system.
+        assert!(systems(3, 1).1.is_empty());
+        assert_eq!(scenario(3, 1, 1).unwrap().robots.len(), 4);
+    }
 }

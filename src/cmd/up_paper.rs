@@ -48,6 +48,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
             broker_args,
             sim_args: Vec::new(),
             system_args,
+            extra_systems: Vec::new(),
             tracking_args: Vec::new(),
             seed: 1,
             quiet: false,
