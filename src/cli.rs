@@ -86,11 +86,12 @@ pub struct ExperimentScalabilityArgs {
     /// Mean pause between a user's interactions (scenario time).
     #[arg(long, default_value = "5m", value_parser = duration)]
     pub think: Duration,
-    /// Shortest and longest time a user holds a session (scenario time).
-    #[arg(long, default_value = "2m", value_parser = duration)]
+    /// Shortest and longest time a user holds a session (scenario time; the paper's
+    /// tracking sessions ran 25 minutes at the median).
+    #[arg(long, default_value = "5m", value_parser = duration)]
     pub hold_min: Duration,
     /// See `--hold-min`.
-    #[arg(long, default_value = "25m", value_parser = duration)]
+    #[arg(long, default_value = "35m", value_parser = duration)]
     pub hold_max: Duration,
     /// Mean time between a user's list refreshes (scenario time).
     #[arg(long, default_value = "10m", value_parser = duration)]

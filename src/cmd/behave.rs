@@ -323,8 +323,9 @@ impl Run<'_> {
                     ));
                 }
                 ("queued", _) => {
-                    // The answer is "wait": then wait a while for the grant.
-                    deadline = deadline.max(Instant::now() + self.args.hold_max);
+                    // The answer is "wait": then wait a while for the grant, but not
+                    // past leaving.
+                    deadline = deadline.max((Instant::now() + self.args.hold_max).min(self.end));
                 }
                 _ => {
                     *self.report.refusals.entry(answer).or_default() += 1;
