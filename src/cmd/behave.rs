@@ -92,6 +92,17 @@ pub struct SessionRecord {
     pub ended_by: String,
 }
 
+/// A refusal as a request log says it: its code, and for a system's refusal the first
+/// words of its reason (e.g. `system_refused: overburdened`).
+fn answer_of(reason: &muster_shared::types::Refusal) -> String {
+    match reason {
+        muster_shared::types::Refusal::SystemRefused(r) => {
+            format!("system_refused: {}", r.split(':').next().unwrap_or("").trim())
+        }
+        other => other.code().to_string(),
+    }
+}
+
 fn us(d: Duration) -> u64 {
     (d.as_micros() as u64).max(1)
 }
@@ -289,7 +300,7 @@ impl Run<'_> {
                 UserEvent::Granted { req, session, .. } => {
                     (*req, "granted".to_string(), Some(*session))
                 }
-                UserEvent::Refused { req, reason, .. } => (*req, reason.code().to_string(), None),
+                UserEvent::Refused { req, reason, .. } => (*req, answer_of(reason), None),
                 UserEvent::Queued { req, .. } => (*req, "queued".to_string(), None),
                 _ => {
                     self.count(&e);

@@ -293,7 +293,7 @@ impl Navigator {
     /// reaction time of the speed limit and the body fields grow with it, so that a
     /// slower controller keeps the same margins.
     pub fn set_latency(&mut self, latency: f64) {
-        self.latency = latency.clamp(0.0, 2.0);
+        self.latency = latency.clamp(0.0, 1.0);
     }
 
     /// The speed at which the robot can still stop before any body the map does not know,

@@ -334,9 +334,15 @@ impl SystemApp for TrackingApp {
         if self.budget && self.budgeted_for != Some(tracked) {
             self.budgeted_for = Some(tracked);
             let limit = self.core.session_limit();
-            let reason = format!(
-                "overburdened: tracking {tracked} targets, the robots sustain {limit} sessions"
-            );
+            // The paper's two reasons: the system client manages so many requests at
+            // once (its quota), and fewer while its robots track (overburdened).
+            let reason = if tracked == 0 {
+                format!("quota exceeded: the system manages {limit} requests at once")
+            } else {
+                format!(
+                    "overburdened: tracking {tracked} targets, the robots sustain {limit} sessions"
+                )
+            };
             core.set_session_limit(Some(limit), &reason);
         }
         if self.core.publish_due() {
@@ -624,7 +630,7 @@ impl SystemApp for DeliveryApp {
         if self.latencies.len() < 200_000 {
             self.latencies.push(lag);
         }
-        self.latency = lag.max(self.latency * 0.995);
+        self.latency = lag.max(self.latency * 0.97); // a peak with a ~2 s half-life
         self.core.set_latency(self.latency);
         self.tell(core, events);
     }
