@@ -97,7 +97,10 @@ pub struct SessionRecord {
 fn answer_of(reason: &muster_shared::types::Refusal) -> String {
     match reason {
         muster_shared::types::Refusal::SystemRefused(r) => {
-            format!("system_refused: {}", r.split(':').next().unwrap_or("").trim())
+            format!(
+                "system_refused: {}",
+                r.split(':').next().unwrap_or("").trim()
+            )
         }
         other => other.code().to_string(),
     }
