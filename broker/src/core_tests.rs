@@ -209,27 +209,8 @@ fn ten_hours_of_pings_keep_an_answering_system() {
     register(&mut b, Duration::ZERO, "t1", 7, vec![spec("a", 1, false)]);
     drain(&mut b);
     let end = Duration::from_secs(10 * 3600);
-    let mut pings = 0;
-    while let Some(t) = b.poll_timeout() {
-        if t > end {
-            break;
-        }
-        b.handle_timeout(t);
-        for o in drain(&mut b) {
-            if let Output::ToSystem(s, ToSystem::Ping { nonce }) = o {
-                pings += 1;
-                // Answer one second later.
-                b.handle(
-                    t + S,
-                    ToBroker::Pong {
-                        system: s,
-                        nonce,
-                        held: None,
-                    },
-                );
-            }
-        }
-    }
+    // Answer each ping one second later.
+    let pings = answer_pings(&mut b, end, S);
     // First ping at 20 s, then every 21 s (20 s after each answer, which takes 1 s).
     assert_eq!(pings, (end.as_secs() - 20) / 21 + 1);
     assert_eq!(b.stats().delinquent, 0);
@@ -242,23 +223,27 @@ fn pings_in(scale: f64, span: Duration) -> u64 {
     let mut b = Broker::new(cfg, 42, 1000);
     register(&mut b, Duration::ZERO, "t1", 7, vec![spec("a", 1, false)]);
     drain(&mut b);
+    answer_pings(&mut b, span, Duration::ZERO)
+}
+
+/// Runs the broker's timers until `end`, answering every ping `delay` later; returns
+/// how many pings came.
+fn answer_pings(b: &mut Broker, end: Duration, delay: Duration) -> u64 {
     let mut pings = 0;
     while let Some(t) = b.poll_timeout() {
-        if t > span {
+        if t > end {
             break;
         }
         b.handle_timeout(t);
-        for o in drain(&mut b) {
-            if let Output::ToSystem(s, ToSystem::Ping { nonce }) = o {
+        for o in drain(b) {
+            if let Output::ToSystem(system, ToSystem::Ping { nonce }) = o {
                 pings += 1;
-                b.handle(
-                    t,
-                    ToBroker::Pong {
-                        system: s,
-                        nonce,
-                        held: None,
-                    },
-                );
+                let pong = ToBroker::Pong {
+                    system,
+                    nonce,
+                    held: None,
+                };
+                b.handle(t + delay, pong);
             }
         }
     }
