@@ -231,6 +231,7 @@ pub fn run(
     }
     let scenario_s = scale.scenario(t0.elapsed()).as_secs_f64();
     online.push((scenario_s, 0));
+    let mut sim_clock = super::paper::Recorder::new(1e9); // a fresh one takes a sample
     sim_clock.poll(&run.world);
     let sim_speed = (sim_clock.now - sim_t0) / t0.elapsed().as_secs_f64();
     let systems = run.stop();
