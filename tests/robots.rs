@@ -140,7 +140,10 @@ fn the_scalability_experiment_writes_tables_that_add_up() {
     let r: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
     let c = &r["checks"];
-    assert!(r["simulator_speed_achieved"].as_f64().unwrap() > 1.0, "{r:#}");
+    assert!(
+        r["simulator_speed_achieved"].as_f64().unwrap() > 1.0,
+        "{r:#}"
+    );
     assert_eq!(c["failed_users"], 0, "{r:#}");
     assert_eq!(c["answers_add_up"], true, "{r:#}");
     assert_eq!(c["quota_never_exceeded"], true, "{r:#}");
