@@ -185,6 +185,8 @@ fn the_scalability_experiment_writes_tables_that_add_up() {
     assert_eq!(online.last().unwrap()[1], 0, "all users left");
     let img = image::open(dir.join("figure4.png")).unwrap();
     assert!(img.width() > 100);
+    let users = std::fs::read_to_string(dir.join("users.jsonl")).unwrap();
+    assert_eq!(users.lines().count(), 3, "one report per user");
     let md = std::fs::read_to_string(dir.join("report.md")).unwrap();
     for part in ["Table 1", "Table 2", "Figure 4", "paper"] {
         assert!(md.contains(part), "report.md lacks {part}");

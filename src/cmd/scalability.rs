@@ -236,6 +236,13 @@ pub fn run(
     let sim_speed = (sim_clock.now - sim_t0) / t0.elapsed().as_secs_f64();
     let systems = run.stop();
     let reports: Vec<BehaveReport> = users.iter_mut().filter_map(|u| u.report.take()).collect();
+    // Every user's own report (requests, sessions, latencies), one JSON object a line.
+    let mut lines = String::new();
+    for r in &reports {
+        lines.push_str(&serde_json::to_string(r)?);
+        lines.push('\n');
+    }
+    std::fs::write(report_dir.join("users.jsonl"), lines)?;
     let handling = read_handling(&handling_path).unwrap_or_default();
     let to_scenario_min = |at_ms: u64| scale.factor() * (at_ms as f64 - t0_ms as f64) / 60_000.0;
 
