@@ -183,6 +183,13 @@ pub fn create_node(name: &str, cleanup_dead_nodes: bool) -> Result<Node<Ipc>, Tr
         .map_err(|e| TransportError::Node(format!("{e:?}")))
 }
 
+/// The pid of the process that created an iceoryx2 node, if it can be told.
+fn node_pid(node: &iceoryx2::identifiers::UniqueNodeId) -> Option<u32> {
+    node.pid::<Ipc>()
+        .ok()
+        .and_then(|p| u32::try_from(p.value()).ok())
+}
+
 /// Empties a listener; returns the event ids rung as bits (bit i = id i).
 fn drain_ids(listener: &Listener<Ipc>) -> u64 {
     let mut rung = 0u64;
@@ -360,12 +367,7 @@ impl Endpoint {
         }
         let senders = &mut self.senders;
         self.inbox_svc.dynamic_config().list_publishers(|d| {
-            let pid = d
-                .node_id
-                .pid::<Ipc>()
-                .ok()
-                .and_then(|p| u32::try_from(p.value()).ok());
-            senders.insert(d.publisher_id, pid);
+            senders.insert(d.publisher_id, node_pid(&d.node_id));
             iceoryx2::prelude::CallbackProgression::Continue
         });
         self.senders.get(&publisher).copied().flatten()
@@ -381,11 +383,7 @@ impl Endpoint {
         ) -> Option<u32> {
             let mut pid = None;
             svc.dynamic_config().list_subscribers(|d| {
-                pid = d
-                    .node_id
-                    .pid::<Ipc>()
-                    .ok()
-                    .and_then(|p| u32::try_from(p.value()).ok());
+                pid = node_pid(&d.node_id);
                 iceoryx2::prelude::CallbackProgression::Stop
             });
             pid
