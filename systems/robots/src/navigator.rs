@@ -296,23 +296,27 @@ impl Navigator {
         self.latency = latency.clamp(0.0, 1.0);
     }
 
+    /// Whether the obstacle point (x, y) in the robot's frame is a body the map does not
+    /// know (a person, a robot): more than a grid cell from any wall.
+    fn is_body(&self, pose: Pose, x: f64, y: f64) -> bool {
+        let (s, c) = pose.theta.sin_cos();
+        self.planner
+            .wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
+            > self.planner.params().cell
+    }
+
     /// The speed at which the robot can still stop before any body the map does not know,
     /// in its lane ahead, could reach it walking straight at it: gap g > vb·(T + v/a) +
     /// v·T + v²/2a, with T the body reaction time plus the latency and a the braking.
     fn body_speed_limit(&self, pose: Pose, obstacles: &[(f64, f64)]) -> f64 {
         let p = &self.params;
-        let (s, c) = pose.theta.sin_cos();
-        let cell = self.planner.params().cell;
         let gap = obstacles
             .iter()
             .filter(|&&(x, y)| {
                 x > 0.0
                     && y.abs() < p.footprint + p.body_lane
                     && x.hypot(y) < p.footprint + LOOK
-                    && self
-                        .planner
-                        .wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
-                        > cell
+                    && self.is_body(pose, x, y)
             })
             .map(|&(x, y)| x.hypot(y) - p.footprint)
             .fold(f64::INFINITY, f64::min);
@@ -380,16 +384,9 @@ impl Navigator {
         };
         // Bodies the map does not know (people, robots) may walk into the robot: they
         // get wider fields, so that it has stopped before they reach it.
-        let (s, c) = pose.theta.sin_cos();
-        let cell = self.planner.params().cell;
         let body_near = |reach: f64| {
             obstacles.iter().any(|&(x, y)| {
-                x > -0.1
-                    && x.hypot(y) < p.footprint + reach
-                    && self
-                        .planner
-                        .wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
-                        > cell
+                x > -0.1 && x.hypot(y) < p.footprint + reach && self.is_body(pose, x, y)
             })
         };
         // A body walks this far towards the robot before a command acts.
