@@ -508,7 +508,7 @@ fn died_in(core: &mut Broker, now: Duration, who: &Address) {
     }
 }
 
-/// Most handling records kept for `--handling-log` (16 bytes each); later ones are
+/// Most handling records kept for `--handling-log` (32 bytes each); later ones are
 /// counted, not kept.
 pub const MAX_HANDLING_LOG: usize = 2_000_000;
 
