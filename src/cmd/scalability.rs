@@ -18,7 +18,6 @@ use muster_sim_world::scenario::{Colour, Scenario};
 use plotters::prelude::*;
 use rand::{RngExt, SeedableRng};
 use serde_json::{json, Value};
-use std::io::Read;
 use std::path::Path;
 use std::process::{ExitCode, Stdio};
 use std::time::{Duration, Instant};
@@ -60,6 +59,8 @@ fn stats(v: &[f64]) -> Value {
 
 struct User {
     label: String,
+    /// Where the user writes its report.
+    out: std::path::PathBuf,
     arrive: f64,
     leave: f64,
     report: Option<BehaveReport>,
@@ -120,9 +121,14 @@ pub fn run(
     let t0_ms = monotonic_ns() / 1_000_000;
     let t0 = Instant::now();
     // The simulator's own clock, to tell whether it kept up with the scale asked.
-    let mut sim_clock = super::paper::Recorder::new(1e9);
-    sim_clock.poll(&run.world);
-    let sim_t0 = sim_clock.now;
+    let sim_now = || {
+        run.world
+            .next(-1.0, Duration::ZERO, |w| w.time)
+            .ok()
+            .flatten()
+            .unwrap_or(0.0)
+    };
+    let sim_t0 = sim_now();
     // Arrivals over the first 45 % of the run, departures over the last 45 %: the
     // users-online curve rises, holds and falls like the paper's Figure 4.
     let mut rng = rand_pcg::Pcg64::seed_from_u64(a.seed ^ 0x5ca1ab1e);
@@ -143,7 +149,10 @@ pub fn run(
     let mut online: Vec<(f64, usize)> = vec![(0.0, 0)];
     let wall_limit = t0 + scale.wall(Duration::from_secs_f64(run_s)) + Duration::from_secs(120);
     let mut children = super::children::Children::default();
-    let exe_children = &mut children;
+    // Each user writes its report to a file when it stops (a pipe read only after the
+    // exit could fill and block a user with a long report).
+    let reports_dir = report_dir.join("users");
+    std::fs::create_dir_all(&reports_dir)?;
     loop {
         let now_s = scale.scenario(t0.elapsed()).as_secs_f64();
         while users.len() < plan.len() && plan[users.len()].0 <= now_s {
@@ -182,9 +191,12 @@ pub fn run(
             } else {
                 Stdio::null()
             };
-            exe_children.spawn_with(inst, &label, &args, Stdio::piped(), err)?;
+            let out = reports_dir.join(format!("user-{}.json", users.len()));
+            let file = std::fs::File::create(&out)?;
+            children.spawn_with(inst, &label, &args, Stdio::from(file), err)?;
             users.push(User {
                 label,
+                out,
                 arrive,
                 leave,
                 report: None,
@@ -192,17 +204,15 @@ pub fn run(
         }
         // Users that finished: read their report.
         for u in users.iter_mut().filter(|u| u.report.is_none()) {
-            let Some(child) = exe_children.child_mut(&u.label) else {
+            let Some(child) = children.child_mut(&u.label) else {
                 continue;
             };
             if let Ok(Some(status)) = child.try_wait() {
                 if !status.success() {
                     failed_users += 1;
                 }
-                let mut text = String::new();
-                if let Some(mut out) = child.stdout.take() {
-                    let _ = out.read_to_string(&mut text);
-                }
+                let text = std::fs::read_to_string(&u.out).unwrap_or_default();
+                let _ = std::fs::remove_file(&u.out);
                 u.report = Some(
                     text.lines()
                         .rev()
@@ -221,7 +231,7 @@ pub fn run(
         if Instant::now() > wall_limit {
             tracing::warn!("users still running past the run's end: stopping them");
             for u in users.iter_mut().filter(|u| u.report.is_none()) {
-                exe_children.kill(&u.label);
+                children.kill(&u.label);
                 failed_users += 1;
                 u.report = Some(BehaveReport::default());
             }
@@ -231,9 +241,7 @@ pub fn run(
     }
     let scenario_s = scale.scenario(t0.elapsed()).as_secs_f64();
     online.push((scenario_s, 0));
-    let mut sim_clock = super::paper::Recorder::new(1e9); // a fresh one takes a sample
-    sim_clock.poll(&run.world);
-    let sim_speed = (sim_clock.now - sim_t0) / t0.elapsed().as_secs_f64();
+    let sim_speed = (sim_now() - sim_t0) / t0.elapsed().as_secs_f64();
     let systems = run.stop();
     let reports: Vec<BehaveReport> = users.iter_mut().filter_map(|u| u.report.take()).collect();
     // Every user's own report (requests, sessions, latencies), one JSON object a line.
@@ -243,6 +251,7 @@ pub fn run(
         lines.push('\n');
     }
     std::fs::write(report_dir.join("users.jsonl"), lines)?;
+    let _ = std::fs::remove_dir_all(&reports_dir);
     let handling = read_handling(&handling_path).unwrap_or_default();
     let to_scenario_min = |at_ms: u64| scale.factor() * (at_ms as f64 - t0_ms as f64) / 60_000.0;
 
