@@ -106,6 +106,37 @@ fn answer_of(reason: &muster_shared::types::Refusal) -> String {
     }
 }
 
+/// A request sent and not yet answered for good.
+struct Asked {
+    req: u64,
+    sent: Instant,
+    /// Its entry in the request log.
+    log: usize,
+    done: bool,
+}
+
+/// A session granted and held.
+struct Held {
+    session: SessionId,
+    service: String,
+    since: Instant,
+    /// When it was granted: CLOCK_MONOTONIC ms.
+    at_ms: u64,
+    ended: bool,
+}
+
+impl Held {
+    /// Its record, ended now by `ended_by`.
+    fn record(&self, ended_by: &str) -> SessionRecord {
+        SessionRecord {
+            service: self.service.clone(),
+            granted_at_ms: self.at_ms,
+            ran_ms: self.since.elapsed().as_millis() as u64,
+            ended_by: ended_by.into(),
+        }
+    }
+}
+
 fn us(d: Duration) -> u64 {
     (d.as_micros() as u64).max(1)
 }
@@ -282,16 +313,21 @@ impl Run<'_> {
                 answer: "no_answer".into(),
                 ..RequestRecord::default()
             });
-            asked.push((req, t, self.report.request_log.len() - 1, false));
+            asked.push(Asked {
+                req,
+                sent: t,
+                log: self.report.request_log.len() - 1,
+                done: false,
+            });
         }
         let mut deadline = Instant::now() + Duration::from_secs(10);
-        let mut sessions: Vec<(SessionId, String, Instant, u64, bool)> = Vec::new();
-        while asked.iter().any(|a| !a.3) {
+        let mut sessions: Vec<Held> = Vec::new();
+        while asked.iter().any(|a| !a.done) {
             let Some(e) = self.client.next_event(deadline)? else {
-                for a in asked.iter_mut().filter(|a| !a.3) {
-                    self.client.cancel(a.0);
-                    a.3 = true;
-                    if self.report.request_log[a.2].answer == "queued" {
+                for a in asked.iter_mut().filter(|a| !a.done) {
+                    self.client.cancel(a.req);
+                    a.done = true;
+                    if self.report.request_log[a.log].answer == "queued" {
                         self.report.abandoned += 1;
                     } else {
                         self.report.errors += 1;
@@ -310,11 +346,11 @@ impl Run<'_> {
                     continue;
                 }
             };
-            let Some(a) = asked.iter_mut().find(|a| a.0 == r && !a.3) else {
+            let Some(a) = asked.iter_mut().find(|a| a.req == r && !a.done) else {
                 continue;
             };
-            let took = us(a.1.elapsed());
-            let rec = &mut self.report.request_log[a.2];
+            let took = us(a.sent.elapsed());
+            let rec = &mut self.report.request_log[a.log];
             let first_answer = rec.answer == "no_answer";
             if first_answer {
                 rec.answer = answer.clone();
@@ -326,15 +362,14 @@ impl Run<'_> {
                 ("granted", Some(session)) => {
                     rec.granted_us = Some(took);
                     self.report.grants += 1;
-                    a.3 = true;
-                    let service = rec.service.clone();
-                    sessions.push((
+                    a.done = true;
+                    sessions.push(Held {
                         session,
-                        service,
-                        Instant::now(),
-                        monotonic_ns() / 1_000_000,
-                        false,
-                    ));
+                        service: rec.service.clone(),
+                        since: Instant::now(),
+                        at_ms: monotonic_ns() / 1_000_000,
+                        ended: false,
+                    });
                 }
                 ("queued", _) => {
                     // The answer is "wait": then wait a while for the grant, but not
@@ -343,7 +378,7 @@ impl Run<'_> {
                 }
                 _ => {
                     *self.report.refusals.entry(answer).or_default() += 1;
-                    a.3 = true;
+                    a.done = true;
                 }
             }
         }
@@ -352,15 +387,19 @@ impl Run<'_> {
         }
         let until = (Instant::now() + self.hold_time()).min(self.end);
         let mut next_goal = Instant::now();
-        while sessions.iter().any(|s| !s.4) {
+        while sessions.iter().any(|s| !s.ended) {
             let now = Instant::now();
             if now >= until {
                 break;
             }
             if now >= next_goal && !self.args.goals.is_empty() {
                 let (x, y) = self.args.goals[self.rng.random_range(0..self.args.goals.len())];
-                for s in sessions.iter().filter(|s| !s.4) {
-                    if self.client.input(s.0, Payload::Goal2d { x, y }).is_ok() {
+                for s in sessions.iter().filter(|s| !s.ended) {
+                    if self
+                        .client
+                        .input(s.session, Payload::Goal2d { x, y })
+                        .is_ok()
+                    {
                         self.report.goals += 1;
                     }
                 }
@@ -373,29 +412,22 @@ impl Run<'_> {
             };
             if let Some(e) = self.client.next_event(wake)? {
                 if let UserEvent::Ended { session, .. } = &e {
-                    if let Some(s) = sessions.iter_mut().find(|s| s.0 == *session && !s.4) {
-                        s.4 = true;
-                        self.report.session_log.push(SessionRecord {
-                            service: s.1.clone(),
-                            granted_at_ms: s.3,
-                            ran_ms: s.2.elapsed().as_millis() as u64,
-                            ended_by: "system".into(),
-                        });
+                    if let Some(s) = sessions
+                        .iter_mut()
+                        .find(|s| s.session == *session && !s.ended)
+                    {
+                        s.ended = true;
+                        self.report.session_log.push(s.record("system"));
                         continue;
                     }
                 }
                 self.count(&e);
             }
         }
-        for s in sessions.iter().filter(|s| !s.4) {
-            self.report.session_log.push(SessionRecord {
-                service: s.1.clone(),
-                granted_at_ms: s.3,
-                ran_ms: s.2.elapsed().as_millis() as u64,
-                ended_by: "user".into(),
-            });
-            self.ending.insert(s.0, Instant::now());
-            self.client.end(s.0);
+        for s in sessions.iter().filter(|s| !s.ended) {
+            self.report.session_log.push(s.record("user"));
+            self.ending.insert(s.session, Instant::now());
+            self.client.end(s.session);
         }
         Ok(())
     }
