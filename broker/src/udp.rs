@@ -28,7 +28,7 @@ use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
 use muster_shared::udp::msgs::{chunk_list, from_bytes, seal_channel, Down, Hs3, Up};
 use muster_shared::udp::wire::{Datagram, WireError};
-use muster_shared::udp::{DropCounters, Transmit};
+use muster_shared::udp::{DropCounters, PathProbe, Transmit};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use std::collections::{BTreeMap, HashMap, VecDeque};
@@ -173,7 +173,7 @@ struct Conn {
     floor: u64,
     keys: HashMap<u64, [u8; 32]>,
     /// A new address the user's datagrams came from, the challenge sent there, and when.
-    probe: Option<(SocketAddr, u64, Instant)>,
+    probe: PathProbe,
 }
 
 /// What the front hands the core (through `run.rs`).
@@ -248,9 +248,6 @@ pub enum UdpError {
     #[error("{0}")]
     Access(String),
 }
-
-/// Least time between two path challenges of one connection.
-const PROBE_EVERY: Duration = Duration::from_millis(200);
 
 /// Housekeeping period (expiring handshakes and silent connections).
 const HOUSEKEEPING: Duration = Duration::from_millis(500);
@@ -652,7 +649,7 @@ impl UdpFront {
                 reqs: BTreeMap::new(),
                 floor: 0,
                 keys: HashMap::new(),
-                probe: None,
+                probe: PathProbe::default(),
             },
         );
     }
@@ -693,22 +690,14 @@ impl UdpFront {
         // going to the old address until the new one echoes the challenge.
         if from != c.addr {
             if let Up::PathResponse { token } = msg {
-                if c.probe.is_some_and(|(a, tk, _)| a == from && tk == token) {
+                if c.probe.answered(from, token) {
                     tracing::debug!(conn = format!("{id:016x}"), %from, "remote user moved");
                     c.addr = from;
-                    c.probe = None;
                     self.stats.migrations += 1;
                 }
                 return;
             }
-            let due = c.probe.is_none_or(|(a, _, at)| {
-                a != from || t.saturating_duration_since(at) >= PROBE_EVERY
-            });
-            if due {
-                let token: u64 = self.rng.random();
-                if let Some(c) = self.conns.get_mut(&id) {
-                    c.probe = Some((from, token, t));
-                }
+            if let Some(token) = c.probe.challenge(from, t, || self.rng.random()) {
                 self.stats.path_challenges += 1;
                 self.send_to(id, from, &Down::PathChallenge { token });
             }

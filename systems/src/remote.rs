@@ -20,7 +20,7 @@ use muster_shared::udp::crypto::{SessionCipher, Side};
 use muster_shared::udp::msgs::{from_bytes, seal_session, SessionDown, SessionUp};
 use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
 use muster_shared::udp::{
-    recv_one, send_transmit, size_recv_buffer, DropCounters, Transmit, RECV_BATCH,
+    recv_one, send_transmit, size_recv_buffer, DropCounters, PathProbe, Transmit, RECV_BATCH,
 };
 use std::collections::{HashMap, VecDeque};
 use std::net::{SocketAddr, UdpSocket};
@@ -31,8 +31,6 @@ use std::time::{Duration, Instant};
 pub const LEASE: Duration = Duration::from_secs(5);
 /// An ended session's key is kept this long to answer repeated `End`s.
 pub const LINGER: Duration = Duration::from_secs(10);
-/// Least time between two path challenges of one session.
-const PROBE_EVERY: Duration = Duration::from_millis(200);
 
 /// How often silent sessions are looked for.
 const HOUSEKEEPING: Duration = Duration::from_millis(500);
@@ -42,7 +40,7 @@ struct Remote {
     addr: SocketAddr,
     key: [u8; 32],
     /// A new address the user's datagrams came from, the challenge sent there, and when.
-    probe: Option<(SocketAddr, u64, Instant)>,
+    probe: PathProbe,
     cipher: SessionCipher,
     last_heard: Instant,
     ended: Option<(Instant, EndReason)>,
@@ -128,7 +126,7 @@ impl RemoteSessions {
                             cipher: SessionCipher::new(&contact.key, Side::System),
                             last_heard: now,
                             ended: None,
-                            probe: None,
+                            probe: PathProbe::default(),
                         };
                         match self.sessions.get_mut(&session.0) {
                             Some(r) if r.key == contact.key => {}
@@ -210,21 +208,15 @@ impl RemoteSessions {
         // the stream stays on the old address until the challenge is echoed from it.
         if from != r.addr {
             if let SessionUp::PathResponse { token } = msg {
-                if r.probe.is_some_and(|(a, tk, _)| a == from && tk == token) {
+                if r.probe.answered(from, token) {
                     r.addr = from;
-                    r.probe = None;
                     self.stats.migrations += 1;
                 }
                 return;
             }
-            let due = r.probe.is_none_or(|(a, _, at)| {
-                a != from || now.saturating_duration_since(at) >= PROBE_EVERY
-            });
-            if due {
-                // The challenge is sealed: only the key's holder can echo it, so the
-                // token needs to be unique, not secret.
-                let token = nonce;
-                r.probe = Some((from, token, now));
+            // The challenge is sealed: only the key's holder can echo it, so the token
+            // needs to be unique, not secret.
+            if let Some(token) = r.probe.challenge(from, now, || nonce) {
                 self.stats.path_challenges += 1;
                 self.send_to(session, from, &SessionDown::PathChallenge { token });
             }

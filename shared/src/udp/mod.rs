@@ -116,3 +116,68 @@ impl DropCounters {
         self.by_reason.values().sum()
     }
 }
+
+/// Path validation for an authenticated peer whose datagrams come from a new address
+/// (a NAT rebinding, or someone replaying them from elsewhere; RFC 9000 §9): a sealed
+/// challenge goes to the new address, at most once per [`PathProbe::EVERY`], and the
+/// peer's address moves only when the challenge is echoed from there.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PathProbe(Option<(std::net::SocketAddr, u64, std::time::Instant)>);
+
+impl PathProbe {
+    /// Least time between two challenges.
+    pub const EVERY: std::time::Duration = std::time::Duration::from_millis(200);
+
+    /// The challenge `token` echoed from `from`: whether that validates the path to
+    /// `from` (the probe is then over).
+    pub fn answered(&mut self, from: std::net::SocketAddr, token: u64) -> bool {
+        let ok = self.0.is_some_and(|(a, t, _)| a == from && t == token);
+        if ok {
+            self.0 = None;
+        }
+        ok
+    }
+
+    /// A datagram came from `from`, not the peer's address: the token of a challenge to
+    /// send there now (drawn from `token`), or `None` if one went there too recently.
+    pub fn challenge(
+        &mut self,
+        from: std::net::SocketAddr,
+        now: std::time::Instant,
+        token: impl FnOnce() -> u64,
+    ) -> Option<u64> {
+        let due = self
+            .0
+            .is_none_or(|(a, _, at)| a != from || now.saturating_duration_since(at) >= Self::EVERY);
+        if !due {
+            return None;
+        }
+        let token = token();
+        self.0 = Some((from, token, now));
+        Some(token)
+    }
+}
+
+#[cfg(test)]
+mod path_probe_tests {
+    use super::PathProbe;
+    use std::time::{Duration, Instant};
+
+    #[test]
+    fn a_path_moves_only_on_its_own_echo_and_challenges_are_paced() {
+        let (a, b) = ("10.0.0.1:1".parse().unwrap(), "10.0.0.2:1".parse().unwrap());
+        let t = Instant::now();
+        let mut p = PathProbe::default();
+        assert!(!p.answered(a, 0), "nothing was sent");
+        assert_eq!(p.challenge(a, t, || 7), Some(7));
+        assert_eq!(p.challenge(a, t + Duration::from_millis(100), || 8), None);
+        assert!(!p.answered(b, 7), "echoed from another address");
+        assert!(!p.answered(a, 8), "another token");
+        assert_eq!(p.challenge(a, t + PathProbe::EVERY, || 9), Some(9));
+        assert!(!p.answered(a, 7), "only the newest challenge counts");
+        // A challenge to another address replaces the first at once.
+        assert_eq!(p.challenge(b, t + PathProbe::EVERY, || 10), Some(10));
+        assert!(p.answered(b, 10));
+        assert!(!p.answered(b, 10), "the probe is over");
+    }
+}
