@@ -343,18 +343,12 @@ impl Broker {
             | ToBroker::LinkClosed { user, .. }
             | ToBroker::Goodbye { user } => self.users.get(user).is_none_or(|u| u.pid == pid),
         };
-        if !ok {
-            self.stats.impersonations += 1;
-            if self.stats.impersonations.is_power_of_two() {
-                tracing::warn!(
-                    pid,
-                    kind = msg.kind(),
-                    refused = self.stats.impersonations,
-                    "a local process spoke for another: frame refused"
-                );
-            }
-        }
-        ok
+        muster_shared::protocol::note_impersonation(
+            ok,
+            &mut self.stats.impersonations,
+            pid,
+            msg.kind(),
+        )
     }
 
     /// Handles one message.

@@ -110,16 +110,18 @@ pub fn log_bad_frame(e: &DecodeError) {
 }
 
 /// Counts a local frame refused because its writer was not who it claimed to be (see
-/// `sender_allowed` in each core) and logs it, rate-limited like [`log_bad_frame`]; returns
-/// `ok` so a check can end with it.
-pub fn note_impersonation(ok: bool, count: &mut u64, pid: u32, who: &str) -> bool {
+/// `sender_allowed` in each core) and logs it, rate-limited like [`log_bad_frame`], with
+/// `about` (whom it spoke for, or the frame's kind); returns `ok` so a check can end
+/// with it.
+pub fn note_impersonation(ok: bool, count: &mut u64, pid: u32, about: &str) -> bool {
     if !ok {
         *count += 1;
         if count.is_power_of_two() {
             tracing::warn!(
                 pid,
                 refused = *count,
-                "a local process spoke for {who}: frame refused"
+                about,
+                "a local process spoke for another: frame refused"
             );
         }
     }
