@@ -15,7 +15,7 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Duration;
 
 /// The broker's tunables.
-#[derive(Clone, Debug)]
+#[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Clone, Debug, PartialEq)]
 pub struct BrokerConfig {
     /// How often each system is pinged (paper: 20 s).
     pub ping_interval: Duration,
@@ -150,7 +150,7 @@ pub struct BrokerStats {
     pub pings: u64,
 }
 
-#[derive(Debug)]
+#[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug)]
 struct SystemRec {
     pid: u32,
     udp: Option<String>,
@@ -160,13 +160,13 @@ struct SystemRec {
     sessions: BTreeMap<SessionId, (String, UserId)>,
 }
 
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug, Clone, PartialEq, Eq)]
 struct Waiting {
     user: UserId,
     req: u64,
 }
 
-#[derive(Debug)]
+#[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug)]
 struct ServiceRec {
     spec: ServiceSpec,
     system: String,
@@ -183,14 +183,14 @@ impl ServiceRec {
     }
 }
 
-#[derive(Debug, Default)]
+#[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug, Default)]
 struct UserRec {
     pid: u32,
     watch_list: bool,
     links: BTreeMap<u64, LinkInfo>,
 }
 
-#[derive(Debug)]
+#[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug)]
 struct Offer {
     user: UserId,
     req: u64,
@@ -199,7 +199,11 @@ struct Offer {
 }
 
 /// The broker's registry of systems, services, users and requests.
-#[derive(Debug)]
+///
+/// Its archived form (rkyv) is the whole state a standby needs: [`crate::replica`]
+/// ships it once, then every input ([`Op`]) in order. What it wants sent, its counters
+/// and its journal are not state and are not archived.
+#[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug)]
 pub struct Broker {
     cfg: BrokerConfig,
     epoch: u64,
@@ -212,8 +216,33 @@ pub struct Broker {
     next_nonce: u64,
     generation: u64,
     list_dirty: bool,
+    #[rkyv(with = rkyv::with::Skip)]
     out: VecDeque<Output>,
+    #[rkyv(with = rkyv::with::Skip)]
     stats: BrokerStats,
+    /// Inputs since the last [`Broker::take_journal`], if journaling is on.
+    #[rkyv(with = rkyv::with::Skip)]
+    journal: Option<Vec<(Duration, Op)>>,
+}
+
+/// One input to the core, as a primary journals it for its standbys: a standby that
+/// applies the same inputs in the same order ([`Broker::apply`]) holds the same state.
+#[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Clone, Debug, PartialEq)]
+pub enum Op {
+    /// [`Broker::handle`].
+    Handle(ToBroker),
+    /// [`Broker::handle_timeout`].
+    Timeout,
+    /// [`Broker::system_died`].
+    SystemDied(String),
+    /// [`Broker::user_died`].
+    UserDied(UserId),
+    /// [`Broker::revoke`].
+    Revoke(UserId),
+    /// [`Broker::take_list_change`] returned a new list.
+    ListTaken,
+    /// [`Broker::take_over`]: the new run's epoch and the new broker's pid.
+    TakeOver(u64, u32),
 }
 
 impl Broker {
@@ -235,7 +264,99 @@ impl Broker {
             list_dirty: true,
             out: VecDeque::new(),
             stats: BrokerStats::default(),
+            journal: None,
         }
+    }
+
+    /// Starts keeping every input for [`Broker::take_journal`] (a primary with standbys).
+    pub fn keep_journal(&mut self) {
+        self.journal.get_or_insert_with(Vec::new);
+    }
+
+    /// The inputs since the last call, in order (empty unless [`Broker::keep_journal`]).
+    pub fn take_journal(&mut self) -> Vec<(Duration, Op)> {
+        self.journal
+            .as_mut()
+            .map(std::mem::take)
+            .unwrap_or_default()
+    }
+
+    fn journal(&mut self, now: Duration, op: impl FnOnce() -> Op) {
+        if let Some(j) = self.journal.as_mut() {
+            j.push((now, op()));
+        }
+    }
+
+    /// Applies one journaled input, as the primary did at `now`.
+    pub fn apply(&mut self, now: Duration, op: Op) {
+        match op {
+            Op::Handle(msg) => self.handle(now, msg),
+            Op::Timeout => self.handle_timeout(now),
+            Op::SystemDied(s) => self.system_died(now, &s),
+            Op::UserDied(u) => self.user_died(now, &u),
+            Op::Revoke(u) => self.revoke(now, &u),
+            Op::ListTaken => {
+                self.take_list_change();
+            }
+            Op::TakeOver(epoch, pid) => self.take_over(now, epoch, pid),
+        }
+    }
+
+    /// Drops whatever the core wants sent (a standby's copy sends nothing).
+    pub fn discard_outputs(&mut self) {
+        self.out.clear();
+    }
+
+    /// This run's epoch.
+    pub fn epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// The whole state in rkyv's archived form (what [`crate::replica`] ships), for
+    /// comparing two brokers' states.
+    pub fn archived_state(&self) -> Vec<u8> {
+        rkyv::to_bytes::<rkyv::rancor::Error>(self)
+            .expect("the broker's state always archives")
+            .to_vec()
+    }
+
+    /// A standby takes over this state as broker run `epoch` in process `pid`.
+    ///
+    /// Frames the old broker held unread are lost with it, so nothing is taken for
+    /// granted: every system is watched again and pinged afresh (a lost pong must not
+    /// make it delinquent), every offer still out is sent again with a new deadline (a
+    /// lost answer; systems answer a repeated offer with the session they already
+    /// granted, never a second one), and the list is written again. Peers adopt the
+    /// new broker themselves when it rings the presence event, re-sending their
+    /// pending requests and session sets.
+    pub fn take_over(&mut self, now: Duration, epoch: u64, pid: u32) {
+        self.journal(now, || Op::TakeOver(epoch, pid));
+        self.epoch = epoch;
+        self.pid = pid;
+        for (name, s) in self.systems.iter_mut() {
+            s.awaiting = None;
+            s.next_ping = now + self.cfg.ping_interval;
+            self.out.push_back(Output::WatchSystem {
+                system: name.clone(),
+                pid: s.pid,
+            });
+        }
+        for (user, u) in &self.users {
+            if u.pid != 0 {
+                self.out.push_back(Output::WatchUser {
+                    user: user.clone(),
+                    pid: u.pid,
+                });
+            }
+        }
+        let tickets: Vec<u64> = self.offers.keys().copied().collect();
+        for ticket in tickets {
+            if let Some(o) = self.offers.get_mut(&ticket) {
+                o.deadline = now + self.cfg.offer_timeout;
+            }
+            self.send_offer(ticket);
+        }
+        self.list_dirty = true;
     }
 
     /// The next thing to send or do, if any.
@@ -273,6 +394,10 @@ impl Broker {
         }
         self.list_dirty = false;
         self.generation += 1;
+        if let Some(j) = self.journal.as_mut() {
+            // No clock in this step: the op's time is not used.
+            j.push((Duration::ZERO, Op::ListTaken));
+        }
         Some((self.generation, self.views()))
     }
 
@@ -353,6 +478,7 @@ impl Broker {
 
     /// Handles one message.
     pub fn handle(&mut self, now: Duration, msg: ToBroker) {
+        self.journal(now, || Op::Handle(msg.clone()));
         match msg {
             ToBroker::Register {
                 system,
@@ -413,6 +539,7 @@ impl Broker {
 
     /// Runs due pings, delinquency checks and offer timeouts.
     pub fn handle_timeout(&mut self, now: Duration) {
+        self.journal(now, || Op::Timeout);
         let mut delinquent = Vec::new();
         for (name, s) in self.systems.iter_mut() {
             match s.awaiting {
@@ -448,7 +575,8 @@ impl Broker {
     }
 
     /// A system's process died: remove it at once, without waiting for a ping.
-    pub fn system_died(&mut self, _now: Duration, system: &str) {
+    pub fn system_died(&mut self, now: Duration, system: &str) {
+        self.journal(now, || Op::SystemDied(system.to_string()));
         if self.systems.contains_key(system) {
             tracing::warn!(%system, "system process died: removed");
             self.remove_system(system, Removal::Died);
@@ -457,6 +585,7 @@ impl Broker {
 
     /// A user's process died: drop its queued requests and links.
     pub fn user_died(&mut self, now: Duration, user: &UserId) {
+        self.journal(now, || Op::UserDied(user.clone()));
         self.forget_user(now, user);
     }
 
@@ -464,6 +593,7 @@ impl Broker {
     /// them (a remote user's sessions run straight with systems, past the broker), and
     /// the user is forgotten.
     pub fn revoke(&mut self, now: Duration, user: &UserId) {
+        self.journal(now, || Op::Revoke(user.clone()));
         let systems: Vec<String> = self
             .systems
             .iter()
@@ -850,12 +980,10 @@ impl Broker {
         svc.pending += 1;
         let ticket = self.next_ticket;
         self.next_ticket += 1;
-        let system = svc.system.clone();
-        let name = svc.spec.name.clone();
         self.offers.insert(
             ticket,
             Offer {
-                user: user.clone(),
+                user,
                 req,
                 service,
                 deadline: now + self.cfg.offer_timeout,
@@ -863,15 +991,26 @@ impl Broker {
         );
         self.stats.offers += 1;
         self.list_dirty = true;
-        let user_pid = self.users.get(&user).map_or(0, |u| u.pid);
+        self.send_offer(ticket);
+    }
+
+    /// Sends offer `ticket` to its system.
+    fn send_offer(&mut self, ticket: u64) {
+        let Some(o) = self.offers.get(&ticket) else {
+            return;
+        };
+        let Some(svc) = self.services.get(&o.service) else {
+            return;
+        };
+        let user_pid = self.users.get(&o.user).map_or(0, |u| u.pid);
         self.out.push_back(Output::ToSystem(
-            system,
+            svc.system.clone(),
             ToSystem::Offer {
                 ticket,
-                user,
+                user: o.user.clone(),
                 user_pid,
-                req,
-                service: name,
+                req: o.req,
+                service: svc.spec.name.clone(),
                 remote: None,
             },
         ));

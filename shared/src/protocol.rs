@@ -135,7 +135,19 @@ pub fn bad_frames() -> u64 {
 
 /// A digest of a set of sessions: how many, and the xor of a mix of their ids (order
 /// does not matter; a difference in either means the sets differ).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+)]
 pub struct SessionDigest {
     /// Number of sessions.
     pub count: u32,
@@ -159,7 +171,17 @@ impl SessionDigest {
 }
 
 /// A session a system holds, reported when it (re-)registers so a new broker counts it.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Debug,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+)]
 pub struct ActiveSession {
     /// The session.
     pub session: SessionId,
@@ -180,7 +202,17 @@ pub struct RemoteContact {
 }
 
 /// A link a user runs, reported to the broker so that it is visible.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Debug,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+)]
 pub struct LinkInfo {
     /// Number of the link within the user.
     pub link: u64,
@@ -190,121 +222,138 @@ pub struct LinkInfo {
     pub command: ServiceId,
 }
 
-/// Messages arriving at the broker's inbox.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum ToBroker {
-    /// A system joins (or re-joins) with its services and the sessions it already holds.
-    Register {
-        /// System name.
-        system: String,
-        /// Its process id, watched for death.
-        pid: u32,
-        /// Its services.
-        services: Vec<ServiceSpec>,
-        /// Sessions it holds (after a broker restart or delinquency).
-        sessions: Vec<ActiveSession>,
-        /// Where its UDP endpoint for remote users listens (`ip:port`), if it has one.
-        udp: Option<String>,
-    },
-    /// Answer to [`ToSystem::Ping`].
-    Pong {
-        /// System name.
-        system: String,
-        /// The ping's nonce.
-        nonce: u64,
-        /// A digest of the sessions the system holds: if the broker's differs (a
-        /// control frame was lost), it asks for the whole set ([`ToSystem::ReportSessions`]).
-        held: Option<SessionDigest>,
-    },
-    /// Every session the system holds, asked for by [`ToSystem::ReportSessions`]: the
-    /// system's set is the truth, and the broker's counts follow it.
-    Sessions {
-        /// System name.
-        system: String,
-        /// The sessions.
-        sessions: Vec<ActiveSession>,
-    },
-    /// The system's answer to a forwarded request.
-    OfferAnswer {
-        /// System name.
-        system: String,
-        /// The offer's ticket.
-        ticket: u64,
-        /// `Ok(session)` if granted (the system told the user directly), `Err(reason)` if not.
-        answer: Result<SessionId, String>,
-    },
-    /// A session ended (either side); the quota is free again.
-    SessionEnded {
-        /// System name.
-        system: String,
-        /// The session.
-        session: SessionId,
-    },
-    /// The system can no longer offer the service, for now.
-    Withdraw {
-        /// System name.
-        system: String,
-        /// Service name.
-        service: String,
-    },
-    /// The system offers a withdrawn service again.
-    Restore {
-        /// System name.
-        system: String,
-        /// Service name.
-        service: String,
-    },
-    /// The system leaves on purpose.
-    Unregister {
-        /// System name.
-        system: String,
-    },
-    /// A user connects (or reconnects after a broker restart).
-    Hello {
-        /// User id.
-        user: UserId,
-        /// Its process id.
-        pid: u32,
-        /// Links it already runs.
-        links: Vec<LinkInfo>,
-        /// Ring this user's bell when the service list changes.
-        watch_list: bool,
-    },
-    /// A user asks for a service.
-    Request {
-        /// User id.
-        user: UserId,
-        /// The user's request number, echoed in the answer.
-        req: u64,
-        /// The service.
-        service: ServiceId,
-    },
-    /// A user gives up a pending or queued request.
-    Cancel {
-        /// User id.
-        user: UserId,
-        /// The request number.
-        req: u64,
-    },
-    /// A user started a link.
-    LinkOpened {
-        /// User id.
-        user: UserId,
-        /// The link.
-        link: LinkInfo,
-    },
-    /// A user's link ended.
-    LinkClosed {
-        /// User id.
-        user: UserId,
-        /// The link number.
-        link: u64,
-    },
-    /// A user leaves.
-    Goodbye {
-        /// User id.
-        user: UserId,
-    },
+pub use to_broker::ToBroker;
+
+// rkyv's derive leaves the variant fields of its generated resolver undocumented.
+#[allow(missing_docs)]
+mod to_broker {
+    use super::*;
+
+    /// Messages arriving at the broker's inbox.
+    #[derive(
+        rkyv::Archive,
+        rkyv::Serialize,
+        rkyv::Deserialize,
+        Clone,
+        Debug,
+        PartialEq,
+        Serialize,
+        Deserialize,
+    )]
+    pub enum ToBroker {
+        /// A system joins (or re-joins) with its services and the sessions it already holds.
+        Register {
+            /// System name.
+            system: String,
+            /// Its process id, watched for death.
+            pid: u32,
+            /// Its services.
+            services: Vec<ServiceSpec>,
+            /// Sessions it holds (after a broker restart or delinquency).
+            sessions: Vec<ActiveSession>,
+            /// Where its UDP endpoint for remote users listens (`ip:port`), if it has one.
+            udp: Option<String>,
+        },
+        /// Answer to [`ToSystem::Ping`].
+        Pong {
+            /// System name.
+            system: String,
+            /// The ping's nonce.
+            nonce: u64,
+            /// A digest of the sessions the system holds: if the broker's differs (a
+            /// control frame was lost), it asks for the whole set ([`ToSystem::ReportSessions`]).
+            held: Option<SessionDigest>,
+        },
+        /// Every session the system holds, asked for by [`ToSystem::ReportSessions`]: the
+        /// system's set is the truth, and the broker's counts follow it.
+        Sessions {
+            /// System name.
+            system: String,
+            /// The sessions.
+            sessions: Vec<ActiveSession>,
+        },
+        /// The system's answer to a forwarded request.
+        OfferAnswer {
+            /// System name.
+            system: String,
+            /// The offer's ticket.
+            ticket: u64,
+            /// `Ok(session)` if granted (the system told the user directly), `Err(reason)` if not.
+            answer: Result<SessionId, String>,
+        },
+        /// A session ended (either side); the quota is free again.
+        SessionEnded {
+            /// System name.
+            system: String,
+            /// The session.
+            session: SessionId,
+        },
+        /// The system can no longer offer the service, for now.
+        Withdraw {
+            /// System name.
+            system: String,
+            /// Service name.
+            service: String,
+        },
+        /// The system offers a withdrawn service again.
+        Restore {
+            /// System name.
+            system: String,
+            /// Service name.
+            service: String,
+        },
+        /// The system leaves on purpose.
+        Unregister {
+            /// System name.
+            system: String,
+        },
+        /// A user connects (or reconnects after a broker restart).
+        Hello {
+            /// User id.
+            user: UserId,
+            /// Its process id.
+            pid: u32,
+            /// Links it already runs.
+            links: Vec<LinkInfo>,
+            /// Ring this user's bell when the service list changes.
+            watch_list: bool,
+        },
+        /// A user asks for a service.
+        Request {
+            /// User id.
+            user: UserId,
+            /// The user's request number, echoed in the answer.
+            req: u64,
+            /// The service.
+            service: ServiceId,
+        },
+        /// A user gives up a pending or queued request.
+        Cancel {
+            /// User id.
+            user: UserId,
+            /// The request number.
+            req: u64,
+        },
+        /// A user started a link.
+        LinkOpened {
+            /// User id.
+            user: UserId,
+            /// The link.
+            link: LinkInfo,
+        },
+        /// A user's link ended.
+        LinkClosed {
+            /// User id.
+            user: UserId,
+            /// The link number.
+            link: u64,
+        },
+        /// A user leaves.
+        Goodbye {
+            /// User id.
+            user: UserId,
+        },
+    }
 }
 
 impl ToBroker {

@@ -17,7 +17,21 @@ pub const MAX_QUOTA: u16 = 1000;
 pub const MAX_SERVICES_PER_SYSTEM: usize = 128;
 
 /// Whether a service streams data to the user or takes task input from the user.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, PartialOrd, Ord)]
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Copy,
+    Debug,
+    PartialEq,
+    Eq,
+    Hash,
+    Serialize,
+    Deserialize,
+    PartialOrd,
+    Ord,
+)]
 pub enum ServiceKind {
     /// The system streams information and task status (e.g. a tracker's target position).
     Data,
@@ -55,7 +69,17 @@ impl std::str::FromStr for ServiceKind {
 }
 
 /// What a system declares about one service when it registers.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Debug,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+)]
 pub struct ServiceSpec {
     /// Name, unique within the system.
     pub name: String,
@@ -156,7 +180,21 @@ pub fn validate_registration(system: &str, specs: &[ServiceSpec]) -> Result<(), 
 }
 
 /// A service's stable identity: `system/service`. Stable across re-registration by construction.
-#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Debug,
+    PartialEq,
+    Eq,
+    Hash,
+    PartialOrd,
+    Ord,
+    Serialize,
+    Deserialize,
+)]
+#[rkyv(derive(PartialEq, Eq, PartialOrd, Ord))]
 pub struct ServiceId(pub String);
 
 impl ServiceId {
@@ -178,7 +216,22 @@ impl fmt::Display for ServiceId {
 }
 
 /// A one-to-one session, numbered by the system that granted it (unique per system process).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Copy,
+    Debug,
+    PartialEq,
+    Eq,
+    Hash,
+    PartialOrd,
+    Ord,
+    Serialize,
+    Deserialize,
+)]
+#[rkyv(derive(PartialEq, Eq, PartialOrd, Ord))]
 pub struct SessionId(pub u64);
 
 impl fmt::Display for SessionId {
@@ -188,7 +241,21 @@ impl fmt::Display for SessionId {
 }
 
 /// A user's identity on this host: unique per user process.
-#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Debug,
+    PartialEq,
+    Eq,
+    Hash,
+    PartialOrd,
+    Ord,
+    Serialize,
+    Deserialize,
+)]
+#[rkyv(derive(PartialEq, Eq, PartialOrd, Ord))]
 pub struct UserId(pub String);
 
 impl fmt::Display for UserId {

@@ -6,7 +6,7 @@ use muster_shared::protocol::{ActiveSession, SessionDigest, ToBroker, ToSystem, 
 use muster_shared::types::{
     EndReason, Payload, ServiceId, ServiceKind, ServiceSpec, SessionId, TaskStatus, UserId,
 };
-use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashSet, VecDeque};
 
 /// What the system wants sent or watched.
 #[derive(Clone, Debug, PartialEq)]
@@ -99,6 +99,9 @@ struct Session {
     user_pid: u32,
 }
 
+/// How many ended requests a system remembers, to refuse a repeated offer for one.
+pub const SERVED_MEMORY: usize = 4096;
+
 /// One system's protocol state.
 #[derive(Debug)]
 pub struct SystemCore {
@@ -107,6 +110,11 @@ pub struct SystemCore {
     specs: Vec<ServiceSpec>,
     withdrawn: BTreeSet<String>,
     sessions: BTreeMap<SessionId, Session>,
+    /// Requests whose session has ended, most recent last (at most [`SERVED_MEMORY`]): a
+    /// repeated offer for one of them (it crossed a broker takeover) is refused, not
+    /// granted a second time.
+    served: VecDeque<(UserId, u64, String)>,
+    served_set: HashSet<(UserId, u64, String)>,
     state: BrokerState,
     session_prefix: u64,
     next_session: u64,
@@ -131,6 +139,8 @@ impl SystemCore {
             specs,
             withdrawn: BTreeSet::new(),
             sessions: BTreeMap::new(),
+            served: VecDeque::new(),
+            served_set: HashSet::new(),
             state: BrokerState::Unregistered,
             session_prefix: mix64(
                 salt ^ (u64::from(pid) << 32)
@@ -394,6 +404,17 @@ impl SystemCore {
             .iter()
             .find(|(_, s)| s.user == user && s.req == req && s.service == service)
             .map(|(id, _)| *id);
+        if self
+            .served_set
+            .contains(&(user.clone(), req, service.clone()))
+        {
+            self.send_broker(ToBroker::OfferAnswer {
+                system: self.name.clone(),
+                ticket,
+                answer: Err("request already served: its session has ended".to_string()),
+            });
+            return;
+        }
         if let Some(session) = existing {
             if let Some(spec) = self.specs.iter().find(|s| s.name == service) {
                 let granted = self.granted(req, session, spec);
@@ -522,6 +543,15 @@ impl SystemCore {
         let Some(s) = self.sessions.remove(&session) else {
             return;
         };
+        let key = (s.user.clone(), s.req, s.service.clone());
+        if self.served_set.insert(key.clone()) {
+            self.served.push_back(key);
+            if self.served.len() > SERVED_MEMORY {
+                if let Some(old) = self.served.pop_front() {
+                    self.served_set.remove(&old);
+                }
+            }
+        }
         if tell_user {
             self.out.push_back(SystemOutput::ToUser(
                 s.user.clone(),
@@ -668,6 +698,24 @@ mod tests {
             SystemOutput::ToBroker(ToBroker::OfferAnswer { answer, .. }) => Some(answer.clone()),
             _ => None,
         })
+    }
+
+    #[test]
+    fn a_repeated_offer_gets_the_same_session_and_one_for_an_ended_session_is_refused() {
+        let mut c = core();
+        let first = answer(&offer(&mut c, 5, "u1", "c")).unwrap().unwrap();
+        // The same request offered again (a retry that crossed a takeover): same session.
+        assert_eq!(answer(&offer(&mut c, 5, "u1", "c")), Some(Ok(first)));
+        c.handle(ToSystem::End {
+            user: UserId("u1".into()),
+            session: first,
+        });
+        outs(&mut c);
+        // Once that session has ended, the request is served: never a second grant.
+        let again = answer(&offer(&mut c, 5, "u1", "c")).unwrap();
+        assert!(again.unwrap_err().contains("already served"));
+        // Another request of the same user is granted as usual.
+        assert!(answer(&offer(&mut c, 6, "u1", "c")).unwrap().is_ok());
     }
 
     #[test]
