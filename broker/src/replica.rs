@@ -16,7 +16,9 @@ use rkyv::rancor;
 use rkyv::util::AlignedVec;
 use std::time::Duration;
 
-/// One replication record.
+/// One replication record. Only its archived form is ever built (from a borrowing twin,
+/// without copying the state) and read.
+#[allow(clippy::large_enum_variant)]
 #[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug)]
 pub enum Record {
     /// The primary's whole state after op `seq` (0: none yet): a standby starts here.

@@ -42,7 +42,7 @@ fn user(i: usize) -> UserId {
 }
 
 fn svc(i: usize) -> &'static str {
-    if i % 2 == 0 {
+    if i.is_multiple_of(2) {
         "a"
     } else {
         "b"
@@ -157,28 +157,25 @@ impl World {
                         service,
                         ..
                     },
-                ) => {
-                    if self.alive.contains(&system) {
+                )
+                    if self.alive.contains(&system) => {
                         self.offers.push((system, ticket, user, req, service));
                     }
-                }
-                Output::ToSystem(system, ToSystem::Ping { nonce }) => {
-                    if self.alive.contains(&system) {
+                Output::ToSystem(system, ToSystem::Ping { nonce })
+                    if self.alive.contains(&system) => {
                         pongs.push(ToBroker::Pong {
                             held: Some(self.digest(&system)),
                             system,
                             nonce,
                         });
                     }
-                }
-                Output::ToSystem(system, ToSystem::ReportSessions) => {
-                    if self.alive.contains(&system) {
+                Output::ToSystem(system, ToSystem::ReportSessions)
+                    if self.alive.contains(&system) => {
                         pongs.push(ToBroker::Sessions {
                             sessions: self.held(&system),
                             system,
                         });
                     }
-                }
                 Output::ToUser(u, muster_shared::protocol::ToUser::Refused { req, .. }) => {
                     self.pending.remove(&(u, req));
                 }
