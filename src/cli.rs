@@ -316,6 +316,14 @@ pub struct BrokerArgs {
     /// dropped and counted.
     #[arg(long, default_value_t = 2000.0, requires = "udp")]
     pub udp_conn_rate: f64,
+    /// Run as a standby: follow the running broker's state and take over when it dies,
+    /// hangs past --takeover-deadline or steps down. Any number may run.
+    #[arg(long)]
+    pub standby: bool,
+    /// How long a standby waits without a word from the primary before it takes the
+    /// primary for hung and takes over (wall time).
+    #[arg(long, default_value = "150ms", value_parser = duration, requires = "standby")]
+    pub takeover_deadline: Duration,
 }
 
 #[derive(Subcommand, Debug)]

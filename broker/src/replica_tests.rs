@@ -157,25 +157,26 @@ impl World {
                         service,
                         ..
                     },
-                )
-                    if self.alive.contains(&system) => {
-                        self.offers.push((system, ticket, user, req, service));
-                    }
+                ) if self.alive.contains(&system) => {
+                    self.offers.push((system, ticket, user, req, service));
+                }
                 Output::ToSystem(system, ToSystem::Ping { nonce })
-                    if self.alive.contains(&system) => {
-                        pongs.push(ToBroker::Pong {
-                            held: Some(self.digest(&system)),
-                            system,
-                            nonce,
-                        });
-                    }
+                    if self.alive.contains(&system) =>
+                {
+                    pongs.push(ToBroker::Pong {
+                        held: Some(self.digest(&system)),
+                        system,
+                        nonce,
+                    });
+                }
                 Output::ToSystem(system, ToSystem::ReportSessions)
-                    if self.alive.contains(&system) => {
-                        pongs.push(ToBroker::Sessions {
-                            sessions: self.held(&system),
-                            system,
-                        });
-                    }
+                    if self.alive.contains(&system) =>
+                {
+                    pongs.push(ToBroker::Sessions {
+                        sessions: self.held(&system),
+                        system,
+                    });
+                }
                 Output::ToUser(u, muster_shared::protocol::ToUser::Refused { req, .. }) => {
                     self.pending.remove(&(u, req));
                 }

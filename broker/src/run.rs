@@ -5,8 +5,13 @@
 //! deadline (a ping, a ping timeout, an offer timeout).
 
 use crate::core::{Broker, BrokerConfig, Output};
+use crate::fence::{Fence, Holder};
+use crate::replica::{Follower, Leader, Step};
 use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
-use muster_shared::ipc::{bell, create_node, Endpoint, ListWriter, Presence, TransportError};
+use muster_shared::ipc::{
+    bell, create_node, BellRinger, Endpoint, ListWriter, Presence, ReplicaReader, ReplicaWriter,
+    TransportError,
+};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToBroker};
 use muster_shared::reactor::{process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe};
@@ -37,6 +42,14 @@ pub enum BrokerError {
     /// The UDP front could not start.
     #[error(transparent)]
     Udp(#[from] crate::udp::UdpError),
+    /// Another broker took the instance over while this one was stopped or hung.
+    #[error("taken over by broker pid {pid} (term {term}) while this broker was stopped or hung; it did not act and stops")]
+    Fenced {
+        /// The broker that holds the instance now.
+        pid: u32,
+        /// Its term.
+        term: u32,
+    },
 }
 
 const TOKEN_BELL: usize = 0;
@@ -96,6 +109,7 @@ struct Shell {
     last_ring: Option<Instant>,
     ring_owed: bool,
     udp: Option<UdpDriver>,
+    replica: Replication,
 }
 
 /// The UDP front's socket and access file around the sans-IO [`UdpFront`].
@@ -198,13 +212,49 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
     run_with(inst, cfg, None, false)
 }
 
-/// Runs a broker with a UDP front for remote users if `udp` is given.
-pub fn run_with(
-    inst: &Instance,
-    cfg: BrokerConfig,
-    udp: Option<UdpConfig>,
-    keep_log: bool,
-) -> Result<BrokerReport, BrokerError> {
+/// How often a primary with standbys tells them it is alive when it has nothing else
+/// to say.
+pub const HEARTBEAT: Duration = Duration::from_millis(20);
+/// How long a standby waits without a record before it takes the primary for hung.
+pub const DEFAULT_TAKEOVER_DEADLINE: Duration = Duration::from_millis(150);
+
+/// The time on the host's monotonic clock: one clock for a primary and its standbys, so
+/// the deadlines in the replicated state mean the same in both.
+fn host_now() -> Duration {
+    Duration::from_nanos(muster_shared::protocol::monotonic_ns())
+}
+
+/// A new run's epoch: the wall clock in ns, after every earlier run's.
+fn new_epoch(after: u64) -> u64 {
+    let wall = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0);
+    wall.max(after.saturating_add(1))
+}
+
+fn open_fence(inst: &Instance) -> Result<Fence, BrokerError> {
+    Fence::open(inst).map_err(|e| {
+        BrokerError::Os(std::io::Error::new(
+            e.kind(),
+            format!("the instance's fence file: {e}"),
+        ))
+    })
+}
+
+/// Takes the next term of the fence for this process, from whoever held it (a broker
+/// that died, or nobody).
+fn claim_fence(fence: &Fence) -> Holder {
+    let pid = std::process::id();
+    loop {
+        let seen = fence.holder();
+        if let Some(me) = fence.claim(seen, pid) {
+            return me;
+        }
+    }
+}
+
+fn raise_fds() {
     match raise_fd_limit() {
         Ok(n) if n < 4096 => {
             tracing::warn!(
@@ -215,21 +265,300 @@ pub fn run_with(
         Ok(n) => tracing::debug!("file-descriptor limit {n}"),
         Err(e) => tracing::warn!("cannot raise the file-descriptor limit: {e}"),
     }
+}
+
+/// Runs a broker with a UDP front for remote users if `udp` is given.
+pub fn run_with(
+    inst: &Instance,
+    cfg: BrokerConfig,
+    udp: Option<UdpConfig>,
+    keep_log: bool,
+) -> Result<BrokerReport, BrokerError> {
+    raise_fds();
     let node = create_node(&format!("muster-broker-{inst}"), true)?;
     node.try_cleanup_dead_nodes();
     let endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
         TransportError::InUse(_) => BrokerError::AlreadyRunning(inst.to_string()),
         other => BrokerError::from(other),
     })?;
+    let fence = open_fence(inst)?;
+    let me = claim_fence(&fence);
+    let pid = std::process::id();
+    let core = Broker::new(cfg, new_epoch(0), pid);
+    serve(
+        inst,
+        Primary {
+            endpoint,
+            fence,
+            me,
+            core,
+            how: Start::Cold,
+            seq: 0,
+        },
+        udp,
+        keep_log,
+    )
+}
+
+/// How a primary came to be.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Start {
+    /// From nothing: systems and users register and say hello again.
+    Cold,
+    /// A standby with the whole state took over: peers adopt it.
+    Takeover,
+}
+
+/// A broker about to serve as the primary.
+struct Primary {
+    endpoint: Endpoint,
+    fence: Fence,
+    me: Holder,
+    core: Broker,
+    how: Start,
+    seq: u64,
+}
+
+/// Runs a standby on `inst`: it follows the primary's state and takes over when the
+/// primary dies (its pidfd), hangs (no record for `deadline`) or steps down; then it
+/// serves as the primary until SIGINT or SIGTERM.
+pub fn run_standby(
+    inst: &Instance,
+    cfg: BrokerConfig,
+    udp: Option<UdpConfig>,
+    keep_log: bool,
+    deadline: Duration,
+) -> Result<BrokerReport, BrokerError> {
+    raise_fds();
+    let node = create_node(&format!("muster-standby-{inst}"), true)?;
+    let fence = open_fence(inst)?;
+    let Some(standby) = follow(inst, &node, &fence, deadline)? else {
+        return Ok(BrokerReport {
+            stats: crate::core::BrokerStats::default(),
+            handling: Handling::new(false),
+            udp: None,
+        });
+    };
+    let Followed {
+        follower,
+        me,
+        old,
+        why,
+    } = standby;
+    let pid = std::process::id();
+    let t0 = Instant::now();
+    if let Some(old) = old.filter(|o| !o.exited()) {
+        // A hung primary still owns the broker's inbox and the list (iceoryx2 gives
+        // each to one process): having taken its term, end it so they come free. Were
+        // it to wake first, the fence stops it before it acts.
+        tracing::warn!(pid = old.pid(), "ending the hung primary");
+        // SAFETY: kill(2) on a pid we hold a pidfd of (it cannot have been reused).
+        unsafe { libc::kill(old.pid() as i32, libc::SIGKILL) };
+        let until = Instant::now() + Duration::from_secs(2);
+        while !old.exited() && Instant::now() < until {
+            std::thread::sleep(Duration::from_micros(200));
+        }
+    }
+    let killed_us = t0.elapsed().as_micros() as u64;
+    node.try_cleanup_dead_nodes();
+    let cleaned_us = t0.elapsed().as_micros() as u64;
+    let endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
+        TransportError::InUse(_) => BrokerError::AlreadyRunning(inst.to_string()),
+        other => BrokerError::from(other),
+    })?;
+    let seq = follower.seq();
+    let (core, how) = match follower.into_core() {
+        Some(mut core) => {
+            let epoch = new_epoch(core.epoch());
+            core.take_over(host_now(), epoch, pid);
+            (core, Start::Takeover)
+        }
+        None => (Broker::new(cfg, new_epoch(0), pid), Start::Cold),
+    };
+    tracing::warn!(
+        ?why,
+        term = me.term,
+        state = if how == Start::Takeover {
+            "replicated"
+        } else {
+            "none: starting cold"
+        },
+        killed_us,
+        cleaned_us,
+        inbox_us = t0.elapsed().as_micros() as u64,
+        "standby taking over"
+    );
+    serve(
+        inst,
+        Primary {
+            endpoint,
+            fence,
+            me,
+            core,
+            how,
+            seq,
+        },
+        udp,
+        keep_log,
+    )
+}
+
+/// Why a standby took over.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Why {
+    /// The primary's process ended (its pidfd).
+    Died,
+    /// No record from the primary within the deadline.
+    Hung,
+    /// The primary stepped down (stopped on purpose with a standby running).
+    SteppedDown,
+    /// There was no primary.
+    NoPrimary,
+}
+
+struct Followed {
+    follower: Follower,
+    me: Holder,
+    old: Option<PidFd>,
+    why: Why,
+}
+
+/// How often an unsynchronized standby asks the primary for its state.
+const ASK_EVERY: Duration = Duration::from_millis(100);
+
+const STANDBY_REPLICA: usize = 0;
+const STANDBY_SIGNAL: usize = 1;
+const STANDBY_PRIMARY: usize = 2;
+
+/// Follows the primary until this standby has taken its term (`Some`) or was told to
+/// stop (`None`).
+fn follow(
+    inst: &Instance,
+    node: &iceoryx2::prelude::Node<muster_shared::ipc::Ipc>,
+    fence: &Fence,
+    deadline: Duration,
+) -> Result<Option<Followed>, BrokerError> {
+    let mut reader = ReplicaReader::open(node, inst)?;
+    let mut asker = BellRinger::open(node, inst, &Address::Broker)?;
+    let mut signals = SignalPipe::install()?;
+    let mut reactor = Reactor::new()?;
+    reactor.add(reader.fd(), STANDBY_REPLICA)?;
+    reactor.add(signals.raw(), STANDBY_SIGNAL)?;
+    let mut follower = Follower::new();
+    let mut watched: Option<(Holder, Option<PidFd>)> = None;
+    let mut heard = Instant::now();
+    let mut asked: Option<Instant> = None;
+    let mut logged_sync = false;
+    tracing::info!(instance = %inst, deadline_ms = deadline.as_millis() as u64, "standby following");
+    loop {
+        // The primary of record: a new one (a cold start, or another standby's
+        // takeover) starts a new copy.
+        let holder = fence.holder();
+        if watched.as_ref().is_none_or(|(h, _)| *h != holder) {
+            if let Some((_, Some(p))) = watched.take() {
+                reactor.remove(p.raw());
+            }
+            let pidfd = (holder.pid != 0)
+                .then(|| PidFd::open(holder.pid).ok())
+                .flatten();
+            if let Some(p) = &pidfd {
+                reactor.add(p.raw(), STANDBY_PRIMARY)?;
+            }
+            tracing::info!(pid = holder.pid, term = holder.term, "following primary");
+            watched = Some((holder, pidfd));
+            follower = Follower::new();
+            heard = Instant::now();
+            asked = None;
+            logged_sync = false;
+        }
+        let (holder, pidfd) = watched.as_ref().expect("set above");
+        let holder = *holder;
+        let mut why = None;
+        match pidfd {
+            None => why = Some(Why::NoPrimary).filter(|_| heard.elapsed() >= deadline),
+            Some(p) if p.exited() => why = Some(Why::Died),
+            Some(_) if heard.elapsed() >= deadline => why = Some(Why::Hung),
+            Some(_) => {}
+        }
+        if why.is_none() && !follower.synced() && asked.is_none_or(|t| t.elapsed() >= ASK_EVERY) {
+            asker.reconnect(node);
+            let _ = asker.ring(bell::STANDBY);
+            asked = Some(Instant::now());
+        }
+        let mut stepped_down = false;
+        reader.drain_bell();
+        let got = reader.drain(|bytes| match follower.apply(bytes) {
+            Ok(Step::Gap) => {
+                tracing::warn!("replication records lost: asking for the whole state again");
+                asked = None;
+            }
+            Ok(Step::SteppingDown) => stepped_down = true,
+            Ok(_) => {}
+            Err(e) => tracing::warn!("{e}"),
+        });
+        // Any record (a heartbeat at least) means the primary is not hung.
+        if got > 0 {
+            heard = Instant::now();
+        }
+        if follower.synced() && !logged_sync {
+            logged_sync = true;
+            tracing::info!(seq = follower.seq(), "standby in sync");
+        }
+        if stepped_down {
+            why = Some(Why::SteppedDown);
+        }
+        if let Some(why) = why {
+            if let Some(me) = fence.claim(holder, std::process::id()) {
+                let old = watched.and_then(|(_, p)| p);
+                return Ok(Some(Followed {
+                    follower,
+                    me,
+                    old,
+                    why,
+                }));
+            }
+            // Another standby was quicker: follow it.
+            continue;
+        }
+        let wait = deadline
+            .saturating_sub(heard.elapsed())
+            .min(if follower.synced() {
+                deadline
+            } else {
+                ASK_EVERY
+            })
+            .max(Duration::from_millis(1));
+        for token in reactor.wait(Some(wait))? {
+            match token {
+                STANDBY_SIGNAL if signals.drain() => {
+                    tracing::info!("signal received: standby stopping");
+                    return Ok(None);
+                }
+                _ => {}
+            }
+        }
+    }
+}
+
+/// Serves as the primary until SIGINT or SIGTERM.
+fn serve(
+    inst: &Instance,
+    p: Primary,
+    udp: Option<UdpConfig>,
+    keep_log: bool,
+) -> Result<BrokerReport, BrokerError> {
+    let Primary {
+        endpoint,
+        fence,
+        me,
+        mut core,
+        how,
+        seq,
+    } = p;
     let presence = Presence::announce(endpoint.node(), inst)?;
     let list = ListWriter::open(endpoint.node(), inst)?;
-    let pid = std::process::id();
-    let epoch = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_nanos() as u64)
-        .unwrap_or(0)
-        ^ (u64::from(pid) << 40);
-    let mut core = Broker::new(cfg, epoch, pid);
+    let replica = ReplicaWriter::open(endpoint.node(), inst)?;
+    let epoch = core.epoch();
     let mut signals = SignalPipe::install()?;
     let mut hangup = SignalPipe::hangup()?;
     let reactor = Reactor::new()?;
@@ -258,15 +587,26 @@ pub fn run_with(
         ring_owed: false,
         handling: Handling::new(keep_log),
         udp,
+        replica: Replication {
+            writer: replica,
+            leader: Leader::after(seq),
+            image_owed: false,
+            last_sent: Instant::now(),
+        },
     };
     shell.snapshot.epoch = epoch;
-    let start = Instant::now();
-    shell.flush(&mut core, start.elapsed())?;
-    presence.ring(bell::BROKER_UP);
-    tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), "broker up");
+    if !fence.holds(me) {
+        return Err(fenced(&fence));
+    }
+    shell.flush(&mut core, host_now())?;
+    presence.ring(match how {
+        Start::Cold => bell::BROKER_UP,
+        Start::Takeover => bell::TAKEOVER,
+    });
+    tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), term = me.term, "broker up");
 
     loop {
-        let now = start.elapsed();
+        let now = host_now();
         let timeout = core.poll_timeout().map(|t| t.saturating_sub(now));
         let housekeeping = shell
             .udp
@@ -278,22 +618,49 @@ pub fn run_with(
             shell.ring_due(),
             shell.endpoint.sweep(),
             housekeeping,
+            shell.replica.heartbeat_due(),
         ]
         .into_iter()
         .flatten()
         .min();
         let tokens = shell.reactor.wait(timeout)?;
-        let now = start.elapsed();
+        // Taken over while we slept (stopped, or hung past the deadline)? Then another
+        // broker serves the instance: act on nothing.
+        if !fence.holds(me) {
+            return Err(fenced(&fence));
+        }
+        let now = host_now();
         let mut died: Vec<Address> = Vec::new();
         for token in tokens {
             match token {
                 TOKEN_BELL => {
-                    shell.endpoint.drain_bell();
+                    if shell.endpoint.drain_bell() & (1 << bell::STANDBY) != 0 {
+                        core.keep_journal();
+                        shell.replica.image_owed = true;
+                    }
                 }
                 TOKEN_SIGNAL => {
                     if signals.drain() {
-                        tracing::info!("signal received: broker stopping");
-                        presence.ring(bell::BROKER_DOWN);
+                        let standbys = shell.replica.writer.standbys();
+                        if standbys > 0 {
+                            // Hand over: the standbys have everything up to here.
+                            shell.flush(&mut core, host_now())?;
+                            let _ = shell
+                                .replica
+                                .writer
+                                .publish(&shell.replica.leader.stepping_down());
+                            shell.replica.writer.ring();
+                            tracing::info!(
+                                standbys,
+                                "signal received: broker stepping down to a standby"
+                            );
+                        } else {
+                            tracing::info!("signal received: broker stopping");
+                            presence.ring(bell::BROKER_DOWN);
+                            if fence.holds(me) {
+                                fence.remove();
+                            }
+                        }
                         return Ok(BrokerReport {
                             stats: core.stats().clone(),
                             handling: shell.handling,
@@ -332,8 +699,9 @@ pub fn run_with(
         if core.poll_timeout().is_some_and(|t| t <= now) {
             core.handle_timeout(now);
         }
-        shell.flush(&mut core, start.elapsed())?;
+        shell.flush(&mut core, host_now())?;
         shell.ring_watchers(&core);
+        shell.replica.heartbeat();
         if !died.is_empty() {
             // Nobody will read a dead peer's inbox: drop our ports to it now, then remove
             // the dead process's iceoryx2 resources (its node shows as dead at once).
@@ -342,6 +710,72 @@ pub fn run_with(
             }
             let state = shell.endpoint.node().try_cleanup_dead_nodes();
             tracing::debug!(?state, "cleaned up dead nodes");
+        }
+    }
+}
+
+fn fenced(fence: &Fence) -> BrokerError {
+    let h = fence.holder();
+    tracing::error!(
+        by_pid = h.pid,
+        term = h.term,
+        "this broker was taken over while stopped or hung: stopping without acting"
+    );
+    BrokerError::Fenced {
+        pid: h.pid,
+        term: h.term,
+    }
+}
+
+/// The primary's replication stream to its standbys.
+struct Replication {
+    writer: ReplicaWriter,
+    leader: Leader,
+    /// A standby asked for the whole state.
+    image_owed: bool,
+    last_sent: Instant,
+}
+
+impl Replication {
+    /// Publishes the core's journal, then the image if one is owed; rings if anything went.
+    fn publish(&mut self, core: &mut Broker) {
+        let mut sent = false;
+        for record in self.leader.ops(core) {
+            if let Err(e) = self.writer.publish(&record) {
+                tracing::warn!("replication: {e}");
+            }
+            sent = true;
+        }
+        if self.image_owed {
+            self.image_owed = false;
+            let image = self.leader.image(core);
+            match self.writer.publish(&image) {
+                Ok(()) => tracing::info!(
+                    bytes = image.len(),
+                    seq = self.leader.seq(),
+                    standbys = self.writer.standbys(),
+                    "state image sent to standbys"
+                ),
+                Err(e) => tracing::warn!("replication image: {e}"),
+            }
+            sent = true;
+        }
+        if sent {
+            self.writer.ring();
+            self.last_sent = Instant::now();
+        }
+    }
+
+    /// When a heartbeat is due, if standbys follow.
+    fn heartbeat_due(&self) -> Option<Duration> {
+        (self.writer.standbys() > 0).then(|| HEARTBEAT.saturating_sub(self.last_sent.elapsed()))
+    }
+
+    fn heartbeat(&mut self) {
+        if self.heartbeat_due() == Some(Duration::ZERO) {
+            let _ = self.writer.publish(&self.leader.heartbeat());
+            self.writer.ring();
+            self.last_sent = Instant::now();
         }
     }
 }
@@ -363,7 +797,11 @@ impl Shell {
     fn flush(&mut self, core: &mut Broker, now: Duration) -> Result<(), BrokerError> {
         loop {
             let mut dead = Vec::new();
+            // Write-ahead: the standbys hear of each input before any peer hears of
+            // what it caused.
+            self.replica.publish(core);
             self.flush_outputs(core, &mut dead)?;
+            self.replica.publish(core);
             if dead.is_empty() {
                 return Ok(());
             }

@@ -54,6 +54,11 @@ pub mod bell {
     pub const BROKER_UP: usize = 2;
     /// The broker stopped on purpose (presence event only).
     pub const BROKER_DOWN: usize = 3;
+    /// A standby asks the primary for its whole state (the broker's bell only).
+    pub const STANDBY: usize = 4;
+    /// A standby took over the running broker's state (presence event only): systems
+    /// register again, users adopt it and repeat their pending requests.
+    pub const TAKEOVER: usize = 5;
     /// Highest id in use.
     pub const MAX: usize = 7;
 }
@@ -836,5 +841,301 @@ impl ListReader {
             .entry::<ServiceListSnapshot>(&0)
             .map_err(|e| svc_err("service-list entry", e))?;
         Ok(Box::new(*entry.get()))
+    }
+}
+
+/// Most standbys following one instance's primary.
+pub const MAX_STANDBYS: usize = 8;
+/// Parts a standby's queue holds; one that falls further behind loses records and asks
+/// for a new image.
+const REPLICA_BUFFER: usize = 512;
+/// Largest part of a record on the stream: larger records (a whole state, a large
+/// registration) travel in several. Samples are of this fixed size, so the stream's
+/// shared memory is bounded (parts × buffer × standbys).
+pub const REPLICA_PART: usize = 16 * 1024;
+/// Each part starts with its record's number of parts and its own index (u32 each),
+/// padded to 16 bytes so that the record's bytes stay aligned for rkyv.
+const PART_HEADER: usize = 16;
+
+fn replica_services(
+    node: &Node<Ipc>,
+    inst: &Instance,
+) -> Result<
+    (
+        iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+        iceoryx2::service::port_factory::event::PortFactory<Ipc>,
+    ),
+    TransportError,
+> {
+    let name = inst.replica();
+    let stream = node
+        .service_builder(&service_name(&name)?)
+        .publish_subscribe::<[u8]>()
+        // rkyv reads a record in place: its bytes must be aligned like an AlignedVec.
+        .payload_alignment(Alignment::new(16).expect("16 is a power of two"))
+        .max_publishers(2)
+        .max_subscribers(MAX_STANDBYS)
+        .max_nodes(MAX_STANDBYS + 4)
+        .subscriber_max_buffer_size(REPLICA_BUFFER)
+        .subscriber_max_borrowed_samples(4)
+        .history_size(0)
+        .enable_safe_overflow(false)
+        .open_or_create()
+        .map_err(|e| svc_err(&name, e))?;
+    let bell_name = inst.replica_bell();
+    let bell = node
+        .service_builder(&service_name(&bell_name)?)
+        .event()
+        .max_notifiers(4)
+        .max_listeners(MAX_STANDBYS)
+        .max_nodes(MAX_STANDBYS + 4)
+        .event_id_max_value(bell::MAX)
+        .open_or_create()
+        .map_err(|e| svc_err(&bell_name, e))?;
+    Ok((stream, bell))
+}
+
+/// A primary broker's end of the replication stream.
+pub struct ReplicaWriter {
+    publisher: Publisher<Ipc, [u8], ()>,
+    notifier: Notifier<Ipc>,
+    stream: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+}
+
+impl ReplicaWriter {
+    /// Opens the stream for writing.
+    pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
+        let (stream, bell) = replica_services(node, inst)?;
+        let publisher = stream
+            .publisher_builder()
+            .initial_max_slice_len(PART_HEADER + REPLICA_PART)
+            .allocation_strategy(AllocationStrategy::Static)
+            .max_loaned_samples(1)
+            // Never wait on a standby: one that falls behind resynchronizes.
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()
+            .map_err(|e| svc_err(&inst.replica(), e))?;
+        let notifier = bell
+            .notifier_builder()
+            .create()
+            .map_err(|e| svc_err(&inst.replica_bell(), e))?;
+        Ok(ReplicaWriter {
+            publisher,
+            notifier,
+            stream,
+        })
+    }
+
+    /// How many standbys follow.
+    pub fn standbys(&self) -> usize {
+        self.stream.dynamic_config().number_of_subscribers()
+    }
+
+    /// Publishes one record, in parts of at most [`REPLICA_PART`] bytes (no ring: see
+    /// [`ReplicaWriter::ring`]).
+    pub fn publish(&self, record: &[u8]) -> Result<(), TransportError> {
+        let err = |e: &dyn std::fmt::Debug| svc_err("replica", e);
+        let parts: Vec<&[u8]> = if record.is_empty() {
+            vec![record]
+        } else {
+            record.chunks(REPLICA_PART).collect()
+        };
+        let count = u32::try_from(parts.len()).map_err(|e| err(&e))?;
+        for (i, part) in parts.iter().enumerate() {
+            let mut sample = self
+                .publisher
+                .loan_slice_uninit(PART_HEADER + part.len())
+                .map_err(|e| err(&e))?;
+            let buf = sample.payload_mut();
+            let mut header = [0u8; PART_HEADER];
+            header[..4].copy_from_slice(&count.to_le_bytes());
+            header[4..8].copy_from_slice(&(i as u32).to_le_bytes());
+            for (dst, src) in buf.iter_mut().zip(header.iter().chain(part.iter())) {
+                dst.write(*src);
+            }
+            // SAFETY: every byte was written just above.
+            let sample = unsafe { sample.assume_init() };
+            sample.send().map_err(|e| err(&e))?;
+        }
+        Ok(())
+    }
+
+    /// Wakes the standbys.
+    pub fn ring(&self) {
+        if let Err(e) = self.notifier.notify() {
+            tracing::debug!("replica bell: {e:?}");
+        }
+    }
+}
+
+/// A standby's end of the replication stream.
+pub struct ReplicaReader {
+    subscriber: Subscriber<Ipc, [u8], ()>,
+    listener: Listener<Ipc>,
+    /// A record arriving in parts, 16-byte aligned for rkyv.
+    assembling: AlignedBytes,
+    expect: u32,
+}
+
+/// A growable byte buffer whose start is 16-byte aligned.
+#[derive(Default)]
+struct AlignedBytes {
+    words: Vec<u128>,
+    len: usize,
+}
+
+impl AlignedBytes {
+    fn clear(&mut self) {
+        self.len = 0;
+    }
+
+    fn extend_from_slice(&mut self, b: &[u8]) {
+        let need = (self.len + b.len()).div_ceil(16);
+        if self.words.len() < need {
+            self.words.resize(need, 0);
+        }
+        // SAFETY: `words` holds at least `need * 16` initialized bytes.
+        let bytes = unsafe {
+            std::slice::from_raw_parts_mut(self.words.as_mut_ptr().cast::<u8>(), need * 16)
+        };
+        bytes[self.len..self.len + b.len()].copy_from_slice(b);
+        self.len += b.len();
+    }
+}
+
+impl std::ops::Deref for AlignedBytes {
+    type Target = [u8];
+    fn deref(&self) -> &[u8] {
+        // SAFETY: the first `len` bytes of `words` are initialized.
+        unsafe { std::slice::from_raw_parts(self.words.as_ptr().cast::<u8>(), self.len) }
+    }
+}
+
+impl ReplicaReader {
+    /// Opens the stream for reading.
+    pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
+        let (stream, bell) = replica_services(node, inst)?;
+        let subscriber = stream
+            .subscriber_builder()
+            .buffer_size(REPLICA_BUFFER)
+            .create()
+            .map_err(|e| svc_err(&inst.replica(), e))?;
+        let listener = bell
+            .listener_builder()
+            .create()
+            .map_err(|e| svc_err(&inst.replica_bell(), e))?;
+        Ok(ReplicaReader {
+            subscriber,
+            listener,
+            assembling: AlignedBytes::default(),
+            expect: 0,
+        })
+    }
+
+    /// The bell's file descriptor, for the reactor.
+    pub fn fd(&self) -> RawFd {
+        // SAFETY: the descriptor stays owned by the listener; we only read its number.
+        unsafe { self.listener.file_descriptor().native_handle() }
+    }
+
+    /// Empties the bell.
+    pub fn drain_bell(&self) {
+        drain_ids(&self.listener);
+    }
+
+    /// Hands each waiting record to `f`: in place in shared memory if it came in one
+    /// part, else put together from its parts. Returns how many parts were read.
+    pub fn drain(&mut self, mut f: impl FnMut(&[u8])) -> usize {
+        let mut n = 0;
+        loop {
+            match self.subscriber.receive() {
+                Ok(Some(sample)) => {
+                    n += 1;
+                    let p = sample.payload();
+                    if p.len() < PART_HEADER {
+                        continue;
+                    }
+                    let count = u32::from_le_bytes([p[0], p[1], p[2], p[3]]);
+                    let index = u32::from_le_bytes([p[4], p[5], p[6], p[7]]);
+                    let body = &p[PART_HEADER..];
+                    if count == 1 {
+                        f(body);
+                        continue;
+                    }
+                    if index == 0 {
+                        self.assembling.clear();
+                        self.expect = 0;
+                    }
+                    if index != self.expect {
+                        // A part was lost: drop the record (the follower sees the gap).
+                        self.assembling.clear();
+                        self.expect = 0;
+                        continue;
+                    }
+                    self.assembling.extend_from_slice(body);
+                    self.expect += 1;
+                    if self.expect == count {
+                        f(&self.assembling);
+                        self.assembling.clear();
+                        self.expect = 0;
+                    }
+                }
+                Ok(None) => return n,
+                Err(e) => {
+                    tracing::warn!("replica receive failed: {e:?}");
+                    return n;
+                }
+            }
+        }
+    }
+}
+
+/// A notifier on one address's bell, for ringing it without sending frames (a standby
+/// asking the primary broker for its state).
+pub struct BellRinger {
+    inst: Instance,
+    to: Address,
+    bell_name: String,
+    notifier: Option<Notifier<Ipc>>,
+}
+
+impl BellRinger {
+    /// A ringer for `to`'s bell; the bell is opened at the first ring.
+    pub fn open(node: &Node<Ipc>, inst: &Instance, to: &Address) -> Result<Self, TransportError> {
+        let mut r = BellRinger {
+            inst: inst.clone(),
+            to: to.clone(),
+            bell_name: String::new(),
+            notifier: None,
+        };
+        r.connect(node);
+        Ok(r)
+    }
+
+    fn connect(&mut self, node: &Node<Ipc>) {
+        let name = self.inst.bell(&self.to);
+        self.bell_name = name.clone();
+        self.notifier = service_name(&name)
+            .ok()
+            .and_then(|n| node.service_builder(&n).event().open().ok())
+            .and_then(|svc| svc.notifier_builder().create().ok());
+    }
+
+    /// Rings `id`; an error means nobody has that bell (yet).
+    pub fn ring(&mut self, id: usize) -> Result<(), TransportError> {
+        match &self.notifier {
+            Some(n) => n
+                .notify_with_custom_event_id(EventId::new(id))
+                .map(|_| ())
+                .map_err(|e| svc_err(&self.bell_name, e)),
+            None => Err(TransportError::Unreachable(self.to.clone())),
+        }
+    }
+
+    /// Tries to open the bell again (its owner was not there before).
+    pub fn reconnect(&mut self, node: &Node<Ipc>) {
+        if self.notifier.is_none() {
+            self.connect(node);
+        }
     }
 }

@@ -84,6 +84,16 @@ impl Instance {
         format!("muster/{}/service-list", self.0)
     }
 
+    /// The stream a primary broker replicates its state on, to its standbys.
+    pub fn replica(&self) -> String {
+        format!("muster/{}/broker/replica", self.0)
+    }
+
+    /// The event rung when replication records wait.
+    pub fn replica_bell(&self) -> String {
+        format!("muster/{}/broker/replica-bell", self.0)
+    }
+
     /// The prefix of every service of this instance.
     pub fn prefix(&self) -> String {
         format!("muster/{}/", self.0)

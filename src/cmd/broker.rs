@@ -40,7 +40,12 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
             })
         }
     };
-    let report = muster_broker::run::run_with(inst, cfg, udp, a.handling_log.is_some())?;
+    let keep_log = a.handling_log.is_some();
+    let report = if a.standby {
+        muster_broker::run::run_standby(inst, cfg, udp, keep_log, a.takeover_deadline)?
+    } else {
+        muster_broker::run::run_with(inst, cfg, udp, keep_log)?
+    };
     if let Some(path) = &a.handling_log {
         report
             .handling

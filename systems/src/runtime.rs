@@ -256,7 +256,10 @@ pub fn run_system_with<A: SystemApp>(
                         core.broker_lost();
                         shell.drop_broker();
                     }
-                    if rung & (1 << bell::BROKER_UP) != 0 {
+                    // A standby took over: it holds our registration, but frames the old
+                    // broker never read are lost, so register again all the same
+                    // (services, sessions, withdrawals): one frame.
+                    if rung & (1 << bell::BROKER_UP | 1 << bell::TAKEOVER) != 0 {
                         // Keep the publisher: the new broker takes over the same inbox, and
                         // dropping it could lose a frame already sent.
                         core.broker_lost();

@@ -424,6 +424,18 @@ impl UserClient {
                     l.lose_broker(&mut self.core, &self.reactor, false);
                     self.core.hello();
                 }
+                if rung & (1 << bell::TAKEOVER) != 0 {
+                    // A standby took over with our state: adopt it (the process that now
+                    // owns the broker's inbox) without a hello, repeating what it may
+                    // have missed.
+                    if let Some(pid) = l.endpoint.owner_pid(&Address::Broker) {
+                        if let Some(p) = l.broker.take() {
+                            self.reactor.remove(p.raw());
+                        }
+                        let epoch = l.broker_epoch();
+                        self.core.adopt(epoch, pid);
+                    }
+                }
             }
             TOKEN_BROKER => {
                 if l.broker.as_ref().is_some_and(PidFd::exited) {
@@ -565,6 +577,17 @@ impl Local {
             }
         }
         None
+    }
+
+    /// The running broker's epoch, as its list says (0 if it cannot be read).
+    fn broker_epoch(&mut self) -> u64 {
+        if self.list.is_none() {
+            self.list = ListReader::open(self.endpoint.node(), &self.inst).ok();
+        }
+        self.list
+            .as_ref()
+            .and_then(|l| l.read().ok())
+            .map_or(0, |s| s.epoch)
     }
 
     fn lose_broker(&mut self, core: &mut UserCore, reactor: &Reactor, forget_ports: bool) {

@@ -185,6 +185,8 @@ pub struct UserCore {
     impersonations: u64,
     /// Sessions this user ended, until the system confirms.
     ending: std::collections::BTreeSet<SessionId>,
+    /// A broker welcomed this user at least once (so a standby's copy knows it).
+    welcomed: bool,
 }
 
 impl UserCore {
@@ -206,6 +208,7 @@ impl UserCore {
             stale_frames: 0,
             broker_pid: None,
             impersonations: 0,
+            welcomed: false,
         }
     }
 
@@ -325,6 +328,32 @@ impl UserCore {
             links,
             watch_list: self.watch_list,
         });
+        self.resend_pending();
+    }
+
+    /// A standby took over the broker (run `epoch`, process `pid`) with this user's
+    /// state: no hello is needed, but what the old broker may not have read is repeated
+    /// (pending requests and links; the broker ignores what it already has). A user the
+    /// broker never welcomed says hello instead.
+    pub fn adopt(&mut self, epoch: u64, pid: u32) {
+        if !self.welcomed {
+            return self.hello();
+        }
+        self.connected = Some(epoch);
+        self.broker_pid = Some(pid);
+        self.out.push_back(UserOutput::WatchBroker(pid));
+        self.events.push_back(UserEvent::Connected { epoch });
+        let links: Vec<LinkInfo> = self.links.values().map(|l| l.info.clone()).collect();
+        for link in links {
+            self.send_broker(ToBroker::LinkOpened {
+                user: self.id.clone(),
+                link,
+            });
+        }
+        self.resend_pending();
+    }
+
+    fn resend_pending(&mut self) {
         let pending: Vec<(u64, ServiceId)> = self
             .pending
             .iter()
@@ -539,6 +568,7 @@ impl UserCore {
     pub fn handle(&mut self, msg: ToUser) {
         match msg {
             ToUser::Welcome { epoch, broker_pid } => {
+                self.welcomed = true;
                 self.connected = Some(epoch);
                 self.broker_pid = Some(broker_pid);
                 self.out.push_back(UserOutput::WatchBroker(broker_pid));

@@ -1,0 +1,164 @@
+//! The instance's fence: which broker may act on it.
+//!
+//! One 64-bit word in a small shared-memory file beside iceoryx2's metadata holds the
+//! current *term* and the primary's pid. A broker becomes primary by swapping the word
+//! it saw for the next term and its own pid (compare-and-swap: of two standbys racing
+//! for a dead primary, one wins). The primary checks the word before it acts each time
+//! it wakes: once another broker holds a newer term, it has been taken over (it was
+//! stopped or hung past its deadline) and stops without writing anything.
+
+use std::os::fd::AsRawFd;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// A term and the pid of the broker holding it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Holder {
+    /// Incremented at every takeover.
+    pub term: u32,
+    /// The primary's pid (0: none yet).
+    pub pid: u32,
+}
+
+impl Holder {
+    fn word(self) -> u64 {
+        (u64::from(self.term) << 32) | u64::from(self.pid)
+    }
+
+    fn of(word: u64) -> Self {
+        Holder {
+            term: (word >> 32) as u32,
+            pid: word as u32,
+        }
+    }
+}
+
+/// The mapped fence file.
+pub struct Fence {
+    word: *const AtomicU64,
+    path: PathBuf,
+}
+
+// SAFETY: the mapping lives as long as the Fence and is only touched through atomics.
+unsafe impl Send for Fence {}
+
+const SIZE: usize = 4096;
+
+impl Fence {
+    /// Opens (creating if needed) the fence of `inst`.
+    pub fn open(inst: &muster_shared::Instance) -> std::io::Result<Self> {
+        let path = PathBuf::from(format!(
+            "{}{}.broker-fence",
+            muster_shared::ipc::iox2_root(),
+            inst
+        ));
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)?;
+        if file.metadata()?.len() < SIZE as u64 {
+            file.set_len(SIZE as u64)?;
+        }
+        // SAFETY: a fresh shared mapping of a file we hold open, SIZE bytes long; the
+        // kernel keeps it valid after the descriptor closes.
+        let ptr = unsafe {
+            libc::mmap(
+                std::ptr::null_mut(),
+                SIZE,
+                libc::PROT_READ | libc::PROT_WRITE,
+                libc::MAP_SHARED,
+                file.as_raw_fd(),
+                0,
+            )
+        };
+        if ptr == libc::MAP_FAILED {
+            return Err(std::io::Error::last_os_error());
+        }
+        Ok(Fence {
+            word: ptr.cast::<AtomicU64>(),
+            path,
+        })
+    }
+
+    fn atomic(&self) -> &AtomicU64 {
+        // SAFETY: page-aligned, mapped for the Fence's lifetime; u64 atomics on shared
+        // memory are sound across processes on Linux.
+        unsafe { &*self.word }
+    }
+
+    /// Who holds the instance now.
+    pub fn holder(&self) -> Holder {
+        Holder::of(self.atomic().load(Ordering::Acquire))
+    }
+
+    /// Takes the next term from `seen` for `pid`; false if someone else moved it first.
+    pub fn claim(&self, seen: Holder, pid: u32) -> Option<Holder> {
+        let next = Holder {
+            term: seen.term.wrapping_add(1),
+            pid,
+        };
+        self.atomic()
+            .compare_exchange(
+                seen.word(),
+                next.word(),
+                Ordering::AcqRel,
+                Ordering::Acquire,
+            )
+            .ok()
+            .map(|_| next)
+    }
+
+    /// Whether `me` still holds the instance.
+    pub fn holds(&self, me: Holder) -> bool {
+        self.holder() == me
+    }
+
+    /// Removes the file (the last broker of the instance stopping on purpose).
+    pub fn remove(&self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+impl Drop for Fence {
+    fn drop(&mut self) {
+        // SAFETY: the mapping made in `open`, unmapped once.
+        unsafe { libc::munmap(self.word as *mut libc::c_void, SIZE) };
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_of_two_claims_wins_and_the_loser_sees_it() {
+        let inst = muster_shared::Instance::new(&format!("fence-{}", std::process::id())).unwrap();
+        let a = Fence::open(&inst).unwrap();
+        let b = Fence::open(&inst).unwrap();
+        let seen = a.holder();
+        let won = a.claim(seen, 11).unwrap();
+        assert_eq!(
+            won,
+            Holder {
+                term: seen.term + 1,
+                pid: 11
+            }
+        );
+        // b saw the same old holder: its claim fails, and it reads a's.
+        assert_eq!(b.claim(seen, 12), None);
+        assert_eq!(b.holder(), won);
+        assert!(a.holds(won));
+        // b takes over from a; a is fenced.
+        let next = b.claim(won, 12).unwrap();
+        assert!(!a.holds(won));
+        assert_eq!(a.holder(), next);
+        a.remove();
+        assert!(!a.path.exists());
+    }
+}
