@@ -294,6 +294,7 @@ pub fn run_with(
             core,
             how: Start::Cold,
             seq: 0,
+            standby_since: None,
         },
         udp,
         keep_log,
@@ -317,6 +318,8 @@ struct Primary {
     core: Broker,
     how: Start,
     seq: u64,
+    /// When a standby began taking over (it reports when it serves).
+    standby_since: Option<Instant>,
 }
 
 /// Runs a standby on `inst`: it follows the primary's state and takes over when the
@@ -347,6 +350,15 @@ pub fn run_standby(
     } = standby;
     let pid = std::process::id();
     let t0 = Instant::now();
+    if why == Why::SteppedDown {
+        // It is on its way out: let it go.
+        if let Some(old) = &old {
+            let until = Instant::now() + Duration::from_secs(2);
+            while !old.exited() && Instant::now() < until {
+                std::thread::sleep(Duration::from_micros(200));
+            }
+        }
+    }
     if let Some(old) = old.filter(|o| !o.exited()) {
         // A hung primary still owns the broker's inbox and the list (iceoryx2 gives
         // each to one process): having taken its term, end it so they come free. Were
@@ -388,6 +400,10 @@ pub fn run_standby(
         inbox_us = t0.elapsed().as_micros() as u64,
         "standby taking over"
     );
+    event(serde_json::json!({
+        "event": "took_over", "why": format!("{why:?}").to_lowercase(), "term": me.term,
+        "replicated": how == Start::Takeover, "inbox_us": t0.elapsed().as_micros() as u64,
+    }));
     serve(
         inst,
         Primary {
@@ -397,10 +413,20 @@ pub fn run_standby(
             core,
             how,
             seq,
+            standby_since: Some(t0),
         },
         udp,
         keep_log,
     )
+}
+
+/// Prints one standby event as a JSON line on stdout (for `muster up`, tests and the
+/// failover bench).
+fn event(v: serde_json::Value) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{v}");
+    let _ = out.flush();
 }
 
 /// Why a standby took over.
@@ -503,6 +529,9 @@ fn follow(
         if follower.synced() && !logged_sync {
             logged_sync = true;
             tracing::info!(seq = follower.seq(), "standby in sync");
+            event(
+                serde_json::json!({"event": "in_sync", "primary": holder.pid, "seq": follower.seq()}),
+            );
         }
         if stepped_down {
             why = Some(Why::SteppedDown);
@@ -554,6 +583,7 @@ fn serve(
         mut core,
         how,
         seq,
+        standby_since,
     } = p;
     let presence = Presence::announce(endpoint.node(), inst)?;
     let list = ListWriter::open(endpoint.node(), inst)?;
@@ -604,6 +634,10 @@ fn serve(
         Start::Takeover => bell::TAKEOVER,
     });
     tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), term = me.term, "broker up");
+    if let Some(t0) = standby_since {
+        event(serde_json::json!({"event": "serving", "term": me.term,
+                                 "ready_us": t0.elapsed().as_micros() as u64}));
+    }
 
     loop {
         let now = host_now();

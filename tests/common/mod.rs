@@ -97,10 +97,10 @@ impl Fed {
 
     pub fn command(&self, args: &[&str]) -> Command {
         let mut c = Command::new(BIN);
-        c.arg("--instance")
-            .arg(&self.inst)
-            .args(args)
-            .env("RUST_LOG", "warn");
+        c.arg("--instance").arg(&self.inst).args(args).env(
+            "RUST_LOG",
+            std::env::var("MUSTER_TEST_LOG").unwrap_or_else(|_| "warn".into()),
+        );
         c
     }
 

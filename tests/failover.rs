@@ -1,0 +1,190 @@
+//! Broker redundancy with real processes: a standby follows the primary and takes
+//! over when it is killed, stopped or steps down; sessions, queues and quotas survive.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{find, Fed, SEC};
+use serde_json::Value;
+use std::time::{Duration, Instant};
+
+/// Starts a standby and waits until it holds the primary's state.
+fn standby(f: &mut Fed) -> usize {
+    let s = f.broker(&["--standby"]);
+    let v = next_event(f, s, "in_sync");
+    assert!(v["seq"].is_u64(), "{v}");
+    s
+}
+
+/// The standby's next event named `name` (it prints one JSON line per event).
+fn next_event(f: &mut Fed, proc: usize, name: &str) -> Value {
+    let deadline = Instant::now() + 15 * SEC;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let v = f
+            .proc(proc)
+            .json(left)
+            .unwrap_or_else(|| panic!("no {name:?} event from the standby"));
+        if v["event"] == name {
+            return v;
+        }
+    }
+}
+
+fn seqs(lines: &[Value]) -> Vec<u64> {
+    lines
+        .iter()
+        .filter_map(|v| {
+            v.get("payload")
+                .filter(|p| !p.is_null())
+                .and(v["seq"].as_u64())
+        })
+        .collect()
+}
+
+/// The stream of a data session: every update in order, no gap, ended by its duration.
+fn assert_unbroken(lines: &[Value], at_least: usize) {
+    let s = seqs(lines);
+    assert!(
+        s.len() >= at_least,
+        "updates through the takeover: {} {lines:?}",
+        s.len()
+    );
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "a gap in {s:?}");
+    let last = lines.last().unwrap();
+    assert_eq!(last["gaps"], 0, "{last}");
+    assert_eq!(last["reason"], "duration over", "{last}");
+}
+
+#[test]
+fn a_killed_primary_is_replaced_at_once_with_its_sessions_queue_and_quotas() {
+    let mut f = Fed::new("fo-kill");
+    let primary = f.broker(&[]);
+    let s = standby(&mut f);
+    f.system("t1", &["--rate", "20", "--quota", "1"]);
+    f.system("d1", &["--kind", "command", "--quota", "1", "--queue"]);
+    f.system("t2", &["--services", "3"]);
+    f.wait_list(10 * SEC, |l| l.len() == 5);
+    let data = f.spawn(&["user", "request", "t1/s0", "--duration", "12s", "--json"]);
+    assert_eq!(f.proc(data).json(10 * SEC).unwrap()["granted"], true);
+    let holder = f.spawn(&["user", "request", "d1/s0", "--duration", "6s", "--json"]);
+    assert_eq!(f.proc(holder).json(10 * SEC).unwrap()["granted"], true);
+    let waiter = f.spawn(&["user", "request", "d1/s0", "--duration", "1s", "--json"]);
+    f.wait_list(10 * SEC, |l| {
+        find(l, "d1/s0").is_some_and(|s| s["queued"] == 1)
+    });
+    std::thread::sleep(Duration::from_millis(500));
+
+    f.proc(primary).signal(libc::SIGKILL);
+    let took = next_event(&mut f, s, "took_over");
+    assert_eq!(took["why"], "died");
+    assert_eq!(took["replicated"], true);
+    next_event(&mut f, s, "serving");
+    // The list is whole at once, counting what the old primary had granted and queued.
+    let list = f.list();
+    assert_eq!(list.len(), 5, "{list:?}");
+    assert_eq!(find(&list, "t1/s0").unwrap()["in_use"], 1);
+    assert_eq!(find(&list, "d1/s0").unwrap()["in_use"], 1);
+    assert_eq!(find(&list, "d1/s0").unwrap()["queued"], 1);
+    // A new request is granted; the quota of t1/s0 is still taken.
+    let (code, out) = f.run(&["user", "request", "t2/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("\"granted\":true"), "{out}");
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 3, "quota still counted: {out}");
+    // The queued request moves up when the holder's session ends.
+    let v = f
+        .proc(waiter)
+        .json(15 * SEC)
+        .expect("granted after the holder");
+    assert_eq!(v["granted"], true);
+    assert_eq!(v["queue_position"], 1);
+    assert_unbroken(&f.proc(data).all_json(20 * SEC), 200);
+    // Once everything has ended, nothing is counted in use.
+    f.wait_list(10 * SEC, |l| l.iter().all(|s| s["in_use"] == 0));
+}
+
+#[test]
+fn a_stopped_primary_is_taken_over_and_never_acts_again() {
+    let mut f = Fed::new("fo-stop");
+    let primary = f.broker(&[]);
+    let s = standby(&mut f);
+    f.system("t1", &["--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let data = f.spawn(&["user", "request", "t1/s0", "--duration", "8s", "--json"]);
+    assert_eq!(f.proc(data).json(10 * SEC).unwrap()["granted"], true);
+
+    f.proc(primary).signal(libc::SIGSTOP);
+    let took = next_event(&mut f, s, "took_over");
+    assert_eq!(took["why"], "hung");
+    next_event(&mut f, s, "serving");
+    f.proc(primary).signal(libc::SIGCONT);
+    // The old primary is gone: it does not come back to serve the instance.
+    assert!(
+        f.proc(primary).wait(5 * SEC).is_some(),
+        "the old primary still runs"
+    );
+    let list = f.list();
+    assert_eq!(find(&list, "t1/s0").unwrap()["in_use"], 1);
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 0, "{out}");
+    assert_unbroken(&f.proc(data).all_json(20 * SEC), 140);
+}
+
+#[test]
+fn a_killed_standby_leaves_the_primary_unaffected() {
+    let mut f = Fed::new("fo-standby");
+    f.broker(&[]);
+    let s = standby(&mut f);
+    f.system("t1", &["--quota", "2"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    f.proc(s).signal(libc::SIGKILL);
+    assert!(f.proc(s).wait(5 * SEC).is_some());
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 0, "{out}");
+    f.system("t2", &[]);
+    f.wait_list(10 * SEC, |l| l.len() == 2);
+}
+
+#[test]
+fn three_takeovers_in_a_row_keep_one_session_running() {
+    let mut f = Fed::new("fo-three");
+    let mut primary = f.broker(&[]);
+    f.system("t1", &["--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let data = f.spawn(&["user", "request", "t1/s0", "--duration", "20s", "--json"]);
+    assert_eq!(f.proc(data).json(10 * SEC).unwrap()["granted"], true);
+    for round in 1..=3 {
+        // Each new standby catches up with whoever is primary now.
+        let s = standby(&mut f);
+        f.proc(primary).signal(libc::SIGKILL);
+        let took = next_event(&mut f, s, "took_over");
+        assert_eq!(took["replicated"], true, "round {round}");
+        next_event(&mut f, s, "serving");
+        let list = f.list();
+        assert_eq!(find(&list, "t1/s0").unwrap()["in_use"], 1, "round {round}");
+        let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+        assert_eq!(code, 0, "round {round}: {out}");
+        primary = s;
+    }
+    assert_unbroken(&f.proc(data).all_json(30 * SEC), 350);
+}
+
+#[test]
+fn a_primary_stopping_on_purpose_hands_over_to_its_standby() {
+    let mut f = Fed::new("fo-step");
+    let primary = f.broker(&[]);
+    let s = standby(&mut f);
+    f.system("t1", &["--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let data = f.spawn(&["user", "request", "t1/s0", "--duration", "6s", "--json"]);
+    assert_eq!(f.proc(data).json(10 * SEC).unwrap()["granted"], true);
+    f.proc(primary).signal(libc::SIGTERM);
+    assert_eq!(f.proc(primary).wait(5 * SEC), Some(0));
+    let took = next_event(&mut f, s, "took_over");
+    assert_eq!(took["why"], "steppeddown");
+    next_event(&mut f, s, "serving");
+    assert_eq!(find(&f.list(), "t1/s0").unwrap()["in_use"], 1);
+    assert_unbroken(&f.proc(data).all_json(20 * SEC), 100);
+}
