@@ -195,6 +195,15 @@ pub enum BenchCommand {
     /// their ratio to it, completion and duplicate grants under seeded loss, duplication
     /// and reordering, and the same under a flood of hostile datagrams.
     Remote(RemoteBenchArgs),
+    /// Broker redundancy: SIGKILL or SIGSTOP the primary again and again under users
+    /// holding data sessions and users making requests, a standby taking over each time;
+    /// time from the signal to the first new grant, the whole list and the new primary
+    /// serving; lost sessions, sequence gaps, duplicate grants, quota left counted in use
+    /// and files left in /dev/shm.
+    Failover(FailoverArgs),
+    /// (internal) A user of `bench failover`.
+    #[command(hide = true)]
+    FailoverUser(FailoverUserArgs),
     /// (internal) The echo process of `bench remote`'s UDP floor.
     #[command(hide = true)]
     UdpEcho,
@@ -232,6 +241,53 @@ pub struct RemoteBenchArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct FailoverArgs {
+    /// Takeovers to cause.
+    #[arg(long, default_value_t = 100)]
+    pub kills: usize,
+    /// Users holding a data session through the whole run (one process each).
+    #[arg(long, default_value_t = 200)]
+    pub users: usize,
+    /// Users making requests one after another (one process each).
+    #[arg(long, default_value_t = 20)]
+    pub requesters: usize,
+    /// Systems (synthetic, 10 Hz data services).
+    #[arg(long, default_value_t = 20)]
+    pub systems: usize,
+    /// Services per system.
+    #[arg(long, default_value_t = 4)]
+    pub services_per_system: usize,
+    /// Which signal ends the primary: kill (SIGKILL), stop (SIGSTOP) or both, alternating.
+    #[arg(long, default_value = "both")]
+    pub signal: String,
+    /// The standbys' --takeover-deadline.
+    #[arg(long, default_value = "150ms", value_parser = duration)]
+    pub deadline: Duration,
+    /// A requester's pause between two requests.
+    #[arg(long, default_value = "20ms", value_parser = duration)]
+    pub pause: Duration,
+    /// How long the load runs between two rounds.
+    #[arg(long, default_value = "500ms", value_parser = duration)]
+    pub settle: Duration,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct FailoverUserArgs {
+    /// Hold a session of this service until SIGTERM.
+    #[arg(long)]
+    pub hold: Option<String>,
+    /// Request these services (comma-separated) in turn, ending each session at once.
+    #[arg(long)]
+    pub request: Option<String>,
+    /// Pause between two requests.
+    #[arg(long, default_value = "20ms", value_parser = duration)]
+    pub pause: Duration,
 }
 
 #[derive(Args, Debug)]

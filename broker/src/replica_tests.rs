@@ -112,6 +112,7 @@ struct World {
 }
 
 impl World {
+    /// Its user ends session `id` (the system remembers the request as served).
     fn end(&mut self, id: SessionId) -> Option<Held> {
         let h = self.sessions.remove(&id)?;
         self.served
@@ -354,7 +355,8 @@ impl World {
                     .collect();
                 core.user_died(self.now, &user(u));
                 for id in ended {
-                    let h = self.end(id).expect("listed");
+                    // Ended because its user is gone: not a request the system remembers.
+                    let h = self.sessions.remove(&id).expect("listed");
                     core.handle(
                         self.now,
                         ToBroker::SessionEnded {

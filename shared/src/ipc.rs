@@ -857,16 +857,13 @@ pub const REPLICA_PART: usize = 16 * 1024;
 /// padded to 16 bytes so that the record's bytes stay aligned for rkyv.
 const PART_HEADER: usize = 16;
 
+type StreamFactory = iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>;
+type EventFactory = iceoryx2::service::port_factory::event::PortFactory<Ipc>;
+
 fn replica_services(
     node: &Node<Ipc>,
     inst: &Instance,
-) -> Result<
-    (
-        iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
-        iceoryx2::service::port_factory::event::PortFactory<Ipc>,
-    ),
-    TransportError,
-> {
+) -> Result<(StreamFactory, EventFactory), TransportError> {
     let name = inst.replica();
     let stream = node
         .service_builder(&service_name(&name)?)
@@ -899,7 +896,7 @@ fn replica_services(
 pub struct ReplicaWriter {
     publisher: Publisher<Ipc, [u8], ()>,
     notifier: Notifier<Ipc>,
-    stream: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+    stream: StreamFactory,
 }
 
 impl ReplicaWriter {

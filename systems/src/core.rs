@@ -110,9 +110,9 @@ pub struct SystemCore {
     specs: Vec<ServiceSpec>,
     withdrawn: BTreeSet<String>,
     sessions: BTreeMap<SessionId, Session>,
-    /// Requests whose session has ended, most recent last (at most [`SERVED_MEMORY`]): a
-    /// repeated offer for one of them (it crossed a broker takeover) is refused, not
-    /// granted a second time.
+    /// Requests whose session its user ended, most recent last (at most
+    /// [`SERVED_MEMORY`]): a repeated offer for one of them (it crossed a broker
+    /// takeover) is refused, not granted a second time.
     served: VecDeque<(UserId, u64, String)>,
     served_set: HashSet<(UserId, u64, String)>,
     state: BrokerState,
@@ -543,8 +543,11 @@ impl SystemCore {
         let Some(s) = self.sessions.remove(&session) else {
             return;
         };
+        // Only a session its user ended is surely known to the user: one ended for any
+        // other reason may never have reached it (a remote user who never heard of its
+        // grant goes silent), and its retried request deserves a grant.
         let key = (s.user.clone(), s.req, s.service.clone());
-        if self.served_set.insert(key.clone()) {
+        if reason == EndReason::ByUser && self.served_set.insert(key.clone()) {
             self.served.push_back(key);
             if self.served.len() > SERVED_MEMORY {
                 if let Some(old) = self.served.pop_front() {

@@ -187,6 +187,10 @@ pub struct UserCore {
     ending: std::collections::BTreeSet<SessionId>,
     /// A broker welcomed this user at least once (so a standby's copy knows it).
     welcomed: bool,
+    /// Grants of a session this user already held (ignored).
+    regrants: u64,
+    /// Grants for a request this user no longer had out (ended at once).
+    unwanted_grants: u64,
 }
 
 impl UserCore {
@@ -209,6 +213,8 @@ impl UserCore {
             broker_pid: None,
             impersonations: 0,
             welcomed: false,
+            regrants: 0,
+            unwanted_grants: 0,
         }
     }
 
@@ -312,6 +318,16 @@ impl UserCore {
     /// Local frames refused by [`UserCore::sender_allowed`].
     pub fn impersonations(&self) -> u64 {
         self.impersonations
+    }
+
+    /// Grants of a session already held, ignored (a repeated offer's answer).
+    pub fn regrants(&self) -> u64 {
+        self.regrants
+    }
+
+    /// Grants for requests no longer out (given up, or granted twice), ended at once.
+    pub fn unwanted_grants(&self) -> u64 {
+        self.unwanted_grants
     }
 
     /// Frames dropped because they belonged to no session or were out of order.
@@ -648,8 +664,15 @@ impl UserCore {
             .split()
             .map(|(s, _)| s.to_string())
             .unwrap_or_default();
+        if self.sessions.contains_key(&session) {
+            // The same grant again: the system answered a repeated offer (one that
+            // crossed a broker takeover) with the session we already hold.
+            self.regrants += 1;
+            return;
+        }
         let Some(p) = self.pending.remove(&req) else {
             // Granted after we gave up (cancelled, refused on timeout): end it at once.
+            self.unwanted_grants += 1;
             self.out.push_back(UserOutput::ToSystem(
                 system,
                 ToSystem::End {
@@ -790,6 +813,31 @@ mod tests {
 
     fn events(u: &mut UserCore) -> Vec<UserEvent> {
         std::iter::from_fn(|| u.poll_event()).collect()
+    }
+
+    #[test]
+    fn a_repeated_grant_of_a_held_session_is_ignored_not_ended() {
+        let mut u = user();
+        let req = u.request(ServiceId("t1/s0".into()));
+        outs(&mut u);
+        grant(&mut u, req, 7, "t1/s0", ServiceKind::Data, "pose2d");
+        outs(&mut u);
+        // The system answers a repeated offer (it crossed a takeover) with the same grant.
+        grant(&mut u, req, 7, "t1/s0", ServiceKind::Data, "pose2d");
+        assert!(
+            !outs(&mut u)
+                .iter()
+                .any(|o| matches!(o, UserOutput::ToSystem(_, ToSystem::End { .. }))),
+            "the held session must not be ended"
+        );
+        assert_eq!((u.regrants(), u.unwanted_grants()), (1, 0));
+        // A grant of another session for the same request is unwanted and ended.
+        grant(&mut u, req, 8, "t1/s0", ServiceKind::Data, "pose2d");
+        assert!(outs(&mut u).iter().any(|o| matches!(
+            o,
+            UserOutput::ToSystem(_, ToSystem::End { session, .. }) if *session == SessionId(8)
+        )));
+        assert_eq!(u.unwanted_grants(), 1);
     }
 
     fn grant(

@@ -1,5 +1,6 @@
 //! `muster bench ...`: benchmarks that print figures (never assertions).
 
+mod failover;
 pub mod floor;
 mod liveness;
 pub mod procfs;
@@ -19,6 +20,8 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::Remote(a) => remote::run(inst, a),
         BenchCommand::UdpEcho => remote::echo(),
         BenchCommand::Echo => floor::echo(inst),
+        BenchCommand::Failover(a) => failover::run(inst, a),
+        BenchCommand::FailoverUser(a) => failover::user(inst, a),
     }
 }
 
