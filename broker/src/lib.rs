@@ -3,7 +3,6 @@
 //! service list. [`core`] is the pure logic; [`run`] drives it over iceoryx2.
 
 pub mod core;
-pub mod fence;
 pub mod replica;
 pub mod run;
 pub mod udp;

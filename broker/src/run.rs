@@ -5,16 +5,18 @@
 //! deadline (a ping, a ping timeout, an offer timeout).
 
 use crate::core::{Broker, BrokerConfig, Output};
-use crate::fence::{Fence, Holder};
 use crate::replica::{Follower, Leader, Step};
 use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
+use muster_shared::fence::{Fence, Holder};
 use muster_shared::ipc::{
     bell, create_node, BellRinger, Endpoint, ListWriter, Presence, ReplicaReader, ReplicaWriter,
     TransportError,
 };
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToBroker};
-use muster_shared::reactor::{process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe};
+use muster_shared::reactor::{
+    process_alive, process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe,
+};
 use muster_shared::snapshot::{ServiceListSnapshot, MAX_LISTED_SERVICES};
 use muster_shared::types::UserId;
 use muster_shared::udp::access::AccessFile;
@@ -98,7 +100,8 @@ impl BrokerReport {
 /// The broker process's state outside the core.
 struct Shell {
     endpoint: Endpoint,
-    list: ListWriter,
+    /// The list's writer; `None` until a dead broker's writer is cleaned up.
+    list: Option<ListWriter>,
     reactor: Reactor,
     watches: HashMap<usize, Watch>,
     by_addr: HashMap<Address, usize>,
@@ -212,6 +215,13 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
     run_with(inst, cfg, None, false)
 }
 
+/// How long a new primary lets the first interactions go before it cleans up after the
+/// old one (the cleanup locks the services both used, and would delay them).
+const CLEANUP_DELAY: Duration = Duration::from_millis(500);
+
+/// How often a broker waiting for the list's writer to come free checks.
+const LIST_RETRY: Duration = Duration::from_millis(2);
+
 /// How often a primary with standbys tells them it is alive when it has nothing else
 /// to say.
 pub const HEARTBEAT: Duration = Duration::from_millis(20);
@@ -275,15 +285,24 @@ pub fn run_with(
     keep_log: bool,
 ) -> Result<BrokerReport, BrokerError> {
     raise_fds();
-    let node = create_node(&format!("muster-broker-{inst}"), true)?;
-    node.try_cleanup_dead_nodes();
-    let endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
+    // Dead nodes (a crashed broker's above all) are cleaned up beside serving, not
+    // before: the broker's inbox takes a second reader meanwhile, and the list waits.
+    let node = create_node(&format!("muster-broker-{inst}"), false)?;
+    let mut endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
         TransportError::InUse(_) => BrokerError::AlreadyRunning(inst.to_string()),
         other => BrokerError::from(other),
     })?;
+    let pid = std::process::id();
+    if endpoint
+        .reader_pids(&Address::Broker)
+        .iter()
+        .any(|p| *p != pid && process_alive(*p))
+    {
+        return Err(BrokerError::AlreadyRunning(inst.to_string()));
+    }
+    let cleanup = std::thread::spawn(|| muster_shared::ipc::cleanup_dead_nodes(None));
     let fence = open_fence(inst)?;
     let me = claim_fence(&fence);
-    let pid = std::process::id();
     let core = Broker::new(cfg, new_epoch(0), pid);
     serve(
         inst,
@@ -295,6 +314,8 @@ pub fn run_with(
             how: Start::Cold,
             seq: 0,
             standby_since: None,
+            cleanup: Some(cleanup),
+            presence: None,
         },
         udp,
         keep_log,
@@ -320,6 +341,10 @@ struct Primary {
     seq: u64,
     /// When a standby began taking over (it reports when it serves).
     standby_since: Option<Instant>,
+    /// Dead nodes being cleaned up (the list waits for the old broker's writer).
+    cleanup: Option<std::thread::JoinHandle<usize>>,
+    /// The presence notifier, if a standby made it ready beforehand.
+    presence: Option<Presence>,
 }
 
 /// Runs a standby on `inst`: it follows the primary's state and takes over when the
@@ -333,7 +358,7 @@ pub fn run_standby(
     deadline: Duration,
 ) -> Result<BrokerReport, BrokerError> {
     raise_fds();
-    let node = create_node(&format!("muster-standby-{inst}"), true)?;
+    let node = create_node(&format!("muster-standby-{inst}"), false)?;
     let fence = open_fence(inst)?;
     let Some(standby) = follow(inst, &node, &fence, deadline)? else {
         return Ok(BrokerReport {
@@ -344,12 +369,14 @@ pub fn run_standby(
     };
     let Followed {
         follower,
+        presence,
         me,
         old,
         why,
     } = standby;
     let pid = std::process::id();
     let t0 = Instant::now();
+    let old_pid = old.as_ref().map(PidFd::pid);
     if why == Why::SteppedDown {
         // It is on its way out: let it go.
         if let Some(old) = &old {
@@ -372,8 +399,14 @@ pub fn run_standby(
         }
     }
     let killed_us = t0.elapsed().as_micros() as u64;
-    node.try_cleanup_dead_nodes();
-    let cleaned_us = t0.elapsed().as_micros() as u64;
+    // The old primary's ports are cleaned up beside serving: its inbox takes a second
+    // reader meanwhile, and the list waits for the old writer to go.
+    let cleanup = old_pid.map(|pid| {
+        std::thread::spawn(move || {
+            std::thread::sleep(CLEANUP_DELAY);
+            muster_shared::ipc::cleanup_dead_nodes_of(pid)
+        })
+    });
     let endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
         TransportError::InUse(_) => BrokerError::AlreadyRunning(inst.to_string()),
         other => BrokerError::from(other),
@@ -396,7 +429,6 @@ pub fn run_standby(
             "none: starting cold"
         },
         killed_us,
-        cleaned_us,
         inbox_us = t0.elapsed().as_micros() as u64,
         "standby taking over"
     );
@@ -414,6 +446,8 @@ pub fn run_standby(
             how,
             seq,
             standby_since: Some(t0),
+            cleanup,
+            presence: Some(presence),
         },
         udp,
         keep_log,
@@ -444,10 +478,14 @@ pub enum Why {
 
 struct Followed {
     follower: Follower,
+    presence: Presence,
     me: Holder,
     old: Option<PidFd>,
     why: Why,
 }
+
+/// How often a standby connects its presence notifier to listeners that came since.
+const PREPARE_EVERY: Duration = Duration::from_secs(1);
 
 /// How often an unsynchronized standby asks the primary for its state.
 const ASK_EVERY: Duration = Duration::from_millis(100);
@@ -465,6 +503,9 @@ fn follow(
     deadline: Duration,
 ) -> Result<Option<Followed>, BrokerError> {
     let mut reader = ReplicaReader::open(node, inst)?;
+    // Made now, connected to every listener from time to time: the takeover rings at once.
+    let presence = Presence::announce(node, inst)?;
+    let mut prepared: Option<Instant> = None;
     let mut asker = BellRinger::open(node, inst, &Address::Broker)?;
     let mut signals = SignalPipe::install()?;
     let mut reactor = Reactor::new()?;
@@ -526,6 +567,10 @@ fn follow(
         if got > 0 {
             heard = Instant::now();
         }
+        if follower.synced() && prepared.is_none_or(|t| t.elapsed() >= PREPARE_EVERY) {
+            presence.prepare();
+            prepared = Some(Instant::now());
+        }
         if follower.synced() && !logged_sync {
             logged_sync = true;
             tracing::info!(seq = follower.seq(), "standby in sync");
@@ -541,6 +586,7 @@ fn follow(
                 let old = watched.and_then(|(_, p)| p);
                 return Ok(Some(Followed {
                     follower,
+                    presence,
                     me,
                     old,
                     why,
@@ -584,10 +630,25 @@ fn serve(
         how,
         seq,
         standby_since,
+        mut cleanup,
+        presence,
     } = p;
-    let presence = Presence::announce(endpoint.node(), inst)?;
-    let list = ListWriter::open(endpoint.node(), inst)?;
+    let setup = Instant::now();
+    let mut steps: Vec<(&str, u64)> = Vec::new();
+    let mut step = |name| steps.push((name, setup.elapsed().as_micros() as u64));
+    let presence = match presence {
+        Some(p) => p,
+        None => Presence::announce(endpoint.node(), inst)?,
+    };
+    step("presence");
+    let list = ListWriter::try_open(endpoint.node(), inst)?;
+    step("list");
+    if list.is_some() {
+        // Nothing to wait for; the cleanup goes on in the background.
+        cleanup = None;
+    }
     let replica = ReplicaWriter::open(endpoint.node(), inst)?;
+    step("replica");
     let epoch = core.epoch();
     let mut signals = SignalPipe::install()?;
     let mut hangup = SignalPipe::hangup()?;
@@ -628,11 +689,15 @@ fn serve(
     if !fence.holds(me) {
         return Err(fenced(&fence));
     }
+    step("ports");
     shell.flush(&mut core, host_now())?;
+    step("flush");
     presence.ring(match how {
         Start::Cold => bell::BROKER_UP,
         Start::Takeover => bell::TAKEOVER,
     });
+    step("ring");
+    tracing::debug!(?steps, "broker setup, us since the start of serving");
     tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), term = me.term, "broker up");
     if let Some(t0) = standby_since {
         event(serde_json::json!({"event": "serving", "term": me.term,
@@ -647,12 +712,14 @@ fn serve(
             .as_ref()
             .and_then(|d| d.front.poll_timeout())
             .map(|t| t.saturating_duration_since(Instant::now()));
+        let waiting_for_list = cleanup.is_some().then_some(LIST_RETRY);
         let timeout = [
             timeout,
             shell.ring_due(),
             shell.endpoint.sweep(),
             housekeeping,
             shell.replica.heartbeat_due(),
+            waiting_for_list,
         ]
         .into_iter()
         .flatten()
@@ -732,6 +799,27 @@ fn serve(
         }
         if core.poll_timeout().is_some_and(|t| t <= now) {
             core.handle_timeout(now);
+        }
+        if cleanup
+            .as_ref()
+            .is_some_and(std::thread::JoinHandle::is_finished)
+        {
+            let removed = cleanup.take().map(|c| c.join().unwrap_or(0));
+            shell.list = ListWriter::try_open(shell.endpoint.node(), inst)?;
+            match &shell.list {
+                Some(l) => {
+                    l.publish(&shell.snapshot)?;
+                    tracing::info!(?removed, "dead nodes cleaned up: the list is written again");
+                }
+                None => {
+                    // Another cleanup (ours after a peer died, or another process's)
+                    // had that node in hand: clean again until the writer is free.
+                    tracing::debug!("the list's writer is still held: cleaning up again");
+                    cleanup = Some(std::thread::spawn(|| {
+                        muster_shared::ipc::cleanup_dead_nodes(None)
+                    }));
+                }
+            }
         }
         shell.flush(&mut core, host_now())?;
         shell.ring_watchers(&core);
@@ -883,9 +971,11 @@ impl Shell {
             for (slot, v) in self.snapshot.entries.iter_mut().zip(views.iter()) {
                 *slot = v.to_entry();
             }
-            let t = Instant::now();
-            self.list.publish(&self.snapshot)?;
-            self.handling.record("list_write", t, t.elapsed());
+            if let Some(list) = &self.list {
+                let t = Instant::now();
+                list.publish(&self.snapshot)?;
+                self.handling.record("list_write", t, t.elapsed());
+            }
             if let Some(d) = self.udp.as_mut() {
                 d.front
                     .list_changed(self.snapshot.epoch, generation, &views);

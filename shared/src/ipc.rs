@@ -121,6 +121,10 @@ fn service_name(name: &str) -> Result<ServiceName, TransportError> {
 pub struct InboxLimits {
     /// How many peers may write to it.
     pub max_publishers: usize,
+    /// How many processes may read it at once: one, but two for the broker's, so that a
+    /// new broker can take over before the old one's ports are cleaned up (the fence
+    /// says which of the two is the broker).
+    pub readers: usize,
     /// Frames queued per writing peer before further frames are dropped.
     pub buffer: usize,
 }
@@ -131,14 +135,17 @@ impl InboxLimits {
         match addr {
             Address::Broker => InboxLimits {
                 max_publishers: MAX_PARTICIPANTS,
+                readers: 2,
                 buffer: 32,
             },
             Address::System(_) => InboxLimits {
                 max_publishers: MAX_PARTICIPANTS,
+                readers: 1,
                 buffer: 32,
             },
             Address::User(_) => InboxLimits {
                 max_publishers: MAX_USER_PEERS,
+                readers: 1,
                 buffer: 128,
             },
         }
@@ -186,6 +193,35 @@ pub fn create_node(name: &str, cleanup_dead_nodes: bool) -> Result<Node<Ipc>, Tr
         .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<Ipc>()
         .map_err(|e| TransportError::Node(format!("{e:?}")))
+}
+
+/// Removes what the dead process `pid` left in shared memory (its nodes' ports), and
+/// nothing else: unlike a full dead-node cleanup it does not pay for other dead nodes.
+/// Returns how many nodes were removed.
+pub fn cleanup_dead_nodes_of(pid: u32) -> usize {
+    cleanup_dead_nodes(Some(pid))
+}
+
+/// Removes what dead processes left in shared memory: those of process `only`, or all.
+/// Returns how many nodes were removed.
+pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
+    use iceoryx2::node::NodeView;
+    let mut dead = Vec::new();
+    let _ = Node::<Ipc>::list(&config(true), |state| {
+        if let NodeState::Dead(view) = state {
+            if only.is_none_or(|pid| node_pid(view.id()) == Some(pid)) {
+                dead.push(view);
+            }
+        }
+        CallbackProgression::Continue
+    });
+    let n = dead.len();
+    for view in dead {
+        if let Err(e) = view.try_remove_stale_resources() {
+            tracing::warn!("cannot remove the resources of a dead process: {e:?}");
+        }
+    }
+    n
 }
 
 /// The pid of the process that created an iceoryx2 node, if it can be told.
@@ -249,7 +285,7 @@ impl Endpoint {
             .service_builder(&service_name(&inbox_name)?)
             .publish_subscribe::<[u8]>()
             .max_publishers(limits.max_publishers)
-            .max_subscribers(1)
+            .max_subscribers(limits.readers)
             .max_nodes(limits.max_publishers + 2)
             .subscriber_max_buffer_size(limits.buffer)
             .subscriber_max_borrowed_samples(1)
@@ -279,7 +315,7 @@ impl Endpoint {
             .service_builder(&service_name(&bell_name)?)
             .event()
             .max_notifiers(limits.max_publishers)
-            .max_listeners(1)
+            .max_listeners(limits.readers)
             .max_nodes(limits.max_publishers + 2)
             .event_id_max_value(bell::MAX)
             .open_or_create()
@@ -382,28 +418,52 @@ impl Endpoint {
     /// nobody does or it cannot be told. A process that claims to be `of` (a broker
     /// announcing itself, a system granting a session) is believed only if it is this
     /// process: an inbox has one reader, so a running broker or system cannot be posed as.
+    /// The broker's inbox may have two readers for a moment (a new broker took over
+    /// before the old one's ports were cleaned up): its owner is the one that holds the
+    /// instance's fence.
     pub fn owner_pid(&mut self, of: &Address) -> Option<u32> {
-        fn reader_pid(
+        let readers = self.reader_pids(of);
+        match readers.as_slice() {
+            [] => None,
+            [one] => Some(*one),
+            many => {
+                let holder = crate::fence::Fence::open_existing(&self.inst)
+                    .ok()?
+                    .holder()
+                    .pid;
+                many.contains(&holder).then_some(holder)
+            }
+        }
+    }
+
+    /// The pids of the processes reading `of`'s inbox.
+    pub fn reader_pids(&mut self, of: &Address) -> Vec<u32> {
+        fn pids(
             svc: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
-        ) -> Option<u32> {
-            let mut pid = None;
+        ) -> Vec<u32> {
+            let mut out = Vec::new();
             svc.dynamic_config().list_subscribers(|d| {
-                pid = node_pid(&d.node_id);
-                iceoryx2::prelude::CallbackProgression::Stop
+                out.extend(node_pid(&d.node_id));
+                iceoryx2::prelude::CallbackProgression::Continue
             });
-            pid
+            out
         }
         if let Some(peer) = self.peers.get(of) {
-            return reader_pid(&peer.inbox);
+            return pids(&peer.inbox);
         }
-        let name = service_name(&self.inst.inbox(of)).ok()?;
-        let svc = self
-            .node
-            .service_builder(&name)
-            .publish_subscribe::<[u8]>()
-            .open()
-            .ok()?;
-        reader_pid(&svc)
+        if *of == self.me {
+            return pids(&self.inbox_svc);
+        }
+        let Some(svc) = service_name(&self.inst.inbox(of)).ok().and_then(|name| {
+            self.node
+                .service_builder(&name)
+                .publish_subscribe::<[u8]>()
+                .open()
+                .ok()
+        }) else {
+            return Vec::new();
+        };
+        pids(&svc)
     }
 
     /// Receive errors so far (see [`Endpoint::recv`]).
@@ -742,6 +802,17 @@ impl Presence {
         })
     }
 
+    /// Connects the notifier to every listener now, so that a later ring does not pay
+    /// for it (a standby, ready to announce its takeover at once).
+    pub fn prepare(&self) {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        if let Some(n) = &self.notifier {
+            if let Err(e) = n.update_connections() {
+                tracing::debug!("presence connections: {e:?}");
+            }
+        }
+    }
+
     /// Rings every listener with `id` (broker only).
     pub fn ring(&self, id: usize) {
         if let Some(n) = &self.notifier {
@@ -802,6 +873,33 @@ impl ListWriter {
         Ok(ListWriter { writer })
     }
 
+    /// [`ListWriter::open`] without cleaning up: `None` while a dead broker's writer
+    /// still holds the list (its cleanup is under way elsewhere).
+    pub fn try_open(node: &Node<Ipc>, inst: &Instance) -> Result<Option<Self>, TransportError> {
+        let name = inst.service_list();
+        let sname = service_name(&name)?;
+        let created = node
+            .service_builder(&sname)
+            .blackboard_creator::<u64>()
+            .max_readers(MAX_PARTICIPANTS)
+            .max_nodes(MAX_PARTICIPANTS + 4)
+            .add::<ServiceListSnapshot>(0, ServiceListSnapshot::empty())
+            .create();
+        let svc = match created {
+            Ok(s) => s,
+            Err(_) => node
+                .service_builder(&sname)
+                .blackboard_opener::<u64>()
+                .open()
+                .map_err(|e| svc_err(&name, e))?,
+        };
+        Ok(svc
+            .writer_builder()
+            .create()
+            .ok()
+            .map(|writer| ListWriter { writer }))
+    }
+
     /// Publishes a new snapshot; readers see it on their next read.
     pub fn publish(&self, snapshot: &ServiceListSnapshot) -> Result<(), TransportError> {
         let entry = self
@@ -845,14 +943,14 @@ impl ListReader {
 }
 
 /// Most standbys following one instance's primary.
-pub const MAX_STANDBYS: usize = 8;
+pub const MAX_STANDBYS: usize = 4;
 /// Parts a standby's queue holds; one that falls further behind loses records and asks
 /// for a new image.
-const REPLICA_BUFFER: usize = 512;
+const REPLICA_BUFFER: usize = 256;
 /// Largest part of a record on the stream: larger records (a whole state, a large
 /// registration) travel in several. Samples are of this fixed size, so the stream's
-/// shared memory is bounded (parts × buffer × standbys).
-pub const REPLICA_PART: usize = 16 * 1024;
+/// shared memory is bounded (parts × buffer × standbys: 8 MiB).
+pub const REPLICA_PART: usize = 8 * 1024;
 /// Each part starts with its record's number of parts and its own index (u32 each),
 /// padded to 16 bytes so that the record's bytes stay aligned for rkyv.
 const PART_HEADER: usize = 16;

@@ -2,6 +2,7 @@
 //! the service list snapshot layout, instance naming, and the iceoryx2 transport.
 
 pub mod clock;
+pub mod fence;
 pub mod ipc;
 pub mod names;
 pub mod protocol;

@@ -103,6 +103,23 @@ pub fn process_exists(pid: u32) -> bool {
     }
 }
 
+/// Whether process `pid` runs (or is stopped): it exists and has not exited (a zombie,
+/// dead but not yet reaped by its parent, does not count).
+pub fn process_alive(pid: u32) -> bool {
+    if !process_exists(pid) {
+        return false;
+    }
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        // The state follows the command name, which is in parentheses and may hold any
+        // character: read it after the last ')'.
+        Ok(stat) => stat
+            .rsplit_once(')')
+            .and_then(|(_, rest)| rest.trim_start().chars().next())
+            .is_none_or(|state| state != 'Z' && state != 'X'),
+        Err(_) => true,
+    }
+}
+
 /// SIGINT/SIGTERM/SIGHUP delivered through a pipe, so the reactor wakes on them.
 pub struct SignalPipe {
     read: UnixStream,

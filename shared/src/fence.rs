@@ -46,12 +46,8 @@ const SIZE: usize = 4096;
 
 impl Fence {
     /// Opens (creating if needed) the fence of `inst`.
-    pub fn open(inst: &muster_shared::Instance) -> std::io::Result<Self> {
-        let path = PathBuf::from(format!(
-            "{}{}.broker-fence",
-            muster_shared::ipc::iox2_root(),
-            inst
-        ));
+    pub fn open(inst: &crate::Instance) -> std::io::Result<Self> {
+        let path = Self::path(inst);
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir)?;
         }
@@ -118,6 +114,22 @@ impl Fence {
         self.holder() == me
     }
 
+    /// Opens the fence of `inst` if a broker ever made one (for peers, which only read it).
+    pub fn open_existing(inst: &crate::Instance) -> std::io::Result<Self> {
+        let path = Self::path(inst);
+        if !path.exists() {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                "no broker has run on this instance",
+            ));
+        }
+        Self::open(inst)
+    }
+
+    fn path(inst: &crate::Instance) -> PathBuf {
+        PathBuf::from(format!("{}{}.broker-fence", crate::ipc::iox2_root(), inst))
+    }
+
     /// Removes the file (the last broker of the instance stopping on purpose).
     pub fn remove(&self) {
         let _ = std::fs::remove_file(&self.path);
@@ -138,7 +150,7 @@ mod tests {
 
     #[test]
     fn one_of_two_claims_wins_and_the_loser_sees_it() {
-        let inst = muster_shared::Instance::new(&format!("fence-{}", std::process::id())).unwrap();
+        let inst = crate::Instance::new(&format!("fence-{}", std::process::id())).unwrap();
         let a = Fence::open(&inst).unwrap();
         let b = Fence::open(&inst).unwrap();
         let seen = a.holder();
