@@ -217,7 +217,7 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
 
 /// How long a new primary lets the first interactions go before it cleans up after the
 /// old one (the cleanup locks the services both used, and would delay them).
-const CLEANUP_DELAY: Duration = Duration::from_millis(500);
+const CLEANUP_DELAY: Duration = Duration::from_millis(200);
 
 /// How often a broker waiting for the list's writer to come free checks.
 const LIST_RETRY: Duration = Duration::from_millis(2);
@@ -343,8 +343,8 @@ struct Primary {
     standby_since: Option<Instant>,
     /// Dead nodes being cleaned up (the list waits for the old broker's writer).
     cleanup: Option<std::thread::JoinHandle<usize>>,
-    /// The presence notifier, if a standby made it ready beforehand.
-    presence: Option<Presence>,
+    /// The presence ringer, if a standby made it ready beforehand.
+    presence: Option<Ringer>,
 }
 
 /// Runs a standby on `inst`: it follows the primary's state and takes over when the
@@ -368,6 +368,7 @@ pub fn run_standby(
         });
     };
     let Followed {
+        noticed_ns,
         follower,
         presence,
         me,
@@ -387,16 +388,14 @@ pub fn run_standby(
         }
     }
     if let Some(old) = old.filter(|o| !o.exited()) {
-        // A hung primary still owns the broker's inbox and the list (iceoryx2 gives
-        // each to one process): having taken its term, end it so they come free. Were
-        // it to wake first, the fence stops it before it acts.
+        // A hung primary still holds the list's writer (iceoryx2 gives it to one
+        // process) and its share of the broker's inbox: having taken its term, end it so
+        // they come free. Were it to wake first, the fence stops it before it acts. Its
+        // exit (slow for a process with hundreds of mappings) is not waited for: the
+        // inbox takes a second reader, and the list waits for the cleanup.
         tracing::warn!(pid = old.pid(), "ending the hung primary");
         // SAFETY: kill(2) on a pid we hold a pidfd of (it cannot have been reused).
         unsafe { libc::kill(old.pid() as i32, libc::SIGKILL) };
-        let until = Instant::now() + Duration::from_secs(2);
-        while !old.exited() && Instant::now() < until {
-            std::thread::sleep(Duration::from_micros(200));
-        }
     }
     let killed_us = t0.elapsed().as_micros() as u64;
     // The old primary's ports are cleaned up beside serving: its inbox takes a second
@@ -435,6 +434,7 @@ pub fn run_standby(
     event(serde_json::json!({
         "event": "took_over", "why": format!("{why:?}").to_lowercase(), "term": me.term,
         "replicated": how == Start::Takeover, "inbox_us": t0.elapsed().as_micros() as u64,
+        "noticed_ns": noticed_ns,
     }));
     serve(
         inst,
@@ -477,11 +477,81 @@ pub enum Why {
 }
 
 struct Followed {
+    /// When the takeover was decided (host monotonic clock, ns).
+    noticed_ns: u64,
     follower: Follower,
-    presence: Presence,
+    presence: Ringer,
     me: Holder,
     old: Option<PidFd>,
     why: Why,
+}
+
+/// Rings the presence event from a thread of its own: waking every process of the
+/// instance takes long on a loaded host (each wakes up in turn), and the broker serves
+/// meanwhile.
+struct Ringer {
+    tx: Option<std::sync::mpsc::Sender<usize>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+/// Asks the ringer to connect to every listener, without ringing.
+const PREPARE: usize = usize::MAX;
+
+impl Ringer {
+    fn spawn(inst: &Instance) -> Result<Self, BrokerError> {
+        let (tx, rx) = std::sync::mpsc::channel::<usize>();
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel::<Result<(), TransportError>>();
+        let inst = inst.clone();
+        let thread = std::thread::spawn(move || {
+            let made = create_node(&format!("muster-ringer-{inst}"), false)
+                .and_then(|node| Presence::announce(&node, &inst).map(|p| (node, p)));
+            let (_node, presence) = match made {
+                Ok(v) => {
+                    let _ = ready_tx.send(Ok(()));
+                    v
+                }
+                Err(e) => {
+                    let _ = ready_tx.send(Err(e));
+                    return;
+                }
+            };
+            while let Ok(id) = rx.recv() {
+                if id == PREPARE {
+                    presence.prepare();
+                } else {
+                    presence.ring(id);
+                }
+            }
+        });
+        match ready_rx.recv() {
+            Ok(Ok(())) => Ok(Ringer {
+                tx: Some(tx),
+                thread: Some(thread),
+            }),
+            Ok(Err(e)) => Err(e.into()),
+            Err(_) => Err(BrokerError::Os(std::io::Error::other(
+                "the presence thread died",
+            ))),
+        }
+    }
+
+    fn ring(&self, id: usize) {
+        if let Some(tx) = &self.tx {
+            let _ = tx.send(id);
+        }
+    }
+
+    fn prepare(&self) {
+        self.ring(PREPARE);
+    }
+
+    /// Waits until every ring asked for has gone out.
+    fn finish(mut self) {
+        self.tx = None;
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
 }
 
 /// How often a standby connects its presence notifier to listeners that came since.
@@ -504,7 +574,7 @@ fn follow(
 ) -> Result<Option<Followed>, BrokerError> {
     let mut reader = ReplicaReader::open(node, inst)?;
     // Made now, connected to every listener from time to time: the takeover rings at once.
-    let presence = Presence::announce(node, inst)?;
+    let presence = Ringer::spawn(inst)?;
     let mut prepared: Option<Instant> = None;
     let mut asker = BellRinger::open(node, inst, &Address::Broker)?;
     let mut signals = SignalPipe::install()?;
@@ -585,6 +655,7 @@ fn follow(
             if let Some(me) = fence.claim(holder, std::process::id()) {
                 let old = watched.and_then(|(_, p)| p);
                 return Ok(Some(Followed {
+                    noticed_ns: muster_shared::protocol::monotonic_ns(),
                     follower,
                     presence,
                     me,
@@ -638,7 +709,7 @@ fn serve(
     let mut step = |name| steps.push((name, setup.elapsed().as_micros() as u64));
     let presence = match presence {
         Some(p) => p,
-        None => Presence::announce(endpoint.node(), inst)?,
+        None => Ringer::spawn(inst)?,
     };
     step("presence");
     let list = ListWriter::try_open(endpoint.node(), inst)?;
@@ -701,7 +772,8 @@ fn serve(
     tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), term = me.term, "broker up");
     if let Some(t0) = standby_since {
         event(serde_json::json!({"event": "serving", "term": me.term,
-                                 "ready_us": t0.elapsed().as_micros() as u64}));
+                                 "ready_us": t0.elapsed().as_micros() as u64,
+                                 "at_ns": muster_shared::protocol::monotonic_ns()}));
     }
 
     loop {
@@ -762,6 +834,7 @@ fn serve(
                                 fence.remove();
                             }
                         }
+                        presence.finish();
                         return Ok(BrokerReport {
                             stats: core.stats().clone(),
                             handling: shell.handling,

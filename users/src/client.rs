@@ -64,6 +64,10 @@ const TOKEN_SIGNAL: usize = 2;
 const TOKEN_BROKER: usize = 3;
 const TOKEN_EXTRA: usize = 4;
 const TOKEN_UDP: usize = 5;
+/// How often a user with requests out looks for a standby's takeover after its broker
+/// died, and for how long.
+const SUCCESSOR_POLL: Duration = Duration::from_millis(2);
+const SUCCESSOR_WAIT: Duration = Duration::from_secs(5);
 /// How long a remote list request may take, retries included.
 const LIST_WAIT: Duration = Duration::from_secs(5);
 const FIRST_SYSTEM_TOKEN: usize = 16;
@@ -75,6 +79,9 @@ struct Local {
     presence: Presence,
     list: Option<ListReader>,
     broker: Option<PidFd>,
+    /// The dead broker's pid, and since when a successor is looked for.
+    successor: Option<(u32, Instant)>,
+    fence: Option<muster_shared::fence::Fence>,
     systems: HashMap<usize, (String, PidFd)>,
     system_tokens: HashMap<String, usize>,
     next_token: usize,
@@ -147,6 +154,8 @@ impl UserClient {
                 presence,
                 list: None,
                 broker: None,
+                successor: None,
+                fence: None,
                 systems: HashMap::new(),
                 system_tokens: HashMap::new(),
                 next_token: FIRST_SYSTEM_TOKEN,
@@ -368,6 +377,9 @@ impl UserClient {
                 if let Some(linger) = l.endpoint.sweep() {
                     wait = wait.min(linger);
                 }
+                if l.successor.is_some() {
+                    wait = wait.min(SUCCESSOR_POLL);
+                }
             }
             Transport::Remote(r) => {
                 wait = wait.min(r.next_deadline().saturating_duration_since(now))
@@ -378,8 +390,9 @@ impl UserClient {
         for t in tokens {
             self.on_token(t, &mut extra)?;
         }
-        if let Transport::Remote(r) = &mut self.transport {
-            r.tick(&mut self.core);
+        match &mut self.transport {
+            Transport::Remote(r) => r.tick(&mut self.core),
+            Transport::Local(l) => l.look_for_successor(&mut self.core, &self.reactor),
         }
         self.pump()?;
         Ok(extra)
@@ -429,20 +442,21 @@ impl UserClient {
                     // owns the broker's inbox) without a hello, repeating what it may
                     // have missed.
                     if let Some(pid) = l.endpoint.owner_pid(&Address::Broker) {
-                        if let Some(p) = l.broker.take() {
-                            self.reactor.remove(p.raw());
-                        }
-                        let epoch = l.broker_epoch();
-                        self.core.adopt(epoch, pid);
+                        l.adopt(&mut self.core, &self.reactor, pid);
                     }
                 }
             }
             TOKEN_BROKER => {
-                if l.broker.as_ref().is_some_and(PidFd::exited) {
+                if let Some(dead) = l.broker.as_ref().filter(|p| p.exited()).map(PidFd::pid) {
                     tracing::warn!(
                         "broker died; sessions go on, new requests wait for a new broker"
                     );
                     l.lose_broker(&mut self.core, &self.reactor, true);
+                    // With requests out, watch for a standby's takeover rather than wait
+                    // for its ring (which reaches every process on the host, in turn).
+                    if self.core.awaits_broker() {
+                        l.successor = Some((dead, Instant::now()));
+                    }
                 }
             }
             t => {
@@ -577,6 +591,40 @@ impl Local {
             }
         }
         None
+    }
+
+    /// Adopts broker `pid`, a standby that took over (unless already adopted).
+    fn adopt(&mut self, core: &mut UserCore, reactor: &Reactor, pid: u32) {
+        self.successor = None;
+        if core.broker_pid() == Some(pid) {
+            return;
+        }
+        if let Some(p) = self.broker.take() {
+            reactor.remove(p.raw());
+        }
+        let epoch = self.broker_epoch();
+        core.adopt(epoch, pid);
+    }
+
+    /// While waiting for a successor: has a new broker taken the fence and the inbox?
+    fn look_for_successor(&mut self, core: &mut UserCore, reactor: &Reactor) {
+        let Some((dead, since)) = self.successor else {
+            return;
+        };
+        if since.elapsed() > SUCCESSOR_WAIT {
+            self.successor = None;
+            return;
+        }
+        if self.fence.is_none() {
+            self.fence = muster_shared::fence::Fence::open_existing(&self.inst).ok();
+        }
+        let Some(holder) = self.fence.as_ref().map(|f| f.holder().pid) else {
+            return;
+        };
+        if holder != dead && self.endpoint.owner_pid(&Address::Broker) == Some(holder) {
+            tracing::info!(pid = holder, "a standby took over: adopting it");
+            self.adopt(core, reactor, holder);
+        }
     }
 
     /// The running broker's epoch, as its list says (0 if it cannot be read).

@@ -347,6 +347,17 @@ impl UserCore {
         self.resend_pending();
     }
 
+    /// Whether this user has something the broker must hear again after a takeover
+    /// (requests out, or links).
+    pub fn awaits_broker(&self) -> bool {
+        !self.pending.is_empty() || !self.links.is_empty()
+    }
+
+    /// The broker this user follows, if any.
+    pub fn broker_pid(&self) -> Option<u32> {
+        self.broker_pid
+    }
+
     /// A standby took over the broker (run `epoch`, process `pid`) with this user's
     /// state: no hello is needed, but what the old broker may not have read is repeated
     /// (pending requests and links; the broker ignores what it already has). A user the

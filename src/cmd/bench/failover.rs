@@ -86,6 +86,7 @@ struct Rounds {
     to_grant: Histogram<u64>,
     to_list: Histogram<u64>,
     to_serving: Histogram<u64>,
+    to_notice: Histogram<u64>,
     cold: usize,
 }
 
@@ -96,6 +97,7 @@ impl Rounds {
             to_grant: Histogram::new(3)?,
             to_list: Histogram::new(3)?,
             to_serving: Histogram::new(3)?,
+            to_notice: Histogram::new(3)?,
             cold: 0,
         })
     }
@@ -266,11 +268,19 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
             let Ok(l) = rx.recv_timeout(Duration::from_millis(2)) else {
                 continue;
             };
-            if l.who == standby && l.v["event"] == "took_over" && l.v["replicated"] == false {
-                rounds[ri].cold += 1;
+            if l.who == standby && l.v["event"] == "took_over" {
+                if l.v["replicated"] == false {
+                    rounds[ri].cold += 1;
+                }
+                if let Some(t) = l.v["noticed_ns"].as_u64() {
+                    rounds[ri]
+                        .to_notice
+                        .record((t.saturating_sub(t_kill) / 1000).max(1))?;
+                }
             }
             if l.who == standby && l.v["event"] == "serving" {
-                to_serving = Some(l.at_ns.saturating_sub(t_kill));
+                let at = l.v["at_ns"].as_u64().unwrap_or(l.at_ns);
+                to_serving = Some(at.saturating_sub(t_kill));
             }
             // A new interaction: a request made after the signal, granted.
             if l.v["granted"] == true && l.v["asked_ns"].as_u64().is_some_and(|a| a > t_kill) {
@@ -358,6 +368,7 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
                 (
                     r.signal.to_string(),
                     json!({"rounds": r.to_grant.len(), "to_first_grant": summary(&r.to_grant),
+                           "to_standby_notices": summary(&r.to_notice),
                            "to_whole_list": summary(&r.to_list), "to_serving": summary(&r.to_serving),
                            "cold_takeovers": r.cold}),
                 )
@@ -383,18 +394,14 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
             "from the signal (us)", "count", "p50", "p90", "p99", "max"
         );
         for r in &rounds {
-            println!(
-                "{}",
-                row(&format!("{}: first new grant", r.signal), &r.to_grant)
-            );
-            println!(
-                "{}",
-                row(&format!("{}: list rewritten", r.signal), &r.to_list)
-            );
-            println!(
-                "{}",
-                row(&format!("{}: new primary serves", r.signal), &r.to_serving)
-            );
+            for (what, h) in [
+                ("standby notices", &r.to_notice),
+                ("new primary serves", &r.to_serving),
+                ("first new grant", &r.to_grant),
+                ("list rewritten", &r.to_list),
+            ] {
+                println!("{}", row(&format!("{}: {what}", r.signal), h));
+            }
         }
         println!(
             "lost sessions {lost}, sequence gaps {gaps} in {updates} updates, duplicate grants {unwanted} \
