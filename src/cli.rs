@@ -595,6 +595,10 @@ pub struct UpArgs {
     /// Serve local users only.
     #[arg(long)]
     pub no_udp: bool,
+    /// Run no standby broker (by default one follows the broker and takes over if it
+    /// dies or hangs; the run says when).
+    #[arg(long)]
+    pub no_standby: bool,
     /// Today's synthetic demo instead of the paper's robots on the simulator.
     #[arg(long)]
     pub synthetic: bool,

@@ -396,6 +396,13 @@ pub fn run_standby(
         tracing::warn!(pid = old.pid(), "ending the hung primary");
         // SAFETY: kill(2) on a pid we hold a pidfd of (it cannot have been reused).
         unsafe { libc::kill(old.pid() as i32, libc::SIGKILL) };
+        if udp.is_some() {
+            // Its UDP socket is ours to bind only once it has exited.
+            let until = Instant::now() + Duration::from_secs(5);
+            while !old.exited() && Instant::now() < until {
+                std::thread::sleep(Duration::from_micros(500));
+            }
+        }
     }
     let killed_us = t0.elapsed().as_micros() as u64;
     // The old primary's ports are cleaned up beside serving: its inbox takes a second
@@ -652,6 +659,12 @@ fn follow(
             why = Some(Why::SteppedDown);
         }
         if let Some(why) = why {
+            // Told to stop at the same moment: stop, do not take over (the signal would
+            // be lost to the primary this standby would become).
+            if signals.drain() {
+                tracing::info!("signal received: standby stopping");
+                return Ok(None);
+            }
             if let Some(me) = fence.claim(holder, std::process::id()) {
                 let old = watched.and_then(|(_, p)| p);
                 return Ok(Some(Followed {

@@ -27,6 +27,7 @@ use muster_shared::types::{Refusal, ServiceId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
 use muster_shared::udp::msgs::{chunk_list, from_bytes, seal_channel, Down, Hs3, Up};
+use muster_shared::udp::wire::RESET_TOKEN;
 use muster_shared::udp::wire::{Datagram, WireError};
 use muster_shared::udp::{DropCounters, PathProbe, Transmit};
 use rand::rngs::StdRng;
@@ -116,9 +117,14 @@ pub struct UdpStats {
     pub refused_here: u64,
     /// Access file reloads.
     pub reloads: u64,
+    /// Stateless resets sent (channel datagrams of connections this broker never had).
+    pub resets_sent: u64,
     /// Dropped datagrams by reason.
     pub drops: DropCounters,
 }
+
+/// Most stateless resets a front sends a second (and its burst).
+const RESETS_PER_SEC: f64 = 500.0;
 
 struct Bucket {
     tokens: f64,
@@ -232,6 +238,7 @@ pub struct UdpFront {
     by_user: HashMap<UserId, u64>,
     sources: HashMap<IpAddr, Bucket>,
     retry_bucket: Bucket,
+    reset_budget: Bucket,
     views: Vec<ServiceView>,
     epoch: u64,
     generation: u64,
@@ -287,6 +294,7 @@ impl UdpFront {
             by_user: HashMap::new(),
             sources: HashMap::new(),
             retry_bucket,
+            reset_budget: Bucket::new(now, RESETS_PER_SEC),
             views: Vec::new(),
             epoch,
             generation: 0,
@@ -568,11 +576,14 @@ impl UdpFront {
         if hs.read_message(noise, &mut scratch).is_err() {
             return self.stats.drops.drop("bad_handshake", &from);
         }
+        let conn: u64 = self.rng.random();
+        // The connection's stateless reset token rides in Noise message 2 (encrypted
+        // to the user, authenticated): any broker with this key can later prove it
+        // does not know the connection.
         let mut msg2 = [0u8; 1024];
-        let Ok(n) = hs.write_message(&[], &mut msg2) else {
+        let Ok(n) = hs.write_message(&self.key.reset_token(conn), &mut msg2) else {
             return self.stats.drops.drop("bad_handshake", &from);
         };
-        let conn: u64 = self.rng.random();
         let Ok(reply) = (Datagram::HsReply {
             client,
             conn,
@@ -668,7 +679,24 @@ impl UdpFront {
             if self.closed.contains_key(&id) {
                 return self.stats.drops.count("after_close");
             }
-            return self.stats.drops.drop("unknown_conn", &from);
+            self.stats.drops.drop("unknown_conn", &from);
+            // A connection of a broker before us (a standby took over, or we restarted
+            // with the same key): tell the user at once, with the token only the key's
+            // holder can compute (RFC 9000 §10.3). Smaller than what came, and rate
+            // limited, so it amplifies nothing.
+            if sealed.len() >= RESET_TOKEN
+                && self.reset_budget.take(t, (RESETS_PER_SEC, RESETS_PER_SEC))
+            {
+                let reset = Datagram::Reset {
+                    conn: id,
+                    token: self.key.reset_token(id),
+                };
+                if let Ok(bytes) = reset.encode() {
+                    self.stats.resets_sent += 1;
+                    self.send_raw(&bytes, from);
+                }
+            }
+            return;
         };
         // Authenticate first: forged datagrams carrying a live connection id (it is on
         // the wire) must not spend the real user's rate.

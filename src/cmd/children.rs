@@ -61,6 +61,33 @@ impl Children {
         }
     }
 
+    /// SIGTERMs the child labelled `label` and waits for it (up to 5 s, then SIGKILL).
+    pub fn stop_one(&mut self, label: &str) {
+        let Some(i) = self.0.iter().position(|(l, _)| l == label) else {
+            return;
+        };
+        let (label, mut c) = self.0.remove(i);
+        if let Ok(pid) = libc::pid_t::try_from(c.id()) {
+            // SAFETY: signalling a child we spawned and have not reaped.
+            unsafe { libc::kill(pid, libc::SIGTERM) };
+        }
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            match c.try_wait() {
+                Ok(Some(_)) => return,
+                Ok(None) if Instant::now() < deadline => {
+                    std::thread::sleep(Duration::from_millis(5))
+                }
+                _ => {
+                    eprintln!("muster: {label} did not stop; killing it");
+                    let _ = c.kill();
+                    let _ = c.wait();
+                    return;
+                }
+            }
+        }
+    }
+
     /// Process ids, in start order.
     pub fn pids(&self) -> impl Iterator<Item = u32> + '_ {
         self.0.iter().map(|(_, c)| c.id())

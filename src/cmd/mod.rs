@@ -10,6 +10,7 @@ mod keygen;
 mod paper;
 mod scalability;
 mod sim;
+mod standbys;
 mod stress;
 mod stress_plot;
 mod system;

@@ -7,6 +7,7 @@
 //! Runs until Ctrl-C (or `--duration`), then stops its children cleanly.
 
 use super::children::Children;
+use super::standbys::Standbys;
 use crate::cli::UpArgs;
 use muster_shared::types::ServiceId;
 use muster_shared::udp::access::access_line;
@@ -21,6 +22,8 @@ use std::time::{Duration, Instant};
 /// remote users of this run.
 pub(super) struct Guest {
     pub(super) dir: std::path::PathBuf,
+    /// The broker's key file: the standby taking over must present the same key.
+    pub(super) broker_key: std::path::PathBuf,
     key: KeyPair,
     pub(super) addr: SocketAddr,
 }
@@ -41,11 +44,32 @@ impl Guest {
         std::fs::create_dir_all(&dir)?;
         let key = KeyPair::generate()?;
         key.write("guest", &dir.join("guest.key"))?;
+        let broker_key = dir.join("broker.key");
+        KeyPair::generate()?.write("broker", &broker_key)?;
         std::fs::write(
             dir.join("access"),
             access_line("guest", &key.public, &["*".to_string()]) + "\n",
         )?;
-        Ok(Guest { dir, key, addr })
+        Ok(Guest {
+            dir,
+            broker_key,
+            key,
+            addr,
+        })
+    }
+}
+
+impl Guest {
+    /// The broker's arguments for this guest: UDP address, access file, key.
+    pub(super) fn broker_args(&self) -> Vec<String> {
+        vec![
+            "--udp".to_string(),
+            self.addr.to_string(),
+            "--access".to_string(),
+            self.dir.join("access").display().to_string(),
+            "--key".to_string(),
+            self.broker_key.display().to_string(),
+        ]
     }
 }
 
@@ -65,22 +89,16 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     } else {
         Some(Guest::new(inst, a.udp)?)
     };
-    let (udp, access) = guest
-        .as_ref()
-        .map(|g| {
-            (
-                g.addr.to_string(),
-                g.dir.join("access").display().to_string(),
-            )
-        })
-        .unwrap_or_default();
-    let mut broker = vec!["broker"];
+    let broker_args = guest.as_ref().map(Guest::broker_args).unwrap_or_default();
     let mut sys_udp: Vec<&str> = Vec::new();
     if guest.is_some() {
-        broker.extend(["--udp", &udp, "--access", &access]);
         sys_udp.extend(["--udp", "127.0.0.1:0"]);
     }
+    let broker: Vec<&str> = std::iter::once("broker")
+        .chain(broker_args.iter().map(String::as_str))
+        .collect();
     children.spawn(inst, "broker", &broker, Stdio::inherit())?;
+    let standbys = (!a.no_standby).then(|| Standbys::start(inst, broker_args.clone()));
     children.spawn(
         inst,
         "tracker system t1",
@@ -142,6 +160,9 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         Err(e) => return Err(e.into()),
     }
     client.close();
+    if let Some(s) = standbys {
+        s.stop();
+    }
     children.stop();
     println!("muster up: stopped");
     Ok(ExitCode::SUCCESS)

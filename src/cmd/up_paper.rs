@@ -32,12 +32,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     let mut broker_args = Vec::new();
     let mut system_args = Vec::new();
     if let Some(g) = &guest {
-        broker_args = vec![
-            "--udp".to_string(),
-            g.addr.to_string(),
-            "--access".to_string(),
-            g.dir.join("access").display().to_string(),
-        ];
+        broker_args = g.broker_args();
         system_args = vec!["--udp".to_string(), "127.0.0.1:0".to_string()];
     }
     let run = PaperRun::start(
@@ -54,6 +49,8 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
             quiet: false,
         },
     )?;
+    let standbys =
+        (!a.no_standby).then(|| super::standbys::Standbys::start(inst, run_broker_args(&guest)));
     let opts = ConnectOptions {
         wait_for_broker: Duration::from_secs(20),
         handle_signals: true,
@@ -74,6 +71,9 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         Err(e) => return Err(e.into()),
     };
     client.close();
+    if let Some(s) = standbys {
+        s.stop();
+    }
     let stats = run.stop();
     let picture = a
         .picture
@@ -209,4 +209,9 @@ fn demo(
         }
     }
     Ok(followed)
+}
+
+/// The broker arguments of this run (a standby needs the primary's).
+fn run_broker_args(guest: &Option<Guest>) -> Vec<String> {
+    guest.as_ref().map(Guest::broker_args).unwrap_or_default()
 }

@@ -19,7 +19,7 @@ use muster_shared::udp::crypto::{self, Channel, HandshakeState, SessionCipher, S
 use muster_shared::udp::msgs::{
     from_bytes, seal_channel, seal_session, to_bytes, Down, Hs3, SessionDown, SessionUp, Up,
 };
-use muster_shared::udp::wire::Datagram;
+use muster_shared::udp::wire::{Datagram, RESET_TOKEN};
 use muster_shared::udp::{DropCounters, Transmit};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -65,6 +65,8 @@ enum Hs {
         chan: Box<Channel>,
         fin: Vec<u8>,
         confirmed: bool,
+        /// The broker's stateless reset token for this connection.
+        reset_token: Option<[u8; RESET_TOKEN]>,
     },
 }
 
@@ -117,6 +119,8 @@ pub struct LinkStats {
     pub retransmissions: u64,
     /// Handshakes completed (1 + reconnections).
     pub handshakes: u64,
+    /// Stateless resets taken (a broker that did not know the connection).
+    pub resets: u64,
     /// Grants heard more than once (the same session again): not given to the core.
     pub duplicate_grants: u64,
     /// Dropped datagrams by reason.
@@ -368,6 +372,7 @@ impl RemoteConn {
                         chan,
                         fin,
                         confirmed,
+                        reset_token,
                     }) => {
                         let to = self.opts.broker;
                         self.send_raw(&fin, to);
@@ -376,6 +381,7 @@ impl RemoteConn {
                             chan,
                             fin,
                             confirmed,
+                            reset_token,
                         });
                     }
                     None => self.start_handshake(now),
@@ -512,6 +518,7 @@ impl RemoteConn {
                 nonce,
                 sealed,
             } => self.on_session(now, core, session, nonce, sealed, from),
+            Datagram::Reset { conn, token } => self.on_reset(now, core, conn, token, from),
             _ => self.stats.drops.drop("unexpected_kind", &from),
         }
     }
@@ -582,13 +589,17 @@ impl RemoteConn {
             hs,
         };
         let mut scratch = [0u8; 512];
-        if hs.read_message(noise, &mut scratch).is_err() {
+        let Ok(got) = hs.read_message(noise, &mut scratch) else {
             self.stats
                 .drops
                 .drop("bad_handshake", &self.opts.broker.clone());
             self.hs = Some(restore(hs, initial));
             return;
-        }
+        };
+        // Noise message 2 carries (encrypted, authenticated) the connection's stateless
+        // reset token: a broker that later does not know the connection proves with it
+        // that it holds the broker's key.
+        let reset_token = <[u8; RESET_TOKEN]>::try_from(&scratch[..got]).ok();
         if let Some(pin) = self.opts.broker_key {
             if hs.get_remote_static() != Some(pin.as_slice()) {
                 tracing::error!(
@@ -621,6 +632,7 @@ impl RemoteConn {
             chan: Box::new(chan),
             fin,
             confirmed: false,
+            reset_token,
         });
         self.hs_rtt_sample(now);
         self.hs_retry = Retry::new(now, self.rto());
@@ -631,6 +643,32 @@ impl RemoteConn {
             Some(m) => self.send_up(&Up::Msg(m)),
             None => core.hello(),
         }
+    }
+
+    /// A broker that does not know our connection (a standby took over, or the broker
+    /// restarted with its key): if the token is the one the handshake gave us, shake
+    /// hands again now instead of waiting to notice the silence.
+    fn on_reset(
+        &mut self,
+        now: Instant,
+        core: &mut UserCore,
+        conn: u64,
+        token: [u8; RESET_TOKEN],
+        from: SocketAddr,
+    ) {
+        let ours = matches!(
+            &self.hs,
+            Some(Hs::Up { conn: c, reset_token: Some(t), .. })
+                if *c == conn && constant_time_eq(t, &token)
+        );
+        if !ours || from != self.opts.broker {
+            return self.stats.drops.drop("stale_reset", &from);
+        }
+        tracing::warn!("the broker does not know this connection (a new broker): reconnecting");
+        self.stats.resets += 1;
+        core.broker_lost();
+        self.hello = None;
+        self.start_handshake(now);
     }
 
     fn on_channel(
@@ -983,4 +1021,9 @@ impl RemoteConn {
     pub fn ever_connected(&self) -> bool {
         self.ever_connected
     }
+}
+
+/// Compares two tokens in time independent of where they differ.
+fn constant_time_eq(a: &[u8; RESET_TOKEN], b: &[u8; RESET_TOKEN]) -> bool {
+    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }

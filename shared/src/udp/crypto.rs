@@ -54,6 +54,22 @@ pub struct KeyPair {
     pub public: [u8; 32],
 }
 
+impl KeyPair {
+    /// The stateless reset token of connection `conn` under this (broker's) key: any
+    /// broker holding the key computes it, nobody else can (RFC 9000 §10.3).
+    pub fn reset_token(&self, conn: u64) -> [u8; crate::udp::wire::RESET_TOKEN] {
+        use hmac::Mac;
+        let mut mac = <hmac::Hmac<sha2::Sha256> as Mac>::new_from_slice(&self.private)
+            .expect("HMAC takes a key of any length");
+        mac.update(b"muster stateless reset v1");
+        mac.update(&conn.to_le_bytes());
+        let full = mac.finalize().into_bytes();
+        let mut token = [0u8; crate::udp::wire::RESET_TOKEN];
+        token.copy_from_slice(&full[..crate::udp::wire::RESET_TOKEN]);
+        token
+    }
+}
+
 impl std::fmt::Debug for KeyPair {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "KeyPair {{ public: {} }}", hex::encode(self.public))

@@ -10,11 +10,12 @@
 //! | `HS_FINAL` | connection id, Noise message 3 (carries the user's name) | user → broker |
 //! | `CHANNEL` | connection id, nonce, Noise transport ciphertext | both, user ↔ broker |
 //! | `SESSION` | session id, nonce, AEAD ciphertext under the session key | both, user ↔ system |
+//! | `RESET` | connection id, 16-byte stateless reset token | broker → user |
 
 /// First byte of every muster datagram.
 pub const UDP_MAGIC: u8 = 0x75; // 'u'
 /// Version of the datagram layout; datagrams of other versions are dropped and counted.
-pub const UDP_VERSION: u8 = 3;
+pub const UDP_VERSION: u8 = 4;
 /// No datagram carries more than this many bytes of UDP payload (issue 3, and the
 /// smallest path MTU QUIC assumes).
 pub const MAX_DATAGRAM: usize = 1200;
@@ -40,7 +41,14 @@ pub mod kind {
     pub const CHANNEL: u8 = 5;
     /// Encrypted user ↔ system message.
     pub const SESSION: u8 = 6;
+    /// Stateless reset: a broker that does not know the connection (a standby took
+    /// over, or the broker restarted with the same key) tells the user to shake hands
+    /// again (RFC 9000 §10.3).
+    pub const RESET: u8 = 7;
 }
+
+/// Length of a stateless reset token.
+pub const RESET_TOKEN: usize = 16;
 
 /// Why a datagram was dropped. Each has its own counter.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -120,6 +128,13 @@ pub enum Datagram<'a> {
         nonce: u64,
         /// Ciphertext and tag.
         sealed: &'a [u8],
+    },
+    /// See [`kind::RESET`].
+    Reset {
+        /// The connection the broker does not know.
+        conn: u64,
+        /// The token the user got for it in the handshake.
+        token: [u8; RESET_TOKEN],
     },
 }
 
@@ -251,6 +266,13 @@ impl<'a> Datagram<'a> {
                 nonce: r.u64()?,
                 sealed: r.rest(),
             },
+            kind::RESET => {
+                let conn = r.u64()?;
+                let mut token = [0u8; RESET_TOKEN];
+                token.copy_from_slice(r.bytes(RESET_TOKEN)?);
+                r.done()?;
+                Datagram::Reset { conn, token }
+            }
             k => return Err(WireError::UnknownKind(k)),
         };
         Ok(d)
@@ -317,6 +339,10 @@ impl<'a> Datagram<'a> {
                 out.extend_from_slice(&nonce.to_le_bytes());
                 out.extend_from_slice(sealed);
             }
+            Datagram::Reset { conn, token } => {
+                out.extend_from_slice(&conn.to_le_bytes());
+                out.extend_from_slice(token);
+            }
         }
         if out.len() > MAX_DATAGRAM {
             return Err(WireError::Oversized(out.len()));
@@ -333,6 +359,7 @@ impl<'a> Datagram<'a> {
             Datagram::HsFinal { .. } => kind::HS_FINAL,
             Datagram::Channel { .. } => kind::CHANNEL,
             Datagram::Session { .. } => kind::SESSION,
+            Datagram::Reset { .. } => kind::RESET,
         }
     }
 }
@@ -380,6 +407,10 @@ mod tests {
                 session: 1 << 40,
                 nonce: 1 << 63,
                 sealed: &[5; 17],
+            },
+            Datagram::Reset {
+                conn: 77,
+                token: [6; RESET_TOKEN],
             },
         ];
         for d in all {
