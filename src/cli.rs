@@ -288,6 +288,8 @@ pub struct FailoverUserArgs {
     /// Pause between two requests.
     #[arg(long, default_value = "20ms", value_parser = duration)]
     pub pause: Duration,
+    #[command(flatten)]
+    pub remote: RemoteArgs,
 }
 
 #[derive(Args, Debug)]

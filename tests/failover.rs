@@ -188,3 +188,67 @@ fn a_primary_stopping_on_purpose_hands_over_to_its_standby() {
     assert_eq!(find(&f.list(), "t1/s0").unwrap()["in_use"], 1);
     assert_unbroken(&f.proc(data).all_json(20 * SEC), 100);
 }
+
+#[test]
+fn remote_users_resume_with_the_new_primary_and_their_sessions_never_pause() {
+    let mut f = Fed::new("fo-remote");
+    let r = f.remote_setup(&[("alice", &["*"])]);
+    let dir = r.dir.display().to_string();
+    let (code, _) = f.run(&["keygen", "--broker", "--out", &dir], 20 * SEC);
+    assert_eq!(code, 0);
+    let key = r.dir.join("broker.key").display().to_string();
+    let access = r.access.display().to_string();
+    let front = ["--udp", r.addr.as_str(), "--access", &access, "--key", &key];
+    let primary = f.broker(&front);
+    let mut standby_args = vec!["--standby"];
+    standby_args.extend(front);
+    let s = f.broker(&standby_args);
+    next_event(&mut f, s, "in_sync");
+    f.system(
+        "t1",
+        &["--rate", "20", "--quota", "5", "--udp", "127.0.0.1:0"],
+    );
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let alice = r.key("alice");
+    let remote = ["--remote", r.addr.as_str(), "--key", alice.as_str()];
+    let mut data_args = vec!["user", "request", "t1/s0", "--duration", "8s", "--json"];
+    data_args.extend(remote);
+    let data = f.spawn(&data_args);
+    assert_eq!(f.proc(data).json(10 * SEC).unwrap()["granted"], true);
+    // A remote user making requests one after another, through the takeover.
+    let mut req_args = vec!["bench", "failover-user", "--request", "t1/s0"];
+    req_args.extend(remote);
+    let req = f.spawn(&req_args);
+    assert_eq!(f.proc(req).json(10 * SEC).unwrap()["granted"], true);
+
+    let t_kill = muster_shared::protocol::monotonic_ns();
+    f.proc(primary).signal(libc::SIGKILL);
+    next_event(&mut f, s, "serving");
+    // Its next request made after the kill is granted by the new primary, the user
+    // having done nothing (a stateless reset, a new handshake, the request again).
+    let deadline = Instant::now() + 20 * SEC;
+    let took = loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let v = f
+            .proc(req)
+            .json(left)
+            .expect("a grant from the new primary");
+        if v["granted"] == true && v["asked_ns"].as_u64().is_some_and(|a| a > t_kill) {
+            break Duration::from_nanos(v["t_ns"].as_u64().unwrap() - t_kill);
+        }
+    };
+    eprintln!("remote user: first new grant {took:?} after the kill");
+    // Told by the new front (a stateless reset), not by the 6 s of silence it would
+    // otherwise have waited for.
+    assert!(took < Duration::from_secs(5), "{took:?}");
+    assert_unbroken(&f.proc(data).all_json(20 * SEC), 140);
+    f.proc(req).signal(libc::SIGTERM);
+    let done = loop {
+        let v = f.proc(req).json(10 * SEC).expect("the requester's summary");
+        if v["done"] == true {
+            break v;
+        }
+    };
+    assert_eq!(done["resets"], 1, "{done}");
+    assert_eq!(done["unwanted_grants"], 0, "{done}");
+}

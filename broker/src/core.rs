@@ -374,6 +374,15 @@ impl Broker {
         self.users.keys()
     }
 
+    /// Remote users (over UDP: no pid here; their front tracks their liveness).
+    pub fn remote_users(&self) -> Vec<UserId> {
+        self.users
+            .iter()
+            .filter(|(_, u)| u.pid == 0)
+            .map(|(id, _)| id.clone())
+            .collect()
+    }
+
     /// Users who asked to be rung when the list changes.
     pub fn list_watchers(&self) -> impl Iterator<Item = &UserId> {
         self.users

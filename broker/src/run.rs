@@ -215,6 +215,9 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
     run_with(inst, cfg, None, false)
 }
 
+/// How long remote users of an old primary have to reconnect to a new one.
+const REMOTE_RETURN: Duration = Duration::from_secs(20);
+
 /// How long a new primary lets the first interactions go before it cleans up after the
 /// old one (the cleanup locks the services both used, and would delay them).
 const CLEANUP_DELAY: Duration = Duration::from_millis(200);
@@ -770,6 +773,12 @@ fn serve(
         },
     };
     shell.snapshot.epoch = epoch;
+    // Remote users of the old primary reconnect to our front (a stateless reset tells
+    // them at once); one that does not come back within the time a silent broker
+    // takes to notice is gone, and its queued requests and links with it.
+    let mut remote_return: Option<(Instant, Vec<UserId>)> = (how == Start::Takeover)
+        .then(|| (Instant::now() + REMOTE_RETURN, core.remote_users()))
+        .filter(|(_, users)| !users.is_empty());
     if !fence.holds(me) {
         return Err(fenced(&fence));
     }
@@ -805,6 +814,9 @@ fn serve(
             housekeeping,
             shell.replica.heartbeat_due(),
             waiting_for_list,
+            remote_return
+                .as_ref()
+                .map(|(t, _)| t.saturating_duration_since(Instant::now())),
         ]
         .into_iter()
         .flatten()
@@ -885,6 +897,25 @@ fn serve(
         }
         if core.poll_timeout().is_some_and(|t| t <= now) {
             core.handle_timeout(now);
+        }
+        if remote_return
+            .as_ref()
+            .is_some_and(|(t, _)| Instant::now() >= *t)
+        {
+            let users = remote_return.take().map(|(_, u)| u).unwrap_or_default();
+            let mut gone = 0;
+            for u in users {
+                if shell.udp.as_ref().is_none_or(|d| !d.front.is_remote(&u)) {
+                    core.user_died(now, &u);
+                    gone += 1;
+                }
+            }
+            if gone > 0 {
+                tracing::info!(
+                    gone,
+                    "remote users of the old primary did not come back: forgotten"
+                );
+            }
         }
         if cleanup
             .as_ref()

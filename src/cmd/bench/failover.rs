@@ -450,7 +450,7 @@ pub fn user(inst: &Instance, a: FailoverUserArgs) -> anyhow::Result<ExitCode> {
         handle_signals: true,
         watch_list: false,
     };
-    let mut client = UserClient::connect(inst, &opts)?;
+    let mut client = crate::cmd::user::connect(inst, &a.remote, &opts)?;
     let r = match (&a.hold, &a.request) {
         (Some(svc), _) => hold(&mut client, &ServiceId(svc.clone())),
         (None, Some(svcs)) => request(&mut client, svcs, a.pause),
@@ -458,10 +458,12 @@ pub fn user(inst: &Instance, a: FailoverUserArgs) -> anyhow::Result<ExitCode> {
     };
     let core = client.core();
     let (regrants, unwanted) = (core.regrants(), core.unwanted_grants());
+    let resets = client.link_stats().map(|s| s.resets);
     let mut summary = r?;
     summary["done"] = json!(true);
     summary["regrants"] = json!(regrants);
     summary["unwanted_grants"] = json!(unwanted);
+    summary["resets"] = json!(resets);
     print(summary);
     client.close();
     Ok(ExitCode::SUCCESS)
