@@ -310,6 +310,9 @@ pub struct LivenessArgs {
     /// Systems (8 services each) registered during the broker-restart trials.
     #[arg(long, default_value_t = 10)]
     pub systems: usize,
+    /// Users holding a data session (one process each) during the broker-restart trials.
+    #[arg(long, default_value_t = 0)]
+    pub users: usize,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,

@@ -158,13 +158,6 @@ fn hostile_datagrams_get_nothing_and_are_counted() {
         wrong_version,
         initial[..600].to_vec(),
         initial[..2].to_vec(),
-        Datagram::Channel {
-            conn: 7,
-            nonce: 0,
-            sealed: &[1; 64],
-        }
-        .encode()
-        .unwrap(),
         Datagram::HsFinal {
             conn: 7,
             noise: &[1; 64],
@@ -180,6 +173,27 @@ fn hostile_datagrams_get_nothing_and_are_counted() {
             d.len()
         );
     }
+    // A channel datagram of a connection the broker does not know draws a stateless
+    // reset for it, smaller than what came (no amplification), and nothing else.
+    let channel = Datagram::Channel {
+        conn: 7,
+        nonce: 0,
+        sealed: &[1; 64],
+    }
+    .encode()
+    .unwrap();
+    s.send_to(&channel, to).unwrap();
+    let (n, _) = s.recv_from(&mut buf).expect("a stateless reset");
+    assert!(n < channel.len(), "{n} bytes for {}", channel.len());
+    assert!(
+        matches!(
+            Datagram::decode(&buf[..n]),
+            Ok(Datagram::Reset { conn: 7, .. })
+        ),
+        "{:?}",
+        Datagram::decode(&buf[..n])
+    );
+    assert!(s.recv_from(&mut buf).is_err(), "one answer only");
     // A padded INITIAL without a token gets a stateless RETRY, at most 3x its size.
     assert_eq!(initial.len(), MIN_INITIAL);
     s.send_to(&initial, to).unwrap();

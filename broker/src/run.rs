@@ -100,8 +100,10 @@ impl BrokerReport {
 /// The broker process's state outside the core.
 struct Shell {
     endpoint: Endpoint,
-    /// The list's writer; `None` until a dead broker's writer is cleaned up.
-    list: Option<ListWriter>,
+    /// The list's writer (this run's own blackboard).
+    list: ListWriter,
+    /// The instance's fence: who may act, and which list readers read.
+    fence: Fence,
     reactor: Reactor,
     watches: HashMap<usize, Watch>,
     by_addr: HashMap<Address, usize>,
@@ -221,9 +223,6 @@ const REMOTE_RETURN: Duration = Duration::from_secs(20);
 /// How long a new primary lets the first interactions go before it cleans up after the
 /// old one (the cleanup locks the services both used, and would delay them).
 const CLEANUP_DELAY: Duration = Duration::from_millis(200);
-
-/// How often a broker waiting for the list's writer to come free checks.
-const LIST_RETRY: Duration = Duration::from_millis(2);
 
 /// How often a primary with standbys tells them it is alive when it has nothing else
 /// to say.
@@ -567,6 +566,9 @@ impl Ringer {
 /// How often a standby connects its presence notifier to listeners that came since.
 const PREPARE_EVERY: Duration = Duration::from_secs(1);
 
+/// How long a standby without a copy of the state waits on a silent primary.
+const UNSYNCED_PATIENCE: Duration = Duration::from_secs(2);
+
 /// How often an unsynchronized standby asks the primary for its state.
 const ASK_EVERY: Duration = Duration::from_millis(100);
 
@@ -621,10 +623,18 @@ fn follow(
         let (holder, pidfd) = watched.as_ref().expect("set above");
         let holder = *holder;
         let mut why = None;
+        // A primary this standby holds no copy of yet gets longer to answer before it is
+        // taken for hung: on a loaded host its first image may take a while, and a
+        // takeover without the state would be a cold start anyway.
+        let patience = if follower.synced() {
+            deadline
+        } else {
+            deadline.max(UNSYNCED_PATIENCE)
+        };
         match pidfd {
             None => why = Some(Why::NoPrimary).filter(|_| heard.elapsed() >= deadline),
             Some(p) if p.exited() => why = Some(Why::Died),
-            Some(_) if heard.elapsed() >= deadline => why = Some(Why::Hung),
+            Some(_) if heard.elapsed() >= patience => why = Some(Why::Hung),
             Some(_) => {}
         }
         if why.is_none() && !follower.synced() && asked.is_none_or(|t| t.elapsed() >= ASK_EVERY) {
@@ -682,7 +692,7 @@ fn follow(
             // Another standby was quicker: follow it.
             continue;
         }
-        let wait = deadline
+        let wait = patience
             .saturating_sub(heard.elapsed())
             .min(if follower.synced() {
                 deadline
@@ -717,7 +727,7 @@ fn serve(
         how,
         seq,
         standby_since,
-        mut cleanup,
+        cleanup: _cleanup,
         presence,
     } = p;
     let setup = Instant::now();
@@ -728,12 +738,8 @@ fn serve(
         None => Ringer::spawn(inst)?,
     };
     step("presence");
-    let list = ListWriter::try_open(endpoint.node(), inst)?;
+    let list = ListWriter::open(endpoint.node(), inst, core.epoch())?;
     step("list");
-    if list.is_some() {
-        // Nothing to wait for; the cleanup goes on in the background.
-        cleanup = None;
-    }
     let replica = ReplicaWriter::open(endpoint.node(), inst)?;
     step("replica");
     let epoch = core.epoch();
@@ -756,6 +762,7 @@ fn serve(
     let mut shell = Shell {
         endpoint,
         list,
+        fence,
         reactor,
         watches: HashMap::new(),
         by_addr: HashMap::new(),
@@ -779,8 +786,8 @@ fn serve(
     let mut remote_return: Option<(Instant, Vec<UserId>)> = (how == Start::Takeover)
         .then(|| (Instant::now() + REMOTE_RETURN, core.remote_users()))
         .filter(|(_, users)| !users.is_empty());
-    if !fence.holds(me) {
-        return Err(fenced(&fence));
+    if !shell.fence.holds(me) {
+        return Err(fenced(&shell.fence));
     }
     step("ports");
     shell.flush(&mut core, host_now())?;
@@ -806,14 +813,12 @@ fn serve(
             .as_ref()
             .and_then(|d| d.front.poll_timeout())
             .map(|t| t.saturating_duration_since(Instant::now()));
-        let waiting_for_list = cleanup.is_some().then_some(LIST_RETRY);
         let timeout = [
             timeout,
             shell.ring_due(),
             shell.endpoint.sweep(),
             housekeeping,
             shell.replica.heartbeat_due(),
-            waiting_for_list,
             remote_return
                 .as_ref()
                 .map(|(t, _)| t.saturating_duration_since(Instant::now())),
@@ -824,8 +829,8 @@ fn serve(
         let tokens = shell.reactor.wait(timeout)?;
         // Taken over while we slept (stopped, or hung past the deadline)? Then another
         // broker serves the instance: act on nothing.
-        if !fence.holds(me) {
-            return Err(fenced(&fence));
+        if !shell.fence.holds(me) {
+            return Err(fenced(&shell.fence));
         }
         let now = host_now();
         let mut died: Vec<Address> = Vec::new();
@@ -855,8 +860,8 @@ fn serve(
                         } else {
                             tracing::info!("signal received: broker stopping");
                             presence.ring(bell::BROKER_DOWN);
-                            if fence.holds(me) {
-                                fence.remove();
+                            if shell.fence.holds(me) {
+                                shell.fence.remove();
                             }
                         }
                         presence.finish();
@@ -915,27 +920,6 @@ fn serve(
                     gone,
                     "remote users of the old primary did not come back: forgotten"
                 );
-            }
-        }
-        if cleanup
-            .as_ref()
-            .is_some_and(std::thread::JoinHandle::is_finished)
-        {
-            let removed = cleanup.take().map(|c| c.join().unwrap_or(0));
-            shell.list = ListWriter::try_open(shell.endpoint.node(), inst)?;
-            match &shell.list {
-                Some(l) => {
-                    l.publish(&shell.snapshot)?;
-                    tracing::info!(?removed, "dead nodes cleaned up: the list is written again");
-                }
-                None => {
-                    // Another cleanup (ours after a peer died, or another process's)
-                    // had that node in hand: clean again until the writer is free.
-                    tracing::debug!("the list's writer is still held: cleaning up again");
-                    cleanup = Some(std::thread::spawn(|| {
-                        muster_shared::ipc::cleanup_dead_nodes(None)
-                    }));
-                }
             }
         }
         shell.flush(&mut core, host_now())?;
@@ -1088,10 +1072,11 @@ impl Shell {
             for (slot, v) in self.snapshot.entries.iter_mut().zip(views.iter()) {
                 *slot = v.to_entry();
             }
-            if let Some(list) = &self.list {
-                let t = Instant::now();
-                list.publish(&self.snapshot)?;
-                self.handling.record("list_write", t, t.elapsed());
+            let t = Instant::now();
+            match self.list.publish(&self.snapshot, &self.fence) {
+                Ok(()) => self.handling.record("list_write", t, t.elapsed()),
+                // Never fatal: readers keep the last list; the next change writes again.
+                Err(e) => tracing::warn!("the service list could not be written: {e}"),
             }
             if let Some(d) = self.udp.as_mut() {
                 d.front

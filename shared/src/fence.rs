@@ -87,6 +87,21 @@ impl Fence {
         unsafe { &*self.word }
     }
 
+    fn list_word(&self) -> &AtomicU64 {
+        // SAFETY: the second word of the same page-sized mapping.
+        unsafe { &*self.word.add(1) }
+    }
+
+    /// The epoch of the broker run whose service list readers should read (0: none).
+    pub fn list(&self) -> u64 {
+        self.list_word().load(Ordering::Acquire)
+    }
+
+    /// Names the service list of broker run `epoch` as the one to read.
+    pub fn set_list(&self, epoch: u64) {
+        self.list_word().store(epoch, Ordering::Release);
+    }
+
     /// Who holds the instance now.
     pub fn holder(&self) -> Holder {
         Holder::of(self.atomic().load(Ordering::Acquire))
@@ -130,8 +145,19 @@ impl Fence {
         PathBuf::from(format!("{}{}.broker-fence", crate::ipc::iox2_root(), inst))
     }
 
-    /// Removes the file (the last broker of the instance stopping on purpose).
+    /// Removes the file (the last broker of the instance stopping on purpose). Those
+    /// who still map it see no primary and no list, and look for a new file.
     pub fn remove(&self) {
+        let h = self.holder();
+        self.atomic().store(
+            Holder {
+                term: h.term,
+                pid: 0,
+            }
+            .word(),
+            Ordering::Release,
+        );
+        self.set_list(0);
         let _ = std::fs::remove_file(&self.path);
     }
 }

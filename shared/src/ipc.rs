@@ -837,89 +837,102 @@ impl Presence {
 }
 
 /// The broker's side of the service list blackboard.
+///
+/// Each broker run writes its own blackboard (named after its epoch) and then names it
+/// in the instance's fence, where readers look: a new broker never needs the writer
+/// slot of a dead one (iceoryx2 gives a blackboard one writer, and a writer killed in
+/// the middle of an update leaves its entry held for good), and readers keep the old
+/// list, whole, until the new one is there.
 pub struct ListWriter {
     writer: Writer<Ipc, u64>,
+    epoch: u64,
+    announced: bool,
 }
 
 impl ListWriter {
-    /// Creates the blackboard, or takes over the one a crashed broker left.
-    pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
-        let name = inst.service_list();
+    /// Creates the blackboard of the broker run `epoch`.
+    pub fn open(node: &Node<Ipc>, inst: &Instance, epoch: u64) -> Result<Self, TransportError> {
+        let name = inst.service_list(epoch);
         let sname = service_name(&name)?;
-        let created = node
+        let svc = node
             .service_builder(&sname)
             .blackboard_creator::<u64>()
             .max_readers(MAX_PARTICIPANTS)
             .max_nodes(MAX_PARTICIPANTS + 4)
             .add::<ServiceListSnapshot>(0, ServiceListSnapshot::empty())
-            .create();
-        let svc = match created {
-            Ok(s) => s,
-            Err(_) => node
-                .service_builder(&sname)
-                .blackboard_opener::<u64>()
-                .open()
-                .map_err(|e| svc_err(&name, e))?,
-        };
-        let writer = match svc.writer_builder().create() {
-            Ok(w) => w,
-            Err(_) => {
-                node.try_cleanup_dead_nodes();
-                svc.writer_builder()
-                    .create()
-                    .map_err(|e| svc_err(&name, e))?
-            }
-        };
-        Ok(ListWriter { writer })
-    }
-
-    /// [`ListWriter::open`] without cleaning up: `None` while a dead broker's writer
-    /// still holds the list (its cleanup is under way elsewhere).
-    pub fn try_open(node: &Node<Ipc>, inst: &Instance) -> Result<Option<Self>, TransportError> {
-        let name = inst.service_list();
-        let sname = service_name(&name)?;
-        let created = node
-            .service_builder(&sname)
-            .blackboard_creator::<u64>()
-            .max_readers(MAX_PARTICIPANTS)
-            .max_nodes(MAX_PARTICIPANTS + 4)
-            .add::<ServiceListSnapshot>(0, ServiceListSnapshot::empty())
-            .create();
-        let svc = match created {
-            Ok(s) => s,
-            Err(_) => node
-                .service_builder(&sname)
-                .blackboard_opener::<u64>()
-                .open()
-                .map_err(|e| svc_err(&name, e))?,
-        };
-        Ok(svc
+            .create()
+            .map_err(|e| svc_err(&name, e))?;
+        let writer = svc
             .writer_builder()
             .create()
-            .ok()
-            .map(|writer| ListWriter { writer }))
+            .map_err(|e| svc_err(&name, e))?;
+        Ok(ListWriter {
+            writer,
+            epoch,
+            announced: false,
+        })
     }
 
-    /// Publishes a new snapshot; readers see it on their next read.
-    pub fn publish(&self, snapshot: &ServiceListSnapshot) -> Result<(), TransportError> {
+    /// Publishes a new snapshot; readers see it on their next read. The first one also
+    /// names this list in `fence`, so readers move to it.
+    pub fn publish(
+        &mut self,
+        snapshot: &ServiceListSnapshot,
+        fence: &crate::fence::Fence,
+    ) -> Result<(), TransportError> {
         let entry = self
             .writer
             .entry::<ServiceListSnapshot>(&0)
             .map_err(|e| svc_err("service-list entry", e))?;
         entry.update_with_copy(*snapshot);
+        if !self.announced {
+            fence.set_list(self.epoch);
+            self.announced = true;
+        }
         Ok(())
     }
 }
 
-/// A user's side of the service list blackboard.
+/// A user's side of the service list: the blackboard the fence names, followed from
+/// one broker run to the next.
 pub struct ListReader {
-    reader: Reader<Ipc, u64>,
+    node_inst: Instance,
+    fence: crate::fence::Fence,
+    current: Option<(u64, Reader<Ipc, u64>)>,
 }
 
 impl ListReader {
-    /// Opens the blackboard; fails if no broker ever created it.
+    /// Opens the list of the running broker; fails if no broker ever wrote one.
     pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
-        let name = inst.service_list();
+        let fence = crate::fence::Fence::open_existing(inst)
+            .map_err(|_| TransportError::Unreachable(Address::Broker))?;
+        let mut r = ListReader {
+            node_inst: inst.clone(),
+            fence,
+            current: None,
+        };
+        r.follow(node)?;
+        Ok(r)
+    }
+
+    /// Moves to the list the fence names, if it is another one.
+    fn follow(&mut self, node: &Node<Ipc>) -> Result<(), TransportError> {
+        let mut epoch = self.fence.list();
+        if epoch == 0 {
+            // The broker stopped on purpose and removed the fence; a new one may have
+            // made another.
+            if let Ok(f) = crate::fence::Fence::open_existing(&self.node_inst) {
+                self.fence = f;
+                epoch = self.fence.list();
+            }
+        }
+        if epoch == 0 {
+            return Err(TransportError::Unreachable(Address::Broker));
+        }
+        if self.current.as_ref().is_some_and(|(e, _)| *e == epoch) {
+            return Ok(());
+        }
+        let name = self.node_inst.service_list(epoch);
         let svc = node
             .service_builder(&service_name(&name)?)
             .blackboard_opener::<u64>()
@@ -929,13 +942,31 @@ impl ListReader {
             .reader_builder()
             .create()
             .map_err(|e| svc_err(&name, e))?;
-        Ok(ListReader { reader })
+        self.current = Some((epoch, reader));
+        Ok(())
     }
 
-    /// Reads the newest snapshot (a consistent copy out of shared memory).
+    /// Reads the newest snapshot of the running broker's list (a consistent copy out of
+    /// shared memory), moving to a new broker's list first if there is one.
+    pub fn read_from(
+        &mut self,
+        node: &Node<Ipc>,
+    ) -> Result<Box<ServiceListSnapshot>, TransportError> {
+        if let Err(e) = self.follow(node) {
+            // The old list stays readable until a new one can be opened.
+            if self.current.is_none() {
+                return Err(e);
+            }
+        }
+        self.read()
+    }
+
+    /// Reads the newest snapshot of the list this reader is on.
     pub fn read(&self) -> Result<Box<ServiceListSnapshot>, TransportError> {
-        let entry = self
-            .reader
+        let Some((_, reader)) = &self.current else {
+            return Err(TransportError::Unreachable(Address::Broker));
+        };
+        let entry = reader
             .entry::<ServiceListSnapshot>(&0)
             .map_err(|e| svc_err("service-list entry", e))?;
         Ok(Box::new(*entry.get()))

@@ -79,9 +79,9 @@ impl Instance {
         format!("muster/{}/presence", self.0)
     }
 
-    /// The blackboard holding the service list snapshot.
-    pub fn service_list(&self) -> String {
-        format!("muster/{}/service-list", self.0)
+    /// The blackboard holding the service list snapshot of broker run `epoch`.
+    pub fn service_list(&self, epoch: u64) -> String {
+        format!("muster/{}/service-list/{epoch:016x}", self.0)
     }
 
     /// The stream a primary broker replicates its state on, to its standbys.

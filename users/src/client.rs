@@ -247,7 +247,8 @@ impl UserClient {
                 if l.list.is_none() {
                     l.list = Some(ListReader::open(l.endpoint.node(), &l.inst)?);
                 }
-                Ok(l.list.as_ref().expect("opened above").read()?)
+                let node = l.endpoint.node();
+                Ok(l.list.as_mut().expect("opened above").read_from(node)?)
             }
             Transport::Remote(r) => {
                 r.ask_list();
@@ -615,7 +616,7 @@ impl Local {
             self.successor = None;
             return;
         }
-        if self.fence.is_none() {
+        if self.fence.as_ref().is_none_or(|f| f.holder().pid == 0) {
             self.fence = muster_shared::fence::Fence::open_existing(&self.inst).ok();
         }
         let Some(holder) = self.fence.as_ref().map(|f| f.holder().pid) else {
@@ -632,9 +633,10 @@ impl Local {
         if self.list.is_none() {
             self.list = ListReader::open(self.endpoint.node(), &self.inst).ok();
         }
+        let node = self.endpoint.node();
         self.list
-            .as_ref()
-            .and_then(|l| l.read().ok())
+            .as_mut()
+            .and_then(|l| l.read_from(node).ok())
             .map_or(0, |s| s.epoch)
     }
 

@@ -233,6 +233,12 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
             if l.who == standby && l.v["event"] == "in_sync" {
                 break;
             }
+            if l.who == standby && l.v["event"] == "took_over" {
+                bail!(
+                    "round {k}: the new standby took over a live primary: {}",
+                    l.v
+                );
+            }
             count(&l, &mut grants, &mut refusals, &mut finals);
         }
         let epoch_before = client.list()?.epoch;

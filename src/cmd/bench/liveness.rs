@@ -4,7 +4,7 @@
 use super::children::Children;
 use super::{row, summary};
 use crate::cli::LivenessArgs;
-use anyhow::bail;
+use anyhow::{bail, Context};
 use hdrhistogram::Histogram;
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient};
@@ -71,6 +71,35 @@ pub fn run(inst: &Instance, a: LivenessArgs) -> anyhow::Result<ExitCode> {
     }
     let total = a.systems * 8;
     until(&mut client, Duration::from_secs(30), |l| l.len() == total)?;
+    // Users holding data sessions through the restarts: each says hello to every new
+    // broker.
+    let mut held = 0;
+    for i in 0..a.users {
+        let svc = format!("r{}/s{}", i % a.systems.max(1), (i / a.systems.max(1)) % 8);
+        let c = children.spawn(
+            inst,
+            &format!("hold-{i}"),
+            &["bench", "failover-user", "--hold", &svc],
+            Stdio::piped(),
+        )?;
+        let mut out = std::io::BufReader::new(c.stdout.take().context("holder stdout")?);
+        let mut line = String::new();
+        if std::io::BufRead::read_line(&mut out, &mut line)? > 0
+            && line.contains("\"granted\":true")
+        {
+            held += 1;
+        }
+        // Keep reading its lines so its pipe never fills.
+        std::thread::spawn(move || {
+            let mut sink = String::new();
+            while std::io::BufRead::read_line(&mut out, &mut sink).unwrap_or(0) > 0 {
+                sink.clear();
+            }
+        });
+    }
+    if held < a.users {
+        bail!("only {held} of {} users were granted a session", a.users);
+    }
     let mut restart = Histogram::<u64>::new(3)?;
     for _ in 0..a.trials {
         children.kill("broker");
@@ -100,7 +129,7 @@ pub fn run(inst: &Instance, a: LivenessArgs) -> anyhow::Result<ExitCode> {
     if a.json {
         println!(
             "{}",
-            json!({"system_sigkill_to_unlisted": summary(&kill), "broker_restart_to_complete_list": summary(&restart), "services": total})
+            json!({"system_sigkill_to_unlisted": summary(&kill), "broker_restart_to_complete_list": summary(&restart), "services": total, "users_holding_sessions": a.users})
         );
     } else {
         println!("muster bench liveness: {} trials", a.trials);
@@ -113,7 +142,10 @@ pub fn run(inst: &Instance, a: LivenessArgs) -> anyhow::Result<ExitCode> {
             "{}",
             row(&format!("broker restart -> {total} listed"), &restart)
         );
-        println!("(restart time counts from spawning the new broker process)");
+        println!(
+            "(restart time counts from spawning the new broker process; {} users held sessions)",
+            a.users
+        );
     }
     Ok(ExitCode::SUCCESS)
 }
