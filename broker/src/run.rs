@@ -217,6 +217,18 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
     run_with(inst, cfg, None, false)
 }
 
+/// Runs the calling thread at the lowest priority (nice 19): cleaning up after dead
+/// processes must take only what serving leaves.
+fn lowest_priority() {
+    // SAFETY: gettid has no preconditions; setpriority on our own thread id.
+    let tid = unsafe { libc::syscall(libc::SYS_gettid) } as libc::id_t;
+    // SAFETY: plain syscall on our own thread; failure only leaves the priority as is.
+    unsafe { libc::setpriority(libc::PRIO_PROCESS, tid, 19) };
+}
+
+/// How long a broker started cold waits before it cleans up after dead processes.
+const COLD_CLEANUP_DELAY: Duration = Duration::from_millis(500);
+
 /// How long remote users of an old primary have to reconnect to a new one.
 const REMOTE_RETURN: Duration = Duration::from_secs(20);
 
@@ -302,8 +314,14 @@ pub fn run_with(
     {
         return Err(BrokerError::AlreadyRunning(inst.to_string()));
     }
-    let cleanup = std::thread::spawn(|| muster_shared::ipc::cleanup_dead_nodes(None));
     let fence = open_fence(inst)?;
+    let cleanup = std::thread::spawn(|| {
+        lowest_priority();
+        // Garbage only (a crashed broker's ports, which keep one of the inbox's two
+        // reader slots): after the restart's storm, with what serving leaves.
+        std::thread::sleep(COLD_CLEANUP_DELAY);
+        muster_shared::ipc::cleanup_dead_nodes(None)
+    });
     let me = claim_fence(&fence);
     let core = Broker::new(cfg, new_epoch(0), pid);
     serve(
@@ -411,6 +429,7 @@ pub fn run_standby(
     // reader meanwhile, and the list waits for the old writer to go.
     let cleanup = old_pid.map(|pid| {
         std::thread::spawn(move || {
+            lowest_priority();
             std::thread::sleep(CLEANUP_DELAY);
             muster_shared::ipc::cleanup_dead_nodes_of(pid)
         })
@@ -1040,6 +1059,9 @@ impl Shell {
         core: &mut Broker,
         dead: &mut Vec<Address>,
     ) -> Result<(), BrokerError> {
+        // The list first: a broker restarting under load has hundreds of welcomes to
+        // send (each opening a port), and the list must not wait behind them.
+        self.write_list(core);
         while let Some(out) = core.poll_output() {
             let out = match self.udp.as_mut() {
                 Some(d) => match d.front.route(core, out) {
@@ -1066,6 +1088,13 @@ impl Shell {
                 Output::ForgetUser(user) => self.forget(Address::User(user)),
             }
         }
+        // And anything routing the outputs changed.
+        self.write_list(core);
+        Ok(())
+    }
+
+    /// Writes the list if it changed.
+    fn write_list(&mut self, core: &mut Broker) {
         if let Some((generation, views)) = core.take_list_change() {
             self.snapshot.generation = generation;
             self.snapshot.count = views.len().min(MAX_LISTED_SERVICES) as u32;
@@ -1084,7 +1113,6 @@ impl Shell {
             }
             self.ring_owed = true;
         }
-        Ok(())
     }
 
     /// How long until watchers may be rung again, if a ring is owed.

@@ -296,18 +296,41 @@ impl Endpoint {
         let inbox = match svc.subscriber_builder().buffer_size(limits.buffer).create() {
             Ok(s) => s,
             Err(_) => {
-                // A dead process of the same name may still hold the only subscriber slot.
-                node.try_cleanup_dead_nodes();
-                svc.subscriber_builder()
-                    .buffer_size(limits.buffer)
-                    .create()
-                    .map_err(|e| {
-                        if format!("{e:?}").contains("ExceedsMax") {
-                            TransportError::InUse(me.clone())
-                        } else {
-                            svc_err(&inbox_name, e)
-                        }
-                    })?
+                // A dead process of the same name may still hold the reader slots: clean
+                // up after those readers first (a dead broker has hundreds of ports, and
+                // the other dead nodes can wait), then after every dead node.
+                let mut dead = Vec::new();
+                svc.dynamic_config().list_subscribers(|d| {
+                    dead.extend(node_pid(&d.node_id));
+                    CallbackProgression::Continue
+                });
+                tracing::info!(inbox = %inbox_name, readers = ?dead, "the inbox's reader slots are held: cleaning up after dead readers");
+                let mut made = None;
+                for pid in dead
+                    .into_iter()
+                    .filter(|p| !crate::reactor::process_alive(*p))
+                {
+                    cleanup_dead_nodes_of(pid);
+                    if let Ok(s) = svc.subscriber_builder().buffer_size(limits.buffer).create() {
+                        made = Some(s);
+                        break;
+                    }
+                }
+                if let Some(s) = made {
+                    s
+                } else {
+                    node.try_cleanup_dead_nodes();
+                    svc.subscriber_builder()
+                        .buffer_size(limits.buffer)
+                        .create()
+                        .map_err(|e| {
+                            if format!("{e:?}").contains("ExceedsMax") {
+                                TransportError::InUse(me.clone())
+                            } else {
+                                svc_err(&inbox_name, e)
+                            }
+                        })?
+                }
             }
         };
         let bell_name = inst.bell(&me);
