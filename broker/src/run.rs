@@ -217,15 +217,6 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
     run_with(inst, cfg, None, false)
 }
 
-/// Runs the calling thread at the lowest priority (nice 19): cleaning up after dead
-/// processes must take only what serving leaves.
-fn lowest_priority() {
-    // SAFETY: gettid has no preconditions; setpriority on our own thread id.
-    let tid = unsafe { libc::syscall(libc::SYS_gettid) } as libc::id_t;
-    // SAFETY: plain syscall on our own thread; failure only leaves the priority as is.
-    unsafe { libc::setpriority(libc::PRIO_PROCESS, tid, 19) };
-}
-
 /// How long a broker started cold waits before it cleans up after dead processes.
 const COLD_CLEANUP_DELAY: Duration = Duration::from_millis(500);
 
@@ -300,7 +291,7 @@ pub fn run_with(
 ) -> Result<BrokerReport, BrokerError> {
     raise_fds();
     // Dead nodes (a crashed broker's above all) are cleaned up beside serving, not
-    // before: the broker's inbox takes a second reader meanwhile, and the list waits.
+    // before: the broker's inbox takes more than one reader, and each run writes its own list.
     let node = create_node(&format!("muster-broker-{inst}"), false)?;
     let mut endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
         TransportError::InUse(_) => BrokerError::AlreadyRunning(inst.to_string()),
@@ -316,9 +307,8 @@ pub fn run_with(
     }
     let fence = open_fence(inst)?;
     let cleanup = std::thread::spawn(|| {
-        lowest_priority();
-        // Garbage only (a crashed broker's ports, which keep one of the inbox's two
-        // reader slots): after the restart's storm, with what serving leaves.
+        // A crashed broker's ports (they keep one of the inbox's two reader slots) and
+        // other dead processes': after the restart's storm.
         std::thread::sleep(COLD_CLEANUP_DELAY);
         muster_shared::ipc::cleanup_dead_nodes(None)
     });
@@ -361,7 +351,7 @@ struct Primary {
     seq: u64,
     /// When a standby began taking over (it reports when it serves).
     standby_since: Option<Instant>,
-    /// Dead nodes being cleaned up (the list waits for the old broker's writer).
+    /// Dead nodes being cleaned up beside serving.
     cleanup: Option<std::thread::JoinHandle<usize>>,
     /// The presence ringer, if a standby made it ready beforehand.
     presence: Option<Ringer>,
@@ -408,11 +398,10 @@ pub fn run_standby(
         }
     }
     if let Some(old) = old.filter(|o| !o.exited()) {
-        // A hung primary still holds the list's writer (iceoryx2 gives it to one
-        // process) and its share of the broker's inbox: having taken its term, end it so
-        // they come free. Were it to wake first, the fence stops it before it acts. Its
+        // A hung primary still holds its share of the broker's inbox and would write
+        // its list when it woke: having taken its term, end it. Were it to wake first, the fence stops it before it acts. Its
         // exit (slow for a process with hundreds of mappings) is not waited for: the
-        // inbox takes a second reader, and the list waits for the cleanup.
+        // inbox takes more than one reader, and each run writes its own list.
         tracing::warn!(pid = old.pid(), "ending the hung primary");
         // SAFETY: kill(2) on a pid we hold a pidfd of (it cannot have been reused).
         unsafe { libc::kill(old.pid() as i32, libc::SIGKILL) };
@@ -425,11 +414,10 @@ pub fn run_standby(
         }
     }
     let killed_us = t0.elapsed().as_micros() as u64;
-    // The old primary's ports are cleaned up beside serving: its inbox takes a second
-    // reader meanwhile, and the list waits for the old writer to go.
+    // The old primary's ports are cleaned up beside serving: the broker's inbox takes
+    // more than one reader, and each run writes its own list.
     let cleanup = old_pid.map(|pid| {
         std::thread::spawn(move || {
-            lowest_priority();
             std::thread::sleep(CLEANUP_DELAY);
             muster_shared::ipc::cleanup_dead_nodes_of(pid)
         })

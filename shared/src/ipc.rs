@@ -121,9 +121,10 @@ fn service_name(name: &str) -> Result<ServiceName, TransportError> {
 pub struct InboxLimits {
     /// How many peers may write to it.
     pub max_publishers: usize,
-    /// How many processes may read it at once: one, but two for the broker's, so that a
-    /// new broker can take over before the old one's ports are cleaned up (the fence
-    /// says which of the two is the broker).
+    /// How many processes may read it at once: one, but four for the broker's, so that a
+    /// new broker can take over before old ones' ports are cleaned up (a cleanup under
+    /// load takes hundreds of ms, and a broker killed in the middle of one can leave a
+    /// dead reader behind for good); the fence says which reader is the broker.
     pub readers: usize,
     /// Frames queued per writing peer before further frames are dropped.
     pub buffer: usize,
@@ -135,7 +136,7 @@ impl InboxLimits {
         match addr {
             Address::Broker => InboxLimits {
                 max_publishers: MAX_PARTICIPANTS,
-                readers: 2,
+                readers: 4,
                 buffer: 32,
             },
             Address::System(_) => InboxLimits {
@@ -441,8 +442,8 @@ impl Endpoint {
     /// nobody does or it cannot be told. A process that claims to be `of` (a broker
     /// announcing itself, a system granting a session) is believed only if it is this
     /// process: an inbox has one reader, so a running broker or system cannot be posed as.
-    /// The broker's inbox may have two readers for a moment (a new broker took over
-    /// before the old one's ports were cleaned up): its owner is the one that holds the
+    /// The broker's inbox may have more readers for a while (a new broker took over
+    /// before old ones' ports were cleaned up): its owner is the one that holds the
     /// instance's fence.
     pub fn owner_pid(&mut self, of: &Address) -> Option<u32> {
         let readers = self.reader_pids(of);
@@ -791,7 +792,8 @@ fn presence_service(
     node.service_builder(&service_name(&name)?)
         .event()
         .max_listeners(MAX_PARTICIPANTS)
-        .max_notifiers(4)
+        // Brokers and standbys; a killed one's notifier stays until it is cleaned up.
+        .max_notifiers(16)
         .max_nodes(MAX_PARTICIPANTS + 4)
         .event_id_max_value(bell::MAX)
         .open_or_create()
@@ -1022,7 +1024,8 @@ fn replica_services(
         .publish_subscribe::<[u8]>()
         // rkyv reads a record in place: its bytes must be aligned like an AlignedVec.
         .payload_alignment(Alignment::new(16).expect("16 is a power of two"))
-        .max_publishers(2)
+        // Each primary in turn; a killed one's publisher stays until it is cleaned up.
+        .max_publishers(8)
         .max_subscribers(MAX_STANDBYS)
         .max_nodes(MAX_STANDBYS + 4)
         .subscriber_max_buffer_size(REPLICA_BUFFER)
@@ -1035,7 +1038,7 @@ fn replica_services(
     let bell = node
         .service_builder(&service_name(&bell_name)?)
         .event()
-        .max_notifiers(4)
+        .max_notifiers(8)
         .max_listeners(MAX_STANDBYS)
         .max_nodes(MAX_STANDBYS + 4)
         .event_id_max_value(bell::MAX)
