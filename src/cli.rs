@@ -54,6 +54,18 @@ pub enum Command {
     /// Make a key pair for a remote user (or the broker) and print the line to add to
     /// the broker's access file.
     Keygen(KeygenArgs),
+    /// (internal) Remove what dead processes left in shared memory: those of `--pid`,
+    /// or all. Brokers run it as a process of its own, so that a cleanup outlives a
+    /// broker killed in the middle of it (iceoryx2 never cleans a node whose cleaner died).
+    #[command(hide = true)]
+    Cleanup {
+        /// Only this dead process's.
+        #[arg(long)]
+        pid: Option<u32>,
+        /// Wait this long first.
+        #[arg(long, default_value = "0s", value_parser = duration)]
+        after: Duration,
+    },
 }
 
 #[derive(Subcommand, Debug)]

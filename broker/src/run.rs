@@ -217,6 +217,36 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
     run_with(inst, cfg, None, false)
 }
 
+/// Cleans up after dead processes (those of `pid`, or all) after `delay`, beside
+/// serving. In a process of its own (`muster cleanup`) where this is the muster binary:
+/// iceoryx2 never cleans a node whose cleaner died mid-way, and a broker can be killed
+/// at any moment. Elsewhere (a broker embedded in another program) in a thread.
+fn cleaner(inst: &Instance, pid: Option<u32>, delay: Duration) -> std::thread::JoinHandle<usize> {
+    let mut cmd = std::env::current_exe()
+        .ok()
+        .filter(|p| p.file_name().is_some_and(|n| n == "muster"))
+        .map(|exe| {
+            let mut c = std::process::Command::new(exe);
+            c.args(["--instance", inst.as_str(), "cleanup", "--after"])
+                .arg(format!("{}ms", delay.as_millis()))
+                .stdin(std::process::Stdio::null())
+                .stdout(std::process::Stdio::null());
+            if let Some(pid) = pid {
+                c.arg("--pid").arg(pid.to_string());
+            }
+            c
+        });
+    std::thread::spawn(move || {
+        if let Some(child) = cmd.as_mut().and_then(|c| c.spawn().ok()) {
+            let mut child = child;
+            let _ = child.wait();
+            return 0;
+        }
+        std::thread::sleep(delay);
+        muster_shared::ipc::cleanup_dead_nodes(pid)
+    })
+}
+
 /// How long a broker started cold waits before it cleans up after dead processes.
 const COLD_CLEANUP_DELAY: Duration = Duration::from_millis(500);
 
@@ -306,12 +336,9 @@ pub fn run_with(
         return Err(BrokerError::AlreadyRunning(inst.to_string()));
     }
     let fence = open_fence(inst)?;
-    let cleanup = std::thread::spawn(|| {
-        // A crashed broker's ports (they keep one of the inbox's two reader slots) and
-        // other dead processes': after the restart's storm.
-        std::thread::sleep(COLD_CLEANUP_DELAY);
-        muster_shared::ipc::cleanup_dead_nodes(None)
-    });
+    // A crashed broker's ports (they keep one of the inbox's reader slots) and other
+    // dead processes': after the restart's storm.
+    let cleanup = cleaner(inst, None, COLD_CLEANUP_DELAY);
     let me = claim_fence(&fence);
     let core = Broker::new(cfg, new_epoch(0), pid);
     serve(
@@ -416,12 +443,7 @@ pub fn run_standby(
     let killed_us = t0.elapsed().as_micros() as u64;
     // The old primary's ports are cleaned up beside serving: the broker's inbox takes
     // more than one reader, and each run writes its own list.
-    let cleanup = old_pid.map(|pid| {
-        std::thread::spawn(move || {
-            std::thread::sleep(CLEANUP_DELAY);
-            muster_shared::ipc::cleanup_dead_nodes_of(pid)
-        })
-    });
+    let cleanup = old_pid.map(|pid| cleaner(inst, Some(pid), CLEANUP_DELAY));
     let endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
         TransportError::InUse(_) => BrokerError::AlreadyRunning(inst.to_string()),
         other => BrokerError::from(other),

@@ -35,6 +35,12 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Sim(a) => sim::run(&inst, a),
         Command::Stress(a) => stress::run(&inst, a),
         Command::Keygen(a) => keygen::run(a),
+        Command::Cleanup { pid, after } => {
+            std::thread::sleep(after);
+            let n = muster_shared::ipc::cleanup_dead_nodes(pid);
+            tracing::debug!(nodes = n, "cleaned up after dead processes");
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Capacity(a) => capacity::run(a),
         Command::Experiment(crate::cli::ExperimentCommand::Link(a)) => experiment::link(&inst, a),
         Command::Experiment(crate::cli::ExperimentCommand::Scalability(a)) => {
