@@ -679,6 +679,11 @@ impl UdpFront {
             if self.closed.contains_key(&id) {
                 return self.stats.drops.count("after_close");
             }
+            if self.pending.contains_key(&id) {
+                // The user's first sealed datagrams overtook (or outlived) its FINAL:
+                // the connection is ours, just not up yet. It retransmits both.
+                return self.stats.drops.drop("before_final", &from);
+            }
             self.stats.drops.drop("unknown_conn", &from);
             // A connection of a broker before us (a standby took over, or we restarted
             // with the same key): tell the user at once, with the token only the key's

@@ -206,7 +206,7 @@ pub fn cleanup_dead_nodes_of(pid: u32) -> usize {
 /// Removes what dead processes left in shared memory: those of process `only`, or all.
 /// Returns how many nodes were removed.
 pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
-    use iceoryx2::node::NodeView;
+    use iceoryx2::node::{NodeCleanupFailure, NodeView};
     let mut dead = Vec::new();
     let _ = Node::<Ipc>::list(&config(true), |state| {
         if let NodeState::Dead(view) = state {
@@ -218,8 +218,14 @@ pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
     });
     let n = dead.len();
     for view in dead {
-        if let Err(e) = view.try_remove_stale_resources() {
-            tracing::warn!("cannot remove the resources of a dead process: {e:?}");
+        match view.try_remove_stale_resources() {
+            Ok(_) => {}
+            // Someone else (another process's cleanup) got there first: nothing is lost.
+            Err(
+                e @ (NodeCleanupFailure::ResourcesAlreadyCleanedUp
+                | NodeCleanupFailure::AnotherInstanceIsCleaningUpTheNode),
+            ) => tracing::debug!("a dead process's resources: {e:?}"),
+            Err(e) => tracing::warn!("cannot remove the resources of a dead process: {e:?}"),
         }
     }
     n

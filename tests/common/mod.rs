@@ -149,33 +149,43 @@ impl Fed {
         self.spawn(&args)
     }
 
-    /// Runs a command to completion (bounded); returns exit code and stdout.
+    /// Runs a command to completion (bounded); returns exit code and stdout. Its
+    /// stderr goes into the test's own output (shown when the test fails).
     pub fn run(&self, args: &[&str], timeout: Duration) -> (i32, String) {
-        let mut child = self
+        let child = self
             .command(args)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
+            .stderr(Stdio::piped())
             .spawn()
             .expect("spawn muster");
-        let deadline = Instant::now() + timeout;
-        loop {
-            if let Ok(Some(_)) = child.try_wait() {
-                let out = child.wait_with_output().expect("output");
-                return (
+        let pid = child.id() as i32;
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(child.wait_with_output());
+        });
+        match rx.recv_timeout(timeout) {
+            Ok(out) => {
+                let out = out.expect("output");
+                let err = String::from_utf8_lossy(&out.stderr);
+                if !err.is_empty() {
+                    eprint!("`muster {}` said on stderr:\n{err}", args.join(" "));
+                }
+                (
                     out.status.code().unwrap_or(-1),
                     String::from_utf8_lossy(&out.stdout).into(),
-                );
+                )
             }
-            if Instant::now() >= deadline {
-                let _ = child.kill();
-                let _ = child.wait();
+            Err(_) => {
+                // SAFETY: kill(2) on the child we started (not yet reaped: the waiting
+                // thread has not returned).
+                unsafe { libc::kill(pid, libc::SIGKILL) };
+                let _ = rx.recv_timeout(Duration::from_secs(5));
                 panic!(
                     "`muster {}` did not finish within {timeout:?}",
                     args.join(" ")
                 );
             }
-            std::thread::sleep(Duration::from_millis(10));
         }
     }
 
