@@ -247,6 +247,40 @@ fn cleaner(inst: &Instance, pid: Option<u32>, delay: Duration) -> std::thread::J
     })
 }
 
+/// Cleanups after dead peers while serving: one `muster cleanup` at a time (never in
+/// the broker's own process, which may be killed mid-way), and one more owed when
+/// deaths come while it runs.
+struct Cleanups {
+    inst: Instance,
+    running: Option<std::thread::JoinHandle<usize>>,
+    owed: bool,
+}
+
+impl Cleanups {
+    fn new(inst: &Instance, first: Option<std::thread::JoinHandle<usize>>) -> Self {
+        Cleanups {
+            inst: inst.clone(),
+            running: first,
+            owed: false,
+        }
+    }
+
+    /// Someone died: clean up after it now, or after the cleanup under way.
+    fn request(&mut self) {
+        self.owed = true;
+        self.poll();
+    }
+
+    /// Starts the owed cleanup once the one under way has ended.
+    fn poll(&mut self) {
+        if self.running.as_ref().is_some_and(|h| !h.is_finished()) || !self.owed {
+            return;
+        }
+        self.owed = false;
+        self.running = Some(cleaner(&self.inst, None, Duration::ZERO));
+    }
+}
+
 /// How long a broker started cold waits before it cleans up after dead processes.
 const COLD_CLEANUP_DELAY: Duration = Duration::from_millis(500);
 
@@ -756,9 +790,10 @@ fn serve(
         how,
         seq,
         standby_since,
-        cleanup: _cleanup,
+        cleanup,
         presence,
     } = p;
+    let mut cleanups = Cleanups::new(inst, cleanup);
     let setup = Instant::now();
     let mut steps: Vec<(&str, u64)> = Vec::new();
     let mut step = |name| steps.push((name, setup.elapsed().as_micros() as u64));
@@ -956,12 +991,14 @@ fn serve(
         shell.replica.heartbeat();
         if !died.is_empty() {
             // Nobody will read a dead peer's inbox: drop our ports to it now, then remove
-            // the dead process's iceoryx2 resources (its node shows as dead at once).
+            // the dead process's iceoryx2 resources (its node shows as dead at once) in
+            // a cleanup process.
             for addr in &died {
                 shell.endpoint.forget(addr);
             }
-            let state = shell.endpoint.node().try_cleanup_dead_nodes();
-            tracing::debug!(?state, "cleaned up dead nodes");
+            cleanups.request();
+        } else {
+            cleanups.poll();
         }
     }
 }
