@@ -281,6 +281,19 @@ impl Cleanups {
     }
 }
 
+impl Drop for Cleanups {
+    /// A broker leaving lets its cleanups end, and does the one owed: nobody else
+    /// would clean up after the peers that died last.
+    fn drop(&mut self) {
+        if let Some(h) = self.running.take() {
+            let _ = h.join();
+        }
+        if self.owed {
+            let _ = cleaner(&self.inst, None, Duration::ZERO).join();
+        }
+    }
+}
+
 /// How long a broker started cold waits before it cleans up after dead processes.
 const COLD_CLEANUP_DELAY: Duration = Duration::from_millis(500);
 
