@@ -59,7 +59,8 @@ pub enum Command {
     /// broker killed in the middle of it (iceoryx2 never cleans a node whose cleaner died).
     #[command(hide = true)]
     Cleanup {
-        /// Only this dead process's.
+        /// Only this process's, once it has exited (a process SIGKILLed while stopped
+        /// takes a moment to go; until then its nodes are not dead).
         #[arg(long)]
         pid: Option<u32>,
         /// Wait this long first.

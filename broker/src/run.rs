@@ -217,25 +217,34 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
     run_with(inst, cfg, None, false)
 }
 
-/// Cleans up after dead processes (those of `pid`, or all) after `delay`, beside
-/// serving. In a process of its own (`muster cleanup`) where this is the muster binary:
-/// iceoryx2 never cleans a node whose cleaner died mid-way, and a broker can be killed
-/// at any moment. Elsewhere (a broker embedded in another program) in a thread.
+/// The program whose `cleanup` subcommand cleans up after dead processes (see
+/// [`set_cleanup_program`]).
+static CLEANUP_PROGRAM: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+
+/// Names the program (the muster binary) whose `--instance I cleanup [--pid P] --after
+/// D` a broker runs to clean up after dead processes. Without it (a broker embedded in
+/// another program) cleanups run in a thread of the broker, which a kill can leave
+/// half-done.
+pub fn set_cleanup_program(exe: PathBuf) {
+    let _ = CLEANUP_PROGRAM.set(exe);
+}
+
+/// Cleans up after dead processes (those of `pid` first, once it has exited, then all)
+/// after `delay`, beside serving. In a process of its own where
+/// [`set_cleanup_program`] named one: iceoryx2 never cleans a node whose cleaner died
+/// mid-way, and a broker can be killed at any moment.
 fn cleaner(inst: &Instance, pid: Option<u32>, delay: Duration) -> std::thread::JoinHandle<usize> {
-    let mut cmd = std::env::current_exe()
-        .ok()
-        .filter(|p| p.file_name().is_some_and(|n| n == "muster"))
-        .map(|exe| {
-            let mut c = std::process::Command::new(exe);
-            c.args(["--instance", inst.as_str(), "cleanup", "--after"])
-                .arg(format!("{}ms", delay.as_millis()))
-                .stdin(std::process::Stdio::null())
-                .stdout(std::process::Stdio::null());
-            if let Some(pid) = pid {
-                c.arg("--pid").arg(pid.to_string());
-            }
-            c
-        });
+    let mut cmd = CLEANUP_PROGRAM.get().map(|exe| {
+        let mut c = std::process::Command::new(exe);
+        c.args(["--instance", inst.as_str(), "cleanup", "--after"])
+            .arg(format!("{}ms", delay.as_millis()))
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null());
+        if let Some(pid) = pid {
+            c.arg("--pid").arg(pid.to_string());
+        }
+        c
+    });
     std::thread::spawn(move || {
         if let Some(child) = cmd.as_mut().and_then(|c| c.spawn().ok()) {
             let mut child = child;
@@ -243,7 +252,7 @@ fn cleaner(inst: &Instance, pid: Option<u32>, delay: Duration) -> std::thread::J
             return 0;
         }
         std::thread::sleep(delay);
-        muster_shared::ipc::cleanup_dead_nodes(pid)
+        muster_shared::ipc::cleanup_after(pid)
     })
 }
 
@@ -710,6 +719,25 @@ fn follow(
         match pidfd {
             None => why = Some(Why::NoPrimary).filter(|_| heard.elapsed() >= deadline),
             Some(p) if p.exited() => why = Some(Why::Died),
+            Some(p)
+                if heard.elapsed() >= patience
+                    && !follower.synced()
+                    && !muster_shared::reactor::process_stopped(p.pid()) =>
+            {
+                // Silence toward a standby that never had a record is no proof the
+                // primary hangs (it may be this standby's stream that is not connected):
+                // taking over a live primary would grant twice. Without the state, only
+                // a primary seen stopped (or dead) is taken over; reconnect and ask again.
+                tracing::warn!(
+                    pid = p.pid(),
+                    "no record from the running primary: reopening the replication stream"
+                );
+                reactor.remove(reader.fd());
+                reader = ReplicaReader::open(node, inst)?;
+                reactor.add(reader.fd(), STANDBY_REPLICA)?;
+                heard = Instant::now();
+                asked = None;
+            }
             Some(_) if heard.elapsed() >= patience => why = Some(Why::Hung),
             Some(_) => {}
         }

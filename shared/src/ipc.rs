@@ -203,6 +203,23 @@ pub fn cleanup_dead_nodes_of(pid: u32) -> usize {
     cleanup_dead_nodes(Some(pid))
 }
 
+/// Removes what dead processes left in shared memory: first what `pid` left, once it
+/// has exited (a process SIGKILLed while stopped takes a moment to go, and its nodes
+/// are not dead until then), then what any other dead process left (a cleanup skipped
+/// because another was under way, or never run because its broker was killed first).
+/// Returns how many nodes were removed.
+pub fn cleanup_after(pid: Option<u32>) -> usize {
+    let mut n = 0;
+    if let Some(pid) = pid {
+        let until = std::time::Instant::now() + Duration::from_secs(10);
+        while crate::reactor::process_alive(pid) && std::time::Instant::now() < until {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        n += cleanup_dead_nodes(Some(pid));
+    }
+    n + cleanup_dead_nodes(None)
+}
+
 /// Removes what dead processes left in shared memory: those of process `only`, or all.
 /// Returns how many nodes were removed.
 pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {

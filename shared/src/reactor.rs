@@ -120,6 +120,17 @@ pub fn process_alive(pid: u32) -> bool {
     }
 }
 
+/// Whether process `pid` is stopped (SIGSTOP, or traced), from `/proc/PID/stat`.
+pub fn process_stopped(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .ok()
+        .and_then(|stat| {
+            stat.rsplit_once(')')
+                .and_then(|(_, rest)| rest.trim_start().chars().next())
+        })
+        .is_some_and(|state| state == 'T' || state == 't')
+}
+
 /// SIGINT/SIGTERM/SIGHUP delivered through a pipe, so the reactor wakes on them.
 pub struct SignalPipe {
     read: UnixStream,
@@ -188,6 +199,27 @@ pub fn raise_fd_limit() -> io::Result<u64> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_stopped_process_is_told_from_a_running_one() {
+        let mut child = std::process::Command::new("sleep")
+            .arg("5")
+            .spawn()
+            .unwrap();
+        let pid = child.id();
+        assert!(!process_stopped(pid));
+        // SAFETY: signals to our own child, not yet reaped.
+        unsafe { libc::kill(pid as i32, libc::SIGSTOP) };
+        let until = std::time::Instant::now() + Duration::from_secs(5);
+        while !process_stopped(pid) && std::time::Instant::now() < until {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        assert!(process_stopped(pid));
+        assert!(process_alive(pid), "stopped is not dead");
+        child.kill().unwrap();
+        child.wait().unwrap();
+        assert!(!process_stopped(pid));
+    }
 
     #[test]
     fn pidfd_sees_child_exit() {

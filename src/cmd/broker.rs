@@ -41,6 +41,10 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         }
     };
     let keep_log = a.handling_log.is_some();
+    // Cleanups after dead processes run as `muster cleanup`, outliving a killed broker.
+    if let Ok(exe) = std::env::current_exe() {
+        muster_broker::run::set_cleanup_program(exe);
+    }
     let report = if a.standby {
         muster_broker::run::run_standby(inst, cfg, udp, keep_log, a.takeover_deadline)?
     } else {
