@@ -209,6 +209,58 @@ pub fn cleanup_dead_nodes_of(pid: u32) -> usize {
 /// because another was under way, or never run because its broker was killed first).
 /// Returns how many nodes were removed.
 pub fn cleanup_after(pid: Option<u32>) -> usize {
+    // A segment whose creator was killed between creating and sizing it stays empty,
+    // and iceoryx2 0.10 waits forever to open an empty one (its cleanup of a dead
+    // node's connections among others): such segments go first, and again while the
+    // cleanup runs.
+    remove_stillborn_segments();
+    let running = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+    let watch = {
+        let running = running.clone();
+        std::thread::spawn(move || {
+            while running.load(std::sync::atomic::Ordering::Relaxed) {
+                std::thread::sleep(Duration::from_millis(250));
+                remove_stillborn_segments();
+            }
+        })
+    };
+    let n = cleanup_after_inner(pid);
+    running.store(false, std::sync::atomic::Ordering::Relaxed);
+    let _ = watch.join();
+    n
+}
+
+/// How long an empty segment must have stayed empty to be taken for stillborn (its
+/// creator sizes it microseconds after creating it).
+const STILLBORN_AFTER: Duration = Duration::from_secs(1);
+
+/// Removes iceoryx2 segments in /dev/shm that are empty and were made more than
+/// [`STILLBORN_AFTER`] ago: their creator died before sizing them. Returns how many.
+pub fn remove_stillborn_segments() -> usize {
+    let Ok(dir) = std::fs::read_dir("/dev/shm") else {
+        return 0;
+    };
+    let mut n = 0;
+    for entry in dir.flatten() {
+        if !entry.file_name().to_string_lossy().starts_with("iox2_") {
+            continue;
+        }
+        let Ok(meta) = entry.metadata() else { continue };
+        let old = meta
+            .modified()
+            .ok()
+            .and_then(|m| m.elapsed().ok())
+            .is_some_and(|age| age >= STILLBORN_AFTER);
+        if meta.is_file() && meta.len() == 0 && old && std::fs::remove_file(entry.path()).is_ok()
+        {
+            tracing::info!(segment = %entry.file_name().to_string_lossy(), "removed an empty segment its dead creator never sized");
+            n += 1;
+        }
+    }
+    n
+}
+
+fn cleanup_after_inner(pid: Option<u32>) -> usize {
     let mut n = 0;
     if let Some(pid) = pid {
         let until = std::time::Instant::now() + Duration::from_secs(10);
@@ -218,6 +270,31 @@ pub fn cleanup_after(pid: Option<u32>) -> usize {
         n += cleanup_dead_nodes(Some(pid));
     }
     n + cleanup_dead_nodes(None)
+}
+
+/// Removes what the dead process `pid` left, waiting up to `patience` for a cleanup
+/// another process has under way (a broker's inbox cannot be opened before its dead
+/// readers are gone). Returns how many of its nodes are gone.
+pub fn cleanup_dead_nodes_of_waiting(pid: u32, patience: Duration) -> usize {
+    use iceoryx2::node::NodeView;
+    let mut dead = Vec::new();
+    let _ = Node::<Ipc>::list(&config(true), |state| {
+        if let NodeState::Dead(view) = state {
+            if node_pid(view.id()) == Some(pid) {
+                dead.push(view);
+            }
+        }
+        CallbackProgression::Continue
+    });
+    dead.into_iter()
+        .filter(|view| match view.clone().blocking_remove_stale_resources(patience) {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::warn!(pid, "cannot remove the resources of a dead process: {e:?}");
+                false
+            }
+        })
+        .count()
 }
 
 /// Removes what dead processes left in shared memory: those of process `only`, or all.
@@ -329,12 +406,14 @@ impl Endpoint {
                     CallbackProgression::Continue
                 });
                 tracing::info!(inbox = %inbox_name, readers = ?dead, "the inbox's reader slots are held: cleaning up after dead readers");
+                remove_stillborn_segments();
                 let mut made = None;
                 for pid in dead
                     .into_iter()
                     .filter(|p| !crate::reactor::process_alive(*p))
                 {
-                    cleanup_dead_nodes_of(pid);
+                    // A cleanup process may be at it already: wait for it.
+                    cleanup_dead_nodes_of_waiting(pid, Duration::from_secs(3));
                     if let Ok(s) = svc.subscriber_builder().buffer_size(limits.buffer).create() {
                         made = Some(s);
                         break;
@@ -1312,5 +1391,35 @@ impl BellRinger {
         if self.notifier.is_none() {
             self.connect(node);
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_old_empty_segments_are_taken_for_stillborn() {
+        let name = |what: &str| format!("/dev/shm/iox2_muster_test_{}_{what}", std::process::id());
+        let long_ago = std::time::SystemTime::now() - Duration::from_secs(5);
+        let make = |path: &str, bytes: &[u8], modified: Option<std::time::SystemTime>| {
+            let f = std::fs::File::create(path).unwrap();
+            std::io::Write::write_all(&mut &f, bytes).unwrap();
+            if let Some(t) = modified {
+                f.set_modified(t).unwrap();
+            }
+        };
+        let (stillborn, fresh, sized) = (name("stillborn"), name("fresh"), name("sized"));
+        make(&stillborn, b"", Some(long_ago));
+        make(&fresh, b"", None);
+        make(&sized, b"data", Some(long_ago));
+        assert!(remove_stillborn_segments() >= 1);
+        let exists = |p: &str| std::path::Path::new(p).exists();
+        assert!(!exists(&stillborn), "an empty segment left for 5 s goes");
+        assert!(exists(&fresh), "one being made now stays");
+        assert!(exists(&sized), "a sized one stays");
+        std::fs::remove_file(&fresh).unwrap();
+        std::fs::remove_file(&sized).unwrap();
     }
 }
