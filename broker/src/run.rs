@@ -303,6 +303,9 @@ impl Drop for Cleanups {
     }
 }
 
+/// How long after taking over a new primary rings the presence event (see `serve`).
+const TAKEOVER_RING_DELAY: Duration = Duration::from_millis(60);
+
 /// How long a broker started cold waits before it cleans up after dead processes.
 const COLD_CLEANUP_DELAY: Duration = Duration::from_millis(500);
 
@@ -897,10 +900,17 @@ fn serve(
     step("ports");
     shell.flush(&mut core, host_now())?;
     step("flush");
-    presence.ring(match how {
-        Start::Cold => bell::BROKER_UP,
-        Start::Takeover => bell::TAKEOVER,
-    });
+    // A cold start rings at once: nobody can do anything before it. After a takeover
+    // the ring waits a moment: users with requests out have found this broker through
+    // the fence already, systems take its offers once they saw the old one die, and
+    // waking every process at once now would only delay the first interactions.
+    let mut takeover_ring = match how {
+        Start::Cold => {
+            presence.ring(bell::BROKER_UP);
+            None
+        }
+        Start::Takeover => Some(Instant::now() + TAKEOVER_RING_DELAY),
+    };
     step("ring");
     tracing::debug!(?steps, "broker setup, us since the start of serving");
     tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), term = me.term, "broker up");
@@ -927,6 +937,7 @@ fn serve(
             remote_return
                 .as_ref()
                 .map(|(t, _)| t.saturating_duration_since(Instant::now())),
+            takeover_ring.map(|t| t.saturating_duration_since(Instant::now())),
         ]
         .into_iter()
         .flatten()
@@ -1028,6 +1039,10 @@ fn serve(
             }
         }
         shell.flush(&mut core, host_now())?;
+        if takeover_ring.is_some_and(|t| Instant::now() >= t) {
+            takeover_ring = None;
+            presence.ring(bell::TAKEOVER);
+        }
         shell.ring_watchers(&core);
         shell.replica.heartbeat();
         if !died.is_empty() {
