@@ -277,7 +277,7 @@ pub struct FailoverArgs {
     #[arg(long, default_value = "both")]
     pub signal: String,
     /// The standbys' --takeover-deadline.
-    #[arg(long, default_value = "150ms", value_parser = duration)]
+    #[arg(long, default_value = "100ms", value_parser = duration)]
     pub deadline: Duration,
     /// A requester's pause between two requests.
     #[arg(long, default_value = "20ms", value_parser = duration)]
@@ -396,7 +396,7 @@ pub struct BrokerArgs {
     pub standby: bool,
     /// How long a standby waits without a word from the primary before it takes the
     /// primary for hung and takes over (wall time).
-    #[arg(long, default_value = "150ms", value_parser = duration, requires = "standby")]
+    #[arg(long, default_value = "100ms", value_parser = duration, requires = "standby")]
     pub takeover_deadline: Duration,
 }
 

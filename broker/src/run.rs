@@ -320,7 +320,7 @@ const CLEANUP_DELAY: Duration = Duration::from_millis(200);
 /// to say.
 pub const HEARTBEAT: Duration = Duration::from_millis(20);
 /// How long a standby waits without a record before it takes the primary for hung.
-pub const DEFAULT_TAKEOVER_DEADLINE: Duration = Duration::from_millis(150);
+pub const DEFAULT_TAKEOVER_DEADLINE: Duration = Duration::from_millis(100);
 
 /// The time on the host's monotonic clock: one clock for a primary and its standbys, so
 /// the deadlines in the replicated state mean the same in both.

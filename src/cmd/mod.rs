@@ -36,9 +36,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Stress(a) => stress::run(&inst, a),
         Command::Keygen(a) => keygen::run(a),
         Command::Cleanup { pid, after } => {
-            // Beside the storm a takeover or restart brings, never ahead of it.
-            // SAFETY: setpriority(2) on this process only.
-            unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, 19) };
             std::thread::sleep(after);
             let n = muster_shared::ipc::cleanup_after(pid);
             tracing::debug!(nodes = n, "cleaned up after dead processes");

@@ -191,13 +191,21 @@ pub struct UserCore {
     regrants: u64,
     /// Grants for a request this user no longer had out (ended at once).
     unwanted_grants: u64,
+    /// The sessions this user held last (at most [`RECENTLY_CLOSED`]), oldest first: a
+    /// repeated offer that crossed a takeover may be answered with one of them after
+    /// the user ended it, before the system heard the end.
+    closed: std::collections::VecDeque<SessionId>,
 }
+
+/// How many closed sessions a user remembers.
+const RECENTLY_CLOSED: usize = 256;
 
 impl UserCore {
     /// A user `id` in process `pid`; `watch_list` asks the broker to ring on list changes.
     pub fn new(id: UserId, pid: u32, watch_list: bool) -> Self {
         UserCore {
             ending: std::collections::BTreeSet::new(),
+            closed: std::collections::VecDeque::new(),
             id,
             pid,
             watch_list,
@@ -455,6 +463,10 @@ impl UserCore {
         let Some(s) = self.sessions.remove(&session) else {
             return;
         };
+        if self.closed.len() >= RECENTLY_CLOSED {
+            self.closed.pop_front();
+        }
+        self.closed.push_back(session);
         if tell_system {
             self.out.push_back(UserOutput::ToSystem(
                 s.system.clone(),
@@ -682,8 +694,14 @@ impl UserCore {
             return;
         }
         let Some(p) = self.pending.remove(&req) else {
-            // Granted after we gave up (cancelled, refused on timeout): end it at once.
-            self.unwanted_grants += 1;
+            // Granted after we gave up (cancelled, refused on timeout), or a session we
+            // held and ended granted again (a repeated offer that crossed our end on its
+            // way to the system): end it at once. Only the first is a second grant.
+            if self.closed.contains(&session) {
+                self.regrants += 1;
+            } else {
+                self.unwanted_grants += 1;
+            }
             self.out.push_back(UserOutput::ToSystem(
                 system,
                 ToSystem::End {
@@ -849,6 +867,16 @@ mod tests {
             UserOutput::ToSystem(_, ToSystem::End { session, .. }) if *session == SessionId(8)
         )));
         assert_eq!(u.unwanted_grants(), 1);
+        // Session 7 ended by the user, then granted again by a repeated offer that
+        // crossed the end: ended again, and not a second grant.
+        u.end(SessionId(7));
+        outs(&mut u);
+        grant(&mut u, req, 7, "t1/s0", ServiceKind::Data, "pose2d");
+        assert!(outs(&mut u).iter().any(|o| matches!(
+            o,
+            UserOutput::ToSystem(_, ToSystem::End { session, .. }) if *session == SessionId(7)
+        )));
+        assert_eq!((u.regrants(), u.unwanted_grants()), (2, 1));
     }
 
     fn grant(
