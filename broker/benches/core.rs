@@ -195,9 +195,7 @@ fn codec(c: &mut Criterion) {
         service: ServiceId::new("f3", "s1"),
     };
     let frame = encode(&request).expect("encodes");
-    g.bench_function("request_encode", |b| {
-        b.iter(|| encode(black_box(&request)))
-    });
+    g.bench_function("request_encode", |b| b.iter(|| encode(black_box(&request))));
     g.bench_function("request_decode", |b| {
         b.iter(|| decode::<ToBroker>(black_box(&frame)))
     });

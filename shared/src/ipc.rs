@@ -251,8 +251,7 @@ pub fn remove_stillborn_segments() -> usize {
             .ok()
             .and_then(|m| m.elapsed().ok())
             .is_some_and(|age| age >= STILLBORN_AFTER);
-        if meta.is_file() && meta.len() == 0 && old && std::fs::remove_file(entry.path()).is_ok()
-        {
+        if meta.is_file() && meta.len() == 0 && old && std::fs::remove_file(entry.path()).is_ok() {
             tracing::info!(segment = %entry.file_name().to_string_lossy(), "removed an empty segment its dead creator never sized");
             n += 1;
         }
@@ -292,13 +291,15 @@ pub fn cleanup_dead_nodes_of_waiting(pid: u32, patience: Duration) -> usize {
         CallbackProgression::Continue
     });
     dead.into_iter()
-        .filter(|view| match view.clone().blocking_remove_stale_resources(patience) {
-            Ok(()) => true,
-            Err(e) => {
-                tracing::warn!(pid, "cannot remove the resources of a dead process: {e:?}");
-                false
-            }
-        })
+        .filter(
+            |view| match view.clone().blocking_remove_stale_resources(patience) {
+                Ok(()) => true,
+                Err(e) => {
+                    tracing::warn!(pid, "cannot remove the resources of a dead process: {e:?}");
+                    false
+                }
+            },
+        )
         .count()
 }
 

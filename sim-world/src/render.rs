@@ -10,6 +10,11 @@ use imageproc::drawing::{draw_filled_circle_mut, draw_hollow_circle_mut, draw_li
 /// Pixels per metre.
 pub const SCALE: f64 = 20.0;
 
+/// The camera's view, cut at walls.
+const CAMERA_VIEW: Rgb<u8> = Rgb([215, 215, 245]);
+/// The camera cone's edges.
+const CAMERA_EDGE: Rgb<u8> = Rgb([120, 120, 230]);
+
 /// Renders `world` to an image (at most 4096 px on a side).
 pub fn render(world: &World) -> RgbImage {
     let (mut img, px) = map_image(world.map());
@@ -77,6 +82,30 @@ fn draw_world(img: &mut RgbImage, world: &World, scale: f64, px: &impl Fn(f64, f
     for r in world.robots() {
         let p = r.pose;
         let from = px(p.x, p.y);
+        if let Some(c) = &r.spec.camera {
+            // What the camera can see: its cone, cut where walls stop the view (rays
+            // about a pixel apart at the cone's far end), with its edges drawn darker.
+            let (fov, range) = camera_cone(c, r.ptz.zoom);
+            let axis = p.theta + r.ptz.pan;
+            let reach = |a: f64| world.map().raycast(p.x, p.y, a, range).unwrap_or(range);
+            let rays = ((fov * range * scale).ceil() as usize).clamp(2, 2000);
+            for k in 0..=rays {
+                let a = axis - fov / 2.0 + fov * k as f64 / rays as f64;
+                let d = reach(a);
+                let edge = k == 0 || k == rays;
+                draw_line_segment_mut(
+                    img,
+                    from,
+                    px(p.x + d * a.cos(), p.y + d * a.sin()),
+                    if edge { CAMERA_EDGE } else { CAMERA_VIEW },
+                );
+            }
+        }
+    }
+    // Laser rays over every camera's view, so both show.
+    for r in world.robots() {
+        let p = r.pose;
+        let from = px(p.x, p.y);
         if let Some(l) = &r.spec.laser {
             let n = r.laser.len();
             let fov = l.fov_deg.to_radians();
@@ -89,18 +118,6 @@ fn draw_world(img: &mut RgbImage, world: &World, scale: f64, px: &impl Fn(f64, f
                     from,
                     px(p.x + d * a.cos(), p.y + d * a.sin()),
                     Rgb([170, 230, 170]),
-                );
-            }
-        }
-        if let Some(c) = &r.spec.camera {
-            let (fov, range) = camera_cone(c, r.ptz.zoom);
-            let axis = p.theta + r.ptz.pan;
-            for a in [axis - fov / 2.0, axis + fov / 2.0] {
-                draw_line_segment_mut(
-                    img,
-                    from,
-                    px(p.x + range * a.cos(), p.y + range * a.sin()),
-                    Rgb([120, 120, 230]),
                 );
             }
         }
@@ -157,5 +174,86 @@ mod tests {
             (400.0 - t1.pose.y * SCALE) as u32,
         );
         assert_ne!(img.get_pixel(x + 2, y + 2), &Rgb([255, 255, 255]));
+    }
+
+    #[test]
+    fn the_camera_view_stops_at_walls() {
+        let mut w = World::new(&Scenario::paper(), None).unwrap();
+        w.step(1.0);
+        let img = render(&w);
+        let (h, map) = (f64::from(img.height()), w.map());
+        let pixel = |x: f64, y: f64| *img.get_pixel((x * SCALE) as u32, (h - y * SCALE) as u32);
+        let mut checked = 0;
+        for r in w.robots() {
+            let Some(c) = &r.spec.camera else { continue };
+            let (fov, range) = camera_cone(c, r.ptz.zoom);
+            let axis = r.pose.theta + r.ptz.pan;
+            for k in 0..=40 {
+                let a = axis - fov / 2.0 + fov * f64::from(k) / 40.0;
+                let (x, y) = (r.pose.x, r.pose.y);
+                let Some(d) = map.raycast(x, y, a, range) else {
+                    continue;
+                };
+                // A free spot behind the wall, still within the camera's range: hidden.
+                let behind = d + 0.6;
+                let (bx, by) = (x + behind * a.cos(), y + behind * a.sin());
+                let inside = bx > 0.1 && by > 0.1 && bx < 39.9 && by < 19.9;
+                // Another camera may see it, rightly, or a ray through a door beside the
+                // wall pass within a pixel or two of it: only a spot no camera sees from
+                // anywhere near counts.
+                let near: Vec<(f64, f64)> = [
+                    (0.0, 0.0),
+                    (0.15, 0.0),
+                    (-0.15, 0.0),
+                    (0.0, 0.15),
+                    (0.0, -0.15),
+                ]
+                .iter()
+                .map(|(ex, ey)| (bx + ex, by + ey))
+                .collect();
+                let seen_by_any = near.iter().any(|&(bx, by)| {
+                    w.robots().iter().any(|o| {
+                        let Some(oc) = &o.spec.camera else {
+                            return false;
+                        };
+                        let (ofov, orange) = camera_cone(oc, o.ptz.zoom);
+                        let (dx, dy) = (bx - o.pose.x, by - o.pose.y);
+                        let dist = dx.hypot(dy);
+                        let off = (dy.atan2(dx) - o.pose.theta - o.ptz.pan + std::f64::consts::PI)
+                            .rem_euclid(std::f64::consts::TAU)
+                            - std::f64::consts::PI;
+                        off.abs() <= ofov / 2.0 + 0.05
+                            && dist <= orange + 0.2
+                            && map
+                                .raycast(o.pose.x, o.pose.y, dy.atan2(dx), dist)
+                                .is_none_or(|hit| hit >= dist - 0.2)
+                    })
+                });
+                if behind < range && inside && !map.blocked(bx, by) && !seen_by_any {
+                    let seen = pixel(bx, by);
+                    assert!(
+                        seen != CAMERA_VIEW && seen != CAMERA_EDGE,
+                        "{} sees through the wall at ({bx:.1}, {by:.1}): {seen:?}, wall at {d:.2} m along {a:.2} rad from ({x:.2}, {y:.2}), range {range:.1}",
+                        r.spec.name
+                    );
+                    checked += 1;
+                }
+            }
+            // And in front of the camera, its view is drawn.
+            let d = map
+                .raycast(r.pose.x, r.pose.y, axis, range)
+                .unwrap_or(range);
+            let near = (d * 0.5).min(1.0);
+            let front = pixel(r.pose.x + near * axis.cos(), r.pose.y + near * axis.sin());
+            assert!(
+                front == CAMERA_VIEW || front == CAMERA_EDGE || front != Rgb([255, 255, 255]),
+                "{}: nothing drawn in front of the camera",
+                r.spec.name
+            );
+        }
+        assert!(
+            checked > 0,
+            "no camera ray met a wall with free space behind it"
+        );
     }
 }
