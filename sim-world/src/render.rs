@@ -5,7 +5,11 @@ use crate::map::OccupancyMap;
 use crate::sensors::camera_cone;
 use crate::world::{World, PERSON_RADIUS};
 use image::{Rgb, RgbImage};
-use imageproc::drawing::{draw_filled_circle_mut, draw_hollow_circle_mut, draw_line_segment_mut};
+use imageproc::drawing::{
+    draw_filled_circle_mut, draw_filled_rect_mut, draw_hollow_circle_mut, draw_hollow_rect_mut,
+    draw_line_segment_mut,
+};
+use imageproc::rect::Rect;
 
 /// Pixels per metre.
 pub const SCALE: f64 = 20.0;
@@ -15,12 +19,95 @@ const CAMERA_VIEW: Rgb<u8> = Rgb([215, 215, 245]);
 /// The camera cone's edges.
 const CAMERA_EDGE: Rgb<u8> = Rgb([120, 120, 230]);
 
-/// Renders `world` to an image (at most 4096 px on a side).
+/// Renders `world` to an image (at most 4096 px on a side): what it shows, each robot
+/// named beside it, and a legend.
 pub fn render(world: &World) -> RgbImage {
     let (mut img, px) = map_image(world.map());
     let scale = scale_of(world.map());
     draw_world(&mut img, world, scale, &px);
+    for r in world.robots() {
+        let (cx, cy) = px(r.pose.x, r.pose.y);
+        let rad = (r.spec.drive.radius * scale).round() as i32;
+        label(
+            &mut img,
+            cx as i32 + rad + 3,
+            cy as i32 - rad - 10,
+            &r.spec.name,
+        );
+    }
+    legend(
+        &mut img,
+        &[
+            (CAMERA_VIEW, "camera view"),
+            (LASER, "laser"),
+            (ROBOT, "robot"),
+            (Rgb([230, 40, 40]), "heading"),
+        ],
+        "people: beacon colour",
+    );
     img
+}
+
+/// Text colour: pure black, which nothing else is drawn in.
+pub const TEXT: Rgb<u8> = Rgb([0, 0, 0]);
+/// Laser rays.
+const LASER: Rgb<u8> = Rgb([170, 230, 170]);
+/// Robot bodies.
+const ROBOT: Rgb<u8> = Rgb([90, 90, 90]);
+
+/// Writes `text` (ASCII, 8×8 glyphs of the public-domain font8x8) with its top-left
+/// corner at (x, y), clipped to the image.
+fn text(img: &mut RgbImage, x: i32, y: i32, text: &str, rgb: Rgb<u8>) {
+    for (k, c) in text.chars().enumerate() {
+        let glyph = font8x8::legacy::BASIC_LEGACY
+            .get(c as usize)
+            .copied()
+            .unwrap_or(font8x8::legacy::BASIC_LEGACY[usize::from(b'?')]);
+        for (row, bits) in glyph.iter().enumerate() {
+            for col in 0..8 {
+                if bits & (1 << col) != 0 {
+                    let (px, py) = (x + 8 * k as i32 + col, y + row as i32);
+                    if px >= 0 && py >= 0 && (px as u32) < img.width() && (py as u32) < img.height()
+                    {
+                        img.put_pixel(px as u32, py as u32, rgb);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A name on a white patch, so it reads over walls and rays.
+fn label(img: &mut RgbImage, x: i32, y: i32, name: &str) {
+    let w = 8 * name.chars().count() as u32 + 2;
+    draw_filled_rect_mut(
+        img,
+        Rect::at(x - 1, y - 1).of_size(w, 10),
+        Rgb([255, 255, 255]),
+    );
+    text(img, x, y, name, TEXT);
+}
+
+/// A legend in the top-left corner: a swatch and a line per entry, and a closing line.
+fn legend(img: &mut RgbImage, entries: &[(Rgb<u8>, &str)], last: &str) {
+    let lines = entries.len() as u32 + 1;
+    let width = 8 * entries
+        .iter()
+        .map(|(_, t)| t.len() + 3)
+        .chain([last.len()])
+        .max()
+        .unwrap_or(0) as u32
+        + 12;
+    let (x0, y0) = (6i32, 6i32);
+    let rect = Rect::at(x0, y0).of_size(width, 12 * lines + 8);
+    draw_filled_rect_mut(img, rect, Rgb([255, 255, 255]));
+    draw_hollow_rect_mut(img, rect, Rgb([120, 120, 120]));
+    for (i, (rgb, name)) in entries.iter().enumerate() {
+        let y = y0 + 6 + 12 * i as i32;
+        draw_filled_rect_mut(img, Rect::at(x0 + 6, y).of_size(16, 8), *rgb);
+        text(img, x0 + 30, y, name, TEXT);
+    }
+    text(img, x0 + 6, y0 + 6 + 12 * entries.len() as i32, last, TEXT);
 }
 
 fn scale_of(map: &OccupancyMap) -> f64 {
@@ -113,12 +200,7 @@ fn draw_world(img: &mut RgbImage, world: &World, scale: f64, px: &impl Fn(f64, f
             for (k, range) in r.laser.iter().enumerate().step_by(3) {
                 let a = p.theta - fov / 2.0 + step * k as f64;
                 let d = f64::from(*range);
-                draw_line_segment_mut(
-                    img,
-                    from,
-                    px(p.x + d * a.cos(), p.y + d * a.sin()),
-                    Rgb([170, 230, 170]),
-                );
+                draw_line_segment_mut(img, from, px(p.x + d * a.cos(), p.y + d * a.sin()), LASER);
             }
         }
     }
@@ -126,7 +208,7 @@ fn draw_world(img: &mut RgbImage, world: &World, scale: f64, px: &impl Fn(f64, f
         let p = r.pose;
         let (cx, cy) = px(p.x, p.y);
         let rad = (r.spec.drive.radius * scale).round() as i32;
-        draw_filled_circle_mut(img, (cx as i32, cy as i32), rad.max(2), Rgb([90, 90, 90]));
+        draw_filled_circle_mut(img, (cx as i32, cy as i32), rad.max(2), ROBOT);
         if let Some(b) = r.spec.beacon {
             draw_hollow_circle_mut(img, (cx as i32, cy as i32), rad.max(2), Rgb(b.rgb()));
         }
@@ -174,6 +256,32 @@ mod tests {
             (400.0 - t1.pose.y * SCALE) as u32,
         );
         assert_ne!(img.get_pixel(x + 2, y + 2), &Rgb([255, 255, 255]));
+    }
+
+    #[test]
+    fn robots_are_named_and_a_legend_says_what_is_what() {
+        let mut w = World::new(&Scenario::paper(), None).unwrap();
+        w.step(1.0);
+        let img = render(&w);
+        let text_in = |x0: u32, y0: u32, wd: u32, ht: u32| {
+            (x0..(x0 + wd).min(img.width()))
+                .flat_map(|x| (y0..(y0 + ht).min(img.height())).map(move |y| (x, y)))
+                .filter(|&(x, y)| img.get_pixel(x, y) == &TEXT)
+                .count()
+        };
+        let mut names = Vec::new();
+        for r in w.robots() {
+            let (x, y) = ((r.pose.x * SCALE) as u32, (400.0 - r.pose.y * SCALE) as u32);
+            let rad = (r.spec.drive.radius * SCALE).round() as u32;
+            // The name's glyphs, right of the robot and a little above it.
+            let n = r.spec.name.len() as u32;
+            let ink = text_in(x + rad + 3, y.saturating_sub(rad + 10), 8 * n, 8);
+            assert!(ink >= 6 * n as usize, "{}: {ink} text pixels", r.spec.name);
+            names.push(r.spec.name.clone());
+        }
+        assert_eq!(names, ["T1", "T2", "T3", "D1"]);
+        // The legend's five lines of text in the top-left corner.
+        assert!(text_in(6, 6, 200, 68) > 5 * 40);
     }
 
     #[test]
