@@ -143,25 +143,33 @@ fn map_image(map: &OccupancyMap) -> (RgbImage, impl Fn(f64, f64) -> (f32, f32)) 
     (img, px)
 }
 
-/// A path to draw: points in metres and an RGB colour.
-pub type Path = (Vec<(f64, f64)>, [u8; 3]);
+/// A path to draw: points in metres, an RGB colour and what it is ("T3", "person").
+pub type Path<'a> = (Vec<(f64, f64)>, [u8; 3], &'a str);
 
-/// Draws paths (polylines in metres, each in its colour, with a dot where it ends) over
-/// the map: the picture of a run, like the paper's Figure 3.
+/// Draws paths (polylines in metres, each in its colour, with a dot and its name where
+/// it ends) over the map, with a legend: the picture of a run, like the paper's Figure 3.
 pub fn render_paths(map: &OccupancyMap, paths: &[Path]) -> RgbImage {
     let (mut img, px) = map_image(map);
-    for (path, rgb) in paths {
+    for (path, rgb, _) in paths {
         for w in path.windows(2) {
             let (a, b) = (px(w[0].0, w[0].1), px(w[1].0, w[1].1));
             // Two pixels wide.
             draw_line_segment_mut(&mut img, a, b, Rgb(*rgb));
             draw_line_segment_mut(&mut img, (a.0 + 1.0, a.1), (b.0 + 1.0, b.1), Rgb(*rgb));
         }
+    }
+    for (path, rgb, name) in paths {
         if let Some(&(x, y)) = path.last() {
             let (cx, cy) = px(x, y);
             draw_filled_circle_mut(&mut img, (cx as i32, cy as i32), 5, Rgb(*rgb));
+            label(&mut img, cx as i32 + 8, cy as i32 - 14, name);
         }
     }
+    let entries: Vec<(Rgb<u8>, &str)> = paths
+        .iter()
+        .map(|(_, rgb, name)| (Rgb(*rgb), *name))
+        .collect();
+    legend(&mut img, &entries, "dot: where it ended");
     img
 }
 
@@ -282,6 +290,35 @@ mod tests {
         assert_eq!(names, ["T1", "T2", "T3", "D1"]);
         // The legend's five lines of text in the top-left corner.
         assert!(text_in(6, 6, 200, 68) > 5 * 40);
+    }
+
+    #[test]
+    fn paths_are_drawn_named_at_their_ends_with_a_legend() {
+        let map = OccupancyMap::office();
+        let img = render_paths(
+            &map,
+            &[
+                (vec![(5.0, 3.0), (15.0, 3.0)], [220, 30, 30], "person"),
+                (vec![(5.0, 17.0), (30.0, 17.0)], [30, 90, 230], "D1"),
+            ],
+        );
+        let h = f64::from(img.height());
+        let at = |x: f64, y: f64| ((x * SCALE) as u32, (h - y * SCALE) as u32);
+        // Along each path, its colour.
+        let (x, y) = at(10.0, 3.0);
+        assert_eq!(img.get_pixel(x, y), &Rgb([220, 30, 30]));
+        // Beside each end, its name in text.
+        for (end, name) in [((15.0, 3.0), "person"), ((30.0, 17.0), "D1")] {
+            let (x, y) = at(end.0, end.1);
+            let ink = (x + 8..x + 8 + 8 * name.len() as u32)
+                .flat_map(|i| (y - 14..y - 6).map(move |j| (i, j)))
+                .filter(|&(i, j)| img.get_pixel(i, j) == &TEXT)
+                .count();
+            assert!(ink >= 6 * name.len(), "{name}: {ink} text pixels");
+        }
+        // The legend: a swatch per path in its colour.
+        assert_eq!(img.get_pixel(14, 16), &Rgb([220, 30, 30]));
+        assert_eq!(img.get_pixel(14, 28), &Rgb([30, 90, 230]));
     }
 
     #[test]

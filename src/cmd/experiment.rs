@@ -213,9 +213,9 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     render_paths(
         &map,
         &[
-            (path(|s| s.t3), [120, 120, 120]),
-            (path(|s| s.person()), [220, 30, 30]),
-            (path(|s| s.d1), [30, 90, 230]),
+            (path(|s| s.t3), [120, 120, 120], "T3"),
+            (path(|s| s.person()), [220, 30, 30], "person followed"),
+            (path(|s| s.d1), [30, 90, 230], "D1"),
         ],
     )
     .save(dir.join("figure3.png"))?;

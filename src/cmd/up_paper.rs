@@ -84,16 +84,24 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     render_paths(
         &OccupancyMap::office(),
         &[
-            (people(1), [30, 170, 30]),
-            (people(2), [40, 60, 230]),
-            (people(0), [220, 30, 30]),
-            (rec.samples.iter().map(|s| s.t3).collect(), [120, 120, 120]),
-            (rec.samples.iter().map(|s| s.d1).collect(), [0, 0, 0]),
+            (people(1), [30, 170, 30], "person (green)"),
+            (people(2), [40, 60, 230], "person (blue)"),
+            (people(0), [220, 30, 30], "person (red)"),
+            (
+                rec.samples.iter().map(|s| s.t3).collect(),
+                [120, 120, 120],
+                "T3",
+            ),
+            (
+                rec.samples.iter().map(|s| s.d1).collect(),
+                [230, 140, 0],
+                "D1",
+            ),
         ],
     )
     .save(&picture)?;
     println!(
-        "muster up: stopped after {:.0} sim s; {} contacts; followed {}; picture of the run (people in their beacon colours, T3 grey, D1 black): {}",
+        "muster up: stopped after {:.0} sim s; {} contacts; followed {}; picture of the run (people in their beacon colours, T3 grey, D1 orange): {}",
         rec.now,
         rec.total_contacts(),
         followed.unwrap_or("nobody"),
