@@ -25,11 +25,13 @@ pub fn render(world: &World) -> RgbImage {
     let (mut img, px) = map_image(world.map());
     let scale = scale_of(world.map());
     draw_world(&mut img, world, scale, &px);
+    let mut placed = Vec::new();
     for r in world.robots() {
         let (cx, cy) = px(r.pose.x, r.pose.y);
         let rad = (r.spec.drive.radius * scale).round() as i32;
         label(
             &mut img,
+            &mut placed,
             cx as i32 + rad + 3,
             cy as i32 - rad - 10,
             &r.spec.name,
@@ -77,15 +79,22 @@ fn text(img: &mut RgbImage, x: i32, y: i32, text: &str, rgb: Rgb<u8>) {
     }
 }
 
-/// A name on a white patch, so it reads over walls and rays.
-fn label(img: &mut RgbImage, x: i32, y: i32, name: &str) {
+/// A name on a white patch, so it reads over walls and rays; moved down below the
+/// names already `placed` that it would cover.
+fn label(img: &mut RgbImage, placed: &mut Vec<Rect>, x: i32, y: i32, name: &str) {
     let w = 8 * name.chars().count() as u32 + 2;
-    draw_filled_rect_mut(
-        img,
-        Rect::at(x - 1, y - 1).of_size(w, 10),
-        Rgb([255, 255, 255]),
-    );
-    text(img, x, y, name, TEXT);
+    let mut patch = Rect::at(x - 1, y - 1).of_size(w, 10);
+    while let Some(below) = placed
+        .iter()
+        .filter(|p| p.intersect(patch).is_some())
+        .map(|p| p.bottom() + 2)
+        .max()
+    {
+        patch = Rect::at(patch.left(), below).of_size(w, 10);
+    }
+    draw_filled_rect_mut(img, patch, Rgb([255, 255, 255]));
+    text(img, patch.left() + 1, patch.top() + 1, name, TEXT);
+    placed.push(patch);
 }
 
 /// A legend in the top-left corner: a swatch and a line per entry, and a closing line.
@@ -158,11 +167,18 @@ pub fn render_paths(map: &OccupancyMap, paths: &[Path]) -> RgbImage {
             draw_line_segment_mut(&mut img, (a.0 + 1.0, a.1), (b.0 + 1.0, b.1), Rgb(*rgb));
         }
     }
-    for (path, rgb, name) in paths {
+    for (path, rgb, _) in paths {
         if let Some(&(x, y)) = path.last() {
             let (cx, cy) = px(x, y);
             draw_filled_circle_mut(&mut img, (cx as i32, cy as i32), 5, Rgb(*rgb));
-            label(&mut img, cx as i32 + 8, cy as i32 - 14, name);
+        }
+    }
+    // Names last, so no dot covers one.
+    let mut placed = Vec::new();
+    for (path, _, name) in paths {
+        if let Some(&(x, y)) = path.last() {
+            let (cx, cy) = px(x, y);
+            label(&mut img, &mut placed, cx as i32 + 8, cy as i32 - 14, name);
         }
     }
     let entries: Vec<(Rgb<u8>, &str)> = paths
@@ -319,6 +335,20 @@ mod tests {
         // The legend: a swatch per path in its colour.
         assert_eq!(img.get_pixel(14, 16), &Rgb([220, 30, 30]));
         assert_eq!(img.get_pixel(14, 28), &Rgb([30, 90, 230]));
+    }
+
+    #[test]
+    fn names_of_paths_ending_together_do_not_cover_each_other() {
+        let map = OccupancyMap::office();
+        let one = |name| (vec![(5.0, 3.0), (15.0, 3.0)], [220, 30, 30], name);
+        let alone = render_paths(&map, &[one("person")]);
+        let both = render_paths(&map, &[one("person"), one("track")]);
+        let ink = |img: &RgbImage| img.pixels().filter(|p| **p == TEXT).count();
+        let mut blank = RgbImage::from_pixel(64, 16, Rgb([255, 255, 255]));
+        text(&mut blank, 0, 0, "track", TEXT);
+        // "track" adds its glyphs twice (beside the end and in the legend), and the
+        // first name keeps all of its own.
+        assert_eq!(ink(&both), ink(&alone) + 2 * ink(&blank));
     }
 
     #[test]

@@ -62,6 +62,8 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     let mut first_sim = None;
     let mut arrivals = 0u64;
     let mut forwarded = 0u64;
+    // The red tracker's estimates of the person, for the picture.
+    let mut red_track: Vec<(f64, f64)> = Vec::new();
     let mut refusal = None;
     let mut link_ended = None;
     let mut link_attempts = 0u32;
@@ -98,6 +100,9 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
                 st.updates += 1;
                 if !t.lost {
                     st.tracked += 1;
+                    if k == 0 {
+                        red_track.push((t.x, t.y));
+                    }
                     if let Some(truth) = rec.last() {
                         let p = truth.people[k];
                         st.errors.push((t.x - p.0).hypot(t.y - p.1));
@@ -213,6 +218,7 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     render_paths(
         &map,
         &[
+            (red_track, [245, 160, 160], "T3's track of the person"),
             (path(|s| s.t3), [120, 120, 120], "T3"),
             (path(|s| s.person()), [220, 30, 30], "person followed"),
             (path(|s| s.d1), [30, 90, 230], "D1"),
@@ -222,7 +228,7 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     draw_distance(&dist, &dir.join("distance.png"))?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     println!(
-        "wrote {0}/report.json, {0}/figure3.png (paths: person red, D1 blue, T3 grey), {0}/distance.png",
+        "wrote {0}/report.json, {0}/figure3.png (paths: person red, T3's track of the person pink, D1 blue, T3 grey), {0}/distance.png",
         dir.display()
     );
     Ok(ExitCode::SUCCESS)
