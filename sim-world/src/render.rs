@@ -155,12 +155,19 @@ fn map_image(map: &OccupancyMap) -> (RgbImage, impl Fn(f64, f64) -> (f32, f32)) 
 /// A path to draw: points in metres, an RGB colour and what it is ("T3", "person").
 pub type Path<'a> = (Vec<(f64, f64)>, [u8; 3], &'a str);
 
+/// Consecutive points of a path further apart than this (metres) are not joined: a
+/// track lost and found again elsewhere, not a walk through walls.
+const JUMP: f64 = 2.0;
+
 /// Draws paths (polylines in metres, each in its colour, with a dot and its name where
 /// it ends) over the map, with a legend: the picture of a run, like the paper's Figure 3.
 pub fn render_paths(map: &OccupancyMap, paths: &[Path]) -> RgbImage {
     let (mut img, px) = map_image(map);
     for (path, rgb, _) in paths {
         for w in path.windows(2) {
+            if (w[1].0 - w[0].0).hypot(w[1].1 - w[0].1) > JUMP {
+                continue;
+            }
             let (a, b) = (px(w[0].0, w[0].1), px(w[1].0, w[1].1));
             // Two pixels wide.
             draw_line_segment_mut(&mut img, a, b, Rgb(*rgb));
@@ -332,6 +339,19 @@ mod tests {
                 .count();
             assert!(ink >= 6 * name.len(), "{name}: {ink} text pixels");
         }
+        // A jump (a track lost and found elsewhere) is not joined.
+        let jumpy = render_paths(
+            &map,
+            &[(
+                vec![(5.0, 3.0), (6.0, 3.0), (15.0, 3.0)],
+                [220, 30, 30],
+                "track",
+            )],
+        );
+        let (x, y) = at(5.5, 3.0);
+        assert_eq!(jumpy.get_pixel(x, y), &Rgb([220, 30, 30]));
+        let (x, y) = at(10.0, 3.0);
+        assert_ne!(jumpy.get_pixel(x, y), &Rgb([220, 30, 30]));
         // The legend: a swatch per path in its colour.
         assert_eq!(img.get_pixel(14, 16), &Rgb([220, 30, 30]));
         assert_eq!(img.get_pixel(14, 28), &Rgb([30, 90, 230]));
