@@ -155,17 +155,22 @@ fn map_image(map: &OccupancyMap) -> (RgbImage, impl Fn(f64, f64) -> (f32, f32)) 
 /// A path to draw: points in metres, an RGB colour and what it is ("T3", "person").
 pub type Path<'a> = (Vec<(f64, f64)>, [u8; 3], &'a str);
 
-/// Consecutive points of a path further apart than this (metres) are not joined: a
-/// track lost and found again elsewhere, not a walk through walls.
+/// Consecutive points of a path further apart than this (metres) and than four times
+/// its typical step are not joined: a track lost and found again elsewhere, not a walk
+/// through walls.
 const JUMP: f64 = 2.0;
 
 /// Draws paths (polylines in metres, each in its colour, with a dot and its name where
 /// it ends) over the map, with a legend: the picture of a run, like the paper's Figure 3.
 pub fn render_paths(map: &OccupancyMap, paths: &[Path]) -> RgbImage {
     let (mut img, px) = map_image(map);
+    let len = |w: &[(f64, f64)]| (w[1].0 - w[0].0).hypot(w[1].1 - w[0].1);
     for (path, rgb, _) in paths {
+        let mut steps: Vec<f64> = path.windows(2).map(len).collect();
+        steps.sort_by(f64::total_cmp);
+        let typical = steps.get(steps.len() / 2).copied().unwrap_or(0.0);
         for w in path.windows(2) {
-            if (w[1].0 - w[0].0).hypot(w[1].1 - w[0].1) > JUMP {
+            if len(w) > JUMP && len(w) > 4.0 * typical {
                 continue;
             }
             let (a, b) = (px(w[0].0, w[0].1), px(w[1].0, w[1].1));
@@ -343,7 +348,7 @@ mod tests {
         let jumpy = render_paths(
             &map,
             &[(
-                vec![(5.0, 3.0), (6.0, 3.0), (15.0, 3.0)],
+                vec![(5.0, 3.0), (5.5, 3.0), (6.0, 3.0), (6.5, 3.0), (15.0, 3.0)],
                 [220, 30, 30],
                 "track",
             )],
