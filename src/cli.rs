@@ -398,6 +398,34 @@ pub struct BrokerArgs {
     /// primary for hung and takes over (wall time).
     #[arg(long, default_value = "100ms", value_parser = duration, requires = "standby")]
     pub takeover_deadline: Duration,
+    /// Join a federation of hosts over Zenoh: publish this host's services, see every
+    /// host's, and serve requests across hosts.
+    #[arg(long)]
+    pub federate: bool,
+    /// This host's name in the federation (default: the machine's host name).
+    #[arg(long, requires = "federate")]
+    pub host: Option<String>,
+    /// The federation's name: federations with different names share a network unseen.
+    #[arg(long, default_value = "muster", requires = "federate")]
+    pub federation: String,
+    /// A Zenoh configuration file (JSON5), e.g. for TLS; --connect, --listen and
+    /// --lease apply over it.
+    #[arg(long, requires = "federate")]
+    pub zenoh_config: Option<std::path::PathBuf>,
+    /// Connect to this Zenoh endpoint (e.g. `tcp/10.0.0.2:7447`); repeatable.
+    #[arg(long, requires = "federate")]
+    pub connect: Vec<String>,
+    /// Listen on this Zenoh endpoint (e.g. `tcp/0.0.0.0:7447`); repeatable.
+    #[arg(long, requires = "federate")]
+    pub listen: Vec<String>,
+    /// A host silent this long is gone, its services removed from the others' lists
+    /// (Zenoh's lease; its default is 10 s).
+    #[arg(long, value_parser = duration, requires = "federate")]
+    pub lease: Option<Duration>,
+    /// Find other hosts on the LAN by Zenoh's multicast scouting (off by default:
+    /// name them with --connect).
+    #[arg(long, requires = "federate")]
+    pub multicast: bool,
 }
 
 #[derive(Subcommand, Debug)]

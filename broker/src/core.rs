@@ -374,6 +374,11 @@ impl Broker {
         self.users.keys()
     }
 
+    /// The process id a user said hello with (0 for a remote user), if it is known.
+    pub fn user_pid(&self, user: &UserId) -> Option<u32> {
+        self.users.get(user).map(|u| u.pid)
+    }
+
     /// Remote users (over UDP: no pid here; their front tracks their liveness).
     pub fn remote_users(&self) -> Vec<UserId> {
         self.users
@@ -427,6 +432,8 @@ impl Broker {
                 links: u16::try_from(s.links).unwrap_or(u16::MAX),
                 withdrawn: s.withdrawn,
                 payload: s.spec.payload.clone(),
+                host: String::new(),
+                remote: false,
             })
             .collect()
     }

@@ -3,6 +3,7 @@
 //! service list. [`core`] is the pure logic; [`run`] drives it over iceoryx2.
 
 pub mod core;
+pub mod federation;
 pub mod replica;
 pub mod run;
 pub mod udp;

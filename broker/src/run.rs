@@ -5,6 +5,7 @@
 //! deadline (a ping, a ping timeout, an offer timeout).
 
 use crate::core::{Broker, BrokerConfig, Output};
+use crate::federation::{FedConfig, FedError, Federation};
 use crate::replica::{Follower, Leader, Step};
 use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
 use muster_shared::fence::{Fence, Holder};
@@ -44,6 +45,9 @@ pub enum BrokerError {
     /// The UDP front could not start.
     #[error(transparent)]
     Udp(#[from] crate::udp::UdpError),
+    /// The broker could not join its federation.
+    #[error(transparent)]
+    Federation(#[from] FedError),
     /// Another broker took the instance over while this one was stopped or hung.
     #[error("taken over by broker pid {pid} (term {term}) while this broker was stopped or hung; it did not act and stops")]
     Fenced {
@@ -58,6 +62,7 @@ const TOKEN_BELL: usize = 0;
 const TOKEN_SIGNAL: usize = 1;
 const TOKEN_UDP: usize = 2;
 const TOKEN_HUP: usize = 3;
+const TOKEN_FED: usize = 4;
 const FIRST_WATCH_TOKEN: usize = 16;
 
 /// A watched process: a system or a user, by its address.
@@ -115,6 +120,11 @@ struct Shell {
     ring_owed: bool,
     udp: Option<UdpDriver>,
     replica: Replication,
+    /// This host's membership in a federation, if it joined one.
+    fed: Option<Federation>,
+    /// The core's list as last taken (kept only in a federation, where other hosts'
+    /// lists change the merged one on their own).
+    local_views: Vec<muster_shared::snapshot::ServiceView>,
 }
 
 /// The UDP front's socket and access file around the sans-IO [`UdpFront`].
@@ -214,7 +224,7 @@ const RING_EVERY: Duration = Duration::from_millis(100);
 
 /// Runs a broker on `inst` until SIGINT or SIGTERM; returns what it did.
 pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerError> {
-    run_with(inst, cfg, None, false)
+    run_with(inst, cfg, None, None, false)
 }
 
 /// The program whose `cleanup` subcommand cleans up after dead processes (see
@@ -376,6 +386,7 @@ pub fn run_with(
     inst: &Instance,
     cfg: BrokerConfig,
     udp: Option<UdpConfig>,
+    fed: Option<FedConfig>,
     keep_log: bool,
 ) -> Result<BrokerReport, BrokerError> {
     raise_fds();
@@ -414,6 +425,7 @@ pub fn run_with(
             presence: None,
         },
         udp,
+        fed,
         keep_log,
     )
 }
@@ -450,6 +462,7 @@ pub fn run_standby(
     inst: &Instance,
     cfg: BrokerConfig,
     udp: Option<UdpConfig>,
+    fed: Option<FedConfig>,
     keep_log: bool,
     deadline: Duration,
 ) -> Result<BrokerReport, BrokerError> {
@@ -547,6 +560,7 @@ pub fn run_standby(
             presence: Some(presence),
         },
         udp,
+        fed,
         keep_log,
     )
 }
@@ -824,6 +838,7 @@ fn serve(
     inst: &Instance,
     p: Primary,
     udp: Option<UdpConfig>,
+    fed: Option<FedConfig>,
     keep_log: bool,
 ) -> Result<BrokerReport, BrokerError> {
     let Primary {
@@ -867,7 +882,20 @@ fn serve(
         }
         None => None,
     };
+    let fed = match fed {
+        Some(c) => {
+            let mut f = Federation::join(inst, &c, std::process::id(), how == Start::Cold)?;
+            reactor.add(f.wake_fd(), TOKEN_FED)?;
+            if how == Start::Takeover {
+                f.forget_previous(&mut core, host_now());
+            }
+            Some(f)
+        }
+        None => None,
+    };
     let mut shell = Shell {
+        fed,
+        local_views: Vec::new(),
         endpoint,
         list,
         fence,
@@ -938,6 +966,7 @@ fn serve(
                 .as_ref()
                 .map(|(t, _)| t.saturating_duration_since(Instant::now())),
             takeover_ring.map(|t| t.saturating_duration_since(Instant::now())),
+            shell.fed.as_ref().and_then(Federation::next_due),
         ]
         .into_iter()
         .flatten()
@@ -1000,11 +1029,21 @@ fn serve(
                         d.on_readable(&mut shell.handling, &mut core, now);
                     }
                 }
+                TOKEN_FED => {
+                    if let Some(f) = shell.fed.as_mut() {
+                        f.on_wake(&mut core, &mut shell.endpoint, &shell.reactor, now);
+                    }
+                }
+                t if t >= crate::federation::FIRST_PROXY_TOKEN => {
+                    if let Some(f) = shell.fed.as_mut() {
+                        f.on_proxy(t, &core);
+                    }
+                }
                 t => {
                     if let Some(w) = shell.watches.get(&t) {
                         if w.pidfd.exited() {
                             let who = w.who.clone();
-                            died_in(&mut core, now, &who);
+                            died_in(&mut core, shell.fed.as_mut(), now, &who);
                             died.push(who);
                             shell.unwatch(t);
                         }
@@ -1013,6 +1052,9 @@ fn serve(
             }
         }
         shell.drain_inbox(&mut core, now)?;
+        if let Some(f) = shell.fed.as_mut() {
+            f.sweep();
+        }
         if let Some(d) = shell.udp.as_mut() {
             d.housekeeping(&mut shell.handling, &mut core, now);
         }
@@ -1130,7 +1172,13 @@ impl Shell {
         while let Some((frame, pid)) = self.endpoint.recv_from() {
             match decode::<ToBroker>(&frame) {
                 Ok(msg) if core.sender_allowed(pid, &msg) => {
-                    timed_handle(&mut self.handling, core, now, msg)
+                    let passed_on = self
+                        .fed
+                        .as_mut()
+                        .is_some_and(|f| f.intercept(&msg, &mut self.endpoint));
+                    if !passed_on {
+                        timed_handle(&mut self.handling, core, now, msg)
+                    }
                 }
                 Ok(_) => {}
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),
@@ -1152,7 +1200,7 @@ impl Shell {
             }
             // A process that registered or said hello but is already gone.
             for who in dead {
-                died_in(core, now, &who);
+                died_in(core, self.fed.as_mut(), now, &who);
             }
         }
     }
@@ -1173,6 +1221,13 @@ impl Shell {
                         d.transmit();
                         continue;
                     }
+                },
+                None => out,
+            };
+            let out = match self.fed.as_ref() {
+                Some(f) => match f.route(out) {
+                    Some(o) => o,
+                    None => continue,
                 },
                 None => out,
             };
@@ -1198,11 +1253,48 @@ impl Shell {
 
     /// Writes the list if it changed.
     fn write_list(&mut self, core: &mut Broker) {
-        if let Some((generation, views)) = core.take_list_change() {
+        let local = core.take_list_change();
+        let far = self.fed.as_mut().is_some_and(Federation::take_list_change);
+        if local.is_none() && !far {
+            return;
+        }
+        if let Some(f) = self.fed.as_mut() {
+            if let Some((_, views)) = &local {
+                let systems: Vec<&str> = core.systems().collect();
+                f.publish_list(views, &systems);
+                self.local_views = views.clone();
+            }
+        }
+        let (generation, views) = match local {
+            Some((g, v)) => (g.max(self.snapshot.generation + 1), v),
+            None => (self.snapshot.generation + 1, self.local_views.clone()),
+        };
+        {
             self.snapshot.generation = generation;
-            self.snapshot.count = views.len().min(MAX_LISTED_SERVICES) as u32;
-            for (slot, v) in self.snapshot.entries.iter_mut().zip(views.iter()) {
+            let host = self.fed.as_ref().map(|f| f.host().to_string());
+            let remote = self.fed.iter().flat_map(|f| f.remote_views());
+            let mut n = 0;
+            for (slot, v) in self
+                .snapshot
+                .entries
+                .iter_mut()
+                .zip(views.iter().chain(remote))
+            {
                 *slot = v.to_entry();
+                if let Some(h) = &host {
+                    if !v.remote {
+                        slot.host = muster_shared::snapshot::FixedStr::new(h);
+                    }
+                }
+                n += 1;
+            }
+            self.snapshot.count = n;
+            let total = views.len() + self.fed.as_ref().map_or(0, |f| f.remote_views().count());
+            if total > MAX_LISTED_SERVICES {
+                tracing::warn!(
+                    total,
+                    "the global list holds more services than the {MAX_LISTED_SERVICES} the shared list can: the rest are not listed"
+                );
             }
             let t = Instant::now();
             match self.list.publish(&self.snapshot, &self.fence) {
@@ -1294,11 +1386,21 @@ impl Shell {
     }
 }
 
-/// Tells the core that the process at `who` died.
-fn died_in(core: &mut Broker, now: Duration, who: &Address) {
+/// Tells the core (and the other hosts of a federation) that the process at `who` died.
+fn died_in(core: &mut Broker, fed: Option<&mut Federation>, now: Duration, who: &Address) {
     match who {
-        Address::System(s) => core.system_died(now, s),
-        Address::User(u) => core.user_died(now, u),
+        Address::System(s) => {
+            if let Some(f) = fed {
+                f.local_system_gone(s);
+            }
+            core.system_died(now, s)
+        }
+        Address::User(u) => {
+            if let Some(f) = fed {
+                f.local_user_gone(u);
+            }
+            core.user_died(now, u)
+        }
         Address::Broker => {}
     }
 }

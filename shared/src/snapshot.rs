@@ -5,7 +5,8 @@
 //! generation counter tells a reader whether the copy it holds is stale.
 
 use crate::types::{
-    ServiceId, ServiceKind, MAX_DESCRIPTION, MAX_PAYLOAD_TYPE, MAX_SERVICE_NAME, MAX_SYSTEM_NAME,
+    ServiceId, ServiceKind, MAX_DESCRIPTION, MAX_HOST_NAME, MAX_PAYLOAD_TYPE, MAX_SERVICE_NAME,
+    MAX_SYSTEM_NAME,
 };
 use iceoryx2::prelude::ZeroCopySend;
 use serde::Serialize;
@@ -76,8 +77,10 @@ pub struct ServiceEntry {
     pub queue: u8,
     /// 1 if withdrawn for now.
     pub withdrawn: u8,
-    /// Padding, zero.
-    pub _pad: u8,
+    /// 1 if offered on another host of a federation (its id is `system@host/name`).
+    pub remote: u8,
+    /// The host that offers it, in a federation; empty otherwise.
+    pub host: FixedStr<{ MAX_HOST_NAME + 1 }>,
 }
 
 impl ServiceEntry {
@@ -90,9 +93,13 @@ impl ServiceEntry {
         }
     }
 
-    /// The stable id `system/name`.
+    /// The stable id: `system/name`, or `system@host/name` for another host's service.
     pub fn id(&self) -> ServiceId {
-        ServiceId::new(self.system.as_str(), self.name.as_str())
+        if self.remote == 1 {
+            ServiceId::on_host(self.system.as_str(), self.host.as_str(), self.name.as_str())
+        } else {
+            ServiceId::new(self.system.as_str(), self.name.as_str())
+        }
     }
 
     /// An owned view for printing and JSON.
@@ -110,6 +117,8 @@ impl ServiceEntry {
             links: self.links,
             withdrawn: self.withdrawn == 1,
             payload: self.payload.as_str().to_string(),
+            host: self.host.as_str().to_string(),
+            remote: self.remote == 1,
         }
     }
 }
@@ -145,7 +154,8 @@ impl ServiceListSnapshot {
             kind: 0,
             queue: 0,
             withdrawn: 0,
-            _pad: 0,
+            remote: 0,
+            host: FixedStr::EMPTY,
         };
         ServiceListSnapshot {
             generation: 0,
@@ -199,6 +209,11 @@ pub struct ServiceView {
     pub withdrawn: bool,
     /// Payload type.
     pub payload: String,
+    /// The host offering it, in a federation (`muster broker --federate`); empty otherwise.
+    pub host: String,
+    /// Offered on another host: the id is `system@host/name`, and a request for it goes
+    /// to that host's broker.
+    pub remote: bool,
 }
 
 impl ServiceView {
@@ -216,7 +231,8 @@ impl ServiceView {
             kind: u8::from(self.kind == "command"),
             queue: u8::from(self.queue),
             withdrawn: u8::from(self.withdrawn),
-            _pad: 0,
+            remote: u8::from(self.remote),
+            host: FixedStr::new(&self.host),
         }
     }
 }
@@ -248,7 +264,17 @@ mod tests {
             links: 1,
             withdrawn: false,
             payload: "goal2d".into(),
+            host: String::new(),
+            remote: false,
         };
         assert_eq!(v.to_entry().view(), v);
+        let far = ServiceView {
+            id: "t1@lab-2/track".into(),
+            host: "lab-2".into(),
+            remote: true,
+            ..v
+        };
+        assert_eq!(far.to_entry().view(), far);
+        assert_eq!(far.to_entry().id().0, "t1@lab-2/track");
     }
 }

@@ -5,6 +5,8 @@ use std::fmt;
 
 /// Longest system name, in bytes.
 pub const MAX_SYSTEM_NAME: usize = 31;
+/// Longest host name in a federation, in bytes.
+pub const MAX_HOST_NAME: usize = 31;
 /// Longest service name, in bytes.
 pub const MAX_SERVICE_NAME: usize = 31;
 /// Longest service description, in bytes.
@@ -203,9 +205,22 @@ impl ServiceId {
         ServiceId(format!("{system}/{service}"))
     }
 
-    /// Splits the id into (system, service), if it has the `system/service` form.
+    /// The id of `service` offered by `system` on another host `host` of a federation.
+    pub fn on_host(system: &str, host: &str, service: &str) -> Self {
+        ServiceId(format!("{system}@{host}/{service}"))
+    }
+
+    /// Splits the id into (system, service), if it has the `system/service` form (the
+    /// system of another host's service is `system@host`).
     pub fn split(&self) -> Option<(&str, &str)> {
         self.0.split_once('/')
+    }
+
+    /// For another host's service (`system@host/service`): (host, the id on that host).
+    pub fn remote(&self) -> Option<(&str, ServiceId)> {
+        let (system, service) = self.split()?;
+        let (system, host) = system.split_once('@')?;
+        Some((host, ServiceId::new(system, service)))
     }
 }
 

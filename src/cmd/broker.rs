@@ -1,6 +1,7 @@
 //! `muster broker`.
 
 use crate::cli::BrokerArgs;
+use muster_broker::federation::FedConfig;
 use muster_broker::udp::{UdpConfig, UdpLimits};
 use muster_broker::BrokerConfig;
 use muster_shared::udp::crypto::KeyPair;
@@ -40,15 +41,24 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
             })
         }
     };
+    let fed = a.federate.then(|| FedConfig {
+        host: a.host.clone().unwrap_or_else(default_host),
+        federation: a.federation.clone(),
+        zenoh_config: a.zenoh_config.clone(),
+        connect: a.connect.clone(),
+        listen: a.listen.clone(),
+        lease: a.lease,
+        multicast: a.multicast,
+    });
     let keep_log = a.handling_log.is_some();
     // Cleanups after dead processes run as `muster cleanup`, outliving a killed broker.
     if let Ok(exe) = std::env::current_exe() {
         muster_broker::run::set_cleanup_program(exe);
     }
     let report = if a.standby {
-        muster_broker::run::run_standby(inst, cfg, udp, keep_log, a.takeover_deadline)?
+        muster_broker::run::run_standby(inst, cfg, udp, fed, keep_log, a.takeover_deadline)?
     } else {
-        muster_broker::run::run_with(inst, cfg, udp, keep_log)?
+        muster_broker::run::run_with(inst, cfg, udp, fed, keep_log)?
     };
     if let Some(path) = &a.handling_log {
         report
@@ -66,4 +76,20 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         println!("{}", report.to_json());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The machine's host name, cut to what a federation's host name may hold.
+fn default_host() -> String {
+    let raw = std::fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+    let name: String = raw
+        .trim()
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '_' })
+        .take(31)
+        .collect();
+    if name.is_empty() {
+        "host".into()
+    } else {
+        name
+    }
 }

@@ -248,6 +248,8 @@ mod tests {
             links: 0,
             withdrawn: false,
             payload: "pose2d".into(),
+            host: String::new(),
+            remote: false,
         }
     }
 

@@ -1,0 +1,1251 @@
+//! Hosts beyond one: brokers federate over Zenoh.
+//!
+//! Each host runs its broker, systems and users as on one host; a broker started with
+//! `--federate` also joins a Zenoh network (the `zenoh` crate), under the key space
+//! `muster/<federation>/<host>/...`:
+//!
+//! | key | what |
+//! |---|---|
+//! | `<host>/alive` | liveliness token of the host's broker |
+//! | `<host>/system/<name>` | liveliness token of each system registered there |
+//! | `<host>/list` | the host's services (JSON array of [`ServiceView`]), put on every change; also a queryable |
+//! | `<host>/in/<from>` | frames ([`FedMsg`]) from host `from` to this host's broker |
+//!
+//! Every broker merges the others' lists into its shared-memory list, each service under
+//! the id `system@host/name`, so a local user reads the global list as before.
+//!
+//! **Requests and sessions across hosts.** A user asks its own broker for
+//! `tracking@b/red`; the broker passes the request to host `b`, where the broker
+//! arbitrates it (quota, queue) for the user `alice@a` as for any user. For each such
+//! foreign user the system's host keeps an inbox in shared memory (a proxy owned by its
+//! broker), so the system grants and streams to it as to a local user; the broker
+//! relays those frames to the user's host, which delivers them to the user. The user's
+//! host keeps an inbox for the system (`tracking@b`), so the user's task input and end go
+//! back the same way. A session's frames travel between the user's host and the
+//! system's host only, in order (one Zenoh link, reliable), with the system's sequence
+//! numbers untouched.
+//!
+//! **Liveness.** A host whose token goes (process killed, link cut past the lease) has
+//! its services removed; its users' requests and sessions here end (the systems are
+//! told, as when a user is revoked), and the sessions local users held there end with
+//! `peer gone`. A user or system that dies is reported to the other side likewise. A
+//! cross-host session runs through the two brokers: if either dies, the session ends
+//! (its peer's pid, as the user or system sees it, is that broker's).
+
+use crate::core::{Broker, Output};
+use muster_shared::ipc::{create_node, Endpoint};
+use muster_shared::names::{Address, Instance};
+use muster_shared::protocol::{decode, encode, ToBroker, ToSystem, ToUser};
+use muster_shared::reactor::Reactor;
+use muster_shared::snapshot::ServiceView;
+use muster_shared::types::{
+    check_name, EndReason, Refusal, ServiceId, SessionId, UserId, MAX_HOST_NAME, MAX_SERVICE_NAME,
+    MAX_SYSTEM_NAME,
+};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::io::{Read, Write};
+use std::os::fd::AsRawFd;
+use std::os::unix::net::UnixStream;
+use std::path::PathBuf;
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+
+/// The first reactor token of proxy inboxes; the shell's own tokens stay below it.
+pub const FIRST_PROXY_TOKEN: usize = 1 << 32;
+/// Longest user id accepted from another host (before `@host` is added).
+pub const MAX_FOREIGN_USER: usize = 64;
+/// Most users of other hosts this broker serves at once.
+pub const MAX_FOREIGN_USERS: usize = 1024;
+/// How long a proxy whose peer is gone keeps its ports: frames just sent through them
+/// (an end, a revocation) must be read before the ports close.
+const PROXY_LINGER: Duration = Duration::from_secs(2);
+/// How long a starting broker looks for another broker already using its host name.
+const HOST_CHECK: Duration = Duration::from_millis(300);
+
+/// How a broker joins a federation (`muster broker --federate`).
+#[derive(Clone, Debug, Default)]
+pub struct FedConfig {
+    /// This host's name in the federation: 1..=31 characters of `[A-Za-z0-9_-]`.
+    pub host: String,
+    /// The federation's name (the key space `muster/<name>/`), so federations can
+    /// share a network.
+    pub federation: String,
+    /// A Zenoh configuration file (JSON5); the options below are applied over it.
+    pub zenoh_config: Option<PathBuf>,
+    /// Zenoh endpoints to connect to (`tcp/HOST:PORT`).
+    pub connect: Vec<String>,
+    /// Zenoh endpoints to listen on.
+    pub listen: Vec<String>,
+    /// The Zenoh lease: a peer silent this long is gone (Zenoh's default: 10 s).
+    pub lease: Option<Duration>,
+    /// Zenoh's multicast scouting (finding peers on the LAN without `--connect`).
+    pub multicast: bool,
+}
+
+/// Why a broker could not join its federation.
+#[derive(Debug, thiserror::Error)]
+pub enum FedError {
+    /// The host or federation name is not valid.
+    #[error("invalid {what} {value:?}: use 1 to 31 characters of [A-Za-z0-9_-]")]
+    BadName {
+        /// Which name.
+        what: &'static str,
+        /// The value.
+        value: String,
+    },
+    /// The Zenoh configuration could not be read or applied.
+    #[error("zenoh configuration: {0}")]
+    Config(String),
+    /// Zenoh could not start (an endpoint could not be bound, say).
+    #[error("cannot join the federation: {0}")]
+    Open(String),
+    /// Another broker of the federation already uses this host name.
+    #[error("host name {0:?} is already in use in the federation: give each host its own --host")]
+    HostTaken(String),
+    /// Shared memory for a proxy could not be set up.
+    #[error(transparent)]
+    Transport(#[from] muster_shared::ipc::TransportError),
+}
+
+fn check_host_like(what: &'static str, value: &str) -> Result<(), FedError> {
+    let ok = !value.is_empty()
+        && value.len() <= MAX_HOST_NAME
+        && value
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+    if ok {
+        Ok(())
+    } else {
+        Err(FedError::BadName {
+            what,
+            value: value.to_string(),
+        })
+    }
+}
+
+impl FedConfig {
+    /// The Zenoh configuration: the file if given, then muster's settings over it.
+    pub fn zenoh_config(&self) -> Result<zenoh::Config, FedError> {
+        let mut c = match &self.zenoh_config {
+            Some(p) => zenoh::Config::from_file(p).map_err(|e| FedError::Config(e.to_string()))?,
+            None => {
+                let mut c = zenoh::Config::default();
+                set(&mut c, "mode", "\"peer\"")?;
+                set(
+                    &mut c,
+                    "scouting/multicast/enabled",
+                    if self.multicast { "true" } else { "false" },
+                )?;
+                c
+            }
+        };
+        if !self.listen.is_empty() {
+            set(&mut c, "listen/endpoints", &json_list(&self.listen))?;
+        }
+        if !self.connect.is_empty() {
+            set(&mut c, "connect/endpoints", &json_list(&self.connect))?;
+        }
+        if let Some(lease) = self.lease {
+            let ms = lease.as_millis().max(100);
+            set(&mut c, "transport/link/tx/lease", &ms.to_string())?;
+            // Zenoh sends keep-alives lease / keep_alive apart: four per lease.
+            set(&mut c, "transport/link/tx/keep_alive", "4")?;
+        }
+        Ok(c)
+    }
+}
+
+fn set(c: &mut zenoh::Config, key: &str, json5: &str) -> Result<(), FedError> {
+    c.insert_json5(key, json5)
+        .map_err(|e| FedError::Config(format!("{key} = {json5}: {e}")))
+}
+
+fn json_list(items: &[String]) -> String {
+    serde_json::to_string(items).unwrap_or_else(|_| "[]".into())
+}
+
+/// A frame from one host's broker to another's, on `<to>/in/<from>`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum FedMsg {
+    /// A user of the sending host asks for a service of the receiving host.
+    Request {
+        /// The user, as its host knows it.
+        user: UserId,
+        /// Its request number.
+        req: u64,
+        /// The service, as the receiving host knows it (`system/name`).
+        service: ServiceId,
+    },
+    /// The user gives the request up.
+    Cancel {
+        /// The user.
+        user: UserId,
+        /// The request number.
+        req: u64,
+    },
+    /// A user's task input or end, for a system of the receiving host.
+    ToSystem {
+        /// The system.
+        system: String,
+        /// [`ToSystem::Input`] or [`ToSystem::End`]; its user is the sending host's.
+        msg: ToSystem,
+    },
+    /// The user died or left: its requests and sessions on the receiving host end.
+    UserGone {
+        /// The user.
+        user: UserId,
+    },
+    /// A frame for a user of the receiving host, from its broker's arbitration or from
+    /// the system serving it.
+    ToUser {
+        /// The user, as the receiving host knows it.
+        user: UserId,
+        /// The frame (`Granted` names the service as the sending host knows it).
+        msg: ToUser,
+    },
+}
+
+/// Counters of the federation, for status and benches.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct FedStats {
+    /// Frames sent to other hosts.
+    pub sent: u64,
+    /// Frames received from other hosts.
+    pub received: u64,
+    /// Frames from other hosts dropped: malformed, or naming what they may not.
+    pub dropped: u64,
+    /// Requests passed to other hosts.
+    pub requests_out: u64,
+    /// Requests from other hosts' users.
+    pub requests_in: u64,
+    /// Hosts seen leaving.
+    pub hosts_lost: u64,
+    /// Local users' sessions on other hosts ended because the host left.
+    pub sessions_lost: u64,
+}
+
+/// What a Zenoh callback hands the broker's thread.
+enum Event {
+    Alive(String, bool),
+    List(String, Vec<u8>),
+    Msg(String, Vec<u8>),
+}
+
+/// A shared-memory inbox the broker keeps for a peer on another host.
+struct Proxy {
+    endpoint: Endpoint,
+    token: usize,
+}
+
+/// A user of another host that this host serves.
+struct Foreign {
+    proxy: Proxy,
+    host: String,
+    /// Its sessions here: session → (system, the system's pid).
+    sessions: BTreeMap<SessionId, (String, u32)>,
+}
+
+/// A session a local user holds on another host.
+#[derive(Clone, Debug)]
+struct FarSession {
+    host: String,
+}
+
+/// One broker's membership in a federation.
+pub struct Federation {
+    inst: Instance,
+    host: String,
+    prefix: String,
+    pid: u32,
+    session: zenoh::Session,
+    _token: zenoh::liveliness::LivelinessToken,
+    system_tokens: BTreeMap<String, zenoh::liveliness::LivelinessToken>,
+    _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
+    _queryable: zenoh::query::Queryable<()>,
+    my_list: Arc<Mutex<Vec<u8>>>,
+    events: mpsc::Receiver<Event>,
+    /// Hands an event to the broker's thread and wakes it (used on Zenoh's threads).
+    notify: Arc<dyn Fn(Event) + Send + Sync>,
+    waker: UnixStream,
+    alive: BTreeSet<String>,
+    lists: BTreeMap<String, Vec<ServiceView>>,
+    list_changed: bool,
+    /// Requests of local users out on other hosts: (user, req) → host.
+    outstanding: BTreeMap<(UserId, u64), String>,
+    /// Sessions of local users on other hosts.
+    far: BTreeMap<(UserId, SessionId), FarSession>,
+    /// Inboxes of other hosts' systems (`system@host`), for local users' input and ends.
+    systems: BTreeMap<String, Proxy>,
+    /// Users of other hosts served here (`user@host`).
+    foreign: BTreeMap<UserId, Foreign>,
+    by_token: HashMap<usize, Address>,
+    next_token: usize,
+    lingering: Vec<(Instant, Proxy)>,
+    stats: FedStats,
+}
+
+fn key_part<'a>(key: &'a str, prefix: &str) -> Option<(&'a str, &'a str)> {
+    key.strip_prefix(prefix)?.split_once('/')
+}
+
+impl Federation {
+    /// Joins the federation as `cfg.host`: opens the Zenoh session, declares the host's
+    /// token, and subscribes to the others' tokens, lists and frames.
+    /// `check_host`: look for another broker under this host name first (a cold start;
+    /// a standby taking over its host's name does not).
+    pub fn join(
+        inst: &Instance,
+        cfg: &FedConfig,
+        pid: u32,
+        check_host: bool,
+    ) -> Result<Self, FedError> {
+        check_host_like("host name", &cfg.host)?;
+        check_host_like("federation name", &cfg.federation)?;
+        let zcfg = cfg.zenoh_config()?;
+        let session = zenoh::open(zcfg)
+            .wait()
+            .map_err(|e| FedError::Open(e.to_string()))?;
+        let prefix = format!("muster/{}/", cfg.federation);
+        let host = cfg.host.clone();
+        let alive_key = format!("{prefix}{host}/alive");
+        // Another broker under this name? (Best effort: peers not yet found are missed.)
+        if check_host {
+            let taken = session
+                .liveliness()
+                .get(&alive_key)
+                .timeout(HOST_CHECK)
+                .wait()
+                .is_ok_and(|replies| replies.recv().is_ok_and(|r| r.result().is_ok()));
+            if taken {
+                return Err(FedError::HostTaken(host));
+            }
+        }
+        let (tx, events) = mpsc::channel::<Event>();
+        let (waker, ring) = UnixStream::pair().map_err(|e| FedError::Open(e.to_string()))?;
+        waker
+            .set_nonblocking(true)
+            .map_err(|e| FedError::Open(e.to_string()))?;
+        ring.set_nonblocking(true)
+            .map_err(|e| FedError::Open(e.to_string()))?;
+        let ring = Arc::new(ring);
+        let notify = {
+            let tx = Mutex::new(tx);
+            move |ev: Event| {
+                if let Ok(tx) = tx.lock() {
+                    if tx.send(ev).is_ok() {
+                        // Full pipe: a wake-up is pending already.
+                        let _ = (&*ring).write(&[1]);
+                    }
+                }
+            }
+        };
+        let notify: Arc<dyn Fn(Event) + Send + Sync> = Arc::new(notify);
+        let zerr = |e: zenoh::Error| FedError::Open(e.to_string());
+        let mut subscribers = Vec::new();
+        {
+            let n = notify.clone();
+            let p = prefix.clone();
+            let me = host.clone();
+            subscribers.push(
+                session
+                    .liveliness()
+                    .declare_subscriber(format!("{prefix}*/alive"))
+                    .history(true)
+                    .callback(move |s| {
+                        if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
+                            if h != me {
+                                let up = s.kind() == zenoh::sample::SampleKind::Put;
+                                n(Event::Alive(h.to_string(), up));
+                            }
+                        }
+                    })
+                    .wait()
+                    .map_err(zerr)?,
+            );
+        }
+        {
+            let n = notify.clone();
+            let p = prefix.clone();
+            let me = host.clone();
+            subscribers.push(
+                session
+                    .declare_subscriber(format!("{prefix}*/list"))
+                    .callback(move |s| {
+                        if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
+                            if h != me {
+                                n(Event::List(h.to_string(), s.payload().to_bytes().to_vec()));
+                            }
+                        }
+                    })
+                    .wait()
+                    .map_err(zerr)?,
+            );
+        }
+        {
+            let n = notify.clone();
+            let inbox = format!("{prefix}{host}/in/");
+            subscribers.push(
+                session
+                    .declare_subscriber(format!("{inbox}*"))
+                    .callback(move |s| {
+                        if let Some(from) = s.key_expr().as_str().strip_prefix(&inbox) {
+                            n(Event::Msg(from.to_string(), s.payload().to_bytes().to_vec()));
+                        }
+                    })
+                    .wait()
+                    .map_err(zerr)?,
+            );
+        }
+        let my_list = Arc::new(Mutex::new(b"[]".to_vec()));
+        let queryable = {
+            let list = my_list.clone();
+            session
+                .declare_queryable(format!("{prefix}{host}/list"))
+                .callback(move |q| {
+                    let body = list.lock().map(|l| l.clone()).unwrap_or_default();
+                    let _ = q.reply(q.key_expr().clone(), body).wait();
+                })
+                .wait()
+                .map_err(zerr)?
+        };
+        let token = session
+            .liveliness()
+            .declare_token(&alive_key)
+            .wait()
+            .map_err(zerr)?;
+        let fed = Federation {
+            notify,
+            inst: inst.clone(),
+            host,
+            prefix,
+            pid,
+            session,
+            _token: token,
+            system_tokens: BTreeMap::new(),
+            _subscribers: subscribers,
+            _queryable: queryable,
+            my_list,
+            events,
+            waker,
+            alive: BTreeSet::new(),
+            lists: BTreeMap::new(),
+            list_changed: false,
+            outstanding: BTreeMap::new(),
+            far: BTreeMap::new(),
+            systems: BTreeMap::new(),
+            foreign: BTreeMap::new(),
+            by_token: HashMap::new(),
+            next_token: FIRST_PROXY_TOKEN,
+            lingering: Vec::new(),
+            stats: FedStats::default(),
+        };
+        tracing::info!(host = %fed.host, federation = %cfg.federation, "joined the federation");
+        Ok(fed)
+    }
+
+    /// This host's name.
+    pub fn host(&self) -> &str {
+        &self.host
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &FedStats {
+        &self.stats
+    }
+
+    /// The descriptor that is readable when Zenoh has handed something over.
+    pub fn wake_fd(&self) -> std::os::fd::RawFd {
+        self.waker.as_raw_fd()
+    }
+
+    /// Whether `token` is one of the federation's proxy inboxes.
+    pub fn owns_token(&self, token: usize) -> bool {
+        token >= FIRST_PROXY_TOKEN
+    }
+
+    /// Whether `user` is another host's user served here (`user@host`).
+    pub fn is_foreign(user: &UserId) -> bool {
+        user.0.contains('@')
+    }
+
+    /// When [`Federation::sweep`] is next due.
+    pub fn next_due(&self) -> Option<Duration> {
+        self.lingering
+            .iter()
+            .map(|(t, _)| t.saturating_duration_since(Instant::now()))
+            .min()
+    }
+
+    /// Closes proxies that have lingered long enough.
+    pub fn sweep(&mut self) {
+        let now = Instant::now();
+        self.lingering.retain(|(t, _)| *t > now);
+    }
+
+    /// Forgets the users of other hosts a previous broker run served: after a takeover
+    /// their hosts see this host's token go and come back, and end their sessions here.
+    pub fn forget_previous(&mut self, core: &mut Broker, now: Duration) {
+        let old: Vec<UserId> = core.users().filter(|u| Self::is_foreign(u)).cloned().collect();
+        for u in old {
+            core.revoke(now, &u);
+        }
+    }
+
+    /// Publishes this host's list (after every change of the core's) and keeps the
+    /// systems' liveliness tokens in step with the registry.
+    pub fn publish_list(&mut self, views: &[ServiceView], systems: &[&str]) {
+        let mine: Vec<ServiceView> = views
+            .iter()
+            .map(|v| ServiceView {
+                host: self.host.clone(),
+                ..v.clone()
+            })
+            .collect();
+        let body = serde_json::to_vec(&mine).unwrap_or_else(|_| b"[]".to_vec());
+        if let Ok(mut l) = self.my_list.lock() {
+            *l = body.clone();
+        }
+        let key = format!("{}{}/list", self.prefix, self.host);
+        if let Err(e) = self.session.put(&key, body).wait() {
+            tracing::warn!("federation: cannot publish the list: {e}");
+        }
+        let want: BTreeSet<&str> = systems.iter().copied().collect();
+        self.system_tokens.retain(|s, _| want.contains(s.as_str()));
+        for s in want {
+            if !self.system_tokens.contains_key(s) {
+                let key = format!("{}{}/system/{s}", self.prefix, self.host);
+                match self.session.liveliness().declare_token(&key).wait() {
+                    Ok(t) => {
+                        self.system_tokens.insert(s.to_string(), t);
+                    }
+                    Err(e) => tracing::warn!("federation: token for system {s}: {e}"),
+                }
+            }
+        }
+    }
+
+    /// The other hosts' services, for the merged list.
+    pub fn remote_views(&self) -> impl Iterator<Item = &ServiceView> {
+        self.lists
+            .iter()
+            .filter(|(h, _)| self.alive.contains(*h))
+            .flat_map(|(_, v)| v.iter())
+    }
+
+    /// Whether the other hosts' services changed since the last call.
+    pub fn take_list_change(&mut self) -> bool {
+        std::mem::take(&mut self.list_changed)
+    }
+
+    /// Hosts seen alive now.
+    pub fn hosts(&self) -> impl Iterator<Item = &str> {
+        self.alive.iter().map(String::as_str)
+    }
+
+    fn send(&mut self, to: &str, msg: &FedMsg) {
+        let frame = match encode(msg) {
+            Ok(f) => f,
+            Err(e) => return tracing::warn!("federation: cannot encode a frame for {to}: {e}"),
+        };
+        let key = format!("{}{to}/in/{}", self.prefix, self.host);
+        match self.session.put(&key, frame).wait() {
+            Ok(()) => self.stats.sent += 1,
+            Err(e) => tracing::warn!("federation: cannot send to {to}: {e}"),
+        }
+    }
+
+    fn open_proxy(
+        &mut self,
+        addr: Address,
+        reactor: &Reactor,
+    ) -> Result<Proxy, String> {
+        let name = match &addr {
+            Address::System(s) => format!("muster-fed-system-{s}"),
+            Address::User(u) => format!("muster-fed-user-{u}"),
+            Address::Broker => "muster-fed".to_string(),
+        };
+        let node = create_node(&name, false).map_err(|e| e.to_string())?;
+        let endpoint = Endpoint::open(&self.inst, addr.clone(), node).map_err(|e| e.to_string())?;
+        let token = self.next_token;
+        self.next_token += 1;
+        reactor
+            .add(endpoint.bell_fd(), token)
+            .map_err(|e| e.to_string())?;
+        self.by_token.insert(token, addr);
+        Ok(Proxy { endpoint, token })
+    }
+
+    fn close_proxy(&mut self, proxy: Proxy, reactor: &Reactor) {
+        reactor.remove(proxy.endpoint.bell_fd());
+        self.by_token.remove(&proxy.token);
+        self.lingering
+            .push((Instant::now() + PROXY_LINGER, proxy));
+    }
+
+    /// A local user's request or cancel for another host's service: passed on, and
+    /// `true`. Anything else: `false` (the core handles it).
+    pub fn intercept(&mut self, msg: &ToBroker, endpoint: &mut Endpoint) -> bool {
+        match msg {
+            ToBroker::Request { user, req, service } => {
+                let Some((host, there)) = service.remote() else {
+                    return false;
+                };
+                let host = host.to_string();
+                if !self.alive.contains(&host) {
+                    endpoint.send_control(
+                        &Address::User(user.clone()),
+                        &ToUser::Refused {
+                            req: *req,
+                            reason: Refusal::Unknown,
+                        },
+                    );
+                    return true;
+                }
+                self.outstanding
+                    .insert((user.clone(), *req), host.clone());
+                self.stats.requests_out += 1;
+                self.send(
+                    &host,
+                    &FedMsg::Request {
+                        user: user.clone(),
+                        req: *req,
+                        service: there,
+                    },
+                );
+                true
+            }
+            ToBroker::Cancel { user, req } => {
+                let Some(host) = self.outstanding.remove(&(user.clone(), *req)) else {
+                    return false;
+                };
+                self.send(
+                    &host,
+                    &FedMsg::Cancel {
+                        user: user.clone(),
+                        req: *req,
+                    },
+                );
+                true
+            }
+            ToBroker::Goodbye { user } => {
+                self.local_user_gone(user);
+                false
+            }
+            _ => false,
+        }
+    }
+
+    /// Drops what the shell must not do for other hosts' users: watching their
+    /// process (the pid is this broker's own).
+    pub fn route(&self, out: Output) -> Option<Output> {
+        match out {
+            Output::WatchUser { ref user, .. } if Self::is_foreign(user) => None,
+            o => Some(o),
+        }
+    }
+
+    /// A local user died or left: the hosts holding its requests or sessions hear of it.
+    pub fn local_user_gone(&mut self, user: &UserId) {
+        let mut hosts = BTreeSet::new();
+        self.outstanding.retain(|(u, _), h| {
+            if u == user {
+                hosts.insert(h.clone());
+            }
+            u != user
+        });
+        self.far.retain(|(u, _), s| {
+            if u == user {
+                hosts.insert(s.host.clone());
+            }
+            u != user
+        });
+        for h in hosts {
+            self.send(&h, &FedMsg::UserGone { user: user.clone() });
+        }
+    }
+
+    /// A local system died: the other hosts' users of its sessions are told.
+    pub fn local_system_gone(&mut self, system: &str) {
+        let mut ends = Vec::new();
+        for (u, f) in self.foreign.iter_mut() {
+            f.sessions.retain(|s, (sys, _)| {
+                if sys == system {
+                    ends.push((f.host.clone(), u.clone(), *s));
+                }
+                sys != system
+            });
+        }
+        for (host, user, session) in ends {
+            let user = local_part(&user);
+            self.send(
+                &host,
+                &FedMsg::ToUser {
+                    user,
+                    msg: ToUser::Ended {
+                        session,
+                        reason: EndReason::PeerGone,
+                    },
+                },
+            );
+        }
+    }
+
+    /// Handles what Zenoh handed over: hosts coming and going, lists, frames.
+    pub fn on_wake(
+        &mut self,
+        core: &mut Broker,
+        endpoint: &mut Endpoint,
+        reactor: &Reactor,
+        now: Duration,
+    ) {
+        let mut buf = [0u8; 256];
+        while matches!((&self.waker).read(&mut buf), Ok(n) if n > 0) {}
+        while let Ok(ev) = self.events.try_recv() {
+            match ev {
+                Event::Alive(host, true) => {
+                    if self.alive.insert(host.clone()) {
+                        tracing::info!(host = %host, "federation: host joined");
+                        self.list_changed = true;
+                        self.query_list(&host);
+                    }
+                }
+                Event::Alive(host, false) => {
+                    if self.alive.remove(&host) {
+                        self.host_lost(&host, core, endpoint, reactor, now);
+                    }
+                }
+                Event::List(host, body) => self.take_list(&host, &body),
+                Event::Msg(from, frame) => {
+                    self.stats.received += 1;
+                    match decode::<FedMsg>(&frame) {
+                        Ok(m) => self.on_msg(&from, m, core, endpoint, reactor, now),
+                        Err(e) => {
+                            self.stats.dropped += 1;
+                            tracing::debug!(from = %from, "federation: bad frame: {e}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    fn query_list(&self, host: &str) {
+        let key = format!("{}{host}/list", self.prefix);
+        let h = host.to_string();
+        let n = self.notify.clone();
+        let r = self
+            .session
+            .get(&key)
+            .callback(move |reply| {
+                if let Ok(s) = reply.result() {
+                    n(Event::List(h.clone(), s.payload().to_bytes().to_vec()));
+                }
+            })
+            .wait();
+        if let Err(e) = r {
+            tracing::warn!("federation: cannot ask {host} for its list: {e}");
+        }
+    }
+
+    fn take_list(&mut self, host: &str, body: &[u8]) {
+        let views: Vec<ServiceView> = match serde_json::from_slice(body) {
+            Ok(v) => v,
+            Err(e) => {
+                self.stats.dropped += 1;
+                return tracing::debug!(host, "federation: bad list: {e}");
+            }
+        };
+        let views: Vec<ServiceView> = views
+            .into_iter()
+            .filter(|v| {
+                check_name("system", &v.system, MAX_SYSTEM_NAME).is_ok()
+                    && check_name("service", &v.name, MAX_SERVICE_NAME).is_ok()
+            })
+            .map(|v| ServiceView {
+                id: ServiceId::on_host(&v.system, host, &v.name).0,
+                host: host.to_string(),
+                remote: true,
+                ..v
+            })
+            .collect();
+        if self.lists.get(host) != Some(&views) {
+            self.lists.insert(host.to_string(), views);
+            self.list_changed = true;
+        }
+    }
+
+    fn host_lost(
+        &mut self,
+        host: &str,
+        core: &mut Broker,
+        endpoint: &mut Endpoint,
+        reactor: &Reactor,
+        now: Duration,
+    ) {
+        self.stats.hosts_lost += 1;
+        tracing::info!(host, "federation: host left; its services, requests and sessions end");
+        if self.lists.remove(host).is_some() {
+            self.list_changed = true;
+        }
+        // Local users' requests and sessions there.
+        let refused: Vec<(UserId, u64)> = self
+            .outstanding
+            .iter()
+            .filter(|(_, h)| *h == host)
+            .map(|(k, _)| k.clone())
+            .collect();
+        for (user, req) in refused {
+            self.outstanding.remove(&(user.clone(), req));
+            endpoint.send_control(
+                &Address::User(user),
+                &ToUser::Refused {
+                    req,
+                    reason: Refusal::SystemGone,
+                },
+            );
+        }
+        let ended: Vec<(UserId, SessionId)> = self
+            .far
+            .iter()
+            .filter(|(_, s)| s.host == host)
+            .map(|(k, _)| k.clone())
+            .collect();
+        for (user, session) in ended {
+            self.far.remove(&(user.clone(), session));
+            self.stats.sessions_lost += 1;
+            endpoint.send_control(
+                &Address::User(user),
+                &ToUser::Ended {
+                    session,
+                    reason: EndReason::PeerGone,
+                },
+            );
+        }
+        let suffix = format!("@{host}");
+        let gone: Vec<String> = self
+            .systems
+            .keys()
+            .filter(|s| s.ends_with(&suffix))
+            .cloned()
+            .collect();
+        for s in gone {
+            if let Some(p) = self.systems.remove(&s) {
+                self.close_proxy(p, reactor);
+            }
+        }
+        // Its users here.
+        let users: Vec<UserId> = self
+            .foreign
+            .iter()
+            .filter(|(_, f)| f.host == host)
+            .map(|(u, _)| u.clone())
+            .collect();
+        for u in users {
+            self.foreign_gone(&u, core, reactor, now);
+        }
+    }
+
+    fn foreign_gone(&mut self, user: &UserId, core: &mut Broker, reactor: &Reactor, now: Duration) {
+        // The systems holding its sessions are told to end them; its requests go.
+        core.revoke(now, user);
+        if let Some(f) = self.foreign.remove(user) {
+            self.close_proxy(f.proxy, reactor);
+        }
+    }
+
+    fn on_msg(
+        &mut self,
+        from: &str,
+        msg: FedMsg,
+        core: &mut Broker,
+        endpoint: &mut Endpoint,
+        reactor: &Reactor,
+        now: Duration,
+    ) {
+        if check_host_like("host", from).is_err() {
+            self.stats.dropped += 1;
+            return;
+        }
+        match msg {
+            FedMsg::Request { user, req, service } => {
+                self.stats.requests_in += 1;
+                let Some(foreign) = self.foreign_user(&user, from, core, reactor, now) else {
+                    // Not served: tell its host.
+                    self.stats.dropped += 1;
+                    return self.send(
+                        from,
+                        &FedMsg::ToUser {
+                            user,
+                            msg: ToUser::Refused {
+                                req,
+                                reason: Refusal::BadRequest(
+                                    "too many users of other hosts here".into(),
+                                ),
+                            },
+                        },
+                    );
+                };
+                core.handle(
+                    now,
+                    ToBroker::Request {
+                        user: foreign,
+                        req,
+                        service,
+                    },
+                );
+            }
+            FedMsg::Cancel { user, req } => {
+                let foreign = UserId(format!("{user}@{from}"));
+                if self.foreign.contains_key(&foreign) {
+                    core.handle(now, ToBroker::Cancel { user: foreign, req });
+                }
+            }
+            FedMsg::ToSystem { system, msg } => {
+                let foreign = UserId(format!("{}@{from}", user_of(&msg).map(|u| u.0.as_str()).unwrap_or("")));
+                let Some(f) = self.foreign.get_mut(&foreign) else {
+                    self.stats.dropped += 1;
+                    return;
+                };
+                let msg = match msg {
+                    ToSystem::Input {
+                        session, payload, ..
+                    } => ToSystem::Input {
+                        user: foreign.clone(),
+                        session,
+                        payload,
+                    },
+                    ToSystem::End { session, .. } => ToSystem::End {
+                        user: foreign.clone(),
+                        session,
+                    },
+                    _ => {
+                        self.stats.dropped += 1;
+                        return;
+                    }
+                };
+                // Only to the system that holds that session of that user.
+                let session = match &msg {
+                    ToSystem::Input { session, .. } | ToSystem::End { session, .. } => *session,
+                    _ => return,
+                };
+                if f.sessions.get(&session).is_some_and(|(s, _)| *s == system) {
+                    f.proxy
+                        .endpoint
+                        .send_control(&Address::System(system), &msg);
+                } else {
+                    self.stats.dropped += 1;
+                }
+            }
+            FedMsg::UserGone { user } => {
+                let foreign = UserId(format!("{user}@{from}"));
+                if self.foreign.contains_key(&foreign) {
+                    self.foreign_gone(&foreign, core, reactor, now);
+                }
+            }
+            FedMsg::ToUser { user, msg } => self.deliver(from, user, msg, core, endpoint, reactor),
+        }
+    }
+
+    /// The foreign user `user@from`, opened (inbox, hello) if new.
+    fn foreign_user(
+        &mut self,
+        user: &UserId,
+        from: &str,
+        core: &mut Broker,
+        reactor: &Reactor,
+        now: Duration,
+    ) -> Option<UserId> {
+        let ok = !user.0.is_empty()
+            && user.0.len() <= MAX_FOREIGN_USER
+            && !user.0.contains(['@', '/'])
+            && user.0.bytes().all(|b| b.is_ascii_graphic());
+        if !ok {
+            return None;
+        }
+        let foreign = UserId(format!("{user}@{from}"));
+        if !self.foreign.contains_key(&foreign) {
+            if self.foreign.len() >= MAX_FOREIGN_USERS {
+                return None;
+            }
+            let proxy = match self.open_proxy(Address::User(foreign.clone()), reactor) {
+                Ok(p) => p,
+                Err(e) => {
+                    tracing::warn!(user = %foreign, "federation: cannot open an inbox: {e}");
+                    return None;
+                }
+            };
+            self.foreign.insert(
+                foreign.clone(),
+                Foreign {
+                    proxy,
+                    host: from.to_string(),
+                    sessions: BTreeMap::new(),
+                },
+            );
+            // Its pid is ours: the systems take its frames from our proxy, and end its
+            // sessions if this broker (the relay) dies.
+            core.handle(
+                now,
+                ToBroker::Hello {
+                    user: foreign.clone(),
+                    pid: self.pid,
+                    links: Vec::new(),
+                    watch_list: false,
+                },
+            );
+        }
+        Some(foreign)
+    }
+
+    /// A frame from host `from` for local user `user`.
+    fn deliver(
+        &mut self,
+        from: &str,
+        user: UserId,
+        msg: ToUser,
+        core: &mut Broker,
+        endpoint: &mut Endpoint,
+        reactor: &Reactor,
+    ) {
+        let known = core.user_pid(&user).is_some_and(|p| p != 0);
+        let msg = match msg {
+            ToUser::Welcome { .. } => return,
+            ToUser::Queued { req, position } => {
+                if self.outstanding.get(&(user.clone(), req)).map(String::as_str) != Some(from) {
+                    return;
+                }
+                ToUser::Queued { req, position }
+            }
+            ToUser::Refused { req, reason } => {
+                if self.outstanding.get(&(user.clone(), req)).map(String::as_str) != Some(from) {
+                    return;
+                }
+                self.outstanding.remove(&(user.clone(), req));
+                ToUser::Refused { req, reason }
+            }
+            ToUser::Granted {
+                req,
+                session,
+                service,
+                kind,
+                payload,
+                ..
+            } => {
+                let Some((system, name)) = service.split() else {
+                    self.stats.dropped += 1;
+                    return;
+                };
+                let far_system = format!("{system}@{from}");
+                let service = ServiceId::on_host(system, from, name);
+                if !known {
+                    // The user is gone: the session ends at once.
+                    return self.send(
+                        from,
+                        &FedMsg::ToSystem {
+                            system: system.to_string(),
+                            msg: ToSystem::End { user, session },
+                        },
+                    );
+                }
+                if !self.systems.contains_key(&far_system) {
+                    match self.open_proxy(Address::System(far_system.clone()), reactor) {
+                        Ok(p) => {
+                            self.systems.insert(far_system.clone(), p);
+                        }
+                        Err(e) => {
+                            tracing::warn!(system = %far_system, "federation: cannot open an inbox: {e}");
+                            return self.send(
+                                from,
+                                &FedMsg::ToSystem {
+                                    system: system.to_string(),
+                                    msg: ToSystem::End { user, session },
+                                },
+                            );
+                        }
+                    }
+                }
+                self.outstanding.remove(&(user.clone(), req));
+                self.far.insert(
+                    (user.clone(), session),
+                    FarSession {
+                        host: from.to_string(),
+                    },
+                );
+                ToUser::Granted {
+                    req,
+                    session,
+                    service,
+                    kind,
+                    payload,
+                    system_pid: self.pid,
+                }
+            }
+            m @ (ToUser::Update { .. } | ToUser::Status { .. }) => {
+                let session = match &m {
+                    ToUser::Update { session, .. } | ToUser::Status { session, .. } => *session,
+                    _ => return,
+                };
+                if self.far.get(&(user.clone(), session)).map(|s| s.host.as_str()) != Some(from)
+                {
+                    return;
+                }
+                m
+            }
+            ToUser::Ended { session, reason } => {
+                if self.far.get(&(user.clone(), session)).map(|s| s.host.as_str()) != Some(from)
+                {
+                    return;
+                }
+                self.far.remove(&(user.clone(), session));
+                ToUser::Ended { session, reason }
+            }
+        };
+        if known {
+            endpoint.send_control(&Address::User(user), &msg);
+        }
+    }
+
+    /// Frames in a proxy inbox: a system's for a user of another host, or a local
+    /// user's for a system of another host. Relayed to that host.
+    pub fn on_proxy(&mut self, token: usize, core: &Broker) {
+        let Some(addr) = self.by_token.get(&token).cloned() else {
+            return;
+        };
+        match addr {
+            Address::User(foreign) => self.drain_foreign(&foreign),
+            Address::System(far) => self.drain_far_system(&far, core),
+            Address::Broker => {}
+        }
+    }
+
+    fn drain_foreign(&mut self, foreign: &UserId) {
+        let mut out = Vec::new();
+        let pid = self.pid;
+        let Some(f) = self.foreign.get_mut(foreign) else {
+            return;
+        };
+        f.proxy.endpoint.drain_bell();
+        while let Some((frame, sender)) = f.proxy.endpoint.recv_from() {
+            let msg = match decode::<ToUser>(&frame) {
+                Ok(m) => m,
+                Err(e) => {
+                    muster_shared::protocol::log_bad_frame(&e);
+                    continue;
+                }
+            };
+            let sender = sender.unwrap_or(0);
+            let ok = match &msg {
+                ToUser::Welcome { .. } => false,
+                ToUser::Queued { .. } | ToUser::Refused { .. } => sender == pid,
+                ToUser::Granted {
+                    session,
+                    service,
+                    system_pid,
+                    ..
+                } => {
+                    let system = service.split().map(|(s, _)| s.to_string());
+                    let owner = system
+                        .as_ref()
+                        .and_then(|s| f.proxy.endpoint.owner_pid(&Address::System(s.clone())));
+                    let ok = *system_pid == sender && owner == Some(sender);
+                    if ok {
+                        if let Some(s) = system {
+                            f.sessions.insert(*session, (s, sender));
+                        }
+                    }
+                    ok
+                }
+                ToUser::Update { session, .. } | ToUser::Status { session, .. } => {
+                    f.sessions.get(session).is_some_and(|(_, p)| *p == sender)
+                }
+                ToUser::Ended { session, .. } => {
+                    let ok = f.sessions.get(session).is_some_and(|(_, p)| *p == sender);
+                    if ok {
+                        f.sessions.remove(session);
+                    }
+                    ok
+                }
+            };
+            if ok {
+                out.push(msg);
+            }
+        }
+        let host = f.host.clone();
+        let user = local_part(foreign);
+        for msg in out {
+            self.send(
+                &host,
+                &FedMsg::ToUser {
+                    user: user.clone(),
+                    msg,
+                },
+            );
+        }
+    }
+
+    fn drain_far_system(&mut self, far: &str, core: &Broker) {
+        let Some((system, host)) = far.split_once('@') else {
+            return;
+        };
+        let (system, host) = (system.to_string(), host.to_string());
+        let mut out = Vec::new();
+        let Some(p) = self.systems.get_mut(far) else {
+            return;
+        };
+        p.endpoint.drain_bell();
+        while let Some((frame, sender)) = p.endpoint.recv_from() {
+            let msg = match decode::<ToSystem>(&frame) {
+                Ok(m) => m,
+                Err(e) => {
+                    muster_shared::protocol::log_bad_frame(&e);
+                    continue;
+                }
+            };
+            // Only a user's own input and ends, for its own sessions there.
+            let (user, session) = match &msg {
+                ToSystem::Input { user, session, .. } | ToSystem::End { user, session } => {
+                    (user.clone(), *session)
+                }
+                _ => continue,
+            };
+            let own = sender.is_none_or(|pid| core.user_pid(&user) == Some(pid));
+            let theirs = self
+                .far
+                .get(&(user.clone(), session))
+                .is_some_and(|s| s.host == host);
+            if own && theirs {
+                out.push(msg);
+            }
+        }
+        for msg in out {
+            self.send(
+                &host,
+                &FedMsg::ToSystem {
+                    system: system.clone(),
+                    msg,
+                },
+            );
+        }
+    }
+}
+
+/// `user@host` → `user`.
+fn local_part(foreign: &UserId) -> UserId {
+    UserId(
+        foreign
+            .0
+            .rsplit_once('@')
+            .map_or(foreign.0.as_str(), |(u, _)| u)
+            .to_string(),
+    )
+}
+
+fn user_of(msg: &ToSystem) -> Option<&UserId> {
+    match msg {
+        ToSystem::Input { user, .. } | ToSystem::End { user, .. } => Some(user),
+        _ => None,
+    }
+}
