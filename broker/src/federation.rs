@@ -63,7 +63,7 @@ pub const MAX_FOREIGN_USERS: usize = 1024;
 /// (an end, a revocation) must be read before the ports close.
 const PROXY_LINGER: Duration = Duration::from_secs(2);
 /// How long a starting broker looks for another broker already using its host name.
-const HOST_CHECK: Duration = Duration::from_millis(300);
+const HOST_CHECK: Duration = Duration::from_millis(800);
 
 /// How a broker joins a federation (`muster broker --federate`).
 #[derive(Clone, Debug, Default)]
@@ -312,15 +312,20 @@ impl Federation {
         let host = cfg.host.clone();
         let alive_key = format!("{prefix}{host}/alive");
         // Another broker under this name? (Best effort: peers not yet found are missed.)
+        // Asked a few times: peers found by gossip after the first connection answer
+        // only once connected.
         if check_host {
-            let taken = session
-                .liveliness()
-                .get(&alive_key)
-                .timeout(HOST_CHECK)
-                .wait()
-                .is_ok_and(|replies| replies.recv().is_ok_and(|r| r.result().is_ok()));
-            if taken {
-                return Err(FedError::HostTaken(host));
+            let until = Instant::now() + HOST_CHECK;
+            while Instant::now() < until {
+                let taken = session
+                    .liveliness()
+                    .get(&alive_key)
+                    .timeout(HOST_CHECK / 8)
+                    .wait()
+                    .is_ok_and(|replies| replies.recv().is_ok_and(|r| r.result().is_ok()));
+                if taken {
+                    return Err(FedError::HostTaken(host));
+                }
             }
         }
         let (tx, events) = mpsc::channel::<Event>();
@@ -402,11 +407,13 @@ impl Federation {
         let my_list = Arc::new(Mutex::new(b"[]".to_vec()));
         let queryable = {
             let list = my_list.clone();
+            let key = format!("{prefix}{host}/list");
             session
-                .declare_queryable(format!("{prefix}{host}/list"))
+                .declare_queryable(key.clone())
                 .callback(move |q| {
                     let body = list.lock().map(|l| l.clone()).unwrap_or_default();
-                    let _ = q.reply(q.key_expr().clone(), body).wait();
+                    // Under its own key (the query's may be a wildcard over hosts).
+                    let _ = q.reply(&key, body).wait();
                 })
                 .wait()
                 .map_err(zerr)?
@@ -739,6 +746,7 @@ impl Federation {
         let r = self
             .session
             .get(&key)
+            .target(zenoh::query::QueryTarget::All)
             .callback(move |reply| {
                 if let Ok(s) = reply.result() {
                     n(Event::List(h.clone(), s.payload().to_bytes().to_vec()));

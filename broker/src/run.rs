@@ -1272,14 +1272,14 @@ impl Shell {
         {
             self.snapshot.generation = generation;
             let host = self.fed.as_ref().map(|f| f.host().to_string());
-            let remote = self.fed.iter().flat_map(|f| f.remote_views());
+            // One list in id order: this host's services and every other host's.
+            let mut all: Vec<&muster_shared::snapshot::ServiceView> = views.iter().collect();
+            if let Some(f) = self.fed.as_ref() {
+                all.extend(f.remote_views());
+                all.sort_by(|a, b| a.id.cmp(&b.id));
+            }
             let mut n = 0;
-            for (slot, v) in self
-                .snapshot
-                .entries
-                .iter_mut()
-                .zip(views.iter().chain(remote))
-            {
+            for (slot, v) in self.snapshot.entries.iter_mut().zip(all) {
                 *slot = v.to_entry();
                 if let Some(h) = &host {
                     if !v.remote {

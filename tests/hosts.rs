@@ -1,0 +1,475 @@
+//! Process tests of hosts federated over Zenoh: three "hosts", each a muster instance
+//! with its own broker (`--federate`), joined on loopback TCP.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{find, ids, Fed, SEC};
+use serde_json::Value;
+use std::time::Instant;
+
+/// A free loopback TCP port (bound and released).
+fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .map(|a| a.port())
+        .expect("a free TCP port")
+}
+
+/// Hosts of one federation, each its own instance; the first listens for the others.
+struct Hosts {
+    name: String,
+    hosts: Vec<(String, Fed, u16)>,
+    brokers: Vec<Option<usize>>,
+}
+
+impl Hosts {
+    fn new(test: &str, names: &[&str]) -> Self {
+        let name = format!("{test}{}", std::process::id());
+        let hosts = names
+            .iter()
+            .map(|h| {
+                (
+                    h.to_string(),
+                    Fed::new(&format!("{test}-{h}")),
+                    free_tcp_port(),
+                )
+            })
+            .collect::<Vec<_>>();
+        let brokers = vec![None; hosts.len()];
+        let mut hs = Hosts {
+            name,
+            hosts,
+            brokers,
+        };
+        for i in 0..hs.hosts.len() {
+            hs.start_broker(i);
+        }
+        hs
+    }
+
+    fn args(&self, i: usize) -> Vec<String> {
+        let (host, _, port) = &self.hosts[i];
+        let mut a = vec![
+            "--federate".to_string(),
+            "--host".into(),
+            host.clone(),
+            "--federation".into(),
+            self.name.clone(),
+            "--listen".into(),
+            format!("tcp/127.0.0.1:{port}"),
+            "--lease".into(),
+            "1s".into(),
+        ];
+        for (j, (_, _, p)) in self.hosts.iter().enumerate() {
+            if j != i {
+                a.push("--connect".into());
+                a.push(format!("tcp/127.0.0.1:{p}"));
+            }
+        }
+        a
+    }
+
+    fn start_broker(&mut self, i: usize) {
+        let args = self.args(i);
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        self.brokers[i] = Some(self.hosts[i].1.broker(&args));
+    }
+
+    fn kill_broker(&mut self, i: usize) {
+        let b = self.brokers[i].take().expect("broker running");
+        let p = self.hosts[i].1.proc(b);
+        p.signal(libc::SIGKILL);
+        assert!(p.wait(5 * SEC).is_some(), "killed broker exits");
+    }
+
+    fn host(&mut self, i: usize) -> &mut Fed {
+        &mut self.hosts[i].1
+    }
+}
+
+fn seqs(lines: &[Value]) -> Vec<u64> {
+    lines
+        .iter()
+        .filter(|v| v.get("payload").is_some_and(|p| !p.is_null()))
+        .filter_map(|v| v["seq"].as_u64())
+        .collect()
+}
+
+#[test]
+fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
+    let mut h = Hosts::new("fl", &["a", "b", "c"]);
+    h.host(1)
+        .system("robo", &["--services", "2", "--quota", "2", "--rate", "20"]);
+    h.host(2).system("deliv", &["--kind", "command", "--quota", "1"]);
+    // Every host sees every service, another host's as system@host/name.
+    let want_a = ["deliv@c/s0", "robo@b/s0", "robo@b/s1"];
+    let (list_a, _) = h.host(0).wait_list(20 * SEC, |l| l.len() == 3);
+    assert_eq!(ids(&list_a), want_a);
+    let robo = find(&list_a, "robo@b/s0").unwrap();
+    assert_eq!(robo["host"], "b");
+    assert_eq!(robo["remote"], true);
+    assert_eq!(robo["system"], "robo");
+    assert_eq!(robo["quota"], 2);
+    let (list_b, _) = h.host(1).wait_list(20 * SEC, |l| l.len() == 3);
+    assert_eq!(ids(&list_b), ["deliv@c/s0", "robo/s0", "robo/s1"]);
+    assert_eq!(find(&list_b, "robo/s0").unwrap()["host"], "b");
+    assert_eq!(find(&list_b, "robo/s0").unwrap()["remote"], false);
+    let (list_c, _) = h.host(2).wait_list(20 * SEC, |l| l.len() == 3);
+    assert_eq!(ids(&list_c), ["deliv/s0", "robo@b/s0", "robo@b/s1"]);
+
+    // A user on a: granted by b's system, updates in order with no gap, ended.
+    let (code, out) = h.host(0).run(
+        &["user", "request", "robo@b/s0", "--duration", "1s", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let lines: Vec<Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines[0]["granted"], true, "{lines:?}");
+    assert_eq!(lines[0]["service"], "robo@b/s0", "{lines:?}");
+    let s = seqs(&lines);
+    assert!(s.len() >= 10, "updates arrive across hosts: {lines:?}");
+    assert_eq!(s[0], 1);
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap: {s:?}");
+    let last = lines.last().unwrap();
+    assert_eq!(last["reason"], "duration over", "{lines:?}");
+    assert_eq!(last["gaps"], 0);
+    // The session's quota is free again on b, and a sees it too.
+    h.host(1).wait_list(10 * SEC, |l| {
+        find(l, "robo/s0").is_some_and(|v| v["in_use"] == 0)
+    });
+
+    // Arbitration happens on b, for users of every host: quota 2, held by a user on
+    // a and a user on c, refuses a third from a.
+    let holders: Vec<usize> = [0, 2]
+        .into_iter()
+        .map(|i| {
+            h.host(i).spawn(&[
+                "user", "request", "robo@b/s1", "--duration", "20s", "--json",
+            ])
+        })
+        .collect();
+    for (k, i) in [0, 2].into_iter().enumerate() {
+        let first = h.host(i).proc(holders[k]).json(20 * SEC).unwrap();
+        assert_eq!(first["granted"], true, "holder on host {i}: {first}");
+    }
+    h.host(1).wait_list(10 * SEC, |l| {
+        find(l, "robo/s1").is_some_and(|v| v["in_use"] == 2)
+    });
+    let (_, out) = h.host(0).run(
+        &["user", "request", "robo@b/s1", "--duration", "1s", "--json"],
+        20 * SEC,
+    );
+    let answer: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
+    assert_eq!(answer["granted"], false, "{answer}");
+    assert_eq!(answer["code"], "quota_full", "{answer}");
+    // A holder killed on its host: its session on b ends (the system is told).
+    h.host(2).proc(holders[1]).signal(libc::SIGKILL);
+    h.host(1).wait_list(10 * SEC, |l| {
+        find(l, "robo/s1").is_some_and(|v| v["in_use"] == 1)
+    });
+    // A command service on c, driven from a.
+    let (code, out) = h.host(0).run(
+        &[
+            "user", "request", "deliv@c/s0", "--goal", "1,1", "--duration", "1s", "--json",
+        ],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    assert!(
+        out.contains("accepted"),
+        "the goal reached c's system and its status came back: {out}"
+    );
+    // An unknown host's service is refused at once.
+    let (_, out) = h.host(0).run(
+        &["user", "request", "robo@nowhere/s0", "--duration", "1s", "--json"],
+        20 * SEC,
+    );
+    let answer: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
+    assert_eq!(answer["code"], "unknown", "{answer}");
+}
+
+#[test]
+fn a_link_runs_across_three_hosts() {
+    let mut h = Hosts::new("fk", &["a", "b", "c"]);
+    h.host(0).system("t1", &["--rate", "20"]);
+    h.host(1).system("d1", &["--kind", "command", "--rate", "20"]);
+    h.host(2).wait_list(20 * SEC, |l| l.len() == 2);
+    // The user on c links a's data into b's command service.
+    let (code, out) = h.host(2).run(
+        &[
+            "user", "link", "t1@a/s0", "d1@b/s0", "--duration", "2s", "--json",
+        ],
+        30 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let lines: Vec<Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let forwarded = lines
+        .iter()
+        .filter(|v| v["forwarded"]["type"] == "goal2d")
+        .count();
+    assert!(forwarded >= 10, "data became task input: {lines:?}");
+    let statuses = lines
+        .iter()
+        .filter(|v| v["from"] == "d1@b/s0" && v.get("status").is_some())
+        .count();
+    assert!(statuses >= 1, "b's system answered the input: {lines:?}");
+    // Both sessions ended with the link: nothing in use on a or b.
+    h.host(0)
+        .wait_list(10 * SEC, |l| find(l, "t1/s0").is_some_and(|v| v["in_use"] == 0));
+    h.host(1)
+        .wait_list(10 * SEC, |l| find(l, "d1/s0").is_some_and(|v| v["in_use"] == 0));
+}
+
+#[test]
+fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
+    let mut h = Hosts::new("fx", &["a", "b", "c"]);
+    h.host(1).system("robo", &["--rate", "20"]);
+    h.host(2).system("cam", &["--rate", "20"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 2);
+    // Sessions from a on b and on c.
+    let on_b = h.host(0).spawn(&[
+        "user", "request", "robo@b/s0", "--duration", "30s", "--json",
+    ]);
+    let on_c = h.host(0).spawn(&[
+        "user", "request", "cam@c/s0", "--duration", "4s", "--json",
+    ]);
+    for p in [on_b, on_c] {
+        let first = h.host(0).proc(p).json(20 * SEC).unwrap();
+        assert_eq!(first["granted"], true, "{first}");
+    }
+    std::thread::sleep(SEC / 2);
+    // b's broker is killed: b's services leave a's and c's lists, a's user is told.
+    let t = Instant::now();
+    h.kill_broker(1);
+    let (list, took) = h.host(0).wait_list(10 * SEC, |l| l.len() == 1);
+    assert_eq!(ids(&list), ["cam@c/s0"]);
+    h.host(2).wait_list(10 * SEC, |l| ids(l) == ["cam/s0"]);
+    eprintln!("b's services left a's list {took:?} after the kill");
+    let lines = h.host(0).proc(on_b).all_json(10 * SEC);
+    let last = lines.last().unwrap();
+    assert_eq!(last["reason"], "peer gone", "{lines:?}");
+    assert!(t.elapsed() < 10 * SEC);
+    // The session between a and c went on undisturbed: every update, no gap.
+    let lines = h.host(0).proc(on_c).all_json(20 * SEC);
+    let s = seqs(&lines);
+    assert!(s.len() >= 40, "{lines:?}");
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap: {s:?}");
+    assert_eq!(lines.last().unwrap()["reason"], "duration over");
+    assert_eq!(lines.last().unwrap()["gaps"], 0);
+    // b comes back (its system re-registers with the new broker): so do its services.
+    h.start_broker(1);
+    let (list, _) = h.host(0).wait_list(20 * SEC, |l| l.len() == 2);
+    assert_eq!(ids(&list), ["cam@c/s0", "robo@b/s0"]);
+    let (code, out) = h.host(0).run(
+        &["user", "request", "robo@b/s0", "--duration", "500ms", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    assert!(out.lines().next().unwrap().contains("\"granted\":true"), "{out}");
+}
+
+#[test]
+fn a_second_broker_under_a_taken_host_name_is_refused() {
+    let mut h = Hosts::new("fd", &["a", "b"]);
+    h.host(1).system("robo", &[]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    // Another instance claiming host name "b" in the same federation.
+    let mut other = Fed::new("fd-b2");
+    let args = h.args(1);
+    let mut args: Vec<&str> = args.iter().map(String::as_str).collect();
+    // Listen elsewhere: only the name collides.
+    let port = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let at = args.iter().position(|a| *a == "--listen").unwrap();
+    args[at + 1] = &port;
+    let mut full = vec!["broker"];
+    full.extend(args);
+    let (code, _) = other.run(&full, 20 * SEC);
+    assert_ne!(code, 0, "a broker under a host name in use must not start");
+    other.shutdown();
+    // b's services stay listed on a.
+    assert_eq!(ids(&h.host(0).list()), ["robo@b/s0"]);
+}
+
+#[test]
+fn a_client_nobody_here_wrote_reads_the_federations_lists() {
+    // The Zenoh Python client (eclipse-zenoh, installed by .ci/run into .venv).
+    let python = std::env::var("MUSTER_PYTHON").unwrap_or_else(|_| {
+        concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string()
+    });
+    let has_zenoh = std::process::Command::new(&python)
+        .args(["-c", "import zenoh"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !has_zenoh {
+        assert!(
+            std::env::var_os("MUSTER_REQUIRE_PYTHON").is_none(),
+            "{python} has no zenoh module (eclipse-zenoh): run .ci/run's setup"
+        );
+        eprintln!("skipped: {python} has no zenoh module (pip install eclipse-zenoh)");
+        return;
+    }
+    let mut h = Hosts::new("fp", &["a", "b", "c"]);
+    h.host(0).system("t1", &["--services", "2"]);
+    h.host(1).system("d1", &["--kind", "command"]);
+    h.host(2).system("cam", &[]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 4);
+    let script = r#"
+import json, sys, time, zenoh
+fed, endpoint = sys.argv[1], sys.argv[2]
+conf = zenoh.Config()
+conf.insert_json5("mode", '"client"')
+conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+conf.insert_json5("scouting/multicast/enabled", "false")
+lists = {}
+with zenoh.open(conf) as s:
+    def on_list(sample):
+        host = str(sample.key_expr).split("/")[2]
+        lists[host] = json.loads(sample.payload.to_bytes())
+    sub = s.declare_subscriber(f"muster/{fed}/*/list", on_list)
+    # The lists already published: ask each host's queryable.
+    for reply in s.get(f"muster/{fed}/*/list", target=zenoh.QueryTarget.ALL,
+                       consolidation=zenoh.ConsolidationMode.NONE):
+        if reply.ok is not None:
+            on_list(reply.ok)
+    alive = sorted(str(r.ok.key_expr).split("/")[2]
+                   for r in s.liveliness().get(f"muster/{fed}/*/alive") if r.ok is not None)
+    systems = sorted(str(r.ok.key_expr).split("/", 2)[2]
+                     for r in s.liveliness().get(f"muster/{fed}/*/system/*") if r.ok is not None)
+    deadline = time.time() + 10
+    while len(lists) < 3 and time.time() < deadline:
+        time.sleep(0.05)
+print(json.dumps({"alive": alive, "systems": systems,
+                  "services": sorted(f"{v['host']}:{v['id']}" for l in lists.values() for v in l)}))
+"#;
+    let port = h.hosts[0].2;
+    let out = std::process::Command::new(&python)
+        .args(["-c", script, &h.name, &format!("tcp/127.0.0.1:{port}")])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["alive"], serde_json::json!(["a", "b", "c"]), "{v}");
+    assert_eq!(
+        v["systems"],
+        serde_json::json!(["a/system/t1", "b/system/d1", "c/system/cam"]),
+        "{v}"
+    );
+    assert_eq!(
+        v["services"],
+        serde_json::json!(["a:t1/s0", "a:t1/s1", "b:d1/s0", "c:cam/s0"]),
+        "{v}"
+    );
+}
+
+#[test]
+fn hostile_frames_from_another_host_are_dropped() {
+    use muster_broker::federation::FedMsg;
+    use muster_shared::protocol::{encode, ToSystem, ToUser};
+    use muster_shared::types::{EndReason, Payload, ServiceId, SessionId, UserId};
+    use zenoh::Wait;
+    // A peer on the federation's network puts what it likes on b's inbox key: bytes
+    // that are no frame, a frame claiming to be from a user with '@' in its name, input
+    // and an end for a session it does not hold, a grant for nobody. b keeps serving,
+    // and the session that a's user holds there goes on to its end.
+    let mut h = Hosts::new("fh", &["a", "b"]);
+    h.host(1).system("robo", &["--rate", "20"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    let holder = h.host(0).spawn(&[
+        "user", "request", "robo@b/s0", "--duration", "3s", "--json",
+    ]);
+    assert_eq!(
+        h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
+        true
+    );
+    let mut conf = zenoh::Config::default();
+    conf.insert_json5("mode", "\"client\"").unwrap();
+    conf.insert_json5("scouting/multicast/enabled", "false").unwrap();
+    conf.insert_json5(
+        "connect/endpoints",
+        &format!("[\"tcp/127.0.0.1:{}\"]", h.hosts[1].2),
+    )
+    .unwrap();
+    let z = zenoh::open(conf).wait().unwrap();
+    let to_b = |from: &str| format!("muster/{}/b/in/{from}", h.name);
+    let frames: Vec<(String, Vec<u8>)> = vec![
+        (to_b("a"), vec![0xff; 40]),
+        (to_b("a"), Vec::new()),
+        (
+            to_b("evil"),
+            encode(&FedMsg::Request {
+                user: UserId("x@y".into()),
+                req: 1,
+                service: ServiceId::new("robo", "s0"),
+            })
+            .unwrap(),
+        ),
+        (
+            to_b("a"),
+            encode(&FedMsg::ToSystem {
+                system: "robo".into(),
+                msg: ToSystem::End {
+                    user: UserId("nobody".into()),
+                    session: SessionId(1),
+                },
+            })
+            .unwrap(),
+        ),
+        (
+            to_b("a"),
+            encode(&FedMsg::ToSystem {
+                system: "robo".into(),
+                msg: ToSystem::Revoked {
+                    user: UserId("nobody".into()),
+                },
+            })
+            .unwrap(),
+        ),
+        (
+            to_b("zz"),
+            encode(&FedMsg::ToUser {
+                user: UserId("nobody".into()),
+                msg: ToUser::Ended {
+                    session: SessionId(7),
+                    reason: EndReason::ByUser,
+                },
+            })
+            .unwrap(),
+        ),
+        (
+            to_b("a"),
+            encode(&FedMsg::ToSystem {
+                system: "robo".into(),
+                msg: ToSystem::Input {
+                    user: UserId("nobody".into()),
+                    session: SessionId(2),
+                    payload: Payload::Text("x".repeat(1000)),
+                },
+            })
+            .unwrap(),
+        ),
+    ];
+    for _ in 0..50 {
+        for (k, f) in &frames {
+            z.put(k, f.clone()).wait().unwrap();
+        }
+    }
+    z.close().wait().unwrap();
+    let lines = h.host(0).proc(holder).all_json(20 * SEC);
+    let s = seqs(&lines);
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap: {s:?}");
+    assert_eq!(lines.last().unwrap()["reason"], "duration over", "{lines:?}");
+    // b still serves: a new session from a, and its list is whole.
+    let (code, out) = h.host(0).run(
+        &["user", "request", "robo@b/s0", "--duration", "300ms", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    assert!(out.lines().next().unwrap().contains("\"granted\":true"), "{out}");
+    assert_eq!(ids(&h.host(1).list()), ["robo/s0"]);
+}
