@@ -287,6 +287,11 @@ fn a_second_broker_under_a_taken_host_name_is_refused() {
     full.extend(args);
     let (code, _) = other.run(&full, 20 * SEC);
     assert_ne!(code, 0, "a broker under a host name in use must not start");
+    let fence = format!("{}{}.broker-fence", muster_shared::ipc::iox2_root(), other.inst);
+    assert!(
+        !std::path::Path::new(&fence).exists(),
+        "the refused broker leaves its instance free: {fence}"
+    );
     other.shutdown();
     // b's services stay listed on a.
     assert_eq!(ids(&h.host(0).list()), ["robo@b/s0"]);

@@ -884,7 +884,16 @@ fn serve(
     };
     let fed = match fed {
         Some(c) => {
-            let mut f = Federation::join(inst, &c, std::process::id(), how == Start::Cold)?;
+            let mut f = match Federation::join(inst, &c, std::process::id(), how == Start::Cold) {
+                Ok(f) => f,
+                Err(e) => {
+                    // Not serving after all: the instance is free for another broker.
+                    if fence.holds(me) {
+                        fence.remove();
+                    }
+                    return Err(e.into());
+                }
+            };
             reactor.add(f.wake_fd(), TOKEN_FED)?;
             if how == Start::Takeover {
                 f.forget_previous(&mut core, host_now());
