@@ -214,6 +214,11 @@ pub enum BenchCommand {
     /// serving; lost sessions, sequence gaps, duplicate grants, quota left counted in use
     /// and files left in /dev/shm.
     Failover(FailoverArgs),
+    /// Hosts federated over Zenoh (three on loopback): the raw Zenoh round trip (floor),
+    /// cross-host service request and its ratio to the floor beside a local one, list
+    /// propagation between hosts, session update latency across hosts and locally;
+    /// then the same with N users per host holding sessions on other hosts.
+    Federation(FederationBenchArgs),
     /// (internal) A user of `bench failover`.
     #[command(hide = true)]
     FailoverUser(FailoverUserArgs),
@@ -251,6 +256,29 @@ pub struct RemoteBenchArgs {
     /// Loopback source addresses the flood comes from.
     #[arg(long, default_value_t = 500)]
     pub flood_sources: usize,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct FederationBenchArgs {
+    /// Service requests per row.
+    #[arg(long, default_value_t = 500)]
+    pub requests: usize,
+    /// Raw Zenoh round trips (the floor).
+    #[arg(long, default_value_t = 2000)]
+    pub round_trips: usize,
+    /// List changes timed between hosts.
+    #[arg(long, default_value_t = 100)]
+    pub list_changes: usize,
+    /// How long session updates are timed, per row.
+    #[arg(long, default_value = "3s", value_parser = duration)]
+    pub updates_for: Duration,
+    /// Users per host (one process each) holding a session on another host for the
+    /// loaded rows (0: no loaded rows).
+    #[arg(long, default_value_t = 300)]
+    pub users: usize,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,

@@ -1,6 +1,7 @@
 //! `muster bench ...`: benchmarks that print figures (never assertions).
 
 mod failover;
+mod federation;
 pub mod floor;
 mod liveness;
 pub mod procfs;
@@ -21,6 +22,7 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::UdpEcho => remote::echo(),
         BenchCommand::Echo => floor::echo(inst),
         BenchCommand::Failover(a) => failover::run(inst, a),
+        BenchCommand::Federation(a) => federation::run(inst, a),
         BenchCommand::FailoverUser(a) => failover::user(inst, a),
     }
 }

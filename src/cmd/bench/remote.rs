@@ -29,20 +29,20 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-fn hist() -> Histogram<u64> {
+pub(super) fn hist() -> Histogram<u64> {
     Histogram::new(3).expect("3 significant figures is a valid precision")
 }
 
-fn us(d: Duration) -> u64 {
+pub(super) fn us(d: Duration) -> u64 {
     (d.as_nanos() as u64).div_ceil(1000).max(1)
 }
 
 /// What one batch of requests did.
-struct Batch {
-    latency: Histogram<u64>,
-    granted: u64,
-    refused: u64,
-    abandoned: u64,
+pub(super) struct Batch {
+    pub(super) latency: Histogram<u64>,
+    pub(super) granted: u64,
+    pub(super) refused: u64,
+    pub(super) abandoned: u64,
     retransmissions: u64,
     duplicate_grants_heard: u64,
 }
@@ -65,7 +65,7 @@ fn client(broker: SocketAddr, key: &KeyPair, faults: Option<Faults>) -> anyhow::
 
 /// `n` requests of `service`, one at a time: time to grant (or refusal), then the
 /// session is ended. A request not answered in `deadline` is abandoned (cancelled).
-fn requests(
+pub(super) fn requests(
     c: &mut UserClient,
     service: &ServiceId,
     n: usize,
@@ -333,7 +333,7 @@ fn flood(
         .collect()
 }
 
-fn batch_json(b: &Batch, n: usize) -> Value {
+pub(super) fn batch_json(b: &Batch, n: usize) -> Value {
     json!({
         "requests": n,
         "granted": b.granted,

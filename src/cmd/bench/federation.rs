@@ -1,0 +1,379 @@
+//! `muster bench federation`: three hosts federated over Zenoh, on loopback.
+//!
+//! One run starts three instances (`<inst>-a`, `-b`, `-c`), each with a federated broker
+//! (child processes, Zenoh over loopback TCP), a data system `t1` and a command system
+//! `d1` on b and a data system `t2` on c. From this process it then measures:
+//! - the floor: the raw Zenoh round trip between two Zenoh sessions of this process
+//!   (put → subscriber → put back → subscriber), over loopback TCP like the brokers';
+//! - service requests from a user on a to `t1@b/s0` (request → grant, then end), their
+//!   ratio to the floor, beside the same request made locally on b;
+//! - list propagation: a session begun or ended by a user on b until a user on a sees
+//!   the change in its shared-memory list;
+//! - session update latency (system send → user receive, one clock for the host) for a
+//!   user on a holding `t1@b/s0`, beside a user on b holding `t1/s0`;
+//! - the same again with `--users` processes per host each holding a 10 Hz session on
+//!   another host.
+
+use super::remote::{batch_json, hist, requests, us, Batch};
+use super::{row, summary};
+use crate::cli::FederationBenchArgs;
+use crate::cmd::children::{connect_when_listed, Children};
+use anyhow::{bail, Context};
+use hdrhistogram::Histogram;
+use muster_shared::types::ServiceId;
+use muster_shared::Instance;
+use muster_users::{UserClient, UserEvent};
+use serde_json::{json, Value};
+use std::process::{ExitCode, Stdio};
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+
+const HOSTS: [&str; 3] = ["a", "b", "c"];
+
+fn free_port() -> anyhow::Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
+
+fn host_instance(inst: &Instance, host: &str) -> anyhow::Result<Instance> {
+    let mut name = inst.as_str().to_string();
+    name.truncate(30);
+    Ok(Instance::new(&format!("{name}-{host}"))?)
+}
+
+/// The raw Zenoh round trip: two sessions of this process, peers over loopback TCP.
+fn zenoh_floor(n: usize) -> anyhow::Result<Histogram<u64>> {
+    let port = free_port()?;
+    let cfg = |listen: bool| -> anyhow::Result<zenoh::Config> {
+        let mut c = zenoh::Config::default();
+        let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
+        c.insert_json5("mode", "\"peer\"").map_err(z)?;
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .map_err(z)?;
+        let ep = format!("[\"tcp/127.0.0.1:{port}\"]");
+        let key = if listen {
+            "listen/endpoints"
+        } else {
+            "connect/endpoints"
+        };
+        c.insert_json5(key, &ep).map_err(z)?;
+        Ok(c)
+    };
+    let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
+    let echo = zenoh::open(cfg(true)?).wait().map_err(z)?;
+    let probe = zenoh::open(cfg(false)?).wait().map_err(z)?;
+    let back = echo.declare_publisher("muster-bench/pong").wait().map_err(z)?;
+    let _echo_sub = echo
+        .declare_subscriber("muster-bench/ping")
+        .callback(move |s| {
+            let _ = back.put(s.payload().clone()).wait();
+        })
+        .wait()
+        .map_err(z)?;
+    let (tx, rx) = std::sync::mpsc::channel::<()>();
+    let _probe_sub = probe
+        .declare_subscriber("muster-bench/pong")
+        .callback(move |_| {
+            let _ = tx.send(());
+        })
+        .wait()
+        .map_err(z)?;
+    let ping = probe.declare_publisher("muster-bench/ping").wait().map_err(z)?;
+    // Until the two have found each other.
+    let until = Instant::now() + Duration::from_secs(10);
+    loop {
+        ping.put(vec![0u8; 64]).wait().map_err(z)?;
+        if rx.recv_timeout(Duration::from_millis(50)).is_ok() {
+            break;
+        }
+        if Instant::now() > until {
+            bail!("the two Zenoh sessions did not meet within 10 s");
+        }
+    }
+    while rx.try_recv().is_ok() {}
+    let mut h = hist();
+    for _ in 0..n {
+        let t = Instant::now();
+        ping.put(vec![0u8; 64]).wait().map_err(z)?;
+        if rx.recv_timeout(Duration::from_secs(1)).is_ok() {
+            let _ = h.record(us(t.elapsed()));
+        }
+    }
+    drop((echo, probe));
+    Ok(h)
+}
+
+/// A change of b's list (a local session begun or ended on b) until a sees it.
+fn list_propagation(
+    on_a: &mut UserClient,
+    on_b: &mut UserClient,
+    n: usize,
+) -> anyhow::Result<Histogram<u64>> {
+    let far = ServiceId("t1@b/s0".into());
+    let here = ServiceId("t1/s0".into());
+    let in_use = |c: &mut UserClient| -> anyhow::Result<u16> {
+        Ok(c.list()?.find(&far).map_or(u16::MAX, |e| e.in_use))
+    };
+    let mut h = hist();
+    let base = in_use(on_a)?;
+    for _ in 0..n {
+        let t = Instant::now();
+        let req = on_b.request(&here)?;
+        let session = loop {
+            match on_b.next_event(t + Duration::from_secs(10))? {
+                Some(UserEvent::Granted { req: r, session, .. }) if r == req => break session,
+                Some(_) => {}
+                None => bail!("no grant on b within 10 s"),
+            }
+        };
+        // a's list shows it (in use counts the request from the moment it is offered).
+        wait_for(on_a, |c| Ok(in_use(c)? > base), t, &mut h)?;
+        let t = Instant::now();
+        on_b.end(session);
+        wait_for(on_a, |c| Ok(in_use(c)? == base), t, &mut h)?;
+    }
+    Ok(h)
+}
+
+fn wait_for(
+    c: &mut UserClient,
+    mut done: impl FnMut(&mut UserClient) -> anyhow::Result<bool>,
+    since: Instant,
+    h: &mut Histogram<u64>,
+) -> anyhow::Result<()> {
+    let until = since + Duration::from_secs(10);
+    while !done(c)? {
+        if Instant::now() > until {
+            bail!("a's list did not change within 10 s");
+        }
+        // Woken by the list bell (the client watches the list).
+        let _ = c.next_event(Instant::now() + Duration::from_millis(20))?;
+    }
+    let _ = h.record(us(since.elapsed()));
+    Ok(())
+}
+
+/// Update latency (system send → this user's receive) of a session on `service` for `d`.
+fn updates(c: &mut UserClient, service: &ServiceId, d: Duration) -> anyhow::Result<(Histogram<u64>, u64)> {
+    let req = c.request(service)?;
+    let t = Instant::now();
+    let session = loop {
+        match c.next_event(t + Duration::from_secs(10))? {
+            Some(UserEvent::Granted { req: r, session, .. }) if r == req => break session,
+            Some(UserEvent::Refused { reason, .. }) => bail!("{service} refused: {reason}"),
+            Some(_) => {}
+            None => bail!("no grant for {service} within 10 s"),
+        }
+    };
+    let mut h = hist();
+    let mut gaps = 0;
+    let until = Instant::now() + d;
+    while let Some(ev) = c.next_event(until)? {
+        if let UserEvent::Update {
+            session: s,
+            sent_ns,
+            gap,
+            ..
+        } = ev
+        {
+            if s == session && sent_ns > 0 {
+                let now = muster_shared::protocol::monotonic_ns();
+                let _ = h.record(now.saturating_sub(sent_ns).div_ceil(1000).max(1));
+                gaps += gap;
+            }
+        }
+    }
+    c.end(session);
+    Ok((h, gaps))
+}
+
+struct Rows {
+    far_request: Batch,
+    local_request: Batch,
+    list: Histogram<u64>,
+    far_updates: (Histogram<u64>, u64),
+    local_updates: (Histogram<u64>, u64),
+}
+
+fn measure(
+    a: &FederationBenchArgs,
+    on_a: &mut UserClient,
+    on_b: &mut UserClient,
+) -> anyhow::Result<Rows> {
+    let far = ServiceId("t1@b/s0".into());
+    let local = ServiceId("t1/s0".into());
+    let deadline = Duration::from_secs(10);
+    Ok(Rows {
+        far_request: requests(on_a, &far, a.requests, deadline)?,
+        local_request: requests(on_b, &local, a.requests, deadline)?,
+        list: list_propagation(on_a, on_b, a.list_changes)?,
+        far_updates: updates(on_a, &far, a.updates_for)?,
+        local_updates: updates(on_b, &local, a.updates_for)?,
+    })
+}
+
+fn rows_json(r: &Rows, floor_p50: f64, a: &FederationBenchArgs) -> Value {
+    json!({
+        "cross_host_request": batch_json(&r.far_request, a.requests),
+        "local_request": batch_json(&r.local_request, a.requests),
+        "ratio_cross_host_request_p50_to_floor":
+            r.far_request.latency.value_at_quantile(0.5) as f64 / floor_p50,
+        "list_propagation": summary(&r.list),
+        "cross_host_update": summary(&r.far_updates.0),
+        "cross_host_update_gaps": r.far_updates.1,
+        "local_update": summary(&r.local_updates.0),
+        "local_update_gaps": r.local_updates.1,
+    })
+}
+
+fn print_rows(title: &str, r: &Rows) {
+    println!("{title}");
+    println!(
+        "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
+        "", "count", "p50 us", "p90 us", "p99 us", "max us"
+    );
+    println!("{}", row("request a -> b (cross-host)", &r.far_request.latency));
+    println!("{}", row("request b -> b (local)", &r.local_request.latency));
+    println!("{}", row("list change b -> a", &r.list));
+    println!("{}", row("update b -> a (cross-host)", &r.far_updates.0));
+    println!("{}", row("update b -> b (local)", &r.local_updates.0));
+    println!(
+        "gaps: cross-host {}, local {}; refused {}/{}, abandoned {}/{}",
+        r.far_updates.1,
+        r.local_updates.1,
+        r.far_request.refused,
+        r.local_request.refused,
+        r.far_request.abandoned,
+        r.local_request.abandoned
+    );
+}
+
+pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> {
+    if a.requests == 0 || a.round_trips == 0 || a.list_changes == 0 {
+        bail!("--requests, --round-trips and --list-changes must be at least 1");
+    }
+    let insts: Vec<Instance> = HOSTS
+        .iter()
+        .map(|h| host_instance(inst, h))
+        .collect::<anyhow::Result<_>>()?;
+    let ports: Vec<u16> = HOSTS.iter().map(|_| free_port()).collect::<anyhow::Result<_>>()?;
+    let federation = format!("bench{}", std::process::id());
+    let mut kids = Children::default();
+    for (i, host) in HOSTS.iter().enumerate() {
+        let mut args: Vec<String> = [
+            "broker", "--federate", "--host", host, "--federation", &federation,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.push("--listen".into());
+        args.push(format!("tcp/127.0.0.1:{}", ports[i]));
+        for (j, p) in ports.iter().enumerate() {
+            if j != i {
+                args.push("--connect".into());
+                args.push(format!("tcp/127.0.0.1:{p}"));
+            }
+        }
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        kids.spawn(&insts[i], &format!("broker-{host}"), &args, Stdio::null())?;
+    }
+    let quota = (a.users * 3 + 100).min(1000).to_string();
+    for (i, name, kind) in [(1, "t1", "data"), (1, "d1", "command"), (2, "t2", "data")] {
+        kids.spawn(
+            &insts[i],
+            name,
+            &[
+                "system", "synthetic", "--name", name, "--kind", kind, "--quota", &quota,
+                "--rate", "10",
+            ],
+            Stdio::null(),
+        )?;
+    }
+    let timeout = Duration::from_secs(30);
+    let mut on_b = connect_when_listed(&insts[1], 3, timeout).context("host b")?;
+    let opts = muster_users::ConnectOptions {
+        wait_for_broker: Duration::from_secs(20),
+        handle_signals: false,
+        watch_list: true,
+    };
+    let mut on_a = UserClient::connect(&insts[0], &opts)?;
+    let until = Instant::now() + timeout;
+    while on_a.list()?.count < 3 {
+        if Instant::now() > until {
+            bail!("a did not see b's and c's services within {timeout:?}");
+        }
+        let _ = on_a.next_event(Instant::now() + Duration::from_millis(50))?;
+    }
+
+    let floor = zenoh_floor(a.round_trips)?;
+    let floor_p50 = floor.value_at_quantile(0.5).max(1) as f64;
+    let idle = measure(&a, &mut on_a, &mut on_b)?;
+    let mut out = json!({
+        "floor_zenoh_rtt": summary(&floor),
+        "idle": rows_json(&idle, floor_p50, &a),
+    });
+    if !a.json {
+        println!("three hosts on loopback, Zenoh peers over TCP");
+        println!("{}", row("raw Zenoh round trip (floor)", &floor));
+        print_rows("\nno other users", &idle);
+        println!(
+            "cross-host request p50 = {:.1} x the Zenoh floor",
+            idle.far_request.latency.value_at_quantile(0.5) as f64 / floor_p50
+        );
+    }
+    if a.users > 0 {
+        // Each host's users hold 10 Hz sessions on another host's data service.
+        let targets = ["t1@b/s0", "t2@c/s0", "t1@b/s0"];
+        for (i, host) in HOSTS.iter().enumerate() {
+            for k in 0..a.users {
+                kids.spawn(
+                    &insts[i],
+                    &format!("user-{host}-{k}"),
+                    &["user", "request", targets[i], "--duration", "1h"],
+                    Stdio::null(),
+                )?;
+            }
+        }
+        // Until every session is held.
+        let want = a.users * 3;
+        let until = Instant::now() + Duration::from_secs(120);
+        let held = |c: &mut UserClient| -> anyhow::Result<usize> {
+            let l = c.list()?;
+            Ok(["t1@b/s0", "t2@c/s0"]
+                .iter()
+                .filter_map(|id| l.find(&ServiceId(id.to_string())))
+                .map(|e| e.in_use as usize)
+                .sum())
+        };
+        while held(&mut on_a)? < want {
+            if Instant::now() > until {
+                bail!(
+                    "only {} of {want} cross-host sessions held after 120 s",
+                    held(&mut on_a)?
+                );
+            }
+            let _ = on_a.next_event(Instant::now() + Duration::from_millis(100))?;
+        }
+        std::thread::sleep(Duration::from_secs(1));
+        let loaded = measure(&a, &mut on_a, &mut on_b)?;
+        out["loaded"] = rows_json(&loaded, floor_p50, &a);
+        out["users_per_host"] = json!(a.users);
+        if !a.json {
+            print_rows(
+                &format!(
+                    "\n{} users per host, each holding a 10 Hz session on another host",
+                    a.users
+                ),
+                &loaded,
+            );
+        }
+    }
+    on_a.close();
+    on_b.close();
+    kids.stop();
+    if a.json {
+        println!("{out}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
