@@ -272,8 +272,8 @@ pub struct FederationBenchArgs {
     /// List changes timed between hosts.
     #[arg(long, default_value_t = 100)]
     pub list_changes: usize,
-    /// How long session updates are timed, per row.
-    #[arg(long, default_value = "3s", value_parser = duration)]
+    /// How long session updates (10 Hz) are timed, per row.
+    #[arg(long, default_value = "10s", value_parser = duration)]
     pub updates_for: Duration,
     /// Users per host (one process each) holding a session on another host for the
     /// loaded rows (0: no loaded rows).

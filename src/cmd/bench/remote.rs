@@ -43,6 +43,8 @@ pub(super) struct Batch {
     pub(super) granted: u64,
     pub(super) refused: u64,
     pub(super) abandoned: u64,
+    /// Refusals by reason code.
+    pub(super) refusals: std::collections::BTreeMap<&'static str, u64>,
     retransmissions: u64,
     duplicate_grants_heard: u64,
 }
@@ -76,6 +78,7 @@ pub(super) fn requests(
         granted: 0,
         refused: 0,
         abandoned: 0,
+        refusals: std::collections::BTreeMap::new(),
         retransmissions: 0,
         duplicate_grants_heard: 0,
     };
@@ -93,9 +96,12 @@ pub(super) fn requests(
                     c.end(session);
                     break;
                 }
-                Some(UserEvent::Refused { req: r, .. }) if r == req => {
+                Some(UserEvent::Refused {
+                    req: r, reason, ..
+                }) if r == req => {
                     let _ = b.latency.record(us(t.elapsed()));
                     b.refused += 1;
+                    *b.refusals.entry(reason.code()).or_default() += 1;
                     break;
                 }
                 Some(_) => {}
@@ -339,6 +345,7 @@ pub(super) fn batch_json(b: &Batch, n: usize) -> Value {
         "granted": b.granted,
         "refused": b.refused,
         "abandoned": b.abandoned,
+        "refusals": b.refusals,
         "completion": (b.granted + b.refused) as f64 / n.max(1) as f64,
         "retransmissions": b.retransmissions,
         "duplicate_grants_heard": b.duplicate_grants_heard,
