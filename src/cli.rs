@@ -676,6 +676,10 @@ pub struct UpArgs {
     /// Today's synthetic demo instead of the paper's robots on the simulator.
     #[arg(long)]
     pub synthetic: bool,
+    /// Three hosts federated over Zenoh on this machine (three instances on loopback):
+    /// the user on host a, a tracker on b, a delivery robot on c (synthetic systems).
+    #[arg(long, conflicts_with_all = ["synthetic", "speed", "picture"])]
+    pub hosts: bool,
     /// Simulator speed (sim seconds per wall second; every process follows its clock).
     #[arg(long, default_value_t = 1.0)]
     pub speed: f64,

@@ -478,3 +478,22 @@ fn hostile_frames_from_another_host_are_dropped() {
     assert!(out.lines().next().unwrap().contains("\"granted\":true"), "{out}");
     assert_eq!(ids(&h.host(1).list()), ["robo/s0"]);
 }
+
+#[test]
+fn up_with_hosts_links_across_three_hosts() {
+    // The README's one-machine federation: `muster up --hosts`.
+    let f = Fed::new("uph");
+    let (code, out) = f.run(&["up", "--hosts", "--duration", "6s"], 60 * SEC);
+    assert_eq!(code, 0, "{out}");
+    for want in [
+        "d1@c/s0",
+        "t1@b/s2",
+        "granted: session",
+        "link up",
+        "forwarded goal2d",
+        "accepted",
+        "muster up: stopped",
+    ] {
+        assert!(out.contains(want), "{want:?} missing from:\n{out}");
+    }
+}

@@ -195,3 +195,40 @@ impl crate::cli::LoadArgs {
         self.services / self.systems + usize::from(i < self.services % self.systems)
     }
 }
+
+/// The instance of host `host` of a federation run on one machine (`INST-host`).
+pub fn host_instance(inst: &Instance, host: &str) -> anyhow::Result<Instance> {
+    let mut name = inst.as_str().to_string();
+    name.truncate(30);
+    Ok(Instance::new(&format!("{name}-{host}"))?)
+}
+
+/// A free loopback TCP port (bound and released).
+pub fn free_tcp_port() -> anyhow::Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
+
+/// `muster broker` arguments for host `hosts[i]` of a federation on loopback: it
+/// listens on `ports[i]` and connects to every other host's port.
+pub fn federated_broker_args(
+    federation: &str,
+    hosts: &[&str],
+    ports: &[u16],
+    i: usize,
+) -> Vec<String> {
+    let mut args: Vec<String> = ["broker", "--federate", "--host", hosts[i], "--federation", federation]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    args.push("--listen".into());
+    args.push(format!("tcp/127.0.0.1:{}", ports[i]));
+    for (j, p) in ports.iter().enumerate() {
+        if j != i {
+            args.push("--connect".into());
+            args.push(format!("tcp/127.0.0.1:{p}"));
+        }
+    }
+    args
+}

@@ -80,6 +80,9 @@ impl Drop for Guest {
 }
 
 pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
+    if a.hosts {
+        return run_hosts(inst, a);
+    }
     if !a.synthetic {
         return super::up_paper::run(inst, a);
     }
@@ -155,7 +158,8 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         }
         Ok(())
     });
-    match shown.and_then(|()| demo(&mut client, end)) {
+    let ids = (ServiceId::new("t1", "s0"), ServiceId::new("d1", "s0"));
+    match shown.and_then(|()| demo(&mut client, end, ids)) {
         Ok(()) | Err(UserError::Interrupted) => {}
         Err(e) => return Err(e.into()),
     }
@@ -210,13 +214,15 @@ pub(super) fn remote_list(g: &Guest) -> Result<(), UserError> {
     Ok(())
 }
 
-fn demo(client: &mut UserClient, end: Option<Instant>) -> Result<(), UserError> {
+fn demo(
+    client: &mut UserClient,
+    end: Option<Instant>,
+    (tracker, delivery): (ServiceId, ServiceId),
+) -> Result<(), UserError> {
     let list = client.list()?;
     println!("== service list (generation {}) ==", list.generation);
     println!("{}", muster_users::menu::table(&list.views()));
 
-    let tracker = ServiceId::new("t1", "s0");
-    let delivery = ServiceId::new("d1", "s0");
     println!("\n== request {tracker} for 2 s ==");
     let req = client.request(&tracker)?;
     let mut session = None;
@@ -266,4 +272,67 @@ fn demo(client: &mut UserClient, end: Option<Instant>) -> Result<(), UserError> 
         }
     }
     Ok(())
+}
+
+/// `muster up --hosts`: three hosts federated over Zenoh, on this machine (three
+/// instances on loopback TCP): the operator's host `a` (a broker and this user), the
+/// tracker's host `b` (`t1`, three data services) and the delivery robot's host `c`
+/// (`d1`, a command service with a task queue). The user on `a` lists every host's
+/// services, requests `t1@b/s0`, then links it into `d1@c/s0`: data from b drives the
+/// robot on c, with the user on a third host.
+fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
+    use super::children::{federated_broker_args, free_tcp_port, host_instance};
+    const HOSTS: [&str; 3] = ["a", "b", "c"];
+    let insts: Vec<Instance> = HOSTS
+        .iter()
+        .map(|h| host_instance(inst, h))
+        .collect::<anyhow::Result<_>>()?;
+    let ports: Vec<u16> = HOSTS
+        .iter()
+        .map(|_| free_tcp_port())
+        .collect::<anyhow::Result<_>>()?;
+    let federation = format!("up{}", std::process::id());
+    let mut children = Children::default();
+    for (i, host) in HOSTS.iter().enumerate() {
+        let args = federated_broker_args(&federation, &HOSTS, &ports, i);
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        children.spawn(&insts[i], &format!("broker of host {host}"), &args, Stdio::inherit())?;
+    }
+    children.spawn(
+        &insts[1],
+        "tracker system t1 (host b)",
+        &["system", "synthetic", "--name", "t1", "--services", "3", "--kind", "data", "--quota", "10"],
+        Stdio::inherit(),
+    )?;
+    children.spawn(
+        &insts[2],
+        "delivery system d1 (host c)",
+        &[
+            "system", "synthetic", "--name", "d1", "--services", "1", "--kind", "command",
+            "--quota", "1", "--queue",
+        ],
+        Stdio::inherit(),
+    )?;
+    println!(
+        "== three hosts on this machine: a (instance {}), b ({}), c ({}); Zenoh on 127.0.0.1 ports {}, {}, {} ==",
+        insts[0], insts[1], insts[2], ports[0], ports[1], ports[2]
+    );
+    let opts = ConnectOptions {
+        wait_for_broker: Duration::from_secs(10),
+        handle_signals: true,
+        watch_list: false,
+    };
+    let mut client = UserClient::connect(&insts[0], &opts)?;
+    let end = a.duration.map(|d| Instant::now() + d);
+    let ids = (ServiceId::on_host("t1", "b", "s0"), ServiceId::on_host("d1", "c", "s0"));
+    match wait_for_services(&mut client, 4, Duration::from_secs(20))
+        .and_then(|()| demo(&mut client, end, ids))
+    {
+        Ok(()) | Err(UserError::Interrupted) => {}
+        Err(e) => return Err(e.into()),
+    }
+    client.close();
+    children.stop();
+    println!("muster up: stopped");
+    Ok(ExitCode::SUCCESS)
 }

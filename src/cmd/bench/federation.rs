@@ -17,7 +17,9 @@
 use super::remote::{batch_json, hist, requests, us, Batch};
 use super::{row, summary};
 use crate::cli::FederationBenchArgs;
-use crate::cmd::children::{connect_when_listed, Children};
+use crate::cmd::children::{
+    connect_when_listed, federated_broker_args, free_tcp_port as free_port, host_instance, Children,
+};
 use anyhow::{bail, Context};
 use hdrhistogram::Histogram;
 use muster_shared::types::ServiceId;
@@ -29,18 +31,6 @@ use std::time::{Duration, Instant};
 use zenoh::Wait;
 
 const HOSTS: [&str; 3] = ["a", "b", "c"];
-
-fn free_port() -> anyhow::Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port())
-}
-
-fn host_instance(inst: &Instance, host: &str) -> anyhow::Result<Instance> {
-    let mut name = inst.as_str().to_string();
-    name.truncate(30);
-    Ok(Instance::new(&format!("{name}-{host}"))?)
-}
 
 /// The raw Zenoh round trip: two sessions of this process, peers over loopback TCP.
 fn zenoh_floor(n: usize) -> anyhow::Result<Histogram<u64>> {
@@ -110,8 +100,9 @@ fn list_propagation(
     on_b: &mut UserClient,
     n: usize,
 ) -> anyhow::Result<Histogram<u64>> {
-    let far = ServiceId("t1@b/s0".into());
-    let here = ServiceId("t1/s0".into());
+    // s1: no user of the loaded rows holds it.
+    let far = ServiceId("t1@b/s1".into());
+    let here = ServiceId("t1/s1".into());
     let in_use = |c: &mut UserClient| -> anyhow::Result<u16> {
         Ok(c.list()?.find(&far).map_or(u16::MAX, |e| e.in_use))
     };
@@ -205,13 +196,20 @@ fn measure(
     on_a: &mut UserClient,
     on_b: &mut UserClient,
 ) -> anyhow::Result<Rows> {
+    // Requests on s1 (no user of the loaded rows holds it, so no quota is in the
+    // way); updates on s0, the service the loaded rows' users stream from.
+    let deadline = Duration::from_secs(10);
+    let far = ServiceId("t1@b/s1".into());
+    let local = ServiceId("t1/s1".into());
+    let far_request = requests(on_a, &far, a.requests, deadline)?;
+    let local_request = requests(on_b, &local, a.requests, deadline)?;
+    let list = list_propagation(on_a, on_b, a.list_changes)?;
     let far = ServiceId("t1@b/s0".into());
     let local = ServiceId("t1/s0".into());
-    let deadline = Duration::from_secs(10);
     Ok(Rows {
-        far_request: requests(on_a, &far, a.requests, deadline)?,
-        local_request: requests(on_b, &local, a.requests, deadline)?,
-        list: list_propagation(on_a, on_b, a.list_changes)?,
+        far_request,
+        local_request,
+        list,
         far_updates: updates(on_a, &far, a.updates_for)?,
         local_updates: updates(on_b, &local, a.updates_for)?,
     })
@@ -265,20 +263,7 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
     let federation = format!("bench{}", std::process::id());
     let mut kids = Children::default();
     for (i, host) in HOSTS.iter().enumerate() {
-        let mut args: Vec<String> = [
-            "broker", "--federate", "--host", host, "--federation", &federation,
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.push("--listen".into());
-        args.push(format!("tcp/127.0.0.1:{}", ports[i]));
-        for (j, p) in ports.iter().enumerate() {
-            if j != i {
-                args.push("--connect".into());
-                args.push(format!("tcp/127.0.0.1:{p}"));
-            }
-        }
+        let args = federated_broker_args(&federation, &HOSTS, &ports, i);
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
         kids.spawn(&insts[i], &format!("broker-{host}"), &args, Stdio::null())?;
     }
@@ -289,13 +274,13 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
             name,
             &[
                 "system", "synthetic", "--name", name, "--kind", kind, "--quota", &quota,
-                "--rate", "10",
+                "--rate", "10", "--services", "2",
             ],
             Stdio::null(),
         )?;
     }
     let timeout = Duration::from_secs(30);
-    let mut on_b = connect_when_listed(&insts[1], 3, timeout).context("host b")?;
+    let mut on_b = connect_when_listed(&insts[1], 6, timeout).context("host b")?;
     let opts = muster_users::ConnectOptions {
         wait_for_broker: Duration::from_secs(20),
         handle_signals: false,
@@ -303,7 +288,7 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
     };
     let mut on_a = UserClient::connect(&insts[0], &opts)?;
     let until = Instant::now() + timeout;
-    while on_a.list()?.count < 3 {
+    while on_a.list()?.count < 6 {
         if Instant::now() > until {
             bail!("a did not see b's and c's services within {timeout:?}");
         }
