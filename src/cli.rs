@@ -225,6 +225,13 @@ pub enum BenchCommand {
     /// (internal) The echo process of `bench remote`'s UDP floor.
     #[command(hide = true)]
     UdpEcho,
+    /// (internal) The echo process of `bench federation`'s Zenoh floor: a Zenoh peer
+    /// listening on this loopback port.
+    #[command(hide = true)]
+    ZenohEcho {
+        /// The port.
+        port: u16,
+    },
     /// (internal) The echo process of `bench floor`.
     #[command(hide = true)]
     Echo,

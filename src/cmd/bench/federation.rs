@@ -3,8 +3,9 @@
 //! One run starts three instances (`<inst>-a`, `-b`, `-c`), each with a federated broker
 //! (child processes, Zenoh over loopback TCP), a data system `t1` and a command system
 //! `d1` on b and a data system `t2` on c. From this process it then measures:
-//! - the floor: the raw Zenoh round trip between two Zenoh sessions of this process
-//!   (put → subscriber → put back → subscriber), over loopback TCP like the brokers';
+//! - the floor: the raw Zenoh round trip between this process and an echo process
+//!   (put → subscriber → put back → subscriber), peers over loopback TCP like the
+//!   brokers;
 //! - service requests from a user on a to `t1@b/s0` (request → grant, then end), their
 //!   ratio to the floor, beside the same request made locally on b;
 //! - list propagation: a session begun or ended by a user on b until a user on a sees
@@ -32,35 +33,64 @@ use zenoh::Wait;
 
 const HOSTS: [&str; 3] = ["a", "b", "c"];
 
-/// The raw Zenoh round trip: two sessions of this process, peers over loopback TCP.
-fn zenoh_floor(n: usize) -> anyhow::Result<Histogram<u64>> {
-    let port = free_port()?;
-    let cfg = |listen: bool| -> anyhow::Result<zenoh::Config> {
-        let mut c = zenoh::Config::default();
-        let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
-        c.insert_json5("mode", "\"peer\"").map_err(z)?;
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .map_err(z)?;
-        let ep = format!("[\"tcp/127.0.0.1:{port}\"]");
-        let key = if listen {
-            "listen/endpoints"
-        } else {
-            "connect/endpoints"
-        };
-        c.insert_json5(key, &ep).map_err(z)?;
-        Ok(c)
-    };
+fn zenoh_config(port: u16, listen: bool) -> anyhow::Result<zenoh::Config> {
     let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
-    let echo = zenoh::open(cfg(true)?).wait().map_err(z)?;
-    let probe = zenoh::open(cfg(false)?).wait().map_err(z)?;
-    let back = echo.declare_publisher("muster-bench/pong").wait().map_err(z)?;
-    let _echo_sub = echo
+    let mut c = zenoh::Config::default();
+    c.insert_json5("mode", "\"peer\"").map_err(z)?;
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .map_err(z)?;
+    let ep = format!("[\"tcp/127.0.0.1:{port}\"]");
+    let key = if listen {
+        "listen/endpoints"
+    } else {
+        "connect/endpoints"
+    };
+    c.insert_json5(key, &ep).map_err(z)?;
+    Ok(c)
+}
+
+/// `muster bench zenoh-echo PORT`: a Zenoh peer listening on PORT that puts back on
+/// `muster-bench/pong` whatever arrives on `muster-bench/ping`, until SIGTERM; the
+/// other end of the Zenoh floor (a process of its own, as a broker is).
+pub fn echo(port: u16) -> anyhow::Result<ExitCode> {
+    let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
+    let session = zenoh::open(zenoh_config(port, true)?).wait().map_err(z)?;
+    let back = session
+        .declare_publisher("muster-bench/pong")
+        .wait()
+        .map_err(z)?;
+    let _sub = session
         .declare_subscriber("muster-bench/ping")
         .callback(move |s| {
             let _ = back.put(s.payload().clone()).wait();
         })
         .wait()
         .map_err(z)?;
+    let mut signals = muster_shared::reactor::SignalPipe::install()?;
+    let mut reactor = muster_shared::reactor::Reactor::new()?;
+    reactor.add(signals.raw(), 0)?;
+    loop {
+        if !reactor.wait(None)?.is_empty() && signals.drain() {
+            return Ok(ExitCode::SUCCESS);
+        }
+    }
+}
+
+/// The raw Zenoh round trip between this process and an echo process, peers over
+/// loopback TCP as the brokers are: put → the echo's subscriber → put back → ours.
+fn zenoh_floor(n: usize, kids: &mut Children, inst: &Instance) -> anyhow::Result<Histogram<u64>> {
+    let port = free_port()?;
+    let p = port.to_string();
+    kids.spawn(inst, "zenoh-echo", &["bench", "zenoh-echo", &p], Stdio::null())?;
+    let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
+    let until = Instant::now() + Duration::from_secs(10);
+    let probe = loop {
+        match zenoh::open(zenoh_config(port, false)?).wait() {
+            Ok(s) => break s,
+            Err(e) if Instant::now() > until => bail!("cannot reach the Zenoh echo: {e}"),
+            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+        }
+    };
     let (tx, rx) = std::sync::mpsc::channel::<()>();
     let _probe_sub = probe
         .declare_subscriber("muster-bench/pong")
@@ -71,16 +101,16 @@ fn zenoh_floor(n: usize) -> anyhow::Result<Histogram<u64>> {
         .map_err(z)?;
     let ping = probe.declare_publisher("muster-bench/ping").wait().map_err(z)?;
     // Until the two have found each other.
-    let until = Instant::now() + Duration::from_secs(10);
     loop {
         ping.put(vec![0u8; 64]).wait().map_err(z)?;
         if rx.recv_timeout(Duration::from_millis(50)).is_ok() {
             break;
         }
         if Instant::now() > until {
-            bail!("the two Zenoh sessions did not meet within 10 s");
+            bail!("the Zenoh echo did not answer within 10 s");
         }
     }
+    std::thread::sleep(Duration::from_millis(100));
     while rx.try_recv().is_ok() {}
     let mut h = hist();
     for _ in 0..n {
@@ -90,7 +120,8 @@ fn zenoh_floor(n: usize) -> anyhow::Result<Histogram<u64>> {
             let _ = h.record(us(t.elapsed()));
         }
     }
-    drop((echo, probe));
+    drop(probe);
+    kids.stop_one("zenoh-echo");
     Ok(h)
 }
 
@@ -295,7 +326,7 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
         let _ = on_a.next_event(Instant::now() + Duration::from_millis(50))?;
     }
 
-    let floor = zenoh_floor(a.round_trips)?;
+    let floor = zenoh_floor(a.round_trips, &mut kids, inst)?;
     let floor_p50 = floor.value_at_quantile(0.5).max(1) as f64;
     let idle = measure(&a, &mut on_a, &mut on_b)?;
     let mut out = json!({
@@ -319,9 +350,12 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
                 kids.spawn(
                     &insts[i],
                     &format!("user-{host}-{k}"),
-                    &["user", "request", targets[i], "--duration", "1h"],
+                    &["user", "--wait", "120s", "request", targets[i], "--duration", "1h"],
                     Stdio::null(),
                 )?;
+                // Not all at once: 900 processes starting together on 2 cores is a
+                // storm of its own (issue "Faster" measures those).
+                std::thread::sleep(Duration::from_millis(10));
             }
         }
         // Until every session is held.

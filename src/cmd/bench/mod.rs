@@ -20,6 +20,7 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::Floor(a) => floor::run(inst, a),
         BenchCommand::Remote(a) => remote::run(inst, a),
         BenchCommand::UdpEcho => remote::echo(),
+        BenchCommand::ZenohEcho { port } => federation::echo(port),
         BenchCommand::Echo => floor::echo(inst),
         BenchCommand::Failover(a) => failover::run(inst, a),
         BenchCommand::Federation(a) => federation::run(inst, a),
