@@ -54,6 +54,10 @@ pub enum Command {
     /// Make a key pair for a remote user (or the broker) and print the line to add to
     /// the broker's access file.
     Keygen(KeygenArgs),
+    /// Make the certificates of a federation's hosts for mutual TLS (`muster broker
+    /// --federate --tls DIR`): a certificate authority (made once, kept in DIR) and a
+    /// key and certificate per host, named after the host.
+    Certs(CertsArgs),
     /// (internal) Remove what dead processes left in shared memory: those of `--pid`,
     /// or all. Brokers run it as a process of its own, so that a cleanup outlives a
     /// broker killed in the middle of it (iceoryx2 never cleans a node whose cleaner died).
@@ -269,6 +273,24 @@ pub struct RemoteBenchArgs {
 }
 
 #[derive(Args, Debug)]
+pub struct CertsArgs {
+    /// Where the files go: ca.pem and ca.key (the authority, made if missing), and
+    /// HOST.pem and HOST.key per host.
+    #[arg(long, default_value = "muster-certs")]
+    pub out: std::path::PathBuf,
+    /// The hosts, as named by `muster broker --host` (comma-separated).
+    #[arg(long, value_delimiter = ',', required = true)]
+    pub hosts: Vec<String>,
+    /// Further names and addresses each host's certificate is valid for (DNS names or
+    /// IPs; localhost and 127.0.0.1 are always in).
+    #[arg(long, value_delimiter = ',')]
+    pub san: Vec<String>,
+    /// Validity of the host certificates, days.
+    #[arg(long, default_value_t = 825)]
+    pub days: i64,
+}
+
+#[derive(Args, Debug)]
 pub struct FederationBenchArgs {
     /// Service requests per row.
     #[arg(long, default_value_t = 500)]
@@ -461,6 +483,11 @@ pub struct BrokerArgs {
     /// name them with --connect).
     #[arg(long, requires = "federate")]
     pub multicast: bool,
+    /// Mutual TLS with the certificates in DIR (from `muster certs`): ca.pem, HOST.pem,
+    /// HOST.key. Endpoints given as tcp/ are used as tls/; a host whose certificate the
+    /// authority did not sign joins nothing.
+    #[arg(long, requires = "federate")]
+    pub tls: Option<std::path::PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]

@@ -22,10 +22,16 @@ struct Hosts {
     name: String,
     hosts: Vec<(String, Fed, u16)>,
     brokers: Vec<Option<usize>>,
+    /// Further broker arguments, per host.
+    extra: Vec<Vec<String>>,
 }
 
 impl Hosts {
     fn new(test: &str, names: &[&str]) -> Self {
+        Self::with(test, names, |_| Vec::new())
+    }
+
+    fn with(test: &str, names: &[&str], extra: impl Fn(usize) -> Vec<String>) -> Self {
         let name = format!("{test}{}", std::process::id());
         let hosts = names
             .iter()
@@ -38,10 +44,12 @@ impl Hosts {
             })
             .collect::<Vec<_>>();
         let brokers = vec![None; hosts.len()];
+        let extra = (0..hosts.len()).map(extra).collect();
         let mut hs = Hosts {
             name,
             hosts,
             brokers,
+            extra,
         };
         for i in 0..hs.hosts.len() {
             hs.start_broker(i);
@@ -68,6 +76,7 @@ impl Hosts {
                 a.push(format!("tcp/127.0.0.1:{p}"));
             }
         }
+        a.extend(self.extra[i].iter().cloned());
         a
     }
 
@@ -496,4 +505,73 @@ fn up_with_hosts_links_across_three_hosts() {
     ] {
         assert!(out.contains(want), "{want:?} missing from:\n{out}");
     }
+}
+
+#[test]
+fn a_host_without_the_federations_certificate_joins_nothing() {
+    // `muster certs` makes one authority and a certificate per host; brokers with
+    // --tls speak mutual TLS. Host x has a certificate from another authority, host y
+    // none at all: neither sees the federation, nor does the federation see them.
+    let dir = std::env::temp_dir().join(format!("muster-test-certs-{}", std::process::id()));
+    let other = dir.join("other");
+    let _ = std::fs::remove_dir_all(&dir);
+    let tool = Fed::new("fc-tool");
+    let fed_dir = dir.join("fed");
+    let (code, _) = tool.run(
+        &["certs", "--out", fed_dir.to_str().unwrap(), "--hosts", "a,b"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0);
+    let (code, _) = tool.run(
+        &["certs", "--out", other.to_str().unwrap(), "--hosts", "x"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0);
+    // Existing files are never overwritten.
+    let (code, _) = tool.run(
+        &["certs", "--out", fed_dir.to_str().unwrap(), "--hosts", "a"],
+        20 * SEC,
+    );
+    assert_ne!(code, 0, "a host's key is not made twice");
+    let tls = |i: usize| -> Vec<String> {
+        match i {
+            0 | 1 => vec!["--tls".into(), fed_dir.display().to_string()],
+            2 => vec!["--tls".into(), other.display().to_string()],
+            _ => Vec::new(),
+        }
+    };
+    let mut h = Hosts::with("fc", &["a", "b", "x", "y"], tls);
+    h.host(1).system("robo", &["--rate", "20"]);
+    h.host(2).system("evil", &[]);
+    h.host(3).system("plain", &[]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    h.host(2).wait_list(20 * SEC, |l| l.len() == 1);
+    h.host(3).wait_list(20 * SEC, |l| l.len() == 1);
+    // Time enough for x and y to have tried.
+    std::thread::sleep(2 * SEC);
+    assert_eq!(ids(&h.host(0).list()), ["robo@b/s0"]);
+    assert_eq!(ids(&h.host(1).list()), ["robo/s0"]);
+    assert_eq!(ids(&h.host(2).list()), ["evil/s0"]);
+    assert_eq!(ids(&h.host(3).list()), ["plain/s0"]);
+    // Over TLS, a session across hosts as before.
+    let (code, out) = h.host(0).run(
+        &["user", "request", "robo@b/s0", "--duration", "1s", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let lines: Vec<Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let s = seqs(&lines);
+    assert!(s.len() >= 10 && s.windows(2).all(|w| w[1] == w[0] + 1), "{lines:?}");
+    // A broker whose --tls folder lacks its certificate does not start.
+    let mut missing = Fed::new("fc-miss");
+    let (code, _) = missing.run(
+        &[
+            "broker", "--federate", "--host", "zz", "--tls", fed_dir.to_str().unwrap(),
+        ],
+        20 * SEC,
+    );
+    assert_ne!(code, 0);
+    missing.shutdown();
+    drop(h);
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -83,6 +83,9 @@ pub struct FedConfig {
     pub lease: Option<Duration>,
     /// Zenoh's multicast scouting (finding peers on the LAN without `--connect`).
     pub multicast: bool,
+    /// Mutual TLS with the certificates in this folder (`muster certs`): `ca.pem`,
+    /// `HOST.pem`, `HOST.key`. TCP endpoints are used as TLS ones.
+    pub tls: Option<PathBuf>,
 }
 
 /// Why a broker could not join its federation.
@@ -142,11 +145,46 @@ impl FedConfig {
                 c
             }
         };
+        let tls = |eps: &[String]| -> Vec<String> {
+            eps.iter()
+                .map(|e| match (&self.tls, e.strip_prefix("tcp/")) {
+                    (Some(_), Some(rest)) => format!("tls/{rest}"),
+                    _ => e.clone(),
+                })
+                .collect()
+        };
         if !self.listen.is_empty() {
-            set(&mut c, "listen/endpoints", &json_list(&self.listen))?;
+            set(&mut c, "listen/endpoints", &json_list(&tls(&self.listen)))?;
         }
         if !self.connect.is_empty() {
-            set(&mut c, "connect/endpoints", &json_list(&self.connect))?;
+            set(&mut c, "connect/endpoints", &json_list(&tls(&self.connect)))?;
+        }
+        if let Some(dir) = &self.tls {
+            let file = |name: String| -> Result<String, FedError> {
+                let p = dir.join(&name);
+                if !p.is_file() {
+                    return Err(FedError::Config(format!(
+                        "--tls: {} is missing (make it with `muster certs --out {} --hosts {}`)",
+                        p.display(),
+                        dir.display(),
+                        self.host
+                    )));
+                }
+                serde_json::to_string(&p.display().to_string())
+                    .map_err(|e| FedError::Config(e.to_string()))
+            };
+            let ca = file("ca.pem".into())?;
+            let cert = file(format!("{}.pem", self.host))?;
+            let key = file(format!("{}.key", self.host))?;
+            set(&mut c, "transport/link/tls/root_ca_certificate", &ca)?;
+            set(&mut c, "transport/link/tls/listen_certificate", &cert)?;
+            set(&mut c, "transport/link/tls/listen_private_key", &key)?;
+            set(&mut c, "transport/link/tls/connect_certificate", &cert)?;
+            set(&mut c, "transport/link/tls/connect_private_key", &key)?;
+            set(&mut c, "transport/link/tls/enable_mtls", "true")?;
+            // Peers are reached by address; who they are is their certificate, which
+            // the federation's authority signed (mutual TLS), not the name dialled.
+            set(&mut c, "transport/link/tls/verify_name_on_connect", "false")?;
         }
         if let Some(lease) = self.lease {
             let ms = lease.as_millis().max(100);

@@ -49,6 +49,7 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         listen: a.listen.clone(),
         lease: a.lease,
         multicast: a.multicast,
+        tls: a.tls.clone(),
     });
     let keep_log = a.handling_log.is_some();
     // Cleanups after dead processes run as `muster cleanup`, outliving a killed broker.

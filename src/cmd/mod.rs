@@ -6,6 +6,7 @@ mod broker;
 mod capacity;
 mod children;
 mod experiment;
+mod certs;
 mod keygen;
 mod paper;
 mod scalability;
@@ -35,6 +36,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Sim(a) => sim::run(&inst, a),
         Command::Stress(a) => stress::run(&inst, a),
         Command::Keygen(a) => keygen::run(a),
+        Command::Certs(a) => certs::run(a),
         Command::Cleanup { pid, after } => {
             std::thread::sleep(after);
             let n = muster_shared::ipc::cleanup_after(pid);
