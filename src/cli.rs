@@ -488,6 +488,11 @@ pub struct BrokerArgs {
     /// authority did not sign joins nothing.
     #[arg(long, requires = "federate")]
     pub tls: Option<std::path::PathBuf>,
+    /// The federation's access file (TOML, the same on every host): `[hosts]` then
+    /// `NAME = ["offer", "request"]` per host. Hosts not named, or acting beyond their
+    /// roles, are let do nothing. Needs --tls.
+    #[arg(long, requires = "tls")]
+    pub acl: Option<std::path::PathBuf>,
 }
 
 #[derive(Subcommand, Debug)]

@@ -12,8 +12,11 @@ fn main() -> std::process::ExitCode {
     iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn")),
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+                tracing_subscriber::EnvFilter::new(
+                    "info,zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn",
+                )
+            }),
         )
         .with_writer(std::io::stderr)
         .with_target(false)

@@ -111,7 +111,8 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
     let mut h = Hosts::new("fl", &["a", "b", "c"]);
     h.host(1)
         .system("robo", &["--services", "2", "--quota", "2", "--rate", "20"]);
-    h.host(2).system("deliv", &["--kind", "command", "--quota", "1"]);
+    h.host(2)
+        .system("deliv", &["--kind", "command", "--quota", "1"]);
     // Every host sees every service, another host's as system@host/name.
     let want_a = ["deliv@c/s0", "robo@b/s0", "robo@b/s1"];
     let (list_a, _) = h.host(0).wait_list(20 * SEC, |l| l.len() == 3);
@@ -134,7 +135,10 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
         20 * SEC,
     );
     assert_eq!(code, 0, "{out}");
-    let lines: Vec<Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
     assert_eq!(lines[0]["granted"], true, "{lines:?}");
     assert_eq!(lines[0]["service"], "robo@b/s0", "{lines:?}");
     let s = seqs(&lines);
@@ -155,7 +159,12 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
         .into_iter()
         .map(|i| {
             h.host(i).spawn(&[
-                "user", "request", "robo@b/s1", "--duration", "20s", "--json",
+                "user",
+                "request",
+                "robo@b/s1",
+                "--duration",
+                "20s",
+                "--json",
             ])
         })
         .collect();
@@ -181,7 +190,14 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
     // A command service on c, driven from a.
     let (code, out) = h.host(0).run(
         &[
-            "user", "request", "deliv@c/s0", "--goal", "1,1", "--duration", "1s", "--json",
+            "user",
+            "request",
+            "deliv@c/s0",
+            "--goal",
+            "1,1",
+            "--duration",
+            "1s",
+            "--json",
         ],
         20 * SEC,
     );
@@ -192,7 +208,14 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
     );
     // An unknown host's service is refused at once.
     let (_, out) = h.host(0).run(
-        &["user", "request", "robo@nowhere/s0", "--duration", "1s", "--json"],
+        &[
+            "user",
+            "request",
+            "robo@nowhere/s0",
+            "--duration",
+            "1s",
+            "--json",
+        ],
         20 * SEC,
     );
     let answer: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
@@ -203,17 +226,27 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
 fn a_link_runs_across_three_hosts() {
     let mut h = Hosts::new("fk", &["a", "b", "c"]);
     h.host(0).system("t1", &["--rate", "20"]);
-    h.host(1).system("d1", &["--kind", "command", "--rate", "20"]);
+    h.host(1)
+        .system("d1", &["--kind", "command", "--rate", "20"]);
     h.host(2).wait_list(20 * SEC, |l| l.len() == 2);
     // The user on c links a's data into b's command service.
     let (code, out) = h.host(2).run(
         &[
-            "user", "link", "t1@a/s0", "d1@b/s0", "--duration", "2s", "--json",
+            "user",
+            "link",
+            "t1@a/s0",
+            "d1@b/s0",
+            "--duration",
+            "2s",
+            "--json",
         ],
         30 * SEC,
     );
     assert_eq!(code, 0, "{out}");
-    let lines: Vec<Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
     let forwarded = lines
         .iter()
         .filter(|v| v["forwarded"]["type"] == "goal2d")
@@ -225,10 +258,12 @@ fn a_link_runs_across_three_hosts() {
         .count();
     assert!(statuses >= 1, "b's system answered the input: {lines:?}");
     // Both sessions ended with the link: nothing in use on a or b.
-    h.host(0)
-        .wait_list(10 * SEC, |l| find(l, "t1/s0").is_some_and(|v| v["in_use"] == 0));
-    h.host(1)
-        .wait_list(10 * SEC, |l| find(l, "d1/s0").is_some_and(|v| v["in_use"] == 0));
+    h.host(0).wait_list(10 * SEC, |l| {
+        find(l, "t1/s0").is_some_and(|v| v["in_use"] == 0)
+    });
+    h.host(1).wait_list(10 * SEC, |l| {
+        find(l, "d1/s0").is_some_and(|v| v["in_use"] == 0)
+    });
 }
 
 #[test]
@@ -239,11 +274,16 @@ fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
     h.host(0).wait_list(20 * SEC, |l| l.len() == 2);
     // Sessions from a on b and on c.
     let on_b = h.host(0).spawn(&[
-        "user", "request", "robo@b/s0", "--duration", "30s", "--json",
+        "user",
+        "request",
+        "robo@b/s0",
+        "--duration",
+        "30s",
+        "--json",
     ]);
-    let on_c = h.host(0).spawn(&[
-        "user", "request", "cam@c/s0", "--duration", "4s", "--json",
-    ]);
+    let on_c = h
+        .host(0)
+        .spawn(&["user", "request", "cam@c/s0", "--duration", "4s", "--json"]);
     for p in [on_b, on_c] {
         let first = h.host(0).proc(p).json(20 * SEC).unwrap();
         assert_eq!(first["granted"], true, "{first}");
@@ -272,11 +312,21 @@ fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
     let (list, _) = h.host(0).wait_list(20 * SEC, |l| l.len() == 2);
     assert_eq!(ids(&list), ["cam@c/s0", "robo@b/s0"]);
     let (code, out) = h.host(0).run(
-        &["user", "request", "robo@b/s0", "--duration", "500ms", "--json"],
+        &[
+            "user",
+            "request",
+            "robo@b/s0",
+            "--duration",
+            "500ms",
+            "--json",
+        ],
         20 * SEC,
     );
     assert_eq!(code, 0, "{out}");
-    assert!(out.lines().next().unwrap().contains("\"granted\":true"), "{out}");
+    assert!(
+        out.lines().next().unwrap().contains("\"granted\":true"),
+        "{out}"
+    );
 }
 
 #[test]
@@ -296,7 +346,11 @@ fn a_second_broker_under_a_taken_host_name_is_refused() {
     full.extend(args);
     let (code, _) = other.run(&full, 20 * SEC);
     assert_ne!(code, 0, "a broker under a host name in use must not start");
-    let fence = format!("{}{}.broker-fence", muster_shared::ipc::iox2_root(), other.inst);
+    let fence = format!(
+        "{}{}.broker-fence",
+        muster_shared::ipc::iox2_root(),
+        other.inst
+    );
     assert!(
         !std::path::Path::new(&fence).exists(),
         "the refused broker leaves its instance free: {fence}"
@@ -309,9 +363,8 @@ fn a_second_broker_under_a_taken_host_name_is_refused() {
 #[test]
 fn a_client_nobody_here_wrote_reads_the_federations_lists() {
     // The Zenoh Python client (eclipse-zenoh, installed by .ci/run into .venv).
-    let python = std::env::var("MUSTER_PYTHON").unwrap_or_else(|_| {
-        concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string()
-    });
+    let python = std::env::var("MUSTER_PYTHON")
+        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
     let has_zenoh = std::process::Command::new(&python)
         .args(["-c", "import zenoh"])
         .status()
@@ -394,23 +447,24 @@ fn hostile_frames_from_another_host_are_dropped() {
     let mut h = Hosts::new("fh", &["a", "b"]);
     h.host(1).system("robo", &["--rate", "20"]);
     h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
-    let holder = h.host(0).spawn(&[
-        "user", "request", "robo@b/s0", "--duration", "3s", "--json",
-    ]);
+    let holder = h
+        .host(0)
+        .spawn(&["user", "request", "robo@b/s0", "--duration", "3s", "--json"]);
     assert_eq!(
         h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
         true
     );
     let mut conf = zenoh::Config::default();
     conf.insert_json5("mode", "\"client\"").unwrap();
-    conf.insert_json5("scouting/multicast/enabled", "false").unwrap();
+    conf.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
     conf.insert_json5(
         "connect/endpoints",
         &format!("[\"tcp/127.0.0.1:{}\"]", h.hosts[1].2),
     )
     .unwrap();
     let z = zenoh::open(conf).wait().unwrap();
-    let to_b = |from: &str| format!("muster/{}/b/in/{from}", h.name);
+    let to_b = |from: &str| format!("muster/{}/b/req/{from}", h.name);
     let frames: Vec<(String, Vec<u8>)> = vec![
         (to_b("a"), vec![0xff; 40]),
         (to_b("a"), Vec::new()),
@@ -468,6 +522,17 @@ fn hostile_frames_from_another_host_are_dropped() {
             .unwrap(),
         ),
     ];
+    // A user's frame on the key for systems' frames: each kind has its own key.
+    let mut frames = frames;
+    frames.push((
+        format!("muster/{}/b/in/a", h.name),
+        encode(&FedMsg::Request {
+            user: UserId("u9".into()),
+            req: 1,
+            service: ServiceId::new("robo", "s0"),
+        })
+        .unwrap(),
+    ));
     for _ in 0..50 {
         for (k, f) in &frames {
             z.put(k, f.clone()).wait().unwrap();
@@ -477,15 +542,33 @@ fn hostile_frames_from_another_host_are_dropped() {
     let lines = h.host(0).proc(holder).all_json(20 * SEC);
     let s = seqs(&lines);
     assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap: {s:?}");
-    assert_eq!(lines.last().unwrap()["reason"], "duration over", "{lines:?}");
+    assert_eq!(
+        lines.last().unwrap()["reason"],
+        "duration over",
+        "{lines:?}"
+    );
     // b still serves: a new session from a, and its list is whole.
     let (code, out) = h.host(0).run(
-        &["user", "request", "robo@b/s0", "--duration", "300ms", "--json"],
+        &[
+            "user",
+            "request",
+            "robo@b/s0",
+            "--duration",
+            "300ms",
+            "--json",
+        ],
         20 * SEC,
     );
     assert_eq!(code, 0, "{out}");
-    assert!(out.lines().next().unwrap().contains("\"granted\":true"), "{out}");
+    assert!(
+        out.lines().next().unwrap().contains("\"granted\":true"),
+        "{out}"
+    );
     assert_eq!(ids(&h.host(1).list()), ["robo/s0"]);
+    // None of those frames made a request: nothing is held on b now.
+    h.host(1).wait_list(10 * SEC, |l| {
+        find(l, "robo/s0").is_some_and(|v| v["in_use"] == 0)
+    });
 }
 
 #[test]
@@ -518,7 +601,13 @@ fn a_host_without_the_federations_certificate_joins_nothing() {
     let tool = Fed::new("fc-tool");
     let fed_dir = dir.join("fed");
     let (code, _) = tool.run(
-        &["certs", "--out", fed_dir.to_str().unwrap(), "--hosts", "a,b"],
+        &[
+            "certs",
+            "--out",
+            fed_dir.to_str().unwrap(),
+            "--hosts",
+            "a,b",
+        ],
         20 * SEC,
     );
     assert_eq!(code, 0);
@@ -559,19 +648,116 @@ fn a_host_without_the_federations_certificate_joins_nothing() {
         20 * SEC,
     );
     assert_eq!(code, 0, "{out}");
-    let lines: Vec<Value> = out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
     let s = seqs(&lines);
-    assert!(s.len() >= 10 && s.windows(2).all(|w| w[1] == w[0] + 1), "{lines:?}");
+    assert!(
+        s.len() >= 10 && s.windows(2).all(|w| w[1] == w[0] + 1),
+        "{lines:?}"
+    );
     // A broker whose --tls folder lacks its certificate does not start.
     let mut missing = Fed::new("fc-miss");
     let (code, _) = missing.run(
         &[
-            "broker", "--federate", "--host", "zz", "--tls", fed_dir.to_str().unwrap(),
+            "broker",
+            "--federate",
+            "--host",
+            "zz",
+            "--tls",
+            fed_dir.to_str().unwrap(),
         ],
         20 * SEC,
     );
     assert_ne!(code, 0);
     missing.shutdown();
+    drop(h);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn the_access_file_decides_who_offers_and_who_requests() {
+    // One authority for a, b and c; the access file lets a request, b offer, and
+    // names no c. Zenoh's access control (by certificate common name) enforces it on
+    // every broker's ingress, and each broker holds itself to its own role.
+    let dir = std::env::temp_dir().join(format!("muster-test-acl-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let tool = Fed::new("fa-tool");
+    let certs = dir.join("certs");
+    let (code, _) = tool.run(
+        &[
+            "certs",
+            "--out",
+            certs.to_str().unwrap(),
+            "--hosts",
+            "a,b,c",
+        ],
+        20 * SEC,
+    );
+    assert_eq!(code, 0);
+    let acl = dir.join("acl.toml");
+    std::fs::write(&acl, "[hosts]\na = [\"request\"]\nb = [\"offer\"]\n").unwrap();
+    let args = |_: usize| -> Vec<String> {
+        vec![
+            "--tls".into(),
+            certs.display().to_string(),
+            "--acl".into(),
+            acl.display().to_string(),
+        ]
+    };
+    let mut h = Hosts::with("fa", &["a", "b", "c"], args);
+    h.host(0).system("mine", &[]);
+    h.host(1).system("robo", &["--rate", "20"]);
+    h.host(2).system("cee", &[]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 2);
+    h.host(1).wait_list(20 * SEC, |l| l.len() == 1);
+    std::thread::sleep(2 * SEC);
+    // a sees what b offers, not c's; b sees nobody's (a may not offer, c is not named);
+    // c, not named, sees nothing of the federation.
+    assert_eq!(ids(&h.host(0).list()), ["mine/s0", "robo@b/s0"]);
+    assert_eq!(ids(&h.host(1).list()), ["robo/s0"]);
+    assert_eq!(ids(&h.host(2).list()), ["cee/s0"]);
+    // a's user is served by b.
+    let (code, out) = h.host(0).run(
+        &["user", "request", "robo@b/s0", "--duration", "1s", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert!(seqs(&lines).len() >= 10, "{lines:?}");
+    // b may not request: refused at once, with the reason.
+    let (_, out) = h.host(1).run(
+        &["user", "request", "mine@a/s0", "--duration", "1s", "--json"],
+        20 * SEC,
+    );
+    let answer: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
+    assert_eq!(answer["code"], "bad_request", "{answer}");
+    assert!(
+        answer["reason"]
+            .as_str()
+            .unwrap()
+            .contains("may not request"),
+        "{answer}"
+    );
+    // A broker given an access file without TLS does not start.
+    let mut bad = Fed::new("fa-bad");
+    let (code, _) = bad.run(
+        &[
+            "broker",
+            "--federate",
+            "--host",
+            "q",
+            "--acl",
+            acl.to_str().unwrap(),
+        ],
+        20 * SEC,
+    );
+    assert_ne!(code, 0);
+    bad.shutdown();
     drop(h);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -9,7 +9,13 @@
 //! | `<host>/alive` | liveliness token of the host's broker |
 //! | `<host>/system/<name>` | liveliness token of each system registered there |
 //! | `<host>/list` | the host's services (JSON array of [`ServiceView`]), put on every change; also a queryable |
-//! | `<host>/in/<from>` | frames ([`FedMsg`]) from host `from` to this host's broker |
+//! | `<host>/req/<from>` | a user's frames ([`FedMsg`]: request, cancel, input, end, gone) from host `from` to this host |
+//! | `<host>/in/<from>` | frames for a user ([`FedMsg::ToUser`]) from host `from`'s arbitration and systems |
+//!
+//! With `--acl FILE` (which needs `--tls`), each broker lets in from a peer only what
+//! the peer's role allows (Zenoh's access control, the peer known by its certificate's
+//! common name): hosts that offer publish their list, tokens and systems' frames; hosts
+//! that request send requests; anything else, or any host not named, is denied.
 //!
 //! Every broker merges the others' lists into its shared-memory list, each service under
 //! the id `system@host/name`, so a local user reads the global list as before.
@@ -86,6 +92,108 @@ pub struct FedConfig {
     /// Mutual TLS with the certificates in this folder (`muster certs`): `ca.pem`,
     /// `HOST.pem`, `HOST.key`. TCP endpoints are used as TLS ones.
     pub tls: Option<PathBuf>,
+    /// Who may do what: which hosts offer services, which request them (needs `tls`).
+    pub acl: Option<Acl>,
+}
+
+/// A host's role in a federation's access control.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// Publishes its services and serves other hosts' users.
+    Offer,
+    /// Its users request other hosts' services.
+    Request,
+}
+
+/// The federation's access file (TOML), the same on every host:
+///
+/// ```toml
+/// [hosts]
+/// robot1 = ["offer"]
+/// laptop = ["request"]
+/// hub = ["offer", "request"]
+/// ```
+///
+/// A host not named may connect (its certificate is good) but is let do nothing.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Acl {
+    /// Each host's roles, by host name (its certificate's common name).
+    pub hosts: BTreeMap<String, BTreeSet<Role>>,
+}
+
+impl Acl {
+    /// Reads and checks an access file.
+    pub fn load(path: &std::path::Path) -> Result<Self, FedError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| FedError::Config(format!("{}: {e}", path.display())))?;
+        Self::parse(&text).map_err(|e| FedError::Config(format!("{}: {e}", path.display())))
+    }
+
+    /// Parses and checks an access file's text.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let acl: Acl = toml::from_str(text).map_err(|e| e.to_string())?;
+        for h in acl.hosts.keys() {
+            check_host_like("host name", h).map_err(|e| e.to_string())?;
+        }
+        Ok(acl)
+    }
+
+    /// Whether `host` has `role`.
+    pub fn allows(&self, host: &str, role: Role) -> bool {
+        self.hosts.get(host).is_some_and(|r| r.contains(&role))
+    }
+
+    /// Zenoh's `access_control` section for a federation under `prefix`
+    /// (`muster/NAME/`): default deny; each named host, known by its certificate's
+    /// common name, may subscribe, query and hold its host token; an offering host may
+    /// publish its list, its systems' tokens and frames for users, and answer list
+    /// queries; a requesting host may send its users' frames. Only under its own name.
+    pub fn zenoh_json(&self, prefix: &str) -> serde_json::Value {
+        use serde_json::json;
+        let mut rules = Vec::new();
+        let mut subjects = Vec::new();
+        let mut policies = Vec::new();
+        let all = format!("{prefix}**");
+        for (i, (host, roles)) in self.hosts.iter().enumerate() {
+            let subject = format!("h{i}");
+            subjects.push(json!({"id": subject, "cert_common_names": [host]}));
+            let mut mine = vec![format!("h{i}-member"), format!("h{i}-out")];
+            rules.push(json!({"id": format!("h{i}-member"), "flows": ["ingress"], "permission": "allow",
+                "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query", "query"],
+                "key_exprs": [all]}));
+            rules.push(
+                json!({"id": format!("h{i}-token"), "flows": ["ingress"], "permission": "allow",
+                "messages": ["liveliness_token"], "key_exprs": [format!("{prefix}{host}/alive")]}),
+            );
+            mine.push(format!("h{i}-token"));
+            // What goes out to a member: everything of the federation.
+            rules.push(json!({"id": format!("h{i}-out"), "flows": ["egress"], "permission": "allow",
+                "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                             "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+                "key_exprs": [all]}));
+            if roles.contains(&Role::Offer) {
+                rules.push(
+                    json!({"id": format!("h{i}-offer"), "flows": ["ingress"], "permission": "allow",
+                    "messages": ["put", "declare_queryable", "reply"],
+                    "key_exprs": [format!("{prefix}{host}/list"), format!("{prefix}*/in/{host}")]}),
+                );
+                rules.push(json!({"id": format!("h{i}-systems"), "flows": ["ingress"], "permission": "allow",
+                    "messages": ["liveliness_token"], "key_exprs": [format!("{prefix}{host}/system/*")]}));
+                mine.push(format!("h{i}-offer"));
+                mine.push(format!("h{i}-systems"));
+            }
+            if roles.contains(&Role::Request) {
+                rules.push(json!({"id": format!("h{i}-request"), "flows": ["ingress"], "permission": "allow",
+                    "messages": ["put"], "key_exprs": [format!("{prefix}*/req/{host}")]}));
+                mine.push(format!("h{i}-request"));
+            }
+            policies.push(json!({"rules": mine, "subjects": [subject]}));
+        }
+        json!({"enabled": true, "default_permission": "deny", "rules": rules,
+               "subjects": subjects, "policies": policies})
+    }
 }
 
 /// Why a broker could not join its federation.
@@ -159,6 +267,19 @@ impl FedConfig {
         if !self.connect.is_empty() {
             set(&mut c, "connect/endpoints", &json_list(&tls(&self.connect)))?;
         }
+        if let Some(acl) = &self.acl {
+            if self.tls.is_none() {
+                return Err(FedError::Config(
+                    "--acl needs --tls: hosts are known by their certificates".into(),
+                ));
+            }
+            let prefix = format!("muster/{}/", self.federation);
+            set(
+                &mut c,
+                "access_control",
+                &acl.zenoh_json(&prefix).to_string(),
+            )?;
+        }
         if let Some(dir) = &self.tls {
             let file = |name: String| -> Result<String, FedError> {
                 let p = dir.join(&name);
@@ -205,7 +326,8 @@ fn json_list(items: &[String]) -> String {
     serde_json::to_string(items).unwrap_or_else(|_| "[]".into())
 }
 
-/// A frame from one host's broker to another's, on `<to>/in/<from>`.
+/// A frame from one host's broker to another's, on `<to>/req/<from>` (a user's side)
+/// or `<to>/in/<from>` ([`FedMsg::ToUser`], a system's side).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum FedMsg {
     /// A user of the sending host asks for a service of the receiving host.
@@ -269,7 +391,8 @@ pub struct FedStats {
 enum Event {
     Alive(String, bool),
     List(String, Vec<u8>),
-    Msg(String, Vec<u8>),
+    /// From a host; `true` if on its users' key (`req`), `false` on its systems' (`in`).
+    Msg(String, bool, Vec<u8>),
 }
 
 /// A shared-memory inbox the broker keeps for a peer on another host.
@@ -323,6 +446,8 @@ pub struct Federation {
     next_token: usize,
     lingering: Vec<(Instant, Proxy)>,
     stats: FedStats,
+    /// The federation's access file, if it has one.
+    acl: Option<Acl>,
 }
 
 fn key_part<'a>(key: &'a str, prefix: &str) -> Option<(&'a str, &'a str)> {
@@ -427,15 +552,16 @@ impl Federation {
                     .map_err(zerr)?,
             );
         }
-        {
+        for (part, users_side) in [("req", true), ("in", false)] {
             let n = notify.clone();
-            let inbox = format!("{prefix}{host}/in/");
+            let inbox = format!("{prefix}{host}/{part}/");
             subscribers.push(
                 session
                     .declare_subscriber(format!("{inbox}*"))
                     .callback(move |s| {
                         if let Some(from) = s.key_expr().as_str().strip_prefix(&inbox) {
-                            n(Event::Msg(from.to_string(), s.payload().to_bytes().to_vec()));
+                            let frame = s.payload().to_bytes().to_vec();
+                            n(Event::Msg(from.to_string(), users_side, frame));
                         }
                     })
                     .wait()
@@ -486,9 +612,18 @@ impl Federation {
             next_token: FIRST_PROXY_TOKEN,
             lingering: Vec::new(),
             stats: FedStats::default(),
+            acl: cfg.acl.clone(),
         };
+        if fed.acl.is_some() && !fed.may(&fed.host, Role::Offer) {
+            tracing::info!("the access file does not let this host offer: its services stay local");
+        }
         tracing::info!(host = %fed.host, federation = %cfg.federation, "joined the federation");
         Ok(fed)
+    }
+
+    /// Whether the access file (if any) gives `host` `role`.
+    fn may(&self, host: &str, role: Role) -> bool {
+        self.acl.as_ref().is_none_or(|a| a.allows(host, role))
     }
 
     /// This host's name.
@@ -533,7 +668,11 @@ impl Federation {
     /// Forgets the users of other hosts a previous broker run served: after a takeover
     /// their hosts see this host's token go and come back, and end their sessions here.
     pub fn forget_previous(&mut self, core: &mut Broker, now: Duration) {
-        let old: Vec<UserId> = core.users().filter(|u| Self::is_foreign(u)).cloned().collect();
+        let old: Vec<UserId> = core
+            .users()
+            .filter(|u| Self::is_foreign(u))
+            .cloned()
+            .collect();
         for u in old {
             core.revoke(now, &u);
         }
@@ -542,6 +681,9 @@ impl Federation {
     /// Publishes this host's list (after every change of the core's) and keeps the
     /// systems' liveliness tokens in step with the registry.
     pub fn publish_list(&mut self, views: &[ServiceView], systems: &[&str]) {
+        if !self.may(&self.host, Role::Offer) {
+            return;
+        }
         let mine: Vec<ServiceView> = views
             .iter()
             .map(|v| ServiceView {
@@ -595,18 +737,19 @@ impl Federation {
             Ok(f) => f,
             Err(e) => return tracing::warn!("federation: cannot encode a frame for {to}: {e}"),
         };
-        let key = format!("{}{to}/in/{}", self.prefix, self.host);
+        let part = if matches!(msg, FedMsg::ToUser { .. }) {
+            "in"
+        } else {
+            "req"
+        };
+        let key = format!("{}{to}/{part}/{}", self.prefix, self.host);
         match self.session.put(&key, frame).wait() {
             Ok(()) => self.stats.sent += 1,
             Err(e) => tracing::warn!("federation: cannot send to {to}: {e}"),
         }
     }
 
-    fn open_proxy(
-        &mut self,
-        addr: Address,
-        reactor: &Reactor,
-    ) -> Result<Proxy, String> {
+    fn open_proxy(&mut self, addr: Address, reactor: &Reactor) -> Result<Proxy, String> {
         let name = match &addr {
             Address::System(s) => format!("muster-fed-system-{s}"),
             Address::User(u) => format!("muster-fed-user-{u}"),
@@ -626,8 +769,7 @@ impl Federation {
     fn close_proxy(&mut self, proxy: Proxy, reactor: &Reactor) {
         reactor.remove(proxy.endpoint.bell_fd());
         self.by_token.remove(&proxy.token);
-        self.lingering
-            .push((Instant::now() + PROXY_LINGER, proxy));
+        self.lingering.push((Instant::now() + PROXY_LINGER, proxy));
     }
 
     /// A local user's request or cancel for another host's service: passed on, and
@@ -639,6 +781,20 @@ impl Federation {
                     return false;
                 };
                 let host = host.to_string();
+                if !self.may(&self.host, Role::Request) {
+                    let reason = format!(
+                        "host {} may not request other hosts' services (the federation's access file)",
+                        self.host
+                    );
+                    endpoint.send_control(
+                        &Address::User(user.clone()),
+                        &ToUser::Refused {
+                            req: *req,
+                            reason: Refusal::BadRequest(reason),
+                        },
+                    );
+                    return true;
+                }
                 if !self.alive.contains(&host) {
                     endpoint.send_control(
                         &Address::User(user.clone()),
@@ -649,8 +805,7 @@ impl Federation {
                     );
                     return true;
                 }
-                self.outstanding
-                    .insert((user.clone(), *req), host.clone());
+                self.outstanding.insert((user.clone(), *req), host.clone());
                 self.stats.requests_out += 1;
                 self.send(
                     &host,
@@ -763,9 +918,13 @@ impl Federation {
                     }
                 }
                 Event::List(host, body) => self.take_list(&host, &body),
-                Event::Msg(from, frame) => {
+                Event::Msg(from, users_side, frame) => {
                     self.stats.received += 1;
                     match decode::<FedMsg>(&frame) {
+                        // Each kind on its own key: access control is by key.
+                        Ok(m) if matches!(m, FedMsg::ToUser { .. }) == users_side => {
+                            self.stats.dropped += 1;
+                        }
                         Ok(m) => self.on_msg(&from, m, core, endpoint, reactor, now),
                         Err(e) => {
                             self.stats.dropped += 1;
@@ -797,6 +956,10 @@ impl Federation {
     }
 
     fn take_list(&mut self, host: &str, body: &[u8]) {
+        if !self.may(host, Role::Offer) {
+            self.stats.dropped += 1;
+            return;
+        }
         let views: Vec<ServiceView> = match serde_json::from_slice(body) {
             Ok(v) => v,
             Err(e) => {
@@ -832,7 +995,10 @@ impl Federation {
         now: Duration,
     ) {
         self.stats.hosts_lost += 1;
-        tracing::info!(host, "federation: host left; its services, requests and sessions end");
+        tracing::info!(
+            host,
+            "federation: host left; its services, requests and sessions end"
+        );
         if self.lists.remove(host).is_some() {
             self.list_changed = true;
         }
@@ -916,6 +1082,9 @@ impl Federation {
             return;
         }
         match msg {
+            FedMsg::Request { .. } if !self.may(from, Role::Request) => {
+                self.stats.dropped += 1;
+            }
             FedMsg::Request { user, req, service } => {
                 self.stats.requests_in += 1;
                 let Some(foreign) = self.foreign_user(&user, from, core, reactor, now) else {
@@ -950,7 +1119,10 @@ impl Federation {
                 }
             }
             FedMsg::ToSystem { system, msg } => {
-                let foreign = UserId(format!("{}@{from}", user_of(&msg).map(|u| u.0.as_str()).unwrap_or("")));
+                let foreign = UserId(format!(
+                    "{}@{from}",
+                    user_of(&msg).map(|u| u.0.as_str()).unwrap_or("")
+                ));
                 let Some(f) = self.foreign.get_mut(&foreign) else {
                     self.stats.dropped += 1;
                     return;
@@ -1060,13 +1232,23 @@ impl Federation {
         let msg = match msg {
             ToUser::Welcome { .. } => return,
             ToUser::Queued { req, position } => {
-                if self.outstanding.get(&(user.clone(), req)).map(String::as_str) != Some(from) {
+                if self
+                    .outstanding
+                    .get(&(user.clone(), req))
+                    .map(String::as_str)
+                    != Some(from)
+                {
                     return;
                 }
                 ToUser::Queued { req, position }
             }
             ToUser::Refused { req, reason } => {
-                if self.outstanding.get(&(user.clone(), req)).map(String::as_str) != Some(from) {
+                if self
+                    .outstanding
+                    .get(&(user.clone(), req))
+                    .map(String::as_str)
+                    != Some(from)
+                {
                     return;
                 }
                 self.outstanding.remove(&(user.clone(), req));
@@ -1134,14 +1316,22 @@ impl Federation {
                     ToUser::Update { session, .. } | ToUser::Status { session, .. } => *session,
                     _ => return,
                 };
-                if self.far.get(&(user.clone(), session)).map(|s| s.host.as_str()) != Some(from)
+                if self
+                    .far
+                    .get(&(user.clone(), session))
+                    .map(|s| s.host.as_str())
+                    != Some(from)
                 {
                     return;
                 }
                 m
             }
             ToUser::Ended { session, reason } => {
-                if self.far.get(&(user.clone(), session)).map(|s| s.host.as_str()) != Some(from)
+                if self
+                    .far
+                    .get(&(user.clone(), session))
+                    .map(|s| s.host.as_str())
+                    != Some(from)
                 {
                     return;
                 }
@@ -1293,5 +1483,81 @@ fn user_of(msg: &ToSystem) -> Option<&UserId> {
     match msg {
         ToSystem::Input { user, .. } | ToSystem::End { user, .. } => Some(user),
         _ => None,
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn access_files_parse_and_are_checked() {
+        let acl =
+            Acl::parse("[hosts]\nrobot1 = [\"offer\"]\nhub = [\"offer\", \"request\"]\n").unwrap();
+        assert!(acl.allows("robot1", Role::Offer));
+        assert!(!acl.allows("robot1", Role::Request));
+        assert!(acl.allows("hub", Role::Request));
+        assert!(!acl.allows("nobody", Role::Offer));
+        assert!(
+            Acl::parse("[hosts]\na = [\"admin\"]\n").is_err(),
+            "unknown role"
+        );
+        assert!(
+            Acl::parse("[hosts]\n\"a/b\" = [\"offer\"]\n").is_err(),
+            "bad host name"
+        );
+        assert!(Acl::parse("[other]\n").is_err(), "unknown section");
+    }
+
+    #[test]
+    fn the_zenoh_rules_give_each_host_its_own_keys_only() {
+        let acl = Acl::parse("[hosts]\nr = [\"offer\"]\nl = [\"request\"]\n").unwrap();
+        let z = acl.zenoh_json("muster/f/");
+        assert_eq!(z["default_permission"], "deny");
+        let rules = z["rules"].as_array().unwrap();
+        let keys_of = |id: &str| -> Vec<String> {
+            rules
+                .iter()
+                .find(|r| r["id"] == id)
+                .map(|r| {
+                    r["key_exprs"]
+                        .as_array()
+                        .unwrap()
+                        .iter()
+                        .map(|k| k.as_str().unwrap().to_string())
+                        .collect()
+                })
+                .unwrap_or_default()
+        };
+        // Hosts are numbered in name order: l = h0, r = h1.
+        assert_eq!(keys_of("h0-request"), ["muster/f/*/req/l"]);
+        assert!(keys_of("h0-offer").is_empty(), "l may not offer");
+        assert_eq!(keys_of("h1-offer"), ["muster/f/r/list", "muster/f/*/in/r"]);
+        assert!(keys_of("h1-request").is_empty(), "r may not request");
+        assert_eq!(z["subjects"][1]["cert_common_names"][0], "r");
+        // The JSON is a valid Zenoh access_control section.
+        let mut c = zenoh::Config::default();
+        c.insert_json5("access_control", &z.to_string()).unwrap();
+    }
+
+    #[test]
+    fn frames_round_trip_and_garbage_is_refused() {
+        let m = FedMsg::Request {
+            user: UserId("u1".into()),
+            req: 3,
+            service: ServiceId::new("t1", "s0"),
+        };
+        assert_eq!(decode::<FedMsg>(&encode(&m).unwrap()).unwrap(), m);
+        assert!(decode::<FedMsg>(&[0xff; 12]).is_err());
+        assert_eq!(
+            local_part(&UserId("alice@a".into())),
+            UserId("alice".into())
+        );
+        assert_eq!(
+            ServiceId("t1@b/s0".into()).remote(),
+            Some(("b", ServiceId::new("t1", "s0")))
+        );
+        assert_eq!(ServiceId("t1/s0".into()).remote(), None);
     }
 }

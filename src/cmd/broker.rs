@@ -41,6 +41,10 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
             })
         }
     };
+    let acl = match &a.acl {
+        Some(p) => Some(muster_broker::federation::Acl::load(p)?),
+        None => None,
+    };
     let fed = a.federate.then(|| FedConfig {
         host: a.host.clone().unwrap_or_else(default_host),
         federation: a.federation.clone(),
@@ -50,6 +54,7 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         lease: a.lease,
         multicast: a.multicast,
         tls: a.tls.clone(),
+        acl,
     });
     let keep_log = a.handling_log.is_some();
     // Cleanups after dead processes run as `muster cleanup`, outliving a killed broker.
@@ -85,7 +90,13 @@ fn default_host() -> String {
     let name: String = raw
         .trim()
         .chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '_' })
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
         .take(31)
         .collect();
     if name.is_empty() {

@@ -50,7 +50,8 @@ pub fn run(a: CertsArgs) -> anyhow::Result<ExitCode> {
     for h in &a.hosts {
         let ok = !h.is_empty()
             && h.len() <= muster_shared::types::MAX_HOST_NAME
-            && h.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+            && h.bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
         if !ok || h == "ca" {
             bail!("host name {h:?}: use 1 to 31 characters of [A-Za-z0-9_-] (not \"ca\")");
         }
@@ -66,7 +67,11 @@ pub fn run(a: CertsArgs) -> anyhow::Result<ExitCode> {
         let pem = std::fs::read_to_string(&ca_key_path)
             .with_context(|| format!("reading {}", ca_key_path.display()))?;
         if !ca_pem_path.exists() {
-            bail!("{} exists but {} does not", ca_key_path.display(), ca_pem_path.display());
+            bail!(
+                "{} exists but {} does not",
+                ca_key_path.display(),
+                ca_pem_path.display()
+            );
         }
         eprintln!("using the authority in {}", a.out.display());
         KeyPair::from_pem(&pem).context("ca.key is not a key in PEM")?
@@ -75,18 +80,31 @@ pub fn run(a: CertsArgs) -> anyhow::Result<ExitCode> {
         let cert = params.self_signed(&key)?;
         write_new(&ca_key_path, &key.serialize_pem(), true)?;
         write_new(&ca_pem_path, &cert.pem(), false)?;
-        eprintln!("wrote {} and {} (keep ca.key off the hosts)", ca_pem_path.display(), ca_key_path.display());
+        eprintln!(
+            "wrote {} and {} (keep ca.key off the hosts)",
+            ca_pem_path.display(),
+            ca_key_path.display()
+        );
         key
     };
     let issuer = Issuer::new(params, ca_key);
     let now = time::OffsetDateTime::now_utc();
     for host in &a.hosts {
         let mut names = vec![host.clone(), "localhost".to_string()];
-        names.extend(a.san.iter().filter(|s| s.parse::<std::net::IpAddr>().is_err()).cloned());
+        names.extend(
+            a.san
+                .iter()
+                .filter(|s| s.parse::<std::net::IpAddr>().is_err())
+                .cloned(),
+        );
         let mut p = CertificateParams::new(names)?;
         p.subject_alt_names
             .push(SanType::IpAddress(std::net::Ipv4Addr::LOCALHOST.into()));
-        for ip in a.san.iter().filter_map(|s| s.parse::<std::net::IpAddr>().ok()) {
+        for ip in a
+            .san
+            .iter()
+            .filter_map(|s| s.parse::<std::net::IpAddr>().ok())
+        {
             p.subject_alt_names.push(SanType::IpAddress(ip));
         }
         p.distinguished_name.push(DnType::CommonName, host.as_str());
@@ -102,12 +120,14 @@ pub fn run(a: CertsArgs) -> anyhow::Result<ExitCode> {
         p.not_after = now + time::Duration::days(a.days);
         let key = KeyPair::generate()?;
         let cert = p.signed_by(&key, &issuer)?;
-        write_new(&a.out.join(format!("{host}.key")), &key.serialize_pem(), true)?;
+        write_new(
+            &a.out.join(format!("{host}.key")),
+            &key.serialize_pem(),
+            true,
+        )?;
         write_new(&a.out.join(format!("{host}.pem")), &cert.pem(), false)?;
         println!("{}", a.out.join(host).display());
     }
-    eprintln!(
-        "copy ca.pem, HOST.pem and HOST.key to each host; start its broker with --tls DIR"
-    );
+    eprintln!("copy ca.pem, HOST.pem and HOST.key to each host; start its broker with --tls DIR");
     Ok(ExitCode::SUCCESS)
 }

@@ -218,10 +218,17 @@ pub fn federated_broker_args(
     ports: &[u16],
     i: usize,
 ) -> Vec<String> {
-    let mut args: Vec<String> = ["broker", "--federate", "--host", hosts[i], "--federation", federation]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
+    let mut args: Vec<String> = [
+        "broker",
+        "--federate",
+        "--host",
+        hosts[i],
+        "--federation",
+        federation,
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
     args.push("--listen".into());
     args.push(format!("tcp/127.0.0.1:{}", ports[i]));
     for (j, p) in ports.iter().enumerate() {

@@ -296,20 +296,45 @@ fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     for (i, host) in HOSTS.iter().enumerate() {
         let args = federated_broker_args(&federation, &HOSTS, &ports, i);
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        children.spawn(&insts[i], &format!("broker of host {host}"), &args, Stdio::inherit())?;
+        children.spawn(
+            &insts[i],
+            &format!("broker of host {host}"),
+            &args,
+            Stdio::inherit(),
+        )?;
     }
     children.spawn(
         &insts[1],
         "tracker system t1 (host b)",
-        &["system", "synthetic", "--name", "t1", "--services", "3", "--kind", "data", "--quota", "10"],
+        &[
+            "system",
+            "synthetic",
+            "--name",
+            "t1",
+            "--services",
+            "3",
+            "--kind",
+            "data",
+            "--quota",
+            "10",
+        ],
         Stdio::inherit(),
     )?;
     children.spawn(
         &insts[2],
         "delivery system d1 (host c)",
         &[
-            "system", "synthetic", "--name", "d1", "--services", "1", "--kind", "command",
-            "--quota", "1", "--queue",
+            "system",
+            "synthetic",
+            "--name",
+            "d1",
+            "--services",
+            "1",
+            "--kind",
+            "command",
+            "--quota",
+            "1",
+            "--queue",
         ],
         Stdio::inherit(),
     )?;
@@ -324,7 +349,10 @@ fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     };
     let mut client = UserClient::connect(&insts[0], &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);
-    let ids = (ServiceId::on_host("t1", "b", "s0"), ServiceId::on_host("d1", "c", "s0"));
+    let ids = (
+        ServiceId::on_host("t1", "b", "s0"),
+        ServiceId::on_host("d1", "c", "s0"),
+    );
     match wait_for_services(&mut client, 4, Duration::from_secs(20))
         .and_then(|()| demo(&mut client, end, ids))
     {

@@ -81,7 +81,12 @@ pub fn echo(port: u16) -> anyhow::Result<ExitCode> {
 fn zenoh_floor(n: usize, kids: &mut Children, inst: &Instance) -> anyhow::Result<Histogram<u64>> {
     let port = free_port()?;
     let p = port.to_string();
-    kids.spawn(inst, "zenoh-echo", &["bench", "zenoh-echo", &p], Stdio::null())?;
+    kids.spawn(
+        inst,
+        "zenoh-echo",
+        &["bench", "zenoh-echo", &p],
+        Stdio::null(),
+    )?;
     let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
     let until = Instant::now() + Duration::from_secs(10);
     let probe = loop {
@@ -99,7 +104,10 @@ fn zenoh_floor(n: usize, kids: &mut Children, inst: &Instance) -> anyhow::Result
         })
         .wait()
         .map_err(z)?;
-    let ping = probe.declare_publisher("muster-bench/ping").wait().map_err(z)?;
+    let ping = probe
+        .declare_publisher("muster-bench/ping")
+        .wait()
+        .map_err(z)?;
     // Until the two have found each other.
     loop {
         ping.put(vec![0u8; 64]).wait().map_err(z)?;
@@ -147,7 +155,9 @@ fn list_propagation(
         let req = on_b.request(&here)?;
         let session = loop {
             match on_b.next_event(t + Duration::from_secs(10))? {
-                Some(UserEvent::Granted { req: r, session, .. }) if r == req => break session,
+                Some(UserEvent::Granted {
+                    req: r, session, ..
+                }) if r == req => break session,
                 Some(_) => {}
                 None => bail!("no grant on b within 10 s"),
             }
@@ -181,12 +191,18 @@ fn wait_for(
 }
 
 /// Update latency (system send → this user's receive) of a session on `service` for `d`.
-fn updates(c: &mut UserClient, service: &ServiceId, d: Duration) -> anyhow::Result<(Histogram<u64>, u64)> {
+fn updates(
+    c: &mut UserClient,
+    service: &ServiceId,
+    d: Duration,
+) -> anyhow::Result<(Histogram<u64>, u64)> {
     let req = c.request(service)?;
     let t = Instant::now();
     let session = loop {
         match c.next_event(t + Duration::from_secs(10))? {
-            Some(UserEvent::Granted { req: r, session, .. }) if r == req => break session,
+            Some(UserEvent::Granted {
+                req: r, session, ..
+            }) if r == req => break session,
             Some(UserEvent::Refused { reason, .. }) => bail!("{service} refused: {reason}"),
             Some(_) => {}
             None => bail!("no grant for {service} within 10 s"),
@@ -266,8 +282,14 @@ fn print_rows(title: &str, r: &Rows) {
         "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
         "", "count", "p50 us", "p90 us", "p99 us", "max us"
     );
-    println!("{}", row("request a -> b (cross-host)", &r.far_request.latency));
-    println!("{}", row("request b -> b (local)", &r.local_request.latency));
+    println!(
+        "{}",
+        row("request a -> b (cross-host)", &r.far_request.latency)
+    );
+    println!(
+        "{}",
+        row("request b -> b (local)", &r.local_request.latency)
+    );
     println!("{}", row("list change b -> a", &r.list));
     println!("{}", row("update b -> a (cross-host)", &r.far_updates.0));
     println!("{}", row("update b -> b (local)", &r.local_updates.0));
@@ -290,7 +312,10 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
         .iter()
         .map(|h| host_instance(inst, h))
         .collect::<anyhow::Result<_>>()?;
-    let ports: Vec<u16> = HOSTS.iter().map(|_| free_port()).collect::<anyhow::Result<_>>()?;
+    let ports: Vec<u16> = HOSTS
+        .iter()
+        .map(|_| free_port())
+        .collect::<anyhow::Result<_>>()?;
     let federation = format!("bench{}", std::process::id());
     let mut kids = Children::default();
     for (i, host) in HOSTS.iter().enumerate() {
@@ -304,8 +329,18 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
             &insts[i],
             name,
             &[
-                "system", "synthetic", "--name", name, "--kind", kind, "--quota", &quota,
-                "--rate", "10", "--services", "2",
+                "system",
+                "synthetic",
+                "--name",
+                name,
+                "--kind",
+                kind,
+                "--quota",
+                &quota,
+                "--rate",
+                "10",
+                "--services",
+                "2",
             ],
             Stdio::null(),
         )?;
@@ -350,7 +385,15 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
                 kids.spawn(
                     &insts[i],
                     &format!("user-{host}-{k}"),
-                    &["user", "--wait", "120s", "request", targets[i], "--duration", "1h"],
+                    &[
+                        "user",
+                        "--wait",
+                        "120s",
+                        "request",
+                        targets[i],
+                        "--duration",
+                        "1h",
+                    ],
                     Stdio::null(),
                 )?;
                 // Not all at once: 900 processes starting together on 2 cores is a

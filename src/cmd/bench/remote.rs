@@ -96,9 +96,7 @@ pub(super) fn requests(
                     c.end(session);
                     break;
                 }
-                Some(UserEvent::Refused {
-                    req: r, reason, ..
-                }) if r == req => {
+                Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
                     let _ = b.latency.record(us(t.elapsed()));
                     b.refused += 1;
                     *b.refusals.entry(reason.code()).or_default() += 1;
