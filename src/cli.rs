@@ -308,6 +308,14 @@ pub struct FederationBenchArgs {
     /// loaded rows (0: no loaded rows).
     #[arg(long, default_value_t = 300)]
     pub users: usize,
+    /// Times host b is lost (its broker SIGKILLed, then, as many times, SIGSTOPped:
+    /// silent, its connections open) and comes back: until b's services leave a's list
+    /// and until they are back.
+    #[arg(long, default_value_t = 5)]
+    pub losses: usize,
+    /// The brokers' Zenoh lease (`muster broker --lease`): a silent host is gone after it.
+    #[arg(long, default_value = "500ms", value_parser = duration)]
+    pub lease: Duration,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,

@@ -288,6 +288,12 @@ fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
         let first = h.host(0).proc(p).json(20 * SEC).unwrap();
         assert_eq!(first["granted"], true, "{first}");
     }
+    // And a local session on b, which b's broker crash must leave running.
+    let local_b = h.host(1).spawn(&[
+        "user", "request", "robo/s0", "--duration", "4s", "--json",
+    ]);
+    let first = h.host(1).proc(local_b).json(20 * SEC).unwrap();
+    assert_eq!(first["granted"], true, "{first}");
     std::thread::sleep(SEC / 2);
     // b's broker is killed: b's services leave a's and c's lists, a's user is told.
     let t = Instant::now();
@@ -307,6 +313,12 @@ fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
     assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap: {s:?}");
     assert_eq!(lines.last().unwrap()["reason"], "duration over");
     assert_eq!(lines.last().unwrap()["gaps"], 0);
+    // On b itself, the local session went on without its broker, as on one host.
+    let lines = h.host(1).proc(local_b).all_json(20 * SEC);
+    let s = seqs(&lines);
+    assert!(s.len() >= 40, "{lines:?}");
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap: {s:?}");
+    assert_eq!(lines.last().unwrap()["reason"], "duration over", "{lines:?}");
     // b comes back (its system re-registers with the new broker): so do its services.
     h.start_broker(1);
     let (list, _) = h.host(0).wait_list(20 * SEC, |l| l.len() == 2);

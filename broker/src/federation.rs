@@ -69,7 +69,7 @@ pub const MAX_FOREIGN_USERS: usize = 1024;
 /// (an end, a revocation) must be read before the ports close.
 const PROXY_LINGER: Duration = Duration::from_secs(2);
 /// How long a starting broker looks for another broker already using its host name.
-const HOST_CHECK: Duration = Duration::from_millis(800);
+const HOST_CHECK: Duration = Duration::from_millis(400);
 
 /// How a broker joins a federation (`muster broker --federate`).
 #[derive(Clone, Debug, Default)]

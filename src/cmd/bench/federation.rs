@@ -12,8 +12,10 @@
 //!   the change in its shared-memory list;
 //! - session update latency (system send → user receive, one clock for the host) for a
 //!   user on a holding `t1@b/s0`, beside a user on b holding `t1/s0`;
-//! - the same again with `--users` processes per host each holding a 10 Hz session on
-//!   another host.
+//! - host loss: b's broker SIGKILLed (then restarted) and SIGSTOPped (then continued),
+//!   until b's services leave a's list and until they are back, with `--lease`;
+//! - the same rows again with `--users` processes per host each holding a 10 Hz
+//!   session on another host.
 
 use super::remote::{batch_json, hist, requests, us, Batch};
 use super::{row, summary};
@@ -230,6 +232,73 @@ fn updates(
     Ok((h, gaps))
 }
 
+fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// Whether a's list holds any of b's services.
+fn lists_b(on_a: &mut UserClient) -> anyhow::Result<bool> {
+    Ok(on_a
+        .list()?
+        .entries()
+        .iter()
+        .any(|e| e.remote == 1 && e.host.as_str() == "b"))
+}
+
+/// ms from `since` until a's list holds b's services (`want`) or not; polled in place.
+fn until_b(on_a: &mut UserClient, want: bool, since: Instant) -> anyhow::Result<f64> {
+    let limit = since + Duration::from_secs(30);
+    while lists_b(on_a)? != want {
+        if Instant::now() > limit {
+            bail!("b's services did not {} a's list within 30 s", if want { "return to" } else { "leave" });
+        }
+        std::thread::sleep(Duration::from_micros(200));
+    }
+    Ok(since.elapsed().as_secs_f64() * 1000.0)
+}
+
+/// Host b lost `n` times by SIGKILL of its broker (restarted: its systems re-register)
+/// and `n` times by SIGSTOP (silent, connections open; SIGCONT brings it back): for
+/// each, ms until b's services left a's list and until they were back.
+#[allow(clippy::type_complexity)]
+fn host_losses(
+    n: usize,
+    kids: &mut Children,
+    inst_b: &Instance,
+    b_args: &[&str],
+    on_a: &mut UserClient,
+) -> anyhow::Result<Vec<(&'static str, Vec<f64>, Vec<f64>)>> {
+    let (mut kill_gone, mut kill_back, mut stop_gone, mut stop_back) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..n {
+        until_b(on_a, true, Instant::now())?;
+        let t = Instant::now();
+        kids.kill("broker-b");
+        kill_gone.push(until_b(on_a, false, t)?);
+        let t = Instant::now();
+        kids.spawn(inst_b, "broker-b", b_args, Stdio::null())?;
+        kill_back.push(until_b(on_a, true, t)?);
+    }
+    for _ in 0..n {
+        until_b(on_a, true, Instant::now())?;
+        std::thread::sleep(Duration::from_millis(500));
+        let pid = kids.child_mut("broker-b").context("broker b")?.id() as i32;
+        let t = Instant::now();
+        // SAFETY: signals to a child we started and have not reaped.
+        unsafe { libc::kill(pid, libc::SIGSTOP) };
+        stop_gone.push(until_b(on_a, false, t)?);
+        let t = Instant::now();
+        unsafe { libc::kill(pid, libc::SIGCONT) };
+        stop_back.push(until_b(on_a, true, t)?);
+    }
+    Ok(vec![
+        ("broker SIGKILLed", kill_gone, kill_back),
+        ("broker SIGSTOPped", stop_gone, stop_back),
+    ])
+}
+
 struct Rows {
     far_request: Batch,
     local_request: Batch,
@@ -318,8 +387,14 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
         .collect::<anyhow::Result<_>>()?;
     let federation = format!("bench{}", std::process::id());
     let mut kids = Children::default();
+    let lease = format!("{}ms", a.lease.as_millis());
+    let broker_args = |i: usize| -> Vec<String> {
+        let mut v = federated_broker_args(&federation, &HOSTS, &ports, i);
+        v.extend(["--lease".to_string(), lease.clone()]);
+        v
+    };
     for (i, host) in HOSTS.iter().enumerate() {
-        let args = federated_broker_args(&federation, &HOSTS, &ports, i);
+        let args = broker_args(i);
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
         kids.spawn(&insts[i], &format!("broker-{host}"), &args, Stdio::null())?;
     }
@@ -376,6 +451,46 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
             "cross-host request p50 = {:.1} x the Zenoh floor",
             idle.far_request.latency.value_at_quantile(0.5) as f64 / floor_p50
         );
+    }
+    if a.losses > 0 {
+        let b_args = broker_args(1);
+        let b_args: Vec<&str> = b_args.iter().map(String::as_str).collect();
+        let losses = host_losses(a.losses, &mut kids, &insts[1], &b_args, &mut on_a)?;
+        if !a.json {
+            println!(
+                "\nhost b lost and back ({} times each; lease {:?}), ms from the signal",
+                a.losses, a.lease
+            );
+            println!(
+                "{:<28} {:>7} {:>10} {:>10} {:>10}",
+                "", "count", "p50 ms", "max ms", "back p50"
+            );
+            for (name, gone, back) in &losses {
+                println!(
+                    "{:<28} {:>7} {:>10.1} {:>10.1} {:>10.1}",
+                    name,
+                    gone.len(),
+                    median(gone),
+                    gone.iter().copied().fold(0.0, f64::max),
+                    median(back)
+                );
+            }
+        }
+        out["host_loss"] = losses
+            .iter()
+            .map(|(name, gone, back)| {
+                (
+                    name.to_string(),
+                    json!({"removed_ms": gone, "back_ms": back, "removed_p50_ms": median(gone),
+                           "back_p50_ms": median(back)}),
+                )
+            })
+            .collect::<serde_json::Map<_, _>>()
+            .into();
+        out["lease_ms"] = json!(a.lease.as_millis() as u64);
+        // On with the loaded rows once b's services are back and b's user is reconnected.
+        on_b.close();
+        on_b = connect_when_listed(&insts[1], 6, timeout).context("host b again")?;
     }
     if a.users > 0 {
         // Each host's users hold 10 Hz sessions on another host's data service.
