@@ -98,6 +98,29 @@ impl Hosts {
     }
 }
 
+/// `muster user request ID --duration D --json` on host `i`: its exit code and lines.
+fn request_json(h: &mut Hosts, i: usize, id: &str, duration: &str) -> (i32, Vec<Value>) {
+    let (code, out) = h.host(i).run(
+        &["user", "request", id, "--duration", duration, "--json"],
+        20 * SEC,
+    );
+    let lines = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect();
+    (code, lines)
+}
+
+/// `muster broker ARGS` on a fresh instance must refuse to start.
+fn broker_refused(name: &str, args: &[&str]) {
+    let mut f = Fed::new(name);
+    let mut full = vec!["broker"];
+    full.extend_from_slice(args);
+    let (code, _) = f.run(&full, 20 * SEC);
+    assert_ne!(code, 0, "`muster broker {}` started", args.join(" "));
+    f.shutdown();
+}
+
 fn seqs(lines: &[Value]) -> Vec<u64> {
     lines
         .iter()
@@ -655,35 +678,16 @@ fn a_host_without_the_federations_certificate_joins_nothing() {
     assert_eq!(ids(&h.host(2).list()), ["evil/s0"]);
     assert_eq!(ids(&h.host(3).list()), ["plain/s0"]);
     // Over TLS, a session across hosts as before.
-    let (code, out) = h.host(0).run(
-        &["user", "request", "robo@b/s0", "--duration", "1s", "--json"],
-        20 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
-    let lines: Vec<Value> = out
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "1s");
+    assert_eq!(code, 0, "{lines:?}");
     let s = seqs(&lines);
     assert!(
         s.len() >= 10 && s.windows(2).all(|w| w[1] == w[0] + 1),
         "{lines:?}"
     );
     // A broker whose --tls folder lacks its certificate does not start.
-    let mut missing = Fed::new("fc-miss");
-    let (code, _) = missing.run(
-        &[
-            "broker",
-            "--federate",
-            "--host",
-            "zz",
-            "--tls",
-            fed_dir.to_str().unwrap(),
-        ],
-        20 * SEC,
-    );
-    assert_ne!(code, 0);
-    missing.shutdown();
+    let tls_dir = fed_dir.to_str().unwrap();
+    broker_refused("fc-miss", &["--federate", "--host", "zz", "--tls", tls_dir]);
     drop(h);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -731,22 +735,12 @@ fn the_access_file_decides_who_offers_and_who_requests() {
     assert_eq!(ids(&h.host(1).list()), ["robo/s0"]);
     assert_eq!(ids(&h.host(2).list()), ["cee/s0"]);
     // a's user is served by b.
-    let (code, out) = h.host(0).run(
-        &["user", "request", "robo@b/s0", "--duration", "1s", "--json"],
-        20 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
-    let lines: Vec<Value> = out
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "1s");
+    assert_eq!(code, 0, "{lines:?}");
     assert!(seqs(&lines).len() >= 10, "{lines:?}");
     // b may not request: refused at once, with the reason.
-    let (_, out) = h.host(1).run(
-        &["user", "request", "mine@a/s0", "--duration", "1s", "--json"],
-        20 * SEC,
-    );
-    let answer: Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
+    let (_, lines) = request_json(&mut h, 1, "mine@a/s0", "1s");
+    let answer = &lines[0];
     assert_eq!(answer["code"], "bad_request", "{answer}");
     assert!(
         answer["reason"]
@@ -756,20 +750,7 @@ fn the_access_file_decides_who_offers_and_who_requests() {
         "{answer}"
     );
     // A broker given an access file without TLS does not start.
-    let mut bad = Fed::new("fa-bad");
-    let (code, _) = bad.run(
-        &[
-            "broker",
-            "--federate",
-            "--host",
-            "q",
-            "--acl",
-            acl.to_str().unwrap(),
-        ],
-        20 * SEC,
-    );
-    assert_ne!(code, 0);
-    bad.shutdown();
+    broker_refused("fa-bad", &["--federate", "--host", "q", "--acl", acl.to_str().unwrap()]);
     drop(h);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -1231,26 +1231,14 @@ impl Federation {
         let known = core.user_pid(&user).is_some_and(|p| p != 0);
         let msg = match msg {
             ToUser::Welcome { .. } => return,
-            ToUser::Queued { req, position } => {
-                if self
-                    .outstanding
-                    .get(&(user.clone(), req))
-                    .map(String::as_str)
-                    != Some(from)
-                {
-                    return;
-                }
-                ToUser::Queued { req, position }
+            // Answers to a request out on `from` only.
+            ToUser::Queued { req, .. } | ToUser::Refused { req, .. }
+                if self.outstanding.get(&(user.clone(), req)).map(String::as_str) != Some(from) =>
+            {
+                return;
             }
+            m @ ToUser::Queued { .. } => m,
             ToUser::Refused { req, reason } => {
-                if self
-                    .outstanding
-                    .get(&(user.clone(), req))
-                    .map(String::as_str)
-                    != Some(from)
-                {
-                    return;
-                }
                 self.outstanding.remove(&(user.clone(), req));
                 ToUser::Refused { req, reason }
             }

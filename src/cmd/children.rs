@@ -196,11 +196,82 @@ impl crate::cli::LoadArgs {
     }
 }
 
-/// The instance of host `host` of a federation run on one machine (`INST-host`).
-pub fn host_instance(inst: &Instance, host: &str) -> anyhow::Result<Instance> {
-    let mut name = inst.as_str().to_string();
-    name.truncate(30);
-    Ok(Instance::new(&format!("{name}-{host}"))?)
+/// Hosts of a federation run on one machine: an instance per host (`INST-host`) and a
+/// free loopback port per host for its broker's Zenoh.
+pub struct LoopbackHosts {
+    /// The hosts' names.
+    pub names: Vec<&'static str>,
+    /// Their instances.
+    pub insts: Vec<Instance>,
+    /// Their brokers' Zenoh ports.
+    pub ports: Vec<u16>,
+    /// The federation's name (unique to this process).
+    pub federation: String,
+}
+
+impl LoopbackHosts {
+    /// Hosts `names` under `inst`, in a federation named `prefix` plus this process's id.
+    pub fn new(inst: &Instance, names: &[&'static str], prefix: &str) -> anyhow::Result<Self> {
+        let insts = names
+            .iter()
+            .map(|h| {
+                let mut name = inst.as_str().to_string();
+                name.truncate(30);
+                Ok(Instance::new(&format!("{name}-{h}"))?)
+            })
+            .collect::<anyhow::Result<_>>()?;
+        let ports = names
+            .iter()
+            .map(|_| free_tcp_port())
+            .collect::<anyhow::Result<_>>()?;
+        Ok(LoopbackHosts {
+            names: names.to_vec(),
+            insts,
+            ports,
+            federation: format!("{prefix}{}", std::process::id()),
+        })
+    }
+
+    /// `muster broker` arguments for host `i`: it listens on its port and connects to
+    /// every other host's; `extra` is appended.
+    pub fn broker_args(&self, i: usize, extra: &[String]) -> Vec<String> {
+        let mut args: Vec<String> = [
+            "broker",
+            "--federate",
+            "--host",
+            self.names[i],
+            "--federation",
+            &self.federation,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.push("--listen".into());
+        args.push(format!("tcp/127.0.0.1:{}", self.ports[i]));
+        for (j, p) in self.ports.iter().enumerate() {
+            if j != i {
+                args.push("--connect".into());
+                args.push(format!("tcp/127.0.0.1:{p}"));
+            }
+        }
+        args.extend(extra.iter().cloned());
+        args
+    }
+
+    /// Starts every host's broker (labelled `broker-HOST`), with `extra` arguments.
+    pub fn spawn_brokers(
+        &self,
+        kids: &mut Children,
+        extra: &[String],
+        stdout: impl Fn() -> Stdio,
+    ) -> anyhow::Result<()> {
+        for (i, host) in self.names.iter().enumerate() {
+            let args = self.broker_args(i, extra);
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            kids.spawn(&self.insts[i], &format!("broker-{host}"), &args, stdout())?;
+        }
+        Ok(())
+    }
 }
 
 /// A free loopback TCP port (bound and released).
@@ -208,34 +279,4 @@ pub fn free_tcp_port() -> anyhow::Result<u16> {
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?
         .local_addr()?
         .port())
-}
-
-/// `muster broker` arguments for host `hosts[i]` of a federation on loopback: it
-/// listens on `ports[i]` and connects to every other host's port.
-pub fn federated_broker_args(
-    federation: &str,
-    hosts: &[&str],
-    ports: &[u16],
-    i: usize,
-) -> Vec<String> {
-    let mut args: Vec<String> = [
-        "broker",
-        "--federate",
-        "--host",
-        hosts[i],
-        "--federation",
-        federation,
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    args.push("--listen".into());
-    args.push(format!("tcp/127.0.0.1:{}", ports[i]));
-    for (j, p) in ports.iter().enumerate() {
-        if j != i {
-            args.push("--connect".into());
-            args.push(format!("tcp/127.0.0.1:{p}"));
-        }
-    }
-    args
 }

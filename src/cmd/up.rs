@@ -281,28 +281,10 @@ fn demo(
 /// services, requests `t1@b/s0`, then links it into `d1@c/s0`: data from b drives the
 /// robot on c, with the user on a third host.
 fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
-    use super::children::{federated_broker_args, free_tcp_port, host_instance};
-    const HOSTS: [&str; 3] = ["a", "b", "c"];
-    let insts: Vec<Instance> = HOSTS
-        .iter()
-        .map(|h| host_instance(inst, h))
-        .collect::<anyhow::Result<_>>()?;
-    let ports: Vec<u16> = HOSTS
-        .iter()
-        .map(|_| free_tcp_port())
-        .collect::<anyhow::Result<_>>()?;
-    let federation = format!("up{}", std::process::id());
+    let hosts = super::children::LoopbackHosts::new(inst, &["a", "b", "c"], "up")?;
+    let (insts, ports) = (&hosts.insts, &hosts.ports);
     let mut children = Children::default();
-    for (i, host) in HOSTS.iter().enumerate() {
-        let args = federated_broker_args(&federation, &HOSTS, &ports, i);
-        let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        children.spawn(
-            &insts[i],
-            &format!("broker of host {host}"),
-            &args,
-            Stdio::inherit(),
-        )?;
-    }
+    hosts.spawn_brokers(&mut children, &[], || Stdio::inherit())?;
     children.spawn(
         &insts[1],
         "tracker system t1 (host b)",

@@ -21,7 +21,7 @@ use super::remote::{batch_json, hist, requests, us, Batch};
 use super::{row, summary};
 use crate::cli::FederationBenchArgs;
 use crate::cmd::children::{
-    connect_when_listed, federated_broker_args, free_tcp_port as free_port, host_instance, Children,
+    connect_when_listed, free_tcp_port as free_port, Children, LoopbackHosts,
 };
 use anyhow::{bail, Context};
 use hdrhistogram::Histogram;
@@ -78,61 +78,119 @@ pub fn echo(port: u16) -> anyhow::Result<ExitCode> {
     }
 }
 
-/// The raw Zenoh round trip between this process and an echo process, peers over
-/// loopback TCP as the brokers are: put → the echo's subscriber → put back → ours.
-fn zenoh_floor(n: usize, kids: &mut Children, inst: &Instance) -> anyhow::Result<Histogram<u64>> {
-    let port = free_port()?;
-    let p = port.to_string();
-    kids.spawn(
-        inst,
-        "zenoh-echo",
-        &["bench", "zenoh-echo", &p],
-        Stdio::null(),
-    )?;
-    let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
-    let until = Instant::now() + Duration::from_secs(10);
-    let probe = loop {
-        match zenoh::open(zenoh_config(port, false)?).wait() {
-            Ok(s) => break s,
-            Err(e) if Instant::now() > until => bail!("cannot reach the Zenoh echo: {e}"),
-            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+/// Raw Zenoh round trips between this process and an echo process (`bench
+/// zenoh-echo`), peers over loopback TCP as the brokers are: put → the echo's
+/// subscriber → put back → ours.
+struct ZenohProbe {
+    ping: zenoh::pubsub::Publisher<'static>,
+    rx: std::sync::mpsc::Receiver<()>,
+    _sub: zenoh::pubsub::Subscriber<()>,
+    _session: zenoh::Session,
+}
+
+impl ZenohProbe {
+    /// Starts the echo process (one of `kids`) and a probe connected to it.
+    fn start(kids: &mut Children, inst: &Instance) -> anyhow::Result<Self> {
+        let port = free_port()?;
+        let p = port.to_string();
+        kids.spawn(inst, "zenoh-echo", &["bench", "zenoh-echo", &p], Stdio::null())?;
+        let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
+        let until = Instant::now() + Duration::from_secs(10);
+        let session = loop {
+            match zenoh::open(zenoh_config(port, false)?).wait() {
+                Ok(s) => break s,
+                Err(e) if Instant::now() > until => bail!("cannot reach the Zenoh echo: {e}"),
+                Err(_) => std::thread::sleep(Duration::from_millis(50)),
+            }
+        };
+        let (tx, rx) = std::sync::mpsc::channel::<()>();
+        let sub = session
+            .declare_subscriber("muster-bench/pong")
+            .callback(move |_| {
+                let _ = tx.send(());
+            })
+            .wait()
+            .map_err(z)?;
+        let ping = session
+            .declare_publisher("muster-bench/ping")
+            .wait()
+            .map_err(z)?;
+        // Until the two have found each other.
+        loop {
+            ping.put(vec![0u8; 64]).wait().map_err(z)?;
+            if rx.recv_timeout(Duration::from_millis(50)).is_ok() {
+                break;
+            }
+            if Instant::now() > until {
+                bail!("the Zenoh echo did not answer within 10 s");
+            }
         }
-    };
-    let (tx, rx) = std::sync::mpsc::channel::<()>();
-    let _probe_sub = probe
-        .declare_subscriber("muster-bench/pong")
-        .callback(move |_| {
-            let _ = tx.send(());
+        std::thread::sleep(Duration::from_millis(100));
+        while rx.try_recv().is_ok() {}
+        Ok(ZenohProbe {
+            ping,
+            rx,
+            _sub: sub,
+            _session: session,
         })
-        .wait()
-        .map_err(z)?;
-    let ping = probe
-        .declare_publisher("muster-bench/ping")
-        .wait()
-        .map_err(z)?;
-    // Until the two have found each other.
-    loop {
-        ping.put(vec![0u8; 64]).wait().map_err(z)?;
-        if rx.recv_timeout(Duration::from_millis(50)).is_ok() {
-            break;
-        }
-        if Instant::now() > until {
-            bail!("the Zenoh echo did not answer within 10 s");
-        }
     }
-    std::thread::sleep(Duration::from_millis(100));
-    while rx.try_recv().is_ok() {}
-    let mut h = hist();
-    for _ in 0..n {
+
+    /// One round trip; `None` if no answer within a second.
+    fn round_trip(&mut self) -> anyhow::Result<Option<Duration>> {
         let t = Instant::now();
-        ping.put(vec![0u8; 64]).wait().map_err(z)?;
-        if rx.recv_timeout(Duration::from_secs(1)).is_ok() {
-            let _ = h.record(us(t.elapsed()));
+        self.ping
+            .put(vec![0u8; 64])
+            .wait()
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        Ok(self
+            .rx
+            .recv_timeout(Duration::from_secs(1))
+            .ok()
+            .map(|()| t.elapsed()))
+    }
+
+    /// `n` round trips.
+    fn floor(&mut self, n: usize) -> anyhow::Result<Histogram<u64>> {
+        let mut h = hist();
+        for _ in 0..n {
+            if let Some(d) = self.round_trip()? {
+                let _ = h.record(us(d));
+            }
+        }
+        Ok(h)
+    }
+}
+
+/// `n` cross-host requests, each after one raw Zenoh round trip (the floor, measured
+/// interleaved, under the same conditions).
+fn interleaved(
+    c: &mut UserClient,
+    service: &ServiceId,
+    n: usize,
+    probe: &mut ZenohProbe,
+) -> anyhow::Result<(Batch, Histogram<u64>)> {
+    let mut floor = hist();
+    let mut all: Option<Batch> = None;
+    for _ in 0..n {
+        if let Some(d) = probe.round_trip()? {
+            let _ = floor.record(us(d));
+        }
+        let b = requests(c, service, 1, Duration::from_secs(10))?;
+        match all.as_mut() {
+            None => all = Some(b),
+            Some(a) => {
+                let _ = a.latency.add(&b.latency);
+                a.granted += b.granted;
+                a.refused += b.refused;
+                a.abandoned += b.abandoned;
+                for (k, v) in b.refusals {
+                    *a.refusals.entry(k).or_default() += v;
+                }
+            }
         }
     }
-    drop(probe);
-    kids.stop_one("zenoh-echo");
-    Ok(h)
+    let all = all.context("at least one request")?;
+    Ok((all, floor))
 }
 
 /// A change of b's list (a local session begun or ended on b) until a sees it.
@@ -300,6 +358,8 @@ fn host_losses(
 }
 
 struct Rows {
+    /// Raw Zenoh round trips, one before each cross-host request.
+    floor: Histogram<u64>,
     far_request: Batch,
     local_request: Batch,
     list: Histogram<u64>,
@@ -311,18 +371,20 @@ fn measure(
     a: &FederationBenchArgs,
     on_a: &mut UserClient,
     on_b: &mut UserClient,
+    probe: &mut ZenohProbe,
 ) -> anyhow::Result<Rows> {
     // Requests on s1 (no user of the loaded rows holds it, so no quota is in the
     // way); updates on s0, the service the loaded rows' users stream from.
     let deadline = Duration::from_secs(10);
     let far = ServiceId("t1@b/s1".into());
     let local = ServiceId("t1/s1".into());
-    let far_request = requests(on_a, &far, a.requests, deadline)?;
+    let (far_request, floor) = interleaved(on_a, &far, a.requests, probe)?;
     let local_request = requests(on_b, &local, a.requests, deadline)?;
     let list = list_propagation(on_a, on_b, a.list_changes)?;
     let far = ServiceId("t1@b/s0".into());
     let local = ServiceId("t1/s0".into());
     Ok(Rows {
+        floor,
         far_request,
         local_request,
         list,
@@ -331,8 +393,10 @@ fn measure(
     })
 }
 
-fn rows_json(r: &Rows, floor_p50: f64, a: &FederationBenchArgs) -> Value {
+fn rows_json(r: &Rows, a: &FederationBenchArgs) -> Value {
+    let floor_p50 = r.floor.value_at_quantile(0.5).max(1) as f64;
     json!({
+        "floor_zenoh_rtt_interleaved": summary(&r.floor),
         "cross_host_request": batch_json(&r.far_request, a.requests),
         "local_request": batch_json(&r.local_request, a.requests),
         "ratio_cross_host_request_p50_to_floor":
@@ -351,6 +415,7 @@ fn print_rows(title: &str, r: &Rows) {
         "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
         "", "count", "p50 us", "p90 us", "p99 us", "max us"
     );
+    println!("{}", row("Zenoh round trip (floor)", &r.floor));
     println!(
         "{}",
         row("request a -> b (cross-host)", &r.far_request.latency)
@@ -377,27 +442,11 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
     if a.requests == 0 || a.round_trips == 0 || a.list_changes == 0 {
         bail!("--requests, --round-trips and --list-changes must be at least 1");
     }
-    let insts: Vec<Instance> = HOSTS
-        .iter()
-        .map(|h| host_instance(inst, h))
-        .collect::<anyhow::Result<_>>()?;
-    let ports: Vec<u16> = HOSTS
-        .iter()
-        .map(|_| free_port())
-        .collect::<anyhow::Result<_>>()?;
-    let federation = format!("bench{}", std::process::id());
+    let hosts = LoopbackHosts::new(inst, &HOSTS, "bench")?;
+    let insts = &hosts.insts;
     let mut kids = Children::default();
-    let lease = format!("{}ms", a.lease.as_millis());
-    let broker_args = |i: usize| -> Vec<String> {
-        let mut v = federated_broker_args(&federation, &HOSTS, &ports, i);
-        v.extend(["--lease".to_string(), lease.clone()]);
-        v
-    };
-    for (i, host) in HOSTS.iter().enumerate() {
-        let args = broker_args(i);
-        let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        kids.spawn(&insts[i], &format!("broker-{host}"), &args, Stdio::null())?;
-    }
+    let lease = vec!["--lease".to_string(), format!("{}ms", a.lease.as_millis())];
+    hosts.spawn_brokers(&mut kids, &lease, || Stdio::null())?;
     let quota = (a.users * 3 + 100).min(1000).to_string();
     for (i, name, kind) in [(1, "t1", "data"), (1, "d1", "command"), (2, "t2", "data")] {
         kids.spawn(
@@ -436,24 +485,25 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
         let _ = on_a.next_event(Instant::now() + Duration::from_millis(50))?;
     }
 
-    let floor = zenoh_floor(a.round_trips, &mut kids, inst)?;
-    let floor_p50 = floor.value_at_quantile(0.5).max(1) as f64;
-    let idle = measure(&a, &mut on_a, &mut on_b)?;
+    let mut probe = ZenohProbe::start(&mut kids, inst)?;
+    let floor = probe.floor(a.round_trips)?;
+    let idle = measure(&a, &mut on_a, &mut on_b, &mut probe)?;
     let mut out = json!({
         "floor_zenoh_rtt": summary(&floor),
-        "idle": rows_json(&idle, floor_p50, &a),
+        "idle": rows_json(&idle, &a),
     });
     if !a.json {
         println!("three hosts on loopback, Zenoh peers over TCP");
-        println!("{}", row("raw Zenoh round trip (floor)", &floor));
+        println!("{}", row("raw Zenoh round trips alone", &floor));
         print_rows("\nno other users", &idle);
         println!(
-            "cross-host request p50 = {:.1} x the Zenoh floor",
-            idle.far_request.latency.value_at_quantile(0.5) as f64 / floor_p50
+            "cross-host request p50 = {:.1} x the Zenoh floor measured beside it",
+            idle.far_request.latency.value_at_quantile(0.5) as f64
+                / idle.floor.value_at_quantile(0.5).max(1) as f64
         );
     }
     if a.losses > 0 {
-        let b_args = broker_args(1);
+        let b_args = hosts.broker_args(1, &lease);
         let b_args: Vec<&str> = b_args.iter().map(String::as_str).collect();
         let losses = host_losses(a.losses, &mut kids, &insts[1], &b_args, &mut on_a)?;
         if !a.json {
@@ -537,8 +587,8 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
             let _ = on_a.next_event(Instant::now() + Duration::from_millis(100))?;
         }
         std::thread::sleep(Duration::from_secs(1));
-        let loaded = measure(&a, &mut on_a, &mut on_b)?;
-        out["loaded"] = rows_json(&loaded, floor_p50, &a);
+        let loaded = measure(&a, &mut on_a, &mut on_b, &mut probe)?;
+        out["loaded"] = rows_json(&loaded, &a);
         out["users_per_host"] = json!(a.users);
         if !a.json {
             print_rows(
