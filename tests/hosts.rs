@@ -758,3 +758,33 @@ fn the_access_file_decides_who_offers_and_who_requests() {
     drop(h);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_standby_takes_its_hosts_place_in_the_federation() {
+    // Host a runs a standby beside its broker. When the broker is killed, the standby
+    // takes over, joins the federation under a's name, and a's users are served by b
+    // again.
+    let mut h = Hosts::new("fs", &["a", "b"]);
+    h.host(1).system("robo", &["--rate", "20"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    let args = h.args(0);
+    let mut args: Vec<&str> = args.iter().map(String::as_str).collect();
+    // Its own port: the killed broker's may not be free at once.
+    let port = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let at = args.iter().position(|a| *a == "--listen").unwrap();
+    args[at + 1] = &port;
+    let mut full = vec!["broker", "--standby"];
+    full.extend(args);
+    let standby = h.host(0).spawn(&full);
+    let synced = h.host(0).proc(standby).json(20 * SEC).unwrap();
+    assert_eq!(synced["event"], "in_sync", "{synced}");
+    h.kill_broker(0);
+    let took = h.host(0).proc(standby).json(20 * SEC).unwrap();
+    assert_eq!(took["event"], "took_over", "{took}");
+    // b's services are listed on a again, and b sees a's host.
+    h.host(0)
+        .wait_list(20 * SEC, |l| ids(l) == ["robo@b/s0"]);
+    let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "1s");
+    assert_eq!(code, 0, "{lines:?}");
+    assert!(seqs(&lines).len() >= 10, "{lines:?}");
+}
