@@ -312,9 +312,9 @@ fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
         assert_eq!(first["granted"], true, "{first}");
     }
     // And a local session on b, which b's broker crash must leave running.
-    let local_b = h.host(1).spawn(&[
-        "user", "request", "robo/s0", "--duration", "4s", "--json",
-    ]);
+    let local_b = h
+        .host(1)
+        .spawn(&["user", "request", "robo/s0", "--duration", "4s", "--json"]);
     let first = h.host(1).proc(local_b).json(20 * SEC).unwrap();
     assert_eq!(first["granted"], true, "{first}");
     std::thread::sleep(SEC / 2);
@@ -341,7 +341,11 @@ fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
     let s = seqs(&lines);
     assert!(s.len() >= 40, "{lines:?}");
     assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap: {s:?}");
-    assert_eq!(lines.last().unwrap()["reason"], "duration over", "{lines:?}");
+    assert_eq!(
+        lines.last().unwrap()["reason"],
+        "duration over",
+        "{lines:?}"
+    );
     // b comes back (its system re-registers with the new broker): so do its services.
     h.start_broker(1);
     let (list, _) = h.host(0).wait_list(20 * SEC, |l| l.len() == 2);
@@ -754,7 +758,10 @@ fn the_access_file_decides_who_offers_and_who_requests() {
         "{answer}"
     );
     // A broker given an access file without TLS does not start.
-    broker_refused("fa-bad", &["--federate", "--host", "q", "--acl", acl.to_str().unwrap()]);
+    broker_refused(
+        "fa-bad",
+        &["--federate", "--host", "q", "--acl", acl.to_str().unwrap()],
+    );
     drop(h);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -782,8 +789,7 @@ fn a_standby_takes_its_hosts_place_in_the_federation() {
     let took = h.host(0).proc(standby).json(20 * SEC).unwrap();
     assert_eq!(took["event"], "took_over", "{took}");
     // b's services are listed on a again, and b sees a's host.
-    h.host(0)
-        .wait_list(20 * SEC, |l| ids(l) == ["robo@b/s0"]);
+    h.host(0).wait_list(20 * SEC, |l| ids(l) == ["robo@b/s0"]);
     let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "1s");
     assert_eq!(code, 0, "{lines:?}");
     assert!(seqs(&lines).len() >= 10, "{lines:?}");

@@ -1233,7 +1233,11 @@ impl Federation {
             ToUser::Welcome { .. } => return,
             // Answers to a request out on `from` only.
             ToUser::Queued { req, .. } | ToUser::Refused { req, .. }
-                if self.outstanding.get(&(user.clone(), req)).map(String::as_str) != Some(from) =>
+                if self
+                    .outstanding
+                    .get(&(user.clone(), req))
+                    .map(String::as_str)
+                    != Some(from) =>
             {
                 return;
             }
@@ -1299,30 +1303,20 @@ impl Federation {
                     system_pid: self.pid,
                 }
             }
-            m @ (ToUser::Update { .. } | ToUser::Status { .. }) => {
-                let session = match &m {
-                    ToUser::Update { session, .. } | ToUser::Status { session, .. } => *session,
-                    _ => return,
-                };
+            // A session's frames from the host it runs on only.
+            ToUser::Update { session, .. }
+            | ToUser::Status { session, .. }
+            | ToUser::Ended { session, .. }
                 if self
                     .far
                     .get(&(user.clone(), session))
                     .map(|s| s.host.as_str())
-                    != Some(from)
-                {
-                    return;
-                }
-                m
+                    != Some(from) =>
+            {
+                return;
             }
+            m @ (ToUser::Update { .. } | ToUser::Status { .. }) => m,
             ToUser::Ended { session, reason } => {
-                if self
-                    .far
-                    .get(&(user.clone(), session))
-                    .map(|s| s.host.as_str())
-                    != Some(from)
-                {
-                    return;
-                }
                 self.far.remove(&(user.clone(), session));
                 ToUser::Ended { session, reason }
             }

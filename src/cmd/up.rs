@@ -79,6 +79,34 @@ impl Drop for Guest {
     }
 }
 
+/// The demo's tracker-like system: three data services.
+const TRACKER: [&str; 10] = [
+    "system",
+    "synthetic",
+    "--name",
+    "t1",
+    "--services",
+    "3",
+    "--kind",
+    "data",
+    "--quota",
+    "10",
+];
+/// The demo's delivery-like system: one command service with a task queue.
+const DELIVERY: [&str; 11] = [
+    "system",
+    "synthetic",
+    "--name",
+    "d1",
+    "--services",
+    "1",
+    "--kind",
+    "command",
+    "--quota",
+    "1",
+    "--queue",
+];
+
 pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     if a.hosts {
         return run_hosts(inst, a);
@@ -105,44 +133,13 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     children.spawn(
         inst,
         "tracker system t1",
-        &[
-            "system",
-            "synthetic",
-            "--name",
-            "t1",
-            "--services",
-            "3",
-            "--kind",
-            "data",
-            "--quota",
-            "10",
-        ]
-        .iter()
-        .chain(&sys_udp)
-        .copied()
-        .collect::<Vec<_>>(),
+        &TRACKER.iter().chain(&sys_udp).copied().collect::<Vec<_>>(),
         Stdio::inherit(),
     )?;
     children.spawn(
         inst,
         "delivery system d1",
-        &[
-            "system",
-            "synthetic",
-            "--name",
-            "d1",
-            "--services",
-            "1",
-            "--kind",
-            "command",
-            "--quota",
-            "1",
-            "--queue",
-        ]
-        .iter()
-        .chain(&sys_udp)
-        .copied()
-        .collect::<Vec<_>>(),
+        &DELIVERY.iter().chain(&sys_udp).copied().collect::<Vec<_>>(),
         Stdio::inherit(),
     )?;
     let opts = ConnectOptions {
@@ -284,40 +281,17 @@ fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     let hosts = super::children::LoopbackHosts::new(inst, &["a", "b", "c"], "up")?;
     let (insts, ports) = (&hosts.insts, &hosts.ports);
     let mut children = Children::default();
-    hosts.spawn_brokers(&mut children, &[], || Stdio::inherit())?;
+    hosts.spawn_brokers(&mut children, &[], Stdio::inherit)?;
     children.spawn(
         &insts[1],
         "tracker system t1 (host b)",
-        &[
-            "system",
-            "synthetic",
-            "--name",
-            "t1",
-            "--services",
-            "3",
-            "--kind",
-            "data",
-            "--quota",
-            "10",
-        ],
+        &TRACKER,
         Stdio::inherit(),
     )?;
     children.spawn(
         &insts[2],
         "delivery system d1 (host c)",
-        &[
-            "system",
-            "synthetic",
-            "--name",
-            "d1",
-            "--services",
-            "1",
-            "--kind",
-            "command",
-            "--quota",
-            "1",
-            "--queue",
-        ],
+        &DELIVERY,
         Stdio::inherit(),
     )?;
     println!(

@@ -93,7 +93,12 @@ impl ZenohProbe {
     fn start(kids: &mut Children, inst: &Instance) -> anyhow::Result<Self> {
         let port = free_port()?;
         let p = port.to_string();
-        kids.spawn(inst, "zenoh-echo", &["bench", "zenoh-echo", &p], Stdio::null())?;
+        kids.spawn(
+            inst,
+            "zenoh-echo",
+            &["bench", "zenoh-echo", &p],
+            Stdio::null(),
+        )?;
         let z = |e: zenoh::Error| anyhow::anyhow!("{e}");
         let until = Instant::now() + Duration::from_secs(10);
         let session = loop {
@@ -310,7 +315,10 @@ fn until_b(on_a: &mut UserClient, want: bool, since: Instant) -> anyhow::Result<
     let limit = since + Duration::from_secs(30);
     while lists_b(on_a)? != want {
         if Instant::now() > limit {
-            bail!("b's services did not {} a's list within 30 s", if want { "return to" } else { "leave" });
+            bail!(
+                "b's services did not {} a's list within 30 s",
+                if want { "return to" } else { "leave" }
+            );
         }
         std::thread::sleep(Duration::from_micros(200));
     }
@@ -446,7 +454,7 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
     let insts = &hosts.insts;
     let mut kids = Children::default();
     let lease = vec!["--lease".to_string(), format!("{}ms", a.lease.as_millis())];
-    hosts.spawn_brokers(&mut kids, &lease, || Stdio::null())?;
+    hosts.spawn_brokers(&mut kids, &lease, Stdio::null)?;
     let quota = (a.users * 3 + 100).min(1000).to_string();
     for (i, name, kind) in [(1, "t1", "data"), (1, "d1", "command"), (2, "t2", "data")] {
         kids.spawn(
