@@ -328,6 +328,10 @@ fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
     let lines = h.host(0).proc(on_b).all_json(10 * SEC);
     let last = lines.last().unwrap();
     assert_eq!(last["reason"], "peer gone", "{lines:?}");
+    // What the user saw of the session is still counted when it ends this way.
+    let got = seqs(&lines);
+    assert_eq!(last["last_seq"].as_u64(), got.last().copied(), "{lines:?}");
+    assert!(got.len() >= 5, "{lines:?}");
     assert!(t.elapsed() < 10 * SEC);
     // The session between a and c went on undisturbed: every update, no gap.
     let lines = h.host(0).proc(on_c).all_json(20 * SEC);

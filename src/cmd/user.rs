@@ -261,14 +261,16 @@ fn request(
             eprintln!("muster: --goal ignored: {id} is a data service");
         }
     }
+    // Counted as the updates arrive: the session is gone from the client once ended.
+    let mut counters = muster_users::core::SessionCounters::default();
     let end = stream(
         &mut client,
         session,
         Instant::now() + duration,
         as_json,
+        &mut counters,
         |_| true,
     )?;
-    let counters = client.core().counters(session).unwrap_or_default();
     if end.is_none() {
         client.end(session);
     }
@@ -291,6 +293,7 @@ fn stream(
     session: muster_shared::types::SessionId,
     deadline: Instant,
     as_json: bool,
+    counters: &mut muster_users::core::SessionCounters,
     mut other: impl FnMut(&UserEvent) -> bool,
 ) -> anyhow::Result<Option<EndReason>> {
     loop {
@@ -301,28 +304,35 @@ fn stream(
                 gap,
                 payload,
                 ..
-            })) if s == session => emit(
-                as_json,
-                json!({"seq": seq, "gap": gap, "payload": payload_json(&payload)}),
-                format!(
-                    "#{seq} {payload}{}",
-                    if gap > 0 {
-                        format!(" ({gap} lost)")
-                    } else {
-                        String::new()
-                    }
-                ),
-            ),
+            })) if s == session => {
+                counters.last_seq = counters.last_seq.max(seq);
+                counters.gaps += gap;
+                emit(
+                    as_json,
+                    json!({"seq": seq, "gap": gap, "payload": payload_json(&payload)}),
+                    format!(
+                        "#{seq} {payload}{}",
+                        if gap > 0 {
+                            format!(" ({gap} lost)")
+                        } else {
+                            String::new()
+                        }
+                    ),
+                )
+            }
             Ok(Some(UserEvent::Status {
                 session: s,
                 seq,
                 status,
                 ..
-            })) if s == session => emit(
-                as_json,
-                json!({"seq": seq, "status": status.to_string(), "payload": null}),
-                format!("#{seq} status: {status}"),
-            ),
+            })) if s == session => {
+                counters.last_seq = counters.last_seq.max(seq);
+                emit(
+                    as_json,
+                    json!({"seq": seq, "status": status.to_string(), "payload": null}),
+                    format!("#{seq} status: {status}"),
+                )
+            }
             Ok(Some(UserEvent::Ended {
                 session: s, reason, ..
             })) if s == session => return Ok(Some(reason)),
