@@ -121,6 +121,16 @@ fn broker_refused(name: &str, args: &[&str]) {
     f.shutdown();
 }
 
+/// `muster certs --out DIR --hosts HOSTS`: its exit code.
+fn make_certs(dir: &std::path::Path, hosts: &str) -> i32 {
+    let tool = Fed::new("certs-tool");
+    let (code, _) = tool.run(
+        &["certs", "--out", dir.to_str().unwrap(), "--hosts", hosts],
+        20 * SEC,
+    );
+    code
+}
+
 fn seqs(lines: &[Value]) -> Vec<u64> {
     lines
         .iter()
@@ -645,30 +655,15 @@ fn a_host_without_the_federations_certificate_joins_nothing() {
     let dir = std::env::temp_dir().join(format!("muster-test-certs-{}", std::process::id()));
     let other = dir.join("other");
     let _ = std::fs::remove_dir_all(&dir);
-    let tool = Fed::new("fc-tool");
     let fed_dir = dir.join("fed");
-    let (code, _) = tool.run(
-        &[
-            "certs",
-            "--out",
-            fed_dir.to_str().unwrap(),
-            "--hosts",
-            "a,b",
-        ],
-        20 * SEC,
-    );
-    assert_eq!(code, 0);
-    let (code, _) = tool.run(
-        &["certs", "--out", other.to_str().unwrap(), "--hosts", "x"],
-        20 * SEC,
-    );
-    assert_eq!(code, 0);
+    assert_eq!(make_certs(&fed_dir, "a,b"), 0);
+    assert_eq!(make_certs(&other, "x"), 0);
     // Existing files are never overwritten.
-    let (code, _) = tool.run(
-        &["certs", "--out", fed_dir.to_str().unwrap(), "--hosts", "a"],
-        20 * SEC,
+    assert_ne!(
+        make_certs(&fed_dir, "a"),
+        0,
+        "a host's key is not made twice"
     );
-    assert_ne!(code, 0, "a host's key is not made twice");
     let tls = |i: usize| -> Vec<String> {
         match i {
             0 | 1 => vec!["--tls".into(), fed_dir.display().to_string()],
@@ -711,19 +706,8 @@ fn the_access_file_decides_who_offers_and_who_requests() {
     // every broker's ingress, and each broker holds itself to its own role.
     let dir = std::env::temp_dir().join(format!("muster-test-acl-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let tool = Fed::new("fa-tool");
     let certs = dir.join("certs");
-    let (code, _) = tool.run(
-        &[
-            "certs",
-            "--out",
-            certs.to_str().unwrap(),
-            "--hosts",
-            "a,b,c",
-        ],
-        20 * SEC,
-    );
-    assert_eq!(code, 0);
+    assert_eq!(make_certs(&certs, "a,b,c"), 0);
     let acl = dir.join("acl.toml");
     std::fs::write(&acl, "[hosts]\na = [\"request\"]\nb = [\"offer\"]\n").unwrap();
     let args = |_: usize| -> Vec<String> {

@@ -216,18 +216,20 @@ pub enum FedError {
     /// Another broker of the federation already uses this host name.
     #[error("host name {0:?} is already in use in the federation: give each host its own --host")]
     HostTaken(String),
-    /// Shared memory for a proxy could not be set up.
-    #[error(transparent)]
-    Transport(#[from] muster_shared::ipc::TransportError),
+}
+
+/// Whether `name` may name a host (or a federation): 1..=31 characters of
+/// `[A-Za-z0-9_-]`.
+pub fn valid_host_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= MAX_HOST_NAME
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
 }
 
 fn check_host_like(what: &'static str, value: &str) -> Result<(), FedError> {
-    let ok = !value.is_empty()
-        && value.len() <= MAX_HOST_NAME
-        && value
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
-    if ok {
+    if valid_host_name(value) {
         Ok(())
     } else {
         Err(FedError::BadName {
@@ -409,12 +411,6 @@ struct Foreign {
     sessions: BTreeMap<SessionId, (String, u32)>,
 }
 
-/// A session a local user holds on another host.
-#[derive(Clone, Debug)]
-struct FarSession {
-    host: String,
-}
-
 /// One broker's membership in a federation.
 pub struct Federation {
     inst: Instance,
@@ -436,8 +432,8 @@ pub struct Federation {
     list_changed: bool,
     /// Requests of local users out on other hosts: (user, req) → host.
     outstanding: BTreeMap<(UserId, u64), String>,
-    /// Sessions of local users on other hosts.
-    far: BTreeMap<(UserId, SessionId), FarSession>,
+    /// Sessions of local users on other hosts: (user, session) → host.
+    far: BTreeMap<(UserId, SessionId), String>,
     /// Inboxes of other hosts' systems (`system@host`), for local users' input and ends.
     systems: BTreeMap<String, Proxy>,
     /// Users of other hosts served here (`user@host`).
@@ -641,11 +637,6 @@ impl Federation {
         self.waker.as_raw_fd()
     }
 
-    /// Whether `token` is one of the federation's proxy inboxes.
-    pub fn owns_token(&self, token: usize) -> bool {
-        token >= FIRST_PROXY_TOKEN
-    }
-
     /// Whether `user` is another host's user served here (`user@host`).
     pub fn is_foreign(user: &UserId) -> bool {
         user.0.contains('@')
@@ -725,11 +716,6 @@ impl Federation {
     /// Whether the other hosts' services changed since the last call.
     pub fn take_list_change(&mut self) -> bool {
         std::mem::take(&mut self.list_changed)
-    }
-
-    /// Hosts seen alive now.
-    pub fn hosts(&self) -> impl Iterator<Item = &str> {
-        self.alive.iter().map(String::as_str)
     }
 
     fn send(&mut self, to: &str, msg: &FedMsg) {
@@ -856,9 +842,9 @@ impl Federation {
             }
             u != user
         });
-        self.far.retain(|(u, _), s| {
+        self.far.retain(|(u, _), h| {
             if u == user {
-                hosts.insert(s.host.clone());
+                hosts.insert(h.clone());
             }
             u != user
         });
@@ -1022,7 +1008,7 @@ impl Federation {
         let ended: Vec<(UserId, SessionId)> = self
             .far
             .iter()
-            .filter(|(_, s)| s.host == host)
+            .filter(|(_, h)| *h == host)
             .map(|(k, _)| k.clone())
             .collect();
         for (user, session) in ended {
@@ -1119,43 +1105,43 @@ impl Federation {
                 }
             }
             FedMsg::ToSystem { system, msg } => {
-                let foreign = UserId(format!(
-                    "{}@{from}",
-                    user_of(&msg).map(|u| u.0.as_str()).unwrap_or("")
-                ));
-                let Some(f) = self.foreign.get_mut(&foreign) else {
-                    self.stats.dropped += 1;
-                    return;
-                };
-                let msg = match msg {
+                // Only a user's input and ends; the user becomes `user@from`.
+                let (user, session, payload) = match msg {
                     ToSystem::Input {
-                        session, payload, ..
-                    } => ToSystem::Input {
-                        user: foreign.clone(),
+                        user,
                         session,
                         payload,
-                    },
-                    ToSystem::End { session, .. } => ToSystem::End {
-                        user: foreign.clone(),
-                        session,
-                    },
+                    } => (user, session, Some(payload)),
+                    ToSystem::End { user, session } => (user, session, None),
                     _ => {
                         self.stats.dropped += 1;
                         return;
                     }
                 };
+                let foreign = UserId(format!("{user}@{from}"));
                 // Only to the system that holds that session of that user.
-                let session = match &msg {
-                    ToSystem::Input { session, .. } | ToSystem::End { session, .. } => *session,
-                    _ => return,
-                };
-                if f.sessions.get(&session).is_some_and(|(s, _)| *s == system) {
-                    f.proxy
-                        .endpoint
-                        .send_control(&Address::System(system), &msg);
-                } else {
+                let held = self
+                    .foreign
+                    .get_mut(&foreign)
+                    .filter(|f| f.sessions.get(&session).is_some_and(|(s, _)| *s == system));
+                let Some(f) = held else {
                     self.stats.dropped += 1;
-                }
+                    return;
+                };
+                let msg = match payload {
+                    Some(payload) => ToSystem::Input {
+                        user: foreign,
+                        session,
+                        payload,
+                    },
+                    None => ToSystem::End {
+                        user: foreign,
+                        session,
+                    },
+                };
+                f.proxy
+                    .endpoint
+                    .send_control(&Address::System(system), &msg);
             }
             FedMsg::UserGone { user } => {
                 let foreign = UserId(format!("{user}@{from}"));
@@ -1260,8 +1246,21 @@ impl Federation {
                 };
                 let far_system = format!("{system}@{from}");
                 let service = ServiceId::on_host(system, from, name);
-                if !known {
-                    // The user is gone: the session ends at once.
+                // The user needs an inbox here for the system's input and ends; with
+                // the user gone, or no inbox, the session ends at once.
+                let reachable = known
+                    && (self.systems.contains_key(&far_system)
+                        || match self.open_proxy(Address::System(far_system.clone()), reactor) {
+                            Ok(p) => {
+                                self.systems.insert(far_system.clone(), p);
+                                true
+                            }
+                            Err(e) => {
+                                tracing::warn!(system = %far_system, "federation: cannot open an inbox: {e}");
+                                false
+                            }
+                        });
+                if !reachable {
                     return self.send(
                         from,
                         &FedMsg::ToSystem {
@@ -1270,30 +1269,8 @@ impl Federation {
                         },
                     );
                 }
-                if !self.systems.contains_key(&far_system) {
-                    match self.open_proxy(Address::System(far_system.clone()), reactor) {
-                        Ok(p) => {
-                            self.systems.insert(far_system.clone(), p);
-                        }
-                        Err(e) => {
-                            tracing::warn!(system = %far_system, "federation: cannot open an inbox: {e}");
-                            return self.send(
-                                from,
-                                &FedMsg::ToSystem {
-                                    system: system.to_string(),
-                                    msg: ToSystem::End { user, session },
-                                },
-                            );
-                        }
-                    }
-                }
                 self.outstanding.remove(&(user.clone(), req));
-                self.far.insert(
-                    (user.clone(), session),
-                    FarSession {
-                        host: from.to_string(),
-                    },
-                );
+                self.far.insert((user.clone(), session), from.to_string());
                 ToUser::Granted {
                     req,
                     session,
@@ -1307,11 +1284,7 @@ impl Federation {
             ToUser::Update { session, .. }
             | ToUser::Status { session, .. }
             | ToUser::Ended { session, .. }
-                if self
-                    .far
-                    .get(&(user.clone(), session))
-                    .map(|s| s.host.as_str())
-                    != Some(from) =>
+                if self.far.get(&(user.clone(), session)).map(String::as_str) != Some(from) =>
             {
                 return;
             }
@@ -1433,7 +1406,7 @@ impl Federation {
             let theirs = self
                 .far
                 .get(&(user.clone(), session))
-                .is_some_and(|s| s.host == host);
+                .is_some_and(|h| *h == host);
             if own && theirs {
                 out.push(msg);
             }
@@ -1459,13 +1432,6 @@ fn local_part(foreign: &UserId) -> UserId {
             .map_or(foreign.0.as_str(), |(u, _)| u)
             .to_string(),
     )
-}
-
-fn user_of(msg: &ToSystem) -> Option<&UserId> {
-    match msg {
-        ToSystem::Input { user, .. } | ToSystem::End { user, .. } => Some(user),
-        _ => None,
-    }
 }
 
 #[cfg(test)]

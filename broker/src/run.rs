@@ -80,6 +80,8 @@ pub struct BrokerReport {
     pub handling: Handling,
     /// Counters of the UDP front, if it ran.
     pub udp: Option<crate::udp::UdpStats>,
+    /// Counters of the federation, if the broker joined one.
+    pub federation: Option<crate::federation::FedStats>,
 }
 
 impl BrokerReport {
@@ -98,7 +100,8 @@ impl BrokerReport {
                 )
             })
             .collect();
-        serde_json::json!({"stats": self.stats, "handling": handling, "udp": self.udp})
+        serde_json::json!({"stats": self.stats, "handling": handling, "udp": self.udp,
+                           "federation": self.federation})
     }
 }
 
@@ -122,8 +125,8 @@ struct Shell {
     replica: Replication,
     /// This host's membership in a federation, if it joined one.
     fed: Option<Federation>,
-    /// The core's list as last taken (kept only in a federation, where other hosts'
-    /// lists change the merged one on their own).
+    /// The core's list as last taken (in a federation, other hosts' lists change the
+    /// merged one on their own).
     local_views: Vec<muster_shared::snapshot::ServiceView>,
 }
 
@@ -474,6 +477,7 @@ pub fn run_standby(
             stats: crate::core::BrokerStats::default(),
             handling: Handling::new(false),
             udp: None,
+            federation: None,
         });
     };
     let Followed {
@@ -1023,6 +1027,7 @@ fn serve(
                             stats: core.stats().clone(),
                             handling: shell.handling,
                             udp: shell.udp.as_ref().map(|d| d.front.stats().clone()),
+                            federation: shell.fed.as_ref().map(|f| f.stats().clone()),
                         });
                     }
                 }
@@ -1267,56 +1272,52 @@ impl Shell {
         if local.is_none() && !far {
             return;
         }
-        if let Some(f) = self.fed.as_mut() {
-            if let Some((_, views)) = &local {
+        // Other hosts' lists change the merged one on their own: it takes a generation
+        // past both the core's and the last written.
+        let mut generation = self.snapshot.generation + 1;
+        if let Some((g, views)) = local {
+            generation = generation.max(g);
+            if let Some(f) = self.fed.as_mut() {
                 let systems: Vec<&str> = core.systems().collect();
-                f.publish_list(views, &systems);
-                self.local_views = views.clone();
+                f.publish_list(&views, &systems);
             }
+            self.local_views = views;
         }
-        let (generation, views) = match local {
-            Some((g, v)) => (g.max(self.snapshot.generation + 1), v),
-            None => (self.snapshot.generation + 1, self.local_views.clone()),
-        };
-        {
-            self.snapshot.generation = generation;
-            let host = self.fed.as_ref().map(|f| f.host().to_string());
-            // One list in id order: this host's services and every other host's.
-            let mut all: Vec<&muster_shared::snapshot::ServiceView> = views.iter().collect();
-            if let Some(f) = self.fed.as_ref() {
-                all.extend(f.remote_views());
-                all.sort_by(|a, b| a.id.cmp(&b.id));
-            }
-            let mut n = 0;
-            for (slot, v) in self.snapshot.entries.iter_mut().zip(all) {
-                *slot = v.to_entry();
-                if let Some(h) = &host {
-                    if !v.remote {
-                        slot.host = muster_shared::snapshot::FixedStr::new(h);
-                    }
-                }
-                n += 1;
-            }
-            self.snapshot.count = n;
-            let total = views.len() + self.fed.as_ref().map_or(0, |f| f.remote_views().count());
-            if total > MAX_LISTED_SERVICES {
-                tracing::warn!(
-                    total,
-                    "the global list holds more services than the {MAX_LISTED_SERVICES} the shared list can: the rest are not listed"
-                );
-            }
-            let t = Instant::now();
-            match self.list.publish(&self.snapshot, &self.fence) {
-                Ok(()) => self.handling.record("list_write", t, t.elapsed()),
-                // Never fatal: readers keep the last list; the next change writes again.
-                Err(e) => tracing::warn!("the service list could not be written: {e}"),
-            }
-            if let Some(d) = self.udp.as_mut() {
-                d.front
-                    .list_changed(self.snapshot.epoch, generation, &views);
-            }
-            self.ring_owed = true;
+        self.snapshot.generation = generation;
+        // One list in id order: this host's services and every other host's.
+        let mut all: Vec<&muster_shared::snapshot::ServiceView> = self.local_views.iter().collect();
+        let host = self.fed.as_ref().map(|f| {
+            all.extend(f.remote_views());
+            all.sort_by(|a, b| a.id.cmp(&b.id));
+            muster_shared::snapshot::FixedStr::new(f.host())
+        });
+        let total = all.len();
+        if total > MAX_LISTED_SERVICES {
+            tracing::warn!(
+                total,
+                "the global list holds more services than the {MAX_LISTED_SERVICES} the shared list can: the rest are not listed"
+            );
         }
+        let mut n = 0;
+        for (slot, v) in self.snapshot.entries.iter_mut().zip(all) {
+            *slot = v.to_entry();
+            if let Some(h) = host.filter(|_| !v.remote) {
+                slot.host = h;
+            }
+            n += 1;
+        }
+        self.snapshot.count = n;
+        let t = Instant::now();
+        match self.list.publish(&self.snapshot, &self.fence) {
+            Ok(()) => self.handling.record("list_write", t, t.elapsed()),
+            // Never fatal: readers keep the last list; the next change writes again.
+            Err(e) => tracing::warn!("the service list could not be written: {e}"),
+        }
+        if let Some(d) = self.udp.as_mut() {
+            d.front
+                .list_changed(self.snapshot.epoch, generation, &self.local_views);
+        }
+        self.ring_owed = true;
     }
 
     /// How long until watchers may be rung again, if a ring is owed.

@@ -48,11 +48,7 @@ fn write_new(path: &Path, text: &str, secret: bool) -> anyhow::Result<()> {
 
 pub fn run(a: CertsArgs) -> anyhow::Result<ExitCode> {
     for h in &a.hosts {
-        let ok = !h.is_empty()
-            && h.len() <= muster_shared::types::MAX_HOST_NAME
-            && h.bytes()
-                .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
-        if !ok || h == "ca" {
+        if !muster_broker::federation::valid_host_name(h) || h == "ca" {
             bail!("host name {h:?}: use 1 to 31 characters of [A-Za-z0-9_-] (not \"ca\")");
         }
     }
