@@ -364,22 +364,9 @@ fn a_lost_host_leaves_the_lists_its_users_are_told_and_it_comes_back() {
     h.start_broker(1);
     let (list, _) = h.host(0).wait_list(20 * SEC, |l| l.len() == 2);
     assert_eq!(ids(&list), ["cam@c/s0", "robo@b/s0"]);
-    let (code, out) = h.host(0).run(
-        &[
-            "user",
-            "request",
-            "robo@b/s0",
-            "--duration",
-            "500ms",
-            "--json",
-        ],
-        20 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
-    assert!(
-        out.lines().next().unwrap().contains("\"granted\":true"),
-        "{out}"
-    );
+    let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "500ms");
+    assert_eq!(code, 0, "{lines:?}");
+    assert_eq!(lines[0]["granted"], true, "{lines:?}");
 }
 
 #[test]
@@ -605,22 +592,9 @@ fn hostile_frames_from_another_host_are_dropped() {
         "{lines:?}"
     );
     // b still serves: a new session from a, and its list is whole.
-    let (code, out) = h.host(0).run(
-        &[
-            "user",
-            "request",
-            "robo@b/s0",
-            "--duration",
-            "300ms",
-            "--json",
-        ],
-        20 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
-    assert!(
-        out.lines().next().unwrap().contains("\"granted\":true"),
-        "{out}"
-    );
+    let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "300ms");
+    assert_eq!(code, 0, "{lines:?}");
+    assert_eq!(lines[0]["granted"], true, "{lines:?}");
     assert_eq!(ids(&h.host(1).list()), ["robo/s0"]);
     // None of those frames made a request: nothing is held on b now.
     h.host(1).wait_list(10 * SEC, |l| {

@@ -989,14 +989,7 @@ impl Federation {
             self.list_changed = true;
         }
         // Local users' requests and sessions there.
-        let refused: Vec<(UserId, u64)> = self
-            .outstanding
-            .iter()
-            .filter(|(_, h)| *h == host)
-            .map(|(k, _)| k.clone())
-            .collect();
-        for (user, req) in refused {
-            self.outstanding.remove(&(user.clone(), req));
+        for (user, req) in take_on_host(&mut self.outstanding, host) {
             endpoint.send_control(
                 &Address::User(user),
                 &ToUser::Refused {
@@ -1005,14 +998,7 @@ impl Federation {
                 },
             );
         }
-        let ended: Vec<(UserId, SessionId)> = self
-            .far
-            .iter()
-            .filter(|(_, h)| *h == host)
-            .map(|(k, _)| k.clone())
-            .collect();
-        for (user, session) in ended {
-            self.far.remove(&(user.clone(), session));
+        for (user, session) in take_on_host(&mut self.far, host) {
             self.stats.sessions_lost += 1;
             endpoint.send_control(
                 &Address::User(user),
@@ -1421,6 +1407,19 @@ impl Federation {
             );
         }
     }
+}
+
+/// Removes the entries of `map` held on `host`; returns their keys.
+fn take_on_host<K: Ord + Clone>(map: &mut BTreeMap<K, String>, host: &str) -> Vec<K> {
+    let mut taken = Vec::new();
+    map.retain(|k, h| {
+        let on = h == host;
+        if on {
+            taken.push(k.clone());
+        }
+        !on
+    });
+    taken
 }
 
 /// `user@host` → `user`.
