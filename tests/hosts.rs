@@ -481,8 +481,8 @@ print(json.dumps({"alive": alive, "systems": systems,
 #[test]
 fn hostile_frames_from_another_host_are_dropped() {
     use muster_broker::federation::FedMsg;
-    use muster_shared::protocol::{encode, ToSystem, ToUser};
-    use muster_shared::types::{EndReason, Payload, ServiceId, SessionId, UserId};
+    use muster_shared::protocol::{encode, RemoteContact, ToSystem, ToUser};
+    use muster_shared::types::{EndReason, Payload, ServiceId, ServiceKind, SessionId, UserId};
     use zenoh::Wait;
     // A peer on the federation's network puts what it likes on b's inbox key: bytes
     // that are no frame, a frame claiming to be from a user with '@' in its name, input
@@ -518,6 +518,35 @@ fn hostile_frames_from_another_host_are_dropped() {
                 user: UserId("x@y".into()),
                 req: 1,
                 service: ServiceId::new("robo", "s0"),
+                remote: None,
+            })
+            .unwrap(),
+        ),
+        // A remote user's request for a system without a UDP endpoint: refused.
+        (
+            to_b("a"),
+            encode(&FedMsg::Request {
+                user: UserId("far.1".into()),
+                req: 1,
+                service: ServiceId::new("robo", "s0"),
+                remote: Some(RemoteContact {
+                    addr: "127.0.0.1:9".into(),
+                    key: [1; 32],
+                }),
+            })
+            .unwrap(),
+        ),
+        // A grant nobody asked for, on the systems' key.
+        (
+            format!("muster/{}/b/in/a", h.name),
+            encode(&FedMsg::Granted {
+                user: UserId("nobody".into()),
+                req: 5,
+                session: SessionId(5),
+                service: ServiceId::new("x", "s0"),
+                kind: ServiceKind::Data,
+                payload: "text".into(),
+                system_addr: "127.0.0.1:9".into(),
             })
             .unwrap(),
         ),
@@ -574,6 +603,7 @@ fn hostile_frames_from_another_host_are_dropped() {
             user: UserId("u9".into()),
             req: 1,
             service: ServiceId::new("robo", "s0"),
+            remote: None,
         })
         .unwrap(),
     ));
@@ -755,4 +785,132 @@ fn a_standby_takes_its_hosts_place_in_the_federation() {
     let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "1s");
     assert_eq!(code, 0, "{lines:?}");
     assert!(seqs(&lines).len() >= 10, "{lines:?}");
+}
+
+/// `muster user ARGS --json` as remote user alice over host a's UDP front.
+fn remote_json(h: &Hosts, r: &common::RemoteSetup, args: &[&str]) -> (i32, Vec<Value>) {
+    let mut a: Vec<&str> = vec!["user"];
+    a.extend_from_slice(args);
+    let key = r.key("alice");
+    a.extend(["--json", "--remote", &r.addr, "--key", &key, "--wait", "2s"]);
+    let (code, out) = h.hosts[0].1.run(&a, 30 * SEC);
+    // `list` prints one array; the others one object a line.
+    let lines = match serde_json::from_str::<Value>(&out) {
+        Ok(Value::Array(v)) => v,
+        _ => out
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+            .collect(),
+    };
+    (code, lines)
+}
+
+#[test]
+fn a_remote_user_of_one_host_is_served_by_other_hosts_systems() {
+    let keys = Fed::new("fu-keys");
+    let r = keys.remote_setup(&[("alice", &["*"])]);
+    let (addr, access) = (r.addr.clone(), r.access.display().to_string());
+    let mut h = Hosts::with("fu", &["a", "b", "c"], |i| match i {
+        0 => vec![
+            "--udp".into(),
+            addr.clone(),
+            "--access".into(),
+            access.clone(),
+        ],
+        _ => Vec::new(),
+    });
+    h.host(1)
+        .system("robo", &["--rate", "20", "--udp", "127.0.0.1:0"]);
+    h.host(1).system("shm", &[]);
+    h.host(2).system(
+        "deliv",
+        &["--kind", "command", "--rate", "20", "--udp", "127.0.0.1:0"],
+    );
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 3);
+
+    // The remote user's list is the global one.
+    let (code, list) = remote_json(&h, &r, &["list"]);
+    assert_eq!(code, 0, "{list:?}");
+    let listed: Vec<&str> = list.iter().filter_map(|v| v["id"].as_str()).collect();
+    assert_eq!(listed, ["deliv@c/s0", "robo@b/s0", "shm@b/s0"]);
+
+    // Granted on b; the session runs with b's system, in order, and ends.
+    let (code, lines) = remote_json(&h, &r, &["request", "robo@b/s0", "--duration", "1s"]);
+    assert_eq!(code, 0, "{lines:?}");
+    assert_eq!(lines[0]["granted"], true, "{lines:?}");
+    assert_eq!(lines[0]["service"], "robo@b/s0", "{lines:?}");
+    let s = seqs(&lines);
+    assert!(s.len() >= 10, "updates from b's system: {lines:?}");
+    assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "no gap: {s:?}");
+    let last = lines.last().unwrap();
+    assert_eq!(last["reason"], "duration over", "{lines:?}");
+    assert_eq!(last["gaps"], 0, "{lines:?}");
+    h.host(1).wait_list(10 * SEC, |l| {
+        find(l, "robo/s0").is_some_and(|v| v["in_use"] == 0)
+    });
+
+    // A system without a UDP endpoint serves local users only, on every host.
+    let (_, lines) = remote_json(&h, &r, &["request", "shm@b/s0", "--duration", "1s"]);
+    assert_eq!(lines[0]["granted"], false, "{lines:?}");
+    assert_eq!(lines[0]["code"], "bad_request", "{lines:?}");
+    assert!(
+        lines[0]["reason"]
+            .as_str()
+            .unwrap()
+            .contains("UDP endpoint"),
+        "{lines:?}"
+    );
+
+    // A link from b's data into c's command service, by a remote user of a.
+    let (code, lines) = remote_json(
+        &h,
+        &r,
+        &["link", "robo@b/s0", "deliv@c/s0", "--duration", "2s"],
+    );
+    assert_eq!(code, 0, "{lines:?}");
+    let forwarded = lines
+        .iter()
+        .filter(|v| v["forwarded"]["type"] == "goal2d")
+        .count();
+    assert!(forwarded >= 10, "b's data became c's task input: {lines:?}");
+    assert!(
+        lines
+            .iter()
+            .any(|v| v["from"] == "deliv@c/s0" && v.get("status").is_some()),
+        "c's system answered: {lines:?}"
+    );
+
+    // b leaves: the remote user holding a session there is told at once.
+    let key = r.key("alice");
+    let holder = h.host(0).spawn(&[
+        "user",
+        "request",
+        "robo@b/s0",
+        "--duration",
+        "30s",
+        "--json",
+        "--remote",
+        &addr,
+        "--key",
+        &key,
+    ]);
+    let first = h.host(0).proc(holder).json(20 * SEC).unwrap();
+    assert_eq!(first["granted"], true, "{first}");
+    h.kill_broker(1);
+    let end = loop {
+        let v = h
+            .host(0)
+            .proc(holder)
+            .json(20 * SEC)
+            .expect("the session's end");
+        if v.get("reason").is_some() {
+            break v;
+        }
+    };
+    assert_eq!(end["reason"], "peer gone", "{end}");
+    // b back: its services are in the remote user's list again.
+    h.start_broker(1);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 3);
+    let (_, list) = remote_json(&h, &r, &["list"]);
+    assert_eq!(list.len(), 3, "{list:?}");
 }

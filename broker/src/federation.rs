@@ -31,6 +31,13 @@
 //! system's host only, in order (one Zenoh link, reliable), with the system's sequence
 //! numbers untouched.
 //!
+//! **Remote users.** A remote (UDP) user of a host asks for another host's service
+//! through its own broker too: the front issues the session key, the request carries
+//! the user's address and key ([`FedMsg::Request`]'s `remote`), the system gets them
+//! with its offer, and the grant comes back with the system's UDP endpoint
+//! ([`FedMsg::Granted`]). The session then runs straight between the user and the
+//! system, as on one host; the system's host keeps no inbox for such a user.
+//!
 //! **Liveness.** A host whose token goes (process killed, link cut past the lease) has
 //! its services removed; its users' requests and sessions here end (the systems are
 //! told, as when a user is revoked), and the sessions local users held there end with
@@ -41,16 +48,17 @@
 use crate::core::{Broker, Output};
 use muster_shared::ipc::{create_node, Endpoint};
 use muster_shared::names::{Address, Instance};
-use muster_shared::protocol::{decode, encode, ToBroker, ToSystem, ToUser};
+use muster_shared::protocol::{decode, encode, RemoteContact, ToBroker, ToSystem, ToUser};
 use muster_shared::reactor::Reactor;
 use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{
-    check_name, EndReason, Refusal, ServiceId, SessionId, UserId, MAX_HOST_NAME, MAX_SERVICE_NAME,
-    MAX_SYSTEM_NAME,
+    check_name, EndReason, Refusal, ServiceId, ServiceKind, SessionId, UserId, MAX_HOST_NAME,
+    MAX_SERVICE_NAME, MAX_SYSTEM_NAME,
 };
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::io::{Read, Write};
+use std::net::{IpAddr, SocketAddr};
 use std::os::fd::AsRawFd;
 use std::os::unix::net::UnixStream;
 use std::path::PathBuf;
@@ -65,6 +73,8 @@ pub const FIRST_PROXY_TOKEN: usize = 1 << 32;
 pub const MAX_FOREIGN_USER: usize = 64;
 /// Most users of other hosts this broker serves at once.
 pub const MAX_FOREIGN_USERS: usize = 1024;
+/// Most requests of other hosts' remote users waiting here for their offer at once.
+const MAX_CONTACTS: usize = 16 * 1024;
 /// How long a proxy whose peer is gone keeps its ports: frames just sent through them
 /// (an end, a revocation) must be read before the ports close.
 const PROXY_LINGER: Duration = Duration::from_secs(2);
@@ -340,6 +350,10 @@ pub enum FedMsg {
         req: u64,
         /// The service, as the receiving host knows it (`system/name`).
         service: ServiceId,
+        /// For a remote (UDP) user of the sending host: where it is and the session
+        /// key its broker issued. The system then runs the session with the user over
+        /// UDP, straight, as with its own host's remote users.
+        remote: Option<RemoteContact>,
     },
     /// The user gives the request up.
     Cancel {
@@ -367,6 +381,58 @@ pub enum FedMsg {
         user: UserId,
         /// The frame (`Granted` names the service as the sending host knows it).
         msg: ToUser,
+    },
+    /// A grant for a remote (UDP) user's request ([`FedMsg::Request`] with `remote`):
+    /// the session runs between the user and the system's UDP endpoint.
+    Granted {
+        /// The user, as the receiving host knows it.
+        user: UserId,
+        /// Its request number.
+        req: u64,
+        /// The session.
+        session: SessionId,
+        /// The service, as the sending host knows it (`system/name`).
+        service: ServiceId,
+        /// Data or command.
+        kind: ServiceKind,
+        /// Payload type.
+        payload: String,
+        /// The system's UDP endpoint, as the user reaches it.
+        system_addr: String,
+    },
+}
+
+impl FedMsg {
+    /// Whether the frame travels on the users' key (`req/`) rather than on the
+    /// systems' (`in/`): access control tells the two apart.
+    fn on_users_key(&self) -> bool {
+        !matches!(self, FedMsg::ToUser { .. } | FedMsg::Granted { .. })
+    }
+}
+
+/// A frame the federation has for a local user; the shell delivers it through shared
+/// memory or, to a remote user, through the UDP front.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Delivery {
+    /// A frame as it is.
+    Msg(UserId, ToUser),
+    /// A grant on another host for a remote user: the front gives it the system's
+    /// UDP endpoint and the session key it issued for the request.
+    Grant {
+        /// The user.
+        user: UserId,
+        /// Its request number.
+        req: u64,
+        /// The session.
+        session: SessionId,
+        /// The service (`system@host/name`).
+        service: ServiceId,
+        /// Data or command.
+        kind: ServiceKind,
+        /// Payload type.
+        payload: String,
+        /// The system's UDP endpoint.
+        system_addr: String,
     },
 }
 
@@ -405,7 +471,9 @@ struct Proxy {
 
 /// A user of another host that this host serves.
 struct Foreign {
-    proxy: Proxy,
+    /// Its inbox here (`None` for a remote user of its host: its sessions run over
+    /// UDP, and the broker's frames for it are relayed from the core's outputs).
+    proxy: Option<Proxy>,
     host: String,
     /// Its sessions here: session → (system, the system's pid).
     sessions: BTreeMap<SessionId, (String, u32)>,
@@ -438,6 +506,14 @@ pub struct Federation {
     systems: BTreeMap<String, Proxy>,
     /// Users of other hosts served here (`user@host`).
     foreign: BTreeMap<UserId, Foreign>,
+    /// Contacts of other hosts' remote users for their requests here, given to the
+    /// system with the offer: (`user@host`, req) → contact.
+    contacts: HashMap<(UserId, u64), RemoteContact>,
+    /// Frames for local users, for the shell to deliver.
+    deliveries: VecDeque<Delivery>,
+    /// The address other hosts' remote users reach this host's systems at, for a
+    /// system listening on every address (from `--listen`).
+    advertise: Option<IpAddr>,
     by_token: HashMap<usize, Address>,
     next_token: usize,
     lingering: Vec<(Instant, Proxy)>,
@@ -604,6 +680,9 @@ impl Federation {
             far: BTreeMap::new(),
             systems: BTreeMap::new(),
             foreign: BTreeMap::new(),
+            contacts: HashMap::new(),
+            deliveries: VecDeque::new(),
+            advertise: cfg.listen.iter().find_map(|e| listen_ip(e)),
             by_token: HashMap::new(),
             next_token: FIRST_PROXY_TOKEN,
             lingering: Vec::new(),
@@ -723,11 +802,7 @@ impl Federation {
             Ok(f) => f,
             Err(e) => return tracing::warn!("federation: cannot encode a frame for {to}: {e}"),
         };
-        let part = if matches!(msg, FedMsg::ToUser { .. }) {
-            "in"
-        } else {
-            "req"
-        };
+        let part = if msg.on_users_key() { "req" } else { "in" };
         let key = format!("{}{to}/{part}/{}", self.prefix, self.host);
         match self.session.put(&key, frame).wait() {
             Ok(()) => self.stats.sent += 1,
@@ -759,46 +834,45 @@ impl Federation {
     }
 
     /// A local user's request or cancel for another host's service: passed on, and
-    /// `true`. Anything else: `false` (the core handles it).
-    pub fn intercept(&mut self, msg: &ToBroker, endpoint: &mut Endpoint) -> bool {
+    /// `true`. Anything else: `false` (the core handles it). `contact` gives a remote
+    /// (UDP) user's address and a fresh session key for the request, `None` for a
+    /// user on shared memory; it is asked only for a request passed on.
+    pub fn intercept(
+        &mut self,
+        msg: &ToBroker,
+        contact: impl FnOnce(&UserId, u64) -> Option<RemoteContact>,
+    ) -> bool {
         match msg {
             ToBroker::Request { user, req, service } => {
                 let Some((host, there)) = service.remote() else {
                     return false;
                 };
                 let host = host.to_string();
-                if !self.may(&self.host, Role::Request) {
-                    let reason = format!(
+                let refusal = if !self.may(&self.host, Role::Request) {
+                    Some(Refusal::BadRequest(format!(
                         "host {} may not request other hosts' services (the federation's access file)",
                         self.host
-                    );
-                    endpoint.send_control(
-                        &Address::User(user.clone()),
-                        &ToUser::Refused {
-                            req: *req,
-                            reason: Refusal::BadRequest(reason),
-                        },
-                    );
-                    return true;
-                }
-                if !self.alive.contains(&host) {
-                    endpoint.send_control(
-                        &Address::User(user.clone()),
-                        &ToUser::Refused {
-                            req: *req,
-                            reason: Refusal::Unknown,
-                        },
-                    );
+                    )))
+                } else if !self.alive.contains(&host) {
+                    Some(Refusal::Unknown)
+                } else {
+                    None
+                };
+                if let Some(reason) = refusal {
+                    let m = ToUser::Refused { req: *req, reason };
+                    self.deliveries.push_back(Delivery::Msg(user.clone(), m));
                     return true;
                 }
                 self.outstanding.insert((user.clone(), *req), host.clone());
                 self.stats.requests_out += 1;
+                let remote = contact(user, *req);
                 self.send(
                     &host,
                     &FedMsg::Request {
                         user: user.clone(),
                         req: *req,
                         service: there,
+                        remote,
                     },
                 );
                 true
@@ -824,13 +898,112 @@ impl Federation {
         }
     }
 
-    /// Drops what the shell must not do for other hosts' users: watching their
-    /// process (the pid is this broker's own).
-    pub fn route(&self, out: Output) -> Option<Output> {
+    /// Takes the core's outputs that concern other hosts' users: drops watching their
+    /// process (the pid is this broker's own), gives a remote user's contact to the
+    /// system with the offer, and relays the grant and the broker's frames for a
+    /// remote user (who has no inbox here) to its host. Gives back the rest.
+    pub fn route(&mut self, core: &Broker, out: Output) -> Option<Output> {
         match out {
             Output::WatchUser { ref user, .. } if Self::is_foreign(user) => None,
+            Output::ToSystem(
+                system,
+                ToSystem::Offer {
+                    ticket,
+                    user,
+                    user_pid,
+                    req,
+                    service,
+                    remote: None,
+                },
+            ) => {
+                let remote = self.contacts.get(&(user.clone(), req)).cloned();
+                Some(Output::ToSystem(
+                    system,
+                    ToSystem::Offer {
+                        ticket,
+                        user,
+                        user_pid,
+                        req,
+                        service,
+                        remote,
+                    },
+                ))
+            }
+            Output::Granted {
+                user,
+                req,
+                session,
+                service,
+                kind,
+                payload,
+                ..
+            } if self.contacts.contains_key(&(user.clone(), req)) => {
+                self.contacts.remove(&(user.clone(), req));
+                let system = service.split().map(|(s, _)| s.to_string())?;
+                let addr = core.system_udp(&system).map(|a| self.reachable(a));
+                let f = self.foreign.get_mut(&user)?;
+                let host = f.host.clone();
+                let home = local_part(&user);
+                let msg = match addr {
+                    Some(system_addr) => {
+                        f.sessions.insert(session, (system, 0));
+                        FedMsg::Granted {
+                            user: home,
+                            req,
+                            session,
+                            service,
+                            kind,
+                            payload,
+                            system_addr,
+                        }
+                    }
+                    // The system dropped its UDP endpoint (re-registered without one)
+                    // after the request came: the session it opened lapses unheard.
+                    None => FedMsg::ToUser {
+                        user: home,
+                        msg: ToUser::Refused {
+                            req,
+                            reason: Refusal::BadRequest(format!(
+                                "{service} is on a system without a UDP endpoint: local users only"
+                            )),
+                        },
+                    },
+                };
+                self.send(&host, &msg);
+                None
+            }
+            Output::ToUser(user, msg)
+                if self.foreign.get(&user).is_some_and(|f| f.proxy.is_none()) =>
+            {
+                if let ToUser::Refused { req, .. } = &msg {
+                    self.contacts.remove(&(user.clone(), *req));
+                }
+                if matches!(msg, ToUser::Welcome { .. }) {
+                    return None;
+                }
+                let host = self.foreign.get(&user)?.host.clone();
+                let user = local_part(&user);
+                self.send(&host, &FedMsg::ToUser { user, msg });
+                None
+            }
             o => Some(o),
         }
+    }
+
+    /// A system's UDP address as other hosts' users reach it: a system listening on
+    /// every address is reached at the address this broker listens on, if it names one.
+    fn reachable(&self, addr: &str) -> String {
+        match (addr.parse::<SocketAddr>(), self.advertise) {
+            (Ok(a), Some(ip)) if a.ip().is_unspecified() => {
+                SocketAddr::new(ip, a.port()).to_string()
+            }
+            _ => addr.to_string(),
+        }
+    }
+
+    /// The next frame for a local user.
+    pub fn poll_delivery(&mut self) -> Option<Delivery> {
+        self.deliveries.pop_front()
     }
 
     /// A local user died or left: the hosts holding its requests or sessions hear of it.
@@ -880,13 +1053,7 @@ impl Federation {
     }
 
     /// Handles what Zenoh handed over: hosts coming and going, lists, frames.
-    pub fn on_wake(
-        &mut self,
-        core: &mut Broker,
-        endpoint: &mut Endpoint,
-        reactor: &Reactor,
-        now: Duration,
-    ) {
+    pub fn on_wake(&mut self, core: &mut Broker, reactor: &Reactor, now: Duration) {
         let mut buf = [0u8; 256];
         while matches!((&self.waker).read(&mut buf), Ok(n) if n > 0) {}
         while let Ok(ev) = self.events.try_recv() {
@@ -900,7 +1067,7 @@ impl Federation {
                 }
                 Event::Alive(host, false) => {
                     if self.alive.remove(&host) {
-                        self.host_lost(&host, core, endpoint, reactor, now);
+                        self.host_lost(&host, core, reactor, now);
                     }
                 }
                 Event::List(host, body) => self.take_list(&host, &body),
@@ -908,10 +1075,10 @@ impl Federation {
                     self.stats.received += 1;
                     match decode::<FedMsg>(&frame) {
                         // Each kind on its own key: access control is by key.
-                        Ok(m) if matches!(m, FedMsg::ToUser { .. }) == users_side => {
+                        Ok(m) if m.on_users_key() != users_side => {
                             self.stats.dropped += 1;
                         }
-                        Ok(m) => self.on_msg(&from, m, core, endpoint, reactor, now),
+                        Ok(m) => self.on_msg(&from, m, core, reactor, now),
                         Err(e) => {
                             self.stats.dropped += 1;
                             tracing::debug!(from = %from, "federation: bad frame: {e}");
@@ -972,14 +1139,7 @@ impl Federation {
         }
     }
 
-    fn host_lost(
-        &mut self,
-        host: &str,
-        core: &mut Broker,
-        endpoint: &mut Endpoint,
-        reactor: &Reactor,
-        now: Duration,
-    ) {
+    fn host_lost(&mut self, host: &str, core: &mut Broker, reactor: &Reactor, now: Duration) {
         self.stats.hosts_lost += 1;
         tracing::info!(
             host,
@@ -990,23 +1150,19 @@ impl Federation {
         }
         // Local users' requests and sessions there.
         for (user, req) in take_on_host(&mut self.outstanding, host) {
-            endpoint.send_control(
-                &Address::User(user),
-                &ToUser::Refused {
-                    req,
-                    reason: Refusal::SystemGone,
-                },
-            );
+            let m = ToUser::Refused {
+                req,
+                reason: Refusal::SystemGone,
+            };
+            self.deliveries.push_back(Delivery::Msg(user, m));
         }
         for (user, session) in take_on_host(&mut self.far, host) {
             self.stats.sessions_lost += 1;
-            endpoint.send_control(
-                &Address::User(user),
-                &ToUser::Ended {
-                    session,
-                    reason: EndReason::PeerGone,
-                },
-            );
+            let m = ToUser::Ended {
+                session,
+                reason: EndReason::PeerGone,
+            };
+            self.deliveries.push_back(Delivery::Msg(user, m));
         }
         let suffix = format!("@{host}");
         let gone: Vec<String> = self
@@ -1035,8 +1191,9 @@ impl Federation {
     fn foreign_gone(&mut self, user: &UserId, core: &mut Broker, reactor: &Reactor, now: Duration) {
         // The systems holding its sessions are told to end them; its requests go.
         core.revoke(now, user);
-        if let Some(f) = self.foreign.remove(user) {
-            self.close_proxy(f.proxy, reactor);
+        self.contacts.retain(|(u, _), _| u != user);
+        if let Some(p) = self.foreign.remove(user).and_then(|f| f.proxy) {
+            self.close_proxy(p, reactor);
         }
     }
 
@@ -1045,7 +1202,6 @@ impl Federation {
         from: &str,
         msg: FedMsg,
         core: &mut Broker,
-        endpoint: &mut Endpoint,
         reactor: &Reactor,
         now: Duration,
     ) {
@@ -1057,24 +1213,55 @@ impl Federation {
             FedMsg::Request { .. } if !self.may(from, Role::Request) => {
                 self.stats.dropped += 1;
             }
-            FedMsg::Request { user, req, service } => {
+            FedMsg::Request {
+                user,
+                req,
+                service,
+                remote,
+            } => {
                 self.stats.requests_in += 1;
-                let Some(foreign) = self.foreign_user(&user, from, core, reactor, now) else {
-                    // Not served: tell its host.
-                    self.stats.dropped += 1;
-                    return self.send(
-                        from,
-                        &FedMsg::ToUser {
-                            user,
-                            msg: ToUser::Refused {
-                                req,
-                                reason: Refusal::BadRequest(
-                                    "too many users of other hosts here".into(),
-                                ),
-                            },
-                        },
-                    );
+                let udp = remote.is_some();
+                // A remote user's session runs over the system's UDP endpoint.
+                let no_udp = udp
+                    && core.kind_of(&service).is_some()
+                    && service
+                        .split()
+                        .is_some_and(|(sys, _)| core.system_udp(sys).is_none());
+                let refusal = if no_udp {
+                    Some(format!(
+                        "{service} is on a system without a UDP endpoint: local users only"
+                    ))
+                } else if udp && self.contacts.len() >= MAX_CONTACTS {
+                    Some("too many remote users' requests from other hosts here".into())
+                } else {
+                    None
                 };
+                let foreign = match refusal {
+                    Some(r) => Err(r),
+                    None => self
+                        .foreign_user(&user, from, udp, core, reactor, now)
+                        .ok_or_else(|| "too many users of other hosts here".to_string()),
+                };
+                let foreign = match foreign {
+                    Ok(f) => f,
+                    Err(reason) => {
+                        // Not served: tell its host.
+                        self.stats.dropped += 1;
+                        return self.send(
+                            from,
+                            &FedMsg::ToUser {
+                                user,
+                                msg: ToUser::Refused {
+                                    req,
+                                    reason: Refusal::BadRequest(reason),
+                                },
+                            },
+                        );
+                    }
+                };
+                if let Some(c) = remote {
+                    self.contacts.insert((foreign.clone(), req), c);
+                }
                 core.handle(
                     now,
                     ToBroker::Request {
@@ -1087,6 +1274,7 @@ impl Federation {
             FedMsg::Cancel { user, req } => {
                 let foreign = UserId(format!("{user}@{from}"));
                 if self.foreign.contains_key(&foreign) {
+                    self.contacts.remove(&(foreign.clone(), req));
                     core.handle(now, ToBroker::Cancel { user: foreign, req });
                 }
             }
@@ -1110,7 +1298,7 @@ impl Federation {
                     .foreign
                     .get_mut(&foreign)
                     .filter(|f| f.sessions.get(&session).is_some_and(|(s, _)| *s == system));
-                let Some(f) = held else {
+                let Some(proxy) = held.and_then(|f| f.proxy.as_mut()) else {
                     self.stats.dropped += 1;
                     return;
                 };
@@ -1125,9 +1313,7 @@ impl Federation {
                         session,
                     },
                 };
-                f.proxy
-                    .endpoint
-                    .send_control(&Address::System(system), &msg);
+                proxy.endpoint.send_control(&Address::System(system), &msg);
             }
             FedMsg::UserGone { user } => {
                 let foreign = UserId(format!("{user}@{from}"));
@@ -1135,15 +1321,53 @@ impl Federation {
                     self.foreign_gone(&foreign, core, reactor, now);
                 }
             }
-            FedMsg::ToUser { user, msg } => self.deliver(from, user, msg, core, endpoint, reactor),
+            FedMsg::ToUser { user, msg } => self.deliver(from, user, msg, core, reactor),
+            FedMsg::Granted {
+                user,
+                req,
+                session,
+                service,
+                kind,
+                payload,
+                system_addr,
+            } => {
+                // Only for a request out on `from`, of a user still here.
+                let ours = self
+                    .outstanding
+                    .get(&(user.clone(), req))
+                    .map(String::as_str)
+                    == Some(from);
+                let Some((system, name)) = service.split().filter(|_| ours) else {
+                    self.stats.dropped += 1;
+                    return;
+                };
+                let service = ServiceId::on_host(system, from, name);
+                self.outstanding.remove(&(user.clone(), req));
+                if core.user_pid(&user).is_none() {
+                    // Gone: its host ends its sessions there.
+                    return self.send(from, &FedMsg::UserGone { user });
+                }
+                self.far.insert((user.clone(), session), from.to_string());
+                self.deliveries.push_back(Delivery::Grant {
+                    user,
+                    req,
+                    session,
+                    service,
+                    kind,
+                    payload,
+                    system_addr,
+                });
+            }
         }
     }
 
-    /// The foreign user `user@from`, opened (inbox, hello) if new.
+    /// The foreign user `user@from`, opened (hello; an inbox unless `udp`, a remote
+    /// user of its host) if new.
     fn foreign_user(
         &mut self,
         user: &UserId,
         from: &str,
+        udp: bool,
         core: &mut Broker,
         reactor: &Reactor,
         now: Duration,
@@ -1156,16 +1380,21 @@ impl Federation {
             return None;
         }
         let foreign = UserId(format!("{user}@{from}"));
-        if !self.foreign.contains_key(&foreign) {
+        let has_inbox = self.foreign.get(&foreign).map(|f| f.proxy.is_some());
+        if has_inbox == Some(false) && !udp {
+            // Known as a remote user so far; now a user on shared memory there.
+            let proxy = self.user_proxy(&foreign, reactor)?;
+            if let Some(f) = self.foreign.get_mut(&foreign) {
+                f.proxy = Some(proxy);
+            }
+        }
+        if has_inbox.is_none() {
             if self.foreign.len() >= MAX_FOREIGN_USERS {
                 return None;
             }
-            let proxy = match self.open_proxy(Address::User(foreign.clone()), reactor) {
-                Ok(p) => p,
-                Err(e) => {
-                    tracing::warn!(user = %foreign, "federation: cannot open an inbox: {e}");
-                    return None;
-                }
+            let proxy = match udp {
+                true => None,
+                false => Some(self.user_proxy(&foreign, reactor)?),
             };
             self.foreign.insert(
                 foreign.clone(),
@@ -1176,18 +1405,25 @@ impl Federation {
                 },
             );
             // Its pid is ours: the systems take its frames from our proxy, and end its
-            // sessions if this broker (the relay) dies.
+            // sessions if this broker (the relay) dies. A remote user's sessions run
+            // past the brokers, kept alive by the user itself: no pid, as on one host.
             core.handle(
                 now,
                 ToBroker::Hello {
                     user: foreign.clone(),
-                    pid: self.pid,
+                    pid: if udp { 0 } else { self.pid },
                     links: Vec::new(),
                     watch_list: false,
                 },
             );
         }
         Some(foreign)
+    }
+
+    fn user_proxy(&mut self, foreign: &UserId, reactor: &Reactor) -> Option<Proxy> {
+        self.open_proxy(Address::User(foreign.clone()), reactor)
+            .map_err(|e| tracing::warn!(user = %foreign, "federation: cannot open an inbox: {e}"))
+            .ok()
     }
 
     /// A frame from host `from` for local user `user`.
@@ -1197,10 +1433,11 @@ impl Federation {
         user: UserId,
         msg: ToUser,
         core: &mut Broker,
-        endpoint: &mut Endpoint,
         reactor: &Reactor,
     ) {
-        let known = core.user_pid(&user).is_some_and(|p| p != 0);
+        // A user on shared memory (a remote user's grants come as `FedMsg::Granted`).
+        let on_shm = core.user_pid(&user).is_some_and(|p| p != 0);
+        let known = core.user_pid(&user).is_some();
         let msg = match msg {
             ToUser::Welcome { .. } => return,
             // Answers to a request out on `from` only.
@@ -1234,7 +1471,7 @@ impl Federation {
                 let service = ServiceId::on_host(system, from, name);
                 // The user needs an inbox here for the system's input and ends; with
                 // the user gone, or no inbox, the session ends at once.
-                let reachable = known
+                let reachable = on_shm
                     && (self.systems.contains_key(&far_system)
                         || match self.open_proxy(Address::System(far_system.clone()), reactor) {
                             Ok(p) => {
@@ -1281,7 +1518,7 @@ impl Federation {
             }
         };
         if known {
-            endpoint.send_control(&Address::User(user), &msg);
+            self.deliveries.push_back(Delivery::Msg(user, msg));
         }
     }
 
@@ -1304,8 +1541,11 @@ impl Federation {
         let Some(f) = self.foreign.get_mut(foreign) else {
             return;
         };
-        f.proxy.endpoint.drain_bell();
-        while let Some((frame, sender)) = f.proxy.endpoint.recv_from() {
+        let Some(proxy) = f.proxy.as_mut() else {
+            return;
+        };
+        proxy.endpoint.drain_bell();
+        while let Some((frame, sender)) = proxy.endpoint.recv_from() {
             let msg = match decode::<ToUser>(&frame) {
                 Ok(m) => m,
                 Err(e) => {
@@ -1326,7 +1566,7 @@ impl Federation {
                     let system = service.split().map(|(s, _)| s.to_string());
                     let owner = system
                         .as_ref()
-                        .and_then(|s| f.proxy.endpoint.owner_pid(&Address::System(s.clone())));
+                        .and_then(|s| proxy.endpoint.owner_pid(&Address::System(s.clone())));
                     let ok = *system_pid == sender && owner == Some(sender);
                     if ok {
                         if let Some(s) = system {
@@ -1422,6 +1662,14 @@ fn take_on_host<K: Ord + Clone>(map: &mut BTreeMap<K, String>, host: &str) -> Ve
     taken
 }
 
+/// The specific IP of a Zenoh endpoint (`tcp/10.0.0.2:7447`), if it has one.
+fn listen_ip(endpoint: &str) -> Option<IpAddr> {
+    let (_, addr) = endpoint.split_once('/')?;
+    let addr = addr.split(['#', '?']).next()?;
+    let ip = addr.parse::<SocketAddr>().ok()?.ip();
+    (!ip.is_unspecified()).then_some(ip)
+}
+
 /// `user@host` → `user`.
 fn local_part(foreign: &UserId) -> UserId {
     UserId(
@@ -1494,8 +1742,27 @@ mod tests {
             user: UserId("u1".into()),
             req: 3,
             service: ServiceId::new("t1", "s0"),
+            remote: Some(RemoteContact {
+                addr: "127.0.0.1:9".into(),
+                key: [7; 32],
+            }),
         };
         assert_eq!(decode::<FedMsg>(&encode(&m).unwrap()).unwrap(), m);
+        assert!(m.on_users_key());
+        let g = FedMsg::Granted {
+            user: UserId("alice.1".into()),
+            req: 3,
+            session: SessionId(9),
+            service: ServiceId::new("t1", "s0"),
+            kind: ServiceKind::Data,
+            payload: "pose2d".into(),
+            system_addr: "127.0.0.1:7".into(),
+        };
+        assert_eq!(decode::<FedMsg>(&encode(&g).unwrap()).unwrap(), g);
+        assert!(!g.on_users_key());
+        assert_eq!(listen_ip("tcp/10.0.0.2:7447"), "10.0.0.2".parse().ok());
+        assert_eq!(listen_ip("tcp/0.0.0.0:7447"), None);
+        assert_eq!(listen_ip("tls/[::1]:7447#iface=lo"), "::1".parse().ok());
         assert!(decode::<FedMsg>(&[0xff; 12]).is_err());
         assert_eq!(
             local_part(&UserId("alice@a".into())),

@@ -5,7 +5,7 @@
 //! deadline (a ping, a ping timeout, an offer timeout).
 
 use crate::core::{Broker, BrokerConfig, Output};
-use crate::federation::{FedConfig, FedError, Federation};
+use crate::federation::{Delivery, FedConfig, FedError, Federation};
 use crate::replica::{Follower, Leader, Step};
 use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
 use muster_shared::fence::{Fence, Holder};
@@ -174,20 +174,20 @@ impl UdpDriver {
 
     /// Reads every waiting datagram (at most a few thousand a call, so one flood cannot
     /// starve the shared-memory side), handing the front's messages to the core.
-    fn on_readable(&mut self, handling: &mut Handling, core: &mut Broker, now: Duration) {
+    fn on_readable(&mut self, handling: &mut Handling, core: &mut Broker, fed: Fed, now: Duration) {
         let mut buf = [0u8; MAX_DATAGRAM + 1];
         for _ in 0..RECV_BATCH {
             let Some((n, from)) = recv_one(&self.sock, &mut buf) else {
                 break;
             };
             self.front.handle(Instant::now(), from, &buf[..n], core);
-            self.events(handling, core, now);
+            self.events(handling, core, fed, now);
         }
         self.transmit();
     }
 
     /// Re-reads the access file (SIGHUP); a bad file keeps the old one.
-    fn reload(&mut self, handling: &mut Handling, core: &mut Broker, now: Duration) {
+    fn reload(&mut self, handling: &mut Handling, core: &mut Broker, fed: Fed, now: Duration) {
         let Some(path) = &self.access_path else {
             return;
         };
@@ -195,22 +195,48 @@ impl UdpDriver {
             Ok(a) => self.front.reload(Instant::now(), a),
             Err(e) => tracing::error!("{e}; keeping the previous access file"),
         }
-        self.events(handling, core, now);
+        self.events(handling, core, fed, now);
         self.transmit();
     }
 
-    fn housekeeping(&mut self, handling: &mut Handling, core: &mut Broker, now: Duration) {
+    fn housekeeping(
+        &mut self,
+        handling: &mut Handling,
+        core: &mut Broker,
+        fed: Fed,
+        now: Duration,
+    ) {
         self.front.handle_timeout(Instant::now());
-        self.events(handling, core, now);
+        self.events(handling, core, fed, now);
         self.transmit();
     }
 
-    fn events(&mut self, handling: &mut Handling, core: &mut Broker, now: Duration) {
+    /// The front's messages for the core; a federation takes requests for other
+    /// hosts' services first, and hears of remote users gone.
+    fn events(&mut self, handling: &mut Handling, core: &mut Broker, fed: Fed, now: Duration) {
         while let Some(ev) = self.front.poll_event() {
             match ev {
-                FrontEvent::ToCore(msg) => timed_handle(handling, core, now, msg),
-                FrontEvent::UserGone(u) => core.user_died(now, &u),
-                FrontEvent::Revoked(u) => core.revoke(now, &u),
+                FrontEvent::ToCore(msg) => {
+                    let front = &mut self.front;
+                    let passed_on = fed.as_mut().is_some_and(|f| {
+                        f.intercept(&msg, |user, req| front.remote_contact(user, req))
+                    });
+                    if !passed_on {
+                        timed_handle(handling, core, now, msg)
+                    }
+                }
+                FrontEvent::UserGone(u) => {
+                    if let Some(f) = fed.as_mut() {
+                        f.local_user_gone(&u);
+                    }
+                    core.user_died(now, &u)
+                }
+                FrontEvent::Revoked(u) => {
+                    if let Some(f) = fed.as_mut() {
+                        f.local_user_gone(&u);
+                    }
+                    core.revoke(now, &u)
+                }
             }
         }
     }
@@ -221,6 +247,9 @@ impl UdpDriver {
         }
     }
 }
+
+/// The broker's federation membership, if any, as the UDP front's driver gets it.
+type Fed<'a> = &'a mut Option<Federation>;
 
 /// List watchers are rung at most this often; the blackboard itself is updated at once.
 const RING_EVERY: Duration = Duration::from_millis(100);
@@ -1034,18 +1063,18 @@ fn serve(
                 TOKEN_HUP => {
                     if hangup.drain() {
                         if let Some(d) = shell.udp.as_mut() {
-                            d.reload(&mut shell.handling, &mut core, now);
+                            d.reload(&mut shell.handling, &mut core, &mut shell.fed, now);
                         }
                     }
                 }
                 TOKEN_UDP => {
                     if let Some(d) = shell.udp.as_mut() {
-                        d.on_readable(&mut shell.handling, &mut core, now);
+                        d.on_readable(&mut shell.handling, &mut core, &mut shell.fed, now);
                     }
                 }
                 TOKEN_FED => {
                     if let Some(f) = shell.fed.as_mut() {
-                        f.on_wake(&mut core, &mut shell.endpoint, &shell.reactor, now);
+                        f.on_wake(&mut core, &shell.reactor, now);
                     }
                 }
                 t if t >= crate::federation::FIRST_PROXY_TOKEN => {
@@ -1070,7 +1099,7 @@ fn serve(
             f.sweep();
         }
         if let Some(d) = shell.udp.as_mut() {
-            d.housekeeping(&mut shell.handling, &mut core, now);
+            d.housekeeping(&mut shell.handling, &mut core, &mut shell.fed, now);
         }
         if core.poll_timeout().is_some_and(|t| t <= now) {
             core.handle_timeout(now);
@@ -1189,7 +1218,7 @@ impl Shell {
                     let passed_on = self
                         .fed
                         .as_mut()
-                        .is_some_and(|f| f.intercept(&msg, &mut self.endpoint));
+                        .is_some_and(|f| f.intercept(&msg, |_, _| None));
                     if !passed_on {
                         timed_handle(&mut self.handling, core, now, msg)
                     }
@@ -1227,6 +1256,7 @@ impl Shell {
         // The list first: a broker restarting under load has hundreds of welcomes to
         // send (each opening a port), and the list must not wait behind them.
         self.write_list(core);
+        self.deliver_federation(core);
         while let Some(out) = core.poll_output() {
             let out = match self.udp.as_mut() {
                 Some(d) => match d.front.route(core, out) {
@@ -1238,8 +1268,8 @@ impl Shell {
                 },
                 None => out,
             };
-            let out = match self.fed.as_ref() {
-                Some(f) => match f.route(out) {
+            let out = match self.fed.as_mut() {
+                Some(f) => match f.route(core, out) {
                     Some(o) => o,
                     None => continue,
                 },
@@ -1263,6 +1293,59 @@ impl Shell {
         // And anything routing the outputs changed.
         self.write_list(core);
         Ok(())
+    }
+
+    /// Frames the federation has for local users: through shared memory, or through
+    /// the UDP front to a remote user.
+    fn deliver_federation(&mut self, core: &Broker) {
+        let Some(f) = self.fed.as_mut() else {
+            return;
+        };
+        while let Some(d) = f.poll_delivery() {
+            let front = self.udp.as_mut().filter(|u| match &d {
+                Delivery::Msg(user, _) | Delivery::Grant { user, .. } => u.front.is_remote(user),
+            });
+            match (d, front) {
+                (Delivery::Msg(user, msg), None) => {
+                    self.endpoint.send_control(&Address::User(user), &msg)
+                }
+                (Delivery::Msg(user, msg), Some(u)) => {
+                    // The front takes every frame for its users.
+                    let _ = u.front.route(core, Output::ToUser(user, msg));
+                    u.transmit();
+                }
+                (
+                    Delivery::Grant {
+                        user,
+                        req,
+                        session,
+                        service,
+                        kind,
+                        payload,
+                        system_addr,
+                    },
+                    front,
+                ) => {
+                    let given = front.is_some_and(|u| {
+                        let given = u.front.granted(
+                            &user,
+                            req,
+                            session,
+                            service,
+                            kind,
+                            payload,
+                            &system_addr,
+                        );
+                        u.transmit();
+                        given
+                    });
+                    if !given {
+                        // The system ends the session when its lease runs out unheard.
+                        tracing::debug!(%user, req, "a grant on another host found its remote user gone");
+                    }
+                }
+            }
+        }
     }
 
     /// Writes the list if it changed.
@@ -1314,8 +1397,18 @@ impl Shell {
             Err(e) => tracing::warn!("the service list could not be written: {e}"),
         }
         if let Some(d) = self.udp.as_mut() {
-            d.front
-                .list_changed(self.snapshot.epoch, generation, &self.local_views);
+            // Remote users see the global list too.
+            match self.fed.as_ref() {
+                Some(f) => {
+                    let mut all = self.local_views.clone();
+                    all.extend(f.remote_views().cloned());
+                    all.sort_by(|a, b| a.id.cmp(&b.id));
+                    d.front.list_changed(self.snapshot.epoch, generation, &all);
+                }
+                None => d
+                    .front
+                    .list_changed(self.snapshot.epoch, generation, &self.local_views),
+            }
         }
         self.ring_owed = true;
     }

@@ -23,7 +23,7 @@
 use crate::core::{Broker, Output};
 use muster_shared::protocol::{LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser};
 use muster_shared::snapshot::ServiceView;
-use muster_shared::types::{Refusal, ServiceId, UserId};
+use muster_shared::types::{Refusal, ServiceId, ServiceKind, SessionId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
 use muster_shared::udp::msgs::{chunk_list, from_bytes, seal_channel, Down, Hs3, Up};
@@ -954,23 +954,9 @@ impl UdpFront {
                 payload,
                 ..
             } => {
-                let &id = self.by_user.get(&user)?;
-                let key = self
-                    .conns
-                    .get(&id)
-                    .and_then(|c| c.keys.get(&req).copied())?;
                 let system = service.split().map(|(s, _)| s.to_string())?;
-                let system_addr = dir.system_udp(&system).map(|a| self.reachable(a))?;
-                let d = Down::Granted {
-                    req,
-                    session,
-                    service,
-                    kind,
-                    payload,
-                    system_addr,
-                    key,
-                };
-                self.answer(id, req, d, true);
+                let system_addr = dir.system_udp(&system)?.to_string();
+                self.granted(&user, req, session, service, kind, payload, &system_addr);
                 None
             }
             Output::ToSystem(
@@ -984,15 +970,7 @@ impl UdpFront {
                     remote: _,
                 },
             ) => {
-                let remote = self.by_user.get(&user).copied().and_then(|id| {
-                    let key: [u8; 32] = self.rng.random();
-                    let c = self.conns.get_mut(&id)?;
-                    c.keys.insert(req, key);
-                    Some(RemoteContact {
-                        addr: c.addr.to_string(),
-                        key,
-                    })
-                });
+                let remote = self.remote_contact(&user, req);
                 Some(Output::ToSystem(
                     system,
                     ToSystem::Offer {
@@ -1012,6 +990,52 @@ impl UdpFront {
             }
             other => Some(other),
         }
+    }
+
+    /// A remote user's address and a fresh session key for its request `req` (kept for
+    /// the grant), given to the system that will serve it; `None` for a user not here.
+    pub fn remote_contact(&mut self, user: &UserId, req: u64) -> Option<RemoteContact> {
+        let &id = self.by_user.get(user)?;
+        let key: [u8; 32] = self.rng.random();
+        let c = self.conns.get_mut(&id)?;
+        c.keys.insert(req, key);
+        Some(RemoteContact {
+            addr: c.addr.to_string(),
+            key,
+        })
+    }
+
+    /// Tells remote user `user` of its grant: the session runs with the system at
+    /// `system_addr` under the key issued for the request. `false` if the user or the
+    /// key is gone.
+    #[allow(clippy::too_many_arguments)]
+    pub fn granted(
+        &mut self,
+        user: &UserId,
+        req: u64,
+        session: SessionId,
+        service: ServiceId,
+        kind: ServiceKind,
+        payload: String,
+        system_addr: &str,
+    ) -> bool {
+        let Some(&id) = self.by_user.get(user) else {
+            return false;
+        };
+        let Some(key) = self.conns.get(&id).and_then(|c| c.keys.get(&req).copied()) else {
+            return false;
+        };
+        let d = Down::Granted {
+            req,
+            session,
+            service,
+            kind,
+            payload,
+            system_addr: self.reachable(system_addr),
+            key,
+        };
+        self.answer(id, req, d, true);
+        true
     }
 
     /// A system's UDP address as a remote user can reach it: an unspecified IP (the
