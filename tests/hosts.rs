@@ -263,23 +263,24 @@ fn a_link_runs_across_three_hosts() {
         .system("d1", &["--kind", "command", "--rate", "20"]);
     h.host(2).wait_list(20 * SEC, |l| l.len() == 2);
     // The user on c links a's data into b's command service.
-    let (code, out) = h.host(2).run(
-        &[
-            "user",
-            "link",
-            "t1@a/s0",
-            "d1@b/s0",
-            "--duration",
-            "2s",
-            "--json",
-        ],
-        30 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
-    let lines: Vec<Value> = out
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let linker = h.host(2).spawn(&[
+        "user",
+        "link",
+        "t1@a/s0",
+        "d1@b/s0",
+        "--duration",
+        "4s",
+        "--json",
+    ]);
+    // The link counts in every host's list: on the services' own hosts and in the
+    // merged lists.
+    let linked = |id: &'static str| move |l: &[Value]| find(l, id).is_some_and(|v| v["links"] == 1);
+    h.host(0).wait_list(20 * SEC, linked("t1/s0"));
+    h.host(1).wait_list(20 * SEC, linked("d1/s0"));
+    h.host(1).wait_list(20 * SEC, linked("t1@a/s0"));
+    h.host(2).wait_list(20 * SEC, linked("t1@a/s0"));
+    h.host(2).wait_list(20 * SEC, linked("d1@b/s0"));
+    let lines = h.host(2).proc(linker).all_json(30 * SEC);
     let forwarded = lines
         .iter()
         .filter(|v| v["forwarded"]["type"] == "goal2d")
@@ -290,12 +291,15 @@ fn a_link_runs_across_three_hosts() {
         .filter(|v| v["from"] == "d1@b/s0" && v.get("status").is_some())
         .count();
     assert!(statuses >= 1, "b's system answered the input: {lines:?}");
-    // Both sessions ended with the link: nothing in use on a or b.
+    // Both sessions ended with the link: nothing in use on a or b, no link counted.
     h.host(0).wait_list(10 * SEC, |l| {
-        find(l, "t1/s0").is_some_and(|v| v["in_use"] == 0)
+        find(l, "t1/s0").is_some_and(|v| v["in_use"] == 0 && v["links"] == 0)
     });
     h.host(1).wait_list(10 * SEC, |l| {
-        find(l, "d1/s0").is_some_and(|v| v["in_use"] == 0)
+        find(l, "d1/s0").is_some_and(|v| v["in_use"] == 0 && v["links"] == 0)
+    });
+    h.host(2).wait_list(10 * SEC, |l| {
+        find(l, "t1@a/s0").is_some_and(|v| v["links"] == 0)
     });
 }
 
@@ -536,6 +540,27 @@ fn hostile_frames_from_another_host_are_dropped() {
             })
             .unwrap(),
         ),
+        // A link over more services than a link has, and one from a user id with '@'.
+        (
+            to_b("a"),
+            encode(&FedMsg::Link {
+                user: UserId("u1".into()),
+                link: 1,
+                services: vec![ServiceId::new("robo", "s0"); 3],
+                open: true,
+            })
+            .unwrap(),
+        ),
+        (
+            to_b("a"),
+            encode(&FedMsg::Link {
+                user: UserId("u1@z".into()),
+                link: 1,
+                services: vec![ServiceId::new("robo", "s0")],
+                open: true,
+            })
+            .unwrap(),
+        ),
         // A grant nobody asked for, on the systems' key.
         (
             format!("muster/{}/b/in/a", h.name),
@@ -626,9 +651,9 @@ fn hostile_frames_from_another_host_are_dropped() {
     assert_eq!(code, 0, "{lines:?}");
     assert_eq!(lines[0]["granted"], true, "{lines:?}");
     assert_eq!(ids(&h.host(1).list()), ["robo/s0"]);
-    // None of those frames made a request: nothing is held on b now.
+    // None of those frames made a request or a link: nothing is held on b now.
     h.host(1).wait_list(10 * SEC, |l| {
-        find(l, "robo/s0").is_some_and(|v| v["in_use"] == 0)
+        find(l, "robo/s0").is_some_and(|v| v["in_use"] == 0 && v["links"] == 0)
     });
 }
 

@@ -48,7 +48,9 @@
 use crate::core::{Broker, Output};
 use muster_shared::ipc::{create_node, Endpoint};
 use muster_shared::names::{Address, Instance};
-use muster_shared::protocol::{decode, encode, RemoteContact, ToBroker, ToSystem, ToUser};
+use muster_shared::protocol::{
+    decode, encode, LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser,
+};
 use muster_shared::reactor::Reactor;
 use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{
@@ -75,6 +77,8 @@ pub const MAX_FOREIGN_USER: usize = 64;
 pub const MAX_FOREIGN_USERS: usize = 1024;
 /// Most requests of other hosts' remote users waiting here for their offer at once.
 const MAX_CONTACTS: usize = 16 * 1024;
+/// Most links of other hosts' users over this host's services counted at once.
+const MAX_LINKS_IN: usize = 16 * 1024;
 /// How long a proxy whose peer is gone keeps its ports: frames just sent through them
 /// (an end, a revocation) must be read before the ports close.
 const PROXY_LINGER: Duration = Duration::from_secs(2);
@@ -369,6 +373,18 @@ pub enum FedMsg {
         /// [`ToSystem::Input`] or [`ToSystem::End`]; its user is the sending host's.
         msg: ToSystem,
     },
+    /// A user of the sending host opened or closed a link over services of the
+    /// receiving host: they count it in their lists.
+    Link {
+        /// The user.
+        user: UserId,
+        /// The link's number within the user.
+        link: u64,
+        /// The link's services on the receiving host (`system/name`; one or two).
+        services: Vec<ServiceId>,
+        /// Opened (or changed), or closed.
+        open: bool,
+    },
     /// The user died or left: its requests and sessions on the receiving host end.
     UserGone {
         /// The user.
@@ -511,6 +527,12 @@ pub struct Federation {
     contacts: HashMap<(UserId, u64), RemoteContact>,
     /// Frames for local users, for the shell to deliver.
     deliveries: VecDeque<Delivery>,
+    /// Local users' links over other hosts' services: (user, link) → the link.
+    links_out: BTreeMap<(UserId, u64), LinkInfo>,
+    /// Other hosts' users' links over services here: (`user@host`, link) → services.
+    links_in: BTreeMap<(UserId, u64), Vec<ServiceId>>,
+    /// Whether `links_in` changed since the list was last written.
+    links_changed: bool,
     /// The address other hosts' remote users reach this host's systems at, for a
     /// system listening on every address (from `--listen`).
     advertise: Option<IpAddr>,
@@ -682,6 +704,9 @@ impl Federation {
             foreign: BTreeMap::new(),
             contacts: HashMap::new(),
             deliveries: VecDeque::new(),
+            links_out: BTreeMap::new(),
+            links_in: BTreeMap::new(),
+            links_changed: false,
             advertise: cfg.listen.iter().find_map(|e| listen_ip(e)),
             by_token: HashMap::new(),
             next_token: FIRST_PROXY_TOKEN,
@@ -894,8 +919,73 @@ impl Federation {
                 self.local_user_gone(user);
                 false
             }
+            // Links: the core counts this host's services; the other hosts theirs.
+            ToBroker::LinkOpened { user, link } => {
+                self.link_out(user, Some(link.clone()), link.link);
+                false
+            }
+            ToBroker::LinkClosed { user, link } => {
+                self.link_out(user, None, *link);
+                false
+            }
+            ToBroker::Hello { user, links, .. } => {
+                // A user saying hello again states its links anew.
+                let old: Vec<u64> = self
+                    .links_out
+                    .range((user.clone(), 0)..=(user.clone(), u64::MAX))
+                    .map(|((_, l), _)| *l)
+                    .filter(|l| !links.iter().any(|n| n.link == *l))
+                    .collect();
+                for l in old {
+                    self.link_out(user, None, l);
+                }
+                for l in links {
+                    self.link_out(user, Some(l.clone()), l.link);
+                }
+                false
+            }
             _ => false,
         }
+    }
+
+    /// A local user's link `number` opened as `link` (or changed), or closed (`None`):
+    /// the hosts of its services hear of it.
+    fn link_out(&mut self, user: &UserId, link: Option<LinkInfo>, number: u64) {
+        let hosts_of = |l: &LinkInfo| -> BTreeMap<String, Vec<ServiceId>> {
+            let mut by = BTreeMap::<String, Vec<ServiceId>>::new();
+            for id in [&l.data, &l.command] {
+                if let Some((h, there)) = id.remote() {
+                    by.entry(h.to_string()).or_default().push(there);
+                }
+            }
+            by
+        };
+        let key = (user.clone(), number);
+        let now = link.as_ref().map(hosts_of).unwrap_or_default();
+        if let Some(old) = self.links_out.remove(&key) {
+            for h in hosts_of(&old).into_keys().filter(|h| !now.contains_key(h)) {
+                let m = FedMsg::Link {
+                    user: user.clone(),
+                    link: number,
+                    services: Vec::new(),
+                    open: false,
+                };
+                self.send(&h, &m);
+            }
+        }
+        let Some(link) = link.filter(|_| !now.is_empty()) else {
+            return;
+        };
+        for (h, services) in now {
+            let m = FedMsg::Link {
+                user: user.clone(),
+                link: number,
+                services,
+                open: true,
+            };
+            self.send(&h, &m);
+        }
+        self.links_out.insert(key, link);
     }
 
     /// Takes the core's outputs that concern other hosts' users: drops watching their
@@ -1021,6 +1111,16 @@ impl Federation {
             }
             u != user
         });
+        self.links_out.retain(|(u, _), l| {
+            if u == user {
+                for id in [&l.data, &l.command] {
+                    if let Some((h, _)) = id.remote() {
+                        hosts.insert(h.to_string());
+                    }
+                }
+            }
+            u != user
+        });
         for h in hosts {
             self.send(&h, &FedMsg::UserGone { user: user.clone() });
         }
@@ -1063,6 +1163,7 @@ impl Federation {
                         tracing::info!(host = %host, "federation: host joined");
                         self.list_changed = true;
                         self.query_list(&host);
+                        self.restate_links(&host);
                     }
                 }
                 Event::Alive(host, false) => {
@@ -1086,6 +1187,55 @@ impl Federation {
                     }
                 }
             }
+        }
+    }
+
+    /// Tells a host that (re)joined of local users' links over its services.
+    fn restate_links(&mut self, host: &str) {
+        let mut msgs = Vec::new();
+        for ((user, number), l) in &self.links_out {
+            let services: Vec<ServiceId> = [&l.data, &l.command]
+                .into_iter()
+                .filter_map(|id| id.remote().filter(|(h, _)| *h == host).map(|(_, s)| s))
+                .collect();
+            if !services.is_empty() {
+                msgs.push(FedMsg::Link {
+                    user: user.clone(),
+                    link: *number,
+                    services,
+                    open: true,
+                });
+            }
+        }
+        for m in msgs {
+            self.send(host, &m);
+        }
+    }
+
+    /// How many links of other hosts' users each of this host's services is in.
+    pub fn links_in(&self) -> HashMap<&str, u16> {
+        let mut n = HashMap::<&str, u16>::new();
+        for services in self.links_in.values() {
+            for s in services {
+                let c = n.entry(s.0.as_str()).or_default();
+                *c = c.saturating_add(1);
+            }
+        }
+        n
+    }
+
+    /// Whether other hosts' links here changed since the last call.
+    pub fn take_links_change(&mut self) -> bool {
+        std::mem::take(&mut self.links_changed)
+    }
+
+    /// Forgets the links of other hosts' users matching `gone`.
+    fn drop_links_in(&mut self, gone: impl Fn(&UserId) -> bool) {
+        let before = self.links_in.len();
+        self.links_in.retain(|(u, _), _| !gone(u));
+        if self.links_in.len() != before {
+            self.links_changed = true;
+            self.list_changed = true;
         }
     }
 
@@ -1148,6 +1298,9 @@ impl Federation {
         if self.lists.remove(host).is_some() {
             self.list_changed = true;
         }
+        // Its users' links here (they are stated again if it comes back).
+        let suffix = format!("@{host}");
+        self.drop_links_in(|u| u.0.ends_with(&suffix));
         // Local users' requests and sessions there.
         for (user, req) in take_on_host(&mut self.outstanding, host) {
             let m = ToUser::Refused {
@@ -1164,7 +1317,6 @@ impl Federation {
             };
             self.deliveries.push_back(Delivery::Msg(user, m));
         }
-        let suffix = format!("@{host}");
         let gone: Vec<String> = self
             .systems
             .keys()
@@ -1317,8 +1469,36 @@ impl Federation {
             }
             FedMsg::UserGone { user } => {
                 let foreign = UserId(format!("{user}@{from}"));
+                self.drop_links_in(|u| *u == foreign);
                 if self.foreign.contains_key(&foreign) {
                     self.foreign_gone(&foreign, core, reactor, now);
+                }
+            }
+            FedMsg::Link { .. } if !self.may(from, Role::Request) => {
+                self.stats.dropped += 1;
+            }
+            FedMsg::Link {
+                user,
+                link,
+                services,
+                open,
+            } => {
+                let key = (UserId(format!("{user}@{from}")), link);
+                let fits = valid_foreign_name(&user)
+                    && services.len() <= 2
+                    && (self.links_in.contains_key(&key) || self.links_in.len() < MAX_LINKS_IN);
+                if !fits {
+                    self.stats.dropped += 1;
+                    return;
+                }
+                let changed = if open && !services.is_empty() {
+                    self.links_in.insert(key, services.clone()) != Some(services)
+                } else {
+                    self.links_in.remove(&key).is_some()
+                };
+                if changed {
+                    self.links_changed = true;
+                    self.list_changed = true;
                 }
             }
             FedMsg::ToUser { user, msg } => self.deliver(from, user, msg, core, reactor),
@@ -1372,11 +1552,7 @@ impl Federation {
         reactor: &Reactor,
         now: Duration,
     ) -> Option<UserId> {
-        let ok = !user.0.is_empty()
-            && user.0.len() <= MAX_FOREIGN_USER
-            && !user.0.contains(['@', '/'])
-            && user.0.bytes().all(|b| b.is_ascii_graphic());
-        if !ok {
+        if !valid_foreign_name(user) {
             return None;
         }
         let foreign = UserId(format!("{user}@{from}"));
@@ -1660,6 +1836,14 @@ fn take_on_host<K: Ord + Clone>(map: &mut BTreeMap<K, String>, host: &str) -> Ve
         !on
     });
     taken
+}
+
+/// Whether another host's user id may be taken as one here (`user@host` then).
+fn valid_foreign_name(user: &UserId) -> bool {
+    !user.0.is_empty()
+        && user.0.len() <= MAX_FOREIGN_USER
+        && !user.0.contains(['@', '/'])
+        && user.0.bytes().all(|b| b.is_ascii_graphic())
 }
 
 /// The specific IP of a Zenoh endpoint (`tcp/10.0.0.2:7447`), if it has one.

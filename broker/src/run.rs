@@ -125,9 +125,13 @@ struct Shell {
     replica: Replication,
     /// This host's membership in a federation, if it joined one.
     fed: Option<Federation>,
-    /// The core's list as last taken (in a federation, other hosts' lists change the
+    /// This host's services as listed: the core's list as last taken, with (in a
+    /// federation) other hosts' users' links counted (other hosts' lists change the
     /// merged one on their own).
     local_views: Vec<muster_shared::snapshot::ServiceView>,
+    /// In a federation, the core's list as last taken (`local_views` adds other hosts'
+    /// users' links to it).
+    core_views: Vec<muster_shared::snapshot::ServiceView>,
 }
 
 /// The UDP front's socket and access file around the sans-IO [`UdpFront`].
@@ -938,6 +942,7 @@ fn serve(
     let mut shell = Shell {
         fed,
         local_views: Vec::new(),
+        core_views: Vec::new(),
         endpoint,
         list,
         fence,
@@ -1351,20 +1356,41 @@ impl Shell {
     /// Writes the list if it changed.
     fn write_list(&mut self, core: &mut Broker) {
         let local = core.take_list_change();
-        let far = self.fed.as_mut().is_some_and(Federation::take_list_change);
-        if local.is_none() && !far {
+        let (far, links) = self.fed.as_mut().map_or((false, false), |f| {
+            (f.take_list_change(), f.take_links_change())
+        });
+        if local.is_none() && !far && !links {
             return;
         }
         // Other hosts' lists change the merged one on their own: it takes a generation
         // past both the core's and the last written.
         let mut generation = self.snapshot.generation + 1;
-        if let Some((g, views)) = local {
-            generation = generation.max(g);
-            if let Some(f) = self.fed.as_mut() {
+        if let Some((g, _)) = local.as_ref() {
+            generation = generation.max(*g);
+        }
+        match self.fed.as_mut() {
+            None => {
+                if let Some((_, views)) = local {
+                    self.local_views = views;
+                }
+            }
+            Some(f) if local.is_some() || links => {
+                if let Some((_, views)) = local {
+                    self.core_views = views;
+                }
+                // Other hosts' users' links over this host's services count here too.
+                let mut views = self.core_views.clone();
+                let n = f.links_in();
+                for v in views.iter_mut() {
+                    if let Some(c) = n.get(v.id.as_str()) {
+                        v.links = v.links.saturating_add(*c);
+                    }
+                }
                 let systems: Vec<&str> = core.systems().collect();
                 f.publish_list(&views, &systems);
+                self.local_views = views;
             }
-            self.local_views = views;
+            Some(_) => {}
         }
         self.snapshot.generation = generation;
         // One list in id order: this host's services and every other host's.
