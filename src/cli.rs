@@ -17,6 +17,10 @@ pub struct Cli {
     /// (Default 1; `experiment scalability` defaults to 10.)
     #[arg(long, global = true)]
     pub time_scale: Option<muster_shared::clock::TimeScale>,
+    /// (internal) Run in this network namespace (`/run/netns/NAME`), as `muster netns`
+    /// and `muster up --hosts --netns` start brokers in theirs.
+    #[arg(long, global = true, hide = true)]
+    pub in_netns: Option<String>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -58,6 +62,16 @@ pub enum Command {
     /// --federate --tls DIR`): a certificate authority (made once, kept in DIR) and a
     /// key and certificate per host, named after the host.
     Certs(CertsArgs),
+    /// Hosts in network namespaces on this machine (root): one namespace per host, each
+    /// joined to the others only through a TCP proxy per pair of hosts that adds delay
+    /// and loss; prints each host's addresses and `muster broker` flags, and keeps the
+    /// namespaces until stopped. Stop a pair's proxy (SIGSTOP) to cut the link between
+    /// two hosts.
+    Netns(NetnsArgs),
+    /// (internal) A TCP relay that delays what it passes and stalls it now and then as
+    /// loss stalls a TCP stream (used between the hosts of `muster netns`).
+    #[command(hide = true)]
+    NetProxy(NetProxyArgs),
     /// (internal) Remove what dead processes left in shared memory: those of `--pid`,
     /// or all. Brokers run it as a process of its own, so that a cleanup outlives a
     /// broker killed in the middle of it (iceoryx2 never cleans a node whose cleaner died).
@@ -270,6 +284,50 @@ pub struct RemoteBenchArgs {
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,
+}
+
+/// What the link between two hosts does to their traffic.
+#[derive(Args, Debug, Clone, Copy)]
+pub struct LinkArgs {
+    /// One-way delay each proxy adds (the round trip grows by twice this).
+    #[arg(long, default_value = "0s", value_parser = duration)]
+    pub delay: Duration,
+    /// Loss, percent of the proxy's reads: a lost one (and what follows it, in order)
+    /// waits a further 200 ms, as a TCP stream waits for a retransmission.
+    #[arg(long, default_value_t = 0.0)]
+    pub loss: f64,
+    /// Seed of the loss draws.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+#[derive(Args, Debug)]
+pub struct NetnsArgs {
+    /// The hosts (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "a,b,c")]
+    pub hosts: Vec<String>,
+    /// The link between each pair of hosts.
+    #[command(flatten)]
+    pub link: LinkArgs,
+    /// Print one JSON object (hosts, namespaces, addresses, proxies) instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// Stop by itself after this long (default: run until Ctrl-C).
+    #[arg(long, value_parser = duration)]
+    pub duration: Option<Duration>,
+}
+
+#[derive(Args, Debug)]
+pub struct NetProxyArgs {
+    /// Where to listen.
+    #[arg(long)]
+    pub listen: std::net::SocketAddr,
+    /// Where to connect each accepted connection to.
+    #[arg(long)]
+    pub to: std::net::SocketAddr,
+    /// The link.
+    #[command(flatten)]
+    pub link: LinkArgs,
 }
 
 #[derive(Args, Debug)]
@@ -727,6 +785,14 @@ pub struct UpArgs {
     /// the user on host a, a tracker on b, a delivery robot on c (synthetic systems).
     #[arg(long, conflicts_with_all = ["synthetic", "speed", "picture"])]
     pub hosts: bool,
+    /// With `--hosts`: each host in a network namespace of its own, joined to the others
+    /// through a proxy per pair of hosts that adds `--delay` and `--loss` (needs root;
+    /// `muster netns` makes the same network).
+    #[arg(long, requires = "hosts")]
+    pub netns: bool,
+    /// The link between each pair of hosts, with `--netns`.
+    #[command(flatten)]
+    pub link: LinkArgs,
     /// Simulator speed (sim seconds per wall second; every process follows its clock).
     #[arg(long, default_value_t = 1.0)]
     pub speed: f64,

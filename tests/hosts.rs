@@ -24,6 +24,8 @@ struct Hosts {
     brokers: Vec<Option<usize>>,
     /// Further broker arguments, per host.
     extra: Vec<Vec<String>>,
+    /// The network `muster netns --json` made, if the hosts run in it (else loopback).
+    net: Option<Value>,
 }
 
 impl Hosts {
@@ -32,6 +34,20 @@ impl Hosts {
     }
 
     fn with(test: &str, names: &[&str], extra: impl Fn(usize) -> Vec<String>) -> Self {
+        Self::build(test, names, extra, None)
+    }
+
+    /// Hosts in the network namespaces `muster netns --json` described in `net`.
+    fn in_netns(test: &str, names: &[&str], net: Value) -> Self {
+        Self::build(test, names, |_| Vec::new(), Some(net))
+    }
+
+    fn build(
+        test: &str,
+        names: &[&str],
+        extra: impl Fn(usize) -> Vec<String>,
+        net: Option<Value>,
+    ) -> Self {
         let name = format!("{test}{}", std::process::id());
         let hosts = names
             .iter()
@@ -50,6 +66,7 @@ impl Hosts {
             hosts,
             brokers,
             extra,
+            net,
         };
         for i in 0..hs.hosts.len() {
             hs.start_broker(i);
@@ -65,15 +82,31 @@ impl Hosts {
             host.clone(),
             "--federation".into(),
             self.name.clone(),
-            "--listen".into(),
-            format!("tcp/127.0.0.1:{port}"),
             "--lease".into(),
             "1s".into(),
         ];
-        for (j, (_, _, p)) in self.hosts.iter().enumerate() {
-            if j != i {
+        if let Some(net) = &self.net {
+            // In its namespace; to the others through the proxies only.
+            let me = &net["hosts"][i];
+            assert_eq!(me["host"], host.as_str());
+            a.extend([
+                "--in-netns".into(),
+                me["netns"].as_str().unwrap().to_string(),
+                "--listen".into(),
+                me["listen"].as_str().unwrap().to_string(),
+            ]);
+            for c in me["connect"].as_array().unwrap() {
                 a.push("--connect".into());
-                a.push(format!("tcp/127.0.0.1:{p}"));
+                a.push(c.as_str().unwrap().to_string());
+            }
+        } else {
+            a.push("--listen".into());
+            a.push(format!("tcp/127.0.0.1:{port}"));
+            for (j, (_, _, p)) in self.hosts.iter().enumerate() {
+                if j != i {
+                    a.push("--connect".into());
+                    a.push(format!("tcp/127.0.0.1:{p}"));
+                }
             }
         }
         a.extend(self.extra[i].iter().cloned());
@@ -657,11 +690,65 @@ fn hostile_frames_from_another_host_are_dropped() {
     });
 }
 
+/// Whether this test may make network namespaces (root); says so if not.
+fn netns_allowed(test: &str) -> bool {
+    // SAFETY: geteuid has no preconditions.
+    let root = unsafe { libc::geteuid() } == 0;
+    if !root {
+        eprintln!("{test}: skipped (network namespaces need root)");
+    }
+    root
+}
+
 #[test]
 fn up_with_hosts_links_across_three_hosts() {
     // The README's one-machine federation: `muster up --hosts`.
     let f = Fed::new("uph");
     let (code, out) = f.run(&["up", "--hosts", "--duration", "6s"], 60 * SEC);
+    up_hosts_output(code, &out);
+}
+
+#[test]
+fn up_with_hosts_in_network_namespaces_through_a_lossy_slow_link() {
+    // The same in network namespaces, every pair of hosts linked through a proxy.
+    if !netns_allowed("up --hosts --netns") {
+        return;
+    }
+    let f = Fed::new("upn");
+    let (code, out) = f.run(
+        &[
+            "up",
+            "--hosts",
+            "--netns",
+            "--delay",
+            "10ms",
+            "--loss",
+            "1",
+            "--duration",
+            "8s",
+        ],
+        90 * SEC,
+    );
+    up_hosts_output(code, &out);
+    assert!(out.contains("a at 10.77.1.2"), "{out}");
+    assert!(out.contains("10ms each way and 1 % loss"), "{out}");
+    // Its namespaces are gone with it.
+    let named: Vec<&str> = out
+        .split(|c: char| c.is_whitespace() || c == ',' || c == '(' || c == ')')
+        .filter(|w| w.starts_with("muster-") && (w.ends_with("-a") || w.ends_with("-b")))
+        .collect();
+    assert_eq!(named.len(), 2, "the namespaces are named: {out}");
+    let ns = std::process::Command::new("ip")
+        .args(["netns", "list"])
+        .output()
+        .unwrap();
+    let listed = String::from_utf8_lossy(&ns.stdout).to_string();
+    for n in named {
+        assert!(!listed.contains(n), "namespace {n} left: {listed}");
+    }
+}
+
+fn up_hosts_output(code: i32, out: &str) {
     assert_eq!(code, 0, "{out}");
     for want in [
         "d1@c/s0",
@@ -938,4 +1025,73 @@ fn a_remote_user_of_one_host_is_served_by_other_hosts_systems() {
     h.host(0).wait_list(20 * SEC, |l| l.len() == 3);
     let (_, list) = remote_json(&h, &r, &["list"]);
     assert_eq!(list.len(), 3, "{list:?}");
+}
+
+#[test]
+fn a_cut_link_parts_two_hosts_from_each_other_only_and_mends() {
+    // Three hosts in network namespaces; the link between a and b is cut (its proxy
+    // stopped): a and b lose each other's services, each still has c's, c has both;
+    // a's user with a session on b is told. Mended, the services return.
+    if !netns_allowed("cut link") {
+        return;
+    }
+    let mut net = Fed::new("fn-net");
+    let tool = net.spawn(&["netns", "--hosts", "a,b,c", "--delay", "2ms", "--json"]);
+    let layout = net.proc(tool).json(30 * SEC).expect("the network's layout");
+    let mut h = Hosts::in_netns("fn", &["a", "b", "c"], layout.clone());
+    h.host(0).system("ta", &[]);
+    h.host(1).system("robo", &["--rate", "20"]);
+    h.host(2).system("deliv", &["--kind", "command"]);
+    for i in 0..3 {
+        h.host(i).wait_list(30 * SEC, |l| l.len() == 3);
+    }
+    let holder = h.host(0).spawn(&[
+        "user",
+        "request",
+        "robo@b/s0",
+        "--duration",
+        "60s",
+        "--json",
+    ]);
+    assert_eq!(
+        h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
+        true
+    );
+    let proxy = layout["proxies"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["hosts"] == serde_json::json!(["a", "b"]))
+        .unwrap()["pid"]
+        .as_i64()
+        .unwrap() as libc::pid_t;
+    // SAFETY: signalling the proxy of the network this test started.
+    unsafe { libc::kill(proxy, libc::SIGSTOP) };
+    let (list_a, _) = h.host(0).wait_list(30 * SEC, |l| l.len() == 2);
+    assert_eq!(ids(&list_a), ["deliv@c/s0", "ta/s0"]);
+    let (list_b, _) = h.host(1).wait_list(30 * SEC, |l| l.len() == 2);
+    assert_eq!(ids(&list_b), ["deliv@c/s0", "robo/s0"]);
+    let end = loop {
+        let v = h
+            .host(0)
+            .proc(holder)
+            .json(30 * SEC)
+            .expect("the session's end");
+        if v.get("reason").is_some() {
+            break v;
+        }
+    };
+    assert_eq!(end["reason"], "peer gone", "{end}");
+    // c, on both sides of the cut, still has both.
+    assert_eq!(ids(&h.host(2).list()), ["deliv/s0", "robo@b/s0", "ta@a/s0"]);
+    // SAFETY: as above.
+    unsafe { libc::kill(proxy, libc::SIGCONT) };
+    let (list_a, _) = h.host(0).wait_list(60 * SEC, |l| l.len() == 3);
+    assert_eq!(ids(&list_a), ["deliv@c/s0", "robo@b/s0", "ta/s0"]);
+    h.host(1).wait_list(60 * SEC, |l| l.len() == 3);
+    let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "500ms");
+    assert_eq!(code, 0, "{lines:?}");
+    assert_eq!(lines[0]["granted"], true, "{lines:?}");
+    drop(h);
+    net.shutdown();
 }

@@ -483,6 +483,7 @@ enum Event {
 struct Proxy {
     endpoint: Endpoint,
     token: usize,
+    addr: Address,
 }
 
 /// A user of another host that this host serves.
@@ -836,6 +837,15 @@ impl Federation {
     }
 
     fn open_proxy(&mut self, addr: Address, reactor: &Reactor) -> Result<Proxy, String> {
+        // One closed a moment ago (its peer's host left and came back): taken again.
+        if let Some(i) = self.lingering.iter().position(|(_, p)| p.addr == addr) {
+            let (_, p) = self.lingering.swap_remove(i);
+            reactor
+                .add(p.endpoint.bell_fd(), p.token)
+                .map_err(|e| e.to_string())?;
+            self.by_token.insert(p.token, addr);
+            return Ok(p);
+        }
         let name = match &addr {
             Address::System(s) => format!("muster-fed-system-{s}"),
             Address::User(u) => format!("muster-fed-user-{u}"),
@@ -848,8 +858,12 @@ impl Federation {
         reactor
             .add(endpoint.bell_fd(), token)
             .map_err(|e| e.to_string())?;
-        self.by_token.insert(token, addr);
-        Ok(Proxy { endpoint, token })
+        self.by_token.insert(token, addr.clone());
+        Ok(Proxy {
+            endpoint,
+            token,
+            addr,
+        })
     }
 
     fn close_proxy(&mut self, proxy: Proxy, reactor: &Reactor) {
@@ -1660,13 +1674,26 @@ impl Federation {
                             }
                         });
                 if !reachable {
-                    return self.send(
+                    self.send(
                         from,
                         &FedMsg::ToSystem {
                             system: system.to_string(),
-                            msg: ToSystem::End { user, session },
+                            msg: ToSystem::End {
+                                user: user.clone(),
+                                session,
+                            },
                         },
                     );
+                    // The user, if still here, waits for an answer: it is that the
+                    // system cannot be reached.
+                    if self.outstanding.remove(&(user.clone(), req)).is_some() && known {
+                        let m = ToUser::Refused {
+                            req,
+                            reason: Refusal::SystemGone,
+                        };
+                        self.deliveries.push_back(Delivery::Msg(user, m));
+                    }
+                    return;
                 }
                 self.outstanding.remove(&(user.clone(), req));
                 self.far.insert((user.clone(), session), from.to_string());

@@ -235,17 +235,7 @@ impl LoopbackHosts {
     /// `muster broker` arguments for host `i`: it listens on its port and connects to
     /// every other host's; `extra` is appended.
     pub fn broker_args(&self, i: usize, extra: &[String]) -> Vec<String> {
-        let mut args: Vec<String> = [
-            "broker",
-            "--federate",
-            "--host",
-            self.names[i],
-            "--federation",
-            &self.federation,
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
+        let mut args = self.federated(i);
         args.push("--listen".into());
         args.push(format!("tcp/127.0.0.1:{}", self.ports[i]));
         for (j, p) in self.ports.iter().enumerate() {
@@ -256,6 +246,22 @@ impl LoopbackHosts {
         }
         args.extend(extra.iter().cloned());
         args
+    }
+
+    /// `muster broker --federate --host HOST --federation NAME` for host `i`, without
+    /// where it listens and connects.
+    pub fn federated(&self, i: usize) -> Vec<String> {
+        [
+            "broker",
+            "--federate",
+            "--host",
+            self.names[i],
+            "--federation",
+            &self.federation,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
     }
 
     /// Starts every host's broker (labelled `broker-HOST`), with `extra` arguments.

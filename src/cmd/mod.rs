@@ -8,6 +8,7 @@ mod certs;
 mod children;
 mod experiment;
 mod keygen;
+mod netns;
 mod paper;
 mod scalability;
 mod sim;
@@ -26,6 +27,9 @@ use std::process::ExitCode;
 
 /// Runs the parsed command.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    if let Some(ns) = &cli.in_netns {
+        netns::enter(ns)?;
+    }
     let inst = Instance::new(&cli.instance).context("--instance")?;
     match cli.command {
         Command::Broker(a) => broker::run(&inst, a),
@@ -37,6 +41,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Stress(a) => stress::run(&inst, a),
         Command::Keygen(a) => keygen::run(a),
         Command::Certs(a) => certs::run(a),
+        Command::Netns(a) => netns::run(&inst, a),
+        Command::NetProxy(a) => netns::proxy(a),
         Command::Cleanup { pid, after } => {
             std::thread::sleep(after);
             let n = muster_shared::ipc::cleanup_after(pid);

@@ -280,8 +280,31 @@ fn demo(
 fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     let hosts = super::children::LoopbackHosts::new(inst, &["a", "b", "c"], "up")?;
     let (insts, ports) = (&hosts.insts, &hosts.ports);
+    // Declared before the children, so it goes after them.
+    let net = match a.netns {
+        true => {
+            let names: Vec<String> = hosts.names.iter().map(|h| h.to_string()).collect();
+            Some(super::netns::Topology::create(inst, &names, &a.link)?)
+        }
+        false => None,
+    };
     let mut children = Children::default();
-    hosts.spawn_brokers(&mut children, &[], Stdio::inherit)?;
+    match &net {
+        None => hosts.spawn_brokers(&mut children, &[], Stdio::inherit)?,
+        Some(t) => {
+            for (i, host) in hosts.names.iter().enumerate() {
+                let mut args = hosts.federated(i);
+                args.extend(t.broker_flags(i));
+                let args: Vec<&str> = args.iter().map(String::as_str).collect();
+                children.spawn(
+                    &insts[i],
+                    &format!("broker-{host}"),
+                    &args,
+                    Stdio::inherit(),
+                )?;
+            }
+        }
+    }
     children.spawn(
         &insts[1],
         "tracker system t1 (host b)",
@@ -294,10 +317,23 @@ fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         &DELIVERY,
         Stdio::inherit(),
     )?;
-    println!(
-        "== three hosts on this machine: a (instance {}), b ({}), c ({}); Zenoh on 127.0.0.1 ports {}, {}, {} ==",
-        insts[0], insts[1], insts[2], ports[0], ports[1], ports[2]
-    );
+    match &net {
+        None => println!(
+            "== three hosts on this machine: a (instance {}), b ({}), c ({}); Zenoh on 127.0.0.1 ports {}, {}, {} ==",
+            insts[0], insts[1], insts[2], ports[0], ports[1], ports[2]
+        ),
+        Some(t) => println!(
+            "== three hosts on this machine, each in its network namespace: {}; every pair linked through a proxy adding {} each way and {} % loss ==",
+            t.hosts
+                .iter()
+                .zip(insts)
+                .map(|(h, i)| format!("{} at {} (namespace {}, instance {i})", h.host, h.ip, h.netns))
+                .collect::<Vec<_>>()
+                .join(", "),
+            humantime::format_duration(a.link.delay),
+            a.link.loss
+        ),
+    }
     let opts = ConnectOptions {
         wait_for_broker: Duration::from_secs(10),
         handle_signals: true,
