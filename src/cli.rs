@@ -62,6 +62,11 @@ pub enum Command {
     /// --federate --tls DIR`): a certificate authority (made once, kept in DIR) and a
     /// key and certificate per host, named after the host.
     Certs(CertsArgs),
+    /// Follow the broker's event feed: registrations, removals (with why), users joining
+    /// and leaving, requests, queueing, grants, refusals (with the reason), sessions
+    /// ending, withdrawals, links; one JSON object a line, the feed's recent history
+    /// first.
+    Events(EventsArgs),
     /// Hosts in network namespaces on this machine (root): one namespace per host, each
     /// joined to the others only through a TCP proxy per pair of hosts that adds delay
     /// and loss; prints each host's addresses and `muster broker` flags, and keeps the
@@ -299,6 +304,13 @@ pub struct LinkArgs {
     /// Seed of the loss draws.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+}
+
+#[derive(Args, Debug)]
+pub struct EventsArgs {
+    /// Stop by itself after this long (default: run until Ctrl-C).
+    #[arg(long, value_parser = duration)]
+    pub duration: Option<Duration>,
 }
 
 #[derive(Args, Debug)]

@@ -292,3 +292,46 @@ fn a_link_forwards_data_as_task_input(via: Via) {
     );
 }
 both!(a_link_forwards_data_as_task_input);
+
+fn the_event_feed_shows_a_users_grant_refusal_and_end(via: Via) {
+    let mut c = Conf::new("events", via);
+    // A reader from the start, and one that joins late (it gets the feed's history).
+    let early = c.f.spawn(&["events"]);
+    c.system("t1", &["--quota", "1"]);
+    c.wait_list(|l| l.len() == 1);
+    let (code, lines) = c.run(&["user", "request", "t1/s0", "--duration", "300ms", "--json"]);
+    assert_eq!(code, 0, "{lines:?}");
+    let session = lines[0]["session"].as_str().unwrap().to_string();
+    let (_, lines) = c.run(&["user", "request", "t9/s0", "--duration", "300ms", "--json"]);
+    assert_eq!(lines[0]["code"], "unknown", "{lines:?}");
+    let late = c.f.spawn(&["events"]);
+    for reader in [early, late] {
+        let mut seen: Vec<Value> = Vec::new();
+        while !seen.iter().any(|e| e["event"] == "refused") {
+            let e = c.f.proc(reader).json(20 * SEC).expect("an event");
+            seen.push(e);
+        }
+        let kinds: Vec<&str> = seen.iter().filter_map(|e| e["event"].as_str()).collect();
+        let at = |k: &str| {
+            kinds
+                .iter()
+                .position(|x| *x == k)
+                .unwrap_or_else(|| panic!("no {k}: {kinds:?}"))
+        };
+        assert!(at("registered") < at("requested"), "{kinds:?}");
+        assert!(at("requested") < at("granted"), "{kinds:?}");
+        assert!(at("granted") < at("session_ended"), "{kinds:?}");
+        assert!(at("session_ended") < at("refused"), "{kinds:?}");
+        let granted = &seen[at("granted")];
+        assert_eq!(granted["service"], "t1/s0");
+        assert_eq!(granted["session"], session.as_str(), "{granted}");
+        let refused = &seen[at("refused")];
+        assert_eq!(refused["code"], "unknown", "{refused}");
+        let seqs: Vec<u64> = seen.iter().filter_map(|e| e["seq"].as_u64()).collect();
+        assert!(
+            seqs.windows(2).all(|w| w[1] == w[0] + 1),
+            "in order, none lost: {seqs:?}"
+        );
+    }
+}
+both!(the_event_feed_shows_a_users_grant_refusal_and_end);

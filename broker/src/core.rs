@@ -6,7 +6,9 @@
 //! with [`Broker::poll_output`] and the new list with [`Broker::take_list_change`].
 //! Time is a [`Duration`] since any fixed origin the driver chooses.
 
-use muster_shared::protocol::{ActiveSession, LinkInfo, SessionDigest, ToBroker, ToSystem, ToUser};
+use muster_shared::protocol::{
+    ActiveSession, BrokerEvent, LinkInfo, SessionDigest, ToBroker, ToSystem, ToUser,
+};
 use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
 use muster_shared::types::{
     validate_registration, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId, UserId,
@@ -223,7 +225,14 @@ pub struct Broker {
     /// Inputs since the last [`Broker::take_journal`], if journaling is on.
     #[rkyv(with = rkyv::with::Skip)]
     journal: Option<Vec<(Duration, Op)>>,
+    /// What it did, for the event feed, if asked for ([`Broker::emit_events`]).
+    #[rkyv(with = rkyv::with::Skip)]
+    events: Option<VecDeque<BrokerEvent>>,
 }
+
+/// Most events held for the shell between two [`Broker::poll_event`] sweeps; older ones
+/// go first.
+const MAX_PENDING_EVENTS: usize = 64 * 1024;
 
 /// One input to the core, as a primary journals it for its standbys: a standby that
 /// applies the same inputs in the same order ([`Broker::apply`]) holds the same state.
@@ -265,6 +274,26 @@ impl Broker {
             out: VecDeque::new(),
             stats: BrokerStats::default(),
             journal: None,
+            events: None,
+        }
+    }
+
+    /// Starts keeping what it does for [`Broker::poll_event`] (a serving broker's feed).
+    pub fn emit_events(&mut self) {
+        self.events.get_or_insert_with(VecDeque::new);
+    }
+
+    /// The next event for the feed.
+    pub fn poll_event(&mut self) -> Option<BrokerEvent> {
+        self.events.as_mut()?.pop_front()
+    }
+
+    fn ev(&mut self, e: impl FnOnce() -> BrokerEvent) {
+        if let Some(q) = self.events.as_mut() {
+            if q.len() >= MAX_PENDING_EVENTS {
+                q.pop_front();
+            }
+            q.push_back(e());
         }
     }
 
@@ -542,6 +571,7 @@ impl Broker {
                     .and_then(|u| u.links.remove(&link))
                 {
                     self.count_link(&old, false);
+                    self.ev(|| BrokerEvent::LinkClosed { user, link });
                 }
             }
             ToBroker::Goodbye { user } => self.forget_user(now, &user),
@@ -711,6 +741,10 @@ impl Broker {
                 rec.sessions.insert(a.session, (a.service, a.user));
             }
         }
+        self.ev(|| BrokerEvent::Registered {
+            system: system.clone(),
+            services: rec.services.to_vec(),
+        });
         self.systems.insert(system.clone(), rec);
         self.stats.registrations += 1;
         self.recount_links();
@@ -731,6 +765,10 @@ impl Broker {
     fn refuse_registration(&mut self, system: &str, reason: String) {
         tracing::warn!(%system, %reason, "registration refused");
         self.stats.registrations_refused += 1;
+        self.ev(|| BrokerEvent::RegistrationRefused {
+            system: system.to_string(),
+            reason: reason.clone(),
+        });
         self.out.push_back(Output::ToSystem(
             system.to_string(),
             ToSystem::RegistrationRefused { reason },
@@ -800,6 +838,14 @@ impl Broker {
                     svc.sessions.insert(session);
                     sys.sessions
                         .insert(session, (svc.spec.name.clone(), user.clone()));
+                    if let Some(q) = self.events.as_mut() {
+                        q.push_back(BrokerEvent::Granted {
+                            user: user.clone(),
+                            req: o.req,
+                            service: service.clone(),
+                            session,
+                        });
+                    }
                     self.out.push_back(Output::Granted {
                         user,
                         req: o.req,
@@ -875,6 +921,10 @@ impl Broker {
         if let Some(svc) = self.services.get_mut(&id) {
             svc.sessions.remove(&session);
         }
+        self.ev(|| BrokerEvent::SessionEnded {
+            service: id.clone(),
+            session,
+        });
         self.list_dirty = true;
         self.dispatch_queue(now, &id);
     }
@@ -889,6 +939,12 @@ impl Broker {
         }
         svc.withdrawn = withdrawn;
         self.list_dirty = true;
+        if let Some(q) = self.events.as_mut() {
+            q.push_back(BrokerEvent::Withdrawn {
+                service: id.clone(),
+                withdrawn,
+            });
+        }
         if withdrawn {
             let waiting: Vec<Waiting> = svc.queue.drain(..).collect();
             for w in waiting {
@@ -898,6 +954,9 @@ impl Broker {
     }
 
     fn hello(&mut self, user: UserId, pid: u32, links: Vec<LinkInfo>, watch_list: bool) {
+        if !self.users.contains_key(&user) {
+            self.ev(|| BrokerEvent::UserJoined { user: user.clone() });
+        }
         let rec = self.users.entry(user.clone()).or_default();
         rec.pid = pid;
         rec.watch_list = watch_list;
@@ -926,6 +985,11 @@ impl Broker {
 
     fn request(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
         self.stats.requests += 1;
+        self.ev(|| BrokerEvent::Requested {
+            user: user.clone(),
+            req,
+            service: service.clone(),
+        });
         if !self.users.contains_key(&user) {
             // Unknown (never said hello) or known dead: nobody could watch it, so a
             // session granted to it might never end.
@@ -984,6 +1048,14 @@ impl Broker {
         });
         let position = u16::try_from(svc.queue.len()).unwrap_or(u16::MAX);
         self.stats.queued += 1;
+        if let Some(q) = self.events.as_mut() {
+            q.push_back(BrokerEvent::Queued {
+                user: user.clone(),
+                req,
+                service: service.clone(),
+                position,
+            });
+        }
         self.list_dirty = true;
         self.out
             .push_back(Output::ToUser(user, ToUser::Queued { req, position }));
@@ -1040,6 +1112,7 @@ impl Broker {
         let had = self.users.remove(user);
         self.remove_waiting(now, |w| w.user == *user);
         if let Some(rec) = had {
+            self.ev(|| BrokerEvent::UserLeft { user: user.clone() });
             for l in rec.links.values() {
                 self.count_link(l, false);
             }
@@ -1110,6 +1183,12 @@ impl Broker {
 
     fn refuse(&mut self, user: &UserId, req: u64, reason: Refusal) {
         *self.stats.refusals.entry(reason.code()).or_default() += 1;
+        self.ev(|| BrokerEvent::Refused {
+            user: user.clone(),
+            req,
+            code: reason.code().to_string(),
+            reason: reason.to_string(),
+        });
         self.out.push_back(Output::ToUser(
             user.clone(),
             ToUser::Refused { req, reason },
@@ -1140,6 +1219,15 @@ impl Broker {
         let Some(rec) = self.systems.remove(name) else {
             return;
         };
+        self.ev(|| BrokerEvent::SystemRemoved {
+            system: name.to_string(),
+            why: match why {
+                Removal::Delinquent => "delinquent",
+                Removal::Died => "died",
+                Removal::Unregistered => "unregistered",
+            }
+            .into(),
+        });
         for service in &rec.services {
             self.drop_service(&ServiceId::new(name, service), Refusal::SystemGone);
         }
@@ -1188,6 +1276,10 @@ impl Broker {
             self.count_link(&old, false);
         }
         self.count_link(&link, true);
+        self.ev(|| BrokerEvent::LinkOpened {
+            user: user.clone(),
+            link,
+        });
     }
 
     /// Adds or removes one link's share of its two services' counts.

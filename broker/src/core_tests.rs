@@ -971,3 +971,106 @@ fn the_same_request_again_while_its_offer_is_out_is_not_a_duplicate() {
         }]
     ));
 }
+
+#[test]
+fn the_event_feed_tells_what_happened_in_order() {
+    use muster_shared::protocol::BrokerEvent as E;
+    let mut b = broker();
+    // Off unless asked: a standby's core keeps none.
+    register(&mut b, S, "t0", 6, vec![spec("x", 1, false)]);
+    assert_eq!(b.poll_event(), None);
+    b.emit_events();
+    register(&mut b, S, "t1", 7, vec![spec("s", 1, true)]);
+    request(&mut b, S, 1, 1, "t1/s");
+    let (_, ticket, _, _) = offers(&drain(&mut b))[0].clone();
+    grant(&mut b, S, "t1", ticket, 99);
+    request(&mut b, S, 2, 1, "t1/s"); // queued behind u1
+    request(&mut b, S, 3, 1, "t9/s"); // unknown
+    b.handle(
+        S,
+        ToBroker::Withdraw {
+            system: "t1".into(),
+            service: "s".into(),
+        },
+    ); // u2 refused: withdrawn
+    b.handle(
+        S,
+        ToBroker::SessionEnded {
+            system: "t1".into(),
+            session: SessionId(99),
+        },
+    );
+    b.system_died(S, "t1");
+    b.user_died(S, &user(3));
+    let events: Vec<E> = std::iter::from_fn(|| b.poll_event()).collect();
+    let id = ServiceId("t1/s".into());
+    let refused = |u: u32, code: &str, reason: &str| E::Refused {
+        user: user(u),
+        req: 1,
+        code: code.into(),
+        reason: reason.into(),
+    };
+    let want = vec![
+        E::Registered {
+            system: "t1".into(),
+            services: vec!["s".into()],
+        },
+        E::UserJoined { user: user(1) },
+        E::Requested {
+            user: user(1),
+            req: 1,
+            service: id.clone(),
+        },
+        E::Granted {
+            user: user(1),
+            req: 1,
+            service: id.clone(),
+            session: SessionId(99),
+        },
+        E::UserJoined { user: user(2) },
+        E::Requested {
+            user: user(2),
+            req: 1,
+            service: id.clone(),
+        },
+        E::Queued {
+            user: user(2),
+            req: 1,
+            service: id.clone(),
+            position: 1,
+        },
+        E::UserJoined { user: user(3) },
+        E::Requested {
+            user: user(3),
+            req: 1,
+            service: ServiceId("t9/s".into()),
+        },
+        refused(3, "unknown", &Refusal::Unknown.to_string()),
+        E::Withdrawn {
+            service: id.clone(),
+            withdrawn: true,
+        },
+        refused(2, "withdrawn", &Refusal::Withdrawn.to_string()),
+        E::SessionEnded {
+            service: id,
+            session: SessionId(99),
+        },
+        E::SystemRemoved {
+            system: "t1".into(),
+            why: "died".into(),
+        },
+        E::UserLeft { user: user(3) },
+    ];
+    assert_eq!(events, want);
+    // And each goes on the feed as JSON a reader can take back.
+    let rec = muster_shared::protocol::EventRecord {
+        seq: 4,
+        t_ns: 1,
+        event: want[3].clone(),
+    };
+    let json = serde_json::to_value(&rec).unwrap();
+    assert_eq!(json["event"], "granted");
+    assert_eq!(json["session"], "0000000000000063");
+    let back: muster_shared::protocol::EventRecord = serde_json::from_value(json).unwrap();
+    assert_eq!(back, rec);
+}

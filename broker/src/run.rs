@@ -10,8 +10,8 @@ use crate::replica::{Follower, Leader, Step};
 use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
 use muster_shared::fence::{Fence, Holder};
 use muster_shared::ipc::{
-    bell, create_node, BellRinger, Endpoint, ListWriter, Presence, ReplicaReader, ReplicaWriter,
-    TransportError,
+    bell, create_node, BellRinger, Endpoint, EventWriter, ListWriter, Presence, ReplicaReader,
+    ReplicaWriter, TransportError,
 };
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToBroker};
@@ -63,6 +63,7 @@ const TOKEN_SIGNAL: usize = 1;
 const TOKEN_UDP: usize = 2;
 const TOKEN_HUP: usize = 3;
 const TOKEN_FED: usize = 4;
+const TOKEN_EVENTS: usize = 5;
 const FIRST_WATCH_TOKEN: usize = 16;
 
 /// A watched process: a system or a user, by its address.
@@ -125,6 +126,8 @@ struct Shell {
     replica: Replication,
     /// This host's membership in a federation, if it joined one.
     fed: Option<Federation>,
+    /// The event feed, if it could be opened.
+    events: Option<EventWriter>,
     /// This host's services as listed: the core's list as last taken, with (in a
     /// federation) other hosts' users' links counted (other hosts' lists change the
     /// merged one on their own).
@@ -902,6 +905,17 @@ fn serve(
     step("list");
     let replica = ReplicaWriter::open(endpoint.node(), inst)?;
     step("replica");
+    // The event feed serves consoles and recorders; the broker serves without it.
+    let events = match EventWriter::open(endpoint.node(), inst) {
+        Ok(w) => {
+            core.emit_events();
+            Some(w)
+        }
+        Err(e) => {
+            tracing::warn!("no event feed: {e}");
+            None
+        }
+    };
     let epoch = core.epoch();
     let mut signals = SignalPipe::install()?;
     let mut hangup = SignalPipe::hangup()?;
@@ -939,7 +953,11 @@ fn serve(
         }
         None => None,
     };
+    if let Some(w) = events.as_ref() {
+        reactor.add(w.fd(), TOKEN_EVENTS)?;
+    }
     let mut shell = Shell {
+        events,
         fed,
         local_views: Vec::new(),
         core_views: Vec::new(),
@@ -1075,6 +1093,11 @@ fn serve(
                 TOKEN_UDP => {
                     if let Some(d) = shell.udp.as_mut() {
                         d.on_readable(&mut shell.handling, &mut core, &mut shell.fed, now);
+                    }
+                }
+                TOKEN_EVENTS => {
+                    if let Some(w) = shell.events.as_ref() {
+                        w.on_bell();
                     }
                 }
                 TOKEN_FED => {
@@ -1297,6 +1320,7 @@ impl Shell {
         }
         // And anything routing the outputs changed.
         self.write_list(core);
+        self.publish_events(core);
         Ok(())
     }
 
@@ -1350,6 +1374,24 @@ impl Shell {
                     }
                 }
             }
+        }
+    }
+
+    /// Puts what the core did on the event feed, and wakes its readers.
+    fn publish_events(&mut self, core: &mut Broker) {
+        let Some(w) = self.events.as_mut() else {
+            while core.poll_event().is_some() {}
+            return;
+        };
+        let mut any = false;
+        while let Some(e) = core.poll_event() {
+            if let Err(e) = w.publish(e) {
+                tracing::debug!("event feed: {e}");
+            }
+            any = true;
+        }
+        if any {
+            w.ring();
         }
     }
 

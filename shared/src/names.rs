@@ -94,6 +94,16 @@ impl Instance {
         format!("muster/{}/broker/replica-bell", self.0)
     }
 
+    /// The broker's event feed (what it did, for consoles and recorders).
+    pub fn events(&self) -> String {
+        format!("muster/{}/broker/events", self.0)
+    }
+
+    /// The event rung when the feed has new events.
+    pub fn events_bell(&self) -> String {
+        format!("muster/{}/broker/events-bell", self.0)
+    }
+
     /// The prefix of every service of this instance.
     pub fn prefix(&self) -> String {
         format!("muster/{}/", self.0)

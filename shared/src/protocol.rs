@@ -595,3 +595,143 @@ mod tests {
         }
     }
 }
+
+/// What the broker did, as operators and recorders see it: the broker publishes each on
+/// its instance's event feed ([`crate::ipc::EventWriter`]), in order.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum BrokerEvent {
+    /// A system registered (or registered again) its services.
+    Registered {
+        /// The system.
+        system: String,
+        /// Its services' names.
+        services: Vec<String>,
+    },
+    /// A registration was refused.
+    RegistrationRefused {
+        /// The system.
+        system: String,
+        /// Why.
+        reason: String,
+    },
+    /// A system left the registry.
+    SystemRemoved {
+        /// The system.
+        system: String,
+        /// `delinquent` (no answer to a ping), `died` or `unregistered`.
+        why: String,
+    },
+    /// A user said hello.
+    UserJoined {
+        /// The user.
+        user: UserId,
+    },
+    /// A user left, died or was revoked.
+    UserLeft {
+        /// The user.
+        user: UserId,
+    },
+    /// A user asked for a service.
+    Requested {
+        /// The user.
+        user: UserId,
+        /// Its request number.
+        req: u64,
+        /// The service.
+        service: ServiceId,
+    },
+    /// A request waits in a service's task queue.
+    Queued {
+        /// The user.
+        user: UserId,
+        /// Its request number.
+        req: u64,
+        /// The service.
+        service: ServiceId,
+        /// Its place (1 = next).
+        position: u16,
+    },
+    /// A system granted a request: a session opened.
+    Granted {
+        /// The user.
+        user: UserId,
+        /// Its request number.
+        req: u64,
+        /// The service.
+        service: ServiceId,
+        /// The session (16 hex digits, as users print it).
+        #[serde(with = "session_hex")]
+        session: SessionId,
+    },
+    /// A request was refused.
+    Refused {
+        /// The user.
+        user: UserId,
+        /// Its request number.
+        req: u64,
+        /// Why, as a code (`quota_full`, `unknown`, ...).
+        code: String,
+        /// Why, in words.
+        reason: String,
+    },
+    /// A session ended (its quota is free again).
+    SessionEnded {
+        /// The service.
+        service: ServiceId,
+        /// The session.
+        #[serde(with = "session_hex")]
+        session: SessionId,
+    },
+    /// A service was withdrawn (or restored, `false`).
+    Withdrawn {
+        /// The service.
+        service: ServiceId,
+        /// Withdrawn, or restored.
+        withdrawn: bool,
+    },
+    /// A user's link was opened.
+    LinkOpened {
+        /// The user.
+        user: UserId,
+        /// The link.
+        link: LinkInfo,
+    },
+    /// A user's link was closed.
+    LinkClosed {
+        /// The user.
+        user: UserId,
+        /// The link number.
+        link: u64,
+    },
+}
+
+/// One event on the feed: its number (from 1 per broker run), when the broker
+/// published it (Unix time, ns), and the event.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EventRecord {
+    /// Number on this broker's feed, from 1.
+    pub seq: u64,
+    /// Unix time of publishing, ns.
+    pub t_ns: u64,
+    /// The event.
+    #[serde(flatten)]
+    pub event: BrokerEvent,
+}
+
+/// A session id as 16 hex digits (JSON numbers lose u64 precision in many readers).
+mod session_hex {
+    use crate::types::SessionId;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(s: &SessionId, ser: S) -> Result<S::Ok, S::Error> {
+        ser.serialize_str(&format!("{:016x}", s.0))
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(de: D) -> Result<SessionId, D::Error> {
+        let text = String::deserialize(de)?;
+        u64::from_str_radix(&text, 16)
+            .map(SessionId)
+            .map_err(serde::de::Error::custom)
+    }
+}

@@ -6,6 +6,7 @@ mod broker;
 mod capacity;
 mod certs;
 mod children;
+mod events;
 mod experiment;
 mod keygen;
 mod netns;
@@ -41,6 +42,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Stress(a) => stress::run(&inst, a),
         Command::Keygen(a) => keygen::run(a),
         Command::Certs(a) => certs::run(a),
+        Command::Events(a) => events::run(&inst, a),
         Command::Netns(a) => netns::run(&inst, a),
         Command::NetProxy(a) => netns::proxy(a),
         Command::Cleanup { pid, after } => {
