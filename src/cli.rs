@@ -67,6 +67,11 @@ pub enum Command {
     /// ending, withdrawals, links; one JSON object a line, the feed's recent history
     /// first.
     Events(EventsArgs),
+    /// Record the world (map, robots, laser scans, people, camera detections) and the
+    /// infrastructure (the broker's events, the service list) into an MCAP file, on
+    /// Foxglove's schemas where one fits; open it in Foxglove or read it with any MCAP
+    /// reader.
+    Record(RecordArgs),
     /// Hosts in network namespaces on this machine (root): one namespace per host, each
     /// joined to the others only through a TCP proxy per pair of hosts that adds delay
     /// and loss; prints each host's addresses and `muster broker` flags, and keeps the
@@ -304,6 +309,23 @@ pub struct LinkArgs {
     /// Seed of the loss draws.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+}
+
+#[derive(Args, Debug)]
+pub struct RecordArgs {
+    /// The file (default: muster-INSTANCE.mcap here).
+    #[arg(long)]
+    pub out: Option<std::path::PathBuf>,
+    /// Stop by itself after this long (default: run until Ctrl-C).
+    #[arg(long, value_parser = duration)]
+    pub duration: Option<Duration>,
+    /// The simulator's scenario (for the map and the robots' sensors), as given to
+    /// `muster sim`; default the paper's.
+    #[arg(long)]
+    pub scenario: Option<std::path::PathBuf>,
+    /// The simulator's map, as given to `muster sim --map`.
+    #[arg(long)]
+    pub map: Option<std::path::PathBuf>,
 }
 
 #[derive(Args, Debug)]

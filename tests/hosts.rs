@@ -444,20 +444,9 @@ fn a_second_broker_under_a_taken_host_name_is_refused() {
 #[test]
 fn a_client_nobody_here_wrote_reads_the_federations_lists() {
     // The Zenoh Python client (eclipse-zenoh, installed by .ci/run into .venv).
-    let python = std::env::var("MUSTER_PYTHON")
-        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
-    let has_zenoh = std::process::Command::new(&python)
-        .args(["-c", "import zenoh"])
-        .status()
-        .is_ok_and(|s| s.success());
-    if !has_zenoh {
-        assert!(
-            std::env::var_os("MUSTER_REQUIRE_PYTHON").is_none(),
-            "{python} has no zenoh module (eclipse-zenoh): run .ci/run's setup"
-        );
-        eprintln!("skipped: {python} has no zenoh module (pip install eclipse-zenoh)");
+    let Some(python) = common::python_with("zenoh", "eclipse-zenoh") else {
         return;
-    }
+    };
     let mut h = Hosts::new("fp", &["a", "b", "c"]);
     h.host(0).system("t1", &["--services", "2"]);
     h.host(1).system("d1", &["--kind", "command"]);

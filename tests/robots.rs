@@ -17,6 +17,7 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let mut f = Fed::new("uppaper");
     let pic = std::env::temp_dir().join(format!("muster-up-test-{}.png", std::process::id()));
+    let mcap = std::env::temp_dir().join(format!("muster-up-test-{}.mcap", std::process::id()));
     let up = f.spawn(&[
         "up",
         "--udp",
@@ -28,11 +29,22 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         "--picture",
         pic.to_str().unwrap(),
     ]);
+    // A recording of the run, read back below by a reader nobody here wrote.
+    let rec = f.spawn(&[
+        "record",
+        "--out",
+        mcap.to_str().unwrap(),
+        "--duration",
+        "7s",
+    ]);
     assert_eq!(
         f.proc(up).wait(120 * SEC),
         Some(0),
         "up exits 0 after --duration"
     );
+    let recorded = f.proc(rec).json(60 * SEC).expect("record's summary");
+    check_recording(&mcap, &recorded);
+    let _ = std::fs::remove_file(&mcap);
     let text = f.proc(up).rest_lines(5 * SEC).join("\n");
     for needle in [
         "the same list over UDP: 4 services",
@@ -192,4 +204,68 @@ fn the_scalability_experiment_writes_tables_that_add_up() {
         assert!(md.contains(part), "report.md lacks {part}");
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Reads `mcap` with the Python `mcap` package (installed by .ci/run) and checks the
+/// topics, their schemas and counts against what `muster record` said it wrote.
+fn check_recording(mcap: &std::path::Path, recorded: &serde_json::Value) {
+    let Some(python) = common::python_with("mcap", "mcap") else {
+        return;
+    };
+    let script = r#"
+import json, sys
+from collections import Counter
+from mcap.reader import make_reader
+with open(sys.argv[1], "rb") as f:
+    r = make_reader(f)
+    s = r.get_summary()
+    schemas = {c.topic: s.schemas[c.schema_id].name for c in s.channels.values()}
+    counts, events, lists = Counter(), [], 0
+    for schema, channel, message in r.iter_messages(log_time_order=True):
+        counts[channel.topic] += 1
+        if channel.topic == "/muster/events":
+            events.append(json.loads(message.data))
+        if channel.topic == "/muster/list":
+            lists = max(lists, len(json.loads(message.data)["services"]))
+print(json.dumps({"schemas": schemas, "counts": counts, "events": events, "most_listed": lists}))
+"#;
+    let out = std::process::Command::new(&python)
+        .args(["-c", script, mcap.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let read: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    // Every message the recorder wrote is in the file, topic by topic.
+    assert_eq!(read["counts"], recorded["topics"], "{read}");
+    let schemas = &read["schemas"];
+    assert_eq!(schemas["/map"], "foxglove.Grid");
+    assert_eq!(schemas["/tf"], "foxglove.FrameTransforms");
+    assert_eq!(schemas["/robots"], "foxglove.SceneUpdate");
+    assert_eq!(schemas["/people"], "foxglove.SceneUpdate");
+    let counts = &read["counts"];
+    assert_eq!(counts["/map"], 1);
+    for robot in ["T1", "T2", "T3", "D1"] {
+        let topic = format!("/{robot}/laser");
+        assert_eq!(schemas[&topic], "foxglove.LaserScan", "{topic}");
+        // 10 Hz scans at 5x for several seconds.
+        assert!(counts[&topic].as_u64().unwrap() > 20, "{topic}: {counts}");
+    }
+    // Only robots with a camera have detections.
+    assert!(counts["/T1/detections"].as_u64().unwrap() > 20, "{counts}");
+    assert!(counts.get("/D1/detections").is_none(), "{counts}");
+    assert!(counts["/tf"].as_u64().unwrap() > 20, "{counts}");
+    // The infrastructure: the robots' systems registered, the user was granted the
+    // red tracker, and the list held the four services.
+    let events = read["events"].as_array().unwrap();
+    let has = |kind: &str, key: &str, value: &str| {
+        events.iter().any(|e| e["event"] == kind && e[key] == value)
+    };
+    assert!(has("registered", "system", "tracking"), "{events:?}");
+    assert!(has("registered", "system", "delivery"), "{events:?}");
+    assert!(has("granted", "service", "tracking/red"), "{events:?}");
+    assert_eq!(read["most_listed"], 4, "{read}");
 }

@@ -1064,6 +1064,7 @@ fn the_event_feed_tells_what_happened_in_order() {
     assert_eq!(events, want);
     // And each goes on the feed as JSON a reader can take back.
     let rec = muster_shared::protocol::EventRecord {
+        epoch: "000000000000002a".into(),
         seq: 4,
         t_ns: 1,
         event: want[3].clone(),

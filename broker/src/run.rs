@@ -906,7 +906,7 @@ fn serve(
     let replica = ReplicaWriter::open(endpoint.node(), inst)?;
     step("replica");
     // The event feed serves consoles and recorders; the broker serves without it.
-    let events = match EventWriter::open(endpoint.node(), inst) {
+    let events = match EventWriter::open(endpoint.node(), inst, core.epoch()) {
         Ok(w) => {
             core.emit_events();
             Some(w)

@@ -1448,12 +1448,13 @@ pub struct EventWriter {
     publisher: Publisher<Ipc, [u8], ()>,
     notifier: Notifier<Ipc>,
     listener: Listener<Ipc>,
+    epoch: String,
     seq: u64,
 }
 
 impl EventWriter {
-    /// Opens the feed for writing.
-    pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
+    /// Opens the feed for writing, for the broker run numbered `epoch`.
+    pub fn open(node: &Node<Ipc>, inst: &Instance, epoch: u64) -> Result<Self, TransportError> {
         let (stream, bell) = event_services(node, inst)?;
         let publisher = stream
             .publisher_builder()
@@ -1474,6 +1475,7 @@ impl EventWriter {
             publisher,
             notifier,
             listener,
+            epoch: format!("{epoch:016x}"),
             seq: 0,
         })
     }
@@ -1503,6 +1505,7 @@ impl EventWriter {
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
         let rec = crate::protocol::EventRecord {
+            epoch: self.epoch.clone(),
             seq: self.seq,
             t_ns,
             event,

@@ -710,6 +710,9 @@ pub enum BrokerEvent {
 /// published it (Unix time, ns), and the event.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EventRecord {
+    /// The broker run (its epoch, 16 hex digits): a new run (a restart, a standby taking
+    /// over) numbers its events from 1 again.
+    pub epoch: String,
     /// Number on this broker's feed, from 1.
     pub seq: u64,
     /// Unix time of publishing, ns.

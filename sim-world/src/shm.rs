@@ -599,6 +599,50 @@ impl RobotLink {
     }
 }
 
+/// An observer of one robot's sensors (a recorder, a viewer): no commands.
+pub struct SensorsView {
+    sensors: Subscriber<Ipc, RobotSensors, ()>,
+    updated: Listener<Ipc>,
+}
+
+impl SensorsView {
+    /// Subscribes to robot `robot`'s sensors on instance `inst` (the simulator must run).
+    pub fn open(node: &Node<Ipc>, inst: &str, robot: &str) -> Result<Self, ShmError> {
+        let sname = robot_service(inst, robot, "sensors");
+        let sensors = node
+            .service_builder(&name(&sname)?)
+            .publish_subscribe::<RobotSensors>()
+            .open()
+            .map_err(|e| err(&sname, e))?
+            .subscriber_builder()
+            .create()
+            .map_err(|e| err(&sname, e))?;
+        let uname = robot_service(inst, robot, "updated");
+        let updated = event(node, &uname)?
+            .listener_builder()
+            .create()
+            .map_err(|e| err(&uname, e))?;
+        Ok(SensorsView { sensors, updated })
+    }
+
+    /// Calls `f` with the newest sensors sample if it is newer than `after` (sim time),
+    /// without waiting.
+    pub fn latest<R>(
+        &self,
+        after: f64,
+        f: impl FnOnce(&RobotSensors) -> R,
+    ) -> Result<Option<R>, ShmError> {
+        wait_newest(
+            &self.sensors,
+            &self.updated,
+            after,
+            Duration::ZERO,
+            |s| s.time,
+            f,
+        )
+    }
+}
+
 /// An observer's view of the whole world (ground truth: for experiments, renders and
 /// tools, never for a robot's own decisions).
 pub struct WorldView {

@@ -11,6 +11,7 @@ mod experiment;
 mod keygen;
 mod netns;
 mod paper;
+mod record;
 mod scalability;
 mod sim;
 mod standbys;
@@ -43,6 +44,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Keygen(a) => keygen::run(a),
         Command::Certs(a) => certs::run(a),
         Command::Events(a) => events::run(&inst, a),
+        Command::Record(a) => record::run(&inst, a),
         Command::Netns(a) => netns::run(&inst, a),
         Command::NetProxy(a) => netns::proxy(a),
         Command::Cleanup { pid, after } => {

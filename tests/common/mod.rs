@@ -350,3 +350,24 @@ impl Drop for RemoteSetup {
         let _ = std::fs::remove_dir_all(&self.dir);
     }
 }
+
+/// The Python interpreter with `module` (`.venv/bin/python`, which `.ci/run` sets up, or
+/// `MUSTER_PYTHON`), or `None` with a message saying the test is skipped. With
+/// `MUSTER_REQUIRE_PYTHON` set (as `.ci/run` does), a missing module fails instead.
+pub fn python_with(module: &str, package: &str) -> Option<String> {
+    let python = std::env::var("MUSTER_PYTHON")
+        .unwrap_or_else(|_| concat!(env!("CARGO_MANIFEST_DIR"), "/.venv/bin/python").to_string());
+    let has = std::process::Command::new(&python)
+        .args(["-c", &format!("import {module}")])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !has {
+        assert!(
+            std::env::var_os("MUSTER_REQUIRE_PYTHON").is_none(),
+            "{python} has no {module} module ({package}): run .ci/run's setup"
+        );
+        eprintln!("skipped: {python} has no {module} module (pip install {package})");
+        return None;
+    }
+    Some(python)
+}

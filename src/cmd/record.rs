@@ -1,0 +1,548 @@
+//! `muster record`: the world and the infrastructure into an MCAP file, on Foxglove's
+//! well-known schemas where one fits (the `foxglove` crate).
+//!
+//! Topics:
+//!
+//! | topic | schema | what |
+//! |---|---|---|
+//! | `/map` | `foxglove.Grid` | the map, once (cell value 100: occupied) |
+//! | `/tf` | `foxglove.FrameTransforms` | each robot's frame (its name) in `map` |
+//! | `/robots` | `foxglove.SceneUpdate` | the robots, named |
+//! | `/people` | `foxglove.SceneUpdate` | the people, in their beacons' colours |
+//! | `/ROBOT/laser` | `foxglove.LaserScan` | each robot's laser scans, in its frame |
+//! | `/ROBOT/detections` | JSON | each robot's camera detections (colour, bearing, range) |
+//! | `/muster/events` | JSON | the broker's event feed (`muster events`) |
+//! | `/muster/list` | JSON | the service list at each change |
+//!
+//! Log times are the recorder's clock (Unix time) when it took each sample; the world's
+//! own (simulated) time is in each message.
+
+use crate::cli::RecordArgs;
+use anyhow::Context as _;
+use foxglove::messages::{
+    packed_element_field::NumericType, Color, CylinderPrimitive, FrameTransform, FrameTransforms,
+    Grid, LaserScan, PackedElementField, Pose, Quaternion, SceneEntity, SceneUpdate, TextPrimitive,
+    Timestamp, Vector2, Vector3,
+};
+use foxglove::{Channel, ChannelBuilder, Context, PartialMetadata, RawChannel, Schema};
+use muster_shared::ipc::{create_node, EventReader, ListReader};
+use muster_shared::reactor::SignalPipe;
+use muster_shared::Instance;
+use muster_sim_world::map::OccupancyMap;
+use muster_sim_world::scenario::{Colour, Scenario};
+use muster_sim_world::shm::{SensorsView, WorldState, WorldView};
+use std::collections::BTreeMap;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+/// Unix time now, ns.
+fn now_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+}
+
+fn stamp(ns: u64) -> Option<Timestamp> {
+    Some(Timestamp::new(
+        u32::try_from(ns / 1_000_000_000).unwrap_or(u32::MAX),
+        (ns % 1_000_000_000) as u32,
+    ))
+}
+
+fn yaw(theta: f64) -> Option<Quaternion> {
+    Some(Quaternion {
+        x: 0.0,
+        y: 0.0,
+        z: (theta / 2.0).sin(),
+        w: (theta / 2.0).cos(),
+    })
+}
+
+fn at(x: f64, y: f64, z: f64, theta: f64) -> Option<Pose> {
+    Some(Pose {
+        position: Some(Vector3 { x, y, z }),
+        orientation: yaw(theta),
+    })
+}
+
+fn colour(c: Option<Colour>, fallback: [u8; 3]) -> Option<Color> {
+    let [r, g, b] = c.map_or(fallback, Colour::rgb);
+    Some(Color {
+        r: f64::from(r) / 255.0,
+        g: f64::from(g) / 255.0,
+        b: f64::from(b) / 255.0,
+        a: 1.0,
+    })
+}
+
+/// A named body as a scene entity: a cylinder and its name above it.
+fn body(
+    id: String,
+    ns: u64,
+    (x, y, theta): (f64, f64, f64),
+    radius: f64,
+    height: f64,
+    color: Option<Color>,
+    name: &str,
+) -> SceneEntity {
+    SceneEntity {
+        timestamp: stamp(ns),
+        frame_id: "map".into(),
+        id,
+        cylinders: vec![CylinderPrimitive {
+            pose: at(x, y, height / 2.0, theta),
+            size: Some(Vector3 {
+                x: 2.0 * radius,
+                y: 2.0 * radius,
+                z: height,
+            }),
+            bottom_scale: 1.0,
+            top_scale: 1.0,
+            color,
+        }],
+        texts: vec![TextPrimitive {
+            pose: at(x, y, height + 0.3, 0.0),
+            billboard: true,
+            font_size: 14.0,
+            scale_invariant: true,
+            color: colour(None, [0, 0, 0]),
+            text: name.to_string(),
+        }],
+        ..Default::default()
+    }
+}
+
+fn json_channel(ctx: &Arc<Context>, topic: &str, schema: &str) -> anyhow::Result<Arc<RawChannel>> {
+    Ok(ChannelBuilder::new(topic)
+        .context(ctx)
+        .message_encoding("json")
+        .schema(Schema::new(
+            schema,
+            "jsonschema",
+            br#"{"type": "object"}"#.to_vec(),
+        ))
+        .build_raw()?)
+}
+
+/// The world and the infrastructure as Foxglove channels on one context: whatever sinks
+/// the context has (an MCAP file, a live viewer) get every message.
+pub struct Scene {
+    ctx: Arc<Context>,
+    inst: Instance,
+    scenario: Scenario,
+    map: OccupancyMap,
+    map_channel: Channel<Grid>,
+    tf: Channel<FrameTransforms>,
+    robots: Channel<SceneUpdate>,
+    people: Channel<SceneUpdate>,
+    scans: BTreeMap<String, (Channel<LaserScan>, Arc<RawChannel>)>,
+    events: Arc<RawChannel>,
+    list: Arc<RawChannel>,
+    node: iceoryx2::prelude::Node<muster_shared::ipc::Ipc>,
+    world: Option<WorldView>,
+    world_time: f64,
+    sensors: BTreeMap<String, (SensorsView, f64)>,
+    feed: Option<EventReader>,
+    list_reader: Option<ListReader>,
+    list_generation: Option<(u64, u64)>,
+    next_list_read: Instant,
+    next_attach: Instant,
+    /// Messages written, per topic.
+    pub counts: BTreeMap<String, u64>,
+}
+
+impl Scene {
+    /// Channels on `ctx` for instance `inst`'s world (as `scenario` and `map` set it up)
+    /// and infrastructure.
+    pub fn new(
+        ctx: &Arc<Context>,
+        inst: &Instance,
+        scenario: Scenario,
+        map: OccupancyMap,
+    ) -> anyhow::Result<Self> {
+        let node = create_node("muster-record", false).context("iceoryx2 node")?;
+        let channel = |topic: &str| ChannelBuilder::new(topic).context(ctx);
+        Ok(Scene {
+            ctx: ctx.clone(),
+            inst: inst.clone(),
+            scenario,
+            map,
+            map_channel: channel("/map").build(),
+            tf: channel("/tf").build(),
+            robots: channel("/robots").build(),
+            people: channel("/people").build(),
+            scans: BTreeMap::new(),
+            events: json_channel(ctx, "/muster/events", "muster.Event")?,
+            list: json_channel(ctx, "/muster/list", "muster.ServiceList")?,
+            node,
+            world: None,
+            world_time: f64::NEG_INFINITY,
+            sensors: BTreeMap::new(),
+            feed: None,
+            list_reader: None,
+            list_generation: None,
+            next_list_read: Instant::now(),
+            next_attach: Instant::now(),
+            counts: BTreeMap::new(),
+        })
+    }
+
+    fn count(&mut self, topic: &str) {
+        *self.counts.entry(topic.to_string()).or_default() += 1;
+    }
+
+    /// Writes the map (once per sink that should have it: call again for a new sink).
+    pub fn log_map(&mut self) {
+        let (w, h) = (self.map.width(), self.map.height());
+        let mut data = Vec::with_capacity(w * h);
+        for j in 0..h {
+            for i in 0..w {
+                data.push(if self.map.occupied(i as i64, j as i64) {
+                    100u8
+                } else {
+                    0
+                });
+            }
+        }
+        let (ox, oy) = self.map.origin();
+        let res = self.map.resolution();
+        let ns = now_ns();
+        self.map_channel.log_with_time(
+            &Grid {
+                timestamp: stamp(ns),
+                frame_id: "map".into(),
+                pose: at(ox, oy, 0.0, 0.0),
+                column_count: u32::try_from(w).unwrap_or(u32::MAX),
+                cell_size: Some(Vector2 { x: res, y: res }),
+                row_stride: u32::try_from(w).unwrap_or(u32::MAX),
+                cell_stride: 1,
+                fields: vec![PackedElementField {
+                    name: "occupied".into(),
+                    offset: 0,
+                    r#type: NumericType::Uint8 as i32,
+                }],
+                data: data.into(),
+            },
+            ns,
+        );
+        self.count("/map");
+    }
+
+    /// Opens what is not open yet (the simulator, the broker may start after us).
+    fn attach(&mut self) {
+        if Instant::now() < self.next_attach {
+            return;
+        }
+        self.next_attach = Instant::now() + Duration::from_secs(1);
+        if self.world.is_none() {
+            self.world = WorldView::open(&self.node, self.inst.as_str()).ok();
+        }
+        if self.feed.is_none() {
+            self.feed = EventReader::open(&self.node, &self.inst).ok();
+        }
+        if self.list_reader.is_none() {
+            self.list_reader = ListReader::open(&self.node, &self.inst).ok();
+        }
+        let names: Vec<String> = self
+            .scenario
+            .robots
+            .iter()
+            .filter(|r| !self.sensors.contains_key(&r.name))
+            .map(|r| r.name.clone())
+            .collect();
+        for n in names {
+            if let Ok(v) = SensorsView::open(&self.node, self.inst.as_str(), &n) {
+                self.sensors.insert(n, (v, f64::NEG_INFINITY));
+            }
+        }
+    }
+
+    /// Takes every new sample and event and logs it; returns whether anything was new.
+    pub fn poll(&mut self) -> anyhow::Result<bool> {
+        self.attach();
+        let mut any = false;
+        // The world: frames, robots, people.
+        let mut sample = None;
+        if let Some(w) = &self.world {
+            sample = w
+                .next(self.world_time, Duration::ZERO, |s: &WorldState| {
+                    Box::new(*s)
+                })
+                .ok()
+                .flatten();
+        }
+        if let Some(s) = sample {
+            self.world_time = s.time;
+            self.log_world(&s);
+            any = true;
+        }
+        // Each robot's sensors.
+        let names: Vec<String> = self.sensors.keys().cloned().collect();
+        for n in names {
+            let Some((view, after)) = self.sensors.get(&n) else {
+                continue;
+            };
+            let got = view
+                .latest(*after, |s| {
+                    let laser: Vec<f64> = s.laser[..(s.n_beams as usize).min(s.laser.len())]
+                        .iter()
+                        .map(|r| f64::from(*r))
+                        .collect();
+                    let dets: Vec<serde_json::Value> = s.detections
+                        [..(s.n_detections as usize).min(s.detections.len())]
+                        .iter()
+                        .map(|d| {
+                            serde_json::json!({
+                                "colour": muster_sim_world::shm::detection_colour(d).map(Colour::name),
+                                "bearing": d.bearing,
+                                "range": d.range,
+                            })
+                        })
+                        .collect();
+                    (s.time, s.laser_time, laser, s.camera_time, dets)
+                })
+                .ok()
+                .flatten();
+            if let Some((time, laser_time, laser, camera_time, dets)) = got {
+                self.log_sensors(&n, time, laser_time, laser, camera_time, dets)?;
+                any = true;
+            }
+        }
+        // The broker's events.
+        let mut events = Vec::new();
+        if let Some(f) = self.feed.as_mut() {
+            while let Some(rec) = f.next_event() {
+                events.push(rec);
+            }
+        }
+        for rec in events {
+            let bytes = serde_json::to_vec(&rec)?;
+            self.events
+                .log_with_meta(&bytes, PartialMetadata::with_log_time(rec.t_ns));
+            self.count("/muster/events");
+            any = true;
+        }
+        // The list, when it changed.
+        if Instant::now() >= self.next_list_read {
+            self.next_list_read = Instant::now() + Duration::from_millis(100);
+            let node = &self.node;
+            // `read_from` moves to a new broker's list (a restart, a takeover).
+            if let Some(snap) = self
+                .list_reader
+                .as_mut()
+                .and_then(|r| r.read_from(node).ok())
+            {
+                let key = (snap.epoch, snap.generation);
+                if snap.epoch != 0 && self.list_generation != Some(key) {
+                    self.list_generation = Some(key);
+                    let v = serde_json::json!({
+                        "generation": snap.generation,
+                        "services": snap.views(),
+                    });
+                    let ns = now_ns();
+                    self.list.log_with_meta(
+                        &serde_json::to_vec(&v)?,
+                        PartialMetadata::with_log_time(ns),
+                    );
+                    self.count("/muster/list");
+                    any = true;
+                }
+            }
+        }
+        Ok(any)
+    }
+
+    fn log_world(&mut self, s: &WorldState) {
+        let ns = now_ns();
+        let robots = &s.robots[..(s.n_robots as usize).min(s.robots.len())];
+        let people = &s.people[..(s.n_people as usize).min(s.people.len())];
+        let transforms = robots
+            .iter()
+            .map(|r| FrameTransform {
+                timestamp: stamp(ns),
+                parent_frame_id: "map".into(),
+                child_frame_id: r.name.as_str().to_string(),
+                translation: Some(Vector3 {
+                    x: r.pose.x,
+                    y: r.pose.y,
+                    z: 0.0,
+                }),
+                rotation: yaw(r.pose.theta),
+            })
+            .collect();
+        self.tf.log_with_time(&FrameTransforms { transforms }, ns);
+        self.count("/tf");
+        let entities = robots
+            .iter()
+            .map(|r| {
+                let name = r.name.as_str();
+                let c = Colour::from_code(r.beacon.wrapping_sub(1));
+                body(
+                    format!("robot/{name}"),
+                    ns,
+                    (r.pose.x, r.pose.y, r.pose.theta),
+                    0.25,
+                    0.4,
+                    colour(c, [40, 40, 40]),
+                    name,
+                )
+            })
+            .collect();
+        self.robots.log_with_time(
+            &SceneUpdate {
+                deletions: Vec::new(),
+                entities,
+            },
+            ns,
+        );
+        self.count("/robots");
+        let entities = people
+            .iter()
+            .map(|p| {
+                let name = p.name.as_str();
+                body(
+                    format!("person/{name}"),
+                    ns,
+                    (p.pose.x, p.pose.y, p.pose.theta),
+                    0.2,
+                    1.7,
+                    colour(Colour::from_code(p.beacon), [120, 120, 120]),
+                    name,
+                )
+            })
+            .collect();
+        self.people.log_with_time(
+            &SceneUpdate {
+                deletions: Vec::new(),
+                entities,
+            },
+            ns,
+        );
+        self.count("/people");
+    }
+
+    fn log_sensors(
+        &mut self,
+        robot: &str,
+        time: f64,
+        laser_time: f64,
+        laser: Vec<f64>,
+        camera_time: f64,
+        detections: Vec<serde_json::Value>,
+    ) -> anyhow::Result<()> {
+        let ns = now_ns();
+        let last = self
+            .sensors
+            .get(robot)
+            .map_or(f64::NEG_INFINITY, |(_, t)| *t);
+        if let Some((_, t)) = self.sensors.get_mut(robot) {
+            *t = time;
+        }
+        if !self.scans.contains_key(robot) {
+            let scan = ChannelBuilder::new(format!("/{robot}/laser"))
+                .context(&self.ctx)
+                .build();
+            let dets = json_channel(
+                &self.ctx,
+                &format!("/{robot}/detections"),
+                "muster.Detections",
+            )?;
+            self.scans.insert(robot.to_string(), (scan, dets));
+        }
+        let fov = self
+            .scenario
+            .robots
+            .iter()
+            .find(|r| r.name == robot)
+            .and_then(|r| r.laser.as_ref())
+            .map_or(std::f64::consts::PI, |l| l.fov_deg.to_radians());
+        let Some((scan, dets)) = self.scans.get(robot) else {
+            return Ok(());
+        };
+        // A sample carries the latest scan and frame: log each once.
+        let (mut scanned, mut seen) = (false, false);
+        if laser_time > last && !laser.is_empty() {
+            scan.log_with_time(
+                &LaserScan {
+                    timestamp: stamp(ns),
+                    frame_id: robot.to_string(),
+                    pose: at(0.0, 0.0, 0.0, 0.0),
+                    start_angle: -fov / 2.0,
+                    end_angle: fov / 2.0,
+                    ranges: laser,
+                    intensities: Vec::new(),
+                },
+                ns,
+            );
+            scanned = true;
+        }
+        // A robot without a camera never has a frame (its time stays 0).
+        if camera_time > last && camera_time > 0.0 {
+            let v = serde_json::json!({"time": camera_time, "detections": detections});
+            dets.log_with_meta(&serde_json::to_vec(&v)?, PartialMetadata::with_log_time(ns));
+            seen = true;
+        }
+        if scanned {
+            self.count(&format!("/{robot}/laser"));
+        }
+        if seen {
+            self.count(&format!("/{robot}/detections"));
+        }
+        Ok(())
+    }
+}
+
+/// The scenario and map a recorder or viewer draws: the simulator's own flags.
+pub fn scenario_and_map(
+    scenario: Option<&std::path::Path>,
+    map: Option<&std::path::Path>,
+) -> anyhow::Result<(Scenario, OccupancyMap)> {
+    let scenario = match scenario {
+        Some(p) => Scenario::load(p)?,
+        None => Scenario::paper(),
+    };
+    let map = match (map, scenario.map.as_deref()) {
+        (Some(p), _) | (None, Some(p)) => OccupancyMap::load(p)?,
+        (None, None) => OccupancyMap::office(),
+    };
+    Ok((scenario, map))
+}
+
+/// `muster record`.
+pub fn run(inst: &Instance, a: RecordArgs) -> anyhow::Result<ExitCode> {
+    let mut signals = SignalPipe::install().context("signal handlers")?;
+    let (scenario, map) = scenario_and_map(a.scenario.as_deref(), a.map.as_deref())?;
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| format!("muster-{inst}.mcap").into());
+    let ctx = Context::new();
+    let writer = ctx
+        .mcap_writer()
+        .create_new_buffered_file(&out)
+        .with_context(|| format!("creating {}", out.display()))?;
+    let mut scene = Scene::new(&ctx, inst, scenario, map)?;
+    scene.log_map();
+    eprintln!(
+        "muster record: recording instance {inst} into {}",
+        out.display()
+    );
+    let end = a.duration.map(|d| Instant::now() + d);
+    loop {
+        let any = scene.poll()?;
+        if signals.drain() || end.is_some_and(|e| Instant::now() >= e) {
+            break;
+        }
+        if !any {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+    writer.close().context("closing the MCAP file")?;
+    let total: u64 = scene.counts.values().sum();
+    println!(
+        "{}",
+        serde_json::json!({"out": out, "messages": total, "topics": scene.counts})
+    );
+    Ok(ExitCode::SUCCESS)
+}
