@@ -72,6 +72,12 @@ pub enum Command {
     /// Foxglove's schemas where one fits; open it in Foxglove or read it with any MCAP
     /// reader.
     Record(RecordArgs),
+    /// Serve the live world and infrastructure (the topics of `muster record`) over the
+    /// Foxglove WebSocket protocol, for Foxglove or Lichtblick.
+    View(ViewArgs),
+    /// Serve a recording (`muster record`) over the Foxglove WebSocket protocol again, at
+    /// its own pace or `--speed` times it.
+    Replay(ReplayArgs),
     /// Hosts in network namespaces on this machine (root): one namespace per host, each
     /// joined to the others only through a TCP proxy per pair of hosts that adds delay
     /// and loss; prints each host's addresses and `muster broker` flags, and keeps the
@@ -326,6 +332,37 @@ pub struct RecordArgs {
     /// The simulator's map, as given to `muster sim --map`.
     #[arg(long)]
     pub map: Option<std::path::PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct ViewArgs {
+    /// Where to serve (port 0: any free port; the address is printed as JSON).
+    #[arg(long, default_value = "127.0.0.1:8765")]
+    pub listen: std::net::SocketAddr,
+    /// Stop by itself after this long (default: run until Ctrl-C).
+    #[arg(long, value_parser = duration)]
+    pub duration: Option<Duration>,
+    /// The simulator's scenario, as given to `muster sim`; default the paper's.
+    #[arg(long)]
+    pub scenario: Option<std::path::PathBuf>,
+    /// The simulator's map, as given to `muster sim --map`.
+    #[arg(long)]
+    pub map: Option<std::path::PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct ReplayArgs {
+    /// The recording.
+    pub file: std::path::PathBuf,
+    /// Times the recording's own pace.
+    #[arg(long, default_value_t = 1.0)]
+    pub speed: f64,
+    /// Where to serve (port 0: any free port; the address is printed as JSON).
+    #[arg(long, default_value = "127.0.0.1:8765")]
+    pub listen: std::net::SocketAddr,
+    /// Start again from the beginning at the end, until stopped.
+    #[arg(long = "loop")]
+    pub loop_: bool,
 }
 
 #[derive(Args, Debug)]

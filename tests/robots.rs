@@ -269,3 +269,153 @@ print(json.dumps({"schemas": schemas, "counts": counts, "events": events, "most_
     assert!(has("granted", "service", "tracking/red"), "{events:?}");
     assert_eq!(read["most_listed"], 4, "{read}");
 }
+
+/// `node` with the Foxglove WebSocket client (`tests/foxglove-client`, set up by
+/// .ci/run with `npm ci`), or `None` with a message saying the test is skipped. With
+/// `MUSTER_REQUIRE_NODE` set (as .ci/run does), a missing client fails instead.
+fn foxglove_client() -> Option<std::path::PathBuf> {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/foxglove-client");
+    let ok = dir.join("node_modules/@foxglove/ws-protocol").is_dir()
+        && std::process::Command::new("node")
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success());
+    if !ok {
+        assert!(
+            std::env::var_os("MUSTER_REQUIRE_NODE").is_none(),
+            "no node or no @foxglove/ws-protocol in {}: run .ci/run's setup",
+            dir.display()
+        );
+        eprintln!(
+            "skipped: no node or no @foxglove/ws-protocol (npm ci --prefix tests/foxglove-client)"
+        );
+        return None;
+    }
+    Some(dir.join("client.mjs"))
+}
+
+/// Runs the Foxglove client against `ws://addr` for `seconds`; its report.
+fn foxglove_report(client: &std::path::Path, addr: &str, seconds: u32) -> serde_json::Value {
+    let out = std::process::Command::new("node")
+        .arg(client)
+        .arg(format!("ws://{addr}"))
+        .arg(seconds.to_string())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stdout)))
+}
+
+fn schema_of<'a>(report: &'a serde_json::Value, topic: &str) -> &'a serde_json::Value {
+    report["channels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["topic"] == topic)
+        .map_or(&serde_json::Value::Null, |c| &c["schemaName"])
+}
+
+#[test]
+fn a_foxglove_client_sees_the_live_world_and_its_replay() {
+    let Some(client) = foxglove_client() else {
+        return;
+    };
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let mut f = Fed::new("view");
+    let mcap = std::env::temp_dir().join(format!("muster-view-test-{}.mcap", std::process::id()));
+    let up = f.spawn(&["up", "--no-udp", "--speed", "5", "--duration", "60s"]);
+    let view = f.spawn(&["view", "--listen", "127.0.0.1:0", "--duration", "30s"]);
+    let rec = f.spawn(&[
+        "record",
+        "--out",
+        mcap.to_str().unwrap(),
+        "--duration",
+        "6s",
+    ]);
+    let addr = f.proc(view).json(30 * SEC).expect("view's address")["listen"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    // Live: every topic advertised on its schema, and the world streaming.
+    let live = foxglove_report(&client, &addr, 6);
+    assert_eq!(live["server"], "muster", "{live}");
+    assert_eq!(schema_of(&live, "/map"), "foxglove.Grid", "{live}");
+    assert_eq!(
+        schema_of(&live, "/tf"),
+        "foxglove.FrameTransforms",
+        "{live}"
+    );
+    assert_eq!(
+        schema_of(&live, "/robots"),
+        "foxglove.SceneUpdate",
+        "{live}"
+    );
+    assert_eq!(
+        schema_of(&live, "/people"),
+        "foxglove.SceneUpdate",
+        "{live}"
+    );
+    assert_eq!(
+        schema_of(&live, "/T1/laser"),
+        "foxglove.LaserScan",
+        "{live}"
+    );
+    assert_eq!(schema_of(&live, "/muster/events"), "muster.Event", "{live}");
+    let counts = &live["counts"];
+    // The map is sent again to each client that subscribes to it.
+    assert!(counts["/map"].as_u64().unwrap_or(0) >= 1, "{live}");
+    for topic in ["/tf", "/robots", "/people", "/T1/laser", "/D1/laser"] {
+        assert!(counts[topic].as_u64().unwrap_or(0) >= 10, "{topic}: {live}");
+    }
+    assert_eq!(
+        f.proc(rec).wait(30 * SEC),
+        Some(0),
+        "record ends after --duration"
+    );
+    f.proc(view).signal(libc::SIGTERM);
+    assert_eq!(f.proc(view).wait(10 * SEC), Some(0));
+    f.proc(up).signal(libc::SIGTERM);
+    assert!(f.proc(up).wait(30 * SEC).is_some());
+    // Replayed (looping, 4x): the same topics, on the same schemas, streaming again.
+    let replay = f.spawn(&[
+        "replay",
+        mcap.to_str().unwrap(),
+        "--speed",
+        "4",
+        "--loop",
+        "--listen",
+        "127.0.0.1:0",
+    ]);
+    let addr = f.proc(replay).json(30 * SEC).expect("replay's address")["listen"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let again = foxglove_report(&client, &addr, 4);
+    assert_eq!(
+        schema_of(&again, "/T1/laser"),
+        "foxglove.LaserScan",
+        "{again}"
+    );
+    assert_eq!(schema_of(&again, "/map"), "foxglove.Grid", "{again}");
+    let counts = &again["counts"];
+    assert!(counts["/map"].as_u64().unwrap_or(0) >= 1, "{again}");
+    assert!(counts["/T1/laser"].as_u64().unwrap_or(0) >= 10, "{again}");
+    f.proc(replay).signal(libc::SIGTERM);
+    let done = f.proc(replay).json(10 * SEC).expect("replay's summary");
+    assert!(
+        done["sent"].as_u64().unwrap() >= done["messages"].as_u64().unwrap(),
+        "{done}"
+    );
+    let _ = std::fs::remove_file(&mcap);
+    // A file that is no recording is refused with a reason.
+    let (code, _) = f.run(
+        &["replay", "/etc/hostname", "--listen", "127.0.0.1:0"],
+        10 * SEC,
+    );
+    assert_eq!(code, 1);
+}

@@ -21,6 +21,7 @@ mod system;
 mod up;
 mod up_paper;
 mod user;
+mod view;
 
 use crate::cli::{Cli, Command};
 use anyhow::Context;
@@ -45,6 +46,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Certs(a) => certs::run(a),
         Command::Events(a) => events::run(&inst, a),
         Command::Record(a) => record::run(&inst, a),
+        Command::View(a) => view::run(&inst, a),
+        Command::Replay(a) => view::replay(a),
         Command::Netns(a) => netns::run(&inst, a),
         Command::NetProxy(a) => netns::proxy(a),
         Command::Cleanup { pid, after } => {

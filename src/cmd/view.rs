@@ -1,0 +1,180 @@
+//! `muster view`: the live world and infrastructure over the Foxglove WebSocket protocol
+//! (the `foxglove` crate's server), for Foxglove or Lichtblick; `muster replay`: a
+//! recording served the same way, at its pace or faster.
+
+use super::record::{scenario_and_map, Scene};
+use crate::cli::{ReplayArgs, ViewArgs};
+use anyhow::Context as _;
+use foxglove::websocket::{ChannelView, Client, ServerListener};
+use foxglove::{ChannelBuilder, Context, PartialMetadata, RawChannel, Schema, WebSocketServer};
+use muster_shared::reactor::SignalPipe;
+use muster_shared::Instance;
+use std::collections::{BTreeMap, HashSet};
+use std::net::SocketAddr;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// Notes which latched topics (the map) a client just subscribed to, to send again.
+#[derive(Default)]
+struct Latch {
+    wanted: Mutex<HashSet<String>>,
+    any: AtomicBool,
+}
+
+impl Latch {
+    fn take(&self) -> Vec<String> {
+        if !self.any.swap(false, Ordering::AcqRel) {
+            return Vec::new();
+        }
+        self.wanted
+            .lock()
+            .map(|mut w| w.drain().collect())
+            .unwrap_or_default()
+    }
+}
+
+impl ServerListener for Latch {
+    fn on_subscribe(&self, _client: Client, channel: ChannelView) {
+        if channel.topic() == "/map" {
+            if let Ok(mut w) = self.wanted.lock() {
+                w.insert(channel.topic().to_string());
+            }
+            self.any.store(true, Ordering::Release);
+        }
+    }
+}
+
+/// Starts a Foxglove WebSocket server for `ctx` on `listen`; prints where it listens
+/// (one JSON line, then the URL for people).
+fn serve(
+    ctx: &Arc<Context>,
+    listen: SocketAddr,
+    latch: &Arc<Latch>,
+) -> anyhow::Result<foxglove::WebSocketServerHandle> {
+    let server = WebSocketServer::new()
+        .name("muster")
+        .context(ctx)
+        .listener(latch.clone())
+        .bind(listen.ip().to_string(), listen.port())
+        .start_blocking()
+        .with_context(|| format!("serving the Foxglove WebSocket protocol on {listen}"))?;
+    let at = SocketAddr::new(listen.ip(), server.port());
+    println!("{}", serde_json::json!({"listen": at.to_string()}));
+    eprintln!("muster: Foxglove WebSocket server on ws://{at} (open it in Foxglove or Lichtblick: Open connection, Foxglove WebSocket)");
+    Ok(server)
+}
+
+/// `muster view`.
+pub fn run(inst: &Instance, a: ViewArgs) -> anyhow::Result<ExitCode> {
+    let mut signals = SignalPipe::install().context("signal handlers")?;
+    let (scenario, map) = scenario_and_map(a.scenario.as_deref(), a.map.as_deref())?;
+    let ctx = Context::new();
+    let latch = Arc::new(Latch::default());
+    let mut scene = Scene::new(&ctx, inst, scenario, map)?;
+    let server = serve(&ctx, a.listen, &latch)?;
+    let end = a.duration.map(|d| Instant::now() + d);
+    loop {
+        if !latch.take().is_empty() {
+            scene.log_map();
+        }
+        let any = scene.poll()?;
+        if signals.drain() || end.is_some_and(|e| Instant::now() >= e) {
+            break;
+        }
+        if !any {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+    server.stop().wait_blocking();
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `muster replay`.
+pub fn replay(a: ReplayArgs) -> anyhow::Result<ExitCode> {
+    if !(a.speed > 0.0 && a.speed.is_finite()) {
+        anyhow::bail!("--speed must be a positive number");
+    }
+    let mut signals = SignalPipe::install().context("signal handlers")?;
+    let bytes = std::fs::read(&a.file).with_context(|| format!("reading {}", a.file.display()))?;
+    // Check the whole file first: a bad one is refused before anything is served.
+    let total = mcap::MessageStream::new(&bytes)
+        .with_context(|| format!("{} is not an MCAP file", a.file.display()))?
+        .try_fold(0u64, |n, m| m.map(|_| n + 1))
+        .with_context(|| format!("reading {}", a.file.display()))?;
+    let ctx = Context::new();
+    let latch = Arc::new(Latch::default());
+    let mut channels: BTreeMap<u16, Arc<RawChannel>> = BTreeMap::new();
+    let mut latched: BTreeMap<String, Vec<u8>> = BTreeMap::new();
+    let server = serve(&ctx, a.listen, &latch)?;
+    let mut sent = 0u64;
+    let mut round = 0u64;
+    'rounds: loop {
+        round += 1;
+        let mut first: Option<(u64, Instant)> = None;
+        for m in mcap::MessageStream::new(&bytes)? {
+            let m = m?;
+            let ch = match channels.get(&m.channel.id) {
+                Some(c) => c.clone(),
+                None => {
+                    let mut b = ChannelBuilder::new(m.channel.topic.clone())
+                        .context(&ctx)
+                        .message_encoding(m.channel.message_encoding.clone());
+                    if let Some(s) = &m.channel.schema {
+                        b = b.schema(Schema::new(
+                            s.name.clone(),
+                            s.encoding.clone(),
+                            s.data.to_vec(),
+                        ));
+                    }
+                    let c = b.build_raw()?;
+                    channels.insert(m.channel.id, c.clone());
+                    c
+                }
+            };
+            // At the recording's pace (divided by --speed), from its first message.
+            let (t0, w0) = *first.get_or_insert((m.log_time, Instant::now()));
+            let due =
+                w0 + Duration::from_secs_f64(m.log_time.saturating_sub(t0) as f64 / 1e9 / a.speed);
+            loop {
+                for topic in latch.take() {
+                    if let (Some(data), Some(c)) = (
+                        latched.get(&topic),
+                        channels.values().find(|c| c.topic() == topic),
+                    ) {
+                        c.log(data);
+                    }
+                }
+                if signals.drain() {
+                    break 'rounds;
+                }
+                let now = Instant::now();
+                if now >= due {
+                    break;
+                }
+                std::thread::sleep((due - now).min(Duration::from_millis(20)));
+            }
+            if m.channel.topic == "/map" {
+                latched.insert(m.channel.topic.clone(), m.data.to_vec());
+            }
+            ch.log_with_meta(&m.data, PartialMetadata::with_log_time(now_ns()));
+            sent += 1;
+        }
+        if !a.loop_ {
+            break;
+        }
+    }
+    println!(
+        "{}",
+        serde_json::json!({"file": a.file, "messages": total, "sent": sent, "rounds": round})
+    );
+    server.stop().wait_blocking();
+    Ok(ExitCode::SUCCESS)
+}
+
+fn now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+}
