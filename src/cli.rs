@@ -72,6 +72,10 @@ pub enum Command {
     /// Foxglove's schemas where one fits; open it in Foxglove or read it with any MCAP
     /// reader.
     Record(RecordArgs),
+    /// An operator's actions (the instance owner's processes only): the broker's status
+    /// (systems and their liveness, users, sessions, queues), withdraw or restore a
+    /// service, end a session, drop a user, move or drop a queued request.
+    Operator(OperatorArgs),
     /// Serve the live world and infrastructure (the topics of `muster record`) over the
     /// Foxglove WebSocket protocol, for Foxglove or Lichtblick.
     View(ViewArgs),
@@ -332,6 +336,66 @@ pub struct RecordArgs {
     /// The simulator's map, as given to `muster sim --map`.
     #[arg(long)]
     pub map: Option<std::path::PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct OperatorArgs {
+    /// How long to wait for a broker.
+    #[arg(long, default_value = "5s", value_parser = duration, global = true)]
+    pub wait: Duration,
+    /// One JSON object instead of text.
+    #[arg(long, global = true)]
+    pub json: bool,
+    #[command(flatten)]
+    pub remote: RemoteArgs,
+    #[command(subcommand)]
+    pub action: OperatorAction,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum OperatorAction {
+    /// Systems (liveness: last answer to a ping, delinquencies), users, sessions, queues.
+    Status,
+    /// Withdraw a service (its queue is refused).
+    Withdraw {
+        /// The service (`system/name`).
+        service: String,
+    },
+    /// Offer a withdrawn service again.
+    Restore {
+        /// The service.
+        service: String,
+    },
+    /// End a session (its system ends it; its user hears why).
+    End {
+        /// The session (16 hex digits, as users and `status` print it).
+        session: String,
+    },
+    /// Drop a user: its sessions end, its requests and links go.
+    DropUser {
+        /// The user's id.
+        user: String,
+    },
+    /// Move a queued request to a place in its service's task queue (1 = next).
+    Move {
+        /// The service.
+        service: String,
+        /// The request's user.
+        user: String,
+        /// Its request number.
+        req: u64,
+        /// Its new place.
+        position: u16,
+    },
+    /// Drop a queued request (its user is told).
+    DropRequest {
+        /// The service.
+        service: String,
+        /// The request's user.
+        user: String,
+        /// Its request number.
+        req: u64,
+    },
 }
 
 #[derive(Args, Debug)]

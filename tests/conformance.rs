@@ -335,3 +335,67 @@ fn the_event_feed_shows_a_users_grant_refusal_and_end(via: Via) {
     }
 }
 both!(the_event_feed_shows_a_users_grant_refusal_and_end);
+
+fn an_operator_ends_a_session_and_drops_a_queued_request(via: Via) {
+    let mut c = Conf::new("operator", via);
+    c.system("d1", &["--kind", "command", "--quota", "1", "--queue"]);
+    c.wait_list(|l| l.len() == 1);
+    let holder = c.spawn(&["user", "request", "d1/s0", "--duration", "30s", "--json"]);
+    let first = c.f.proc(holder).json(20 * SEC).unwrap();
+    assert_eq!(first["granted"], true, "{first}");
+    let session = first["session"].as_str().unwrap().to_string();
+    let waiter = c.spawn(&["user", "request", "d1/s0", "--duration", "30s", "--json"]);
+    c.wait_list(|l| l[0]["queued"] == 1);
+    // The operator: a local process of the instance's owner.
+    let operator = |f: &Fed, args: &[&str]| -> (i32, Value) {
+        let mut a = vec!["operator", "--json"];
+        a.extend_from_slice(args);
+        let (code, out) = f.run(&a, 20 * SEC);
+        (
+            code,
+            serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}")),
+        )
+    };
+    let (code, status) = operator(&c.f, &["status"]);
+    assert_eq!(code, 0, "{status}");
+    assert_eq!(
+        status["sessions"][0]["session"],
+        session.as_str(),
+        "{status}"
+    );
+    let waiting = &status["queues"][0]["waiting"][0];
+    let (user, req) = (waiting[0].as_str().unwrap(), waiting[1].as_u64().unwrap());
+    let (code, done) = operator(&c.f, &["drop-request", "d1/s0", user, &req.to_string()]);
+    assert_eq!((code, &done["done"]), (0, &Value::Bool(true)), "{done}");
+    let told = c.f.proc(waiter).json(20 * SEC).unwrap();
+    assert_eq!(told["code"], "by_operator", "{told}");
+    let (code, _) = operator(&c.f, &["end", &session]);
+    assert_eq!(code, 0);
+    let ended = loop {
+        let v = c.f.proc(holder).json(20 * SEC).expect("the session's end");
+        if v.get("ended").is_some() {
+            break v;
+        }
+    };
+    assert!(
+        ended["reason"]
+            .as_str()
+            .unwrap()
+            .contains("ended by an operator"),
+        "{ended}"
+    );
+    // An action on what is not there is refused with the reason.
+    let (code, answer) = operator(&c.f, &["end", &session]);
+    assert_eq!(code, 1);
+    assert!(
+        answer["error"].as_str().unwrap().contains("no session"),
+        "{answer}"
+    );
+    if via == Via::Udp {
+        // Remote operators are not taken (yet): told so.
+        let (code, out) = c.run_raw(&["operator", "--json", "status"]);
+        assert_eq!(code, 1, "{out}");
+        assert!(out.contains("operators only"), "{out}");
+    }
+}
+both!(an_operator_ends_a_session_and_drops_a_queued_request);

@@ -7,7 +7,8 @@
 //! Time is a [`Duration`] since any fixed origin the driver chooses.
 
 use muster_shared::protocol::{
-    ActiveSession, BrokerEvent, LinkInfo, SessionDigest, ToBroker, ToSystem, ToUser,
+    ActiveSession, BrokerEvent, BrokerStatus, LinkInfo, Operation, QueueStatus, SessionDigest,
+    SessionStatus, SystemStatus, ToBroker, ToSystem, ToUser, UserStatus, MAX_STATUS_ROWS,
 };
 use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
 use muster_shared::types::{
@@ -160,6 +161,8 @@ struct SystemRec {
     next_ping: Duration,
     awaiting: Option<(u64, Duration)>,
     sessions: BTreeMap<SessionId, (String, UserId)>,
+    /// When it last answered a ping (or registered).
+    last_answer: Duration,
 }
 
 #[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug, Clone, PartialEq, Eq)]
@@ -218,6 +221,8 @@ pub struct Broker {
     next_nonce: u64,
     generation: u64,
     list_dirty: bool,
+    /// Times each system was found delinquent in this run.
+    delinquencies: BTreeMap<String, u32>,
     #[rkyv(with = rkyv::with::Skip)]
     out: VecDeque<Output>,
     #[rkyv(with = rkyv::with::Skip)]
@@ -271,6 +276,7 @@ impl Broker {
             next_nonce: epoch.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1,
             generation: 0,
             list_dirty: true,
+            delinquencies: BTreeMap::new(),
             out: VecDeque::new(),
             stats: BrokerStats::default(),
             journal: None,
@@ -511,6 +517,7 @@ impl Broker {
             | ToBroker::Cancel { user, .. }
             | ToBroker::LinkOpened { user, .. }
             | ToBroker::LinkClosed { user, .. }
+            | ToBroker::Operate { user, .. }
             | ToBroker::Goodbye { user } => self.users.get(user).is_none_or(|u| u.pid == pid),
         };
         muster_shared::protocol::note_impersonation(
@@ -575,6 +582,163 @@ impl Broker {
                 }
             }
             ToBroker::Goodbye { user } => self.forget_user(now, &user),
+            ToBroker::Operate { user, id, op } => self.operate(now, user, id, op),
+        }
+    }
+
+    /// An operator's action (the shell let through operators only).
+    fn operate(&mut self, now: Duration, user: UserId, id: u64, op: Operation) {
+        let told = !matches!(op, Operation::Status);
+        let what = op.to_string();
+        let result = self.try_operate(now, op);
+        if told {
+            self.ev(|| BrokerEvent::Operated {
+                user: user.clone(),
+                op: what,
+                error: result.as_ref().err().cloned(),
+            });
+        }
+        self.out
+            .push_back(Output::ToUser(user, ToUser::Operated { id, result }));
+    }
+
+    fn try_operate(
+        &mut self,
+        now: Duration,
+        op: Operation,
+    ) -> Result<Option<Box<BrokerStatus>>, String> {
+        let known = |b: &Self, service: &ServiceId| {
+            b.services
+                .contains_key(service)
+                .then_some(())
+                .ok_or_else(|| format!("no service {service}"))
+        };
+        match op {
+            Operation::Status => return Ok(Some(Box::new(self.status(now)))),
+            Operation::Withdraw { service } => {
+                known(self, &service)?;
+                let (system, name) = service.split().ok_or("a service id is system/name")?;
+                self.set_withdrawn(system, name, true);
+            }
+            Operation::Restore { service } => {
+                known(self, &service)?;
+                let (system, name) = service.split().ok_or("a service id is system/name")?;
+                self.set_withdrawn(system, name, false);
+                self.dispatch_queue(now, &service);
+            }
+            Operation::EndSession { session } => {
+                let system = self
+                    .systems
+                    .iter()
+                    .find(|(_, s)| s.sessions.contains_key(&session))
+                    .map(|(n, _)| n.clone())
+                    .ok_or_else(|| format!("no session {:016x}", session.0))?;
+                self.out.push_back(Output::ToSystem(
+                    system,
+                    ToSystem::Terminate {
+                        session,
+                        reason: "ended by an operator".into(),
+                    },
+                ));
+            }
+            Operation::DropUser { user } => {
+                if !self.users.contains_key(&user) {
+                    return Err(format!("no user {user}"));
+                }
+                self.revoke(now, &user);
+            }
+            Operation::MoveRequest {
+                service,
+                user,
+                req,
+                position,
+            } => {
+                known(self, &service)?;
+                let svc = self.services.get_mut(&service).ok_or("gone")?;
+                let at = svc
+                    .queue
+                    .iter()
+                    .position(|w| w.user == user && w.req == req)
+                    .ok_or_else(|| format!("no request {req} of {user} waits for {service}"))?;
+                let w = svc.queue.remove(at).ok_or("gone")?;
+                let to = usize::from(position.max(1) - 1).min(svc.queue.len());
+                svc.queue.insert(to, w);
+                self.list_dirty = true;
+                self.announce_positions(&service);
+            }
+            Operation::DropRequest { service, user, req } => {
+                known(self, &service)?;
+                let svc = self.services.get_mut(&service).ok_or("gone")?;
+                let at = svc
+                    .queue
+                    .iter()
+                    .position(|w| w.user == user && w.req == req)
+                    .ok_or_else(|| format!("no request {req} of {user} waits for {service}"))?;
+                svc.queue.remove(at);
+                self.list_dirty = true;
+                self.refuse(&user, req, Refusal::ByOperator);
+                self.announce_positions(&service);
+            }
+        }
+        Ok(None)
+    }
+
+    /// The state an operator sees.
+    pub fn status(&self, now: Duration) -> BrokerStatus {
+        let systems = self
+            .systems
+            .iter()
+            .map(|(name, s)| SystemStatus {
+                name: name.clone(),
+                pid: s.pid,
+                services: s.services.clone(),
+                sessions: s.sessions.len(),
+                last_answer_ms: Some(
+                    u64::try_from(now.saturating_sub(s.last_answer).as_millis())
+                        .unwrap_or(u64::MAX),
+                ),
+                ping_outstanding: s.awaiting.is_some(),
+                delinquencies: self.delinquencies.get(name).copied().unwrap_or(0),
+                udp: s.udp.clone(),
+            })
+            .collect();
+        let users = self
+            .users
+            .iter()
+            .take(MAX_STATUS_ROWS)
+            .map(|(u, r)| UserStatus {
+                user: u.clone(),
+                pid: r.pid,
+                links: r.links.values().cloned().collect(),
+            })
+            .collect();
+        let all_sessions = self.systems.iter().flat_map(|(system, s)| {
+            s.sessions
+                .iter()
+                .map(move |(id, (service, user))| SessionStatus {
+                    session: *id,
+                    service: ServiceId::new(system, service),
+                    user: user.clone(),
+                })
+        });
+        let sessions_total = self.systems.values().map(|s| s.sessions.len()).sum();
+        let queues = self
+            .services
+            .iter()
+            .filter(|(_, s)| !s.queue.is_empty())
+            .map(|(id, s)| QueueStatus {
+                service: id.clone(),
+                waiting: s.queue.iter().map(|w| (w.user.clone(), w.req)).collect(),
+            })
+            .collect();
+        BrokerStatus {
+            epoch: self.epoch,
+            systems,
+            users,
+            users_total: self.users.len(),
+            sessions: all_sessions.take(MAX_STATUS_ROWS).collect(),
+            sessions_total,
+            queues,
         }
     }
 
@@ -709,6 +873,7 @@ impl Broker {
             next_ping: now + self.cfg.ping_interval,
             awaiting: None,
             sessions: BTreeMap::new(),
+            last_answer: now,
         };
         for spec in services {
             let id = ServiceId::new(&system, &spec.name);
@@ -781,6 +946,7 @@ impl Broker {
                 if matches!(s.awaiting, Some((n, _)) if n == nonce) {
                     s.awaiting = None;
                     s.next_ping = now + self.cfg.ping_interval;
+                    s.last_answer = now;
                 }
                 let mine = SessionDigest::of(s.sessions.keys().copied());
                 if held.is_some_and(|h| h != mine) {
@@ -1234,6 +1400,7 @@ impl Broker {
         match why {
             Removal::Delinquent => {
                 self.stats.delinquent += 1;
+                *self.delinquencies.entry(name.to_string()).or_default() += 1;
                 self.out
                     .push_back(Output::ToSystem(name.to_string(), ToSystem::Delinquent));
             }

@@ -1075,3 +1075,152 @@ fn the_event_feed_tells_what_happened_in_order() {
     let back: muster_shared::protocol::EventRecord = serde_json::from_value(json).unwrap();
     assert_eq!(back, rec);
 }
+
+#[test]
+fn operators_read_the_status_move_and_drop_queued_requests_and_end_sessions() {
+    use muster_shared::protocol::Operation as Op_;
+    let mut b = broker();
+    register(&mut b, S, "d1", 7, vec![spec("s", 1, true)]);
+    request(&mut b, S, 1, 1, "d1/s");
+    let (_, ticket, _, _) = offers(&drain(&mut b))[0].clone();
+    grant(&mut b, S, "d1", ticket, 77);
+    request(&mut b, S, 2, 1, "d1/s");
+    request(&mut b, S, 3, 1, "d1/s");
+    drain(&mut b);
+    let op = |b: &mut Broker, id: u64, o: Op_| {
+        b.handle(
+            2 * S,
+            ToBroker::Operate {
+                user: user(9),
+                id,
+                op: o,
+            },
+        );
+        let out = drain(b);
+        let answer = out
+            .iter()
+            .find_map(|o| match o {
+                Output::ToUser(u, ToUser::Operated { id: i, result }) if *u == user(9) => {
+                    assert_eq!(*i, id);
+                    Some(result.clone())
+                }
+                _ => None,
+            })
+            .expect("an answer to the operator");
+        (answer, out)
+    };
+    // The status: the system and its liveness, the session, the queue in order.
+    let (answer, _) = op(&mut b, 1, Op_::Status);
+    let st = answer.unwrap().unwrap();
+    assert_eq!(st.systems.len(), 1);
+    assert_eq!(st.systems[0].name, "d1");
+    assert_eq!(st.systems[0].last_answer_ms, Some(1000));
+    assert_eq!(st.systems[0].delinquencies, 0);
+    assert_eq!(st.sessions_total, 1);
+    assert_eq!(st.sessions[0].session, SessionId(77));
+    assert_eq!(st.sessions[0].user, user(1));
+    assert_eq!(st.queues[0].waiting, vec![(user(2), 1), (user(3), 1)]);
+    // u3 moves to the head; both hear their new places.
+    let (answer, out) = op(
+        &mut b,
+        2,
+        Op_::MoveRequest {
+            service: ServiceId("d1/s".into()),
+            user: user(3),
+            req: 1,
+            position: 1,
+        },
+    );
+    assert_eq!(answer, Ok(None));
+    assert_eq!(
+        answers(&out, 3, 1),
+        vec![ToUser::Queued {
+            req: 1,
+            position: 1
+        }]
+    );
+    assert_eq!(
+        answers(&out, 2, 1),
+        vec![ToUser::Queued {
+            req: 1,
+            position: 2
+        }]
+    );
+    // u2 is dropped from the queue and told why.
+    let (answer, out) = op(
+        &mut b,
+        3,
+        Op_::DropRequest {
+            service: ServiceId("d1/s".into()),
+            user: user(2),
+            req: 1,
+        },
+    );
+    assert_eq!(answer, Ok(None));
+    assert_eq!(
+        answers(&out, 2, 1),
+        vec![ToUser::Refused {
+            req: 1,
+            reason: Refusal::ByOperator
+        }]
+    );
+    // Ending the session asks its system to end it.
+    let (answer, out) = op(
+        &mut b,
+        4,
+        Op_::EndSession {
+            session: SessionId(77),
+        },
+    );
+    assert_eq!(answer, Ok(None));
+    assert!(out.contains(&Output::ToSystem(
+        "d1".into(),
+        ToSystem::Terminate {
+            session: SessionId(77),
+            reason: "ended by an operator".into()
+        }
+    )));
+    // What is not there is an error, and nothing changes.
+    let (answer, out) = op(
+        &mut b,
+        5,
+        Op_::EndSession {
+            session: SessionId(5),
+        },
+    );
+    assert_eq!(answer, Err("no session 0000000000000005".into()));
+    assert_eq!(out.len(), 1);
+    let (answer, _) = op(
+        &mut b,
+        6,
+        Op_::DropRequest {
+            service: ServiceId("d1/s".into()),
+            user: user(2),
+            req: 1,
+        },
+    );
+    assert!(answer.unwrap_err().contains("no request 1 of u2"));
+    // Withdrawing refuses the queue; dropping a user revokes its sessions.
+    let (answer, out) = op(
+        &mut b,
+        7,
+        Op_::Withdraw {
+            service: ServiceId("d1/s".into()),
+        },
+    );
+    assert_eq!(answer, Ok(None));
+    assert_eq!(
+        answers(&out, 3, 1),
+        vec![ToUser::Refused {
+            req: 1,
+            reason: Refusal::Withdrawn
+        }]
+    );
+    let (answer, out) = op(&mut b, 8, Op_::DropUser { user: user(1) });
+    assert_eq!(answer, Ok(None));
+    assert!(out.contains(&Output::ToSystem(
+        "d1".into(),
+        ToSystem::Revoked { user: user(1) }
+    )));
+    assert!(!b.users().any(|u| *u == user(1)));
+}

@@ -1629,7 +1629,7 @@ impl Federation {
         let on_shm = core.user_pid(&user).is_some_and(|p| p != 0);
         let known = core.user_pid(&user).is_some();
         let msg = match msg {
-            ToUser::Welcome { .. } => return,
+            ToUser::Welcome { .. } | ToUser::Operated { .. } => return,
             // Answers to a request out on `from` only.
             ToUser::Queued { req, .. } | ToUser::Refused { req, .. }
                 if self
@@ -1758,7 +1758,7 @@ impl Federation {
             };
             let sender = sender.unwrap_or(0);
             let ok = match &msg {
-                ToUser::Welcome { .. } => false,
+                ToUser::Welcome { .. } | ToUser::Operated { .. } => false,
                 ToUser::Queued { .. } | ToUser::Refused { .. } => sender == pid,
                 ToUser::Granted {
                     session,

@@ -14,7 +14,7 @@ use muster_shared::ipc::{
     ReplicaWriter, TransportError,
 };
 use muster_shared::names::{Address, Instance};
-use muster_shared::protocol::{decode, ToBroker};
+use muster_shared::protocol::{decode, ToBroker, ToUser};
 use muster_shared::reactor::{
     process_alive, process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe,
 };
@@ -1242,6 +1242,15 @@ impl Shell {
     fn drain_inbox(&mut self, core: &mut Broker, now: Duration) -> Result<(), BrokerError> {
         while let Some((frame, pid)) = self.endpoint.recv_from() {
             match decode::<ToBroker>(&frame) {
+                Ok(ToBroker::Operate { user, id, .. })
+                    if !pid.is_some_and(instance_owner) || Federation::is_foreign(&user) =>
+                {
+                    let m = ToUser::Operated {
+                        id,
+                        result: Err(LOCAL_OPERATORS.into()),
+                    };
+                    self.endpoint.send_control(&Address::User(user), &m);
+                }
                 Ok(msg) if core.sender_allowed(pid, &msg) => {
                     let passed_on = self
                         .fed
@@ -1555,6 +1564,26 @@ impl Shell {
             }
         }
     }
+}
+
+/// Why a local user's operator action is refused.
+const LOCAL_OPERATORS: &str =
+    "operators only: the broker takes operators' actions from processes of the instance's owner (the user the broker runs as)";
+
+/// Whether process `pid` runs as the user this broker runs as (the instance's owner,
+/// whose processes are its operators).
+fn instance_owner(pid: u32) -> bool {
+    let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) else {
+        return false;
+    };
+    // `Uid:` real, effective, saved, filesystem.
+    let euid = status
+        .lines()
+        .find_map(|l| l.strip_prefix("Uid:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|u| u.parse::<u32>().ok());
+    // SAFETY: geteuid has no preconditions.
+    euid == Some(unsafe { libc::geteuid() })
 }
 
 /// Tells the core (and the other hosts of a federation) that the process at `who` died.

@@ -123,6 +123,10 @@ pub struct UdpStats {
     pub drops: DropCounters,
 }
 
+/// Why a remote user's operator action is refused.
+pub const REMOTE_OPERATORS: &str =
+    "operators only: operators are local processes of the instance's owner (remote operators are not supported yet)";
+
 /// Most stateless resets a front sends a second (and its burst).
 const RESETS_PER_SEC: f64 = 500.0;
 
@@ -830,6 +834,14 @@ impl UdpFront {
                 self.closed.insert(id, now);
                 self.events
                     .push_back(FrontEvent::ToCore(ToBroker::Goodbye { user }));
+            }
+            // Operators are the instance owner's local processes, for now.
+            ToBroker::Operate { id: op, .. } => {
+                let m = ToUser::Operated {
+                    id: op,
+                    result: Err(REMOTE_OPERATORS.into()),
+                };
+                self.send(id, &Down::Msg(m));
             }
             _ => self.stats.drops.drop("not_a_user_message", &from),
         }

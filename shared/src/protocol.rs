@@ -353,7 +353,174 @@ mod to_broker {
             /// User id.
             user: UserId,
         },
+        /// An operator's action, answered with [`ToUser::Operated`]. Only operators may:
+        /// on shared memory, processes of the instance's owner (the broker's user).
+        Operate {
+            /// The operator (a user).
+            user: UserId,
+            /// Its number for the action, echoed in the answer.
+            id: u64,
+            /// The action.
+            op: Operation,
+        },
     }
+
+    /// What an operator can do.
+    #[derive(
+        rkyv::Archive,
+        rkyv::Serialize,
+        rkyv::Deserialize,
+        Clone,
+        Debug,
+        PartialEq,
+        Serialize,
+        Deserialize,
+    )]
+    pub enum Operation {
+        /// The broker's state: systems and their liveness, users, sessions, queues.
+        Status,
+        /// Withdraw a service (its queue is refused), as its system could.
+        Withdraw {
+            /// The service.
+            service: ServiceId,
+        },
+        /// Offer a withdrawn service again.
+        Restore {
+            /// The service.
+            service: ServiceId,
+        },
+        /// End a session (its system ends it and tells its user).
+        EndSession {
+            /// The session.
+            session: SessionId,
+        },
+        /// Drop a user: its sessions end, its requests and links go.
+        DropUser {
+            /// The user.
+            user: UserId,
+        },
+        /// Move a request waiting in a service's task queue to `position` (1 = next).
+        MoveRequest {
+            /// The service.
+            service: ServiceId,
+            /// The request's user.
+            user: UserId,
+            /// Its request number.
+            req: u64,
+            /// Its new place (past the end: last).
+            position: u16,
+        },
+        /// Drop a request from a service's task queue (its user is told).
+        DropRequest {
+            /// The service.
+            service: ServiceId,
+            /// The request's user.
+            user: UserId,
+            /// Its request number.
+            req: u64,
+        },
+    }
+}
+
+pub use to_broker::Operation;
+
+impl std::fmt::Display for Operation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Operation::Status => f.write_str("status"),
+            Operation::Withdraw { service } => write!(f, "withdraw {service}"),
+            Operation::Restore { service } => write!(f, "restore {service}"),
+            Operation::EndSession { session } => write!(f, "end session {:016x}", session.0),
+            Operation::DropUser { user } => write!(f, "drop user {user}"),
+            Operation::MoveRequest {
+                service,
+                user,
+                req,
+                position,
+            } => write!(
+                f,
+                "move request {req} of {user} to place {position} in {service}"
+            ),
+            Operation::DropRequest { service, user, req } => {
+                write!(f, "drop request {req} of {user} from {service}")
+            }
+        }
+    }
+}
+
+/// The broker's state as an operator sees it ([`Operation::Status`]).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct BrokerStatus {
+    /// The broker run.
+    pub epoch: u64,
+    /// Registered systems.
+    pub systems: Vec<SystemStatus>,
+    /// Users (at most [`MAX_STATUS_ROWS`]; `users_total` counts all).
+    pub users: Vec<UserStatus>,
+    /// How many users there are.
+    pub users_total: usize,
+    /// Open sessions (at most [`MAX_STATUS_ROWS`]; `sessions_total` counts all).
+    pub sessions: Vec<SessionStatus>,
+    /// How many sessions are open.
+    pub sessions_total: usize,
+    /// Non-empty task queues, each in order.
+    pub queues: Vec<QueueStatus>,
+}
+
+/// Most users or sessions listed in a [`BrokerStatus`] (it must fit in one frame).
+pub const MAX_STATUS_ROWS: usize = 200;
+
+/// A system, as [`BrokerStatus`] lists it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SystemStatus {
+    /// Its name.
+    pub name: String,
+    /// Its process.
+    pub pid: u32,
+    /// Its services' names.
+    pub services: Vec<String>,
+    /// Sessions it holds.
+    pub sessions: usize,
+    /// Milliseconds since it last answered a ping (`None`: not yet).
+    pub last_answer_ms: Option<u64>,
+    /// Whether a ping waits for its answer.
+    pub ping_outstanding: bool,
+    /// Times the broker found it delinquent (no answer to a ping) in this broker run.
+    pub delinquencies: u32,
+    /// Its UDP endpoint for remote users, if any.
+    pub udp: Option<String>,
+}
+
+/// A user, as [`BrokerStatus`] lists it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct UserStatus {
+    /// Its id.
+    pub user: UserId,
+    /// Its process (0: a remote user).
+    pub pid: u32,
+    /// Its links.
+    pub links: Vec<LinkInfo>,
+}
+
+/// A session, as [`BrokerStatus`] lists it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SessionStatus {
+    /// The session (16 hex digits in JSON).
+    #[serde(with = "session_hex")]
+    pub session: SessionId,
+    /// Its service.
+    pub service: ServiceId,
+    /// Its user.
+    pub user: UserId,
+}
+
+/// A task queue, as [`BrokerStatus`] lists it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct QueueStatus {
+    /// The service.
+    pub service: ServiceId,
+    /// Waiting requests, next first: (user, request number).
+    pub waiting: Vec<(UserId, u64)>,
 }
 
 impl ToBroker {
@@ -374,6 +541,7 @@ impl ToBroker {
             ToBroker::LinkOpened { .. } => "link_opened",
             ToBroker::LinkClosed { .. } => "link_closed",
             ToBroker::Goodbye { .. } => "goodbye",
+            ToBroker::Operate { .. } => "operate",
         }
     }
 }
@@ -438,6 +606,13 @@ pub enum ToSystem {
     Revoked {
         /// The user.
         user: UserId,
+    },
+    /// An operator ended the session: end it (its user is told why).
+    Terminate {
+        /// The session.
+        session: SessionId,
+        /// Why, in words.
+        reason: String,
     },
 }
 
@@ -507,6 +682,14 @@ pub enum ToUser {
         session: SessionId,
         /// Why.
         reason: EndReason,
+    },
+    /// The broker's answer to an operator's action ([`ToBroker::Operate`]): done (with
+    /// the status, for [`Operation::Status`]), or why not.
+    Operated {
+        /// The action's number.
+        id: u64,
+        /// The outcome.
+        result: Result<Option<Box<BrokerStatus>>, String>,
     },
 }
 
@@ -703,6 +886,15 @@ pub enum BrokerEvent {
         user: UserId,
         /// The link number.
         link: u64,
+    },
+    /// An operator acted (a status read is not told).
+    Operated {
+        /// The operator.
+        user: UserId,
+        /// What it did.
+        op: String,
+        /// Why it could not, if it could not.
+        error: Option<String>,
     },
 }
 

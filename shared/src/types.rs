@@ -423,6 +423,8 @@ pub enum Refusal {
     AlreadyPending,
     /// The broker refused a malformed or unauthorised request.
     BadRequest(String),
+    /// An operator dropped the request from the service's task queue.
+    ByOperator,
 }
 
 impl fmt::Display for Refusal {
@@ -438,6 +440,7 @@ impl fmt::Display for Refusal {
             Refusal::SystemRefused(r) => write!(f, "refused by the system: {r}"),
             Refusal::AlreadyPending => f.write_str("a request for this service is already pending"),
             Refusal::BadRequest(r) => write!(f, "bad request: {r}"),
+            Refusal::ByOperator => f.write_str("dropped from the task queue by an operator"),
         }
     }
 }
@@ -454,6 +457,7 @@ impl Refusal {
             Refusal::SystemRefused(_) => "system_refused",
             Refusal::AlreadyPending => "already_pending",
             Refusal::BadRequest(_) => "bad_request",
+            Refusal::ByOperator => "by_operator",
         }
     }
 }

@@ -10,6 +10,7 @@ mod events;
 mod experiment;
 mod keygen;
 mod netns;
+mod operator;
 mod paper;
 mod record;
 mod scalability;
@@ -46,6 +47,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Certs(a) => certs::run(a),
         Command::Events(a) => events::run(&inst, a),
         Command::Record(a) => record::run(&inst, a),
+        Command::Operator(a) => operator::run(&inst, a),
         Command::View(a) => view::run(&inst, a),
         Command::Replay(a) => view::replay(a),
         Command::Netns(a) => netns::run(&inst, a),

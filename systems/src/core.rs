@@ -370,6 +370,11 @@ impl SystemCore {
                     self.close(session, EndReason::ByUser, true);
                 }
             }
+            ToSystem::Terminate { session, reason } => {
+                if self.sessions.contains_key(&session) {
+                    self.close(session, EndReason::BySystem(reason), true);
+                }
+            }
             ToSystem::Revoked { user } => {
                 let ids: Vec<SessionId> = self
                     .sessions

@@ -275,6 +275,14 @@ impl UserClient {
         Ok(req)
     }
 
+    /// An operator's action; the answer comes as [`crate::core::UserEvent::Operated`]
+    /// with the number returned.
+    pub fn operate(&mut self, op: muster_shared::protocol::Operation) -> u64 {
+        let id = self.core.operate(op);
+        self.flush();
+        id
+    }
+
     /// Gives up a pending or queued request.
     pub fn cancel(&mut self, req: u64) {
         self.core.cancel(req);

@@ -71,6 +71,13 @@ pub enum UserEvent {
         /// Why.
         reason: Refusal,
     },
+    /// The broker's answer to an operator's action ([`UserCore::operate`]).
+    Operated {
+        /// The action's number.
+        id: u64,
+        /// Done (with the status, for a status read), or why not.
+        result: Result<Option<Box<muster_shared::protocol::BrokerStatus>>, String>,
+    },
     /// A data update.
     Update {
         /// The session.
@@ -294,7 +301,7 @@ impl UserCore {
             ToUser::Welcome { broker_pid, .. } => {
                 *broker_pid == pid && owner(&Address::Broker) == Some(pid)
             }
-            ToUser::Queued { .. } | ToUser::Refused { .. } => {
+            ToUser::Queued { .. } | ToUser::Refused { .. } | ToUser::Operated { .. } => {
                 self.broker_pid == Some(pid) || owner(&Address::Broker) == Some(pid)
             }
             ToUser::Granted {
@@ -603,9 +610,25 @@ impl UserCore {
         });
     }
 
+    /// An operator's action (only operators may: the broker says why not otherwise);
+    /// its answer comes as [`UserEvent::Operated`] with the number returned.
+    pub fn operate(&mut self, op: muster_shared::protocol::Operation) -> u64 {
+        let id = self.next_req;
+        self.next_req += 1;
+        self.send_broker(ToBroker::Operate {
+            user: self.id.clone(),
+            id,
+            op,
+        });
+        id
+    }
+
     /// Handles one frame from the inbox.
     pub fn handle(&mut self, msg: ToUser) {
         match msg {
+            ToUser::Operated { id, result } => {
+                self.events.push_back(UserEvent::Operated { id, result });
+            }
             ToUser::Welcome { epoch, broker_pid } => {
                 self.welcomed = true;
                 self.connected = Some(epoch);

@@ -183,7 +183,9 @@ fn show_event(
         UserEvent::LinkEnded { link, reason } => println!("\nlink {link} ended: {reason}"),
         UserEvent::BrokerLost => println!("\n(broker lost: sessions go on; new requests wait)"),
         UserEvent::Connected { .. } => println!("\n(connected to a broker)"),
-        UserEvent::LinkForwarded { .. } | UserEvent::EndConfirmed { .. } => {}
+        UserEvent::LinkForwarded { .. }
+        | UserEvent::EndConfirmed { .. }
+        | UserEvent::Operated { .. } => {}
     }
 }
 
