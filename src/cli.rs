@@ -76,6 +76,10 @@ pub enum Command {
     /// (systems and their liveness, users, sessions, queues), withdraw or restore a
     /// service, end a session, drop a user, move or drop a queued request.
     Operator(OperatorArgs),
+    /// The operator's full-screen console: services, systems and their liveness, users,
+    /// sessions, task queues and the broker's events, live; keys to withdraw or restore
+    /// a service, end a session, drop a user, move or drop a queued request.
+    Console(ConsoleArgs),
     /// Serve the live world and infrastructure (the topics of `muster record`) over the
     /// Foxglove WebSocket protocol, for Foxglove or Lichtblick.
     View(ViewArgs),
@@ -336,6 +340,13 @@ pub struct RecordArgs {
     /// The simulator's map, as given to `muster sim --map`.
     #[arg(long)]
     pub map: Option<std::path::PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct ConsoleArgs {
+    /// How long to wait for a broker.
+    #[arg(long, default_value = "5s", value_parser = duration)]
+    pub wait: Duration,
 }
 
 #[derive(Args, Debug)]

@@ -399,3 +399,135 @@ fn an_operator_ends_a_session_and_drops_a_queued_request(via: Via) {
     }
 }
 both!(an_operator_ends_a_session_and_drops_a_queued_request);
+
+/// A tmux session running a command, killed (by name, ours) on drop.
+struct Tmux(String);
+
+impl Tmux {
+    /// `None` (the test skips, saying so) if tmux is missing, unless
+    /// `MUSTER_REQUIRE_TMUX` is set (as .ci/run does).
+    fn start(name: &str, cmd: &str) -> Option<Self> {
+        let ok = std::process::Command::new("tmux")
+            .args([
+                "new-session",
+                "-d",
+                "-s",
+                name,
+                "-x",
+                "180",
+                "-y",
+                "45",
+                cmd,
+            ])
+            .status()
+            .is_ok_and(|s| s.success());
+        if !ok {
+            assert!(
+                std::env::var_os("MUSTER_REQUIRE_TMUX").is_none(),
+                "tmux could not start {cmd}"
+            );
+            eprintln!("skipped: no tmux");
+            return None;
+        }
+        Some(Tmux(name.to_string()))
+    }
+
+    fn screen(&self) -> String {
+        let out = std::process::Command::new("tmux")
+            .args(["capture-pane", "-p", "-t", &self.0])
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&out.stdout).to_string()
+    }
+
+    /// Waits until the screen satisfies `pred`; returns it.
+    fn wait(&self, what: &str, pred: impl Fn(&str) -> bool) -> String {
+        let deadline = std::time::Instant::now() + 15 * SEC;
+        loop {
+            let s = self.screen();
+            if pred(&s) {
+                return s;
+            }
+            assert!(
+                std::time::Instant::now() < deadline,
+                "no {what} on the screen:\n{s}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    fn keys(&self, keys: &[&str]) {
+        let mut a = vec!["send-keys", "-t", &self.0];
+        a.extend_from_slice(keys);
+        assert!(std::process::Command::new("tmux")
+            .args(&a)
+            .status()
+            .unwrap()
+            .success());
+    }
+
+    fn alive(&self) -> bool {
+        std::process::Command::new("tmux")
+            .args(["has-session", "-t", &self.0])
+            .status()
+            .is_ok_and(|s| s.success())
+    }
+}
+
+impl Drop for Tmux {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("tmux")
+            .args(["kill-session", "-t", &self.0])
+            .status();
+    }
+}
+
+#[test]
+fn the_console_shows_grants_ends_and_withdrawals_and_acts_on_keys() {
+    let mut c = Conf::new("console", Via::Shm);
+    c.system("d1", &["--kind", "command", "--quota", "1", "--queue"]);
+    c.wait_list(|l| l.len() == 1);
+    let holder = c.spawn(&["user", "request", "d1/s0", "--duration", "60s", "--json"]);
+    let first = c.f.proc(holder).json(20 * SEC).unwrap();
+    let session = first["session"].as_str().unwrap().to_string();
+    let name = format!("muster-console-{}", std::process::id());
+    let cmd = format!("{} --instance {} console", common::BIN, c.f.inst);
+    let Some(t) = Tmux::start(&name, &cmd) else {
+        return;
+    };
+    // The service, the session and its grant.
+    t.wait("the session", |s| {
+        s.contains("d1/s0") && s.contains(&session)
+    });
+    t.wait("the grant", |s| {
+        s.contains("granted") && s.contains(&format!("session={session}"))
+    });
+    // A request waits in the queue: shown in the queue pane and the event log.
+    let waiter = c.spawn(&["user", "request", "d1/s0", "--duration", "60s", "--json"]);
+    t.wait("the queued request", |s| s.contains("queued position=1"));
+    // Tab to the sessions, `e`: the session ends and the waiter is granted.
+    t.keys(&["Tab", "e"]);
+    t.wait("the end", |s| {
+        s.contains(&format!("op=end session {session}")) && s.contains("session_ended")
+    });
+    let granted = c.f.proc(waiter).json(20 * SEC).unwrap();
+    assert_eq!(granted["granted"], true, "{granted}");
+    let second = granted["session"].as_str().unwrap().to_string();
+    t.wait("the new session", |s| s.contains(&second));
+    // Back to the services, `w`: withdrawn, on screen.
+    t.keys(&["Tab", "Tab", "Tab", "w"]);
+    t.wait("the withdrawal", |s| {
+        s.contains("withdrawn=true") && s.contains("withdrawn  ")
+    });
+    assert_eq!(c.list()[0]["withdrawn"], true);
+    // `q` quits and gives the terminal back.
+    t.keys(&["q"]);
+    let deadline = std::time::Instant::now() + 10 * SEC;
+    while t.alive() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the console did not quit"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}

@@ -6,6 +6,7 @@ mod broker;
 mod capacity;
 mod certs;
 mod children;
+mod console;
 mod events;
 mod experiment;
 mod keygen;
@@ -48,6 +49,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Events(a) => events::run(&inst, a),
         Command::Record(a) => record::run(&inst, a),
         Command::Operator(a) => operator::run(&inst, a),
+        Command::Console(a) => console::run(&inst, a),
         Command::View(a) => view::run(&inst, a),
         Command::Replay(a) => view::replay(a),
         Command::Netns(a) => netns::run(&inst, a),

@@ -1,0 +1,544 @@
+//! `muster console`: the operator's full-screen view (ratatui).
+//!
+//! It is a user of the broker like any other (it says hello, reads the shared-memory
+//! list, and sends `Operate`), plus a reader of the broker's event feed. It redraws when
+//! something changes: a key, a list change, an event, the answer to its status request
+//! (asked after every event, and every few seconds for the systems' ping ages); idle,
+//! it sleeps in the kernel.
+
+use crate::cli::ConsoleArgs;
+use anyhow::Context;
+use muster_shared::ipc::{create_node, EventReader};
+use muster_shared::protocol::{BrokerStatus, EventRecord, Operation};
+use muster_shared::snapshot::ServiceView;
+use muster_shared::types::{ServiceId, UserId};
+use muster_shared::Instance;
+use muster_users::{ConnectOptions, UserClient, UserError, UserEvent, Wake};
+use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
+use ratatui::layout::{Constraint, Layout, Rect};
+use ratatui::style::{Modifier, Style};
+use ratatui::text::Line;
+use ratatui::widgets::{Block, Borders, Paragraph, Row, Table, TableState};
+use ratatui::Frame;
+use std::collections::VecDeque;
+use std::io::{Read, Write};
+use std::os::fd::AsRawFd;
+use std::os::unix::net::UnixStream;
+use std::process::ExitCode;
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+/// The status is read again this often when nothing happens (ping ages move on).
+const STATUS_EVERY: Duration = Duration::from_secs(3);
+/// Event lines kept.
+const LOG_LINES: usize = 500;
+
+/// What the two helper threads hand the console.
+enum Input {
+    Key(KeyCode, KeyModifiers),
+    Resize,
+    Feed(EventRecord),
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Pane {
+    Services,
+    Sessions,
+    Users,
+    Queues,
+}
+
+impl Pane {
+    fn next(self) -> Self {
+        match self {
+            Pane::Services => Pane::Sessions,
+            Pane::Sessions => Pane::Users,
+            Pane::Users => Pane::Queues,
+            Pane::Queues => Pane::Services,
+        }
+    }
+}
+
+struct Console {
+    inst: Instance,
+    list: Vec<ServiceView>,
+    status: BrokerStatus,
+    log: VecDeque<String>,
+    pane: Pane,
+    sel: [usize; 4],
+    message: String,
+    asked: Option<u64>,
+    last_status: Instant,
+}
+
+fn index(p: Pane) -> usize {
+    p as usize
+}
+
+/// One event as a log line.
+fn describe(r: &EventRecord) -> String {
+    let v = serde_json::to_value(&r.event).unwrap_or_default();
+    let kind = v["event"].as_str().unwrap_or("?").to_string();
+    let mut fields: Vec<String> = v
+        .as_object()
+        .map(|o| {
+            o.iter()
+                .filter(|(k, _)| k.as_str() != "event")
+                .map(|(k, x)| match x {
+                    serde_json::Value::String(s) => format!("{k}={s}"),
+                    other => format!("{k}={other}"),
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    fields.sort();
+    let secs = r.t_ns / 1_000_000_000;
+    format!(
+        "{:02}:{:02}:{:02} {kind} {}",
+        (secs / 3600) % 24,
+        (secs / 60) % 60,
+        secs % 60,
+        fields.join(" ")
+    )
+}
+
+impl Console {
+    /// The queued requests, flattened in display order: (service, user, req, place).
+    fn queued(&self) -> Vec<(ServiceId, UserId, u64, usize)> {
+        self.status
+            .queues
+            .iter()
+            .flat_map(|q| {
+                q.waiting
+                    .iter()
+                    .enumerate()
+                    .map(|(i, (u, r))| (q.service.clone(), u.clone(), *r, i + 1))
+            })
+            .collect()
+    }
+
+    fn rows(&self, p: Pane) -> usize {
+        match p {
+            Pane::Services => self.list.len(),
+            Pane::Sessions => self.status.sessions.len(),
+            Pane::Users => self.status.users.len(),
+            Pane::Queues => self.queued().len(),
+        }
+    }
+
+    fn clamp(&mut self) {
+        for p in [Pane::Services, Pane::Sessions, Pane::Users, Pane::Queues] {
+            let n = self.rows(p);
+            let s = &mut self.sel[index(p)];
+            *s = (*s).min(n.saturating_sub(1));
+        }
+    }
+
+    /// The action a key asks for on the selected row, if any.
+    fn action(&self, key: KeyCode) -> Option<Operation> {
+        let sel = self.sel[index(self.pane)];
+        match (self.pane, key) {
+            (Pane::Services, KeyCode::Char('w')) => {
+                self.list.get(sel).map(|v| Operation::Withdraw {
+                    service: ServiceId(v.id.clone()),
+                })
+            }
+            (Pane::Services, KeyCode::Char('r')) => {
+                self.list.get(sel).map(|v| Operation::Restore {
+                    service: ServiceId(v.id.clone()),
+                })
+            }
+            (Pane::Sessions, KeyCode::Char('e')) => self
+                .status
+                .sessions
+                .get(sel)
+                .map(|s| Operation::EndSession { session: s.session }),
+            (Pane::Users, KeyCode::Char('d')) => {
+                self.status.users.get(sel).map(|u| Operation::DropUser {
+                    user: u.user.clone(),
+                })
+            }
+            (Pane::Queues, KeyCode::Char(c @ ('+' | '-'))) => {
+                self.queued().get(sel).map(|(service, user, req, place)| {
+                    let position = if c == '+' {
+                        place.saturating_sub(1).max(1)
+                    } else {
+                        place + 1
+                    };
+                    Operation::MoveRequest {
+                        service: service.clone(),
+                        user: user.clone(),
+                        req: *req,
+                        position: u16::try_from(position).unwrap_or(u16::MAX),
+                    }
+                })
+            }
+            (Pane::Queues, KeyCode::Char('x')) => {
+                self.queued()
+                    .get(sel)
+                    .map(|(service, user, req, _)| Operation::DropRequest {
+                        service: service.clone(),
+                        user: user.clone(),
+                        req: *req,
+                    })
+            }
+            _ => None,
+        }
+    }
+
+    fn draw(&self, f: &mut Frame) {
+        let [top, middle, log, help] = Layout::vertical([
+            Constraint::Length(2),
+            Constraint::Min(10),
+            Constraint::Length(9),
+            Constraint::Length(1),
+        ])
+        .areas(f.area());
+        let s = &self.status;
+        let title = format!(
+            "muster console: instance {}, broker run {:016x}: {} services, {} systems, {} users, {} sessions",
+            self.inst,
+            s.epoch,
+            self.list.len(),
+            s.systems.len(),
+            s.users_total,
+            s.sessions_total
+        );
+        f.render_widget(
+            Paragraph::new(vec![Line::from(title), Line::from(self.message.clone())]),
+            top,
+        );
+        let [left, right] =
+            Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
+                .areas(middle);
+        let [services_area, systems_area] =
+            Layout::vertical([Constraint::Percentage(60), Constraint::Percentage(40)]).areas(left);
+        let [sessions_area, users_area, queues_area] = Layout::vertical([
+            Constraint::Percentage(40),
+            Constraint::Percentage(30),
+            Constraint::Percentage(30),
+        ])
+        .areas(right);
+        let services = self.list.iter().map(|v| {
+            let mut flags = Vec::new();
+            if v.withdrawn {
+                flags.push("withdrawn".to_string());
+            }
+            if v.remote {
+                flags.push(format!("on {}", v.host));
+            }
+            Row::new(vec![
+                v.id.clone(),
+                v.kind.clone(),
+                format!("{}/{}", v.in_use, v.quota),
+                if v.queue {
+                    v.queued.to_string()
+                } else {
+                    "-".into()
+                },
+                v.links.to_string(),
+                flags.join(", "),
+            ])
+        });
+        self.table(
+            f,
+            services_area,
+            Pane::Services,
+            "services (w withdraw, r restore)",
+            ["id", "kind", "in use", "queued", "links", ""],
+            &[25, 8, 7, 6, 5, 20],
+            services.collect(),
+        );
+        let systems = s.systems.iter().map(|x| {
+            Row::new(vec![
+                x.name.clone(),
+                x.pid.to_string(),
+                x.sessions.to_string(),
+                x.last_answer_ms
+                    .map_or("never".into(), |ms| format!("{:.1} s", ms as f64 / 1000.0)),
+                x.delinquencies.to_string(),
+            ])
+        });
+        let t = Table::new(
+            systems.collect::<Vec<_>>(),
+            [16, 8, 8, 14, 11].map(Constraint::Length),
+        )
+        .header(Row::new(["system", "pid", "sessions", "last answer", "delinquent"]).style(bold()))
+        .block(Block::default().borders(Borders::ALL).title("systems"));
+        f.render_widget(t, systems_area);
+        let sessions = s.sessions.iter().map(|x| {
+            Row::new(vec![
+                format!("{:016x}", x.session.0),
+                x.service.0.clone(),
+                x.user.0.clone(),
+            ])
+        });
+        self.table(
+            f,
+            sessions_area,
+            Pane::Sessions,
+            "sessions (e end)",
+            ["session", "service", "user", "", "", ""],
+            &[17, 20, 24, 0, 0, 0],
+            sessions.collect(),
+        );
+        let users = s.users.iter().map(|u| {
+            Row::new(vec![
+                u.user.0.clone(),
+                if u.pid == 0 {
+                    "remote".into()
+                } else {
+                    u.pid.to_string()
+                },
+                u.links.len().to_string(),
+            ])
+        });
+        self.table(
+            f,
+            users_area,
+            Pane::Users,
+            "users (d drop)",
+            ["user", "pid", "links", "", "", ""],
+            &[26, 8, 5, 0, 0, 0],
+            users.collect(),
+        );
+        let queued = self
+            .queued()
+            .into_iter()
+            .map(|(service, user, req, place)| {
+                Row::new(vec![service.0, place.to_string(), user.0, req.to_string()])
+            });
+        self.table(
+            f,
+            queues_area,
+            Pane::Queues,
+            "task queues (+ up, - down, x drop)",
+            ["service", "place", "user", "request", "", ""],
+            &[20, 5, 24, 7, 0, 0],
+            queued.collect(),
+        );
+        let lines: Vec<Line> = self
+            .log
+            .iter()
+            .rev()
+            .take(usize::from(log.height.saturating_sub(2)))
+            .rev()
+            .map(|l| Line::from(l.clone()))
+            .collect();
+        f.render_widget(
+            Paragraph::new(lines).block(Block::default().borders(Borders::ALL).title("events")),
+            log,
+        );
+        f.render_widget(
+            Paragraph::new("Tab: next pane  Up/Down: select  q: quit"),
+            help,
+        );
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn table(
+        &self,
+        f: &mut Frame,
+        area: Rect,
+        pane: Pane,
+        title: &str,
+        header: [&str; 6],
+        widths: &[u16],
+        rows: Vec<Row>,
+    ) {
+        let focused = self.pane == pane;
+        let title = if focused {
+            format!("[{title}]")
+        } else {
+            title.to_string()
+        };
+        let t = Table::new(rows, widths.iter().map(|w| Constraint::Length(*w)))
+            .header(Row::new(header).style(bold()))
+            .block(Block::default().borders(Borders::ALL).title(title))
+            .row_highlight_style(Style::default().add_modifier(Modifier::REVERSED));
+        let mut state = TableState::default();
+        if focused {
+            state.select(Some(self.sel[index(pane)]));
+        }
+        f.render_stateful_widget(t, area, &mut state);
+    }
+}
+
+fn bold() -> Style {
+    Style::default().add_modifier(Modifier::BOLD)
+}
+
+/// `muster console`.
+pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
+    let opts = ConnectOptions {
+        wait_for_broker: a.wait,
+        handle_signals: true,
+        watch_list: true,
+    };
+    let mut client = UserClient::connect(inst, &opts)?;
+    // The helpers write a byte to this socket pair for every input; the client's reactor
+    // wakes on it.
+    let (bell_rx, bell_tx) = UnixStream::pair().context("a socket pair")?;
+    bell_rx.set_nonblocking(true)?;
+    client.watch_extra(bell_rx.as_raw_fd())?;
+    let (tx, rx) = mpsc::channel::<Input>();
+    {
+        let (tx, mut bell) = (tx.clone(), bell_tx.try_clone()?);
+        std::thread::spawn(move || {
+            while let Ok(ev) = event::read() {
+                let input = match ev {
+                    Event::Key(k) if k.kind == KeyEventKind::Press => {
+                        Input::Key(k.code, k.modifiers)
+                    }
+                    Event::Resize(..) => Input::Resize,
+                    _ => continue,
+                };
+                if tx.send(input).is_err() || bell.write_all(&[1]).is_err() {
+                    return;
+                }
+            }
+        });
+    }
+    {
+        let (tx, mut bell, inst) = (tx, bell_tx, inst.clone());
+        std::thread::spawn(move || {
+            let Ok(node) = create_node("muster-console-feed", false) else {
+                return;
+            };
+            let mut feed = None;
+            loop {
+                if feed.is_none() {
+                    feed = EventReader::open(&node, &inst).ok();
+                }
+                let Some(f) = feed.as_mut() else {
+                    std::thread::sleep(Duration::from_secs(1));
+                    continue;
+                };
+                while let Some(r) = f.next_event() {
+                    if tx.send(Input::Feed(r)).is_err() {
+                        return;
+                    }
+                }
+                if bell.write_all(&[2]).is_err() {
+                    return;
+                }
+                f.wait(Duration::from_secs(3600));
+            }
+        });
+    }
+    let mut c = Console {
+        inst: inst.clone(),
+        list: Vec::new(),
+        status: BrokerStatus::default(),
+        log: VecDeque::new(),
+        pane: Pane::Services,
+        sel: [0; 4],
+        message: String::new(),
+        asked: None,
+        last_status: Instant::now()
+            .checked_sub(STATUS_EVERY)
+            .unwrap_or_else(Instant::now),
+    };
+    let mut terminal = ratatui::init();
+    let outcome = (|| -> anyhow::Result<()> {
+        let mut dirty = true;
+        let mut list_owed = true;
+        loop {
+            if list_owed {
+                c.list = client.list()?.views();
+                list_owed = false;
+                dirty = true;
+            }
+            if c.asked.is_none() && c.last_status.elapsed() >= STATUS_EVERY {
+                c.asked = Some(client.operate(Operation::Status));
+                c.last_status = Instant::now();
+            }
+            if dirty {
+                c.clamp();
+                terminal.draw(|f| c.draw(f))?;
+                dirty = false;
+            }
+            let deadline = c.last_status + STATUS_EVERY;
+            match client.wait(deadline) {
+                Ok(Wake::Event(UserEvent::Operated { id, result })) => {
+                    if c.asked == Some(id) {
+                        c.asked = None;
+                        match result {
+                            Ok(Some(s)) => c.status = *s,
+                            Ok(None) => {}
+                            Err(e) => c.message = format!("status: {e}"),
+                        }
+                    } else {
+                        c.message = match result {
+                            Ok(_) => "done".into(),
+                            Err(e) => format!("refused: {e}"),
+                        };
+                    }
+                    dirty = true;
+                }
+                Ok(Wake::Event(UserEvent::ListChanged | UserEvent::Connected { .. })) => {
+                    list_owed = true;
+                }
+                Ok(Wake::Event(UserEvent::BrokerLost)) => {
+                    c.message = "broker lost: waiting for one".into();
+                    dirty = true;
+                }
+                Ok(Wake::Event(_)) => {}
+                Ok(Wake::Timeout) => {}
+                Ok(Wake::Extra) => {
+                    let mut buf = [0u8; 256];
+                    while matches!((&bell_rx).read(&mut buf), Ok(n) if n > 0) {}
+                    let mut changed = false;
+                    while let Ok(input) = rx.try_recv() {
+                        match input {
+                            Input::Key(KeyCode::Char('q'), _) | Input::Key(KeyCode::Esc, _) => {
+                                return Ok(());
+                            }
+                            Input::Key(KeyCode::Char('c'), m)
+                                if m.contains(KeyModifiers::CONTROL) =>
+                            {
+                                return Ok(());
+                            }
+                            Input::Key(KeyCode::Tab, _) => c.pane = c.pane.next(),
+                            Input::Key(KeyCode::Down, _) => {
+                                let s = &mut c.sel[index(c.pane)];
+                                *s = s.saturating_add(1);
+                            }
+                            Input::Key(KeyCode::Up, _) => {
+                                let s = &mut c.sel[index(c.pane)];
+                                *s = s.saturating_sub(1);
+                            }
+                            Input::Key(k, _) => {
+                                if let Some(op) = c.action(k) {
+                                    c.message = format!("{op}...");
+                                    client.operate(op);
+                                }
+                            }
+                            Input::Resize => {}
+                            Input::Feed(r) => {
+                                c.log.push_back(describe(&r));
+                                while c.log.len() > LOG_LINES {
+                                    c.log.pop_front();
+                                }
+                                changed = true;
+                            }
+                        }
+                        dirty = true;
+                    }
+                    // Something happened at the broker: the status again, at once.
+                    if changed && c.asked.is_none() {
+                        c.last_status = Instant::now()
+                            .checked_sub(STATUS_EVERY)
+                            .unwrap_or(c.last_status);
+                    }
+                }
+                Err(UserError::Interrupted) => return Ok(()),
+                Err(e) => return Err(e.into()),
+            }
+        }
+    })();
+    ratatui::restore();
+    client.close();
+    outcome?;
+    Ok(ExitCode::SUCCESS)
+}
