@@ -333,6 +333,13 @@ pub struct RecordArgs {
     /// Stop by itself after this long (default: run until Ctrl-C).
     #[arg(long, value_parser = duration)]
     pub duration: Option<Duration>,
+    #[command(flatten)]
+    pub scene: SceneArgs,
+}
+
+/// The world a recorder or viewer draws: the simulator's own flags.
+#[derive(Args, Debug)]
+pub struct SceneArgs {
     /// The simulator's scenario (for the map and the robots' sensors), as given to
     /// `muster sim`; default the paper's.
     #[arg(long)]
@@ -417,12 +424,8 @@ pub struct ViewArgs {
     /// Stop by itself after this long (default: run until Ctrl-C).
     #[arg(long, value_parser = duration)]
     pub duration: Option<Duration>,
-    /// The simulator's scenario, as given to `muster sim`; default the paper's.
-    #[arg(long)]
-    pub scenario: Option<std::path::PathBuf>,
-    /// The simulator's map, as given to `muster sim --map`.
-    #[arg(long)]
-    pub map: Option<std::path::PathBuf>,
+    #[command(flatten)]
+    pub scene: SceneArgs,
 }
 
 #[derive(Args, Debug)]

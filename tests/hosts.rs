@@ -506,7 +506,7 @@ print(json.dumps({"alive": alive, "systems": systems,
 
 #[test]
 fn hostile_frames_from_another_host_are_dropped() {
-    use muster_broker::federation::FedMsg;
+    use muster_broker::federation::{FarGrant, FedMsg};
     use muster_shared::protocol::{encode, RemoteContact, ToSystem, ToUser};
     use muster_shared::types::{EndReason, Payload, ServiceId, ServiceKind, SessionId, UserId};
     use zenoh::Wait;
@@ -586,7 +586,7 @@ fn hostile_frames_from_another_host_are_dropped() {
         // A grant nobody asked for, on the systems' key.
         (
             format!("muster/{}/b/in/a", h.name),
-            encode(&FedMsg::Granted {
+            encode(&FedMsg::Granted(FarGrant {
                 user: UserId("nobody".into()),
                 req: 5,
                 session: SessionId(5),
@@ -594,7 +594,7 @@ fn hostile_frames_from_another_host_are_dropped() {
                 kind: ServiceKind::Data,
                 payload: "text".into(),
                 system_addr: "127.0.0.1:9".into(),
-            })
+            }))
             .unwrap(),
         ),
         (

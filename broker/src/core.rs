@@ -607,21 +607,18 @@ impl Broker {
         now: Duration,
         op: Operation,
     ) -> Result<Option<Box<BrokerStatus>>, String> {
-        let known = |b: &Self, service: &ServiceId| {
-            b.services
-                .contains_key(service)
-                .then_some(())
-                .ok_or_else(|| format!("no service {service}"))
-        };
         match op {
             Operation::Status => return Ok(Some(Box::new(self.status(now)))),
+            Operation::Withdraw { service: id } | Operation::Restore { service: id }
+                if !self.services.contains_key(&id) =>
+            {
+                return Err(format!("no service {id}"));
+            }
             Operation::Withdraw { service } => {
-                known(self, &service)?;
                 let (system, name) = service.split().ok_or("a service id is system/name")?;
                 self.set_withdrawn(system, name, true);
             }
             Operation::Restore { service } => {
-                known(self, &service)?;
                 let (system, name) = service.split().ok_or("a service id is system/name")?;
                 self.set_withdrawn(system, name, false);
                 self.dispatch_queue(now, &service);
@@ -653,34 +650,39 @@ impl Broker {
                 req,
                 position,
             } => {
-                known(self, &service)?;
+                let w = self.take_waiting(&service, &user, req)?;
                 let svc = self.services.get_mut(&service).ok_or("gone")?;
-                let at = svc
-                    .queue
-                    .iter()
-                    .position(|w| w.user == user && w.req == req)
-                    .ok_or_else(|| format!("no request {req} of {user} waits for {service}"))?;
-                let w = svc.queue.remove(at).ok_or("gone")?;
                 let to = usize::from(position.max(1) - 1).min(svc.queue.len());
                 svc.queue.insert(to, w);
-                self.list_dirty = true;
                 self.announce_positions(&service);
             }
             Operation::DropRequest { service, user, req } => {
-                known(self, &service)?;
-                let svc = self.services.get_mut(&service).ok_or("gone")?;
-                let at = svc
-                    .queue
-                    .iter()
-                    .position(|w| w.user == user && w.req == req)
-                    .ok_or_else(|| format!("no request {req} of {user} waits for {service}"))?;
-                svc.queue.remove(at);
-                self.list_dirty = true;
+                self.take_waiting(&service, &user, req)?;
                 self.refuse(&user, req, Refusal::ByOperator);
                 self.announce_positions(&service);
             }
         }
         Ok(None)
+    }
+
+    /// Takes request `req` of `user` out of `service`'s task queue.
+    fn take_waiting(
+        &mut self,
+        service: &ServiceId,
+        user: &UserId,
+        req: u64,
+    ) -> Result<Waiting, String> {
+        let svc = self
+            .services
+            .get_mut(service)
+            .ok_or_else(|| format!("no service {service}"))?;
+        let at = svc
+            .queue
+            .iter()
+            .position(|w| w.user == *user && w.req == req)
+            .ok_or_else(|| format!("no request {req} of {user} waits for {service}"))?;
+        self.list_dirty = true;
+        svc.queue.remove(at).ok_or_else(|| "gone".into())
     }
 
     /// The state an operator sees.

@@ -400,29 +400,34 @@ pub enum FedMsg {
     },
     /// A grant for a remote (UDP) user's request ([`FedMsg::Request`] with `remote`):
     /// the session runs between the user and the system's UDP endpoint.
-    Granted {
-        /// The user, as the receiving host knows it.
-        user: UserId,
-        /// Its request number.
-        req: u64,
-        /// The session.
-        session: SessionId,
-        /// The service, as the sending host knows it (`system/name`).
-        service: ServiceId,
-        /// Data or command.
-        kind: ServiceKind,
-        /// Payload type.
-        payload: String,
-        /// The system's UDP endpoint, as the user reaches it.
-        system_addr: String,
-    },
+    Granted(FarGrant),
+}
+
+/// A grant on another host for a remote (UDP) user: what its host's front tells it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FarGrant {
+    /// The user, as its host knows it.
+    pub user: UserId,
+    /// Its request number.
+    pub req: u64,
+    /// The session.
+    pub session: SessionId,
+    /// The service: as the system's host knows it (`system/name`) on the wire, as the
+    /// user's host lists it (`system@host/name`) once delivered.
+    pub service: ServiceId,
+    /// Data or command.
+    pub kind: ServiceKind,
+    /// Payload type.
+    pub payload: String,
+    /// The system's UDP endpoint, as the user reaches it.
+    pub system_addr: String,
 }
 
 impl FedMsg {
     /// Whether the frame travels on the users' key (`req/`) rather than on the
     /// systems' (`in/`): access control tells the two apart.
     fn on_users_key(&self) -> bool {
-        !matches!(self, FedMsg::ToUser { .. } | FedMsg::Granted { .. })
+        !matches!(self, FedMsg::ToUser { .. } | FedMsg::Granted(_))
     }
 }
 
@@ -434,22 +439,7 @@ pub enum Delivery {
     Msg(UserId, ToUser),
     /// A grant on another host for a remote user: the front gives it the system's
     /// UDP endpoint and the session key it issued for the request.
-    Grant {
-        /// The user.
-        user: UserId,
-        /// Its request number.
-        req: u64,
-        /// The session.
-        session: SessionId,
-        /// The service (`system@host/name`).
-        service: ServiceId,
-        /// Data or command.
-        kind: ServiceKind,
-        /// Payload type.
-        payload: String,
-        /// The system's UDP endpoint.
-        system_addr: String,
-    },
+    Grant(FarGrant),
 }
 
 /// Counters of the federation, for status and benches.
@@ -1009,29 +999,14 @@ impl Federation {
     pub fn route(&mut self, core: &Broker, out: Output) -> Option<Output> {
         match out {
             Output::WatchUser { ref user, .. } if Self::is_foreign(user) => None,
-            Output::ToSystem(
-                system,
-                ToSystem::Offer {
-                    ticket,
-                    user,
-                    user_pid,
-                    req,
-                    service,
-                    remote: None,
-                },
-            ) => {
-                let remote = self.contacts.get(&(user.clone(), req)).cloned();
-                Some(Output::ToSystem(
-                    system,
-                    ToSystem::Offer {
-                        ticket,
-                        user,
-                        user_pid,
-                        req,
-                        service,
-                        remote,
-                    },
-                ))
+            Output::ToSystem(system, mut offer @ ToSystem::Offer { remote: None, .. }) => {
+                if let ToSystem::Offer {
+                    user, req, remote, ..
+                } = &mut offer
+                {
+                    *remote = self.contacts.get(&(user.clone(), *req)).cloned();
+                }
+                Some(Output::ToSystem(system, offer))
             }
             Output::Granted {
                 user,
@@ -1051,7 +1026,7 @@ impl Federation {
                 let msg = match addr {
                     Some(system_addr) => {
                         f.sessions.insert(session, (system, 0));
-                        FedMsg::Granted {
+                        FedMsg::Granted(FarGrant {
                             user: home,
                             req,
                             session,
@@ -1059,7 +1034,7 @@ impl Federation {
                             kind,
                             payload,
                             system_addr,
-                        }
+                        })
                     }
                     // The system dropped its UDP endpoint (re-registered without one)
                     // after the request came: the session it opened lapses unheard.
@@ -1516,41 +1491,23 @@ impl Federation {
                 }
             }
             FedMsg::ToUser { user, msg } => self.deliver(from, user, msg, core, reactor),
-            FedMsg::Granted {
-                user,
-                req,
-                session,
-                service,
-                kind,
-                payload,
-                system_addr,
-            } => {
+            FedMsg::Granted(mut g) => {
                 // Only for a request out on `from`, of a user still here.
-                let ours = self
-                    .outstanding
-                    .get(&(user.clone(), req))
-                    .map(String::as_str)
-                    == Some(from);
-                let Some((system, name)) = service.split().filter(|_| ours) else {
+                let key = (g.user.clone(), g.req);
+                let ours = self.outstanding.get(&key).map(String::as_str) == Some(from);
+                let Some((system, name)) = g.service.split().filter(|_| ours) else {
                     self.stats.dropped += 1;
                     return;
                 };
-                let service = ServiceId::on_host(system, from, name);
-                self.outstanding.remove(&(user.clone(), req));
-                if core.user_pid(&user).is_none() {
+                g.service = ServiceId::on_host(system, from, name);
+                self.outstanding.remove(&key);
+                if core.user_pid(&g.user).is_none() {
                     // Gone: its host ends its sessions there.
-                    return self.send(from, &FedMsg::UserGone { user });
+                    return self.send(from, &FedMsg::UserGone { user: g.user });
                 }
-                self.far.insert((user.clone(), session), from.to_string());
-                self.deliveries.push_back(Delivery::Grant {
-                    user,
-                    req,
-                    session,
-                    service,
-                    kind,
-                    payload,
-                    system_addr,
-                });
+                self.far
+                    .insert((g.user.clone(), g.session), from.to_string());
+                self.deliveries.push_back(Delivery::Grant(g));
             }
         }
     }
@@ -1960,7 +1917,7 @@ mod tests {
         };
         assert_eq!(decode::<FedMsg>(&encode(&m).unwrap()).unwrap(), m);
         assert!(m.on_users_key());
-        let g = FedMsg::Granted {
+        let g = FedMsg::Granted(FarGrant {
             user: UserId("alice.1".into()),
             req: 3,
             session: SessionId(9),
@@ -1968,7 +1925,7 @@ mod tests {
             kind: ServiceKind::Data,
             payload: "pose2d".into(),
             system_addr: "127.0.0.1:7".into(),
-        };
+        });
         assert_eq!(decode::<FedMsg>(&encode(&g).unwrap()).unwrap(), g);
         assert!(!g.on_users_key());
         assert_eq!(listen_ip("tcp/10.0.0.2:7447"), "10.0.0.2".parse().ok());

@@ -5,7 +5,7 @@
 //! deadline (a ping, a ping timeout, an offer timeout).
 
 use crate::core::{Broker, BrokerConfig, Output};
-use crate::federation::{Delivery, FedConfig, FedError, Federation};
+use crate::federation::{Delivery, FarGrant, FedConfig, FedError, Federation};
 use crate::replica::{Follower, Leader, Step};
 use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
 use muster_shared::fence::{Fence, Holder};
@@ -1341,7 +1341,9 @@ impl Shell {
         };
         while let Some(d) = f.poll_delivery() {
             let front = self.udp.as_mut().filter(|u| match &d {
-                Delivery::Msg(user, _) | Delivery::Grant { user, .. } => u.front.is_remote(user),
+                Delivery::Msg(user, _) | Delivery::Grant(FarGrant { user, .. }) => {
+                    u.front.is_remote(user)
+                }
             });
             match (d, front) {
                 (Delivery::Msg(user, msg), None) => {
@@ -1352,27 +1354,17 @@ impl Shell {
                     let _ = u.front.route(core, Output::ToUser(user, msg));
                     u.transmit();
                 }
-                (
-                    Delivery::Grant {
-                        user,
-                        req,
-                        session,
-                        service,
-                        kind,
-                        payload,
-                        system_addr,
-                    },
-                    front,
-                ) => {
+                (Delivery::Grant(g), front) => {
+                    let (user, req) = (g.user.clone(), g.req);
                     let given = front.is_some_and(|u| {
                         let given = u.front.granted(
-                            &user,
-                            req,
-                            session,
-                            service,
-                            kind,
-                            payload,
-                            &system_addr,
+                            &g.user,
+                            g.req,
+                            g.session,
+                            g.service,
+                            g.kind,
+                            g.payload,
+                            &g.system_addr,
                         );
                         u.transmit();
                         given

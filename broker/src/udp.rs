@@ -971,29 +971,14 @@ impl UdpFront {
                 self.granted(&user, req, session, service, kind, payload, &system_addr);
                 None
             }
-            Output::ToSystem(
-                system,
-                ToSystem::Offer {
-                    ticket,
-                    user,
-                    user_pid,
-                    req,
-                    service,
-                    remote: _,
-                },
-            ) => {
-                let remote = self.remote_contact(&user, req);
-                Some(Output::ToSystem(
-                    system,
-                    ToSystem::Offer {
-                        ticket,
-                        user,
-                        user_pid,
-                        req,
-                        service,
-                        remote,
-                    },
-                ))
+            Output::ToSystem(system, mut offer @ ToSystem::Offer { .. }) => {
+                if let ToSystem::Offer {
+                    user, req, remote, ..
+                } = &mut offer
+                {
+                    *remote = self.remote_contact(user, *req);
+                }
+                Some(Output::ToSystem(system, offer))
             }
             Output::WatchUser { user, .. } | Output::ForgetUser(user)
                 if self.by_user.contains_key(&user) =>

@@ -505,20 +505,7 @@ pub struct RobotLink {
 impl RobotLink {
     /// Opens the services of robot `robot` on instance `inst` (the simulator must run).
     pub fn open(node: &Node<Ipc>, inst: &str, robot: &str) -> Result<Self, ShmError> {
-        let sname = robot_service(inst, robot, "sensors");
-        let sensors = node
-            .service_builder(&name(&sname)?)
-            .publish_subscribe::<RobotSensors>()
-            .open()
-            .map_err(|e| err(&sname, e))?
-            .subscriber_builder()
-            .create()
-            .map_err(|e| err(&sname, e))?;
-        let uname = robot_service(inst, robot, "updated");
-        let updated = event(node, &uname)?
-            .listener_builder()
-            .create()
-            .map_err(|e| err(&uname, e))?;
+        let SensorsView { sensors, updated } = SensorsView::open(node, inst, robot)?;
         let cname = robot_service(inst, robot, "cmd");
         let commands = command_service(node, &cname)?
             .publisher_builder()
@@ -562,14 +549,7 @@ impl RobotLink {
         after: f64,
         f: impl FnOnce(&RobotSensors) -> R,
     ) -> Result<Option<R>, ShmError> {
-        wait_newest(
-            &self.sensors,
-            &self.updated,
-            after,
-            Duration::ZERO,
-            |s| s.time,
-            f,
-        )
+        latest_sensors(&self.sensors, &self.updated, after, f)
     }
 
     /// Sends a velocity command (m/s, rad/s).
@@ -608,20 +588,11 @@ pub struct SensorsView {
 impl SensorsView {
     /// Subscribes to robot `robot`'s sensors on instance `inst` (the simulator must run).
     pub fn open(node: &Node<Ipc>, inst: &str, robot: &str) -> Result<Self, ShmError> {
-        let sname = robot_service(inst, robot, "sensors");
-        let sensors = node
-            .service_builder(&name(&sname)?)
-            .publish_subscribe::<RobotSensors>()
-            .open()
-            .map_err(|e| err(&sname, e))?
-            .subscriber_builder()
-            .create()
-            .map_err(|e| err(&sname, e))?;
-        let uname = robot_service(inst, robot, "updated");
-        let updated = event(node, &uname)?
-            .listener_builder()
-            .create()
-            .map_err(|e| err(&uname, e))?;
+        let (sensors, updated) = subscribe(
+            node,
+            &robot_service(inst, robot, "sensors"),
+            &robot_service(inst, robot, "updated"),
+        )?;
         Ok(SensorsView { sensors, updated })
     }
 
@@ -632,15 +603,17 @@ impl SensorsView {
         after: f64,
         f: impl FnOnce(&RobotSensors) -> R,
     ) -> Result<Option<R>, ShmError> {
-        wait_newest(
-            &self.sensors,
-            &self.updated,
-            after,
-            Duration::ZERO,
-            |s| s.time,
-            f,
-        )
+        latest_sensors(&self.sensors, &self.updated, after, f)
     }
+}
+
+fn latest_sensors<R>(
+    sensors: &Subscriber<Ipc, RobotSensors, ()>,
+    updated: &Listener<Ipc>,
+    after: f64,
+    f: impl FnOnce(&RobotSensors) -> R,
+) -> Result<Option<R>, ShmError> {
+    wait_newest(sensors, updated, after, Duration::ZERO, |s| s.time, f)
 }
 
 /// An observer's view of the whole world (ground truth: for experiments, renders and
@@ -653,20 +626,11 @@ pub struct WorldView {
 impl WorldView {
     /// Subscribes to instance `inst`'s world sample (the simulator must run).
     pub fn open(node: &Node<Ipc>, inst: &str) -> Result<Self, ShmError> {
-        let wname = format!("muster/{inst}/sim/world");
-        let world = node
-            .service_builder(&name(&wname)?)
-            .publish_subscribe::<WorldState>()
-            .open()
-            .map_err(|e| err(&wname, e))?
-            .subscriber_builder()
-            .create()
-            .map_err(|e| err(&wname, e))?;
-        let ev = format!("muster/{inst}/sim/world/updated");
-        let updated = event(node, &ev)?
-            .listener_builder()
-            .create()
-            .map_err(|e| err(&ev, e))?;
+        let (world, updated) = subscribe(
+            node,
+            &format!("muster/{inst}/sim/world"),
+            &format!("muster/{inst}/sim/world/updated"),
+        )?;
         Ok(WorldView { world, updated })
     }
 
@@ -680,6 +644,30 @@ impl WorldView {
     ) -> Result<Option<R>, ShmError> {
         wait_newest(&self.world, &self.updated, after, timeout, |w| w.time, f)
     }
+}
+
+/// A subscriber and the listener on its "updated" event.
+type Subscribed<T> = (Subscriber<Ipc, T, ()>, Listener<Ipc>);
+
+/// A subscriber to the simulator's service `sname` and a listener on its event `uname`.
+fn subscribe<T: std::fmt::Debug + ZeroCopySend>(
+    node: &Node<Ipc>,
+    sname: &str,
+    uname: &str,
+) -> Result<Subscribed<T>, ShmError> {
+    let sub = node
+        .service_builder(&name(sname)?)
+        .publish_subscribe::<T>()
+        .open()
+        .map_err(|e| err(sname, e))?
+        .subscriber_builder()
+        .create()
+        .map_err(|e| err(sname, e))?;
+    let updated = event(node, uname)?
+        .listener_builder()
+        .create()
+        .map_err(|e| err(uname, e))?;
+    Ok((sub, updated))
 }
 
 /// Waits up to `timeout` (zero: not at all) for a sample of `sub` whose `time` is past

@@ -512,7 +512,7 @@ pub fn scenario_and_map(
 /// `muster record`.
 pub fn run(inst: &Instance, a: RecordArgs) -> anyhow::Result<ExitCode> {
     let mut signals = SignalPipe::install().context("signal handlers")?;
-    let (scenario, map) = scenario_and_map(a.scenario.as_deref(), a.map.as_deref())?;
+    let (scenario, map) = scenario_and_map(a.scene.scenario.as_deref(), a.scene.map.as_deref())?;
     let out = a
         .out
         .clone()

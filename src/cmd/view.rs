@@ -69,7 +69,7 @@ fn serve(
 /// `muster view`.
 pub fn run(inst: &Instance, a: ViewArgs) -> anyhow::Result<ExitCode> {
     let mut signals = SignalPipe::install().context("signal handlers")?;
-    let (scenario, map) = scenario_and_map(a.scenario.as_deref(), a.map.as_deref())?;
+    let (scenario, map) = scenario_and_map(a.scene.scenario.as_deref(), a.scene.map.as_deref())?;
     let ctx = Context::new();
     let latch = Arc::new(Latch::default());
     let mut scene = Scene::new(&ctx, inst, scenario, map)?;
