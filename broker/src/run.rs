@@ -905,17 +905,6 @@ fn serve(
     step("list");
     let replica = ReplicaWriter::open(endpoint.node(), inst)?;
     step("replica");
-    // The event feed serves consoles and recorders; the broker serves without it.
-    let events = match EventWriter::open(endpoint.node(), inst, core.epoch()) {
-        Ok(w) => {
-            core.emit_events();
-            Some(w)
-        }
-        Err(e) => {
-            tracing::warn!("no event feed: {e}");
-            None
-        }
-    };
     let epoch = core.epoch();
     let mut signals = SignalPipe::install()?;
     let mut hangup = SignalPipe::hangup()?;
@@ -953,11 +942,8 @@ fn serve(
         }
         None => None,
     };
-    if let Some(w) = events.as_ref() {
-        reactor.add(w.fd(), TOKEN_EVENTS)?;
-    }
     let mut shell = Shell {
-        events,
+        events: None,
         fed,
         local_views: Vec::new(),
         core_views: Vec::new(),
@@ -1005,6 +991,17 @@ fn serve(
         Start::Takeover => Some(Instant::now() + TAKEOVER_RING_DELAY),
     };
     step("ring");
+    // The event feed serves consoles and recorders, once the instance is served; the
+    // broker serves without it.
+    match EventWriter::open(shell.endpoint.node(), inst, core.epoch()) {
+        Ok(w) => {
+            shell.reactor.add(w.fd(), TOKEN_EVENTS)?;
+            core.emit_events();
+            shell.events = Some(w);
+        }
+        Err(e) => tracing::warn!("no event feed: {e}"),
+    }
+    step("events");
     tracing::debug!(?steps, "broker setup, us since the start of serving");
     tracing::info!(instance = %inst, epoch = format!("{epoch:016x}"), term = me.term, "broker up");
     if let Some(t0) = standby_since {

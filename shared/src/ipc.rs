@@ -1400,14 +1400,18 @@ impl BellRinger {
     }
 }
 
+// The publisher's segment holds readers × (buffer + 2) + history records of
+// `MAX_EVENT` bytes, made when a broker starts serving: 8 × 258 + 128 records of 2 KiB
+// are 4.4 MB. (16 readers × 1024 of 4 KiB were 68 MB, and a standby taking over paused
+// its systems' streams making them.)
 /// Most readers of a broker's event feed at once (consoles, recorders).
-pub const MAX_EVENT_READERS: usize = 16;
+pub const MAX_EVENT_READERS: usize = 8;
 /// Largest event record on the feed, bytes (JSON).
-pub const MAX_EVENT: usize = 4 * 1024;
+pub const MAX_EVENT: usize = 2 * 1024;
 /// Events a reader that joins late gets first (the feed's history).
-pub const EVENT_HISTORY: usize = 256;
+pub const EVENT_HISTORY: usize = 128;
 /// Events a reader holds before the oldest unread ones are overwritten.
-const EVENT_BUFFER: usize = 1024;
+const EVENT_BUFFER: usize = 256;
 
 fn event_services(
     node: &Node<Ipc>,
