@@ -82,6 +82,10 @@ const MAX_LINKS_IN: usize = 16 * 1024;
 /// How long a proxy whose peer is gone keeps its ports: frames just sent through them
 /// (an end, a revocation) must be read before the ports close.
 const PROXY_LINGER: Duration = Duration::from_secs(2);
+/// A host's list not come this long after asking is asked for again, the wait doubling
+/// up to [`LIST_RETRY_MAX`].
+const LIST_RETRY_FIRST: Duration = Duration::from_millis(250);
+const LIST_RETRY_MAX: Duration = Duration::from_secs(4);
 /// How long a starting broker looks for another broker already using its host name.
 const HOST_CHECK: Duration = Duration::from_millis(400);
 
@@ -530,6 +534,10 @@ pub struct Federation {
     by_token: HashMap<usize, Address>,
     next_token: usize,
     lingering: Vec<(Instant, Proxy)>,
+    /// Hosts whose list was asked for and has not come: when to ask again, and the
+    /// wait after that. (A query made as a host's token arrives can reach it before
+    /// its list's queryable is known here, and go unanswered.)
+    list_asked: BTreeMap<String, (Instant, Duration)>,
     stats: FedStats,
     /// The federation's access file, if it has one.
     acl: Option<Acl>,
@@ -702,6 +710,7 @@ impl Federation {
             by_token: HashMap::new(),
             next_token: FIRST_PROXY_TOKEN,
             lingering: Vec::new(),
+            list_asked: BTreeMap::new(),
             stats: FedStats::default(),
             acl: cfg.acl.clone(),
         };
@@ -739,16 +748,34 @@ impl Federation {
 
     /// When [`Federation::sweep`] is next due.
     pub fn next_due(&self) -> Option<Duration> {
+        let now = Instant::now();
         self.lingering
             .iter()
-            .map(|(t, _)| t.saturating_duration_since(Instant::now()))
+            .map(|(t, _)| *t)
+            .chain(self.list_asked.values().map(|(t, _)| *t))
+            .map(|t| t.saturating_duration_since(now))
             .min()
     }
 
-    /// Closes proxies that have lingered long enough.
+    /// Closes proxies that have lingered long enough, and asks again for lists that
+    /// have not come.
     pub fn sweep(&mut self) {
         let now = Instant::now();
         self.lingering.retain(|(t, _)| *t > now);
+        let due: Vec<String> = self
+            .list_asked
+            .iter()
+            .filter(|(h, (t, _))| *t <= now && self.alive.contains(*h))
+            .map(|(h, _)| h.clone())
+            .collect();
+        self.list_asked.retain(|h, _| self.alive.contains(h));
+        for host in due {
+            self.query_list(&host);
+            if let Some((t, wait)) = self.list_asked.get_mut(&host) {
+                *wait = (*wait * 2).min(LIST_RETRY_MAX);
+                *t = now + *wait;
+            }
+        }
     }
 
     /// Forgets the users of other hosts a previous broker run served: after a takeover
@@ -1152,6 +1179,10 @@ impl Federation {
                         tracing::info!(host = %host, "federation: host joined");
                         self.list_changed = true;
                         self.query_list(&host);
+                        self.list_asked.insert(
+                            host.clone(),
+                            (Instant::now() + LIST_RETRY_FIRST, LIST_RETRY_FIRST),
+                        );
                         self.restate_links(&host);
                     }
                 }
@@ -1160,7 +1191,10 @@ impl Federation {
                         self.host_lost(&host, core, reactor, now);
                     }
                 }
-                Event::List(host, body) => self.take_list(&host, &body),
+                Event::List(host, body) => {
+                    self.list_asked.remove(&host);
+                    self.take_list(&host, &body)
+                }
                 Event::Msg(from, users_side, frame) => {
                     self.stats.received += 1;
                     match decode::<FedMsg>(&frame) {
