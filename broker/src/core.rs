@@ -239,6 +239,17 @@ pub struct Broker {
 /// go first.
 const MAX_PENDING_EVENTS: usize = 64 * 1024;
 
+/// Queues an event for the feed, if the feed is on (a field of its own, so that code
+/// holding another field of the broker can call it).
+fn push_event(events: &mut Option<VecDeque<BrokerEvent>>, e: impl FnOnce() -> BrokerEvent) {
+    if let Some(q) = events.as_mut() {
+        if q.len() >= MAX_PENDING_EVENTS {
+            q.pop_front();
+        }
+        q.push_back(e());
+    }
+}
+
 /// One input to the core, as a primary journals it for its standbys: a standby that
 /// applies the same inputs in the same order ([`Broker::apply`]) holds the same state.
 #[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Clone, Debug, PartialEq)]
@@ -295,12 +306,7 @@ impl Broker {
     }
 
     fn ev(&mut self, e: impl FnOnce() -> BrokerEvent) {
-        if let Some(q) = self.events.as_mut() {
-            if q.len() >= MAX_PENDING_EVENTS {
-                q.pop_front();
-            }
-            q.push_back(e());
-        }
+        push_event(&mut self.events, e);
     }
 
     /// Starts keeping every input for [`Broker::take_journal`] (a primary with standbys).
@@ -588,10 +594,10 @@ impl Broker {
 
     /// An operator's action (the shell let through operators only).
     fn operate(&mut self, now: Duration, user: UserId, id: u64, op: Operation) {
-        let told = !matches!(op, Operation::Status);
-        let what = op.to_string();
+        // A status read changes nothing: it is not told on the feed.
+        let what = (!matches!(op, Operation::Status)).then(|| op.to_string());
         let result = self.try_operate(now, op);
-        if told {
+        if let Some(what) = what {
             self.ev(|| BrokerEvent::Operated {
                 user: user.clone(),
                 op: what,
@@ -1006,14 +1012,12 @@ impl Broker {
                     svc.sessions.insert(session);
                     sys.sessions
                         .insert(session, (svc.spec.name.clone(), user.clone()));
-                    if let Some(q) = self.events.as_mut() {
-                        q.push_back(BrokerEvent::Granted {
-                            user: user.clone(),
-                            req: o.req,
-                            service: service.clone(),
-                            session,
-                        });
-                    }
+                    push_event(&mut self.events, || BrokerEvent::Granted {
+                        user: user.clone(),
+                        req: o.req,
+                        service: service.clone(),
+                        session,
+                    });
                     self.out.push_back(Output::Granted {
                         user,
                         req: o.req,
@@ -1107,12 +1111,10 @@ impl Broker {
         }
         svc.withdrawn = withdrawn;
         self.list_dirty = true;
-        if let Some(q) = self.events.as_mut() {
-            q.push_back(BrokerEvent::Withdrawn {
-                service: id.clone(),
-                withdrawn,
-            });
-        }
+        push_event(&mut self.events, || BrokerEvent::Withdrawn {
+            service: id.clone(),
+            withdrawn,
+        });
         if withdrawn {
             let waiting: Vec<Waiting> = svc.queue.drain(..).collect();
             for w in waiting {
@@ -1216,14 +1218,12 @@ impl Broker {
         });
         let position = u16::try_from(svc.queue.len()).unwrap_or(u16::MAX);
         self.stats.queued += 1;
-        if let Some(q) = self.events.as_mut() {
-            q.push_back(BrokerEvent::Queued {
-                user: user.clone(),
-                req,
-                service: service.clone(),
-                position,
-            });
-        }
+        push_event(&mut self.events, || BrokerEvent::Queued {
+            user: user.clone(),
+            req,
+            service: service.clone(),
+            position,
+        });
         self.list_dirty = true;
         self.out
             .push_back(Output::ToUser(user, ToUser::Queued { req, position }));

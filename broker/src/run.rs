@@ -1352,23 +1352,17 @@ impl Shell {
                     u.transmit();
                 }
                 (Delivery::Grant(g), front) => {
-                    let (user, req) = (g.user.clone(), g.req);
-                    let given = front.is_some_and(|u| {
-                        let given = u.front.granted(
-                            &g.user,
-                            g.req,
-                            g.session,
-                            g.service,
-                            g.kind,
-                            g.payload,
-                            &g.system_addr,
-                        );
-                        u.transmit();
-                        given
-                    });
-                    if !given {
+                    let given = match front {
+                        Some(u) => {
+                            let given = u.front.granted(g);
+                            u.transmit();
+                            given
+                        }
+                        None => Err(g),
+                    };
+                    if let Err(g) = given {
                         // The system ends the session when its lease runs out unheard.
-                        tracing::debug!(%user, req, "a grant on another host found its remote user gone");
+                        tracing::debug!(user = %g.user, req = g.req, "a grant on another host found its remote user gone");
                     }
                 }
             }

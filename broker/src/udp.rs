@@ -21,9 +21,10 @@
 //! harness drives the same front over a simulated network on a virtual clock.
 
 use crate::core::{Broker, Output};
+use crate::federation::FarGrant;
 use muster_shared::protocol::{LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser};
 use muster_shared::snapshot::ServiceView;
-use muster_shared::types::{Refusal, ServiceId, ServiceKind, SessionId, UserId};
+use muster_shared::types::{Refusal, ServiceId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
 use muster_shared::udp::msgs::{chunk_list, from_bytes, seal_channel, Down, Hs3, Up};
@@ -968,7 +969,15 @@ impl UdpFront {
             } => {
                 let system = service.split().map(|(s, _)| s.to_string())?;
                 let system_addr = dir.system_udp(&system)?.to_string();
-                self.granted(&user, req, session, service, kind, payload, &system_addr);
+                let _ = self.granted(FarGrant {
+                    user,
+                    req,
+                    session,
+                    service,
+                    kind,
+                    payload,
+                    system_addr,
+                });
                 None
             }
             Output::ToSystem(system, mut offer @ ToSystem::Offer { .. }) => {
@@ -1002,37 +1011,26 @@ impl UdpFront {
         })
     }
 
-    /// Tells remote user `user` of its grant: the session runs with the system at
-    /// `system_addr` under the key issued for the request. `false` if the user or the
-    /// key is gone.
-    #[allow(clippy::too_many_arguments)]
-    pub fn granted(
-        &mut self,
-        user: &UserId,
-        req: u64,
-        session: SessionId,
-        service: ServiceId,
-        kind: ServiceKind,
-        payload: String,
-        system_addr: &str,
-    ) -> bool {
-        let Some(&id) = self.by_user.get(user) else {
-            return false;
-        };
-        let Some(key) = self.conns.get(&id).and_then(|c| c.keys.get(&req).copied()) else {
-            return false;
+    /// Tells remote user `g.user` of its grant: the session runs with the system at
+    /// `g.system_addr` under the key issued for the request. Gives the grant back if the
+    /// user or the key is gone.
+    pub fn granted(&mut self, g: FarGrant) -> Result<(), FarGrant> {
+        let id = self.by_user.get(&g.user).copied();
+        let key = id.and_then(|id| self.conns.get(&id)?.keys.get(&g.req).copied());
+        let (Some(id), Some(key)) = (id, key) else {
+            return Err(g);
         };
         let d = Down::Granted {
-            req,
-            session,
-            service,
-            kind,
-            payload,
-            system_addr: self.reachable(system_addr),
+            req: g.req,
+            session: g.session,
+            service: g.service,
+            kind: g.kind,
+            payload: g.payload,
+            system_addr: self.reachable(&g.system_addr),
             key,
         };
-        self.answer(id, req, d, true);
-        true
+        self.answer(id, g.req, d, true);
+        Ok(())
     }
 
     /// A system's UDP address as a remote user can reach it: an unspecified IP (the

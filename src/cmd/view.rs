@@ -9,39 +9,30 @@ use foxglove::websocket::{ChannelView, Client, ServerListener};
 use foxglove::{ChannelBuilder, Context, PartialMetadata, RawChannel, Schema, WebSocketServer};
 use muster_shared::reactor::SignalPipe;
 use muster_shared::Instance;
-use std::collections::{BTreeMap, HashSet};
+use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// Notes which latched topics (the map) a client just subscribed to, to send again.
+/// Notes that a client just subscribed to the map (sent once, so sent again then).
 #[derive(Default)]
 struct Latch {
-    wanted: Mutex<HashSet<String>>,
-    any: AtomicBool,
+    map_wanted: AtomicBool,
 }
 
 impl Latch {
-    fn take(&self) -> Vec<String> {
-        if !self.any.swap(false, Ordering::AcqRel) {
-            return Vec::new();
-        }
-        self.wanted
-            .lock()
-            .map(|mut w| w.drain().collect())
-            .unwrap_or_default()
+    /// Whether the map is to be sent again (once per subscription).
+    fn take(&self) -> bool {
+        self.map_wanted.swap(false, Ordering::AcqRel)
     }
 }
 
 impl ServerListener for Latch {
     fn on_subscribe(&self, _client: Client, channel: ChannelView) {
         if channel.topic() == "/map" {
-            if let Ok(mut w) = self.wanted.lock() {
-                w.insert(channel.topic().to_string());
-            }
-            self.any.store(true, Ordering::Release);
+            self.map_wanted.store(true, Ordering::Release);
         }
     }
 }
@@ -76,7 +67,7 @@ pub fn run(inst: &Instance, a: ViewArgs) -> anyhow::Result<ExitCode> {
     let server = serve(&ctx, a.listen, &latch)?;
     let end = a.duration.map(|d| Instant::now() + d);
     loop {
-        if !latch.take().is_empty() {
+        if latch.take() {
             scene.log_map();
         }
         let any = scene.poll()?;
@@ -106,7 +97,8 @@ pub fn replay(a: ReplayArgs) -> anyhow::Result<ExitCode> {
     let ctx = Context::new();
     let latch = Arc::new(Latch::default());
     let mut channels: BTreeMap<u16, Arc<RawChannel>> = BTreeMap::new();
-    let mut latched: BTreeMap<String, Vec<u8>> = BTreeMap::new();
+    // The map as last sent, and its channel.
+    let mut map: Option<(Arc<RawChannel>, Vec<u8>)> = None;
     let server = serve(&ctx, a.listen, &latch)?;
     let mut sent = 0u64;
     let mut round = 0u64;
@@ -138,13 +130,9 @@ pub fn replay(a: ReplayArgs) -> anyhow::Result<ExitCode> {
             let due =
                 w0 + Duration::from_secs_f64(m.log_time.saturating_sub(t0) as f64 / 1e9 / a.speed);
             loop {
-                for topic in latch.take() {
-                    if let (Some(data), Some(c)) = (
-                        latched.get(&topic),
-                        channels.values().find(|c| c.topic() == topic),
-                    ) {
-                        c.log(data);
-                    }
+                let wanted = latch.take();
+                if let Some((c, data)) = map.as_ref().filter(|_| wanted) {
+                    c.log(data);
                 }
                 if signals.drain() {
                     break 'rounds;
@@ -156,7 +144,7 @@ pub fn replay(a: ReplayArgs) -> anyhow::Result<ExitCode> {
                 std::thread::sleep((due - now).min(Duration::from_millis(20)));
             }
             if m.channel.topic == "/map" {
-                latched.insert(m.channel.topic.clone(), m.data.to_vec());
+                map = Some((ch.clone(), m.data.to_vec()));
             }
             ch.log_with_meta(&m.data, PartialMetadata::with_log_time(now_ns()));
             sent += 1;
