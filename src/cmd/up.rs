@@ -245,6 +245,7 @@ fn demo(
     println!("\n== link {tracker} -> {delivery} ==");
     let link = client.link(&tracker, &delivery)?;
     let mut shown = 0u32;
+    let mut last_kind = None;
     loop {
         let deadline = end.unwrap_or(Instant::now() + Duration::from_secs(3600));
         let Some(e) = client.next_event(deadline)? else {
@@ -259,7 +260,15 @@ fn demo(
                 shown += 1;
             }
             UserEvent::LinkForwarded { .. } => shown += 1,
-            UserEvent::Status { status, .. } if shown % 10 == 1 => println!("  delivery: {status}"),
+            // A status of a new kind (idle, then the goal accepted, then done) always
+            // shows; progress shows at the forwarding's pace.
+            UserEvent::Status { status, .. } => {
+                let kind = std::mem::discriminant(&status);
+                if last_kind != Some(kind) || shown % 10 == 1 {
+                    println!("  delivery: {status}");
+                }
+                last_kind = Some(kind);
+            }
             UserEvent::LinkEnded { link: l, reason } if l == link => {
                 println!("link ended: {reason}");
                 break;
