@@ -851,6 +851,10 @@ pub struct UserArgs {
     pub wait: Duration,
     #[command(flatten)]
     pub remote: RemoteArgs,
+    /// Without a verb: the plain numbered menu even on a terminal (it is the one used
+    /// when standard input or output is not a terminal, or TERM is dumb).
+    #[arg(long)]
+    pub plain: bool,
     #[command(subcommand)]
     pub verb: Option<UserVerb>,
 }

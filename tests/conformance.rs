@@ -531,3 +531,87 @@ fn the_console_shows_grants_ends_and_withdrawals_and_acts_on_keys() {
         std::thread::sleep(Duration::from_millis(50));
     }
 }
+
+fn the_user_view_requests_links_ends_and_shows_withdrawals(via: Via) {
+    let mut c = Conf::new("usertui", via);
+    c.system("t1", &[]);
+    c.system("d1", &["--kind", "command", "--quota", "1", "--queue"]);
+    let list = c.wait_list(|l| l.len() == 2);
+    let row = |id: &str| list.iter().position(|v| v["id"] == id).unwrap();
+    let (t1, d1) = (row("t1/s0"), row("d1/s0"));
+    let name = format!("muster-user-{}-{via:?}", std::process::id());
+    let args: Vec<String> = c.args(&["user"]);
+    let cmd = format!("{} --instance {} {}", common::BIN, c.f.inst, args.join(" "));
+    let Some(t) = Tmux::start(&name, &cmd) else {
+        return;
+    };
+    t.wait("the services", |s| {
+        s.contains("t1/s0") && s.contains("d1/s0") && s.contains("2 services")
+    });
+    // Request t1/s0: granted, and its updates come into the updates pane once the
+    // session is selected.
+    let down = |n: usize| {
+        for _ in 0..n {
+            t.keys(&["Down"]);
+        }
+    };
+    for _ in 0..3 {
+        t.keys(&["Up"]);
+    }
+    down(t1);
+    t.keys(&["Enter"]);
+    t.wait("the grant", |s| s.contains("granted t1/s0: session"));
+    t.keys(&["Tab"]);
+    t.wait("the session's updates", |s| {
+        s.contains("updates of t1/s0") && s.contains("pose2d x=")
+    });
+    // Link t1/s0 into d1/s0: `l` on the data service, Enter on the command service.
+    t.keys(&["Tab", "Tab"]);
+    for _ in 0..3 {
+        t.keys(&["Up"]);
+    }
+    down(t1);
+    t.keys(&["l"]);
+    t.wait("the link prompt", |s| s.contains("select a command service"));
+    for _ in 0..3 {
+        t.keys(&["Up"]);
+    }
+    down(d1);
+    t.keys(&["Enter"]);
+    t.wait("the link", |s| s.contains("t1/s0 -> d1/s0") && s.contains(" up "));
+    t.wait("a forwarded input", |s| {
+        s.lines()
+            .any(|l| l.contains("t1/s0 -> d1/s0") && l.contains("goal2d x="))
+    });
+    // The broker's list counts it.
+    c.wait_list(|l| l[d1]["in_use"] == 1 && l[t1]["links"] == 1);
+    // End the first session (the sessions pane's first row).
+    t.keys(&["Tab"]);
+    for _ in 0..5 {
+        t.keys(&["Up"]);
+    }
+    t.keys(&["e"]);
+    t.wait("the end", |s| s.contains("ended: ended by the user"));
+    // An operator withdraws d1/s0: shown at once (the link's session goes on).
+    let (code, out) = c.f.run(&["operator", "withdraw", "d1/s0"], 20 * SEC);
+    assert_eq!(code, 0, "{out}");
+    t.wait("the withdrawal", |s| {
+        s.lines()
+            .any(|l| l.contains("d1/s0") && l.contains("withdrawn"))
+    });
+    // The links pane, `e`: the link ends, and the broker's list counts no link.
+    t.keys(&["Tab", "e"]);
+    t.wait("the link's end", |s| s.contains("link 1 ended"));
+    c.wait_list(|l| l[d1]["links"] == 0 && l[d1]["in_use"] == 0 && l[t1]["in_use"] == 0);
+    // `q` quits and gives the terminal back.
+    t.keys(&["q"]);
+    let deadline = std::time::Instant::now() + 10 * SEC;
+    while t.alive() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the user view did not quit"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+both!(the_user_view_requests_links_ends_and_shows_withdrawals);

@@ -7,38 +7,27 @@
 //! it sleeps in the kernel.
 
 use crate::cli::ConsoleArgs;
-use anyhow::Context;
 use muster_shared::ipc::{create_node, EventReader};
 use muster_shared::protocol::{BrokerStatus, EventRecord, Operation};
 use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{ServiceId, UserId};
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, UserEvent, Wake};
-use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
-use ratatui::layout::{Constraint, Layout, Rect};
-use ratatui::style::{Modifier, Style};
+use super::tui::{bold, pane_table, Input, Inputs};
+use ratatui::crossterm::event::KeyCode;
+use ratatui::layout::{Constraint, Layout};
 use ratatui::text::Line;
-use ratatui::widgets::{Block, Borders, Paragraph, Row, Table, TableState};
+use ratatui::widgets::{Block, Borders, Paragraph, Row, Table};
 use ratatui::Frame;
 use std::collections::VecDeque;
-use std::io::{Read, Write};
-use std::os::fd::AsRawFd;
-use std::os::unix::net::UnixStream;
+use std::io::Write;
 use std::process::ExitCode;
-use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 /// The status is read again this often when nothing happens (ping ages move on).
 const STATUS_EVERY: Duration = Duration::from_secs(3);
 /// Event lines kept.
 const LOG_LINES: usize = 500;
-
-/// What the two helper threads hand the console.
-enum Input {
-    Key(KeyCode, KeyModifiers),
-    Resize,
-    Feed(EventRecord),
-}
 
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum Pane {
@@ -240,12 +229,12 @@ impl Console {
                 flags.join(", "),
             ])
         });
-        self.table(
+        pane_table(
             f,
             services_area,
-            Pane::Services,
             "services (w withdraw, r restore)",
-            ["id", "kind", "in use", "queued", "links", ""],
+            self.focus(Pane::Services),
+            &["id", "kind", "in use", "queued", "links", ""],
             &[25, 8, 7, 6, 5, 20],
             services.collect(),
         );
@@ -273,12 +262,12 @@ impl Console {
                 x.user.0.clone(),
             ])
         });
-        self.table(
+        pane_table(
             f,
             sessions_area,
-            Pane::Sessions,
             "sessions (e end)",
-            ["session", "service", "user", "", "", ""],
+            self.focus(Pane::Sessions),
+            &["session", "service", "user", "", "", ""],
             &[17, 20, 24, 0, 0, 0],
             sessions.collect(),
         );
@@ -293,12 +282,12 @@ impl Console {
                 u.links.len().to_string(),
             ])
         });
-        self.table(
+        pane_table(
             f,
             users_area,
-            Pane::Users,
             "users (d drop)",
-            ["user", "pid", "links", "", "", ""],
+            self.focus(Pane::Users),
+            &["user", "pid", "links", "", "", ""],
             &[26, 8, 5, 0, 0, 0],
             users.collect(),
         );
@@ -308,12 +297,12 @@ impl Console {
             .map(|(service, user, req, place)| {
                 Row::new(vec![service.0, place.to_string(), user.0, req.to_string()])
             });
-        self.table(
+        pane_table(
             f,
             queues_area,
-            Pane::Queues,
             "task queues (+ up, - down, x drop)",
-            ["service", "place", "user", "request", "", ""],
+            self.focus(Pane::Queues),
+            &["service", "place", "user", "request", "", ""],
             &[20, 5, 24, 7, 0, 0],
             queued.collect(),
         );
@@ -335,37 +324,10 @@ impl Console {
         );
     }
 
-    #[allow(clippy::too_many_arguments)]
-    fn table(
-        &self,
-        f: &mut Frame,
-        area: Rect,
-        pane: Pane,
-        title: &str,
-        header: [&str; 6],
-        widths: &[u16],
-        rows: Vec<Row>,
-    ) {
-        let focused = self.pane == pane;
-        let title = if focused {
-            format!("[{title}]")
-        } else {
-            title.to_string()
-        };
-        let t = Table::new(rows, widths.iter().map(|w| Constraint::Length(*w)))
-            .header(Row::new(header).style(bold()))
-            .block(Block::default().borders(Borders::ALL).title(title))
-            .row_highlight_style(Style::default().add_modifier(Modifier::REVERSED));
-        let mut state = TableState::default();
-        if focused {
-            state.select(Some(self.sel[index(pane)]));
-        }
-        f.render_stateful_widget(t, area, &mut state);
+    /// The selected row of a pane, if it has the focus.
+    fn focus(&self, pane: Pane) -> Option<usize> {
+        (self.pane == pane).then(|| self.sel[index(pane)])
     }
-}
-
-fn bold() -> Style {
-    Style::default().add_modifier(Modifier::BOLD)
 }
 
 /// `muster console`.
@@ -376,31 +338,9 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
         watch_list: true,
     };
     let mut client = UserClient::connect(inst, &opts)?;
-    // The helpers write a byte to this socket pair for every input; the client's reactor
-    // wakes on it.
-    let (bell_rx, bell_tx) = UnixStream::pair().context("a socket pair")?;
-    bell_rx.set_nonblocking(true)?;
-    client.watch_extra(bell_rx.as_raw_fd())?;
-    let (tx, rx) = mpsc::channel::<Input>();
+    let inputs = Inputs::start(&mut client)?;
     {
-        let (tx, mut bell) = (tx.clone(), bell_tx.try_clone()?);
-        std::thread::spawn(move || {
-            while let Ok(ev) = event::read() {
-                let input = match ev {
-                    Event::Key(k) if k.kind == KeyEventKind::Press => {
-                        Input::Key(k.code, k.modifiers)
-                    }
-                    Event::Resize(..) => Input::Resize,
-                    _ => continue,
-                };
-                if tx.send(input).is_err() || bell.write_all(&[1]).is_err() {
-                    return;
-                }
-            }
-        });
-    }
-    {
-        let (tx, mut bell, inst) = (tx, bell_tx, inst.clone());
+        let ((tx, mut bell), inst) = (inputs.sender()?, inst.clone());
         std::thread::spawn(move || {
             let Ok(node) = create_node("muster-console-feed", false) else {
                 return;
@@ -486,19 +426,12 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
                 Ok(Wake::Event(_)) => {}
                 Ok(Wake::Timeout) => {}
                 Ok(Wake::Extra) => {
-                    let mut buf = [0u8; 256];
-                    while matches!((&bell_rx).read(&mut buf), Ok(n) if n > 0) {}
                     let mut changed = false;
-                    while let Ok(input) = rx.try_recv() {
+                    for input in inputs.drain() {
+                        if input.is_quit() {
+                            return Ok(());
+                        }
                         match input {
-                            Input::Key(KeyCode::Char('q'), _) | Input::Key(KeyCode::Esc, _) => {
-                                return Ok(());
-                            }
-                            Input::Key(KeyCode::Char('c'), m)
-                                if m.contains(KeyModifiers::CONTROL) =>
-                            {
-                                return Ok(());
-                            }
                             Input::Key(KeyCode::Tab, _) => c.pane = c.pane.next(),
                             Input::Key(KeyCode::Down, _) => {
                                 let s = &mut c.sel[index(c.pane)];

@@ -19,10 +19,12 @@ mod sim;
 mod standbys;
 mod stress;
 mod stress_plot;
+mod tui;
 mod system;
 mod up;
 mod up_paper;
 mod user;
+mod user_tui;
 mod view;
 
 use crate::cli::{Cli, Command};

@@ -20,6 +20,14 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
     let started = Instant::now();
     let client = connect(inst, &a.remote, &opts)?;
     match a.verb {
+        None if !a.plain && super::tui::interactive() => {
+            let who = match &a.remote.remote {
+                Some(addr) => format!("{} via {addr}", client.id()),
+                None => format!("{} on instance {inst}", client.id()),
+            };
+            super::user_tui::run(client, who)?;
+            Ok(ExitCode::SUCCESS)
+        }
         None => {
             muster_users::menu::run(client)?;
             Ok(ExitCode::SUCCESS)
