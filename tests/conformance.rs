@@ -358,6 +358,24 @@ fn an_operator_ends_a_session_and_drops_a_queued_request(via: Via) {
     };
     let (code, status) = operator(&c.f, &["status"]);
     assert_eq!(code, 0, "{status}");
+    // The broker's handling figures: the system's registration and the users' hellos
+    // (two users and this operator, so far) counted, with their times.
+    let handled = |kind: &str| {
+        status["handling"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|h| h["kind"] == kind)
+            .cloned()
+            .unwrap_or_else(|| panic!("no {kind} in {status}"))
+    };
+    assert!(handled("register")["count"].as_u64().unwrap() >= 1, "{status}");
+    let hello = handled("hello");
+    assert!(hello["count"].as_u64().unwrap() >= 3, "{status}");
+    assert!(
+        hello["p50_us"].as_u64().unwrap() <= hello["max_us"].as_u64().unwrap(),
+        "{status}"
+    );
     assert_eq!(
         status["sessions"][0]["session"],
         session.as_str(),
@@ -502,6 +520,18 @@ fn the_console_shows_grants_ends_and_withdrawals_and_acts_on_keys() {
     t.wait("the grant", |s| {
         s.contains("granted") && s.contains(&format!("session={session}"))
     });
+    // The broker's own figures: how many of each message it handled, and how fast.
+    t.wait("the broker's figures", |s| {
+        s.contains("broker figures:")
+            && s.lines().any(|l| {
+                let w: Vec<&str> = l
+                    .split(|c| c == '│' || c == ' ')
+                    .filter(|w| !w.is_empty())
+                    .collect();
+                w.windows(2)
+                    .any(|p| p[0] == "hello" && p[1].parse::<u64>().is_ok_and(|n| n >= 2))
+            })
+    });
     // A request waits in the queue: shown in the queue pane and the event log.
     let waiter = c.spawn(&["user", "request", "d1/s0", "--duration", "60s", "--json"]);
     t.wait("the queued request", |s| s.contains("queued position=1"));
@@ -572,13 +602,17 @@ fn the_user_view_requests_links_ends_and_shows_withdrawals(via: Via) {
     }
     down(t1);
     t.keys(&["l"]);
-    t.wait("the link prompt", |s| s.contains("select a command service"));
+    t.wait("the link prompt", |s| {
+        s.contains("select a command service")
+    });
     for _ in 0..3 {
         t.keys(&["Up"]);
     }
     down(d1);
     t.keys(&["Enter"]);
-    t.wait("the link", |s| s.contains("t1/s0 -> d1/s0") && s.contains(" up "));
+    t.wait("the link", |s| {
+        s.contains("t1/s0 -> d1/s0") && s.contains(" up ")
+    });
     t.wait("a forwarded input", |s| {
         s.lines()
             .any(|l| l.contains("t1/s0 -> d1/s0") && l.contains("goal2d x="))

@@ -747,6 +747,7 @@ impl Broker {
             sessions: all_sessions.take(MAX_STATUS_ROWS).collect(),
             sessions_total,
             queues,
+            handling: Vec::new(),
         }
     }
 

@@ -1291,7 +1291,19 @@ impl Shell {
         // send (each opening a port), and the list must not wait behind them.
         self.write_list(core);
         self.deliver_federation(core);
-        while let Some(out) = core.poll_output() {
+        while let Some(mut out) = core.poll_output() {
+            // An operator's status gets the shell's own figures.
+            if let Output::ToUser(
+                _,
+                ToUser::Operated {
+                    result: Ok(Some(status)),
+                    ..
+                },
+            ) = &mut out
+            {
+                status.handling = self.handling.figures();
+                fit_status(status);
+            }
             let out = match self.udp.as_mut() {
                 Some(d) => match d.front.route(core, out) {
                     Some(o) => o,
@@ -1645,6 +1657,20 @@ impl Handling {
         }
     }
 
+    /// Counts and percentiles per kind, for an operator's status.
+    pub fn figures(&self) -> Vec<muster_shared::protocol::HandlingFigures> {
+        self.hist
+            .iter()
+            .map(|(kind, h)| muster_shared::protocol::HandlingFigures {
+                kind: (*kind).to_string(),
+                count: h.len(),
+                p50_us: h.value_at_quantile(0.5),
+                p99_us: h.value_at_quantile(0.99),
+                max_us: h.max(),
+            })
+            .collect()
+    }
+
     /// Writes the log as CSV (`at_ms,kind,us`).
     pub fn write_log(&self, path: &std::path::Path) -> std::io::Result<()> {
         use std::io::Write;
@@ -1657,10 +1683,74 @@ impl Handling {
     }
 }
 
+/// Cuts an operator's status to fit one frame (with room for the message around it):
+/// its lists are halved until it does. The totals still count everyone.
+fn fit_status(status: &mut muster_shared::protocol::BrokerStatus) {
+    use muster_shared::protocol::{encode, MAX_FRAME};
+    while encode(&*status).map_or(true, |f| f.len() > MAX_FRAME - 64) {
+        if status.users.is_empty()
+            && status.sessions.is_empty()
+            && status.queues.is_empty()
+            && status.systems.is_empty()
+        {
+            status.handling.clear();
+            return;
+        }
+        for q in &mut status.queues {
+            q.waiting.truncate(q.waiting.len() / 2);
+        }
+        status.queues.truncate(status.queues.len() / 2);
+        status.users.truncate(status.users.len() / 2);
+        status.sessions.truncate(status.sessions.len() / 2);
+        status.systems.truncate(status.systems.len() / 2);
+    }
+}
+
 /// Hands `msg` to the core and records how long that took under the message's kind.
 pub fn timed_handle(handling: &mut Handling, core: &mut Broker, now: Duration, msg: ToBroker) {
     let kind = msg.kind();
     let t = Instant::now();
     core.handle(now, msg);
     handling.record(kind, t, t.elapsed());
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use muster_shared::protocol::{encode, BrokerStatus, LinkInfo, UserStatus, MAX_FRAME};
+    use muster_shared::types::{ServiceId, UserId};
+
+    #[test]
+    fn an_operators_status_is_cut_to_fit_one_frame() {
+        let link = |i: usize| LinkInfo {
+            link: i as u64,
+            data: ServiceId(format!("tracking-system-{i}/red")),
+            command: ServiceId(format!("delivery-system-{i}/goal")),
+        };
+        let mut status = BrokerStatus {
+            users: (0..200)
+                .map(|i| UserStatus {
+                    user: UserId(format!("u{i}-0123456789abcdef")),
+                    pid: 1000 + i,
+                    links: (0..8).map(|k| link(k + i as usize)).collect(),
+                })
+                .collect(),
+            users_total: 900,
+            ..BrokerStatus::default()
+        };
+        let mut h = Handling::new(false);
+        h.record("hello", Instant::now(), Duration::from_micros(12));
+        h.record("hello", Instant::now(), Duration::from_micros(40));
+        status.handling = h.figures();
+        assert!(encode(&status).is_err(), "the test's status must not fit");
+        fit_status(&mut status);
+        let frame = encode(&status).unwrap();
+        assert!(frame.len() <= MAX_FRAME - 64, "{}", frame.len());
+        assert_eq!(status.users.len(), 100, "halved once");
+        assert_eq!(status.users_total, 900, "the total still counts all");
+        assert_eq!(status.handling[0].kind, "hello");
+        assert_eq!(status.handling[0].count, 2);
+        assert_eq!(status.handling[0].max_us, 40);
+    }
 }

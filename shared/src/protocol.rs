@@ -465,6 +465,26 @@ pub struct BrokerStatus {
     pub sessions_total: usize,
     /// Non-empty task queues, each in order.
     pub queues: Vec<QueueStatus>,
+    /// How long the broker took to handle each kind of message in this run (filled
+    /// in by the broker's shell, which times the core; empty from the core alone).
+    #[serde(default)]
+    pub handling: Vec<HandlingFigures>,
+}
+
+/// The broker's handling of one kind of message (a [`ToBroker::kind`], or
+/// `list_write`) since it began serving: how many, and how long each took.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct HandlingFigures {
+    /// The message kind.
+    pub kind: String,
+    /// Messages handled.
+    pub count: u64,
+    /// Median handling time, µs.
+    pub p50_us: u64,
+    /// 99th percentile, µs.
+    pub p99_us: u64,
+    /// Longest, µs.
+    pub max_us: u64,
 }
 
 /// Most users or sessions listed in a [`BrokerStatus`] (it must fit in one frame).

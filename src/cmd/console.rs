@@ -6,6 +6,7 @@
 //! (asked after every event, and every few seconds for the systems' ping ages); idle,
 //! it sleeps in the kernel.
 
+use super::tui::{bold, pane_table, Input, Inputs};
 use crate::cli::ConsoleArgs;
 use muster_shared::ipc::{create_node, EventReader};
 use muster_shared::protocol::{BrokerStatus, EventRecord, Operation};
@@ -13,13 +14,12 @@ use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{ServiceId, UserId};
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, UserEvent, Wake};
-use super::tui::{bold, pane_table, Input, Inputs};
 use ratatui::crossterm::event::KeyCode;
 use ratatui::layout::{Constraint, Layout};
 use ratatui::text::Line;
 use ratatui::widgets::{Block, Borders, Paragraph, Row, Table};
 use ratatui::Frame;
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use std::io::Write;
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
@@ -58,6 +58,10 @@ struct Console {
     message: String,
     asked: Option<u64>,
     last_status: Instant,
+    /// Messages a second per kind, from the counts of the last two statuses.
+    rates: HashMap<String, f64>,
+    /// When the last status came, and its counts per kind.
+    counted: Option<(Instant, HashMap<String, u64>)>,
 }
 
 fn index(p: Pane) -> usize {
@@ -92,6 +96,37 @@ fn describe(r: &EventRecord) -> String {
 }
 
 impl Console {
+    /// Takes a new status in, and the message rates since the one before.
+    fn took_status(&mut self, s: BrokerStatus) {
+        let now = Instant::now();
+        let counts: HashMap<String, u64> = s
+            .handling
+            .iter()
+            .map(|h| (h.kind.clone(), h.count))
+            .collect();
+        // A new broker run (a takeover, a restart) counts from zero again.
+        if let Some((then, before)) = self
+            .counted
+            .as_ref()
+            .filter(|_| s.epoch == self.status.epoch)
+        {
+            let dt = now.duration_since(*then).as_secs_f64();
+            if dt > 0.0 {
+                self.rates = counts
+                    .iter()
+                    .map(|(k, n)| {
+                        let was = before.get(k).copied().unwrap_or(0);
+                        (k.clone(), n.saturating_sub(was) as f64 / dt)
+                    })
+                    .collect();
+            }
+        } else {
+            self.rates.clear();
+        }
+        self.counted = Some((now, counts));
+        self.status = s;
+    }
+
     /// The queued requests, flattened in display order: (service, user, req, place).
     fn queued(&self) -> Vec<(ServiceId, UserId, u64, usize)> {
         self.status
@@ -200,8 +235,12 @@ impl Console {
         let [left, right] =
             Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
                 .areas(middle);
-        let [services_area, systems_area] =
-            Layout::vertical([Constraint::Percentage(60), Constraint::Percentage(40)]).areas(left);
+        let [services_area, systems_area, figures_area] = Layout::vertical([
+            Constraint::Percentage(45),
+            Constraint::Percentage(25),
+            Constraint::Percentage(30),
+        ])
+        .areas(left);
         let [sessions_area, users_area, queues_area] = Layout::vertical([
             Constraint::Percentage(40),
             Constraint::Percentage(30),
@@ -255,6 +294,33 @@ impl Console {
         .header(Row::new(["system", "pid", "sessions", "last answer", "delinquent"]).style(bold()))
         .block(Block::default().borders(Borders::ALL).title("systems"));
         f.render_widget(t, systems_area);
+        // The broker's handling: the busiest kinds first.
+        let mut kinds: Vec<_> = s.handling.iter().collect();
+        kinds.sort_by(|a, b| b.count.cmp(&a.count).then(a.kind.cmp(&b.kind)));
+        let total: f64 = self.rates.values().sum();
+        let figures = kinds.iter().map(|h| {
+            Row::new(vec![
+                h.kind.clone(),
+                h.count.to_string(),
+                self.rates
+                    .get(&h.kind)
+                    .map_or("-".into(), |r| format!("{r:.1}")),
+                h.p50_us.to_string(),
+                h.p99_us.to_string(),
+                h.max_us.to_string(),
+            ])
+        });
+        let t = Table::new(
+            figures.collect::<Vec<_>>(),
+            [14, 9, 8, 7, 7, 8].map(Constraint::Length),
+        )
+        .header(Row::new(["handled", "count", "per s", "p50 µs", "p99 µs", "max µs"]).style(bold()))
+        .block(
+            Block::default()
+                .borders(Borders::ALL)
+                .title(format!("broker figures: {total:.1} messages/s")),
+        );
+        f.render_widget(t, figures_area);
         let sessions = s.sessions.iter().map(|x| {
             Row::new(vec![
                 format!("{:016x}", x.session.0),
@@ -378,6 +444,8 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
         last_status: Instant::now()
             .checked_sub(STATUS_EVERY)
             .unwrap_or_else(Instant::now),
+        rates: HashMap::new(),
+        counted: None,
     };
     let mut terminal = ratatui::init();
     let outcome = (|| -> anyhow::Result<()> {
@@ -404,7 +472,7 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
                     if c.asked == Some(id) {
                         c.asked = None;
                         match result {
-                            Ok(Some(s)) => c.status = *s,
+                            Ok(Some(s)) => c.took_status(*s),
                             Ok(None) => {}
                             Err(e) => c.message = format!("status: {e}"),
                         }

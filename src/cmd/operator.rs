@@ -126,4 +126,16 @@ fn print_status(s: &BrokerStatus) {
             println!("  {}. {user} request {req}", i + 1);
         }
     }
+    if !s.handling.is_empty() {
+        println!(
+            "handling in this run:\n  {:<16} {:>10} {:>8} {:>8} {:>8}",
+            "kind", "count", "p50 µs", "p99 µs", "max µs"
+        );
+    }
+    for h in &s.handling {
+        println!(
+            "  {:<16} {:>10} {:>8} {:>8} {:>8}",
+            h.kind, h.count, h.p50_us, h.p99_us, h.max_us
+        );
+    }
 }

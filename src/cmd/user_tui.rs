@@ -62,7 +62,10 @@ struct LinkRow {
 enum Mode {
     Normal,
     /// Typing a goal `X Y` for a command session.
-    Goal { session: SessionId, text: String },
+    Goal {
+        session: SessionId,
+        text: String,
+    },
     /// A data service is chosen; the next Enter (or `l`) on a service links it there.
     LinkFrom(ServiceId),
 }
@@ -150,7 +153,12 @@ impl View {
             } => {
                 self.note(format!("{service}: queued at position {position}"));
                 for h in &mut self.held {
-                    if let Held::Waiting { req: r, position: p, .. } = h {
+                    if let Held::Waiting {
+                        req: r,
+                        position: p,
+                        ..
+                    } = h
+                    {
                         if *r == req {
                             *p = Some(position);
                         }
@@ -328,8 +336,9 @@ impl View {
                         };
                     }
                     (_, KeyCode::Char('l')) if is_data => {
-                        self.message =
-                            format!("link {id} into: select a command service, Enter (Esc cancels)");
+                        self.message = format!(
+                            "link {id} into: select a command service, Enter (Esc cancels)"
+                        );
                         self.mode = Mode::LinkFrom(id);
                     }
                     (_, KeyCode::Char('l')) => {
