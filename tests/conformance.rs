@@ -369,7 +369,10 @@ fn an_operator_ends_a_session_and_drops_a_queued_request(via: Via) {
             .cloned()
             .unwrap_or_else(|| panic!("no {kind} in {status}"))
     };
-    assert!(handled("register")["count"].as_u64().unwrap() >= 1, "{status}");
+    assert!(
+        handled("register")["count"].as_u64().unwrap() >= 1,
+        "{status}"
+    );
     let hello = handled("hello");
     assert!(hello["count"].as_u64().unwrap() >= 3, "{status}");
     assert!(
@@ -524,10 +527,7 @@ fn the_console_shows_grants_ends_and_withdrawals_and_acts_on_keys() {
     t.wait("the broker's figures", |s| {
         s.contains("broker figures:")
             && s.lines().any(|l| {
-                let w: Vec<&str> = l
-                    .split(|c| c == '│' || c == ' ')
-                    .filter(|w| !w.is_empty())
-                    .collect();
+                let w: Vec<&str> = l.split(['│', ' ']).filter(|w| !w.is_empty()).collect();
                 w.windows(2)
                     .any(|p| p[0] == "hello" && p[1].parse::<u64>().is_ok_and(|n| n >= 2))
             })
