@@ -86,6 +86,21 @@ const PROXY_LINGER: Duration = Duration::from_secs(2);
 /// up to [`LIST_RETRY_MAX`].
 const LIST_RETRY_FIRST: Duration = Duration::from_millis(250);
 const LIST_RETRY_MAX: Duration = Duration::from_secs(4);
+/// Each broker publishes its list again this often, unchanged (the same version): a
+/// publication a peer missed (made before the peer's subscription was known here, so
+/// Zenoh sent it nowhere) reaches it then.
+const LIST_REFRESH: Duration = Duration::from_secs(2);
+
+/// A list's version, sent as the Zenoh attachment of its publication and of the
+/// queryable's reply: Unix ns of the change, kept rising. A peer takes a list only if
+/// it is newer than the one it has, so a late reply to an old query does not undo a
+/// newer publication. (A list without one, version 0, is always taken.)
+fn list_version(sample: &zenoh::sample::Sample) -> u64 {
+    sample
+        .attachment()
+        .and_then(|a| <[u8; 8]>::try_from(a.to_bytes().as_ref()).ok())
+        .map_or(0, u64::from_le_bytes)
+}
 /// How long a starting broker looks for another broker already using its host name.
 const HOST_CHECK: Duration = Duration::from_millis(400);
 
@@ -468,7 +483,8 @@ pub struct FedStats {
 /// What a Zenoh callback hands the broker's thread.
 enum Event {
     Alive(String, bool),
-    List(String, Vec<u8>),
+    /// A host's list: its version and body.
+    List(String, u64, Vec<u8>),
     /// From a host; `true` if on its users' key (`req`), `false` on its systems' (`in`).
     Msg(String, bool, Vec<u8>),
 }
@@ -501,7 +517,12 @@ pub struct Federation {
     system_tokens: BTreeMap<String, zenoh::liveliness::LivelinessToken>,
     _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
     _queryable: zenoh::query::Queryable<()>,
-    my_list: Arc<Mutex<Vec<u8>>>,
+    /// This host's list as last published: its version and body.
+    my_list: Arc<Mutex<(u64, Vec<u8>)>>,
+    /// When this host's list is published again unchanged ([`LIST_REFRESH`]).
+    next_refresh: Instant,
+    /// The version of each host's list taken.
+    list_versions: HashMap<String, u64>,
     events: mpsc::Receiver<Event>,
     /// Hands an event to the broker's thread and wakes it (used on Zenoh's threads).
     notify: Arc<dyn Fn(Event) + Send + Sync>,
@@ -637,7 +658,11 @@ impl Federation {
                     .callback(move |s| {
                         if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
                             if h != me {
-                                n(Event::List(h.to_string(), s.payload().to_bytes().to_vec()));
+                                n(Event::List(
+                                    h.to_string(),
+                                    list_version(&s),
+                                    s.payload().to_bytes().to_vec(),
+                                ));
                             }
                         }
                     })
@@ -661,16 +686,19 @@ impl Federation {
                     .map_err(zerr)?,
             );
         }
-        let my_list = Arc::new(Mutex::new(b"[]".to_vec()));
+        let my_list = Arc::new(Mutex::new((0u64, b"[]".to_vec())));
         let queryable = {
             let list = my_list.clone();
             let key = format!("{prefix}{host}/list");
             session
                 .declare_queryable(key.clone())
                 .callback(move |q| {
-                    let body = list.lock().map(|l| l.clone()).unwrap_or_default();
+                    let (version, body) = list.lock().map(|l| l.clone()).unwrap_or_default();
                     // Under its own key (the query's may be a wildcard over hosts).
-                    let _ = q.reply(&key, body).wait();
+                    let _ = q
+                        .reply(&key, body)
+                        .attachment(version.to_le_bytes().to_vec())
+                        .wait();
                 })
                 .wait()
                 .map_err(zerr)?
@@ -692,6 +720,8 @@ impl Federation {
             _subscribers: subscribers,
             _queryable: queryable,
             my_list,
+            next_refresh: Instant::now() + LIST_REFRESH,
+            list_versions: HashMap::new(),
             events,
             waker,
             alive: BTreeSet::new(),
@@ -753,14 +783,24 @@ impl Federation {
             .iter()
             .map(|(t, _)| *t)
             .chain(self.list_asked.values().map(|(t, _)| *t))
+            .chain(std::iter::once(self.next_refresh))
             .map(|t| t.saturating_duration_since(now))
             .min()
     }
 
-    /// Closes proxies that have lingered long enough, and asks again for lists that
-    /// have not come.
+    /// Closes proxies that have lingered long enough, asks again for lists that have
+    /// not come, and publishes this host's list again when it is time.
     pub fn sweep(&mut self) {
         let now = Instant::now();
+        if now >= self.next_refresh {
+            let mine = self.my_list.lock().map(|l| l.clone()).ok();
+            match mine {
+                Some((version, body)) if version > 0 && self.may(&self.host, Role::Offer) => {
+                    self.put_list(version, body)
+                }
+                _ => self.next_refresh = now + LIST_REFRESH,
+            }
+        }
         self.lingering.retain(|(t, _)| *t > now);
         let due: Vec<String> = self
             .list_asked
@@ -805,13 +845,18 @@ impl Federation {
             })
             .collect();
         let body = serde_json::to_vec(&mine).unwrap_or_else(|_| b"[]".to_vec());
-        if let Ok(mut l) = self.my_list.lock() {
-            *l = body.clone();
-        }
-        let key = format!("{}{}/list", self.prefix, self.host);
-        if let Err(e) = self.session.put(&key, body).wait() {
-            tracing::warn!("federation: cannot publish the list: {e}");
-        }
+        let unix_ns = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
+        let version = match self.my_list.lock() {
+            Ok(mut l) => {
+                let v = unix_ns.max(l.0 + 1);
+                *l = (v, body.clone());
+                v
+            }
+            Err(_) => unix_ns,
+        };
+        self.put_list(version, body);
         let want: BTreeSet<&str> = systems.iter().copied().collect();
         self.system_tokens.retain(|s, _| want.contains(s.as_str()));
         for s in want {
@@ -824,6 +869,18 @@ impl Federation {
                     Err(e) => tracing::warn!("federation: token for system {s}: {e}"),
                 }
             }
+        }
+    }
+
+    fn put_list(&mut self, version: u64, body: Vec<u8>) {
+        self.next_refresh = Instant::now() + LIST_REFRESH;
+        let key = format!("{}{}/list", self.prefix, self.host);
+        let put = self
+            .session
+            .put(&key, body)
+            .attachment(version.to_le_bytes().to_vec());
+        if let Err(e) = put.wait() {
+            tracing::warn!("federation: cannot publish the list: {e}");
         }
     }
 
@@ -1191,9 +1248,9 @@ impl Federation {
                         self.host_lost(&host, core, reactor, now);
                     }
                 }
-                Event::List(host, body) => {
+                Event::List(host, version, body) => {
                     self.list_asked.remove(&host);
-                    self.take_list(&host, &body)
+                    self.take_list(&host, version, &body)
                 }
                 Event::Msg(from, users_side, frame) => {
                     self.stats.received += 1;
@@ -1272,7 +1329,11 @@ impl Federation {
             .target(zenoh::query::QueryTarget::All)
             .callback(move |reply| {
                 if let Ok(s) = reply.result() {
-                    n(Event::List(h.clone(), s.payload().to_bytes().to_vec()));
+                    n(Event::List(
+                        h.clone(),
+                        list_version(s),
+                        s.payload().to_bytes().to_vec(),
+                    ));
                 }
             })
             .wait();
@@ -1281,9 +1342,13 @@ impl Federation {
         }
     }
 
-    fn take_list(&mut self, host: &str, body: &[u8]) {
+    fn take_list(&mut self, host: &str, version: u64, body: &[u8]) {
         if !self.may(host, Role::Offer) {
             self.stats.dropped += 1;
+            return;
+        }
+        // The same list again (a refresh), or an older one (a late reply).
+        if version != 0 && self.list_versions.get(host).is_some_and(|v| version <= *v) {
             return;
         }
         let views: Vec<ServiceView> = match serde_json::from_slice(body) {
@@ -1306,6 +1371,7 @@ impl Federation {
                 ..v
             })
             .collect();
+        self.list_versions.insert(host.to_string(), version);
         if self.lists.get(host) != Some(&views) {
             self.lists.insert(host.to_string(), views);
             self.list_changed = true;
@@ -1318,6 +1384,7 @@ impl Federation {
             host,
             "federation: host left; its services, requests and sessions end"
         );
+        self.list_versions.remove(host);
         if self.lists.remove(host).is_some() {
             self.list_changed = true;
         }
