@@ -214,6 +214,10 @@ pub struct KeygenArgs {
     /// e.g. `T1/*`); none prints a line that lets the user connect but see nothing.
     #[arg(long = "allow")]
     pub allow: Vec<String>,
+    /// Print an `operator` line: the user may also act as an operator (`muster operator`,
+    /// `muster console --remote`).
+    #[arg(long, conflicts_with = "broker")]
+    pub operator: bool,
 }
 
 /// How a user reaches a broker over UDP (all user verbs).
@@ -354,6 +358,10 @@ pub struct ConsoleArgs {
     /// How long to wait for a broker.
     #[arg(long, default_value = "5s", value_parser = duration)]
     pub wait: Duration,
+    /// `--remote ADDR --key FILE`: an operator over UDP (an `operator` line in the
+    /// broker's access file); the event log then comes over the same connection.
+    #[command(flatten)]
+    pub remote: RemoteArgs,
 }
 
 #[derive(Args, Debug)]

@@ -413,10 +413,10 @@ fn an_operator_ends_a_session_and_drops_a_queued_request(via: Via) {
         "{answer}"
     );
     if via == Via::Udp {
-        // Remote operators are not taken (yet): told so.
+        // A remote user the access file does not call an operator is told so.
         let (code, out) = c.run_raw(&["operator", "--json", "status"]);
         assert_eq!(code, 1, "{out}");
-        assert!(out.contains("operators only"), "{out}");
+        assert!(out.contains("not an operator"), "{out}");
     }
 }
 both!(an_operator_ends_a_session_and_drops_a_queued_request);
@@ -649,3 +649,110 @@ fn the_user_view_requests_links_ends_and_shows_withdrawals(via: Via) {
     }
 }
 both!(the_user_view_requests_links_ends_and_shows_withdrawals);
+
+#[test]
+fn a_remote_operator_acts_and_its_console_follows_the_event_feed() {
+    // Olga has an `operator` line in the access file: over UDP she reads the status,
+    // drops a queued request and ends a session, and her console shows the broker's
+    // event feed, sent over her connection.
+    let mut f = Fed::new("remop");
+    let r = f.remote_setup_with(&[("alice", &["*"])], &["olga"]);
+    f.remote_broker(&r);
+    f.system(
+        "d1",
+        &[
+            "--udp",
+            "127.0.0.1:0",
+            "--kind",
+            "command",
+            "--quota",
+            "1",
+            "--queue",
+        ],
+    );
+    f.wait_list(15 * SEC, |l| l.len() == 1);
+    let alice = |args: &[&str]| Fed::user_args(Via::Udp, Some(&r), args);
+    let a = alice(&["user", "request", "d1/s0", "--duration", "60s", "--json"]);
+    let a: Vec<&str> = a.iter().map(String::as_str).collect();
+    let holder = f.spawn(&a);
+    let first = f.proc(holder).json(20 * SEC).unwrap();
+    assert_eq!(first["granted"], true, "{first}");
+    let session = first["session"].as_str().unwrap().to_string();
+    let olga_key = r.key("olga");
+    let olga_args = ["--remote", r.addr.as_str(), "--key", olga_key.as_str()];
+    let name = format!("muster-remop-{}", std::process::id());
+    let cmd = format!(
+        "{} --instance {} console {}",
+        common::BIN,
+        f.inst,
+        olga_args.join(" ")
+    );
+    let console = Tmux::start(&name, &cmd);
+    if let Some(t) = &console {
+        t.wait("the remote console", |s| {
+            s.contains("olga.") && s.contains(&session)
+        });
+    }
+    let waiter = f.spawn(&["user", "request", "d1/s0", "--duration", "60s", "--json"]);
+    f.wait_list(15 * SEC, |l| l[0]["queued"] == 1);
+    // Each step shows in the console's log, sent over its connection.
+    let feed = |what: &str, want: &str| {
+        if let Some(t) = &console {
+            t.wait(what, |s| s.contains(want));
+        }
+    };
+    feed(
+        "the queued request, on the feed over UDP",
+        "queued position=1",
+    );
+    let olga = |f: &Fed, args: &[&str]| -> (i32, Value) {
+        let mut a = vec!["operator", "--json"];
+        a.extend_from_slice(args);
+        a.extend_from_slice(&olga_args);
+        let (code, out) = f.run(&a, 30 * SEC);
+        (
+            code,
+            serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}")),
+        )
+    };
+    let (code, status) = olga(&f, &["status"]);
+    assert_eq!(code, 0, "{status}");
+    assert_eq!(
+        status["sessions"][0]["session"],
+        session.as_str(),
+        "{status}"
+    );
+    assert!(
+        status["handling"].as_array().is_some_and(|h| !h.is_empty()),
+        "{status}"
+    );
+    let waiting = &status["queues"][0]["waiting"][0];
+    let (user, req) = (waiting[0].as_str().unwrap(), waiting[1].as_u64().unwrap());
+    let (code, done) = olga(&f, &["drop-request", "d1/s0", user, &req.to_string()]);
+    assert_eq!((code, &done["done"]), (0, &Value::Bool(true)), "{done}");
+    let told = f.proc(waiter).json(20 * SEC).unwrap();
+    assert_eq!(told["code"], "by_operator", "{told}");
+    feed("the drop, on the feed over UDP", "op=drop request");
+    let (code, done) = olga(&f, &["end", &session]);
+    assert_eq!(code, 0, "{done}");
+    let ended = loop {
+        let v = f.proc(holder).json(20 * SEC).expect("the session's end");
+        if v.get("ended").is_some() {
+            break v;
+        }
+    };
+    assert!(
+        ended["reason"]
+            .as_str()
+            .unwrap()
+            .contains("ended by an operator"),
+        "{ended}"
+    );
+    // The console heard the end on the feed, and quits.
+    if let Some(t) = &console {
+        t.wait("the end, on the feed over UDP", |s| {
+            s.contains(&format!("op=end session {session}")) && s.contains("session_ended")
+        });
+        t.keys(&["q"]);
+    }
+}

@@ -193,7 +193,7 @@ impl Net {
     /// path with `faults`; it starts its handshake at once. Not settled: run the clock.
     fn add_remote_user(&mut self, n: u32, name: &str, faults: PathFaults) -> UserId {
         let key = KeyPair::generate().unwrap();
-        self.access += &access_line(name, &key.public, &["*".into()]);
+        self.access += &access_line(name, &key.public, &["*".into()], false);
         self.access.push('\n');
         if let Some(f) = self.front.as_mut() {
             f.reload(

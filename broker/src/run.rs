@@ -1389,12 +1389,22 @@ impl Shell {
         };
         let mut any = false;
         while let Some(e) = core.poll_event() {
-            if let Err(e) = w.publish(e) {
-                tracing::debug!("event feed: {e}");
+            match w.publish(e) {
+                // Remote operators get it too.
+                Ok(Some(json)) => {
+                    if let Some(u) = self.udp.as_mut() {
+                        u.front.feed(&json);
+                    }
+                }
+                Ok(None) => {}
+                Err(e) => tracing::debug!("event feed: {e}"),
             }
             any = true;
         }
         if any {
+            if let Some(u) = self.udp.as_mut() {
+                u.transmit();
+            }
             w.ring();
         }
     }

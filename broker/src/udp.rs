@@ -27,7 +27,9 @@ use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{Refusal, ServiceId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
-use muster_shared::udp::msgs::{chunk_list, from_bytes, seal_channel, Down, Hs3, Up};
+use muster_shared::udp::msgs::{
+    chunk_list, chunk_operated, from_bytes, seal_channel, Down, Hs3, Up,
+};
 use muster_shared::udp::wire::RESET_TOKEN;
 use muster_shared::udp::wire::{Datagram, WireError};
 use muster_shared::udp::{DropCounters, PathProbe, Transmit};
@@ -126,7 +128,10 @@ pub struct UdpStats {
 
 /// Why a remote user's operator action is refused.
 pub const REMOTE_OPERATORS: &str =
-    "operators only: operators are local processes of the instance's owner (remote operators are not supported yet)";
+    "operators only: this user is not an operator in the broker's access file (an `operator` line, `muster keygen --operator`)";
+
+/// Operator actions whose answers a connection keeps for repeats.
+const KEPT_OPS: usize = 16;
 
 /// Most stateless resets a front sends a second (and its burst).
 const RESETS_PER_SEC: f64 = 500.0;
@@ -185,6 +190,11 @@ struct Conn {
     keys: HashMap<u64, [u8; 32]>,
     /// A new address the user's datagrams came from, the challenge sent there, and when.
     probe: PathProbe,
+    /// An operator's latest actions: `None` while the core works on one, then its
+    /// answer in pieces, sent again whole if the action comes again.
+    ops: BTreeMap<u64, Option<Vec<Down>>>,
+    /// An operator that has acted: the event feed's records are sent to it.
+    follows: bool,
 }
 
 /// What the front hands the core (through `run.rs`).
@@ -666,6 +676,8 @@ impl UdpFront {
                 floor: 0,
                 keys: HashMap::new(),
                 probe: PathProbe::default(),
+                ops: BTreeMap::new(),
+                follows: false,
             },
         );
     }
@@ -836,14 +848,38 @@ impl UdpFront {
                 self.events
                     .push_back(FrontEvent::ToCore(ToBroker::Goodbye { user }));
             }
-            // Operators are the instance owner's local processes, for now.
-            ToBroker::Operate { id: op, .. } => {
+            // Operators are the users the access file calls so.
+            ToBroker::Operate { id: op, .. } if !policy.is_some_and(|p| p.operator) => {
                 let m = ToUser::Operated {
                     id: op,
                     result: Err(REMOTE_OPERATORS.into()),
                 };
                 self.send(id, &Down::Msg(m));
             }
+            ToBroker::Operate {
+                id: op, op: action, ..
+            } => match c.ops.get(&op) {
+                // The core has it; its answer will come.
+                Some(None) => self.stats.duplicate_requests += 1,
+                Some(Some(pieces)) => {
+                    self.stats.duplicate_requests += 1;
+                    for d in pieces.clone() {
+                        self.send(id, &d);
+                    }
+                }
+                None => {
+                    c.ops.insert(op, None);
+                    while c.ops.len() > KEPT_OPS {
+                        c.ops.pop_first();
+                    }
+                    c.follows = true;
+                    self.events.push_back(FrontEvent::ToCore(ToBroker::Operate {
+                        user,
+                        id: op,
+                        op: action,
+                    }));
+                }
+            },
             _ => self.stats.drops.drop("not_a_user_message", &from),
         }
     }
@@ -954,6 +990,7 @@ impl UdpFront {
                     ToUser::Queued { req, position } => {
                         self.answer(id, req, Down::Msg(ToUser::Queued { req, position }), false)
                     }
+                    ToUser::Operated { id: op, result } => self.operated(id, op, &result),
                     other => self.send(id, &Down::Msg(other)),
                 }
                 None
@@ -995,6 +1032,43 @@ impl UdpFront {
                 None
             }
             other => Some(other),
+        }
+    }
+
+    /// The core's answer to operator action `op` of connection `id`: sent in pieces and
+    /// kept for a repeat of the action.
+    fn operated(&mut self, id: u64, op: u64, result: &muster_shared::udp::msgs::OperatedResult) {
+        let pieces = chunk_operated(op, result).unwrap_or_else(|| {
+            let why: muster_shared::udp::msgs::OperatedResult =
+                Err("the answer is too large to send".into());
+            chunk_operated(op, &why).unwrap_or_default()
+        });
+        for d in &pieces {
+            self.send(id, d);
+        }
+        if let Some(c) = self.conns.get_mut(&id) {
+            if let Some(slot) = c.ops.get_mut(&op) {
+                *slot = Some(pieces);
+            }
+        }
+    }
+
+    /// A record of the broker's event feed (its JSON): sent to every operator that has
+    /// acted, if it fits a datagram.
+    pub fn feed(&mut self, json: &str) {
+        let ids: Vec<u64> = self
+            .conns
+            .iter()
+            .filter(|(_, c)| c.follows && c.user.is_some())
+            .map(|(id, _)| *id)
+            .collect();
+        // Room for the variant's tag and the length prefix.
+        if ids.is_empty() || json.len() > muster_shared::udp::wire::MAX_PLAINTEXT - 8 {
+            return;
+        }
+        let d = Down::Event(json.to_string());
+        for id in ids {
+            self.send(id, &d);
         }
     }
 

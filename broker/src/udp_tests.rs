@@ -23,9 +23,15 @@ impl Rig {
 
     /// A rig where alice may use the services matching `patterns`.
     fn allowing(limits: UdpLimits, patterns: &[&str]) -> Self {
+        Self::allowing_as(limits, patterns, false)
+    }
+
+    /// The same, alice an operator if `operator`.
+    fn allowing_as(limits: UdpLimits, patterns: &[&str], operator: bool) -> Self {
         let user = KeyPair::generate().unwrap();
         let patterns: Vec<String> = patterns.iter().map(|p| p.to_string()).collect();
-        let access = AccessFile::parse(&access_line("alice", &user.public, &patterns)).unwrap();
+        let access =
+            AccessFile::parse(&access_line("alice", &user.public, &patterns, operator)).unwrap();
         let now = Instant::now();
         let front = UdpFront::new(
             KeyPair::generate().unwrap(),
@@ -303,4 +309,104 @@ fn links_over_services_a_user_may_not_use_are_not_counted() {
     let links = |id: &str| views.iter().find(|v| v.id == id).unwrap().links;
     assert_eq!((links("s/s0"), links("s/s1"), links("d/go")), (1, 0, 1));
     assert_eq!(r.front.stats().drops.by_reason["link_not_allowed"], 1);
+}
+
+#[test]
+fn an_operators_action_reaches_the_core_once_and_its_answer_comes_in_pieces() {
+    use muster_shared::protocol::{BrokerEvent, Operation};
+    use muster_shared::udp::msgs::OperatedAssembly;
+    let hello = Up::Msg(ToBroker::Hello {
+        user: UserId("x".into()),
+        pid: 1,
+        links: vec![],
+        watch_list: false,
+    });
+    let operate = |id: u64, op: Operation| {
+        Up::Msg(ToBroker::Operate {
+            user: UserId("claimed".into()),
+            id,
+            op,
+        })
+    };
+    // A plain user is told it is no operator; the core never hears of it.
+    let mut r = Rig::allowing_as(UdpLimits::default(), &["*"], false);
+    r.core.emit_events();
+    let (conn, mut chan) = r.connect(1);
+    r.say(conn, &mut chan, &hello);
+    let got = r.say(conn, &mut chan, &operate(1, Operation::Status));
+    assert!(
+        matches!(&got[..], [Down::Msg(ToUser::Operated { id: 1, result: Err(e) })] if e.contains("not an operator")),
+        "{got:?}"
+    );
+    assert!(std::iter::from_fn(|| r.core.poll_event())
+        .all(|e| !matches!(e, BrokerEvent::Operated { .. })));
+    // Nor does it get the event feed.
+    r.front
+        .feed(r#"{"epoch":"1","seq":1,"t_ns":1,"event":"user_left","user":"u"}"#);
+    assert!(r.front.poll_transmit().is_none());
+
+    // An operator: its status comes in pieces that make the whole answer, and an
+    // action sent again is answered again from memory, not done again.
+    let mut r = Rig::allowing_as(UdpLimits::default(), &["*"], true);
+    r.core.emit_events();
+    let (conn, mut chan) = r.connect(1);
+    r.say(conn, &mut chan, &hello);
+    let whole = |pieces: Vec<Down>| {
+        let mut a = OperatedAssembly::default();
+        let mut out = None;
+        for d in pieces {
+            match d {
+                Down::OperatedChunk {
+                    id: 2,
+                    index,
+                    total,
+                    bytes,
+                } => out = a.add(index, total, bytes).or(out),
+                other => panic!("{other:?}"),
+            }
+        }
+        out.expect("a whole answer")
+    };
+    let status = whole(r.say(conn, &mut chan, &operate(2, Operation::Status)))
+        .unwrap()
+        .unwrap();
+    assert_eq!(
+        status.users[0].user.0, "alice.abc",
+        "the operator is who it authenticated as"
+    );
+    let withdraw = operate(
+        3,
+        Operation::Withdraw {
+            service: ServiceId::new("nosuch", "s0"),
+        },
+    );
+    let first = r.say(conn, &mut chan, &withdraw);
+    let again = r.say(conn, &mut chan, &withdraw);
+    assert_eq!(first, again);
+    let operated: Vec<_> = std::iter::from_fn(|| r.core.poll_event())
+        .filter_map(|e| match e {
+            BrokerEvent::Operated { user, error, .. } => Some((user.0, error)),
+            _ => None,
+        })
+        .collect();
+    // (A status read is not told on the feed.)
+    assert_eq!(operated.len(), 1, "the withdrawal, once: {operated:?}");
+    assert_eq!(operated[0].0, "alice.abc");
+    assert!(operated[0]
+        .1
+        .as_deref()
+        .is_some_and(|e| e.contains("no service")));
+    // Having acted, it follows the event feed.
+    let json = r#"{"epoch":"1","seq":1,"t_ns":1,"event":"user_left","user":"u"}"#;
+    r.front.feed(json);
+    let t = r.front.poll_transmit().expect("the record, sent");
+    let Datagram::Channel { nonce, sealed, .. } = Datagram::decode(&t.bytes).unwrap() else {
+        panic!()
+    };
+    let d: Down = from_bytes(&chan.open(nonce, sealed).unwrap()).unwrap();
+    assert_eq!(d, Down::Event(json.into()));
+    // A record too large for a datagram is not sent.
+    r.front
+        .feed(&format!("{{\"pad\":\"{}\"}}", "x".repeat(2000)));
+    assert!(r.front.poll_transmit().is_none());
 }

@@ -1501,9 +1501,12 @@ impl EventWriter {
         }
     }
 
-    /// Publishes `event` (numbered, stamped with the Unix time); an event too large for
-    /// the feed is dropped with a warning.
-    pub fn publish(&mut self, event: crate::protocol::BrokerEvent) -> Result<(), TransportError> {
+    /// Publishes `event` (numbered, stamped with the Unix time) and returns its record's
+    /// JSON; an event too large for the feed is dropped with a warning (`None`).
+    pub fn publish(
+        &mut self,
+        event: crate::protocol::BrokerEvent,
+    ) -> Result<Option<String>, TransportError> {
         self.seq += 1;
         let t_ns = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
@@ -1515,21 +1518,22 @@ impl EventWriter {
             event,
         };
         let err = |e: &dyn std::fmt::Debug| svc_err("events", e);
-        let bytes = serde_json::to_vec(&rec).map_err(|e| err(&e))?;
+        let json = serde_json::to_string(&rec).map_err(|e| err(&e))?;
+        let bytes = json.as_bytes();
         if bytes.len() > MAX_EVENT {
             tracing::warn!(
                 len = bytes.len(),
                 "an event too large for the feed: dropped"
             );
-            return Ok(());
+            return Ok(None);
         }
         let sample = self
             .publisher
             .loan_slice_uninit(bytes.len())
             .map_err(|e| err(&e))?;
-        let sample = sample.write_from_slice(&bytes);
+        let sample = sample.write_from_slice(bytes);
         sample.send().map_err(|e| err(&e))?;
-        Ok(())
+        Ok(Some(json))
     }
 
     /// Wakes the feed's readers.

@@ -13,7 +13,7 @@ use muster_shared::protocol::{BrokerStatus, EventRecord, Operation};
 use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{ServiceId, UserId};
 use muster_shared::Instance;
-use muster_users::{ConnectOptions, UserClient, UserError, UserEvent, Wake};
+use muster_users::{ConnectOptions, UserError, UserEvent, Wake};
 use ratatui::crossterm::event::KeyCode;
 use ratatui::layout::{Constraint, Layout};
 use ratatui::text::Line;
@@ -49,7 +49,8 @@ impl Pane {
 }
 
 struct Console {
-    inst: Instance,
+    /// Where the console looks from: the instance, or the remote broker's address.
+    place: String,
     list: Vec<ServiceView>,
     status: BrokerStatus,
     log: VecDeque<String>,
@@ -58,6 +59,8 @@ struct Console {
     message: String,
     asked: Option<u64>,
     last_status: Instant,
+    /// The last event record's broker run and number.
+    last_record: Option<(String, u64)>,
     /// Messages a second per kind, from the counts of the last two statuses.
     rates: HashMap<String, f64>,
     /// When the last status came, and its counts per kind.
@@ -96,6 +99,31 @@ fn describe(r: &EventRecord) -> String {
 }
 
 impl Console {
+    /// A record of the event feed, into the log; a jump in its numbers says how many
+    /// were missed (a remote operator's feed is best effort).
+    fn took_record(&mut self, r: &EventRecord) {
+        if let Some((epoch, seq)) = &self.last_record {
+            if *epoch == r.epoch && r.seq > seq + 1 {
+                self.log
+                    .push_back(format!("({} events missed)", r.seq - seq - 1));
+            }
+        }
+        self.last_record = Some((r.epoch.clone(), r.seq));
+        self.log.push_back(describe(r));
+        while self.log.len() > LOG_LINES {
+            self.log.pop_front();
+        }
+    }
+
+    /// Something happened at the broker: the status again, at once.
+    fn status_soon(&mut self) {
+        if self.asked.is_none() {
+            self.last_status = Instant::now()
+                .checked_sub(STATUS_EVERY)
+                .unwrap_or(self.last_status);
+        }
+    }
+
     /// Takes a new status in, and the message rates since the one before.
     fn took_status(&mut self, s: BrokerStatus) {
         let now = Instant::now();
@@ -220,8 +248,8 @@ impl Console {
         .areas(f.area());
         let s = &self.status;
         let title = format!(
-            "muster console: instance {}, broker run {:016x}: {} services, {} systems, {} users, {} sessions",
-            self.inst,
+            "muster console: {}, broker run {:016x}: {} services, {} systems, {} users, {} sessions",
+            self.place,
             s.epoch,
             self.list.len(),
             s.systems.len(),
@@ -403,9 +431,12 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
         handle_signals: true,
         watch_list: true,
     };
-    let mut client = UserClient::connect(inst, &opts)?;
+    let mut client = super::user::connect(inst, &a.remote, &opts)?;
     let inputs = Inputs::start(&mut client)?;
-    {
+    // A remote operator hears the event feed from the broker's front (once it has
+    // acted: the first status read); a local one reads the feed in shared memory.
+    let remote = a.remote.remote;
+    if remote.is_none() {
         let ((tx, mut bell), inst) = (inputs.sender()?, inst.clone());
         std::thread::spawn(move || {
             let Ok(node) = create_node("muster-console-feed", false) else {
@@ -433,7 +464,10 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
         });
     }
     let mut c = Console {
-        inst: inst.clone(),
+        place: match remote {
+            Some(addr) => format!("{} via {addr}", client.id()),
+            None => format!("instance {inst}"),
+        },
         list: Vec::new(),
         status: BrokerStatus::default(),
         log: VecDeque::new(),
@@ -446,6 +480,7 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
             .unwrap_or_else(Instant::now),
         rates: HashMap::new(),
         counted: None,
+        last_record: None,
     };
     let mut terminal = ratatui::init();
     let outcome = (|| -> anyhow::Result<()> {
@@ -491,6 +526,11 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
                     c.message = "broker lost: waiting for one".into();
                     dirty = true;
                 }
+                Ok(Wake::Event(UserEvent::Feed(r))) => {
+                    c.took_record(&r);
+                    c.status_soon();
+                    dirty = true;
+                }
                 Ok(Wake::Event(_)) => {}
                 Ok(Wake::Timeout) => {}
                 Ok(Wake::Extra) => {
@@ -517,20 +557,14 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
                             }
                             Input::Resize => {}
                             Input::Feed(r) => {
-                                c.log.push_back(describe(&r));
-                                while c.log.len() > LOG_LINES {
-                                    c.log.pop_front();
-                                }
+                                c.took_record(&r);
                                 changed = true;
                             }
                         }
                         dirty = true;
                     }
-                    // Something happened at the broker: the status again, at once.
-                    if changed && c.asked.is_none() {
-                        c.last_status = Instant::now()
-                            .checked_sub(STATUS_EVERY)
-                            .unwrap_or(c.last_status);
+                    if changed {
+                        c.status_soon();
                     }
                 }
                 Err(UserError::Interrupted) => return Ok(()),

@@ -29,7 +29,7 @@ pub fn run(a: KeygenArgs) -> anyhow::Result<ExitCode> {
             path.display()
         );
     } else {
-        println!("{}", access_line(&name, &key.public, &a.allow));
+        println!("{}", access_line(&name, &key.public, &a.allow, a.operator));
         eprintln!("add the line above to the broker's access file, then `kill -HUP` the broker");
     }
     Ok(ExitCode::SUCCESS)

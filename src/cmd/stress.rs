@@ -119,7 +119,7 @@ impl RemoteUsers {
         let access = dir.join("access");
         std::fs::write(
             &access,
-            access_line("stress", &kp.public, &["*".into()]) + "\n",
+            access_line("stress", &kp.public, &["*".into()], false) + "\n",
         )?;
         let port = std::net::UdpSocket::bind("127.0.0.1:0")?
             .local_addr()?

@@ -48,7 +48,7 @@ impl Guest {
         KeyPair::generate()?.write("broker", &broker_key)?;
         std::fs::write(
             dir.join("access"),
-            access_line("guest", &key.public, &["*".to_string()]) + "\n",
+            access_line("guest", &key.public, &["*".to_string()], false) + "\n",
         )?;
         Ok(Guest {
             dir,

@@ -215,7 +215,7 @@ impl View {
                 self.held
                     .retain(|h| !matches!(h, Held::Session { id, .. } if *id == session));
             }
-            UserEvent::EndConfirmed { .. } | UserEvent::Operated { .. } => {}
+            UserEvent::EndConfirmed { .. } | UserEvent::Operated { .. } | UserEvent::Feed(_) => {}
             UserEvent::LinkUp { link } => {
                 self.note(format!("link {link} up"));
                 if let Some(l) = self.links.iter_mut().find(|l| l.link == link) {

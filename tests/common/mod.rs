@@ -300,15 +300,28 @@ pub fn free_udp_port() -> u16 {
 impl Fed {
     /// Makes keys for `users` (name, allow patterns) and an access file listing them.
     pub fn remote_setup(&self, users: &[(&str, &[&str])]) -> RemoteSetup {
+        self.remote_setup_with(users, &[])
+    }
+
+    /// The same, plus `operators` (their names; `operator` lines allowing `*`).
+    pub fn remote_setup_with(&self, users: &[(&str, &[&str])], operators: &[&str]) -> RemoteSetup {
         let dir = std::env::temp_dir().join(format!("muster-keys-{}", self.inst));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("key dir");
         let mut access = String::new();
-        for (name, allow) in users {
+        let all: &[&str] = &["*"];
+        let everyone = users
+            .iter()
+            .map(|(n, a)| (*n, *a, false))
+            .chain(operators.iter().map(|n| (*n, all, true)));
+        for (name, allow, operator) in everyone {
             let mut args = vec!["keygen", "--user", name, "--out", dir.to_str().unwrap()];
-            for a in *allow {
+            for a in allow {
                 args.push("--allow");
                 args.push(a);
+            }
+            if operator {
+                args.push("--operator");
             }
             let (code, line) = self.run(&args, Duration::from_secs(20));
             assert_eq!(code, 0, "keygen failed");

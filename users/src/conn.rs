@@ -12,12 +12,13 @@
 
 use crate::core::UserCore;
 use crate::remote::RemoteOptions;
-use muster_shared::protocol::{ToBroker, ToSystem, ToUser};
+use muster_shared::protocol::{EventRecord, ToBroker, ToSystem, ToUser};
 use muster_shared::snapshot::{ServiceListSnapshot, ServiceView, MAX_LISTED_SERVICES};
 use muster_shared::types::{SessionId, UserId};
 use muster_shared::udp::crypto::{self, Channel, HandshakeState, SessionCipher, Side};
 use muster_shared::udp::msgs::{
-    from_bytes, seal_channel, seal_session, to_bytes, Down, Hs3, SessionDown, SessionUp, Up,
+    from_bytes, seal_channel, seal_session, to_bytes, Down, Hs3, OperatedAssembly, SessionDown,
+    SessionUp, Up,
 };
 use muster_shared::udp::wire::{Datagram, RESET_TOKEN};
 use muster_shared::udp::{DropCounters, Transmit};
@@ -148,6 +149,9 @@ pub struct RemoteConn {
     next_ping: Instant,
     hello: Option<(ToBroker, Retry)>,
     requests: BTreeMap<u64, (ToBroker, Retry)>,
+    /// Operator actions waiting for their answer: sent again until it is whole, given
+    /// up after [`OPERATE_PATIENCE`].
+    operations: BTreeMap<u64, Operation>,
     sessions: HashMap<u64, Session>,
     list_want: Option<Retry>,
     list_part: Option<ListAssembly>,
@@ -166,6 +170,18 @@ pub struct RemoteConn {
     retired: HashSet<u64>,
     retired_order: VecDeque<u64>,
 }
+
+/// An operator action on its way.
+struct Operation {
+    msg: ToBroker,
+    retry: Retry,
+    sent: Instant,
+    answer: OperatedAssembly,
+}
+
+/// How long an operator action waits for its answer before the user is told there is
+/// none.
+const OPERATE_PATIENCE: Duration = Duration::from_secs(20);
 
 /// Most early session datagrams kept, and for how long.
 const EARLY_MAX: usize = 64;
@@ -193,6 +209,7 @@ impl RemoteConn {
             next_ping: now + KEEPALIVE,
             hello: None,
             requests: BTreeMap::new(),
+            operations: BTreeMap::new(),
             sessions: HashMap::new(),
             list_want: None,
             list_part: None,
@@ -271,6 +288,18 @@ impl RemoteConn {
             ToBroker::Cancel { req, .. } => {
                 self.requests.remove(req);
             }
+            ToBroker::Operate { id, .. } => {
+                let retry = Retry::new(now, self.rto());
+                self.operations.insert(
+                    *id,
+                    Operation {
+                        msg: msg.clone(),
+                        retry,
+                        sent: now,
+                        answer: OperatedAssembly::default(),
+                    },
+                );
+            }
             ToBroker::Goodbye { .. } => {
                 // Unanswered: said twice against loss (the broker also times us out).
                 self.send_up(&Up::Msg(msg.clone()));
@@ -325,6 +354,9 @@ impl RemoteConn {
         }
         for (_, r) in self.requests.values() {
             t = t.min(r.next);
+        }
+        for o in self.operations.values() {
+            t = t.min(o.retry.next).min(o.sent + OPERATE_PATIENCE);
         }
         if let Some(r) = &self.list_want {
             t = t.min(r.next);
@@ -415,6 +447,26 @@ impl RemoteConn {
                 self.stats.retransmissions += 1;
                 self.send_up(&Up::Msg(m));
             }
+        }
+        let mut resend = Vec::new();
+        let mut expired = Vec::new();
+        for (id, o) in &mut self.operations {
+            if now >= o.sent + OPERATE_PATIENCE {
+                expired.push(*id);
+            } else if o.retry.due(now) {
+                resend.push(o.msg.clone());
+            }
+        }
+        for m in resend {
+            self.stats.retransmissions += 1;
+            self.send_up(&Up::Msg(m));
+        }
+        for id in expired {
+            self.operations.remove(&id);
+            core.handle(ToUser::Operated {
+                id,
+                result: Err("no answer from the broker".into()),
+            });
         }
         if self.list_want.as_mut().is_some_and(|r| r.due(now)) {
             self.stats.retransmissions += 1;
@@ -728,8 +780,30 @@ impl RemoteConn {
                 if let ToUser::Refused { req, .. } = &m {
                     self.requests.remove(req);
                 }
+                if let ToUser::Operated { id, .. } = &m {
+                    self.operations.remove(id);
+                }
                 core.handle(m);
             }
+            Down::OperatedChunk {
+                id,
+                index,
+                total,
+                bytes,
+            } => {
+                // Pieces of an answer already taken (a repeat crossed it) are dropped.
+                let Some(o) = self.operations.get_mut(&id) else {
+                    return;
+                };
+                if let Some(result) = o.answer.add(index, total, bytes) {
+                    self.operations.remove(&id);
+                    core.handle(ToUser::Operated { id, result });
+                }
+            }
+            Down::Event(json) => match serde_json::from_str::<EventRecord>(&json) {
+                Ok(r) => core.feed(r),
+                Err(_) => self.stats.drops.drop("bad_event", &from),
+            },
             Down::Granted {
                 req,
                 session,

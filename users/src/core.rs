@@ -125,6 +125,9 @@ pub enum UserEvent {
         /// The input sent to the command system.
         input: Payload,
     },
+    /// A record of the broker's event feed, sent to a remote operator (local readers
+    /// read the feed in shared memory).
+    Feed(muster_shared::protocol::EventRecord),
     /// A link ended.
     LinkEnded {
         /// The link.
@@ -621,6 +624,11 @@ impl UserCore {
             op,
         });
         id
+    }
+
+    /// A record of the broker's event feed came (for a remote operator).
+    pub fn feed(&mut self, record: muster_shared::protocol::EventRecord) {
+        self.events.push_back(UserEvent::Feed(record));
     }
 
     /// Handles one frame from the inbox.

@@ -185,7 +185,8 @@ fn show_event(
         UserEvent::Connected { .. } => println!("\n(connected to a broker)"),
         UserEvent::LinkForwarded { .. }
         | UserEvent::EndConfirmed { .. }
-        | UserEvent::Operated { .. } => {}
+        | UserEvent::Operated { .. }
+        | UserEvent::Feed(_) => {}
     }
 }
 

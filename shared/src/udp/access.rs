@@ -5,9 +5,13 @@
 //! # user NAME PUBLIC-KEY-HEX PATTERN...
 //! user alice 3b6a27bcceb6a42d62a3a8d02a6f0d73653215771de243a63ac048a18b59da29 T1/* D1/goto
 //! user bob   8f1d...                                                         *
+//! # operator NAME PUBLIC-KEY-HEX PATTERN...: a user who may also act as an operator
+//! operator carol 5e0c...                                                     *
 //! ```
 //! Patterns are globs over service ids (`system/service`); a user with no pattern may
-//! connect but sees and gets nothing.
+//! connect but sees and gets nothing. An operator's actions (status, withdraw, end a
+//! session, drop a user, move or drop a queued request) reach the whole broker; its
+//! patterns still decide what it lists and requests as a user.
 
 use globset::{Glob, GlobSet, GlobSetBuilder};
 use std::collections::HashMap;
@@ -20,6 +24,8 @@ pub struct Policy {
     pub key: [u8; 32],
     /// The patterns, as written.
     pub patterns: Vec<String>,
+    /// Whether the line was an `operator` line: the user may act as an operator.
+    pub operator: bool,
     set: GlobSet,
 }
 
@@ -48,9 +54,11 @@ pub fn valid_user_name(name: &str) -> bool {
             .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
 }
 
-/// The line `muster keygen` prints for the broker's access file.
-pub fn access_line(name: &str, public: &[u8; 32], patterns: &[String]) -> String {
-    let mut line = format!("user {name} {}", hex::encode(public));
+/// The line `muster keygen` prints for the broker's access file (`operator`: the
+/// user may act as an operator).
+pub fn access_line(name: &str, public: &[u8; 32], patterns: &[String], operator: bool) -> String {
+    let role = if operator { "operator" } else { "user" };
+    let mut line = format!("{role} {name} {}", hex::encode(public));
     for p in patterns {
         line.push(' ');
         line.push_str(p);
@@ -76,11 +84,16 @@ impl AccessFile {
             }
             let at = |e: String| format!("line {}: {e}", i + 1);
             let mut words = line.split_whitespace();
-            match words.next() {
-                Some("user") => {}
-                Some(w) => return Err(at(format!("unknown directive {w:?} (expected `user`)"))),
+            let operator = match words.next() {
+                Some("user") => false,
+                Some("operator") => true,
+                Some(w) => {
+                    return Err(at(format!(
+                        "unknown directive {w:?} (expected `user` or `operator`)"
+                    )))
+                }
                 None => continue,
-            }
+            };
             let name = words.next().ok_or_else(|| at("missing user name".into()))?;
             if !valid_user_name(name) {
                 return Err(at(format!(
@@ -99,7 +112,15 @@ impl AccessFile {
             }
             let set = b.build().map_err(|e| at(e.to_string()))?;
             if users
-                .insert(name.to_string(), Policy { key, patterns, set })
+                .insert(
+                    name.to_string(),
+                    Policy {
+                        key,
+                        patterns,
+                        operator,
+                        set,
+                    },
+                )
                 .is_some()
             {
                 return Err(at(format!("user {name:?} appears twice")));
@@ -149,6 +170,33 @@ mod tests {
         );
         assert!(f.get("carol").unwrap().allows("anything/at-all"));
         assert!(f.get("dave").is_none());
+        assert!(!a.operator && !f.get("carol").unwrap().operator);
+    }
+
+    #[test]
+    fn operator_lines_make_operators() {
+        let f = AccessFile::parse(&format!("operator olga {K} T1/*\nuser ursula {K} *\n")).unwrap();
+        let o = f.get("olga").unwrap();
+        assert!(o.operator);
+        assert!(
+            o.allows("T1/camera") && !o.allows("D1/goto"),
+            "patterns still apply"
+        );
+        assert!(!f.get("ursula").unwrap().operator);
+        // A name is one line, whichever its role.
+        assert!(AccessFile::parse(&format!("user a {K}\noperator a {K}\n"))
+            .unwrap_err()
+            .contains("twice"));
+        let key = super::super::crypto::parse_key(K).unwrap();
+        let line = access_line("olga", &key, &["T1/*".into()], true);
+        assert_eq!(line, format!("operator olga {K} T1/*"));
+        assert!(
+            AccessFile::parse(&line)
+                .unwrap()
+                .get("olga")
+                .unwrap()
+                .operator
+        );
     }
 
     #[test]

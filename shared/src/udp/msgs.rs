@@ -98,7 +98,28 @@ pub enum Down {
         /// Echo this in [`Up::PathResponse`].
         token: u64,
     },
+    /// One piece of the answer to an operator's action (`ToBroker::Operate`): the
+    /// answer's frame (`muster_shared::protocol::encode` of
+    /// `Result<Option<Box<BrokerStatus>>, String>`), cut to fit datagrams. An action
+    /// sent again is answered again, whole, from the broker's memory.
+    OperatedChunk {
+        /// The action's number.
+        id: u64,
+        /// Index of this piece, from 0.
+        index: u16,
+        /// Number of pieces.
+        total: u16,
+        /// The bytes.
+        bytes: Vec<u8>,
+    },
+    /// A record of the broker's event feed (its JSON, as the shared-memory feed has
+    /// it), for an operator that has acted; best effort: a lost one shows as a gap in
+    /// the records' `seq`.
+    Event(String),
 }
+
+/// Bytes of an operator's answer in one [`Down::OperatedChunk`].
+pub const OPERATED_CHUNK: usize = MAX_PLAINTEXT - 64;
 
 /// User → system, inside a `SESSION` datagram.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -228,11 +249,115 @@ pub fn chunk_list(epoch: u64, generation: u64, views: &[ServiceView]) -> Vec<Dow
         .collect()
 }
 
+/// An operator's answer: done (with the status, for a status read), or why not.
+pub type OperatedResult = Result<Option<Box<crate::protocol::BrokerStatus>>, String>;
+
+/// Cuts the answer to operator action `id` into [`Down::OperatedChunk`]s; `None` if it
+/// cannot be encoded (larger than a frame: the broker cuts a status to fit first).
+pub fn chunk_operated(id: u64, result: &OperatedResult) -> Option<Vec<Down>> {
+    let frame = crate::protocol::encode(result).ok()?;
+    let pieces: Vec<&[u8]> = frame.chunks(OPERATED_CHUNK).collect();
+    let total = u16::try_from(pieces.len()).ok()?;
+    Some(
+        pieces
+            .into_iter()
+            .enumerate()
+            .map(|(i, b)| Down::OperatedChunk {
+                id,
+                index: i as u16,
+                total,
+                bytes: b.to_vec(),
+            })
+            .collect(),
+    )
+}
+
+/// Puts an operator's answer together from its [`Down::OperatedChunk`]s, which may come
+/// in any order, more than once, or (after the action was sent again) anew.
+#[derive(Debug, Default)]
+pub struct OperatedAssembly {
+    total: u16,
+    pieces: std::collections::BTreeMap<u16, Vec<u8>>,
+}
+
+impl OperatedAssembly {
+    /// Takes one piece; the answer once every piece is in (an answer that does not
+    /// decode is an error naming why).
+    pub fn add(&mut self, index: u16, total: u16, bytes: Vec<u8>) -> Option<OperatedResult> {
+        if total == 0 || index >= total {
+            return None;
+        }
+        if total != self.total {
+            self.total = total;
+            self.pieces.clear();
+        }
+        self.pieces.insert(index, bytes);
+        if self.pieces.len() < usize::from(total) {
+            return None;
+        }
+        let frame: Vec<u8> = self.pieces.values().flatten().copied().collect();
+        self.pieces.clear();
+        Some(
+            crate::protocol::decode::<OperatedResult>(&frame)
+                .unwrap_or_else(|e| Err(format!("the broker's answer did not decode: {e}"))),
+        )
+    }
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn an_operators_answer_goes_in_pieces_and_comes_back_whole() {
+        use crate::protocol::{BrokerStatus, UserStatus};
+        let status = BrokerStatus {
+            epoch: 7,
+            users: (0..150)
+                .map(|i| UserStatus {
+                    user: UserId(format!("user-{i}-with-a-longish-name")),
+                    pid: i,
+                    links: Vec::new(),
+                })
+                .collect(),
+            users_total: 150,
+            ..BrokerStatus::default()
+        };
+        let result: OperatedResult = Ok(Some(Box::new(status)));
+        let chunks = chunk_operated(9, &result).unwrap();
+        assert!(chunks.len() >= 3, "{}", chunks.len());
+        for c in &chunks {
+            let sealed = crate::udp::wire::MAX_PLAINTEXT;
+            assert!(postcard::to_stdvec(c).unwrap().len() <= sealed);
+        }
+        let mut parts: Vec<(u16, u16, Vec<u8>)> = chunks
+            .into_iter()
+            .map(|c| match c {
+                Down::OperatedChunk {
+                    id: 9,
+                    index,
+                    total,
+                    bytes,
+                } => (index, total, bytes),
+                other => panic!("{other:?}"),
+            })
+            .collect();
+        // Backwards, the last one twice: whole only at the end.
+        parts.reverse();
+        let mut a = OperatedAssembly::default();
+        let last = parts.pop().unwrap();
+        assert!(a.add(parts[0].0, parts[0].1, parts[0].2.clone()).is_none());
+        for (i, t, b) in parts {
+            assert!(a.add(i, t, b).is_none());
+        }
+        assert_eq!(a.add(last.0, last.1, last.2), Some(result));
+        // Nonsense is no answer, and garbage that claims to be whole is an error.
+        let mut a = OperatedAssembly::default();
+        assert!(a.add(3, 2, vec![1]).is_none());
+        assert!(matches!(a.add(0, 1, vec![1, 2, 3]), Some(Err(e)) if e.contains("did not decode")));
+    }
 
     fn view(i: usize) -> ServiceView {
         ServiceView {

@@ -361,7 +361,7 @@ pub fn run(inst: &Instance, a: RemoteBenchArgs) -> anyhow::Result<ExitCode> {
     let access = dir.join("access");
     std::fs::write(
         &access,
-        access_line("bench", &key.public, &["*".to_string()]) + "\n",
+        access_line("bench", &key.public, &["*".to_string()], false) + "\n",
     )?;
     let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
     let broker_addr: SocketAddr = format!("127.0.0.1:{port}").parse()?;
