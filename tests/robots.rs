@@ -206,6 +206,11 @@ fn the_scalability_experiment_writes_tables_that_add_up() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// How many messages of `topic` a Foxglove client counted.
+fn counts_of(report: &serde_json::Value, topic: &str) -> u64 {
+    report["counts"][topic].as_u64().unwrap_or(0)
+}
+
 /// Reads `mcap` with the Python `mcap` package (installed by .ci/run) and checks the
 /// topics, their schemas and counts against what `muster record` said it wrote.
 fn check_recording(mcap: &std::path::Path, recorded: &serde_json::Value) {
@@ -258,6 +263,12 @@ print(json.dumps({"schemas": schemas, "counts": counts, "events": events, "most_
     assert!(counts["/T1/detections"].as_u64().unwrap() > 20, "{counts}");
     assert!(counts.get("/D1/detections").is_none(), "{counts}");
     assert!(counts["/tf"].as_u64().unwrap() > 20, "{counts}");
+    // What the systems believe: the tracking system's tracks and D1's plan to the
+    // red person it follows through the link (two views a simulated second).
+    assert_eq!(schemas["/tracks"], "foxglove.SceneUpdate");
+    assert_eq!(schemas["/plans"], "foxglove.SceneUpdate");
+    assert!(counts["/tracks"].as_u64().unwrap() > 5, "{counts}");
+    assert!(counts["/plans"].as_u64().unwrap() >= 1, "{counts}");
     // The infrastructure: the robots' systems registered, the user was granted the
     // red tracker, and the list held the four services.
     let events = read["events"].as_array().unwrap();
@@ -366,6 +377,9 @@ fn a_foxglove_client_sees_the_live_world_and_its_replay() {
         "{live}"
     );
     assert_eq!(schema_of(&live, "/muster/events"), "muster.Event", "{live}");
+    assert_eq!(schema_of(&live, "/tracks"), "foxglove.SceneUpdate", "{live}");
+    assert_eq!(schema_of(&live, "/plans"), "foxglove.SceneUpdate", "{live}");
+    assert!(counts_of(&live, "/tracks") >= 1, "{live}");
     let counts = &live["counts"];
     // The map is sent again to each client that subscribes to it.
     assert!(counts["/map"].as_u64().unwrap_or(0) >= 1, "{live}");

@@ -10,6 +10,7 @@ pub mod reactor;
 pub mod snapshot;
 pub mod types;
 pub mod udp;
+pub mod viz;
 
 pub use names::{Address, Instance};
 pub use types::*;

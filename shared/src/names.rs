@@ -104,6 +104,12 @@ impl Instance {
         format!("muster/{}/broker/events-bell", self.0)
     }
 
+    /// What system `system` shows of its own state (its estimates, tracks and plans),
+    /// for recorders and viewers.
+    pub fn viz(&self, system: &str) -> String {
+        format!("muster/{}/system/{system}/viz", self.0)
+    }
+
     /// The prefix of every service of this instance.
     pub fn prefix(&self) -> String {
         format!("muster/{}/", self.0)

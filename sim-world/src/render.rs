@@ -193,8 +193,10 @@ pub fn render_paths(map: &OccupancyMap, paths: &[Path]) -> RgbImage {
             label(&mut img, &mut placed, cx as i32 + 8, cy as i32 - 14, name);
         }
     }
+    // Only what is drawn is in the legend.
     let entries: Vec<(Rgb<u8>, &str)> = paths
         .iter()
+        .filter(|(path, _, _)| !path.is_empty())
         .map(|(_, rgb, name)| (Rgb(*rgb), *name))
         .collect();
     legend(&mut img, &entries, "dot: where it ended");
@@ -360,6 +362,17 @@ mod tests {
         // The legend: a swatch per path in its colour.
         assert_eq!(img.get_pixel(14, 16), &Rgb([220, 30, 30]));
         assert_eq!(img.get_pixel(14, 28), &Rgb([30, 90, 230]));
+        // A path with no points (a track never sent) has no swatch: the next one takes
+        // its place.
+        let skipped = render_paths(
+            &map,
+            &[
+                (Vec::new(), [150, 220, 150], "track (green)"),
+                (vec![(5.0, 17.0), (30.0, 17.0)], [30, 90, 230], "D1"),
+            ],
+        );
+        assert_eq!(skipped.get_pixel(14, 16), &Rgb([30, 90, 230]));
+        assert!(!skipped.pixels().any(|p| *p == Rgb([150, 220, 150])));
     }
 
     #[test]

@@ -11,6 +11,8 @@
 //! | `/people` | `foxglove.SceneUpdate` | the people, in their beacons' colours |
 //! | `/ROBOT/laser` | `foxglove.LaserScan` | each robot's laser scans, in its frame |
 //! | `/ROBOT/detections` | JSON | each robot's camera detections (colour, bearing, range) |
+//! | `/tracks` | `foxglove.SceneUpdate` | the targets the tracking systems track (a disc of their uncertainty, their velocity, named) |
+//! | `/plans` | `foxglove.SceneUpdate` | the paths the delivery robots plan, from where they believe they are to their goal |
 //! | `/muster/events` | JSON | the broker's event feed (`muster events`) |
 //! | `/muster/list` | JSON | the service list at each change |
 //!
@@ -20,12 +22,13 @@
 use crate::cli::RecordArgs;
 use anyhow::Context as _;
 use foxglove::messages::{
-    packed_element_field::NumericType, Color, CylinderPrimitive, FrameTransform, FrameTransforms,
-    Grid, LaserScan, PackedElementField, Pose, Quaternion, SceneEntity, SceneUpdate, TextPrimitive,
-    Timestamp, Vector2, Vector3,
+    line_primitive, packed_element_field::NumericType, Color, CylinderPrimitive, FrameTransform,
+    FrameTransforms, Grid, LaserScan, LinePrimitive, PackedElementField, Point3, Pose, Quaternion,
+    SceneEntity, SceneUpdate, TextPrimitive, Timestamp, Vector2, Vector3,
 };
 use foxglove::{Channel, ChannelBuilder, Context, PartialMetadata, RawChannel, Schema};
-use muster_shared::ipc::{create_node, EventReader, ListReader};
+use muster_shared::ipc::{create_node, EventReader, ListReader, VizReader};
+use muster_shared::viz::SystemView;
 use muster_shared::reactor::SignalPipe;
 use muster_shared::Instance;
 use muster_sim_world::map::OccupancyMap;
@@ -139,6 +142,11 @@ pub struct Scene {
     scans: BTreeMap<String, (Channel<LaserScan>, Arc<RawChannel>)>,
     events: Arc<RawChannel>,
     list: Arc<RawChannel>,
+    tracks: Channel<SceneUpdate>,
+    plans: Channel<SceneUpdate>,
+    /// The local systems (from the list), and the views of those that show one.
+    systems: std::collections::BTreeSet<String>,
+    views: BTreeMap<String, VizReader>,
     node: iceoryx2::prelude::Node<muster_shared::ipc::Ipc>,
     world: Option<WorldView>,
     world_time: f64,
@@ -175,6 +183,10 @@ impl Scene {
             scans: BTreeMap::new(),
             events: json_channel(ctx, "/muster/events", "muster.Event")?,
             list: json_channel(ctx, "/muster/list", "muster.ServiceList")?,
+            tracks: channel("/tracks").build(),
+            plans: channel("/plans").build(),
+            systems: std::collections::BTreeSet::new(),
+            views: BTreeMap::new(),
             node,
             world: None,
             world_time: f64::NEG_INFINITY,
@@ -256,6 +268,18 @@ impl Scene {
                 self.sensors.insert(n, (v, f64::NEG_INFINITY));
             }
         }
+        // The systems' own views (their tracks and plans).
+        let new: Vec<String> = self
+            .systems
+            .iter()
+            .filter(|s| !self.views.contains_key(*s))
+            .cloned()
+            .collect();
+        for s in new {
+            if let Ok(r) = VizReader::open(&self.node, &self.inst, &s) {
+                self.views.insert(s, r);
+            }
+        }
     }
 
     /// Takes every new sample and event and logs it; returns whether anything was new.
@@ -309,6 +333,12 @@ impl Scene {
                 any = true;
             }
         }
+        // The systems' views.
+        let views: Vec<SystemView> = self.views.values_mut().filter_map(VizReader::latest).collect();
+        for v in views {
+            self.log_view(&v);
+            any = true;
+        }
         // The broker's events.
         let mut events = Vec::new();
         if let Some(f) = self.feed.as_mut() {
@@ -336,6 +366,11 @@ impl Scene {
                 let key = (snap.epoch, snap.generation);
                 if snap.epoch != 0 && self.list_generation != Some(key) {
                     self.list_generation = Some(key);
+                    for v in snap.views() {
+                        if !v.remote {
+                            self.systems.insert(v.system.clone());
+                        }
+                    }
                     let v = serde_json::json!({
                         "generation": snap.generation,
                         "services": snap.views(),
@@ -351,6 +386,99 @@ impl Scene {
             }
         }
         Ok(any)
+    }
+
+    /// A system's tracks and plans. Each entity lives 2 s unless shown again, so what a
+    /// system stops showing (a track it lost, a goal reached) leaves the scene.
+    fn log_view(&mut self, v: &SystemView) {
+        let ns = now_ns();
+        let lifetime = Some(foxglove::messages::Duration::new(2, 0));
+        let point = |(x, y): (f64, f64), z: f64| Point3 { x, y, z };
+        let line = |points: Vec<Point3>, color: Option<Color>| LinePrimitive {
+            r#type: line_primitive::Type::LineStrip as i32,
+            pose: at(0.0, 0.0, 0.0, 0.0),
+            thickness: 3.0,
+            scale_invariant: true,
+            points,
+            color,
+            colors: Vec::new(),
+            indices: Vec::new(),
+        };
+        if !v.tracks.is_empty() {
+            let entities = v
+                .tracks
+                .iter()
+                .map(|t| {
+                    let c = Colour::from_name(&t.colour);
+                    let mut color = colour(c, [120, 120, 120]);
+                    if let Some(c) = color.as_mut() {
+                        c.a = if t.lost { 0.2 } else { 0.5 };
+                    }
+                    let mut e = body(
+                        format!("track/{}/{}", v.system, t.colour),
+                        ns,
+                        (t.x, t.y, 0.0),
+                        t.sigma.max(0.15),
+                        0.05,
+                        color,
+                        &format!("track {}{}", t.colour, if t.lost { " (lost)" } else { "" }),
+                    );
+                    // Where it will be in a second.
+                    e.lines.push(line(
+                        vec![point((t.x, t.y), 0.05), point((t.x + t.vx, t.y + t.vy), 0.05)],
+                        colour(c, [120, 120, 120]),
+                    ));
+                    e.lifetime = lifetime;
+                    e
+                })
+                .collect();
+            self.tracks.log_with_time(
+                &SceneUpdate {
+                    deletions: Vec::new(),
+                    entities,
+                },
+                ns,
+            );
+            self.count("/tracks");
+        }
+        if !v.plans.is_empty() {
+            let entities = v
+                .plans
+                .iter()
+                .map(|p| {
+                    let from = v
+                        .robots
+                        .iter()
+                        .find(|r| r.name == p.robot)
+                        .map(|r| (r.x, r.y));
+                    let points = from
+                        .into_iter()
+                        .chain(p.path.iter().copied())
+                        .map(|xy| point(xy, 0.02))
+                        .collect();
+                    let mut e = body(
+                        format!("plan/{}", p.robot),
+                        ns,
+                        (p.goal.0, p.goal.1, 0.0),
+                        0.2,
+                        0.02,
+                        colour(None, [230, 120, 20]),
+                        &format!("goal of {}", p.robot),
+                    );
+                    e.lines.push(line(points, colour(None, [230, 120, 20])));
+                    e.lifetime = lifetime;
+                    e
+                })
+                .collect();
+            self.plans.log_with_time(
+                &SceneUpdate {
+                    deletions: Vec::new(),
+                    entities,
+                },
+                ns,
+            );
+            self.count("/plans");
+        }
     }
 
     fn log_world(&mut self, s: &WorldState) {

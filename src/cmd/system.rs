@@ -133,6 +133,7 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
     let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
     let links = open_links(&node, inst.as_str(), &robots, a.common.wait_sim)?;
     let mut app = TrackingApp::new(&scenario, map, links, &opts)?;
+    show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
     let core = SystemCore::new(&a.name, std::process::id(), specs, salt());
     let run = muster_systems::RunOptions { udp: a.common.udp };
     let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
@@ -180,6 +181,7 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
     )?;
     let link = links.pop().context("no link")?;
     let mut app = DeliveryApp::new(&scenario, map, link, &opts)?;
+    show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
     let core = SystemCore::new(&a.name, std::process::id(), specs, salt());
     let run = muster_systems::RunOptions { udp: a.common.udp };
     let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
@@ -193,4 +195,18 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Opens the system's view for recorders and viewers (`muster record`, `muster view`);
+/// a system runs on without it, saying why.
+fn show_view(
+    node: &iceoryx2::prelude::Node<muster_shared::ipc::Ipc>,
+    inst: &Instance,
+    system: &str,
+    show: impl FnOnce(muster_shared::ipc::VizWriter),
+) {
+    match muster_shared::ipc::VizWriter::open(node, inst, system) {
+        Ok(w) => show(w),
+        Err(e) => tracing::warn!("the system's view for viewers: {e}"),
+    }
 }

@@ -9,6 +9,7 @@
 use super::paper::{PaperOptions, PaperRun, Recorder};
 use super::up::{remote_list, wait_for_services, Guest};
 use crate::cli::UpArgs;
+use muster_shared::ipc::VizReader;
 use muster_shared::types::{Payload, ServiceId};
 use muster_shared::Instance;
 use muster_sim_world::map::OccupancyMap;
@@ -59,13 +60,14 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     let mut client = UserClient::connect(inst, &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);
     let mut rec = Recorder::new(0.5);
+    let mut seen = Seen::open(inst);
     let shown = wait_for_services(&mut client, 4, Duration::from_secs(60)).and_then(|()| {
         if let Some(g) = &guest {
             remote_list(g)?;
         }
         Ok(())
     });
-    let followed = match shown.and_then(|()| demo(&mut client, &run, &mut rec, end)) {
+    let followed = match shown.and_then(|()| demo(&mut client, &run, &mut rec, &mut seen, end)) {
         Ok(c) => c,
         Err(UserError::Interrupted) => None,
         Err(e) => return Err(e.into()),
@@ -81,9 +83,16 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         .unwrap_or_else(|| std::env::temp_dir().join(format!("muster-up-{}.png", inst.as_str())));
     let people =
         |k: usize| -> Vec<(f64, f64)> { rec.samples.iter().map(|s| s.people[k]).collect() };
+    let track = |c: &str| seen.tracks.get(c).cloned().unwrap_or_default();
     render_paths(
         &OccupancyMap::office(),
         &[
+            // What the systems believed, under the truth: the tracks the user was sent
+            // (pale, in each beacon's colour) and D1's last plan.
+            (track("green"), [150, 220, 150], "track (green)"),
+            (track("blue"), [160, 175, 255], "track (blue)"),
+            (track("red"), [255, 160, 175], "track (red)"),
+            (seen.plan.clone(), [250, 200, 120], "D1's plan"),
             (people(1), [30, 170, 30], "person (green)"),
             (people(2), [40, 60, 230], "person (blue)"),
             (people(0), [220, 30, 30], "person (red)"),
@@ -101,7 +110,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     )
     .save(&picture)?;
     println!(
-        "muster up: stopped after {:.0} sim s; {} contacts; followed {}; picture of the run (people in their beacon colours, T3 grey, D1 orange): {}",
+        "muster up: stopped after {:.0} sim s; {} contacts; followed {}; picture of the run (people in their beacon colours, their tracks pale, T3 grey, D1 orange, its last plan pale orange): {}",
         rec.now,
         rec.total_contacts(),
         followed.unwrap_or("nobody"),
@@ -118,6 +127,7 @@ fn demo(
     client: &mut UserClient,
     run: &PaperRun,
     rec: &mut Recorder,
+    seen: &mut Seen,
     end: Option<Instant>,
 ) -> Result<Option<&'static str>, UserError> {
     let list = client.list()?;
@@ -138,6 +148,7 @@ fn demo(
     let mut link_ends = 0u32;
     loop {
         rec.poll(&run.world);
+        seen.poll();
         let now = Instant::now();
         if end.is_some_and(|e| now >= e) {
             break;
@@ -174,6 +185,9 @@ fn demo(
             } => {
                 let colour = sessions.iter().find(|s| s.2 == Some(session)).map(|s| s.1);
                 if let (Some(c), Payload::Track2d(t)) = (colour, &payload) {
+                    if !t.lost {
+                        seen.tracks.entry(c).or_default().push((t.x, t.y));
+                    }
                     if link.is_none() || shown.is_multiple_of(5) {
                         println!("  {service}: {payload}");
                     }
@@ -217,6 +231,38 @@ fn demo(
         }
     }
     Ok(followed)
+}
+
+/// What the systems believed, for the picture: the tracks the user was sent, and the
+/// delivery system's last plan (from its view in shared memory: from where D1 believed
+/// it was, through its waypoints).
+struct Seen {
+    tracks: std::collections::BTreeMap<&'static str, Vec<(f64, f64)>>,
+    plan: Vec<(f64, f64)>,
+    view: Option<(iceoryx2::prelude::Node<muster_shared::ipc::Ipc>, VizReader)>,
+}
+
+impl Seen {
+    fn open(inst: &Instance) -> Self {
+        let view = muster_shared::ipc::create_node("muster-up-view", false)
+            .ok()
+            .and_then(|n| VizReader::open(&n, inst, "delivery").ok().map(|r| (n, r)));
+        Seen {
+            tracks: Default::default(),
+            plan: Vec::new(),
+            view,
+        }
+    }
+
+    fn poll(&mut self) {
+        let Some(v) = self.view.as_mut().and_then(|(_, r)| r.latest()) else {
+            return;
+        };
+        if let Some(p) = v.plans.iter().find(|p| p.robot == "D1") {
+            let from = v.robots.iter().find(|r| r.name == "D1").map(|r| (r.x, r.y));
+            self.plan = from.into_iter().chain(p.path.iter().copied()).collect();
+        }
+    }
 }
 
 /// The broker arguments of this run (a standby needs the primary's).

@@ -11,8 +11,10 @@ use crate::navigator::NavParams;
 use crate::planner::{Planner, PlannerParams};
 use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
 use crate::tracking::{TrackerRobot, TrackingCore, TrackingParams};
+use muster_shared::ipc::VizWriter;
 use muster_shared::protocol::monotonic_ns;
 use muster_shared::types::{Payload, ServiceKind, ServiceSpec, TaskStatus};
+use muster_shared::viz::{PlanView, RobotEstimate, SystemView, TrackView};
 use muster_sim_world::kinematics::{wrap, Pose};
 use muster_sim_world::map::OccupancyMap;
 use muster_sim_world::scenario::{Colour, RobotSpec, Scenario};
@@ -175,6 +177,27 @@ pub struct TrackingApp {
     truth_stats: Vec<LocalizationStats>,
     last_scan: Vec<f64>,
     published: u64,
+    /// Where the system shows its estimates and tracks (recorders, viewers).
+    viz: Option<Viz>,
+}
+
+/// A system's view in shared memory, and its name.
+struct Viz {
+    writer: VizWriter,
+    system: String,
+    /// Sim time of the next view (a system that publishes on every sample throttles).
+    next: f64,
+}
+
+/// Views a second a system publishes at most.
+const VIZ_PERIOD: f64 = 0.5;
+
+impl Viz {
+    fn publish(&mut self, view: SystemView) {
+        if let Err(e) = self.writer.publish(&view) {
+            tracing::debug!("system view: {e}");
+        }
+    }
 }
 
 impl TrackingApp {
@@ -234,7 +257,65 @@ impl TrackingApp {
             truth_stats: vec![LocalizationStats::default(); n],
             last_scan: vec![f64::NEG_INFINITY; n],
             published: 0,
+            viz: None,
         })
+    }
+
+    /// Shows the system's robot estimates and tracks on `writer` (as system `system`).
+    pub fn show_on(&mut self, writer: VizWriter, system: &str) {
+        self.viz = Some(Viz {
+            writer,
+            system: system.to_string(),
+            next: f64::NEG_INFINITY,
+        });
+    }
+
+    fn show(&mut self, now: f64) {
+        let Some(viz) = self.viz.as_mut() else {
+            return;
+        };
+        if now < viz.next {
+            return;
+        }
+        viz.next = now + VIZ_PERIOD;
+        let robots = self
+            .core
+            .robot_names()
+            .into_iter()
+            .enumerate()
+            .filter_map(|(i, name)| {
+                self.core.pose(i).map(|p| RobotEstimate {
+                    name,
+                    x: p.x,
+                    y: p.y,
+                    theta: p.theta,
+                })
+            })
+            .collect();
+        let tracks = self
+            .core
+            .colours()
+            .iter()
+            .filter_map(|c| {
+                self.core.payload(*c).map(|t| TrackView {
+                    colour: c.name().to_string(),
+                    x: t.x,
+                    y: t.y,
+                    vx: t.vx,
+                    vy: t.vy,
+                    sigma: t.sigma,
+                    lost: t.lost,
+                })
+            })
+            .collect();
+        let view = SystemView {
+            system: viz.system.clone(),
+            t: now,
+            robots,
+            tracks,
+            plans: Vec::new(),
+        };
+        viz.publish(view);
     }
 
     /// Localization error per robot, against ground truth.
@@ -348,6 +429,7 @@ impl SystemApp for TrackingApp {
         if self.core.publish_due() {
             self.publish(core, None);
         }
+        self.show(sample.time);
     }
 }
 
@@ -408,6 +490,9 @@ pub struct DeliveryApp {
     /// slowly decaying peak.
     latency: f64,
     latencies: Vec<f64>,
+    robot: String,
+    /// Where the system shows its estimate and plan (recorders, viewers).
+    viz: Option<Viz>,
 }
 
 impl DeliveryApp {
@@ -469,7 +554,52 @@ impl DeliveryApp {
             last_command: (0.0, 0.0),
             latency: 0.0,
             latencies: Vec::new(),
+            robot: opts.robot.clone(),
+            viz: None,
         })
+    }
+
+    /// Shows the robot's estimated pose and planned path on `writer` (as system
+    /// `system`).
+    pub fn show_on(&mut self, writer: VizWriter, system: &str) {
+        self.viz = Some(Viz {
+            writer,
+            system: system.to_string(),
+            next: f64::NEG_INFINITY,
+        });
+    }
+
+    fn show(&mut self) {
+        let Some(viz) = self.viz.as_mut() else {
+            return;
+        };
+        if self.now < viz.next {
+            return;
+        }
+        viz.next = self.now + VIZ_PERIOD;
+        let plans = self
+            .core
+            .goal()
+            .map(|goal| PlanView {
+                robot: self.robot.clone(),
+                goal,
+                path: self.core.path().to_vec(),
+            })
+            .into_iter()
+            .collect();
+        let view = SystemView {
+            system: viz.system.clone(),
+            t: self.now,
+            robots: vec![RobotEstimate {
+                name: self.robot.clone(),
+                x: self.pose.x,
+                y: self.pose.y,
+                theta: self.pose.theta,
+            }],
+            tracks: Vec::new(),
+            plans,
+        };
+        viz.publish(view);
     }
 
     /// Localization error against ground truth.
@@ -633,5 +763,6 @@ impl SystemApp for DeliveryApp {
         self.latency = lag.max(self.latency * 0.97); // a peak with a ~2 s half-life
         self.core.set_latency(self.latency);
         self.tell(core, events);
+        self.show();
     }
 }
