@@ -9,6 +9,33 @@ use serde_json::{json, Value};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
+/// Prints a line on standard output, like `println!`, but a closed output (`muster
+/// user request ... | head`) is no panic: the command winds up as on SIGTERM (its
+/// session ends cleanly at the system) and later lines are dropped.
+macro_rules! out {
+    ($($t:tt)*) => {
+        say(&format!($($t)*))
+    };
+}
+
+fn say(line: &str) {
+    use std::io::Write;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    static GONE: AtomicBool = AtomicBool::new(false);
+    if GONE.load(Ordering::Relaxed) {
+        return;
+    }
+    let mut o = std::io::stdout().lock();
+    let written = writeln!(o, "{line}").and_then(|()| o.flush());
+    if written.is_err() && !GONE.swap(true, Ordering::Relaxed) {
+        // SAFETY: raise has no preconditions; the client's signal handling (or the
+        // default action, before it is set up) takes it from here.
+        unsafe {
+            libc::raise(libc::SIGTERM);
+        }
+    }
+}
+
 pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
     // The menu and `watch` want to hear of list changes; one-shot verbs do not.
     let watch_list = matches!(a.verb, None | Some(UserVerb::Watch { .. }));
@@ -124,10 +151,10 @@ fn list(mut client: UserClient, as_json: bool) -> anyhow::Result<ExitCode> {
     let snapshot = client.list()?;
     let views = snapshot.views();
     if as_json {
-        println!("{}", serde_json::to_string_pretty(&views)?);
+        out!("{}", serde_json::to_string_pretty(&views)?);
     } else {
-        println!("{}", muster_users::menu::table(&views));
-        println!(
+        out!("{}", muster_users::menu::table(&views));
+        out!(
             "({} services, list generation {})",
             views.len(),
             snapshot.generation
@@ -181,7 +208,7 @@ fn idle(
 ) -> anyhow::Result<ExitCode> {
     let services = client.list()?.count;
     let connect_us = started.elapsed().as_micros() as u64;
-    println!(
+    out!(
         "{}",
         json!({"connected": true, "user": client.id().0, "services": services, "connect_us": connect_us})
     );
@@ -199,9 +226,9 @@ fn idle(
 
 fn emit(as_json: bool, value: Value, text: String) {
     if as_json {
-        println!("{value}");
+        out!("{value}");
     } else {
-        println!("{text}");
+        out!("{text}");
     }
 }
 
@@ -246,7 +273,7 @@ fn request(
             })) if r == req => {
                 first_position.get_or_insert(position);
                 if !as_json {
-                    println!("queued at position {position}");
+                    out!("queued at position {position}");
                 }
             }
             Ok(Some(_)) => {}
@@ -403,7 +430,7 @@ fn link(
                 service, position, ..
             })) => {
                 if !as_json {
-                    println!("{service}: queued at position {position}");
+                    out!("{service}: queued at position {position}");
                 }
             }
             Ok(Some(_)) => {}
