@@ -392,19 +392,7 @@ fn an_operator_ends_a_session_and_drops_a_queued_request(via: Via) {
     assert_eq!(told["code"], "by_operator", "{told}");
     let (code, _) = operator(&c.f, &["end", &session]);
     assert_eq!(code, 0);
-    let ended = loop {
-        let v = c.f.proc(holder).json(20 * SEC).expect("the session's end");
-        if v.get("ended").is_some() {
-            break v;
-        }
-    };
-    assert!(
-        ended["reason"]
-            .as_str()
-            .unwrap()
-            .contains("ended by an operator"),
-        "{ended}"
-    );
+    ended_by_an_operator(&mut c.f, holder);
     // An action on what is not there is refused with the reason.
     let (code, answer) = operator(&c.f, &["end", &session]);
     assert_eq!(code, 1);
@@ -420,6 +408,18 @@ fn an_operator_ends_a_session_and_drops_a_queued_request(via: Via) {
     }
 }
 both!(an_operator_ends_a_session_and_drops_a_queued_request);
+
+/// Waits for the end line of `holder`'s session, and checks an operator ended it.
+fn ended_by_an_operator(f: &mut Fed, holder: usize) {
+    let ended = loop {
+        let v = f.proc(holder).json(20 * SEC).expect("the session's end");
+        if v.get("ended").is_some() {
+            break v;
+        }
+    };
+    let reason = ended["reason"].as_str().unwrap();
+    assert!(reason.contains("ended by an operator"), "{ended}");
+}
 
 /// A tmux session running a command, killed (by name, ours) on drop.
 struct Tmux(String);
@@ -735,19 +735,7 @@ fn a_remote_operator_acts_and_its_console_follows_the_event_feed() {
     feed("the drop, on the feed over UDP", "op=drop request");
     let (code, done) = olga(&f, &["end", &session]);
     assert_eq!(code, 0, "{done}");
-    let ended = loop {
-        let v = f.proc(holder).json(20 * SEC).expect("the session's end");
-        if v.get("ended").is_some() {
-            break v;
-        }
-    };
-    assert!(
-        ended["reason"]
-            .as_str()
-            .unwrap()
-            .contains("ended by an operator"),
-        "{ended}"
-    );
+    ended_by_an_operator(&mut f, holder);
     // The console heard the end on the feed, and quits.
     if let Some(t) = &console {
         t.wait("the end, on the feed over UDP", |s| {

@@ -6,7 +6,7 @@
 //! (asked after every event, and every few seconds for the systems' ping ages); idle,
 //! it sleeps in the kernel.
 
-use super::tui::{bold, pane_table, Input, Inputs};
+use super::tui::{bold, log_box, pane_table, service_row, Input, Inputs};
 use crate::cli::ConsoleArgs;
 use muster_shared::ipc::{create_node, EventReader};
 use muster_shared::protocol::{BrokerStatus, EventRecord, Operation};
@@ -275,27 +275,7 @@ impl Console {
             Constraint::Percentage(30),
         ])
         .areas(right);
-        let services = self.list.iter().map(|v| {
-            let mut flags = Vec::new();
-            if v.withdrawn {
-                flags.push("withdrawn".to_string());
-            }
-            if v.remote {
-                flags.push(format!("on {}", v.host));
-            }
-            Row::new(vec![
-                v.id.clone(),
-                v.kind.clone(),
-                format!("{}/{}", v.in_use, v.quota),
-                if v.queue {
-                    v.queued.to_string()
-                } else {
-                    "-".into()
-                },
-                v.links.to_string(),
-                flags.join(", "),
-            ])
-        });
+        let services = self.list.iter().map(|v| service_row(v, false));
         pane_table(
             f,
             services_area,
@@ -400,18 +380,7 @@ impl Console {
             &[20, 5, 24, 7, 0, 0],
             queued.collect(),
         );
-        let lines: Vec<Line> = self
-            .log
-            .iter()
-            .rev()
-            .take(usize::from(log.height.saturating_sub(2)))
-            .rev()
-            .map(|l| Line::from(l.clone()))
-            .collect();
-        f.render_widget(
-            Paragraph::new(lines).block(Block::default().borders(Borders::ALL).title("events")),
-            log,
-        );
+        log_box(f, log, "events", self.log.iter());
         f.render_widget(
             Paragraph::new("Tab: next pane  Up/Down: select  q: quit"),
             help,

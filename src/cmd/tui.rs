@@ -7,11 +7,13 @@
 
 use anyhow::Context;
 use muster_shared::protocol::EventRecord;
+use muster_shared::snapshot::ServiceView;
 use muster_users::UserClient;
 use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
 use ratatui::layout::{Constraint, Rect};
 use ratatui::style::{Modifier, Style};
-use ratatui::widgets::{Block, Borders, Row, Table, TableState};
+use ratatui::text::Line;
+use ratatui::widgets::{Block, Borders, Paragraph, Row, Table, TableState};
 use ratatui::Frame;
 use std::io::{IsTerminal, Read, Write};
 use std::os::fd::AsRawFd;
@@ -126,4 +128,56 @@ pub fn pane_table(
     let mut state = TableState::default();
     state.select(selected);
     f.render_stateful_widget(t, area, &mut state);
+}
+
+/// A service as a table row: id, kind, (payload,) in use / quota, queued, links, and
+/// what else to know (withdrawn, its host).
+pub fn service_row(v: &ServiceView, payload: bool) -> Row<'static> {
+    let mut flags = Vec::new();
+    if v.withdrawn {
+        flags.push("withdrawn".to_string());
+    }
+    if v.remote {
+        flags.push(format!("on {}", v.host));
+    }
+    let mut cells = vec![v.id.clone(), v.kind.clone()];
+    if payload {
+        cells.push(v.payload.clone());
+    }
+    cells.extend([
+        format!("{}/{}", v.in_use, v.quota),
+        if v.queue {
+            v.queued.to_string()
+        } else {
+            "-".into()
+        },
+        v.links.to_string(),
+        flags.join(", "),
+    ]);
+    Row::new(cells)
+}
+
+/// The newest of `lines` in a bordered box titled `title`, as many as fit.
+pub fn log_box<'a>(
+    f: &mut Frame,
+    area: Rect,
+    title: &str,
+    lines: impl DoubleEndedIterator<Item = &'a String>,
+) {
+    let shown: Vec<Line> = lines
+        .rev()
+        .take(usize::from(area.height.saturating_sub(2)))
+        .map(|l| Line::from(l.clone()))
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .collect();
+    f.render_widget(
+        Paragraph::new(shown).block(
+            Block::default()
+                .borders(Borders::ALL)
+                .title(title.to_string()),
+        ),
+        area,
+    );
 }

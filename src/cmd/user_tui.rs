@@ -6,14 +6,14 @@
 //! send a goal and cancel; the numbered menu (`muster_users::menu`) stays for pipes and
 //! dumb terminals (`--plain`).
 
-use super::tui::{pane_table, Input, Inputs};
+use super::tui::{log_box, pane_table, service_row, Input, Inputs};
 use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{Payload, ServiceId, ServiceKind, SessionId};
 use muster_users::{UserClient, UserError, UserEvent, Wake};
 use ratatui::crossterm::event::KeyCode;
 use ratatui::layout::{Constraint, Layout};
 use ratatui::text::Line;
-use ratatui::widgets::{Block, Borders, Paragraph, Row};
+use ratatui::widgets::{Paragraph, Row};
 use ratatui::Frame;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -424,28 +424,7 @@ impl View {
         let [left, right] =
             Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
                 .areas(middle);
-        let services = self.list.iter().map(|v| {
-            let mut flags = Vec::new();
-            if v.withdrawn {
-                flags.push("withdrawn".to_string());
-            }
-            if v.remote {
-                flags.push(format!("on {}", v.host));
-            }
-            Row::new(vec![
-                v.id.clone(),
-                v.kind.clone(),
-                v.payload.clone(),
-                format!("{}/{}", v.in_use, v.quota),
-                if v.queue {
-                    v.queued.to_string()
-                } else {
-                    "-".into()
-                },
-                v.links.to_string(),
-                flags.join(", "),
-            ])
-        });
+        let services = self.list.iter().map(|v| service_row(v, true));
         pane_table(
             f,
             left,
@@ -526,32 +505,8 @@ impl View {
             }) => (format!("updates of {service}"), Some(recent)),
             _ => ("updates (select a session)".to_string(), None),
         };
-        let lines: Vec<Line> = recent
-            .map(|r| {
-                r.iter()
-                    .rev()
-                    .take(usize::from(updates_area.height.saturating_sub(2)))
-                    .rev()
-                    .map(|l| Line::from(l.clone()))
-                    .collect()
-            })
-            .unwrap_or_default();
-        f.render_widget(
-            Paragraph::new(lines).block(Block::default().borders(Borders::ALL).title(title)),
-            updates_area,
-        );
-        let lines: Vec<Line> = self
-            .log
-            .iter()
-            .rev()
-            .take(usize::from(log.height.saturating_sub(2)))
-            .rev()
-            .map(|l| Line::from(l.clone()))
-            .collect();
-        f.render_widget(
-            Paragraph::new(lines).block(Block::default().borders(Borders::ALL).title("log")),
-            log,
-        );
+        log_box(f, updates_area, &title, recent.into_iter().flatten());
+        log_box(f, log, "log", self.log.iter());
         f.render_widget(
             Paragraph::new("Tab: next pane  Up/Down: select  q: quit"),
             help,

@@ -193,7 +193,17 @@ struct Viz {
 const VIZ_PERIOD: f64 = 0.5;
 
 impl Viz {
+    fn new(writer: VizWriter, system: &str) -> Self {
+        Viz {
+            writer,
+            system: system.to_string(),
+            next: f64::NEG_INFINITY,
+        }
+    }
+
+    /// Publishes `view` (made at sim time `view.t`); the next is due a period later.
     fn publish(&mut self, view: SystemView) {
+        self.next = view.t + VIZ_PERIOD;
         match self.writer.publish(&view) {
             Ok(()) => tracing::trace!(t = view.t, "system view shown"),
             Err(e) => tracing::debug!("system view: {e}"),
@@ -264,21 +274,13 @@ impl TrackingApp {
 
     /// Shows the system's robot estimates and tracks on `writer` (as system `system`).
     pub fn show_on(&mut self, writer: VizWriter, system: &str) {
-        self.viz = Some(Viz {
-            writer,
-            system: system.to_string(),
-            next: f64::NEG_INFINITY,
-        });
+        self.viz = Some(Viz::new(writer, system));
     }
 
     fn show(&mut self, now: f64) {
-        let Some(viz) = self.viz.as_mut() else {
+        let Some(viz) = self.viz.as_mut().filter(|v| v.next <= now) else {
             return;
         };
-        if now < viz.next {
-            return;
-        }
-        viz.next = now + VIZ_PERIOD;
         let robots = self
             .core
             .robot_names()
@@ -563,21 +565,14 @@ impl DeliveryApp {
     /// Shows the robot's estimated pose and planned path on `writer` (as system
     /// `system`).
     pub fn show_on(&mut self, writer: VizWriter, system: &str) {
-        self.viz = Some(Viz {
-            writer,
-            system: system.to_string(),
-            next: f64::NEG_INFINITY,
-        });
+        self.viz = Some(Viz::new(writer, system));
     }
 
     fn show(&mut self) {
-        let Some(viz) = self.viz.as_mut() else {
+        let now = self.now;
+        let Some(viz) = self.viz.as_mut().filter(|v| v.next <= now) else {
             return;
         };
-        if self.now < viz.next {
-            return;
-        }
-        viz.next = self.now + VIZ_PERIOD;
         let plans = self
             .core
             .goal()
