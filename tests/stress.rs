@@ -69,6 +69,39 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
         }
         assert!(r[k]["count"].as_u64().unwrap() > 0, "{k}");
     }
+    // The per-hop breakdown: each granted request's stamps, joined across the user, the
+    // broker and the system. Every hop is there; the whole stamped path is one of the
+    // requests the users saw granted (or a link's half), and the hops add up to it.
+    let hops = r["per_hop"].as_array().unwrap();
+    let names: Vec<&str> = hops.iter().map(|h| h["hop"].as_str().unwrap()).collect();
+    assert_eq!(
+        names,
+        [
+            "user → broker",
+            "broker (handling, queue)",
+            "broker → system",
+            "system (handling)",
+            "system: grant written",
+            "system → user"
+        ]
+    );
+    let whole = &r["per_hop_whole"];
+    let stamped = whole["count"].as_u64().unwrap();
+    assert!(stamped > 0, "{whole}");
+    assert!(stamped <= system_grants, "{stamped} > {system_grants}");
+    for h in hops {
+        assert_eq!(h["latency"]["count"].as_u64(), Some(stamped), "{h}");
+    }
+    let max_sum: u64 = hops
+        .iter()
+        .map(|h| h["latency"]["max_us"].as_u64().unwrap())
+        .sum();
+    // (Histograms keep 3 significant digits: a little room.)
+    let whole_max = whole["max_us"].as_u64().unwrap() as f64;
+    assert!(
+        whole_max <= max_sum as f64 * 1.01 + 6.0,
+        "{whole} {max_sum}"
+    );
     // The broker's side: it handled every request the users sent (plus link halves).
     assert!(
         r["broker"]["handling"]["request"]["count"]

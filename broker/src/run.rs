@@ -14,11 +14,12 @@ use muster_shared::ipc::{
     ReplicaWriter, TransportError,
 };
 use muster_shared::names::{Address, Instance};
-use muster_shared::protocol::{decode, ToBroker, ToUser};
+use muster_shared::protocol::{decode, ToBroker, ToSystem, ToUser};
 use muster_shared::reactor::{
     process_alive, process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe,
 };
 use muster_shared::snapshot::{ServiceListSnapshot, MAX_LISTED_SERVICES};
+use muster_shared::trace::Stage;
 use muster_shared::types::UserId;
 use muster_shared::udp::access::AccessFile;
 use muster_shared::udp::wire::MAX_DATAGRAM;
@@ -1249,6 +1250,9 @@ impl Shell {
                     self.endpoint.send_control(&Address::User(user), &m);
                 }
                 Ok(msg) if core.sender_allowed(pid, &msg) => {
+                    if let ToBroker::Request { user, req, .. } = &msg {
+                        muster_shared::trace::stamp(Stage::BrokerRecv, user, *req);
+                    }
                     let passed_on = self
                         .fed
                         .as_mut()
@@ -1325,6 +1329,9 @@ impl Shell {
                 // Local users hear of their grant from the system itself.
                 Output::Granted { .. } => {}
                 Output::ToSystem(name, msg) => {
+                    if let ToSystem::Offer { user, req, .. } = &msg {
+                        muster_shared::trace::stamp(Stage::BrokerSend, user, *req);
+                    }
                     self.endpoint.send_control(&Address::System(name), &msg)
                 }
                 Output::ToUser(user, msg) => self.endpoint.send_control(&Address::User(user), &msg),

@@ -951,6 +951,7 @@ impl UdpFront {
                 self.answer(id, req, Down::Msg(ToUser::Refused { req, reason }), true);
             }
             None => {
+                muster_shared::trace::stamp(muster_shared::trace::Stage::BrokerRecv, &user, req);
                 self.events
                     .push_back(FrontEvent::ToCore(ToBroker::Request { user, req, service }))
             }

@@ -8,6 +8,7 @@ pub mod names;
 pub mod protocol;
 pub mod reactor;
 pub mod snapshot;
+pub mod trace;
 pub mod types;
 pub mod udp;
 pub mod viz;

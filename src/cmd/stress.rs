@@ -11,7 +11,7 @@ use anyhow::Context;
 use hdrhistogram::Histogram;
 use muster_shared::Instance;
 use serde_json::{json, Value};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::io::{BufRead, BufReader, Read};
 use std::process::{ChildStdout, ExitCode, Stdio};
 use std::sync::mpsc;
@@ -326,8 +326,60 @@ fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result
     })
 }
 
+/// The hops of a service request's path, between the stamps of [`Stage::ALL`].
+const HOPS: [&str; 6] = [
+    "user → broker",
+    "broker (handling, queue)",
+    "broker → system",
+    "system (handling)",
+    "system: grant written",
+    "system → user",
+];
+
+/// Per-hop latency (µs) of every request whose stamps all came, and the whole path.
+fn per_hop(dir: &std::path::Path) -> (Vec<Histogram<u64>>, Histogram<u64>) {
+    use muster_shared::trace::{read_dir, Stage};
+    let mut paths: HashMap<(String, u64), [Option<u64>; 7]> = HashMap::new();
+    for (stage, user, req, ns) in read_dir(dir) {
+        let i = Stage::ALL.iter().position(|s| *s == stage).unwrap_or(0);
+        let slot = &mut paths.entry((user, req)).or_default()[i];
+        // A request sent again (UDP) keeps its first stamps.
+        if slot.is_none() {
+            *slot = Some(ns);
+        }
+    }
+    let mut hops: Vec<Histogram<u64>> = HOPS.iter().map(|_| histogram()).collect();
+    let mut whole = histogram();
+    for stamps in paths.values_mut() {
+        // A grant over UDP goes out through the system's endpoint: no stamp of its own.
+        if stamps[5].is_none() {
+            stamps[5] = stamps[4];
+        }
+        let Some(t) = stamps.iter().copied().collect::<Option<Vec<u64>>>() else {
+            continue;
+        };
+        if t.windows(2).any(|w| w[1] < w[0]) {
+            continue;
+        }
+        for (h, w) in hops.iter_mut().zip(t.windows(2)) {
+            let _ = h.record(((w[1] - w[0]) / 1000).max(1));
+        }
+        let _ = whole.record(((t[6] - t[0]) / 1000).max(1));
+    }
+    (hops, whole)
+}
+
 pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     a.load.check_for(3, a.remote)?;
+    // Every process on a request's path stamps it (per-hop breakdown below); the
+    // variable is set before any thread starts, and the children inherit it.
+    let trace_dir =
+        std::env::temp_dir().join(format!("muster-stress-trace-{}", std::process::id()));
+    if !a.idle {
+        let _ = std::fs::remove_dir_all(&trace_dir);
+        std::fs::create_dir_all(&trace_dir)?;
+        std::env::set_var(muster_shared::trace::TRACE_DIR, &trace_dir);
+    }
     let mut setup = Setup::start(inst, &a)?;
     if a.idle {
         return run_idle(inst, &a, setup);
@@ -412,6 +464,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .collect();
 
     // Aggregate.
+    let (hops, stamped) = per_hop(&trace_dir);
+    let _ = std::fs::remove_dir_all(&trace_dir);
     let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
     let mut termination = histogram();
     let mut timeline = Timeline::default();
@@ -500,6 +554,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             "termination": termination.value_at_quantile(0.5) as f64 / floor_base_p50,
         },
         "broker": broker,
+        "per_hop": HOPS.iter().zip(&hops).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
+        "per_hop_whole": summary(&stamped),
     });
     if let Some(dir) = &a.report {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -553,6 +609,11 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         }
         println!("{}", line("service request, first 10 s", &early));
         println!("{}", line("service request, after 10 s", &late));
+        println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
+        for (name, h) in HOPS.iter().zip(&hops) {
+            println!("{}", line(&format!("  {name}"), h));
+        }
+        println!("{}", line("  whole path (stamped)", &stamped));
         if let Some(h) = broker["handling"].as_object() {
             println!("\nbroker, time to handle (us):");
             for (kind, v) in h {

@@ -11,6 +11,7 @@ use muster_shared::ipc::{bell, create_node, Endpoint, Presence, TransportError};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToBroker, ToSystem};
 use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
+use muster_shared::trace::Stage;
 use muster_shared::types::UserId;
 use std::collections::HashMap;
 use std::os::fd::RawFd;
@@ -319,6 +320,9 @@ pub fn run_system_with<A: SystemApp>(
             match decode::<ToSystem>(&frame) {
                 Ok(msg) if !core.sender_allowed(pid, &msg, |a| shell.endpoint.owner_pid(a)) => {}
                 Ok(msg) => {
+                    if let ToSystem::Offer { user, req, .. } = &msg {
+                        muster_shared::trace::stamp(Stage::SystemRecv, user, *req);
+                    }
                     if let Some(r) = shell.remote.as_mut() {
                         r.logic.note(&msg);
                     }
@@ -368,6 +372,13 @@ impl Shell {
 
     fn flush_outputs(&mut self, core: &mut SystemCore, dead_users: &mut Vec<UserId>) {
         while let Some(out) = core.poll_output() {
+            if let SystemOutput::ToUser(
+                user,
+                muster_shared::protocol::ToUser::Granted { req, .. },
+            ) = &out
+            {
+                muster_shared::trace::stamp(Stage::SystemSend, user, *req);
+            }
             let out = match self.remote.as_mut() {
                 Some(r) => match r.logic.route(Instant::now(), out) {
                     Some(o) => o,
@@ -404,7 +415,15 @@ impl Shell {
                     if matches!(msg, muster_shared::protocol::ToUser::Update { .. }) {
                         self.endpoint.send_or_log(&Address::User(user), &msg)
                     } else {
-                        self.endpoint.send_control(&Address::User(user), &msg)
+                        let to = Address::User(user);
+                        self.endpoint.send_control(&to, &msg);
+                        if let (
+                            Address::User(user),
+                            muster_shared::protocol::ToUser::Granted { req, .. },
+                        ) = (&to, &msg)
+                        {
+                            muster_shared::trace::stamp(Stage::SystemSent, user, *req);
+                        }
                     }
                 }
                 SystemOutput::WatchBroker(pid) => {

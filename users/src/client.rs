@@ -271,6 +271,7 @@ impl UserClient {
     /// Asks for a service by id; the answer comes as an event.
     pub fn request(&mut self, id: &ServiceId) -> Result<u64, UserError> {
         let req = self.core.request(id.clone());
+        muster_shared::trace::stamp(muster_shared::trace::Stage::UserSend, self.core.id(), req);
         self.flush();
         Ok(req)
     }

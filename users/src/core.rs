@@ -673,7 +673,10 @@ impl UserCore {
                 kind,
                 payload,
                 system_pid,
-            } => self.granted(req, session, service, kind, payload, system_pid),
+            } => {
+                muster_shared::trace::stamp(muster_shared::trace::Stage::UserRecv, &self.id, req);
+                self.granted(req, session, service, kind, payload, system_pid)
+            }
             ToUser::Update {
                 session,
                 seq,
