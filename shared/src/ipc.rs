@@ -318,6 +318,12 @@ pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
     });
     let n = dead.len();
     for view in dead {
+        if view.details().is_none() {
+            // Killed while its node was being made: no details, so iceoryx2 would look
+            // for the node under its default root, not ours, and never remove it.
+            remove_detail_less_node(&view.id().value().to_string());
+            continue;
+        }
         match view.try_remove_stale_resources() {
             Ok(_) => {}
             // Someone else (another process's cleanup) got there first: nothing is lost.
@@ -329,6 +335,21 @@ pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
         }
     }
     n
+}
+
+/// Removes the files of a dead node that has no details (its folder under our root's
+/// `nodes/`, and its monitor's three files beside it).
+fn remove_detail_less_node(id: &str) {
+    let nodes = std::path::Path::new(&iox2_root()).join("nodes");
+    let _ = std::fs::remove_dir_all(nodes.join(id));
+    for suffix in [
+        "node_monitor",
+        "node_monitor_context",
+        "node_monitor_owner_lock",
+    ] {
+        let _ = std::fs::remove_file(nodes.join(format!("iox2_{id}.{suffix}")));
+    }
+    tracing::info!(node = id, "removed a dead node that was never finished");
 }
 
 /// The pid of the process that created an iceoryx2 node, if it can be told.

@@ -245,13 +245,7 @@ impl Drop for Fed {
 
 /// Removes the iceoryx2 resources of dead processes (ours, SIGKILLed on purpose).
 pub fn cleanup_dead_nodes() {
-    use iceoryx2::prelude::*;
-    let _ = Node::<ipc::Service>::list(&muster_shared::ipc::config(true), |state| {
-        if let NodeState::Dead(view) = state {
-            let _ = view.try_remove_stale_resources();
-        }
-        CallbackProgression::Continue
-    });
+    muster_shared::ipc::cleanup_dead_nodes(None);
 }
 
 pub fn ids(list: &[Value]) -> Vec<String> {
