@@ -338,9 +338,19 @@ pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
 }
 
 /// Removes the files of a dead node that has no details (its folder under our root's
-/// `nodes/`, and its monitor's three files beside it).
+/// `nodes/`, and its monitor's three files beside it). One made just now, whose maker
+/// may not hold its monitor yet, is left alone.
 fn remove_detail_less_node(id: &str) {
     let nodes = std::path::Path::new(&iox2_root()).join("nodes");
+    let monitor = nodes.join(format!("iox2_{id}.node_monitor"));
+    let young = std::fs::metadata(&monitor)
+        .and_then(|m| m.modified())
+        .ok()
+        .and_then(|m| m.elapsed().ok())
+        .is_none_or(|age| age < STILLBORN_AFTER);
+    if young {
+        return;
+    }
     let _ = std::fs::remove_dir_all(nodes.join(id));
     for suffix in [
         "node_monitor",
