@@ -556,23 +556,29 @@ pub fn run(mut client: UserClient, who: String) -> anyhow::Result<()> {
                 terminal.draw(|f| v.draw(f))?;
                 dirty = false;
             }
-            match client.wait(Instant::now() + Duration::from_secs(3600)) {
-                Ok(Wake::Event(e)) => {
-                    list_owed |= matches!(e, UserEvent::ListChanged | UserEvent::Connected { .. });
-                    v.event(e);
-                    dirty = true;
-                }
-                Ok(Wake::Timeout) => {}
-                Ok(Wake::Extra) => {
-                    for input in inputs.drain() {
-                        if !v.key(&mut client, &input)? {
-                            return Ok(());
-                        }
+            // Sleep until something happens; then take every event already here before
+            // the next redraw, and the keys every time: a stream of updates must neither
+            // redraw once per update nor keep the keys waiting.
+            let mut deadline = Instant::now() + Duration::from_secs(3600);
+            loop {
+                match client.wait(deadline) {
+                    Ok(Wake::Event(e)) => {
+                        list_owed |=
+                            matches!(e, UserEvent::ListChanged | UserEvent::Connected { .. });
+                        v.event(e);
                         dirty = true;
+                        deadline = Instant::now();
                     }
+                    Ok(Wake::Timeout | Wake::Extra) => break,
+                    Err(UserError::Interrupted) => return Ok(()),
+                    Err(e) => return Err(e.into()),
                 }
-                Err(UserError::Interrupted) => return Ok(()),
-                Err(e) => return Err(e.into()),
+            }
+            for input in inputs.drain() {
+                if !v.key(&mut client, &input)? {
+                    return Ok(());
+                }
+                dirty = true;
             }
         }
     })();
