@@ -162,6 +162,21 @@ impl Fence {
     }
 }
 
+/// Removes the fence of `inst` if no live broker holds it (every broker of a run was
+/// stopped, and the last one, stopped in the middle of taking over, could not remove
+/// it); returns whether it did.
+pub fn remove_if_orphaned(inst: &crate::Instance) -> bool {
+    let Ok(f) = Fence::open_existing(inst) else {
+        return false;
+    };
+    let h = f.holder();
+    if h.pid != 0 && crate::reactor::process_alive(h.pid) {
+        return false;
+    }
+    f.remove();
+    true
+}
+
 impl Drop for Fence {
     fn drop(&mut self) {
         // SAFETY: the mapping made in `open`, unmapped once.
@@ -198,5 +213,23 @@ mod tests {
         assert_eq!(a.holder(), next);
         a.remove();
         assert!(!a.path.exists());
+    }
+
+    #[test]
+    fn only_a_fence_no_live_broker_holds_is_removed_as_orphaned() {
+        let inst = crate::Instance::new(&format!("orphan-{}", std::process::id())).unwrap();
+        assert!(!remove_if_orphaned(&inst), "no fence: nothing to do");
+        let f = Fence::open(&inst).unwrap();
+        // Held by this (live) process: kept.
+        let mine = f.claim(f.holder(), std::process::id()).unwrap();
+        assert!(!remove_if_orphaned(&inst));
+        assert!(f.path.exists());
+        // Held by a process that is gone: removed.
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let gone = child.id();
+        child.wait().unwrap();
+        f.claim(mine, gone).unwrap();
+        assert!(remove_if_orphaned(&inst));
+        assert!(!f.path.exists());
     }
 }

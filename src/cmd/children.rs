@@ -286,3 +286,12 @@ pub fn free_tcp_port() -> anyhow::Result<u16> {
         .local_addr()?
         .port())
 }
+
+/// After a run's brokers have all stopped: removes the instance's fence if no live
+/// broker holds it (the last of them, stopped while taking over, could not remove it),
+/// so the run leaves nothing in shared memory.
+pub fn leave_no_fence(inst: &Instance) {
+    if muster_shared::fence::remove_if_orphaned(inst) {
+        tracing::debug!(instance = %inst, "removed the fence no broker held");
+    }
+}

@@ -165,6 +165,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         s.stop();
     }
     children.stop();
+    super::children::leave_no_fence(inst);
     println!("muster up: stopped");
     Ok(ExitCode::SUCCESS)
 }

@@ -77,6 +77,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         s.stop();
     }
     let stats = run.stop();
+    super::children::leave_no_fence(inst);
     let picture = a
         .picture
         .clone()
