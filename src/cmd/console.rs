@@ -6,7 +6,7 @@
 //! (asked after every event, and every few seconds for the systems' ping ages); idle,
 //! it sleeps in the kernel.
 
-use super::tui::{bold, log_box, pane_table, service_row, Input, Inputs};
+use super::tui::{bold, clock, log_box, pane_table, service_row, Input, Inputs};
 use crate::cli::ConsoleArgs;
 use muster_shared::ipc::{create_node, EventReader};
 use muster_shared::protocol::{BrokerStatus, EventRecord, Operation};
@@ -88,12 +88,9 @@ fn describe(r: &EventRecord) -> String {
         })
         .unwrap_or_default();
     fields.sort();
-    let secs = r.t_ns / 1_000_000_000;
     format!(
-        "{:02}:{:02}:{:02} {kind} {}",
-        (secs / 3600) % 24,
-        (secs / 60) % 60,
-        secs % 60,
+        "{} {kind} {}",
+        clock(r.t_ns / 1_000_000_000),
         fields.join(" ")
     )
 }

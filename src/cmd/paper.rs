@@ -42,7 +42,8 @@ pub struct PaperRun {
     tracking_out: Option<ChildStdout>,
     delivery_out: Option<ChildStdout>,
     extra_out: Vec<Option<ChildStdout>>,
-    _node: iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    /// This process's iceoryx2 node, for what it reads of the run.
+    pub node: iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
     /// The simulator's world, for the recorder.
     pub world: WorldView,
 }
@@ -133,7 +134,7 @@ impl PaperRun {
             tracking_out,
             delivery_out,
             extra_out,
-            _node: node,
+            node,
             world,
         })
     }

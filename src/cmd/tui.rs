@@ -102,6 +102,16 @@ pub fn interactive() -> bool {
         && std::env::var("TERM").is_ok_and(|t| !t.is_empty() && t != "dumb")
 }
 
+/// The time of day (UTC) of Unix time `secs`, `hh:mm:ss`, for log lines.
+pub fn clock(secs: u64) -> String {
+    format!(
+        "{:02}:{:02}:{:02}",
+        (secs / 3600) % 24,
+        (secs / 60) % 60,
+        secs % 60
+    )
+}
+
 pub fn bold() -> Style {
     Style::default().add_modifier(Modifier::BOLD)
 }

@@ -60,7 +60,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     let mut client = UserClient::connect(inst, &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);
     let mut rec = Recorder::new(0.5);
-    let mut seen = Seen::open(inst);
+    let mut seen = Seen::open(&run, inst);
     let shown = wait_for_services(&mut client, 4, Duration::from_secs(60)).and_then(|()| {
         if let Some(g) = &guest {
             remote_list(g)?;
@@ -240,14 +240,12 @@ fn demo(
 struct Seen {
     tracks: std::collections::BTreeMap<&'static str, Vec<(f64, f64)>>,
     plan: Vec<(f64, f64)>,
-    view: Option<(iceoryx2::prelude::Node<muster_shared::ipc::Ipc>, VizReader)>,
+    view: Option<VizReader>,
 }
 
 impl Seen {
-    fn open(inst: &Instance) -> Self {
-        let view = muster_shared::ipc::create_node("muster-up-view", false)
-            .ok()
-            .and_then(|n| VizReader::open(&n, inst, "delivery").ok().map(|r| (n, r)));
+    fn open(run: &PaperRun, inst: &Instance) -> Self {
+        let view = VizReader::open(&run.node, inst, "delivery").ok();
         Seen {
             tracks: Default::default(),
             plan: Vec::new(),
@@ -256,7 +254,7 @@ impl Seen {
     }
 
     fn poll(&mut self) {
-        let Some(v) = self.view.as_mut().and_then(|(_, r)| r.latest()) else {
+        let Some(v) = self.view.as_mut().and_then(VizReader::latest) else {
             return;
         };
         if let Some(p) = v.plans.iter().find(|p| p.robot == "D1") {

@@ -6,7 +6,7 @@
 //! send a goal and cancel; the numbered menu (`muster_users::menu`) stays for pipes and
 //! dumb terminals (`--plain`).
 
-use super::tui::{log_box, pane_table, service_row, Input, Inputs};
+use super::tui::{clock, log_box, pane_table, service_row, Input, Inputs};
 use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{Payload, ServiceId, ServiceKind, SessionId};
 use muster_users::{UserClient, UserError, UserEvent, Wake};
@@ -83,22 +83,12 @@ struct View {
     connected: bool,
 }
 
-fn stamp() -> String {
-    let secs = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0);
-    format!(
-        "{:02}:{:02}:{:02}",
-        (secs / 3600) % 24,
-        (secs / 60) % 60,
-        secs % 60
-    )
-}
-
 impl View {
     fn note(&mut self, line: String) {
-        self.log.push_back(format!("{} {line}", stamp()));
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        self.log.push_back(format!("{} {line}", clock(now)));
         while self.log.len() > LOG_LINES {
             self.log.pop_front();
         }
