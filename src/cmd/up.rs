@@ -246,7 +246,7 @@ fn demo(
     println!("\n== link {tracker} -> {delivery} ==");
     let link = client.link(&tracker, &delivery)?;
     let mut shown = 0u32;
-    let mut last_kind = None;
+    let mut kinds_shown = Vec::new();
     loop {
         let deadline = end.unwrap_or(Instant::now() + Duration::from_secs(3600));
         let Some(e) = client.next_event(deadline)? else {
@@ -261,14 +261,18 @@ fn demo(
                 shown += 1;
             }
             UserEvent::LinkForwarded { .. } => shown += 1,
-            // A status of a new kind (idle, then the goal accepted, then done) always
-            // shows; progress shows at the forwarding's pace.
+            // The first status of each kind (idle, the goal accepted, done) always
+            // shows; the rest at the forwarding's pace (a robot that keeps up with a
+            // moving goal would otherwise print every acceptance and arrival).
             UserEvent::Status { status, .. } => {
                 let kind = std::mem::discriminant(&status);
-                if last_kind != Some(kind) || shown % 10 == 1 {
+                let first = !kinds_shown.contains(&kind);
+                if first || shown % 10 == 1 {
                     println!("  delivery: {status}");
                 }
-                last_kind = Some(kind);
+                if first {
+                    kinds_shown.push(kind);
+                }
             }
             UserEvent::LinkEnded { link: l, reason } if l == link => {
                 println!("link ended: {reason}");
