@@ -70,32 +70,69 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
         assert!(r[k]["count"].as_u64().unwrap() > 0, "{k}");
     }
     // The per-hop breakdown: each granted request's stamps, joined across the user, the
-    // broker and the system. Every hop is there; the whole stamped path is one of the
-    // requests the users saw granted (or a link's half), and the hops add up to it.
-    let hops = r["per_hop"].as_array().unwrap();
-    let names: Vec<&str> = hops.iter().map(|h| h["hop"].as_str().unwrap()).collect();
+    // broker and the system. A local user takes whichever copy of its grant comes first:
+    // the broker's (relayed as soon as the system answered) or the system's own. Every
+    // hop of each path is there; the stamped requests are ones the users saw granted (or
+    // a link's half), and the hops add up to the whole.
+    let names = |k: &str| -> Vec<String> {
+        r[k].as_array()
+            .unwrap()
+            .iter()
+            .map(|h| h["hop"].as_str().unwrap().to_string())
+            .collect()
+    };
     assert_eq!(
-        names,
+        names("per_hop"),
         [
             "user → broker",
             "broker (handling, queue)",
             "broker → system",
             "system (handling)",
-            "system: grant written",
-            "system → user"
+            "system → broker (answer)",
+            "broker (handling the answer)",
+            "broker → user (its copy)"
+        ]
+    );
+    assert_eq!(
+        names("per_hop_direct"),
+        [
+            "user → broker",
+            "broker (handling, queue)",
+            "broker → system",
+            "system (handling)",
+            "system: its copy written",
+            "system → user (its copy)"
         ]
     );
     let whole = &r["per_hop_whole"];
     let stamped = whole["count"].as_u64().unwrap();
     assert!(stamped > 0, "{whole}");
     assert!(stamped <= system_grants, "{stamped} > {system_grants}");
-    for h in hops {
-        assert_eq!(h["latency"]["count"].as_u64(), Some(stamped), "{h}");
+    let mut counted = 0;
+    let mut max_sum = 0;
+    for k in ["per_hop", "per_hop_direct"] {
+        let hops = r[k].as_array().unwrap();
+        let n = hops[0]["latency"]["count"].as_u64().unwrap();
+        for h in hops {
+            assert_eq!(h["latency"]["count"].as_u64(), Some(n), "{h}");
+        }
+        counted += n;
+        max_sum = max_sum.max(
+            hops.iter()
+                .map(|h| h["latency"]["max_us"].as_u64().unwrap())
+                .sum::<u64>(),
+        );
     }
-    let max_sum: u64 = hops
-        .iter()
-        .map(|h| h["latency"]["max_us"].as_u64().unwrap())
-        .sum();
+    assert_eq!(counted, stamped, "{whole}");
+    // Each user's first grant from a system is the system's first contact with it: the
+    // broker's copy, over a port open since the user's hello, comes first there.
+    assert!(
+        r["per_hop"][0]["latency"]["count"].as_u64().unwrap() > 0,
+        "{:#}",
+        r["per_hop"]
+    );
+    // The system's own copy is written for every grant to a local user.
+    assert!(r["per_hop_own_copy"]["count"].as_u64().unwrap() >= stamped);
     // (Histograms keep 3 significant digits: a little room.)
     let whole_max = whole["max_us"].as_u64().unwrap() as f64;
     assert!(

@@ -187,6 +187,49 @@ fn list(c: &mut Criterion) {
     });
 }
 
+/// A user's list read out of a real blackboard (shared memory, one process): the list
+/// unchanged since the last read, and changed before every read.
+fn list_read(c: &mut Criterion) {
+    use muster_shared::fence::Fence;
+    use muster_shared::ipc::{create_node, ListReader, ListWriter};
+    let inst =
+        muster_shared::Instance::new(&format!("bench-list-{}", std::process::id())).expect("name");
+    let node = create_node("bench-list", false).expect("node");
+    let fence = Fence::open(&inst).expect("fence");
+    let mut writer = ListWriter::open(&node, &inst, 1).expect("list");
+    let (core, _) = loaded();
+    let mut snapshot = Box::new(ServiceListSnapshot::empty());
+    let views = core.views();
+    snapshot.count = views.len() as u32;
+    for (slot, v) in snapshot.entries.iter_mut().zip(views.iter()) {
+        *slot = v.to_entry();
+    }
+    snapshot.generation = 1;
+    writer.publish(&snapshot, &fence).expect("publish");
+    let mut reader = ListReader::open(&node, &inst).expect("reader");
+    let mut g = c.benchmark_group("list_read_80_services");
+    g.bench_function("unchanged", |b| {
+        b.iter(|| black_box(reader.read_from(&node).expect("read").count))
+    });
+    g.bench_function("changed", |b| {
+        b.iter_custom(|iters| {
+            let mut spent = Duration::ZERO;
+            for _ in 0..iters {
+                snapshot.generation += 1;
+                writer.publish(&snapshot, &fence).expect("publish");
+                let t = Instant::now();
+                black_box(reader.read_from(&node).expect("read").count);
+                spent += t.elapsed();
+            }
+            spent
+        })
+    });
+    g.finish();
+    drop(reader);
+    drop(writer);
+    fence.remove();
+}
+
 fn codec(c: &mut Criterion) {
     let mut g = c.benchmark_group("codec");
     let request = ToBroker::Request {
@@ -206,6 +249,7 @@ fn codec(c: &mut Criterion) {
         kind: ServiceKind::Data,
         payload: "pose2d".into(),
         system_pid: 1003,
+        relayed: false,
     };
     let frame = encode(&granted).expect("encodes");
     g.bench_function("granted_decode", |b| {
@@ -240,5 +284,5 @@ fn replication(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, handling, list, codec, replication);
+criterion_group!(benches, handling, list, list_read, codec, replication);
 criterion_main!(benches);

@@ -1005,6 +1005,7 @@ impl Broker {
                 // A late grant (the offer timed out) is not counted: its user was refused
                 // and ends the session on sight.
                 let Some(o) = &offer else { return };
+                muster_shared::trace::stamp(muster_shared::trace::Stage::BrokerAnswer, &o.user, o.req);
                 let (service, user) = (o.service.clone(), o.user.clone());
                 if let (Some(svc), Some(sys)) = (
                     self.services.get_mut(&service),

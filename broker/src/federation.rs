@@ -1762,6 +1762,7 @@ impl Federation {
                     kind,
                     payload,
                     system_pid: self.pid,
+                    relayed: false,
                 }
             }
             // A session's frames from the host it runs on only.

@@ -1326,8 +1326,35 @@ impl Shell {
                 None => out,
             };
             match out {
-                // Local users hear of their grant from the system itself.
-                Output::Granted { .. } => {}
+                // A local user hears of its grant from the broker at once, over a port
+                // open since its hello, and then from the system itself: the system's
+                // first ports to a user cost more than the rest of the request's path.
+                // (Remote users' grants went to the UDP front; a user of another host
+                // hears through its own host's broker.)
+                Output::Granted {
+                    user,
+                    req,
+                    session,
+                    service,
+                    kind,
+                    payload,
+                    system_pid,
+                } => {
+                    if Federation::is_foreign(&user) {
+                        continue;
+                    }
+                    let msg = ToUser::Granted {
+                        req,
+                        session,
+                        service,
+                        kind,
+                        payload,
+                        system_pid,
+                        relayed: true,
+                    };
+                    self.endpoint.send_control(&Address::User(user.clone()), &msg);
+                    muster_shared::trace::stamp(Stage::BrokerRelay, &user, req);
+                }
                 Output::ToSystem(name, msg) => {
                     if let ToSystem::Offer { user, req, .. } = &msg {
                         muster_shared::trace::stamp(Stage::BrokerSend, user, *req);

@@ -12,11 +12,12 @@ use crate::snapshot::ServiceListSnapshot;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
-use iceoryx2::port::reader::Reader;
+use iceoryx2::port::reader::{EntryHandle, Reader};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::port::writer::Writer;
 use iceoryx2::prelude::*;
 use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
 use std::os::fd::RawFd;
 use std::time::{Duration, Instant};
 
@@ -906,6 +907,11 @@ impl Endpoint {
         [linger, retry].into_iter().flatten().min()
     }
 
+    /// Whether the ports to `to` are open (a send to it costs no first contact).
+    pub fn has_ports(&self, to: &Address) -> bool {
+        self.peers.contains_key(to)
+    }
+
     /// Peers with open ports (including lingering ones).
     pub fn open_peers(&self) -> usize {
         self.peers.len()
@@ -1013,6 +1019,12 @@ pub struct ListWriter {
     announced: bool,
 }
 
+/// The blackboard key of the whole list.
+const LIST_KEY: u64 = 0;
+/// The blackboard key of the list's generation, written after the list: a reader whose
+/// copy has that generation need not copy the list again.
+const GENERATION_KEY: u64 = 1;
+
 impl ListWriter {
     /// Creates the blackboard of the broker run `epoch`.
     pub fn open(node: &Node<Ipc>, inst: &Instance, epoch: u64) -> Result<Self, TransportError> {
@@ -1023,7 +1035,8 @@ impl ListWriter {
             .blackboard_creator::<u64>()
             .max_readers(MAX_PARTICIPANTS)
             .max_nodes(MAX_PARTICIPANTS + 4)
-            .add::<ServiceListSnapshot>(0, ServiceListSnapshot::empty())
+            .add::<ServiceListSnapshot>(LIST_KEY, ServiceListSnapshot::empty())
+            .add::<u64>(GENERATION_KEY, 0)
             .create()
             .map_err(|e| svc_err(&name, e))?;
         let writer = svc
@@ -1046,9 +1059,14 @@ impl ListWriter {
     ) -> Result<(), TransportError> {
         let entry = self
             .writer
-            .entry::<ServiceListSnapshot>(&0)
+            .entry::<ServiceListSnapshot>(&LIST_KEY)
             .map_err(|e| svc_err("service-list entry", e))?;
         entry.update_with_copy(*snapshot);
+        let generation = self
+            .writer
+            .entry::<u64>(&GENERATION_KEY)
+            .map_err(|e| svc_err("service-list generation", e))?;
+        generation.update_with_copy(snapshot.generation);
         if !self.announced {
             fence.set_list(self.epoch);
             self.announced = true;
@@ -1062,7 +1080,18 @@ impl ListWriter {
 pub struct ListReader {
     node_inst: Instance,
     fence: crate::fence::Fence,
-    current: Option<(u64, Reader<Ipc, u64>)>,
+    current: Option<OpenList>,
+}
+
+/// One broker run's list as a reader holds it: the entries' handles, opened once, and
+/// the last copy taken with its generation.
+struct OpenList {
+    epoch: u64,
+    list: EntryHandle<Ipc, u64, ServiceListSnapshot>,
+    generation: EntryHandle<Ipc, u64, u64>,
+    copy: Option<Arc<ServiceListSnapshot>>,
+    // Dropped last: the handles above hold the reader's state.
+    _reader: Reader<Ipc, u64>,
 }
 
 impl ListReader {
@@ -1093,7 +1122,7 @@ impl ListReader {
         if epoch == 0 {
             return Err(TransportError::Unreachable(Address::Broker));
         }
-        if self.current.as_ref().is_some_and(|(e, _)| *e == epoch) {
+        if self.current.as_ref().is_some_and(|c| c.epoch == epoch) {
             return Ok(());
         }
         let name = self.node_inst.service_list(epoch);
@@ -1106,16 +1135,29 @@ impl ListReader {
             .reader_builder()
             .create()
             .map_err(|e| svc_err(&name, e))?;
-        self.current = Some((epoch, reader));
+        let list = reader
+            .entry::<ServiceListSnapshot>(&LIST_KEY)
+            .map_err(|e| svc_err("service-list entry", e))?;
+        let generation = reader
+            .entry::<u64>(&GENERATION_KEY)
+            .map_err(|e| svc_err("service-list generation", e))?;
+        self.current = Some(OpenList {
+            epoch,
+            list,
+            generation,
+            copy: None,
+            _reader: reader,
+        });
         Ok(())
     }
 
-    /// Reads the newest snapshot of the running broker's list (a consistent copy out of
-    /// shared memory), moving to a new broker's list first if there is one.
+    /// The newest snapshot of the running broker's list, moving to a new broker's list
+    /// first if there is one. It is copied out of shared memory only when it changed
+    /// since the last read; otherwise the last copy is shared again.
     pub fn read_from(
         &mut self,
         node: &Node<Ipc>,
-    ) -> Result<Box<ServiceListSnapshot>, TransportError> {
+    ) -> Result<Arc<ServiceListSnapshot>, TransportError> {
         if let Err(e) = self.follow(node) {
             // The old list stays readable until a new one can be opened.
             if self.current.is_none() {
@@ -1125,15 +1167,22 @@ impl ListReader {
         self.read()
     }
 
-    /// Reads the newest snapshot of the list this reader is on.
-    pub fn read(&self) -> Result<Box<ServiceListSnapshot>, TransportError> {
-        let Some((_, reader)) = &self.current else {
+    /// The newest snapshot of the list this reader is on (a consistent copy).
+    pub fn read(&mut self) -> Result<Arc<ServiceListSnapshot>, TransportError> {
+        let Some(open) = &mut self.current else {
             return Err(TransportError::Unreachable(Address::Broker));
         };
-        let entry = reader
-            .entry::<ServiceListSnapshot>(&0)
-            .map_err(|e| svc_err("service-list entry", e))?;
-        Ok(Box::new(*entry.get()))
+        // The broker writes the list, then its generation: a copy of this generation
+        // or a newer one is the newest list but for a write under way.
+        let generation = *open.generation.get();
+        if let Some(copy) = &open.copy {
+            if copy.generation >= generation {
+                return Ok(Arc::clone(copy));
+            }
+        }
+        let copy = Arc::new(*open.list.get());
+        open.copy = Some(Arc::clone(&copy));
+        Ok(copy)
     }
 }
 

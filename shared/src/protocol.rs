@@ -12,7 +12,7 @@ use serde::{de::DeserializeOwned, Deserialize, Serialize};
 /// First byte of every frame.
 pub const MAGIC: u8 = 0x4d; // 'M'
 /// Protocol version; a frame of another version is refused.
-pub const VERSION: u8 = 4;
+pub const VERSION: u8 = 5;
 /// Largest frame, in bytes, on any transport.
 pub const MAX_FRAME: usize = 64 * 1024;
 
@@ -674,6 +674,12 @@ pub enum ToUser {
         payload: String,
         /// The system's process id, watched for death.
         system_pid: u32,
+        /// Sent by the broker on the system's behalf, as soon as the system answered
+        /// its offer. A local user gets two copies: this one, over the broker's port
+        /// (open since its hello), and the system's own, which may wait for the
+        /// system's first ports to this user and comes before any update.
+        #[serde(default)]
+        relayed: bool,
     },
     /// Sent by the system: one data update.
     Update {

@@ -3,8 +3,8 @@
 //! With `MUSTER_TRACE_DIR` set, every process on the path notes when a request passed
 //! it (CLOCK_MONOTONIC ns, one clock for every process on the host), keyed by the user
 //! and its request number: the user sending it, the broker receiving it and sending the
-//! offer, the system receiving the offer and sending the grant, the user receiving the
-//! grant. Each process writes its stamps to `DIR/trace-PID.csv` when it exits; the
+//! offer, the system receiving the offer and answering, the broker passing the grant
+//! on, the system's own copy written, the user receiving the first copy. Each process writes its stamps to `DIR/trace-PID.csv` when it exits; the
 //! stress harness joins them. Without the variable a stamp costs one load.
 
 use crate::protocol::monotonic_ns;
@@ -29,25 +29,35 @@ pub enum Stage {
     BrokerSend,
     /// The system took the offer.
     SystemRecv,
-    /// The system made the grant for the user.
+    /// The system made the grant (its answer to the broker, then the user's copy).
     SystemSend,
-    /// The grant is written into the user's inbox (on shared memory: after opening the
-    /// ports to the user, the first contact between the two processes, if they had none).
+    /// The broker took the system's answer.
+    BrokerAnswer,
+    /// The broker sent the grant on to the (local) user.
+    BrokerRelay,
+    /// The system's own copy of the grant is written into the user's inbox (on shared
+    /// memory: after opening the ports to the user, the first contact between the two
+    /// processes, if they had none).
     SystemSent,
-    /// The user took the grant.
+    /// The user took the grant, the broker's copy first.
     UserRecv,
+    /// The user took the grant, the system's own copy first (always, over UDP).
+    UserRecvDirect,
 }
 
 impl Stage {
-    /// Every stage, in path order.
-    pub const ALL: [Stage; 7] = [
+    /// Every stage.
+    pub const ALL: [Stage; 10] = [
         Stage::UserSend,
         Stage::BrokerRecv,
         Stage::BrokerSend,
         Stage::SystemRecv,
         Stage::SystemSend,
+        Stage::BrokerAnswer,
+        Stage::BrokerRelay,
         Stage::SystemSent,
         Stage::UserRecv,
+        Stage::UserRecvDirect,
     ];
 
     /// Its name in the files.
@@ -58,8 +68,11 @@ impl Stage {
             Stage::BrokerSend => "broker_send",
             Stage::SystemRecv => "system_recv",
             Stage::SystemSend => "system_send",
+            Stage::BrokerAnswer => "broker_answer",
+            Stage::BrokerRelay => "broker_relay",
             Stage::SystemSent => "system_sent",
             Stage::UserRecv => "user_recv",
+            Stage::UserRecvDirect => "user_recv_direct",
         }
     }
 

@@ -9,6 +9,7 @@ use super::children::Children;
 use crate::cli::StressArgs;
 use anyhow::Context;
 use hdrhistogram::Histogram;
+use muster_shared::trace::Stage;
 use muster_shared::Instance;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashMap};
@@ -326,20 +327,63 @@ fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result
     })
 }
 
-/// The hops of a service request's path, between the stamps of [`Stage::ALL`].
-const HOPS: [&str; 6] = [
+/// A granted request's path when the broker's copy of the grant reached the user first
+/// (shared memory), and the hop between each two stamps.
+const RELAY_PATH: [Stage; 8] = [
+    Stage::UserSend,
+    Stage::BrokerRecv,
+    Stage::BrokerSend,
+    Stage::SystemRecv,
+    Stage::SystemSend,
+    Stage::BrokerAnswer,
+    Stage::BrokerRelay,
+    Stage::UserRecv,
+];
+const RELAY_HOPS: [&str; 7] = [
     "user → broker",
     "broker (handling, queue)",
     "broker → system",
     "system (handling)",
-    "system: grant written",
-    "system → user",
+    "system → broker (answer)",
+    "broker (handling the answer)",
+    "broker → user (its copy)",
 ];
 
-/// Per-hop latency (µs) of every request whose stamps all came, and the whole path.
-fn per_hop(dir: &std::path::Path) -> (Vec<Histogram<u64>>, Histogram<u64>) {
-    use muster_shared::trace::{read_dir, Stage};
-    let mut paths: HashMap<(String, u64), [Option<u64>; 7]> = HashMap::new();
+/// The path when the system's own copy reached the user first (always over UDP).
+const DIRECT_PATH: [Stage; 7] = [
+    Stage::UserSend,
+    Stage::BrokerRecv,
+    Stage::BrokerSend,
+    Stage::SystemRecv,
+    Stage::SystemSend,
+    Stage::SystemSent,
+    Stage::UserRecvDirect,
+];
+const DIRECT_HOPS: [&str; 6] = [
+    "user → broker",
+    "broker (handling, queue)",
+    "broker → system",
+    "system (handling)",
+    "system: its copy written",
+    "system → user (its copy)",
+];
+
+/// Per-hop latency (µs) of granted requests whose stamps all came.
+struct PerHop {
+    /// The hops of [`RELAY_PATH`], of requests the broker's copy reached first.
+    relay: Vec<Histogram<u64>>,
+    /// The hops of [`DIRECT_PATH`], of requests the system's copy reached first.
+    direct: Vec<Histogram<u64>>,
+    /// On shared memory, the system writing its own copy (its first ports to a user
+    /// the system had none to, if so), whichever copy came first.
+    own_copy: Histogram<u64>,
+    /// The whole path, user send to the first copy taken.
+    whole: Histogram<u64>,
+}
+
+fn per_hop(dir: &std::path::Path) -> PerHop {
+    use muster_shared::trace::read_dir;
+    let mut paths: HashMap<(String, u64), [Option<u64>; Stage::ALL.len()]> = HashMap::new();
     for (stage, user, req, ns) in read_dir(dir) {
         let i = Stage::ALL.iter().position(|s| *s == stage).unwrap_or(0);
         let slot = &mut paths.entry((user, req)).or_default()[i];
@@ -348,25 +392,47 @@ fn per_hop(dir: &std::path::Path) -> (Vec<Histogram<u64>>, Histogram<u64>) {
             *slot = Some(ns);
         }
     }
-    let mut hops: Vec<Histogram<u64>> = HOPS.iter().map(|_| histogram()).collect();
-    let mut whole = histogram();
-    for stamps in paths.values_mut() {
-        // A grant over UDP goes out through the system's endpoint: no stamp of its own.
-        if stamps[5].is_none() {
-            stamps[5] = stamps[4];
+    let at = |stamps: &[Option<u64>; Stage::ALL.len()], s: Stage| {
+        stamps[Stage::ALL.iter().position(|x| *x == s).unwrap_or(0)]
+    };
+    let mut out = PerHop {
+        relay: RELAY_HOPS.iter().map(|_| histogram()).collect(),
+        direct: DIRECT_HOPS.iter().map(|_| histogram()).collect(),
+        own_copy: histogram(),
+        whole: histogram(),
+    };
+    let us = |from: u64, to: u64| ((to - from) / 1000).max(1);
+    for stamps in paths.values() {
+        if let (Some(a), Some(b)) = (at(stamps, Stage::SystemSend), at(stamps, Stage::SystemSent)) {
+            if b >= a {
+                let _ = out.own_copy.record(us(a, b));
+            }
         }
-        let Some(t) = stamps.iter().copied().collect::<Option<Vec<u64>>>() else {
-            continue;
-        };
+        let (path, hops): (&[Stage], &mut Vec<Histogram<u64>>) =
+            if at(stamps, Stage::UserRecv).is_some() {
+                (&RELAY_PATH, &mut out.relay)
+            } else {
+                (&DIRECT_PATH, &mut out.direct)
+            };
+        let t: Option<Vec<u64>> = path
+            .iter()
+            .map(|s| match s {
+                // A grant over UDP goes out through the system's endpoint: no stamp
+                // of its own.
+                Stage::SystemSent => at(stamps, *s).or(at(stamps, Stage::SystemSend)),
+                _ => at(stamps, *s),
+            })
+            .collect();
+        let Some(t) = t else { continue };
         if t.windows(2).any(|w| w[1] < w[0]) {
             continue;
         }
         for (h, w) in hops.iter_mut().zip(t.windows(2)) {
-            let _ = h.record(((w[1] - w[0]) / 1000).max(1));
+            let _ = h.record(us(w[0], w[1]));
         }
-        let _ = whole.record(((t[6] - t[0]) / 1000).max(1));
+        let _ = out.whole.record(us(t[0], t[t.len() - 1]));
     }
-    (hops, whole)
+    out
 }
 
 pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
@@ -464,7 +530,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .collect();
 
     // Aggregate.
-    let (hops, stamped) = per_hop(&trace_dir);
+    let hops = per_hop(&trace_dir);
     let _ = std::fs::remove_dir_all(&trace_dir);
     let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
     let mut termination = histogram();
@@ -554,8 +620,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             "termination": termination.value_at_quantile(0.5) as f64 / floor_base_p50,
         },
         "broker": broker,
-        "per_hop": HOPS.iter().zip(&hops).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
-        "per_hop_whole": summary(&stamped),
+        "per_hop": RELAY_HOPS.iter().zip(&hops.relay).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
+        "per_hop_direct": DIRECT_HOPS.iter().zip(&hops.direct).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
+        "per_hop_own_copy": summary(&hops.own_copy),
+        "per_hop_whole": summary(&hops.whole),
     });
     if let Some(dir) = &a.report {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -610,10 +678,22 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", line("service request, first 10 s", &early));
         println!("{}", line("service request, after 10 s", &late));
         println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
-        for (name, h) in HOPS.iter().zip(&hops) {
-            println!("{}", line(&format!("  {name}"), h));
+        if hops.relay[0].len() > 0 {
+            println!("  the broker's copy of the grant first:");
+            for (name, h) in RELAY_HOPS.iter().zip(&hops.relay) {
+                println!("{}", line(&format!("    {name}"), h));
+            }
         }
-        println!("{}", line("  whole path (stamped)", &stamped));
+        if hops.direct[0].len() > 0 {
+            println!("  the system's own copy first:");
+            for (name, h) in DIRECT_HOPS.iter().zip(&hops.direct) {
+                println!("{}", line(&format!("    {name}"), h));
+            }
+        }
+        if hops.own_copy.len() > 0 {
+            println!("{}", line("  system: its own copy written", &hops.own_copy));
+        }
+        println!("{}", line("  whole path (stamped)", &hops.whole));
         if let Some(h) = broker["handling"].as_object() {
             println!("\nbroker, time to handle (us):");
             for (kind, v) in h {

@@ -398,6 +398,7 @@ impl SystemCore {
             kind: spec.kind,
             payload: spec.payload.clone(),
             system_pid: self.pid,
+            relayed: false,
         }
     }
 
@@ -469,6 +470,14 @@ impl SystemCore {
                 let r = self.report.entry(service.clone()).or_default();
                 r.grants += 1;
                 r.max_in_use = r.max_in_use.max(in_use);
+                // The broker first: its port is warm, and it passes the grant on to a
+                // local user at once, while this system may still be opening its first
+                // ports to that user for the copy below (which comes before any update).
+                self.send_broker(ToBroker::OfferAnswer {
+                    system: self.name.clone(),
+                    ticket,
+                    answer: Ok(session),
+                });
                 if user_pid != 0 {
                     self.out
                         .push_back(SystemOutput::WatchUser(user.clone(), user_pid));
@@ -476,11 +485,6 @@ impl SystemCore {
                 let granted = self.granted(req, session, &spec);
                 self.out
                     .push_back(SystemOutput::ToUser(user.clone(), granted));
-                self.send_broker(ToBroker::OfferAnswer {
-                    system: self.name.clone(),
-                    ticket,
-                    answer: Ok(session),
-                });
                 self.events.push_back(SystemEvent::SessionStarted {
                     session,
                     user,
@@ -791,9 +795,19 @@ mod tests {
         let mut c = core();
         let out = offer(&mut c, 1, "u1", "a");
         let session = answer(&out).unwrap().unwrap();
-        assert!(out.iter().any(|o| matches!(o,
-            SystemOutput::ToUser(u, ToUser::Granted { session: s, kind: ServiceKind::Data, system_pid: 7, .. })
-                if u.0 == "u1" && *s == session)));
+        let to_user = out
+            .iter()
+            .position(|o| matches!(o,
+            SystemOutput::ToUser(u, ToUser::Granted { session: s, kind: ServiceKind::Data, system_pid: 7, relayed: false, .. })
+                if u.0 == "u1" && *s == session))
+            .expect("the user's own copy");
+        // The broker's answer goes first: the broker passes the grant on over its warm
+        // port while this system may still be opening its first ports to the user.
+        let to_broker = out
+            .iter()
+            .position(|o| matches!(o, SystemOutput::ToBroker(ToBroker::OfferAnswer { .. })))
+            .unwrap();
+        assert!(to_broker < to_user, "{out:?}");
         assert_eq!(c.sessions_of("a"), 1);
     }
 

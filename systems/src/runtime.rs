@@ -416,6 +416,15 @@ impl Shell {
                         self.endpoint.send_or_log(&Address::User(user), &msg)
                     } else {
                         let to = Address::User(user);
+                        if matches!(msg, muster_shared::protocol::ToUser::Granted { .. })
+                            && !self.endpoint.has_ports(&to)
+                        {
+                            // The first ports to this user cost more than the rest of the
+                            // request's path. The broker, just woken with this system's
+                            // answer, passes the grant on first: on a busy core it would
+                            // otherwise wait for them.
+                            std::thread::yield_now();
+                        }
                         self.endpoint.send_control(&to, &msg);
                         if let (
                             Address::User(user),

@@ -11,6 +11,7 @@ use muster_shared::snapshot::ServiceListSnapshot;
 use muster_shared::types::{link_compatible, Payload, ServiceId, ServiceKind, SessionId, UserId};
 use std::collections::{HashMap, VecDeque};
 use std::os::fd::RawFd;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// Why a user operation failed.
@@ -241,7 +242,7 @@ impl UserClient {
 
     /// The newest service list: read in place from shared memory (local), or fetched
     /// from the broker in datagram-sized chunks (remote, waiting up to 5 s).
-    pub fn list(&mut self) -> Result<Box<ServiceListSnapshot>, UserError> {
+    pub fn list(&mut self) -> Result<Arc<ServiceListSnapshot>, UserError> {
         match &mut self.transport {
             Transport::Local(l) => {
                 if l.list.is_none() {
@@ -256,7 +257,7 @@ impl UserClient {
                 loop {
                     if let Transport::Remote(r) = &mut self.transport {
                         if let Some(l) = r.take_list() {
-                            return Ok(l);
+                            return Ok(Arc::from(l));
                         }
                     }
                     if Instant::now() >= deadline {

@@ -154,7 +154,14 @@ struct SessionInfo {
     link: Option<u64>,
     /// The process that granted it: the only one whose frames about it are believed.
     system_pid: u32,
+    /// Which copies of its grant came ([`DIRECT`], [`RELAYED`]).
+    copies: u8,
 }
+
+/// The system's own copy of a grant.
+const DIRECT: u8 = 1;
+/// The broker's copy of a grant ([`ToUser::Granted`] `relayed`).
+const RELAYED: u8 = 2;
 
 #[derive(Clone, Debug)]
 struct LinkState {
@@ -204,7 +211,8 @@ pub struct UserCore {
     /// The sessions this user held last (at most [`RECENTLY_CLOSED`]), oldest first: a
     /// repeated offer that crossed a takeover may be answered with one of them after
     /// the user ended it, before the system heard the end.
-    closed: std::collections::VecDeque<SessionId>,
+    /// With each, the copies of its grant that came.
+    closed: std::collections::VecDeque<(SessionId, u8)>,
 }
 
 /// How many closed sessions a user remembers.
@@ -305,6 +313,10 @@ impl UserCore {
                 *broker_pid == pid && owner(&Address::Broker) == Some(pid)
             }
             ToUser::Queued { .. } | ToUser::Refused { .. } | ToUser::Operated { .. } => {
+                self.broker_pid == Some(pid) || owner(&Address::Broker) == Some(pid)
+            }
+            // The broker's copy of a grant comes from the broker.
+            ToUser::Granted { relayed: true, .. } => {
                 self.broker_pid == Some(pid) || owner(&Address::Broker) == Some(pid)
             }
             ToUser::Granted {
@@ -476,7 +488,7 @@ impl UserCore {
         if self.closed.len() >= RECENTLY_CLOSED {
             self.closed.pop_front();
         }
-        self.closed.push_back(session);
+        self.closed.push_back((session, s.copies));
         if tell_system {
             self.out.push_back(UserOutput::ToSystem(
                 s.system.clone(),
@@ -673,9 +685,10 @@ impl UserCore {
                 kind,
                 payload,
                 system_pid,
+                relayed,
             } => {
-                muster_shared::trace::stamp(muster_shared::trace::Stage::UserRecv, &self.id, req);
-                self.granted(req, session, service, kind, payload, system_pid)
+                let copy = if relayed { RELAYED } else { DIRECT };
+                self.granted(req, session, service, kind, payload, system_pid, copy)
             }
             ToUser::Update {
                 session,
@@ -716,25 +729,35 @@ impl UserCore {
         kind: ServiceKind,
         payload: String,
         system_pid: u32,
+        copy: u8,
     ) {
         let system = service
             .split()
             .map(|(s, _)| s.to_string())
             .unwrap_or_default();
-        if self.sessions.contains_key(&session) {
-            // The same grant again: the system answered a repeated offer (one that
-            // crossed a broker takeover) with the session we already hold.
-            self.regrants += 1;
+        if let Some(s) = self.sessions.get_mut(&session) {
+            if s.copies & copy == 0 {
+                // The other copy of the grant that made it (the broker's or the system's).
+                s.copies |= copy;
+            } else {
+                // The same grant again: the system answered a repeated offer (one that
+                // crossed a broker takeover) with the session we already hold.
+                self.regrants += 1;
+            }
             return;
         }
         let Some(p) = self.pending.remove(&req) else {
             // Granted after we gave up (cancelled, refused on timeout), or a session we
             // held and ended granted again (a repeated offer that crossed our end on its
             // way to the system): end it at once. Only the first is a second grant.
-            if self.closed.contains(&session) {
-                self.regrants += 1;
-            } else {
-                self.unwanted_grants += 1;
+            match self.closed.iter_mut().find(|(s, _)| *s == session) {
+                // The other copy of a grant whose session we already ended.
+                Some((_, c)) if *c & copy == 0 => {
+                    *c |= copy;
+                    return;
+                }
+                Some(_) => self.regrants += 1,
+                None => self.unwanted_grants += 1,
             }
             self.out.push_back(UserOutput::ToSystem(
                 system,
@@ -745,6 +768,12 @@ impl UserCore {
             ));
             return;
         };
+        let stage = if copy == RELAYED {
+            muster_shared::trace::Stage::UserRecv
+        } else {
+            muster_shared::trace::Stage::UserRecvDirect
+        };
+        muster_shared::trace::stamp(stage, &self.id, req);
         self.out
             .push_back(UserOutput::WatchSystem(system.clone(), system_pid));
         self.sessions.insert(
@@ -758,6 +787,7 @@ impl UserCore {
                 gaps: 0,
                 link: p.link,
                 system_pid,
+                copies: copy,
             },
         );
         self.events.push_back(UserEvent::Granted {
@@ -913,6 +943,72 @@ mod tests {
         assert_eq!((u.regrants(), u.unwanted_grants()), (2, 1));
     }
 
+    #[test]
+    fn the_two_copies_of_a_grant_make_one_session_in_either_order() {
+        for first_relayed in [true, false] {
+            let mut u = user();
+            let req = u.request(ServiceId("t1/s0".into()));
+            outs(&mut u);
+            let copy = |relayed| ToUser::Granted {
+                req,
+                session: SessionId(7),
+                service: ServiceId::new("t1", "s0"),
+                kind: ServiceKind::Data,
+                payload: "pose2d".into(),
+                system_pid: 50,
+                relayed,
+            };
+            u.handle(copy(first_relayed));
+            u.handle(copy(!first_relayed));
+            let grants = events(&mut u)
+                .into_iter()
+                .filter(|e| matches!(e, UserEvent::Granted { .. }))
+                .count();
+            assert_eq!(grants, 1, "one session, relayed first: {first_relayed}");
+            assert!(outs(&mut u)
+                .iter()
+                .all(|o| !matches!(o, UserOutput::ToSystem(_, ToSystem::End { .. }))));
+            assert_eq!((u.regrants(), u.unwanted_grants()), (0, 0));
+            // A third copy is a repeated grant (an offer repeated across a takeover).
+            u.handle(copy(first_relayed));
+            assert_eq!((u.regrants(), u.unwanted_grants()), (1, 0));
+        }
+        // The second copy of a grant whose session the user already ended is let be:
+        // the session was ended once, and is not ended again.
+        let mut u = user();
+        let req = u.request(ServiceId("t1/s0".into()));
+        let copy = |relayed| ToUser::Granted {
+            req,
+            session: SessionId(9),
+            service: ServiceId::new("t1", "s0"),
+            kind: ServiceKind::Data,
+            payload: "pose2d".into(),
+            system_pid: 50,
+            relayed,
+        };
+        u.handle(copy(false));
+        u.end(SessionId(9));
+        outs(&mut u);
+        u.handle(copy(true));
+        assert!(outs(&mut u).is_empty());
+        assert_eq!((u.regrants(), u.unwanted_grants()), (0, 0));
+        // The broker's copy alone (the system's never came) makes the session too.
+        let mut u = user();
+        let req = u.request(ServiceId("t1/s0".into()));
+        u.handle(ToUser::Granted {
+            req,
+            session: SessionId(11),
+            service: ServiceId::new("t1", "s0"),
+            kind: ServiceKind::Data,
+            payload: "pose2d".into(),
+            system_pid: 50,
+            relayed: true,
+        });
+        assert!(u.counters(SessionId(11)).is_some());
+        update(&mut u, 11, 1);
+        assert_eq!(u.stale_frames(), 0);
+    }
+
     fn grant(
         u: &mut UserCore,
         req: u64,
@@ -929,6 +1025,7 @@ mod tests {
             kind,
             payload: payload.into(),
             system_pid: 50,
+            relayed: false,
         });
     }
 
@@ -982,6 +1079,7 @@ mod tests {
             kind: ServiceKind::Data,
             payload: "pose2d".into(),
             system_pid: pid,
+            relayed: false,
         };
         assert!(
             !u.sender_allowed(Some(66), &granted(66), owner),
@@ -992,6 +1090,22 @@ mod tests {
             "the broker cannot grant"
         );
         assert!(u.sender_allowed(Some(50), &granted(50), owner));
+        // The broker's copy of the grant comes from the broker only.
+        let relayed = |pid| ToUser::Granted {
+            req,
+            session: SessionId(7),
+            service: ServiceId::new("s", "a"),
+            kind: ServiceKind::Data,
+            payload: "pose2d".into(),
+            system_pid: pid,
+            relayed: true,
+        };
+        assert!(u.sender_allowed(Some(3), &relayed(50), owner));
+        assert!(
+            !u.sender_allowed(Some(50), &relayed(50), owner),
+            "the system cannot pose as the broker"
+        );
+        assert!(!u.sender_allowed(Some(66), &relayed(50), owner));
         u.handle(granted(50));
         let ended = ToUser::Ended {
             session: SessionId(7),
@@ -1007,7 +1121,7 @@ mod tests {
             u.sender_allowed(None, &ended, owner),
             "an unknown writer is let through"
         );
-        assert_eq!(u.impersonations(), 7);
+        assert_eq!(u.impersonations(), 9);
     }
 
     #[test]

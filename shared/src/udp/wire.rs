@@ -15,7 +15,7 @@
 /// First byte of every muster datagram.
 pub const UDP_MAGIC: u8 = 0x75; // 'u'
 /// Version of the datagram layout; datagrams of other versions are dropped and counted.
-pub const UDP_VERSION: u8 = 4;
+pub const UDP_VERSION: u8 = 5;
 /// No datagram carries more than this many bytes of UDP payload (issue 3, and the
 /// smallest path MTU QUIC assumes).
 pub const MAX_DATAGRAM: usize = 1200;
