@@ -444,6 +444,15 @@ impl Broker {
 
     /// If the list changed since the last call: the new generation and rows.
     pub fn take_list_change(&mut self) -> Option<(u64, Vec<ServiceView>)> {
+        let mut views = Vec::new();
+        self.take_list_change_into(&mut views)
+            .map(|generation| (generation, views))
+    }
+
+    /// If the list changed since the last call: the new generation, with `views` made
+    /// the new rows. Rows of the same services are updated in place (the broker's
+    /// steady state: counts change, on every grant and end), allocating nothing.
+    pub fn take_list_change_into(&mut self, views: &mut Vec<ServiceView>) -> Option<u64> {
         if !self.list_dirty {
             return None;
         }
@@ -453,7 +462,34 @@ impl Broker {
             // No clock in this step: the op's time is not used.
             j.push((Duration::ZERO, Op::ListTaken));
         }
-        Some((self.generation, self.views()))
+        let same_services = views.len() == self.services.len()
+            && views
+                .iter()
+                .zip(self.services.keys())
+                .all(|(v, id)| v.id == id.0);
+        if !same_services {
+            *views = self.views();
+            return Some(self.generation);
+        }
+        fn set(dst: &mut String, src: &str) {
+            if dst != src {
+                src.clone_into(dst);
+            }
+        }
+        for (v, s) in views.iter_mut().zip(self.services.values()) {
+            set(&mut v.system, &s.system);
+            set(&mut v.name, &s.spec.name);
+            set(&mut v.description, &s.spec.description);
+            set(&mut v.kind, s.spec.kind.as_str());
+            set(&mut v.payload, &s.spec.payload);
+            v.queue = s.spec.queue;
+            v.quota = s.spec.quota;
+            v.in_use = u16::try_from(s.used()).unwrap_or(u16::MAX);
+            v.queued = u16::try_from(s.queue.len()).unwrap_or(u16::MAX);
+            v.links = u16::try_from(s.links).unwrap_or(u16::MAX);
+            v.withdrawn = s.withdrawn;
+        }
+        Some(self.generation)
     }
 
     /// The current list, in id order.

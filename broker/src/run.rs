@@ -1445,7 +1445,13 @@ impl Shell {
 
     /// Writes the list if it changed.
     fn write_list(&mut self, core: &mut Broker) {
-        let local = core.take_list_change();
+        // The core's rows, updated in place: alone, they are the list; in a federation,
+        // other hosts' users' links are added to them first.
+        let mine = match self.fed {
+            None => &mut self.local_views,
+            Some(_) => &mut self.core_views,
+        };
+        let local = core.take_list_change_into(mine);
         let (far, links) = self.fed.as_mut().map_or((false, false), |f| {
             (f.take_list_change(), f.take_links_change())
         });
@@ -1455,19 +1461,12 @@ impl Shell {
         // Other hosts' lists change the merged one on their own: it takes a generation
         // past both the core's and the last written.
         let mut generation = self.snapshot.generation + 1;
-        if let Some((g, _)) = local.as_ref() {
-            generation = generation.max(*g);
+        if let Some(g) = local {
+            generation = generation.max(g);
         }
         match self.fed.as_mut() {
-            None => {
-                if let Some((_, views)) = local {
-                    self.local_views = views;
-                }
-            }
+            None => {}
             Some(f) if local.is_some() || links => {
-                if let Some((_, views)) = local {
-                    self.core_views = views;
-                }
                 // Other hosts' users' links over this host's services count here too.
                 let mut views = self.core_views.clone();
                 let n = f.links_in();

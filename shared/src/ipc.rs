@@ -1180,9 +1180,14 @@ impl ListReader {
                 return Ok(Arc::clone(copy));
             }
         }
-        let copy = Arc::new(*open.list.get());
-        open.copy = Some(Arc::clone(&copy));
-        Ok(copy)
+        let fresh = open.list.get();
+        // Into the last copy's memory if no one holds it any more: a fresh allocation
+        // of the list's size would fault its pages in again on every change.
+        match open.copy.as_mut().and_then(Arc::get_mut) {
+            Some(mine) => *mine = *fresh,
+            None => open.copy = Some(Arc::new(*fresh)),
+        }
+        Ok(open.copy.as_ref().map(Arc::clone).expect("set above"))
     }
 }
 
