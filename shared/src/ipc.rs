@@ -8,13 +8,15 @@
 //! into the process's [`crate::reactor::Reactor`].
 
 use crate::names::{Address, Instance};
-use crate::snapshot::ServiceListSnapshot;
+use crate::snapshot::{
+    ListChunk, ListHeader, ServiceListSnapshot, CHUNK_ENTRIES, LIST_CHUNKS, MAX_LISTED_SERVICES,
+};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::reader::{EntryHandle, Reader};
 use iceoryx2::port::subscriber::Subscriber;
-use iceoryx2::port::writer::Writer;
+use iceoryx2::port::writer::{EntryHandleMut, Writer};
 use iceoryx2::prelude::*;
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
@@ -1014,59 +1016,111 @@ impl Presence {
 /// the middle of an update leaves its entry held for good), and readers keep the old
 /// list, whole, until the new one is there.
 pub struct ListWriter {
-    writer: Writer<Ipc, u64>,
+    header: EntryHandleMut<Ipc, u64, ListHeader>,
+    chunks: Vec<EntryHandleMut<Ipc, u64, ListChunk>>,
+    /// What the chunks hold now, to write only the ones that change.
+    written: Box<ServiceListSnapshot>,
+    seq: u64,
     epoch: u64,
     announced: bool,
+    // Dropped last: the handles above hold the writer's state.
+    _writer: Writer<Ipc, u64>,
 }
 
-/// The blackboard key of the whole list.
-const LIST_KEY: u64 = 0;
-/// The blackboard key of the list's generation, written after the list: a reader whose
-/// copy has that generation need not copy the list again.
-const GENERATION_KEY: u64 = 1;
+/// The blackboard key of the list's header; chunk `k` is key `k + 1`.
+const HEADER_KEY: u64 = 0;
+
+/// The blackboard key of chunk `k`.
+fn chunk_key(k: usize) -> u64 {
+    k as u64 + 1
+}
+
+/// How many chunks hold `count` entries.
+fn chunks_for(count: usize) -> usize {
+    count.min(MAX_LISTED_SERVICES).div_ceil(CHUNK_ENTRIES)
+}
 
 impl ListWriter {
     /// Creates the blackboard of the broker run `epoch`.
     pub fn open(node: &Node<Ipc>, inst: &Instance, epoch: u64) -> Result<Self, TransportError> {
         let name = inst.service_list(epoch);
         let sname = service_name(&name)?;
-        let svc = node
+        let mut builder = node
             .service_builder(&sname)
             .blackboard_creator::<u64>()
             .max_readers(MAX_PARTICIPANTS)
             .max_nodes(MAX_PARTICIPANTS + 4)
-            .add::<ServiceListSnapshot>(LIST_KEY, ServiceListSnapshot::empty())
-            .add::<u64>(GENERATION_KEY, 0)
-            .create()
-            .map_err(|e| svc_err(&name, e))?;
+            .add::<ListHeader>(
+                HEADER_KEY,
+                ListHeader {
+                    seq: 0,
+                    generation: 0,
+                    epoch,
+                    count: 0,
+                    _pad: 0,
+                },
+            );
+        for k in 0..LIST_CHUNKS {
+            builder = builder.add::<ListChunk>(chunk_key(k), ListChunk::empty());
+        }
+        let svc = builder.create().map_err(|e| svc_err(&name, e))?;
         let writer = svc
             .writer_builder()
             .create()
             .map_err(|e| svc_err(&name, e))?;
+        let header = writer
+            .entry::<ListHeader>(&HEADER_KEY)
+            .map_err(|e| svc_err("service-list header", e))?;
+        let chunks = (0..LIST_CHUNKS)
+            .map(|k| writer.entry::<ListChunk>(&chunk_key(k)))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| svc_err("service-list chunk", e))?;
         Ok(ListWriter {
-            writer,
+            header,
+            chunks,
+            written: Box::new(ServiceListSnapshot::empty()),
+            seq: 0,
             epoch,
             announced: false,
+            _writer: writer,
         })
     }
 
-    /// Publishes a new snapshot; readers see it on their next read. The first one also
-    /// names this list in `fence`, so readers move to it.
+    /// Publishes a new snapshot (its chunks that changed, then the header); readers see
+    /// it on their next read. The first one also names this list in `fence`, so readers
+    /// move to it.
     pub fn publish(
         &mut self,
         snapshot: &ServiceListSnapshot,
         fence: &crate::fence::Fence,
     ) -> Result<(), TransportError> {
-        let entry = self
-            .writer
-            .entry::<ServiceListSnapshot>(&LIST_KEY)
-            .map_err(|e| svc_err("service-list entry", e))?;
-        entry.update_with_copy(*snapshot);
-        let generation = self
-            .writer
-            .entry::<u64>(&GENERATION_KEY)
-            .map_err(|e| svc_err("service-list generation", e))?;
-        generation.update_with_copy(snapshot.generation);
+        self.seq += 1;
+        let count = (snapshot.count as usize).min(MAX_LISTED_SERVICES);
+        let before = (self.written.count as usize).min(MAX_LISTED_SERVICES);
+        let mut chunk = ListChunk::empty();
+        for k in 0..chunks_for(count) {
+            let range = k * CHUNK_ENTRIES..((k + 1) * CHUNK_ENTRIES).min(count);
+            // Unchanged, and whole in shared memory already: left as it is.
+            if self.seq > 1
+                && range.end <= before
+                && self.written.entries[range.clone()] == snapshot.entries[range.clone()]
+            {
+                continue;
+            }
+            chunk.seq = self.seq;
+            chunk.entries = [ServiceListSnapshot::EMPTY_ENTRY; CHUNK_ENTRIES];
+            chunk.entries[..range.len()].copy_from_slice(&snapshot.entries[range.clone()]);
+            self.chunks[k].update_with_copy(chunk);
+            self.written.entries[range.clone()].copy_from_slice(&snapshot.entries[range]);
+        }
+        self.written.count = count as u32;
+        self.header.update_with_copy(ListHeader {
+            seq: self.seq,
+            generation: snapshot.generation,
+            epoch: snapshot.epoch,
+            count: count as u32,
+            _pad: 0,
+        });
         if !self.announced {
             fence.set_list(self.epoch);
             self.announced = true;
@@ -1084,15 +1138,18 @@ pub struct ListReader {
 }
 
 /// One broker run's list as a reader holds it: the entries' handles, opened once, and
-/// the last copy taken with its generation.
+/// the last copy taken with the write it came from.
 struct OpenList {
     epoch: u64,
-    list: EntryHandle<Ipc, u64, ServiceListSnapshot>,
-    generation: EntryHandle<Ipc, u64, u64>,
-    copy: Option<Arc<ServiceListSnapshot>>,
+    header: EntryHandle<Ipc, u64, ListHeader>,
+    chunks: Vec<EntryHandle<Ipc, u64, ListChunk>>,
+    copy: Option<(u64, Arc<ServiceListSnapshot>)>,
     // Dropped last: the handles above hold the reader's state.
     _reader: Reader<Ipc, u64>,
 }
+
+/// Most times a reader takes the list again because the broker wrote it meanwhile.
+const LIST_READ_TRIES: usize = 1000;
 
 impl ListReader {
     /// Opens the list of the running broker; fails if no broker ever wrote one.
@@ -1135,16 +1192,17 @@ impl ListReader {
             .reader_builder()
             .create()
             .map_err(|e| svc_err(&name, e))?;
-        let list = reader
-            .entry::<ServiceListSnapshot>(&LIST_KEY)
-            .map_err(|e| svc_err("service-list entry", e))?;
-        let generation = reader
-            .entry::<u64>(&GENERATION_KEY)
-            .map_err(|e| svc_err("service-list generation", e))?;
+        let header = reader
+            .entry::<ListHeader>(&HEADER_KEY)
+            .map_err(|e| svc_err("service-list header", e))?;
+        let chunks = (0..LIST_CHUNKS)
+            .map(|k| reader.entry::<ListChunk>(&chunk_key(k)))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| svc_err("service-list chunk", e))?;
         self.current = Some(OpenList {
             epoch,
-            list,
-            generation,
+            header,
+            chunks,
             copy: None,
             _reader: reader,
         });
@@ -1167,27 +1225,59 @@ impl ListReader {
         self.read()
     }
 
-    /// The newest snapshot of the list this reader is on (a consistent copy).
+    /// The newest snapshot of the list this reader is on: a consistent copy of one
+    /// write, taking only the chunks that hold entries.
     pub fn read(&mut self) -> Result<Arc<ServiceListSnapshot>, TransportError> {
         let Some(open) = &mut self.current else {
             return Err(TransportError::Unreachable(Address::Broker));
         };
-        // The broker writes the list, then its generation: a copy of this generation
-        // or a newer one is the newest list but for a write under way.
-        let generation = *open.generation.get();
-        if let Some(copy) = &open.copy {
-            if copy.generation >= generation {
+        let mut header = *open.header.get();
+        if let Some((seq, copy)) = &open.copy {
+            if *seq == header.seq {
                 return Ok(Arc::clone(copy));
             }
         }
-        let fresh = open.list.get();
         // Into the last copy's memory if no one holds it any more: a fresh allocation
         // of the list's size would fault its pages in again on every change.
-        match open.copy.as_mut().and_then(Arc::get_mut) {
-            Some(mine) => *mine = *fresh,
-            None => open.copy = Some(Arc::new(*fresh)),
+        let mut copy = match open.copy.take() {
+            Some((_, c)) if Arc::strong_count(&c) == 1 => c,
+            _ => Arc::new(ServiceListSnapshot::empty()),
+        };
+        let snap = Arc::get_mut(&mut copy).expect("held by no one else");
+        for attempt in 0..LIST_READ_TRIES {
+            if attempt >= 8 {
+                // The broker writes faster than this reader reads: let it run.
+                std::thread::yield_now();
+            }
+            let count = (header.count as usize).min(MAX_LISTED_SERVICES);
+            let mut torn = false;
+            for (k, chunk) in open.chunks.iter().take(chunks_for(count)).enumerate() {
+                let c = chunk.get();
+                if c.seq > header.seq {
+                    // Written after the header we hold: a newer write is under way.
+                    torn = true;
+                    break;
+                }
+                let range = k * CHUNK_ENTRIES..((k + 1) * CHUNK_ENTRIES).min(count);
+                let n = range.len();
+                snap.entries[range].copy_from_slice(&c.entries[..n]);
+            }
+            let again = *open.header.get();
+            if !torn && again.seq == header.seq {
+                snap.generation = header.generation;
+                snap.epoch = header.epoch;
+                snap.count = count as u32;
+                open.copy = Some((header.seq, Arc::clone(&copy)));
+                return Ok(copy);
+            }
+            header = again;
         }
-        Ok(open.copy.as_ref().map(Arc::clone).expect("set above"))
+        Err(TransportError::Send {
+            peer: Address::Broker,
+            detail: format!(
+                "the service list changed under each of {LIST_READ_TRIES} reads in a row"
+            ),
+        })
     }
 }
 
@@ -1867,5 +1957,83 @@ mod tests {
         assert!(exists(&sized), "a sized one stays");
         std::fs::remove_file(&fresh).unwrap();
         std::fs::remove_file(&sized).unwrap();
+    }
+
+    /// A snapshot of `count` entries that all say which write they are (`quota`).
+    fn stamped_list(generation: u64, count: usize) -> Box<ServiceListSnapshot> {
+        let mut s = Box::new(ServiceListSnapshot::empty());
+        s.generation = generation;
+        s.epoch = 1;
+        s.count = count as u32;
+        for (i, e) in s.entries.iter_mut().take(count).enumerate() {
+            e.name = crate::snapshot::FixedStr::new(&format!("s{i}"));
+            e.quota = (generation % 60_000) as u16;
+        }
+        s
+    }
+
+    #[test]
+    fn a_list_read_is_one_whole_write_and_copied_only_when_it_changed() {
+        let inst = Instance::new(&format!("list-test-{}", std::process::id())).unwrap();
+        let node = create_node("list-test", false).unwrap();
+        let fence = crate::fence::Fence::open(&inst).unwrap();
+        let mut w = ListWriter::open(&node, &inst, 1).unwrap();
+        w.publish(&stamped_list(1, 40), &fence).unwrap();
+        let mut r = ListReader::open(&node, &inst).unwrap();
+        let a = r.read().unwrap();
+        assert_eq!((a.generation, a.count, a.entries[39].quota), (1, 40, 1));
+        assert_eq!(a.entries[39].name.as_str(), "s39");
+        let b = r.read().unwrap();
+        assert!(Arc::ptr_eq(&a, &b), "unchanged: the same copy");
+        // Fewer entries, then more: the chunks left over from before are not read.
+        w.publish(&stamped_list(2, 3), &fence).unwrap();
+        let c = r.read().unwrap();
+        assert_eq!((c.generation, c.count, c.entries().len()), (2, 3, 3));
+        assert!(c.entries().iter().all(|e| e.quota == 2));
+        w.publish(&stamped_list(3, 250), &fence).unwrap();
+        let d = r.read().unwrap();
+        assert_eq!(d.count, 250);
+        assert!(d.entries().iter().all(|e| e.quota == 3));
+        assert_eq!(d.entries[249].name.as_str(), "s249");
+        drop((a, b, c, d));
+
+        // A writer changing the list as fast as it can, and a reader in another thread:
+        // every read is one write whole (every entry stamped alike, the count the one
+        // that write had), and the reads never go back.
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let reader = {
+            let (inst, stop) = (inst.clone(), Arc::clone(&stop));
+            std::thread::spawn(move || {
+                let node = create_node("list-test-reader", false).unwrap();
+                let mut r = ListReader::open(&node, &inst).unwrap();
+                let (mut reads, mut last) = (0u64, 0u64);
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) && reads < 2_000_000 {
+                    let s = r.read().unwrap();
+                    let g = s.generation;
+                    assert!(g >= last, "went back from {last} to {g}");
+                    assert_eq!(s.count as u64, 1 + g % 200, "count of write {g}");
+                    let stamp = (g % 60_000) as u16;
+                    assert!(
+                        s.entries().iter().all(|e| e.quota == stamp),
+                        "write {g} torn: {:?}",
+                        s.entries().iter().map(|e| e.quota).collect::<Vec<_>>()
+                    );
+                    last = g;
+                    reads += 1;
+                }
+                reads
+            })
+        };
+        // (Paced: the broker writes on a change, a few hundred times a second at most;
+        // a writer that never pauses would starve a reader of whole reads.)
+        for g in 4..4_000u64 {
+            w.publish(&stamped_list(g, 1 + (g % 200) as usize), &fence).unwrap();
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        assert!(reader.join().unwrap() > 0);
+        drop(r);
+        drop(w);
+        fence.remove();
     }
 }

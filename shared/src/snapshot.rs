@@ -1,8 +1,9 @@
 //! The global service list as one fixed-size `#[repr(C)]` value that the broker writes
 //! into an iceoryx2 blackboard and every local user reads from shared memory.
 //!
-//! The broker writes it once per change, never once per user; the blackboard's
-//! generation counter tells a reader whether the copy it holds is stale.
+//! The broker writes it once per change, never once per user, in chunks (see
+//! [`ListHeader`]); the header's write counter tells a reader whether the copy it holds
+//! is stale.
 
 use crate::types::{
     ServiceId, ServiceKind, MAX_DESCRIPTION, MAX_HOST_NAME, MAX_PAYLOAD_TYPE, MAX_SERVICE_NAME,
@@ -140,29 +141,31 @@ pub struct ServiceListSnapshot {
 }
 
 impl ServiceListSnapshot {
+    /// An entry with nothing in it.
+    pub const EMPTY_ENTRY: ServiceEntry = ServiceEntry {
+        system: FixedStr::EMPTY,
+        name: FixedStr::EMPTY,
+        description: FixedStr::EMPTY,
+        payload: FixedStr::EMPTY,
+        quota: 0,
+        in_use: 0,
+        queued: 0,
+        links: 0,
+        kind: 0,
+        queue: 0,
+        withdrawn: 0,
+        remote: 0,
+        host: FixedStr::EMPTY,
+    };
+
     /// An empty list.
     pub fn empty() -> Self {
-        const E: ServiceEntry = ServiceEntry {
-            system: FixedStr::EMPTY,
-            name: FixedStr::EMPTY,
-            description: FixedStr::EMPTY,
-            payload: FixedStr::EMPTY,
-            quota: 0,
-            in_use: 0,
-            queued: 0,
-            links: 0,
-            kind: 0,
-            queue: 0,
-            withdrawn: 0,
-            remote: 0,
-            host: FixedStr::EMPTY,
-        };
         ServiceListSnapshot {
             generation: 0,
             epoch: 0,
             count: 0,
             _pad: 0,
-            entries: [E; MAX_LISTED_SERVICES],
+            entries: [Self::EMPTY_ENTRY; MAX_LISTED_SERVICES],
         }
     }
 
@@ -179,6 +182,54 @@ impl ServiceListSnapshot {
     /// Owned views of every entry.
     pub fn views(&self) -> Vec<ServiceView> {
         self.entries().iter().map(ServiceEntry::view).collect()
+    }
+}
+
+/// Entries per chunk of the list in shared memory.
+pub const CHUNK_ENTRIES: usize = 16;
+/// Chunks of the list in shared memory.
+pub const LIST_CHUNKS: usize = MAX_LISTED_SERVICES / CHUNK_ENTRIES;
+
+/// The list's header in shared memory: which write it is, and how many entries.
+///
+/// The list is a header and [`LIST_CHUNKS`] chunks of [`CHUNK_ENTRIES`] entries, each
+/// a blackboard entry of its own, so a reader copies only the chunks that hold
+/// entries and the broker writes only the chunks that changed. The broker writes the
+/// changed chunks, each stamped with the write's `seq`, then the header; a reader takes
+/// the header, the chunks, and the header again, and keeps what it read only if the
+/// header did not change and no chunk is newer than it (else it reads again).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ZeroCopySend)]
+#[repr(C)]
+pub struct ListHeader {
+    /// The write, counted from 1 by the writer; 0: nothing written yet.
+    pub seq: u64,
+    /// The list's generation (the broker's).
+    pub generation: u64,
+    /// The broker run that wrote it.
+    pub epoch: u64,
+    /// Valid entries.
+    pub count: u32,
+    /// Padding, zero.
+    pub _pad: u32,
+}
+
+/// One chunk of the list in shared memory (see [`ListHeader`]).
+#[derive(Clone, Copy, Debug, ZeroCopySend)]
+#[repr(C)]
+pub struct ListChunk {
+    /// The write that last changed it.
+    pub seq: u64,
+    /// Entries `k * CHUNK_ENTRIES ..` of the list.
+    pub entries: [ServiceEntry; CHUNK_ENTRIES],
+}
+
+impl ListChunk {
+    /// A chunk of empty entries.
+    pub fn empty() -> Self {
+        ListChunk {
+            seq: 0,
+            entries: [ServiceListSnapshot::EMPTY_ENTRY; CHUNK_ENTRIES],
+        }
     }
 }
 
