@@ -1,5 +1,14 @@
 //! One file per command.
 
+/// Prints a line on standard output, like `println!`, but a closed output (`muster
+/// user request ... | head`, `muster up | head`) is no panic: the command winds up as
+/// on SIGTERM (sessions end cleanly, children are stopped) and later lines are dropped.
+macro_rules! out {
+    ($($t:tt)*) => {
+        $crate::cmd::say(&format!($($t)*))
+    };
+}
+
 mod behave;
 mod bench;
 mod broker;
@@ -31,6 +40,26 @@ use crate::cli::{Cli, Command};
 use anyhow::Context;
 use muster_shared::Instance;
 use std::process::ExitCode;
+
+/// Writes `line` to standard output; the first write that fails (the reader went away)
+/// raises SIGTERM, and nothing more is written.
+pub(crate) fn say(line: &str) {
+    use std::io::Write;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    static GONE: AtomicBool = AtomicBool::new(false);
+    if GONE.load(Ordering::Relaxed) {
+        return;
+    }
+    let mut o = std::io::stdout().lock();
+    let written = writeln!(o, "{line}").and_then(|()| o.flush());
+    if written.is_err() && !GONE.swap(true, Ordering::Relaxed) {
+        // SAFETY: raise has no preconditions; the command's signal handling (or the
+        // default action, before it is set up) takes it from here.
+        unsafe {
+            libc::raise(libc::SIGTERM);
+        }
+    }
+}
 
 /// Runs the parsed command.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {

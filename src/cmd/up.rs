@@ -166,7 +166,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     }
     children.stop();
     super::children::leave_no_fence(inst);
-    println!("muster up: stopped");
+    out!("muster up: stopped");
     Ok(ExitCode::SUCCESS)
 }
 
@@ -198,13 +198,13 @@ pub(super) fn remote_list(g: &Guest) -> Result<(), UserError> {
     };
     let mut c = UserClient::connect_remote(remote, &opts)?;
     let list = c.list()?;
-    println!(
+    out!(
         "== remote users: UDP {} (this run's guest key: muster user --remote {} --key {}) ==",
         g.addr,
         g.addr,
         g.dir.join("guest.key").display()
     );
-    println!(
+    out!(
         "the same list over UDP: {} services, generation {}",
         list.count, list.generation
     );
@@ -218,10 +218,10 @@ fn demo(
     (tracker, delivery): (ServiceId, ServiceId),
 ) -> Result<(), UserError> {
     let list = client.list()?;
-    println!("== service list (generation {}) ==", list.generation);
-    println!("{}", muster_users::menu::table(&list.views()));
+    out!("== service list (generation {}) ==", list.generation);
+    out!("{}", muster_users::menu::table(&list.views()));
 
-    println!("\n== request {tracker} for 2 s ==");
+    out!("\n== request {tracker} for 2 s ==");
     let req = client.request(&tracker)?;
     let mut session = None;
     let until = Instant::now() + Duration::from_secs(2);
@@ -230,20 +230,20 @@ fn demo(
             UserEvent::Granted {
                 req: r, session: s, ..
             } if r == req => {
-                println!("granted: session {s}");
+                out!("granted: session {s}");
                 session = Some(s);
             }
-            UserEvent::Refused { req: r, reason, .. } if r == req => println!("refused: {reason}"),
-            UserEvent::Update { seq, payload, .. } => println!("  #{seq} {payload}"),
+            UserEvent::Refused { req: r, reason, .. } if r == req => out!("refused: {reason}"),
+            UserEvent::Update { seq, payload, .. } => out!("  #{seq} {payload}"),
             _ => {}
         }
     }
     if let Some(s) = session {
         client.end(s);
-        println!("session ended by the user");
+        out!("session ended by the user");
     }
 
-    println!("\n== link {tracker} -> {delivery} ==");
+    out!("\n== link {tracker} -> {delivery} ==");
     let link = client.link(&tracker, &delivery)?;
     let mut shown = 0u32;
     let mut kinds_shown = Vec::new();
@@ -254,10 +254,10 @@ fn demo(
         };
         match e {
             UserEvent::LinkUp { link: l } if l == link => {
-                println!("link up: tracker positions become delivery goals (Ctrl-C to stop)")
+                out!("link up: tracker positions become delivery goals (Ctrl-C to stop)")
             }
             UserEvent::LinkForwarded { input, .. } if shown.is_multiple_of(10) => {
-                println!("  forwarded {input}");
+                out!("  forwarded {input}");
                 shown += 1;
             }
             UserEvent::LinkForwarded { .. } => shown += 1,
@@ -268,17 +268,17 @@ fn demo(
                 let kind = std::mem::discriminant(&status);
                 let first = !kinds_shown.contains(&kind);
                 if first || shown % 10 == 1 {
-                    println!("  delivery: {status}");
+                    out!("  delivery: {status}");
                 }
                 if first {
                     kinds_shown.push(kind);
                 }
             }
             UserEvent::LinkEnded { link: l, reason } if l == link => {
-                println!("link ended: {reason}");
+                out!("link ended: {reason}");
                 break;
             }
-            UserEvent::BrokerLost => println!("(broker lost; the link goes on)"),
+            UserEvent::BrokerLost => out!("(broker lost; the link goes on)"),
             _ => {}
         }
     }
@@ -332,11 +332,11 @@ fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         Stdio::inherit(),
     )?;
     match &net {
-        None => println!(
+        None => out!(
             "== three hosts on this machine: a (instance {}), b ({}), c ({}); Zenoh on 127.0.0.1 ports {}, {}, {} ==",
             insts[0], insts[1], insts[2], ports[0], ports[1], ports[2]
         ),
-        Some(t) => println!(
+        Some(t) => out!(
             "== three hosts on this machine, each in its network namespace: {}; every pair linked through a proxy adding {} each way and {} % loss ==",
             t.hosts
                 .iter()
@@ -367,6 +367,6 @@ fn run_hosts(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     }
     client.close();
     children.stop();
-    println!("muster up: stopped");
+    out!("muster up: stopped");
     Ok(ExitCode::SUCCESS)
 }

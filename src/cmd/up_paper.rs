@@ -110,7 +110,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         ],
     )
     .save(&picture)?;
-    println!(
+    out!(
         "muster up: stopped after {:.0} sim s; {} contacts; followed {}; picture of the run (people in their beacon colours, their tracks pale, T3 grey, D1 orange, its last plan pale orange): {}",
         rec.now,
         rec.total_contacts(),
@@ -118,7 +118,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         picture.display()
     );
     if let Some(d) = stats.delivery {
-        println!("delivery: {} arrivals", d["arrivals"]);
+        out!("delivery: {} arrivals", d["arrivals"]);
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -132,10 +132,10 @@ fn demo(
     end: Option<Instant>,
 ) -> Result<Option<&'static str>, UserError> {
     let list = client.list()?;
-    println!("== service list (generation {}) ==", list.generation);
-    println!("{}", muster_users::menu::table(&list.views()));
+    out!("== service list (generation {}) ==", list.generation);
+    out!("{}", muster_users::menu::table(&list.views()));
     let delivery = ServiceId::new("delivery", "D1");
-    println!("\n== request the three trackers; link the first target tracked into {delivery} ==");
+    out!("\n== request the three trackers; link the first target tracked into {delivery} ==");
     let mut sessions = Vec::new();
     for c in COLOURS {
         let id = ServiceId::new("tracking", c);
@@ -156,7 +156,7 @@ fn demo(
         }
         if link.is_none() && followed.is_none() && now >= give_up {
             // Nobody seen yet: link red anyway; the robot waits for a first position.
-            println!("no target seen for 20 s: linking red anyway");
+            out!("no target seen for 20 s: linking red anyway");
             followed = Some("red");
             link = Some(client.link(&ServiceId::new("tracking", "red"), &delivery)?);
         }
@@ -172,12 +172,12 @@ fn demo(
             } => {
                 if let Some(s) = sessions.iter_mut().find(|s| s.0 == req) {
                     s.2 = Some(session);
-                    println!("granted: {service} (session {session})");
+                    out!("granted: {service} (session {session})");
                 }
             }
             UserEvent::Refused {
                 service, reason, ..
-            } => println!("refused: {service}: {reason}"),
+            } => out!("refused: {service}: {reason}"),
             UserEvent::Update {
                 session,
                 payload,
@@ -190,12 +190,12 @@ fn demo(
                         seen.tracks.entry(c).or_default().push((t.x, t.y));
                     }
                     if link.is_none() || shown.is_multiple_of(5) {
-                        println!("  {service}: {payload}");
+                        out!("  {service}: {payload}");
                     }
                     shown += 1;
                     if link.is_none() && !t.lost && link_ends < 5 {
                         followed = Some(c);
-                        println!("\n== {c} is tracked: link tracking/{c} -> {delivery} ==");
+                        out!("\n== {c} is tracked: link tracking/{c} -> {delivery} ==");
                         link = Some(client.link(&ServiceId::new("tracking", c), &delivery)?);
                     }
                 }
@@ -203,11 +203,11 @@ fn demo(
             UserEvent::LinkForwarded { input, .. } => {
                 forwarded += 1;
                 if forwarded % 5 == 1 {
-                    println!("  forwarded {input} (goal {forwarded})");
+                    out!("  forwarded {input} (goal {forwarded})");
                 }
             }
             UserEvent::LinkUp { .. } => {
-                println!(
+                out!(
                     "link up: the target's positions become the robot's goals (Ctrl-C to stop)"
                 )
             }
@@ -215,19 +215,19 @@ fn demo(
                 service, status, ..
             } if service == delivery => {
                 if let Some(t) = rec.last() {
-                    println!("  {delivery}: {status}  [sim {:.0} s]", t.t);
+                    out!("  {delivery}: {status}  [sim {:.0} s]", t.t);
                 } else {
-                    println!("  {delivery}: {status}");
+                    out!("  {delivery}: {status}");
                 }
             }
             UserEvent::LinkEnded { reason, .. } => {
                 // E.g. refused while our own request's grant is still pending at the
                 // broker: link again on the next tracked update.
-                println!("link ended: {reason}");
+                out!("link ended: {reason}");
                 link = None;
                 link_ends += 1;
             }
-            UserEvent::BrokerLost => println!("(broker lost; sessions and the link go on)"),
+            UserEvent::BrokerLost => out!("(broker lost; sessions and the link go on)"),
             _ => {}
         }
     }

@@ -9,33 +9,6 @@ use serde_json::{json, Value};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-/// Prints a line on standard output, like `println!`, but a closed output (`muster
-/// user request ... | head`) is no panic: the command winds up as on SIGTERM (its
-/// session ends cleanly at the system) and later lines are dropped.
-macro_rules! out {
-    ($($t:tt)*) => {
-        say(&format!($($t)*))
-    };
-}
-
-fn say(line: &str) {
-    use std::io::Write;
-    use std::sync::atomic::{AtomicBool, Ordering};
-    static GONE: AtomicBool = AtomicBool::new(false);
-    if GONE.load(Ordering::Relaxed) {
-        return;
-    }
-    let mut o = std::io::stdout().lock();
-    let written = writeln!(o, "{line}").and_then(|()| o.flush());
-    if written.is_err() && !GONE.swap(true, Ordering::Relaxed) {
-        // SAFETY: raise has no preconditions; the client's signal handling (or the
-        // default action, before it is set up) takes it from here.
-        unsafe {
-            libc::raise(libc::SIGTERM);
-        }
-    }
-}
-
 pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
     // The menu and `watch` want to hear of list changes; one-shot verbs do not.
     let watch_list = matches!(a.verb, None | Some(UserVerb::Watch { .. }));
