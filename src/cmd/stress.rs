@@ -678,19 +678,19 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", line("service request, first 10 s", &early));
         println!("{}", line("service request, after 10 s", &late));
         println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
-        if hops.relay[0].len() > 0 {
+        if !hops.relay[0].is_empty() {
             println!("  the broker's copy of the grant first:");
             for (name, h) in RELAY_HOPS.iter().zip(&hops.relay) {
                 println!("{}", line(&format!("    {name}"), h));
             }
         }
-        if hops.direct[0].len() > 0 {
+        if !hops.direct[0].is_empty() {
             println!("  the system's own copy first:");
             for (name, h) in DIRECT_HOPS.iter().zip(&hops.direct) {
                 println!("{}", line(&format!("    {name}"), h));
             }
         }
-        if hops.own_copy.len() > 0 {
+        if !hops.own_copy.is_empty() {
             println!("{}", line("  system: its own copy written", &hops.own_copy));
         }
         println!("{}", line("  whole path (stamped)", &hops.whole));

@@ -688,7 +688,7 @@ impl UserCore {
                 relayed,
             } => {
                 let copy = if relayed { RELAYED } else { DIRECT };
-                self.granted(req, session, service, kind, payload, system_pid, copy)
+                self.granted(req, session, service, (kind, payload), system_pid, copy)
             }
             ToUser::Update {
                 session,
@@ -726,8 +726,7 @@ impl UserCore {
         req: u64,
         session: SessionId,
         service: ServiceId,
-        kind: ServiceKind,
-        payload: String,
+        (kind, payload): (ServiceKind, String),
         system_pid: u32,
         copy: u8,
     ) {
