@@ -909,6 +909,12 @@ impl Endpoint {
         [linger, retry].into_iter().flatten().min()
     }
 
+    /// Opens the ports to `to` now, if they are not open, so a later send to it costs no
+    /// first contact.
+    pub fn open_ports(&mut self, to: &Address) -> Result<(), TransportError> {
+        self.peer(to).map(|_| ())
+    }
+
     /// Whether the ports to `to` are open (a send to it costs no first contact).
     pub fn has_ports(&self, to: &Address) -> bool {
         self.peers.contains_key(to)

@@ -86,6 +86,9 @@ struct Local {
     systems: HashMap<usize, (String, PidFd)>,
     system_tokens: HashMap<String, usize>,
     next_token: usize,
+    /// Systems newly granting this user a session, whose inboxes it opens once idle:
+    /// its first frame to a system (an input, an end) then costs no first contact.
+    to_warm: Vec<String>,
 }
 
 /// How this user reaches the federation.
@@ -160,6 +163,7 @@ impl UserClient {
                 systems: HashMap::new(),
                 system_tokens: HashMap::new(),
                 next_token: FIRST_SYSTEM_TOKEN,
+                to_warm: Vec::new(),
             })),
             reactor,
             signals,
@@ -371,6 +375,15 @@ impl UserClient {
             }
             if Instant::now() >= deadline {
                 return Ok(Wake::Timeout);
+            }
+            if let Transport::Local(l) = &mut self.transport {
+                // Nothing for the caller now: open the inboxes of systems that just
+                // granted a session, off the path of the grant itself.
+                for system in std::mem::take(&mut l.to_warm) {
+                    if let Err(e) = l.endpoint.open_ports(&Address::System(system)) {
+                        tracing::debug!("{e}");
+                    }
+                }
             }
             if self.turn(deadline)? {
                 return Ok(Wake::Extra);
@@ -588,7 +601,8 @@ impl Local {
                         self.next_token += 1;
                         if reactor.add(p.raw(), t).is_ok() {
                             self.systems.insert(t, (system.clone(), p));
-                            self.system_tokens.insert(system, t);
+                            self.system_tokens.insert(system.clone(), t);
+                            self.to_warm.push(system);
                         }
                     }
                     // Gone before we could watch it (but not merely unwatchable).
