@@ -450,8 +450,7 @@ impl Broker {
     }
 
     /// If the list changed since the last call: the new generation, with `views` made
-    /// the new rows. Rows of the same services are updated in place (the broker's
-    /// steady state: counts change, on every grant and end), allocating nothing.
+    /// the new rows (written over in place, see [`Broker::fill_views`]).
     pub fn take_list_change_into(&mut self, views: &mut Vec<ServiceView>) -> Option<u64> {
         if !self.list_dirty {
             return None;
@@ -462,21 +461,29 @@ impl Broker {
             // No clock in this step: the op's time is not used.
             j.push((Duration::ZERO, Op::ListTaken));
         }
-        let same_services = views.len() == self.services.len()
-            && views
-                .iter()
-                .zip(self.services.keys())
-                .all(|(v, id)| v.id == id.0);
-        if !same_services {
-            *views = self.views();
-            return Some(self.generation);
-        }
+        self.fill_views(views);
+        Some(self.generation)
+    }
+
+    /// The current list, in id order.
+    pub fn views(&self) -> Vec<ServiceView> {
+        let mut views = Vec::new();
+        self.fill_views(&mut views);
+        views
+    }
+
+    /// Makes `views` the current list, in id order, writing over its rows: a row whose
+    /// text is unchanged (counts change, on every grant and end) allocates nothing.
+    fn fill_views(&self, views: &mut Vec<ServiceView>) {
         fn set(dst: &mut String, src: &str) {
             if dst != src {
                 src.clone_into(dst);
             }
         }
-        for (v, s) in views.iter_mut().zip(self.services.values()) {
+        views.truncate(self.services.len());
+        views.resize_with(self.services.len(), ServiceView::default);
+        for (v, (id, s)) in views.iter_mut().zip(&self.services) {
+            set(&mut v.id, &id.0);
             set(&mut v.system, &s.system);
             set(&mut v.name, &s.spec.name);
             set(&mut v.description, &s.spec.description);
@@ -488,31 +495,9 @@ impl Broker {
             v.queued = u16::try_from(s.queue.len()).unwrap_or(u16::MAX);
             v.links = u16::try_from(s.links).unwrap_or(u16::MAX);
             v.withdrawn = s.withdrawn;
+            v.host.clear();
+            v.remote = false;
         }
-        Some(self.generation)
-    }
-
-    /// The current list, in id order.
-    pub fn views(&self) -> Vec<ServiceView> {
-        self.services
-            .iter()
-            .map(|(id, s)| ServiceView {
-                id: id.0.clone(),
-                system: s.system.clone(),
-                name: s.spec.name.clone(),
-                description: s.spec.description.clone(),
-                kind: s.spec.kind.as_str().to_string(),
-                queue: s.spec.queue,
-                quota: s.spec.quota,
-                in_use: u16::try_from(s.used()).unwrap_or(u16::MAX),
-                queued: u16::try_from(s.queue.len()).unwrap_or(u16::MAX),
-                links: u16::try_from(s.links).unwrap_or(u16::MAX),
-                withdrawn: s.withdrawn,
-                payload: s.spec.payload.clone(),
-                host: String::new(),
-                remote: false,
-            })
-            .collect()
     }
 
     /// When [`Broker::handle_timeout`] must next be called, if ever.
@@ -1041,7 +1026,11 @@ impl Broker {
                 // A late grant (the offer timed out) is not counted: its user was refused
                 // and ends the session on sight.
                 let Some(o) = &offer else { return };
-                muster_shared::trace::stamp(muster_shared::trace::Stage::BrokerAnswer, &o.user, o.req);
+                muster_shared::trace::stamp(
+                    muster_shared::trace::Stage::BrokerAnswer,
+                    &o.user,
+                    o.req,
+                );
                 let (service, user) = (o.service.clone(), o.user.clone());
                 if let (Some(svc), Some(sys)) = (
                     self.services.get_mut(&service),

@@ -145,6 +145,46 @@ fn registration_lists_services_and_bumps_generation() {
 }
 
 #[test]
+fn rows_written_over_in_place_are_the_list() {
+    let mut b = broker();
+    let mut rows = Vec::new();
+    b.take_list_change_into(&mut rows).unwrap();
+    register(
+        &mut b,
+        S,
+        "t1",
+        7,
+        vec![spec("b", 10, false), spec("a", 3, true)],
+    );
+    b.take_list_change_into(&mut rows).unwrap();
+    assert_eq!(rows, b.views());
+    // A service that sorts first shifts every row; a withdrawal changes one.
+    register(&mut b, S, "t0", 8, vec![spec("z", 2, false)]);
+    b.handle(
+        S,
+        ToBroker::Withdraw {
+            system: "t1".into(),
+            service: "b".into(),
+        },
+    );
+    b.take_list_change_into(&mut rows).unwrap();
+    assert_eq!(rows, b.views());
+    let ids: Vec<&str> = rows.iter().map(|v| v.id.as_str()).collect();
+    assert_eq!(ids, ["t0/z", "t1/a", "t1/b"]);
+    assert!(view(&rows, "t1/b").withdrawn);
+    // Fewer services: the rows left over go.
+    b.handle(
+        S,
+        ToBroker::Unregister {
+            system: "t1".into(),
+        },
+    );
+    b.take_list_change_into(&mut rows).unwrap();
+    assert_eq!(rows, b.views());
+    assert_eq!(rows.len(), 1);
+}
+
+#[test]
 fn bad_registrations_are_refused_with_reasons() {
     let mut b = broker();
     register(

@@ -1352,7 +1352,8 @@ impl Shell {
                         system_pid,
                         relayed: true,
                     };
-                    self.endpoint.send_control(&Address::User(user.clone()), &msg);
+                    self.endpoint
+                        .send_control(&Address::User(user.clone()), &msg);
                     muster_shared::trace::stamp(Stage::BrokerRelay, &user, req);
                 }
                 Output::ToSystem(name, msg) => {

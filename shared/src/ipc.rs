@@ -19,8 +19,8 @@ use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::port::writer::{EntryHandleMut, Writer};
 use iceoryx2::prelude::*;
 use std::collections::{HashMap, VecDeque};
-use std::sync::Arc;
 use std::os::fd::RawFd;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// How long a released peer's ports stay open. iceoryx2 loses a frame whose publisher
@@ -1046,6 +1046,11 @@ fn chunks_for(count: usize) -> usize {
     count.min(MAX_LISTED_SERVICES).div_ceil(CHUNK_ENTRIES)
 }
 
+/// The entries of a `count`-entry list that chunk `k` holds.
+fn chunk_range(k: usize, count: usize) -> std::ops::Range<usize> {
+    k * CHUNK_ENTRIES..((k + 1) * CHUNK_ENTRIES).min(count)
+}
+
 impl ListWriter {
     /// Creates the blackboard of the broker run `epoch`.
     pub fn open(node: &Node<Ipc>, inst: &Instance, epoch: u64) -> Result<Self, TransportError> {
@@ -1105,7 +1110,7 @@ impl ListWriter {
         let before = (self.written.count as usize).min(MAX_LISTED_SERVICES);
         let mut chunk = ListChunk::empty();
         for k in 0..chunks_for(count) {
-            let range = k * CHUNK_ENTRIES..((k + 1) * CHUNK_ENTRIES).min(count);
+            let range = chunk_range(k, count);
             // Unchanged, and whole in shared memory already: left as it is.
             if self.seq > 1
                 && range.end <= before
@@ -1264,7 +1269,7 @@ impl ListReader {
                     torn = true;
                     break;
                 }
-                let range = k * CHUNK_ENTRIES..((k + 1) * CHUNK_ENTRIES).min(count);
+                let range = chunk_range(k, count);
                 let n = range.len();
                 snap.entries[range].copy_from_slice(&c.entries[..n]);
             }
@@ -1278,11 +1283,9 @@ impl ListReader {
             }
             header = again;
         }
-        Err(TransportError::Send {
-            peer: Address::Broker,
-            detail: format!(
-                "the service list changed under each of {LIST_READ_TRIES} reads in a row"
-            ),
+        Err(TransportError::Service {
+            name: "service list".into(),
+            detail: format!("it changed under each of {LIST_READ_TRIES} reads in a row"),
         })
     }
 }
@@ -2003,7 +2006,7 @@ mod tests {
         assert_eq!(d.entries[249].name.as_str(), "s249");
         drop((a, b, c, d));
 
-        // A writer changing the list as fast as it can, and a reader in another thread:
+        // A writer changing the list every 200 µs, and a reader in another thread:
         // every read is one write whole (every entry stamped alike, the count the one
         // that write had), and the reads never go back.
         let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -2033,7 +2036,8 @@ mod tests {
         // (Paced: the broker writes on a change, a few hundred times a second at most;
         // a writer that never pauses would starve a reader of whole reads.)
         for g in 4..4_000u64 {
-            w.publish(&stamped_list(g, 1 + (g % 200) as usize), &fence).unwrap();
+            w.publish(&stamped_list(g, 1 + (g % 200) as usize), &fence)
+                .unwrap();
             std::thread::sleep(Duration::from_micros(200));
         }
         stop.store(true, std::sync::atomic::Ordering::Relaxed);

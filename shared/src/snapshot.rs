@@ -234,7 +234,7 @@ impl ListChunk {
 }
 
 /// An owned, printable row of the list; its JSON form is what `muster user list --json` prints.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
 pub struct ServiceView {
     /// `system/name`.
     pub id: String,

@@ -206,7 +206,8 @@ pub(super) fn remote_list(g: &Guest) -> Result<(), UserError> {
     );
     out!(
         "the same list over UDP: {} services, generation {}",
-        list.count, list.generation
+        list.count,
+        list.generation
     );
     c.close();
     Ok(())

@@ -207,9 +207,7 @@ fn demo(
                 }
             }
             UserEvent::LinkUp { .. } => {
-                out!(
-                    "link up: the target's positions become the robot's goals (Ctrl-C to stop)"
-                )
+                out!("link up: the target's positions become the robot's goals (Ctrl-C to stop)")
             }
             UserEvent::Status {
                 service, status, ..

@@ -948,15 +948,7 @@ mod tests {
             let mut u = user();
             let req = u.request(ServiceId("t1/s0".into()));
             outs(&mut u);
-            let copy = |relayed| ToUser::Granted {
-                req,
-                session: SessionId(7),
-                service: ServiceId::new("t1", "s0"),
-                kind: ServiceKind::Data,
-                payload: "pose2d".into(),
-                system_pid: 50,
-                relayed,
-            };
+            let copy = |relayed| data_grant(req, 7, "t1/s0", 50, relayed);
             u.handle(copy(first_relayed));
             u.handle(copy(!first_relayed));
             let grants = events(&mut u)
@@ -976,15 +968,7 @@ mod tests {
         // the session was ended once, and is not ended again.
         let mut u = user();
         let req = u.request(ServiceId("t1/s0".into()));
-        let copy = |relayed| ToUser::Granted {
-            req,
-            session: SessionId(9),
-            service: ServiceId::new("t1", "s0"),
-            kind: ServiceKind::Data,
-            payload: "pose2d".into(),
-            system_pid: 50,
-            relayed,
-        };
+        let copy = |relayed| data_grant(req, 9, "t1/s0", 50, relayed);
         u.handle(copy(false));
         u.end(SessionId(9));
         outs(&mut u);
@@ -994,18 +978,25 @@ mod tests {
         // The broker's copy alone (the system's never came) makes the session too.
         let mut u = user();
         let req = u.request(ServiceId("t1/s0".into()));
-        u.handle(ToUser::Granted {
-            req,
-            session: SessionId(11),
-            service: ServiceId::new("t1", "s0"),
-            kind: ServiceKind::Data,
-            payload: "pose2d".into(),
-            system_pid: 50,
-            relayed: true,
-        });
+        u.handle(data_grant(req, 11, "t1/s0", 50, true));
         assert!(u.counters(SessionId(11)).is_some());
         update(&mut u, 11, 1);
         assert_eq!(u.stale_frames(), 0);
+    }
+
+    /// A grant of a `pose2d` data session of `service`, sent by `system_pid` (the
+    /// system's own copy) or `relayed` by the broker.
+    fn data_grant(req: u64, session: u64, service: &str, system_pid: u32, relayed: bool) -> ToUser {
+        let (system, name) = service.split_once('/').unwrap();
+        ToUser::Granted {
+            req,
+            session: SessionId(session),
+            service: ServiceId::new(system, name),
+            kind: ServiceKind::Data,
+            payload: "pose2d".into(),
+            system_pid,
+            relayed,
+        }
     }
 
     fn grant(
@@ -1071,15 +1062,7 @@ mod tests {
         };
         assert!(!u.sender_allowed(Some(66), &refused, owner));
         assert!(u.sender_allowed(Some(3), &refused, owner));
-        let granted = |pid| ToUser::Granted {
-            req,
-            session: SessionId(7),
-            service: ServiceId::new("s", "a"),
-            kind: ServiceKind::Data,
-            payload: "pose2d".into(),
-            system_pid: pid,
-            relayed: false,
-        };
+        let granted = |pid| data_grant(req, 7, "s/a", pid, false);
         assert!(
             !u.sender_allowed(Some(66), &granted(66), owner),
             "not s's inbox owner"
@@ -1090,15 +1073,7 @@ mod tests {
         );
         assert!(u.sender_allowed(Some(50), &granted(50), owner));
         // The broker's copy of the grant comes from the broker only.
-        let relayed = |pid| ToUser::Granted {
-            req,
-            session: SessionId(7),
-            service: ServiceId::new("s", "a"),
-            kind: ServiceKind::Data,
-            payload: "pose2d".into(),
-            system_pid: pid,
-            relayed: true,
-        };
+        let relayed = |pid| data_grant(req, 7, "s/a", pid, true);
         assert!(u.sender_allowed(Some(3), &relayed(50), owner));
         assert!(
             !u.sender_allowed(Some(50), &relayed(50), owner),
