@@ -11,4 +11,5 @@ pub mod render;
 pub mod scenario;
 pub mod sensors;
 pub mod shm;
+mod walls;
 pub mod world;
