@@ -24,6 +24,8 @@ pub struct BodyGrid {
     ny: usize,
     start: Vec<u32>,
     index: Vec<u32>,
+    /// Each body's cell.
+    keys: Vec<u32>,
 }
 
 impl BodyGrid {
@@ -31,34 +33,88 @@ impl BodyGrid {
     pub fn new(bodies: Vec<Body>, origin: (f64, f64), size: (f64, f64), cell: f64) -> Self {
         let nx = ((size.0 / cell).ceil() as usize).max(1);
         let ny = ((size.1 / cell).ceil() as usize).max(1);
-        let mut count = vec![0u32; nx * ny + 1];
-        let key = |b: &Body| {
-            let i = (((b.x - origin.0) / cell).floor().max(0.0) as usize).min(nx - 1);
-            let j = (((b.y - origin.1) / cell).floor().max(0.0) as usize).min(ny - 1);
-            j * nx + i
-        };
-        for b in &bodies {
-            count[key(b) + 1] += 1;
-        }
-        for k in 1..count.len() {
-            count[k] += count[k - 1];
-        }
-        let mut fill = count.clone();
-        let mut index = vec![0u32; bodies.len()];
-        for (n, b) in bodies.iter().enumerate() {
-            let k = key(b);
-            index[fill[k] as usize] = n as u32;
-            fill[k] += 1;
-        }
-        BodyGrid {
-            bodies,
+        let mut grid = BodyGrid {
+            bodies: Vec::new(),
             cell,
             origin,
             nx,
             ny,
-            start: count,
-            index,
+            start: Vec::new(),
+            index: Vec::new(),
+            keys: Vec::new(),
+        };
+        grid.refill(bodies);
+        grid
+    }
+
+    /// Buckets a new set of bodies over the same rectangle, reusing this grid's memory.
+    /// When no body has changed cell (most steps: bodies move millimetres), only their
+    /// positions are written.
+    pub fn rebuild(&mut self, bodies: impl IntoIterator<Item = Body>) {
+        let mut list = std::mem::take(&mut self.bodies);
+        let old = list.len();
+        let mut moved = false;
+        let mut n = 0;
+        for b in bodies {
+            if n < old {
+                moved |= self.key(&b) as u32 != self.keys[n];
+                list[n] = b;
+            } else {
+                list.push(b);
+                moved = true;
+            }
+            n += 1;
         }
+        if n != old {
+            list.truncate(n);
+            moved = true;
+        }
+        if moved {
+            self.refill(list);
+        } else {
+            self.bodies = list;
+        }
+    }
+
+    /// The cell holding a body's centre (clamped to the grid).
+    #[inline]
+    fn key(&self, b: &Body) -> usize {
+        let i = (((b.x - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
+        let j = (((b.y - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
+        j * self.nx + i
+    }
+
+    fn refill(&mut self, bodies: Vec<Body>) {
+        self.keys.clear();
+        for b in &bodies {
+            let k = self.key(b) as u32;
+            self.keys.push(k);
+        }
+        let count = &mut self.start;
+        count.clear();
+        count.resize(self.nx * self.ny + 1, 0);
+        for &k in &self.keys {
+            count[k as usize + 1] += 1;
+        }
+        for k in 1..count.len() {
+            count[k] += count[k - 1];
+        }
+        self.index.clear();
+        self.index.resize(bodies.len(), 0);
+        // Fill each cell from its end backwards, so that `start` ends up as it began.
+        for (n, &k) in self.keys.iter().enumerate().rev() {
+            let k = k as usize + 1;
+            count[k] -= 1;
+            self.index[count[k] as usize] = n as u32;
+        }
+        // Each cell's entry now holds where the cell starts; shift back by one.
+        for k in 1..count.len() {
+            count[k - 1] = count[k];
+        }
+        if let Some(last) = count.last_mut() {
+            *last = bodies.len() as u32;
+        }
+        self.bodies = bodies;
     }
 
     /// All bodies.
@@ -146,6 +202,39 @@ mod tests {
             1.0,
             "nobody near: the cap"
         );
+    }
+
+    #[test]
+    fn a_rebuilt_grid_finds_bodies_where_they_are_now() {
+        let mut g = BodyGrid::new(
+            vec![body(1.0, 1.0), body(2.0, 1.0), body(9.0, 9.0)],
+            (0.0, 0.0),
+            (10.0, 10.0),
+            2.0,
+        );
+        let found = |g: &BodyGrid, x: f64, y: f64| {
+            let mut seen = Vec::new();
+            g.near(x, y, 0.5, |n, b| seen.push((n, b.x, b.y)));
+            seen.sort_by_key(|s| s.0);
+            seen
+        };
+        // Moves within their cells: positions change, cells do not.
+        g.rebuild(vec![body(1.1, 1.0), body(2.1, 1.0), body(9.0, 8.9)]);
+        assert_eq!(found(&g, 1.0, 1.0), vec![(0, 1.1, 1.0)]);
+        assert_eq!(found(&g, 9.0, 9.0), vec![(2, 9.0, 8.9)]);
+        // One changes cell; then one body fewer; then one more.
+        g.rebuild(vec![body(1.1, 1.0), body(5.0, 5.0), body(9.0, 8.9)]);
+        assert_eq!(found(&g, 5.0, 5.0), vec![(1, 5.0, 5.0)]);
+        assert_eq!(found(&g, 2.5, 1.0), vec![]);
+        g.rebuild(vec![body(1.1, 1.0), body(5.0, 5.0)]);
+        assert_eq!(found(&g, 9.0, 9.0), vec![]);
+        assert_eq!(g.bodies().len(), 2);
+        g.rebuild(vec![body(1.1, 1.0), body(5.0, 5.0), body(7.0, 3.0)]);
+        assert_eq!(found(&g, 7.0, 3.0), vec![(2, 7.0, 3.0)]);
+        let mut all = Vec::new();
+        g.near(5.0, 5.0, 20.0, |n, _| all.push(n));
+        all.sort();
+        assert_eq!(all, vec![0, 1, 2]);
     }
 
     #[test]

@@ -347,19 +347,25 @@ impl OccupancyMap {
         }
     }
 
-    /// A lower bound on the distance from (x, y) to any occupied square, metres.
+    /// A lower bound on the distance from (x, y) to any occupied square, metres (beyond
+    /// the map's edge counts as occupied).
     pub fn distance_bound(&self, x: f64, y: f64) -> f64 {
         match self.cell(x, y) {
             Some((i, j)) => {
                 let d = f64::from(self.edt[j * self.width + i]) * self.resolution;
-                (d - self.resolution * std::f64::consts::SQRT_2).max(0.0)
+                let (ox, oy) = self.origin;
+                let (w, h) = self.size();
+                let edge = (x - ox).min(ox + w - x).min(y - oy).min(oy + h - y);
+                (d - self.resolution * std::f64::consts::SQRT_2)
+                    .min(edge)
+                    .max(0.0)
             }
             None => 0.0,
         }
     }
 
     /// The exact distance from (x, y) to the nearest occupied square, or `limit` if none
-    /// is within `limit` metres.
+    /// is within `limit` metres (from the walls as segments, see [`crate::walls`]).
     pub fn clearance(&self, x: f64, y: f64, limit: f64) -> f64 {
         let bound = self.distance_bound(x, y);
         if bound >= limit {
@@ -368,24 +374,9 @@ impl OccupancyMap {
         if self.blocked(x, y) {
             return 0.0;
         }
-        let r = self.resolution;
-        let (ox, oy) = self.origin;
-        let reach = (limit / r).ceil() as i64 + 1;
-        let ci = ((x - ox) / r).floor() as i64;
-        let cj = ((y - oy) / r).floor() as i64;
-        let mut best = limit;
-        for j in cj - reach..=cj + reach {
-            for i in ci - reach..=ci + reach {
-                if !self.occupied(i, j) {
-                    continue;
-                }
-                let (x0, y0) = (ox + i as f64 * r, oy + j as f64 * r);
-                let dx = (x0 - x).max(0.0).max(x - (x0 + r));
-                let dy = (y0 - y).max(0.0).max(y - (y0 + r));
-                best = best.min(dx.hypot(dy));
-            }
-        }
-        best
+        let inv_res = 1.0 / self.resolution;
+        let (px, py) = ((x - self.origin.0) * inv_res, (y - self.origin.1) * inv_res);
+        (self.walls.clearance(px, py, limit * inv_res) * self.resolution).min(limit)
     }
 
     /// Casts a ray from (x, y) along `angle`; the distance to the first occupied square,
@@ -803,6 +794,55 @@ mod tests {
                     (out[k] - single).abs() < 1e-6,
                     "ray {} at {:.4} rad: batch {} vs walk {}", k, angles[k], out[k], single
                 );
+            }
+        }
+    }
+
+    /// Clearance the slow way: every square within reach.
+    fn clearance_by_squares(m: &OccupancyMap, x: f64, y: f64, limit: f64) -> f64 {
+        if m.blocked(x, y) {
+            return 0.0;
+        }
+        let r = m.resolution;
+        let (ox, oy) = m.origin;
+        let reach = (limit / r).ceil() as i64 + 1;
+        let ci = ((x - ox) / r).floor() as i64;
+        let cj = ((y - oy) / r).floor() as i64;
+        let mut best = limit;
+        for j in cj - reach..=cj + reach {
+            for i in ci - reach..=ci + reach {
+                if m.occupied(i, j) {
+                    let (x0, y0) = (ox + i as f64 * r, oy + j as f64 * r);
+                    let dx = (x0 - x).max(0.0).max(x - (x0 + r));
+                    let dy = (y0 - y).max(0.0).max(y - (y0 + r));
+                    best = best.min(dx.hypot(dy));
+                }
+            }
+        }
+        best
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(500))]
+        /// Clearance from the segments equals the distance to the nearest square.
+        #[test]
+        fn clearance_equals_the_nearest_square_on_random_maps(
+            (w, h) in (3usize..70, 3usize..70),
+            density in 0.0f64..0.3,
+            res in 0.03f64..0.3,
+            seed in 0u64..u64::MAX,
+            points in proptest::collection::vec((0.0f64..1.0, 0.0f64..1.0), 1..40),
+            limit in 0.0f64..3.0,
+        ) {
+            use rand::{RngExt, SeedableRng};
+            let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+            let occ: Vec<bool> = (0..w * h).map(|_| rng.random::<f64>() < density).collect();
+            let m = OccupancyMap::from_grid(w, h, res, (-1.0, 2.0), occ);
+            for (fx, fy) in points {
+                let (x, y) = (-1.0 + fx * w as f64 * res, 2.0 + fy * h as f64 * res);
+                let fast = m.clearance(x, y, limit);
+                let slow = clearance_by_squares(&m, x, y, limit);
+                proptest::prop_assert!((fast - slow).abs() < 1e-9, "at ({}, {}): {} vs {}", x, y, fast, slow);
             }
         }
     }

@@ -71,7 +71,7 @@ pub fn laser_scan(
         ] {
             if step == 0.0 {
                 if lo <= 0.0 && hi >= 0.0 {
-                    hit_beam(out, 0, first, p, b);
+                    hit_beam(out, 0, dirs[0], p, b);
                 }
                 continue;
             }
@@ -81,7 +81,7 @@ pub fn laser_scan(
                 continue;
             }
             for k in k0..=(k1 as usize).min(n - 1) {
-                hit_beam(out, k, first + step * k as f64, p, b);
+                hit_beam(out, k, dirs[k], p, b);
             }
         }
     });
@@ -94,8 +94,8 @@ pub fn laser_scan(
     }
 }
 
-fn hit_beam(out: &mut [f32], k: usize, angle: f64, p: Pose, b: &crate::bodies::Body) {
-    if let Some(t) = ray_circle(p.x, p.y, angle.cos(), angle.sin(), b) {
+fn hit_beam(out: &mut [f32], k: usize, dir: (f64, f64), p: Pose, b: &crate::bodies::Body) {
+    if let Some(t) = ray_circle(p.x, p.y, dir.0, dir.1, b) {
         if (t as f32) < out[k] {
             out[k] = t as f32;
         }
@@ -116,16 +116,19 @@ pub fn sonar_ring(
     let cone = params.cone_deg.to_radians();
     let rays = params.rays_per_cone.max(1);
     let mut dirs = Vec::with_capacity(params.bearings_deg.len() * rays);
+    // Each cone's rays by rotating its first one step by step (one sin/cos per cone).
+    let (first, step) = if rays == 1 {
+        (0.0, 0.0)
+    } else {
+        (-cone / 2.0, cone / (rays - 1) as f64)
+    };
+    let (cs, sn) = (step.cos(), step.sin());
     for bearing in &params.bearings_deg {
-        let centre = p.theta + bearing.to_radians();
-        for k in 0..rays {
-            let off = if rays == 1 {
-                0.0
-            } else {
-                -cone / 2.0 + cone * k as f64 / (rays - 1) as f64
-            };
-            let a = centre + off;
-            dirs.push((a.cos(), a.sin()));
+        let a = p.theta + bearing.to_radians() + first;
+        let (mut dx, mut dy) = (a.cos(), a.sin());
+        for _ in 0..rays {
+            dirs.push((dx, dy));
+            (dx, dy) = (dx * cs - dy * sn, dx * sn + dy * cs);
         }
     }
     let mut walls = Vec::with_capacity(dirs.len());

@@ -20,7 +20,7 @@ use std::cell::RefCell;
 
 /// Side of a bucket, cells.
 const BUCKET: usize = 32;
-/// Pseudo-angle bins a cast sorts its rays into.
+/// Pseudo-angle bins a cast sorts its rays into (a bin number fits a byte).
 const BINS: usize = 256;
 /// An origin this close to a segment's end (cells) sees it at every angle.
 const EPS: f64 = 1e-9;
@@ -87,17 +87,25 @@ impl Cells<'_> {
     }
 }
 
+/// One ray of a cast, as the tests read it.
+#[derive(Clone, Copy, Default)]
+struct RayDir {
+    dx: f64,
+    dy: f64,
+    inv_dx: f64,
+    inv_dy: f64,
+}
+
 /// Per-cast working memory, kept per thread so that a cast allocates nothing.
 #[derive(Default)]
 struct Scratch {
-    start: Vec<u32>,
-    dx: Vec<f64>,
-    dy: Vec<f64>,
-    inv_dx: Vec<f64>,
-    inv_dy: Vec<f64>,
-    index: Vec<u32>,
+    /// The rays sorted by bin; bin k's are `rays[start[k]..start[k + 1]]`.
+    rays: Vec<RayDir>,
+    /// The nearest hit so far of each sorted ray, cells.
     best: Vec<f64>,
-    bin_of: Vec<u16>,
+    /// Each sorted ray's index in the caller's list.
+    index: Vec<u32>,
+    bin_of: Vec<u8>,
 }
 
 thread_local! {
@@ -208,6 +216,33 @@ impl Walls {
         self.filed.iter().map(|f| f.segs.len()).sum()
     }
 
+    /// The distance in cells from (`px`, `py`) (cells, in a free cell) to the nearest
+    /// segment within `limit` cells, or `limit`. From a free point, the nearest occupied
+    /// point lies on the boundary, so this is the distance to the nearest occupied cell.
+    pub(crate) fn clearance(&self, px: f64, py: f64, limit: f64) -> f64 {
+        let b = BUCKET as f64;
+        let bucket_x = |v: f64| ((v / b).floor().max(0.0) as usize).min(self.buckets_x - 1);
+        let bucket_y = |v: f64| ((v / b).floor().max(0.0) as usize).min(self.buckets_y - 1);
+        let (x0, x1) = (bucket_x(px - limit), bucket_x(px + limit));
+        let (y0, y1) = (bucket_y(py - limit), bucket_y(py + limit));
+        let mut best_sq = limit * limit;
+        for (slot, filed) in self.filed.iter().enumerate() {
+            let vertical = slot >= 2;
+            let (u, v) = if vertical { (py, px) } else { (px, py) };
+            for by in y0..=y1 {
+                let row = by * self.buckets_x;
+                let from = filed.start[row + x0] as usize;
+                let to = filed.start[row + x1 + 1] as usize;
+                for seg in &filed.segs[from..to] {
+                    let along = (seg.a - u).max(u - seg.b).max(0.0);
+                    let across = seg.c - v;
+                    best_sq = best_sq.min(along * along + across * across);
+                }
+            }
+        }
+        best_sq.sqrt()
+    }
+
     /// Casts one ray per unit direction in `dirs` from (`px`, `py`) (cells, from the map's
     /// corner; the origin must be in a free cell); `out[k]` becomes the distance in cells
     /// to where ray k enters an occupied cell, or infinity if not within `max_t`.
@@ -236,44 +271,37 @@ impl Walls {
     ) {
         let n = dirs.len();
         // Sort the rays by pseudo-angle bin (a counting sort).
-        s.start.clear();
-        s.start.resize(BINS + 1, 0);
+        let mut start = [0u32; BINS + 1];
         s.bin_of.clear();
-        for &(dx, dy) in dirs {
-            let b = bin(pseudo_angle(dx, dy));
-            s.bin_of.push(b as u16);
-            s.start[b + 1] += 1;
+        s.bin_of
+            .extend(dirs.iter().map(|&(dx, dy)| bin(pseudo_angle(dx, dy)) as u8));
+        for &b in &s.bin_of {
+            start[b as usize + 1] += 1;
         }
         for k in 1..=BINS {
-            s.start[k] += s.start[k - 1];
+            start[k] += start[k - 1];
         }
-        for v in [
-            &mut s.dx,
-            &mut s.dy,
-            &mut s.inv_dx,
-            &mut s.inv_dy,
-            &mut s.best,
-        ] {
-            v.clear();
-            v.resize(n, 0.0);
-        }
+        s.rays.clear();
+        s.rays.resize(n, RayDir::default());
         s.index.clear();
         s.index.resize(n, 0);
-        {
-            let mut next: [u32; BINS] = [0; BINS];
-            next.copy_from_slice(&s.start[..BINS]);
-            // Components this small (cos(π/2) ≈ 6e-17) would send a ray's line to infinity.
-            let tidy = |c: f64| if c.abs() < 1e-12 { 0.0 } else { c };
-            for (k, (&(dx, dy), &b)) in dirs.iter().zip(&s.bin_of).enumerate() {
-                let r = next[b as usize] as usize;
-                next[b as usize] += 1;
-                let (dx, dy) = (tidy(dx), tidy(dy));
-                s.dx[r] = dx;
-                s.dy[r] = dy;
-                s.inv_dx[r] = 1.0 / dx;
-                s.inv_dy[r] = 1.0 / dy;
-                s.index[r] = k as u32;
-                s.best[r] = f64::INFINITY;
+        s.best.clear();
+        s.best.resize(n, f64::INFINITY);
+        let mut next = start;
+        // Components this small (cos(π/2) ≈ 6e-17) would send a ray's line to infinity.
+        let tidy = |c: f64| if c.abs() < 1e-12 { 0.0 } else { c };
+        for (k, (&(dx, dy), &b)) in dirs.iter().zip(&s.bin_of).enumerate() {
+            let r = next[b as usize] as usize;
+            next[b as usize] += 1;
+            let (dx, dy) = (tidy(dx), tidy(dy));
+            if let (Some(ray), Some(i)) = (s.rays.get_mut(r), s.index.get_mut(r)) {
+                *ray = RayDir {
+                    dx,
+                    dy,
+                    inv_dx: 1.0 / dx,
+                    inv_dy: 1.0 / dy,
+                };
+                *i = k as u32;
             }
         }
         let b = BUCKET as f64;
@@ -295,25 +323,25 @@ impl Walls {
                 for seg in &filed.segs[from..to] {
                     match facing {
                         Facing::Down => {
-                            hits::<false, false>(s, grid, px, py, seg, seg.c - py, max_t)
+                            hits::<false, false>(s, &start, grid, px, py, seg, seg.c - py, max_t)
                         }
-                        Facing::Up => hits::<false, true>(s, grid, px, py, seg, py - seg.c, max_t),
+                        Facing::Up => {
+                            hits::<false, true>(s, &start, grid, px, py, seg, py - seg.c, max_t)
+                        }
                         Facing::Left => {
-                            hits::<true, false>(s, grid, px, py, seg, seg.c - px, max_t)
+                            hits::<true, false>(s, &start, grid, px, py, seg, seg.c - px, max_t)
                         }
                         Facing::Right => {
-                            hits::<true, true>(s, grid, px, py, seg, px - seg.c, max_t)
+                            hits::<true, true>(s, &start, grid, px, py, seg, px - seg.c, max_t)
                         }
                     }
                 }
             }
         }
-        for (r, &k) in s.index.iter().enumerate() {
-            out[k as usize] = if s.best[r] <= max_t {
-                s.best[r]
-            } else {
-                f64::INFINITY
-            };
+        for (&best, &k) in s.best.iter().zip(&s.index) {
+            if let Some(o) = out.get_mut(k as usize) {
+                *o = if best <= max_t { best } else { f64::INFINITY };
+            }
         }
     }
 }
@@ -323,8 +351,10 @@ impl Walls {
 /// +x or +y). `gap` is the origin's distance to the segment's line on its free side
 /// (negative: the origin is on the occupied side, so no ray can reach it first).
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn hits<const VERTICAL: bool, const DOWNWARDS: bool>(
     s: &mut Scratch,
+    start: &[u32; BINS + 1],
     grid: &Cells,
     px: f64,
     py: f64,
@@ -371,32 +401,36 @@ fn hits<const VERTICAL: bool, const DOWNWARDS: bool>(
     while v_bin <= hi {
         let real = v_bin.rem_euclid(BINS as isize) as usize;
         let take = ((hi - v_bin + 1) as usize).min(BINS - real);
-        let (from, to) = (s.start[real] as usize, s.start[real + take] as usize);
+        let (from, to) = (start[real] as usize, start[real + take] as usize);
         let (c, a, b) = (seg.c, seg.a, seg.b);
-        for r in from..to {
+        let (Some(rays), Some(bests)) = (s.rays.get(from..to), s.best.get_mut(from..to)) else {
+            return;
+        };
+        for (ray, best) in rays.iter().zip(bests) {
             let (t, along, d, inv) = if VERTICAL {
-                let t = (c - px) * s.inv_dx[r];
-                (t, py + t * s.dy[r], s.dy[r], s.inv_dx[r])
+                let t = (c - px) * ray.inv_dx;
+                (t, py + t * ray.dy, ray.dy, ray.inv_dx)
             } else {
-                let t = (c - py) * s.inv_dy[r];
-                (t, px + t * s.dx[r], s.dx[r], s.inv_dy[r])
+                let t = (c - py) * ray.inv_dy;
+                (t, px + t * ray.dx, ray.dx, ray.inv_dy)
             };
             // Heading into the segment's free side (a ray leaving a line it starts on
-            // does not hit it), reaching it ahead, nearer, and within its span.
+            // does not hit it), reaching it ahead and nearer, and within its span.
             let towards = if DOWNWARDS { inv < 0.0 } else { inv > 0.0 };
-            let mut hit = towards && t >= 0.0 && along > a && along < b && t < s.best[r];
-            if (along == a || along == b) && towards && t >= 0.0 && t < s.best[r] {
+            let ahead = towards && t >= 0.0 && t < *best;
+            let mut hit = ahead && along > a && along < b;
+            if ahead && (along == a || along == b) {
                 // Exactly at a grid corner (rare): the ray goes on into the cell beyond
                 // it in its direction, which may be this segment's, or one diagonal to
                 // it that no segment through the corner belongs to.
                 let (vx, vy, dx, dy) = if VERTICAL {
-                    (c, along, s.dx[r], d)
+                    (c, along, ray.dx, d)
                 } else {
-                    (along, c, d, s.dy[r])
+                    (along, c, d, ray.dy)
                 };
                 hit = grid.occupied_beyond(vx, vy, dx, dy);
             }
-            s.best[r] = if hit { t } else { s.best[r] };
+            *best = if hit { t } else { *best };
         }
         v_bin += take as isize;
     }

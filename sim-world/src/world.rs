@@ -116,6 +116,10 @@ pub struct World {
     time: f64,
     dt: f64,
     steps: u64,
+    /// Every body where it is now, bucketed; rebuilt in place after bodies move.
+    grid: BodyGrid,
+    /// Whether `grid` is as the bodies are now.
+    grid_fresh: bool,
 }
 
 fn seeded(seed: u64, kind: u64, index: usize) -> Pcg64 {
@@ -205,6 +209,7 @@ impl World {
                 rng,
             });
         }
+        let grid = BodyGrid::new(Vec::new(), map.origin(), map.size(), GRID_CELL);
         let mut w = World {
             map: Arc::new(map),
             nav,
@@ -213,6 +218,8 @@ impl World {
             time: 0.0,
             dt: scenario.dt,
             steps: 0,
+            grid,
+            grid_fresh: false,
         };
         let bodies = w.body_grid();
         for (i, r) in w.robots.iter().enumerate() {
@@ -298,23 +305,17 @@ impl World {
     }
 
     fn body_grid(&self) -> BodyGrid {
-        let mut bodies: Vec<Body> = self
-            .robots
-            .iter()
-            .map(|r| Body {
-                x: r.pose.x,
-                y: r.pose.y,
-                r: r.spec.drive.radius,
-                beacon: r.spec.beacon,
-            })
-            .collect();
-        bodies.extend(self.people.iter().map(|p| Body {
-            x: p.pose.x,
-            y: p.pose.y,
-            r: PERSON_RADIUS,
-            beacon: Some(p.beacon),
-        }));
-        BodyGrid::new(bodies, self.map.origin(), self.map.size(), GRID_CELL)
+        let mut grid = BodyGrid::new(Vec::new(), self.map.origin(), self.map.size(), GRID_CELL);
+        grid.rebuild(bodies(&self.robots, &self.people));
+        grid
+    }
+
+    /// Brings `grid` up to where the bodies are (they move only in kinematics).
+    fn refresh_grid(&mut self) {
+        if !self.grid_fresh {
+            self.grid.rebuild(bodies(&self.robots, &self.people));
+            self.grid_fresh = true;
+        }
     }
 
     /// Advances the world by `dt` seconds, in kinematics steps of at most the scenario's
@@ -341,7 +342,9 @@ impl World {
     }
 
     fn kinematics(&mut self, h: f64) {
-        let bodies = self.body_grid();
+        self.refresh_grid();
+        self.grid_fresh = false; // bodies move below
+        let bodies = &self.grid;
         let map = &*self.map;
         let now = self.time;
         for_each_maybe_par(&mut self.robots, |(i, r)| {
@@ -356,11 +359,11 @@ impl World {
             };
             let v = approach(r.velocity.0, target.0, d.max_accel * h);
             let w = approach(r.velocity.1, target.1, d.max_turn_accel * h);
-            let (pose, done) = advance(map, &bodies, i, r.pose, v, w, h, d.radius);
+            let (pose, done) = advance(map, bodies, i, r.pose, v, w, h, d.radius);
             let bumped = done < 1.0;
             if bumped && !r.bumped {
                 r.contacts += 1;
-                log_contact(map, &bodies, i, r, v, w, now);
+                log_contact(map, bodies, i, r, v, w, now);
             }
             r.bumped = bumped;
             r.velocity = if r.bumped { (0.0, w) } else { (v, w) };
@@ -377,7 +380,7 @@ impl World {
         let offset = self.robots.len();
         let nav = &self.nav;
         for_each_maybe_par(&mut self.people, |(k, p)| {
-            walk(p, nav, map, &bodies, offset + k, now, h)
+            walk(p, nav, map, bodies, offset + k, now, h)
         });
     }
 
@@ -386,20 +389,21 @@ impl World {
         if !all && !self.robots.iter().any(|r| r.sensor_due(now)) {
             return; // sensors run at their own rates, slower than kinematics
         }
-        let bodies = self.body_grid();
+        self.refresh_grid();
+        let bodies = &self.grid;
         let map = &*self.map;
         for_each_maybe_par(&mut self.robots, |(i, r)| {
             let eps = 1e-9;
             if let Some(l) = &r.spec.laser {
                 if all || now + eps >= r.next[0] {
-                    laser_scan(map, &bodies, i, r.pose, l, &mut r.rng, &mut r.laser);
+                    laser_scan(map, bodies, i, r.pose, l, &mut r.rng, &mut r.laser);
                     r.laser_time = now;
                     r.next[0] = next_time(r.next[0], now, l.rate);
                 }
             }
             if let Some(s) = &r.spec.sonar {
                 if all || now + eps >= r.next[1] {
-                    sonar_ring(map, &bodies, i, r.pose, s, &mut r.rng, &mut r.sonar);
+                    sonar_ring(map, bodies, i, r.pose, s, &mut r.rng, &mut r.sonar);
                     r.sonar_time = now;
                     r.next[1] = next_time(r.next[1], now, s.rate);
                 }
@@ -408,7 +412,7 @@ impl World {
                 if all || now + eps >= r.next[2] {
                     camera_frame(
                         map,
-                        &bodies,
+                        bodies,
                         i,
                         r.pose,
                         r.ptz,
@@ -422,6 +426,22 @@ impl World {
             }
         });
     }
+}
+
+/// Every body: the robots, then the people.
+fn bodies<'a>(robots: &'a [Robot], people: &'a [Person]) -> impl Iterator<Item = Body> + 'a {
+    let robots = robots.iter().map(|r| Body {
+        x: r.pose.x,
+        y: r.pose.y,
+        r: r.spec.drive.radius,
+        beacon: r.spec.beacon,
+    });
+    robots.chain(people.iter().map(|p| Body {
+        x: p.pose.x,
+        y: p.pose.y,
+        r: PERSON_RADIUS,
+        beacon: Some(p.beacon),
+    }))
 }
 
 /// Runs `f` over the items; on the thread pool only when there are enough of them to
