@@ -80,8 +80,9 @@ pub fn laser_scan(
             if k1 < 0.0 {
                 continue;
             }
-            for k in k0..=(k1 as usize).min(n - 1) {
-                hit_beam(out, k, dirs[k], p, b);
+            let k1 = (k1 as usize).min(n - 1);
+            for (k, &dir) in dirs.iter().enumerate().take(k1 + 1).skip(k0) {
+                hit_beam(out, k, dir, p, b);
             }
         }
     });
