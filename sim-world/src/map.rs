@@ -415,14 +415,15 @@ impl OccupancyMap {
             width: self.width,
             height: self.height,
         };
-        self.walls.cast(&cells, px, py, dirs, max * inv_res, out);
-        for d in out.iter_mut() {
-            *d = if d.is_finite() {
-                *d * self.resolution
-            } else {
-                max
-            };
-        }
+        self.walls.cast(
+            &cells,
+            px,
+            py,
+            dirs,
+            max * inv_res,
+            (self.resolution, max),
+            out,
+        );
     }
 
     /// Wall segments the batched ray casts test against (for figures).

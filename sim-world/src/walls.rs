@@ -128,7 +128,8 @@ fn pseudo_angle(x: f64, y: f64) -> f64 {
 
 #[inline(always)]
 fn bin(p: f64) -> usize {
-    ((p * (BINS as f64 / 4.0)) as usize).min(BINS - 1)
+    // p < 4, so this is below 256; the cast saturates anyway.
+    usize::from((p * (BINS as f64 / 4.0)) as u8)
 }
 
 impl Walls {
@@ -244,8 +245,10 @@ impl Walls {
     }
 
     /// Casts one ray per unit direction in `dirs` from (`px`, `py`) (cells, from the map's
-    /// corner; the origin must be in a free cell); `out[k]` becomes the distance in cells
-    /// to where ray k enters an occupied cell, or infinity if not within `max_t`.
+    /// corner; the origin must be in a free cell); `out[k]` becomes the distance to where
+    /// ray k enters an occupied cell, in cells times `scale`, or `miss` if that is not
+    /// within `max_t` cells.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn cast(
         &self,
         grid: &Cells,
@@ -253,11 +256,21 @@ impl Walls {
         py: f64,
         dirs: &[(f64, f64)],
         max_t: f64,
+        (scale, miss): (f64, f64),
         out: &mut [f64],
     ) {
-        SCRATCH.with(|s| self.cast_with(&mut s.borrow_mut(), grid, px, py, dirs, max_t, out));
+        SCRATCH.with(|s| {
+            let s = &mut s.borrow_mut();
+            self.cast_with(s, grid, px, py, dirs, max_t);
+            for (&best, &k) in s.best.iter().zip(&s.index) {
+                if let Some(o) = out.get_mut(k as usize) {
+                    *o = if best <= max_t { best * scale } else { miss };
+                }
+            }
+        });
     }
 
+    /// The cast itself: leaves each sorted ray's nearest hit in `s.best`.
     #[allow(clippy::too_many_arguments)]
     fn cast_with(
         &self,
@@ -267,7 +280,6 @@ impl Walls {
         py: f64,
         dirs: &[(f64, f64)],
         max_t: f64,
-        out: &mut [f64],
     ) {
         let n = dirs.len();
         // Sort the rays by pseudo-angle bin (a counting sort).
@@ -336,11 +348,6 @@ impl Walls {
                         }
                     }
                 }
-            }
-        }
-        for (&best, &k) in s.best.iter().zip(&s.index) {
-            if let Some(o) = out.get_mut(k as usize) {
-                *o = if best <= max_t { best } else { f64::INFINITY };
             }
         }
     }
