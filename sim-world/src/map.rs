@@ -748,20 +748,23 @@ mod tests {
         assert!(out.iter().all(|&d| d == 0.0));
     }
 
+    use proptest::prop_oneof;
+
     proptest::proptest! {
         #![proptest_config(proptest::prelude::ProptestConfig::with_cases(1000))]
         /// The two ray casts, cell walk and segments, agree on random maps from random
         /// free points, in every direction, at any range.
         #[test]
         fn batched_rays_agree_with_the_cell_walk_on_random_maps(
-            (w, h) in (3usize..70, 3usize..70),
-            density in 0.0f64..0.5,
+            // Up to 10 buckets a side (320 cells), so that far buckets are culled.
+            (w, h) in prop_oneof![(3usize..70, 3usize..70), (100usize..320, 100usize..320)],
+            density in prop_oneof![0.0f64..0.5, 0.0f64..0.1],
             res in 0.03f64..0.3,
             origin in (-5.0f64..5.0, -5.0f64..5.0),
             seed in 0u64..u64::MAX,
             at in (0.0f64..1.0, 0.0f64..1.0),
             angles in proptest::collection::vec(-4.0f64..4.0, 1..200),
-            max in 0.0f64..30.0,
+            max in prop_oneof![0.0f64..30.0, 0.0f64..300.0],
             on_lines in 0u8..4,
         ) {
             use rand::{RngExt, SeedableRng};
@@ -794,6 +797,42 @@ mod tests {
                 proptest::prop_assert!(
                     (out[k] - single).abs() < 1e-6,
                     "ray {} at {:.4} rad: batch {} vs walk {}", k, angles[k], out[k], single
+                );
+            }
+        }
+    }
+
+    /// Offices (corridors, rooms, doors) are where walls hide walls: the far buckets a
+    /// cast skips must never hold a nearer hit.
+    #[test]
+    fn batched_rays_agree_with_the_cell_walk_in_a_tiled_office() {
+        use rand::{RngExt, SeedableRng};
+        let m = OccupancyMap::office().tiled(2, 2);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let (w, h) = m.size();
+        let mut out = Vec::new();
+        let mut origins = 0;
+        while origins < 300 {
+            let (x, y) = (rng.random::<f64>() * w, rng.random::<f64>() * h);
+            if m.blocked(x, y) {
+                continue;
+            }
+            origins += 1;
+            let first = rng.random::<f64>() * std::f64::consts::TAU;
+            let dirs: Vec<(f64, f64)> = (0..181)
+                .map(|k| {
+                    let a = first + k as f64 * std::f64::consts::PI / 180.0;
+                    (a.cos(), a.sin())
+                })
+                .collect();
+            let max = if origins % 2 == 0 { 8.0 } else { 30.0 };
+            m.raycast_batch(x, y, &dirs, max, &mut out);
+            for (k, &(dx, dy)) in dirs.iter().enumerate() {
+                let single = m.raycast_dir(x, y, dx, dy, max).unwrap_or(max);
+                assert!(
+                    (out[k] - single).abs() < 1e-6,
+                    "from ({x:.3}, {y:.3}) ray {k}: batch {} vs walk {single}",
+                    out[k]
                 );
             }
         }

@@ -48,13 +48,20 @@ pub fn laser_scan(
     let mut ranges = Vec::with_capacity(n);
     map.raycast_batch(p.x, p.y, &dirs, params.range, &mut ranges);
     out.extend(ranges.iter().map(|&r| r as f32));
-    // Bodies: each occludes the beams within its angular extent.
+    // Bodies: each occludes the beams within its angular extent. A field of view of at
+    // most 180° lies ahead of the line across the robot: a body wholly behind it is
+    // skipped before any trigonometry.
+    let (hx, hy) = (p.theta.cos(), p.theta.sin());
+    let ahead_only = fov <= std::f64::consts::PI;
     bodies.near(p.x, p.y, params.range + 0.5, |idx, b| {
         if idx == skip {
             return;
         }
         let (bx, by) = (b.x - p.x, b.y - p.y);
-        let d = bx.hypot(by);
+        if ahead_only && bx * hx + by * hy < -b.r {
+            return;
+        }
+        let d = (bx * bx + by * by).sqrt();
         if d <= b.r || d - b.r > params.range {
             return;
         }
@@ -213,9 +220,22 @@ pub fn camera_frame(
     let (fov, range) = camera_cone(params, ptz.zoom);
     let axis = p.theta + ptz.pan;
     let mut seen: Vec<(usize, Colour, f64, f64)> = Vec::new();
+    // Cheap tests first (range, and the cone by a dot product, with a margin), the
+    // exact ones after.
+    let (ax, ay) = (axis.cos(), axis.sin());
+    let cos_half = if fov < std::f64::consts::PI {
+        (fov / 2.0).cos() - 1e-6
+    } else {
+        -2.0
+    };
     bodies.near(p.x, p.y, range + 0.5, |n, b| {
         let Some(colour) = b.beacon else { return };
         if n == skip {
+            return;
+        }
+        let (bx, by) = (b.x - p.x, b.y - p.y);
+        let d2 = bx * bx + by * by;
+        if d2 > range * range * (1.0 + 1e-9) || bx * ax + by * ay < cos_half * d2.sqrt() {
             return;
         }
         let d = (b.x - p.x).hypot(b.y - p.y);
