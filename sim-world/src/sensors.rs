@@ -131,8 +131,11 @@ pub fn sonar_ring(
         (-cone / 2.0, cone / (rays - 1) as f64)
     };
     let (cs, sn) = (step.cos(), step.sin());
+    let mut centres = Vec::with_capacity(params.bearings_deg.len());
     for bearing in &params.bearings_deg {
-        let a = p.theta + bearing.to_radians() + first;
+        let a = p.theta + bearing.to_radians();
+        centres.push((a.cos(), a.sin()));
+        let a = a + first;
         let (mut dx, mut dy) = (a.cos(), a.sin());
         for _ in 0..rays {
             dirs.push((dx, dy));
@@ -141,18 +144,35 @@ pub fn sonar_ring(
     }
     let mut walls = Vec::with_capacity(dirs.len());
     map.raycast_batch(p.x, p.y, &dirs, params.range, &mut walls);
-    // Bodies within range, gathered once for the whole ring.
-    let mut near = Vec::new();
+    // Bodies within range, gathered once for the whole ring, each with the cosine of
+    // the widest angle from a cone's axis at which the cone can still touch it (its
+    // half-width plus the body's angular radius): a cone whose axis is farther off
+    // skips the body without testing its rays.
+    let (ch, sh) = ((cone / 2.0).cos(), (cone / 2.0).sin());
+    let mut near: Vec<(crate::bodies::Body, f64, f64, f64)> = Vec::new();
     bodies.near(p.x, p.y, params.range + 0.5, |n, b| {
         if n != skip {
-            near.push(*b);
+            let (bx, by) = (b.x - p.x, b.y - p.y);
+            let d = (bx * bx + by * by).sqrt();
+            let reach = if d > b.r && cone < std::f64::consts::PI {
+                let s = b.r / d;
+                ch * (1.0 - s * s).sqrt() - sh * s - 1e-9
+            } else {
+                -2.0 // around the robot, or a cone as wide as a half turn: always test
+            };
+            near.push((*b, bx, by, reach * d));
         }
     });
-    for cone_rays in dirs.chunks(rays).zip(walls.chunks(rays)) {
+    for ((cone_rays, walls), &(cx, cy)) in dirs.chunks(rays).zip(walls.chunks(rays)).zip(&centres) {
         let mut best = params.range;
-        for (&(dx, dy), &wall) in cone_rays.0.iter().zip(cone_rays.1) {
+        for &wall in walls {
             best = best.min(wall);
-            for b in &near {
+        }
+        for (b, bx, by, reach) in &near {
+            if bx * cx + by * cy < *reach {
+                continue;
+            }
+            for &(dx, dy) in cone_rays {
                 if let Some(t) = ray_circle(p.x, p.y, dx, dy, b) {
                     best = best.min(t);
                 }
@@ -532,5 +552,67 @@ mod tests {
         assert!((f1 / f4 - 4.0).abs() < 1e-12);
         assert!((r4 / r1 - 2.0).abs() < 1e-12);
         assert_eq!(camera_cone(&p, 100.0), (f4, r4), "zoom is clamped");
+    }
+
+    /// The sonar skips a body for a cone only when no ray of the cone can touch it: the
+    /// ring equals every ray tested against every wall and body.
+    #[test]
+    fn sonar_equals_every_ray_against_every_body() {
+        use rand::RngExt;
+        let map = room();
+        let mut r = rng();
+        let params = SonarParams {
+            noise: 0.0,
+            ..SonarParams::default()
+        };
+        for round in 0..200 {
+            let me = Body {
+                x: 1.0 + r.random::<f64>() * 4.5,
+                y: 1.0 + r.random::<f64>() * 8.0,
+                r: 0.25,
+                beacon: None,
+            };
+            let mut all = vec![me];
+            for _ in 0..(round % 12) {
+                all.push(Body {
+                    x: me.x + (r.random::<f64>() - 0.5) * 8.0,
+                    y: me.y + (r.random::<f64>() - 0.5) * 8.0,
+                    r: 0.1 + r.random::<f64>() * 0.4,
+                    beacon: None,
+                });
+            }
+            let g = grid(all.clone());
+            let p = Pose {
+                x: me.x,
+                y: me.y,
+                theta: r.random::<f64>() * 6.0 - 3.0,
+            };
+            let mut out = Vec::new();
+            sonar_ring(&map, &g, 0, p, &params, &mut r, &mut out);
+            let rays = params.rays_per_cone;
+            let cone = params.cone_deg.to_radians();
+            for (c, bearing) in params.bearings_deg.iter().enumerate() {
+                let mut best = params.range;
+                for k in 0..rays {
+                    let a = p.theta + bearing.to_radians() - cone / 2.0
+                        + cone * k as f64 / (rays - 1) as f64;
+                    let (dx, dy) = (a.cos(), a.sin());
+                    best = best.min(
+                        map.raycast_dir(p.x, p.y, dx, dy, params.range)
+                            .unwrap_or(params.range),
+                    );
+                    for b in &all[1..] {
+                        if let Some(t) = ray_circle(p.x, p.y, dx, dy, b) {
+                            best = best.min(t);
+                        }
+                    }
+                }
+                assert!(
+                    (f64::from(out[c]) - best).abs() < 1e-5,
+                    "round {round} cone {c}: {} vs {best}",
+                    out[c]
+                );
+            }
+        }
     }
 }
