@@ -76,11 +76,12 @@ impl BodyGrid {
         }
     }
 
-    /// The cell holding a body's centre (clamped to the grid).
+    /// The cell holding a body's centre (clamped to the grid; `as` saturates a negative
+    /// or NaN coordinate to 0 and truncates the rest, which is floor for them).
     #[inline]
     fn key(&self, b: &Body) -> usize {
-        let i = (((b.x - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
-        let j = (((b.y - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
+        let i = (((b.x - self.origin.0) / self.cell) as usize).min(self.nx - 1);
+        let j = (((b.y - self.origin.1) / self.cell) as usize).min(self.ny - 1);
         j * self.nx + i
     }
 
@@ -124,14 +125,10 @@ impl BodyGrid {
 
     /// Calls `f(index, body)` for every body whose centre may lie within `radius` of (x, y).
     pub fn near(&self, x: f64, y: f64, radius: f64, mut f: impl FnMut(usize, &Body)) {
-        let lo_i =
-            (((x - radius - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
-        let hi_i =
-            (((x + radius - self.origin.0) / self.cell).floor().max(0.0) as usize).min(self.nx - 1);
-        let lo_j =
-            (((y - radius - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
-        let hi_j =
-            (((y + radius - self.origin.1) / self.cell).floor().max(0.0) as usize).min(self.ny - 1);
+        let lo_i = (((x - radius - self.origin.0) / self.cell) as usize).min(self.nx - 1);
+        let hi_i = (((x + radius - self.origin.0) / self.cell) as usize).min(self.nx - 1);
+        let lo_j = (((y - radius - self.origin.1) / self.cell) as usize).min(self.ny - 1);
+        let hi_j = (((y + radius - self.origin.1) / self.cell) as usize).min(self.ny - 1);
         for j in lo_j..=hi_j {
             for i in lo_i..=hi_i {
                 let k = j * self.nx + i;

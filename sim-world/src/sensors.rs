@@ -131,12 +131,13 @@ pub fn sonar_ring(
         (-cone / 2.0, cone / (rays - 1) as f64)
     };
     let (cs, sn) = (step.cos(), step.sin());
+    // A cone's axis: its first ray turned back by `first`.
+    let (ca, sa) = (first.cos(), -first.sin());
     let mut centres = Vec::with_capacity(params.bearings_deg.len());
     for bearing in &params.bearings_deg {
-        let a = p.theta + bearing.to_radians();
-        centres.push((a.cos(), a.sin()));
-        let a = a + first;
+        let a = p.theta + bearing.to_radians() + first;
         let (mut dx, mut dy) = (a.cos(), a.sin());
+        centres.push((dx * ca - dy * sa, dx * sa + dy * ca));
         for _ in 0..rays {
             dirs.push((dx, dy));
             (dx, dy) = (dx * cs - dy * sn, dx * sn + dy * cs);

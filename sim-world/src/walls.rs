@@ -222,8 +222,8 @@ impl Walls {
     /// point lies on the boundary, so this is the distance to the nearest occupied cell.
     pub(crate) fn clearance(&self, px: f64, py: f64, limit: f64) -> f64 {
         let b = BUCKET as f64;
-        let bucket_x = |v: f64| ((v / b).floor().max(0.0) as usize).min(self.buckets_x - 1);
-        let bucket_y = |v: f64| ((v / b).floor().max(0.0) as usize).min(self.buckets_y - 1);
+        let bucket_x = |v: f64| ((v / b) as usize).min(self.buckets_x - 1);
+        let bucket_y = |v: f64| ((v / b) as usize).min(self.buckets_y - 1);
         let (x0, x1) = (bucket_x(px - limit), bucket_x(px + limit));
         let (y0, y1) = (bucket_y(py - limit), bucket_y(py + limit));
         let mut best_sq = limit * limit;
@@ -317,8 +317,8 @@ impl Walls {
             }
         }
         let b = BUCKET as f64;
-        let clamp_x = |v: f64| ((v / b).floor().max(0.0) as usize).min(self.buckets_x - 1);
-        let clamp_y = |v: f64| ((v / b).floor().max(0.0) as usize).min(self.buckets_y - 1);
+        let clamp_x = |v: f64| ((v / b) as usize).min(self.buckets_x - 1);
+        let clamp_y = |v: f64| ((v / b) as usize).min(self.buckets_y - 1);
         for (slot, facing) in FACINGS.iter().enumerate() {
             // The buckets that can hold a segment of this facing in range.
             let (x0, x1, y0, y1) = match facing {
