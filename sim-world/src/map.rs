@@ -78,11 +78,9 @@ pub struct OccupancyMap {
     origin: (f64, f64),
     occupied: Vec<bool>,
     /// Distance, in whole cells (rounded down, at most 255), from each cell's centre to
-    /// the nearest occupied cell's centre: 0 exactly on occupied cells. One byte a cell
-    /// keeps ray casts in cache.
-    edt: Vec<u8>,
-    /// The same field in 8 × 8-cell tiles of 64 bytes (one cache line each): a ray
-    /// walking cell by cell stays within a line for several steps.
+    /// the nearest occupied cell's centre (0 exactly on occupied cells), one byte a cell
+    /// to keep ray casts in cache, in 8 × 8-cell tiles of 64 bytes (one cache line
+    /// each): a ray walking cell by cell stays within a line for several steps.
     edt_tiles: Vec<u8>,
     /// Tiles per row.
     tiles_x: usize,
@@ -136,7 +134,6 @@ impl OccupancyMap {
             height,
             resolution,
             origin,
-            edt,
             edt_tiles,
             tiles_x,
             coarse,
@@ -349,10 +346,13 @@ impl OccupancyMap {
 
     /// A lower bound on the distance from (x, y) to any occupied square, metres (beyond
     /// the map's edge counts as occupied).
+    /// It reads the field's 4 × 4-cell block minimum, a table 16 times smaller than the
+    /// field that stays in cache on maps of hundreds of floors.
     pub fn distance_bound(&self, x: f64, y: f64) -> f64 {
         match self.cell(x, y) {
             Some((i, j)) => {
-                let d = f64::from(self.edt[j * self.width + i]) * self.resolution;
+                let block = self.coarse[(j / COARSE) * self.coarse_x + i / COARSE];
+                let d = f64::from(block) * self.resolution;
                 let (ox, oy) = self.origin;
                 let (w, h) = self.size();
                 let edge = (x - ox).min(ox + w - x).min(y - oy).min(oy + h - y);
@@ -673,6 +673,7 @@ mod tests {
     #[test]
     fn distance_transform_matches_brute_force() {
         let m = room();
+        let edt = distance_transform(100, 100, &m.occupied);
         for &(i, j) in &[(10usize, 10usize), (50, 40), (47, 53), (2, 90), (70, 70)] {
             let mut best = f64::INFINITY;
             for jj in 0..100 {
@@ -685,7 +686,7 @@ mod tests {
                     }
                 }
             }
-            assert_eq!(f64::from(m.edt[j * 100 + i]), best.floor(), "({i},{j})");
+            assert_eq!(f64::from(edt[j * 100 + i]), best.floor(), "({i},{j})");
         }
     }
 
