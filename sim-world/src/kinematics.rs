@@ -16,6 +16,17 @@ pub struct Pose {
 
 /// Wraps an angle into (-π, π].
 pub fn wrap(a: f64) -> f64 {
+    // Most angles are in range or one turn off; the subtraction is exact there
+    // (Sterbenz), so these give what the remainder below gives.
+    if a > -PI && a <= PI {
+        return a;
+    }
+    if a > PI && a <= 3.0 * PI {
+        return a - 2.0 * PI;
+    }
+    if a <= -PI && a > -3.0 * PI {
+        return a + 2.0 * PI;
+    }
     let mut a = a % (2.0 * PI);
     if a <= -PI {
         a += 2.0 * PI;
@@ -100,6 +111,30 @@ mod tests {
         let spin = integrate(Pose::default(), 0.0, 1.0, 1.0);
         assert_eq!((spin.x, spin.y), (0.0, 0.0));
         assert!((spin.theta - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn wrapping_near_the_range_equals_the_remainder() {
+        let slow = |a: f64| {
+            let mut a = a % (2.0 * PI);
+            if a <= -PI {
+                a += 2.0 * PI;
+            } else if a > PI {
+                a -= 2.0 * PI;
+            }
+            a
+        };
+        let mut a = -9.5f64;
+        while a < 9.5 {
+            // Equal values (at exactly -2π the remainder gives -0, this +0).
+            assert_eq!(wrap(a), slow(a), "{a}");
+            for edge in [PI, -PI, 3.0 * PI, -3.0 * PI, 2.0 * PI, -2.0 * PI] {
+                for e in [edge, edge.next_up(), edge.next_down()] {
+                    assert_eq!(wrap(e), slow(e), "{e}");
+                }
+            }
+            a += 0.000_37;
+        }
     }
 
     #[test]

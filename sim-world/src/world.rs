@@ -530,7 +530,11 @@ fn advance(
     let budget = bodies.half_gap(me, p.x, p.y, r, length + 0.01);
     let mut s = 0.0;
     for _ in 0..64 {
-        let q = integrate(p, v, w, h * s);
+        let q = if s == 0.0 {
+            p
+        } else {
+            integrate(p, v, w, h * s)
+        };
         let left = length * (1.0 - s);
         let walls = map.clearance(q.x, q.y, reach + left) - reach;
         let others = budget - length * s;
