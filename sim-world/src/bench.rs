@@ -26,8 +26,9 @@ pub fn world(n: usize, seed: u64) -> World {
     let gx = (w / cell).ceil() as usize;
     let mut grid: std::collections::HashMap<usize, Vec<usize>> = std::collections::HashMap::new();
     let mut robots = Vec::with_capacity(n);
+    let mut poses: Vec<[f64; 3]> = Vec::with_capacity(n);
     let mut tries = 0u64;
-    while robots.len() < n && tries < 1000 * n as u64 + 10_000 {
+    while poses.len() < n && tries < 1000 * n as u64 + 10_000 {
         tries += 1;
         let (x, y) = (rng.random::<f64>() * w, rng.random::<f64>() * h);
         if map.clearance(x, y, 0.4) < 0.4 {
@@ -47,10 +48,17 @@ pub fn world(n: usize, seed: u64) -> World {
         }
         grid.entry(cj * gx + ci).or_default().push(placed.len());
         placed.push((x, y));
-        let k = robots.len();
+        poses.push([x, y, rng.random::<f64>() * 360.0]);
+    }
+    // Numbered floor by floor, as a fleet would be: robots next in number are next to
+    // each other, and so are the parts of the map their steps read.
+    let (fw, fh) = OccupancyMap::office().size();
+    let floor = |p: &[f64; 3]| ((p[1] / fh) as usize, (p[0] / fw) as usize);
+    poses.sort_by_key(floor);
+    for (k, pose) in poses.into_iter().enumerate() {
         robots.push(RobotSpec {
             name: format!("r{k}"),
-            pose: [x, y, rng.random::<f64>() * 360.0],
+            pose,
             drive: Default::default(),
             laser: Some(LaserParams::default()),
             sonar: Some(SonarParams::default()),
