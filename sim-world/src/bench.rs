@@ -18,7 +18,8 @@ pub fn world(n: usize, seed: u64) -> World {
     let tx = (tiles as f64 / 2.0).sqrt().ceil().max(1.0) as usize * 2;
     let ty = tiles.div_ceil(tx).max(1);
     let (tx, ty) = if tiles == 1 { (1, 1) } else { (tx, ty) };
-    let map = OccupancyMap::office().tiled(tx, ty);
+    let office = OccupancyMap::office();
+    let map = office.tiled(tx, ty);
     let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
     let (w, h) = map.size();
     let mut placed: Vec<(f64, f64)> = Vec::with_capacity(n);
@@ -52,7 +53,7 @@ pub fn world(n: usize, seed: u64) -> World {
     }
     // Numbered floor by floor, as a fleet would be: robots next in number are next to
     // each other, and so are the parts of the map their steps read.
-    let (fw, fh) = OccupancyMap::office().size();
+    let (fw, fh) = office.size();
     let floor = |p: &[f64; 3]| ((p[1] / fh) as usize, (p[0] / fw) as usize);
     poses.sort_by_key(floor);
     for (k, pose) in poses.into_iter().enumerate() {
