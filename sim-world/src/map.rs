@@ -645,6 +645,12 @@ fn distance_transform(w: usize, h: usize, occupied: &[bool]) -> Vec<u8> {
 /// occupied cells `inside`.
 #[cfg(test)]
 pub(crate) fn walled_room(w: usize, h: usize, res: f64, inside: &[(usize, usize)]) -> OccupancyMap {
+    OccupancyMap::from_grid(w, h, res, (0.0, 0.0), walled_cells(w, h, inside))
+}
+
+/// For tests: the occupied flags of [`walled_room`].
+#[cfg(test)]
+pub(crate) fn walled_cells(w: usize, h: usize, inside: &[(usize, usize)]) -> Vec<bool> {
     let mut occ = vec![false; w * h];
     for i in 0..w {
         occ[i] = true;
@@ -657,7 +663,7 @@ pub(crate) fn walled_room(w: usize, h: usize, res: f64, inside: &[(usize, usize)
     for &(i, j) in inside {
         occ[j * w + i] = true;
     }
-    OccupancyMap::from_grid(w, h, res, (0.0, 0.0), occ)
+    occ
 }
 
 #[cfg(test)]

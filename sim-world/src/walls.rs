@@ -451,18 +451,7 @@ mod tests {
     #[test]
     fn a_room_has_its_four_inner_faces_and_a_pillar_has_four() {
         // 6 × 5 cells, a one-cell border wall, and one occupied cell at (3, 2).
-        let (w, h) = (6, 5);
-        let mut occ = vec![false; w * h];
-        for i in 0..w {
-            occ[i] = true;
-            occ[(h - 1) * w + i] = true;
-        }
-        for j in 0..h {
-            occ[j * w] = true;
-            occ[j * w + w - 1] = true;
-        }
-        occ[2 * w + 3] = true;
-        let walls = Walls::new(w, h, &occ);
+        let walls = Walls::new(6, 5, &crate::map::walled_cells(6, 5, &[(3, 2)]));
         let all = |f: usize| walls.filed[f].segs.clone();
         // Inner faces: floor top at y = 1 (free above), ceiling at y = 4 (free below),
         // left at x = 1 (free right), right at x = 5 (free left); the pillar's four.
