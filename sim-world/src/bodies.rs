@@ -153,6 +153,45 @@ impl BodyGrid {
     }
 }
 
+/// Where the sensors find bodies: the grid, or the bodies near one robot gathered from
+/// it once for all of that robot's sensors.
+pub trait Bodies {
+    /// Calls `f(index, body)` for every body whose centre may lie within `radius` of
+    /// (x, y) (a superset: callers test the distance), in the grid's order.
+    fn near(&self, x: f64, y: f64, radius: f64, f: impl FnMut(usize, &Body));
+}
+
+impl Bodies for BodyGrid {
+    fn near(&self, x: f64, y: f64, radius: f64, f: impl FnMut(usize, &Body)) {
+        BodyGrid::near(self, x, y, radius, f);
+    }
+}
+
+/// The bodies whose centres may lie within some radius of a point, in the grid's order:
+/// one grid query serves every sensor of a robot.
+#[derive(Default)]
+pub struct Nearby {
+    list: Vec<(usize, Body)>,
+}
+
+impl Nearby {
+    /// Gathers from `grid` the bodies that [`BodyGrid::near`] finds within `radius`.
+    pub fn gather(&mut self, grid: &BodyGrid, x: f64, y: f64, radius: f64) {
+        self.list.clear();
+        grid.near(x, y, radius, |n, b| self.list.push((n, *b)));
+    }
+}
+
+impl Bodies for Nearby {
+    fn near(&self, x: f64, y: f64, radius: f64, mut f: impl FnMut(usize, &Body)) {
+        for (n, b) in &self.list {
+            if (b.x - x).abs() <= radius && (b.y - y).abs() <= radius {
+                f(*n, b);
+            }
+        }
+    }
+}
+
 /// Distance along a unit ray from (x, y) in direction (dx, dy) to a circle, if it is hit
 /// at a positive distance.
 pub fn ray_circle(x: f64, y: f64, dx: f64, dy: f64, b: &Body) -> Option<f64> {

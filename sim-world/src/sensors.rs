@@ -1,7 +1,7 @@
 //! Sensor models: a laser scanner, a sonar ring and a PTZ camera with a beacon tracker.
 //! Each sees walls (exact ray casts on the map) and every other body.
 
-use crate::bodies::{ray_circle, BodyGrid};
+use crate::bodies::{ray_circle, Bodies};
 use crate::kinematics::{wrap, Pose};
 use crate::map::OccupancyMap;
 use crate::scenario::{CameraParams, Colour, LaserParams, SonarParams};
@@ -20,7 +20,7 @@ fn gaussian(rng: &mut impl rand::Rng, sd: f64) -> f64 {
 /// that hits nothing reads the maximum range.
 pub fn laser_scan(
     map: &OccupancyMap,
-    bodies: &BodyGrid,
+    bodies: &impl Bodies,
     skip: usize,
     p: Pose,
     params: &LaserParams,
@@ -113,7 +113,7 @@ fn hit_beam(out: &mut [f32], k: usize, dir: (f64, f64), p: Pose, b: &crate::bodi
 /// One sonar ring reading: per transducer, the nearest echo within its cone.
 pub fn sonar_ring(
     map: &OccupancyMap,
-    bodies: &BodyGrid,
+    bodies: &impl Bodies,
     skip: usize,
     p: Pose,
     params: &SonarParams,
@@ -229,7 +229,7 @@ pub fn camera_cone(params: &CameraParams, zoom: f64) -> (f64, f64) {
 #[allow(clippy::too_many_arguments)] // the sensor's full context, as the others take it
 pub fn camera_frame(
     map: &OccupancyMap,
-    bodies: &BodyGrid,
+    bodies: &impl Bodies,
     skip: usize,
     p: Pose,
     ptz: Ptz,
@@ -240,7 +240,7 @@ pub fn camera_frame(
     out.clear();
     let (fov, range) = camera_cone(params, ptz.zoom);
     let axis = p.theta + ptz.pan;
-    let mut seen: Vec<(usize, Colour, f64, f64)> = Vec::new();
+    let mut seen: Vec<(usize, Colour, f64, f64, f64)> = Vec::new();
     // Cheap tests first (range, and the cone by a dot product, with a margin), the
     // exact ones after.
     let (ax, ay) = (axis.cos(), axis.sin());
@@ -264,11 +264,10 @@ pub fn camera_frame(
         if d > range || wrap(angle - axis).abs() > fov / 2.0 {
             return;
         }
-        seen.push((n, colour, angle, d));
+        seen.push((n, colour, angle, d, b.r));
     });
-    for (n, colour, angle, d) in seen {
-        let target = bodies.bodies()[n];
-        let visible_to = d - target.r;
+    for (n, colour, angle, d, radius) in seen {
+        let visible_to = d - radius;
         if map.raycast(p.x, p.y, angle, visible_to).is_some() {
             continue; // a wall in between
         }
@@ -300,7 +299,7 @@ pub fn camera_frame(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::bodies::Body;
+    use crate::bodies::{Body, BodyGrid};
     use rand::SeedableRng;
 
     /// 10 m × 10 m room, 0.1 m cells, walls on the border; a wall segment from

@@ -7,12 +7,12 @@
 //! comes from a per-robot or per-person generator seeded from the scenario, so a run is
 //! the same step for step whatever the thread count.
 
-use crate::bodies::{Body, BodyGrid};
+use crate::bodies::{Body, BodyGrid, Nearby};
 use crate::kinematics::{approach, integrate, wrap, Pose};
 use crate::map::OccupancyMap;
 use crate::people::Navigation;
 use crate::scenario::{Colour, DriveParams, RobotSpec, Scenario};
-use crate::sensors::{camera_frame, laser_scan, sonar_ring, Detection, Ptz};
+use crate::sensors::{camera_cone, camera_frame, laser_scan, sonar_ring, Detection, Ptz};
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use rayon::prelude::*;
@@ -390,42 +390,65 @@ impl World {
             return; // sensors run at their own rates, slower than kinematics
         }
         self.refresh_grid();
-        let bodies = &self.grid;
+        let grid = &self.grid;
         let map = &*self.map;
         for_each_maybe_par(&mut self.robots, |(i, r)| {
             let eps = 1e-9;
-            if let Some(l) = &r.spec.laser {
-                if all || now + eps >= r.next[0] {
-                    laser_scan(map, bodies, i, r.pose, l, &mut r.rng, &mut r.laser);
-                    r.laser_time = now;
-                    r.next[0] = next_time(r.next[0], now, l.rate);
-                }
+            if !(all || r.sensor_due(now)) {
+                return;
             }
-            if let Some(s) = &r.spec.sonar {
-                if all || now + eps >= r.next[1] {
-                    sonar_ring(map, bodies, i, r.pose, s, &mut r.rng, &mut r.sonar);
-                    r.sonar_time = now;
-                    r.next[1] = next_time(r.next[1], now, s.rate);
+            // One grid query for all of this robot's sensors: the bodies within the
+            // longest reach (each sensor then looks within its own).
+            let reach = [
+                r.spec.laser.as_ref().map(|l| l.range),
+                r.spec.sonar.as_ref().map(|s| s.range),
+                r.spec.camera.as_ref().map(|c| camera_cone(c, r.ptz.zoom).1),
+            ]
+            .into_iter()
+            .flatten()
+            .fold(0.0, f64::max);
+            NEARBY.with(|nearby| {
+                let bodies = &mut *nearby.borrow_mut();
+                bodies.gather(grid, r.pose.x, r.pose.y, reach + 0.5);
+                let bodies = &*bodies;
+                if let Some(l) = &r.spec.laser {
+                    if all || now + eps >= r.next[0] {
+                        laser_scan(map, bodies, i, r.pose, l, &mut r.rng, &mut r.laser);
+                        r.laser_time = now;
+                        r.next[0] = next_time(r.next[0], now, l.rate);
+                    }
                 }
-            }
-            if let Some(c) = &r.spec.camera {
-                if all || now + eps >= r.next[2] {
-                    camera_frame(
-                        map,
-                        bodies,
-                        i,
-                        r.pose,
-                        r.ptz,
-                        c,
-                        &mut r.rng,
-                        &mut r.detections,
-                    );
-                    r.camera_time = now;
-                    r.next[2] = next_time(r.next[2], now, c.rate);
+                if let Some(s) = &r.spec.sonar {
+                    if all || now + eps >= r.next[1] {
+                        sonar_ring(map, bodies, i, r.pose, s, &mut r.rng, &mut r.sonar);
+                        r.sonar_time = now;
+                        r.next[1] = next_time(r.next[1], now, s.rate);
+                    }
                 }
-            }
+                if let Some(c) = &r.spec.camera {
+                    if all || now + eps >= r.next[2] {
+                        camera_frame(
+                            map,
+                            bodies,
+                            i,
+                            r.pose,
+                            r.ptz,
+                            c,
+                            &mut r.rng,
+                            &mut r.detections,
+                        );
+                        r.camera_time = now;
+                        r.next[2] = next_time(r.next[2], now, c.rate);
+                    }
+                }
+            });
         });
     }
+}
+
+thread_local! {
+    /// The bodies near the robot a thread is sensing for.
+    static NEARBY: std::cell::RefCell<Nearby> = std::cell::RefCell::new(Nearby::default());
 }
 
 /// Every body: the robots, then the people.
