@@ -125,3 +125,34 @@ fn render_export_and_bad_maps() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("dt 7 must be in"));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn the_sim_bench_reports_every_size_it_was_asked_for() {
+    let f = Fed::new("simbench");
+    let (code, out) = f.run(&["sim", "--bench", "--robots", "1,20", "--json"], 120 * SEC);
+    assert_eq!(code, 0, "{out}");
+    let rows: Vec<serde_json::Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{l}: {e}")))
+        .collect();
+    assert_eq!(rows.len(), 2, "{out}");
+    for (row, robots) in rows.iter().zip([1, 20]) {
+        assert_eq!(row["robots"], robots, "{row}");
+        let factor = row["realtime_factor"].as_f64().unwrap();
+        let (sim, wall) = (
+            row["sim_seconds"].as_f64().unwrap(),
+            row["wall_seconds"].as_f64().unwrap(),
+        );
+        // The factor is simulated over wall time, and every sensor ran.
+        assert!(factor > 1.0 && sim > 0.0 && wall > 0.0, "{row}");
+        assert!((factor - sim / wall).abs() < 1e-6 * factor, "{row}");
+        assert!(row["ns_per_beam"].as_f64().unwrap() > 0.0, "{row}");
+        assert!(row["threads"].as_u64().unwrap() >= 1, "{row}");
+    }
+    let out = f
+        .command(&["sim", "--bench", "--robots", "0"])
+        .output()
+        .unwrap();
+    assert_ne!(out.status.code(), Some(0));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("robot counts must be 1..=100000"));
+}
