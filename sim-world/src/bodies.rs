@@ -43,7 +43,7 @@ impl BodyGrid {
             index: Vec::new(),
             keys: Vec::new(),
         };
-        grid.refill(bodies);
+        grid.rebuild(bodies);
         grid
     }
 
@@ -52,27 +52,32 @@ impl BodyGrid {
     /// positions are written.
     pub fn rebuild(&mut self, bodies: impl IntoIterator<Item = Body>) {
         let mut list = std::mem::take(&mut self.bodies);
+        let mut keys = std::mem::take(&mut self.keys);
         let old = list.len();
-        let mut moved = false;
+        // A grid never bucketed (just made) buckets whatever it is given.
+        let mut moved = self.start.is_empty();
         let mut n = 0;
         for b in bodies {
+            let k = self.key(&b) as u32;
             if n < old {
-                moved |= self.key(&b) as u32 != self.keys[n];
-                list[n] = b;
+                moved |= k != keys[n];
+                (list[n], keys[n]) = (b, k);
             } else {
                 list.push(b);
+                keys.push(k);
                 moved = true;
             }
             n += 1;
         }
         if n != old {
             list.truncate(n);
+            keys.truncate(n);
             moved = true;
         }
+        self.bodies = list;
+        self.keys = keys;
         if moved {
-            self.refill(list);
-        } else {
-            self.bodies = list;
+            self.bucket();
         }
     }
 
@@ -85,12 +90,8 @@ impl BodyGrid {
         j * self.nx + i
     }
 
-    fn refill(&mut self, bodies: Vec<Body>) {
-        self.keys.clear();
-        for b in &bodies {
-            let k = self.key(b) as u32;
-            self.keys.push(k);
-        }
+    /// Buckets the bodies by their `keys`.
+    fn bucket(&mut self) {
         let count = &mut self.start;
         count.clear();
         count.resize(self.nx * self.ny + 1, 0);
@@ -101,7 +102,7 @@ impl BodyGrid {
             count[k] += count[k - 1];
         }
         self.index.clear();
-        self.index.resize(bodies.len(), 0);
+        self.index.resize(self.keys.len(), 0);
         // Fill each cell from its end backwards, so that `start` ends up as it began.
         for (n, &k) in self.keys.iter().enumerate().rev() {
             let k = k as usize + 1;
@@ -113,9 +114,8 @@ impl BodyGrid {
             count[k - 1] = count[k];
         }
         if let Some(last) = count.last_mut() {
-            *last = bodies.len() as u32;
+            *last = self.keys.len() as u32;
         }
-        self.bodies = bodies;
     }
 
     /// All bodies.

@@ -7,7 +7,7 @@
 //! (Amanatides–Woo) near them, so every hit is the exact entry point into an occupied
 //! square. Clearance near walls is the exact point-to-square distance.
 
-use crate::walls::{Cells, Walls};
+use crate::walls::Walls;
 use serde::Deserialize;
 use std::path::Path;
 
@@ -410,13 +410,8 @@ impl OccupancyMap {
             out.fill(0.0);
             return;
         }
-        let cells = Cells {
-            occupied: &self.occupied,
-            width: self.width,
-            height: self.height,
-        };
         self.walls.cast(
-            &cells,
+            self,
             px,
             py,
             dirs,

@@ -16,6 +16,7 @@
 //! cell-by-cell walk costs a step per cell near a wall, and a ray grazing a wall is near
 //! it all the way; here that ray costs one test.
 
+use crate::map::OccupancyMap;
 use std::cell::RefCell;
 
 /// Side of a bucket, cells.
@@ -65,26 +66,15 @@ pub(crate) struct Walls {
     filed: [Filed; 4],
 }
 
-/// The occupancy grid, for rays through a grid corner.
-pub(crate) struct Cells<'a> {
-    pub(crate) occupied: &'a [bool],
-    pub(crate) width: usize,
-    pub(crate) height: usize,
-}
-
-impl Cells<'_> {
-    /// Whether the cell a ray enters after the grid corner (`vx`, `vy`), going along
-    /// (`dx`, `dy`), is occupied (outside the map counts). Cells are half-open: a ray
-    /// running along the line x = i is in column i.
-    #[cold]
-    fn occupied_beyond(&self, vx: f64, vy: f64, dx: f64, dy: f64) -> bool {
-        let i = vx as i64 - i64::from(dx < 0.0);
-        let j = vy as i64 - i64::from(dy < 0.0);
-        if i < 0 || j < 0 || i as usize >= self.width || j as usize >= self.height {
-            return true;
-        }
-        self.occupied[j as usize * self.width + i as usize]
-    }
+/// Whether the cell a ray enters after the grid corner (`vx`, `vy`), going along (`dx`,
+/// `dy`), is occupied (outside the map counts). Cells are half-open: a ray running along
+/// the line x = i is in column i.
+#[cold]
+fn occupied_beyond(map: &OccupancyMap, vx: f64, vy: f64, dx: f64, dy: f64) -> bool {
+    map.occupied(
+        vx as i64 - i64::from(dx < 0.0),
+        vy as i64 - i64::from(dy < 0.0),
+    )
 }
 
 /// One ray of a cast, as the tests read it.
@@ -221,27 +211,41 @@ impl Walls {
     /// segment within `limit` cells, or `limit`. From a free point, the nearest occupied
     /// point lies on the boundary, so this is the distance to the nearest occupied cell.
     pub(crate) fn clearance(&self, px: f64, py: f64, limit: f64) -> f64 {
-        let b = BUCKET as f64;
-        let bucket_x = |v: f64| ((v / b) as usize).min(self.buckets_x - 1);
-        let bucket_y = |v: f64| ((v / b) as usize).min(self.buckets_y - 1);
-        let (x0, x1) = (bucket_x(px - limit), bucket_x(px + limit));
-        let (y0, y1) = (bucket_y(py - limit), bucket_y(py + limit));
         let mut best_sq = limit * limit;
-        for (slot, filed) in self.filed.iter().enumerate() {
+        for slot in 0..FACINGS.len() {
             let vertical = slot >= 2;
             let (u, v) = if vertical { (py, px) } else { (px, py) };
-            for by in y0..=y1 {
-                let row = by * self.buckets_x;
-                let from = filed.start[row + x0] as usize;
-                let to = filed.start[row + x1 + 1] as usize;
-                for seg in &filed.segs[from..to] {
-                    let along = (seg.a - u).max(u - seg.b).max(0.0);
-                    let across = seg.c - v;
-                    best_sq = best_sq.min(along * along + across * across);
-                }
-            }
+            let area = (px - limit, px + limit, py - limit, py + limit);
+            self.each_filed_in(slot, area, |seg| {
+                let along = (seg.a - u).max(u - seg.b).max(0.0);
+                let across = seg.c - v;
+                best_sq = best_sq.min(along * along + across * across);
+            });
         }
         best_sq.sqrt()
+    }
+
+    /// Calls `f` for the segments of facing `slot` filed in the buckets that overlap the
+    /// box `(x0, x1, y0, y1)` (cells; clamped to the map), a contiguous run per row.
+    #[inline(always)]
+    fn each_filed_in(
+        &self,
+        slot: usize,
+        (x0, x1, y0, y1): (f64, f64, f64, f64),
+        mut f: impl FnMut(&Seg),
+    ) {
+        let b = BUCKET as f64;
+        // `as` saturates a negative coordinate to 0 and truncates the rest (floor).
+        let bucket_x = |v: f64| ((v / b) as usize).min(self.buckets_x - 1);
+        let bucket_y = |v: f64| ((v / b) as usize).min(self.buckets_y - 1);
+        let (from_x, to_x) = (bucket_x(x0), bucket_x(x1));
+        let filed = &self.filed[slot];
+        for by in bucket_y(y0)..=bucket_y(y1) {
+            let row = by * self.buckets_x;
+            let from = filed.start[row + from_x] as usize;
+            let to = filed.start[row + to_x + 1] as usize;
+            filed.segs[from..to].iter().for_each(&mut f);
+        }
     }
 
     /// Casts one ray per unit direction in `dirs` from (`px`, `py`) (cells, from the map's
@@ -251,7 +255,7 @@ impl Walls {
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn cast(
         &self,
-        grid: &Cells,
+        map: &OccupancyMap,
         px: f64,
         py: f64,
         dirs: &[(f64, f64)],
@@ -261,7 +265,7 @@ impl Walls {
     ) {
         SCRATCH.with(|s| {
             let s = &mut s.borrow_mut();
-            self.cast_with(s, grid, px, py, dirs, max_t);
+            self.cast_with(s, map, px, py, dirs, max_t);
             for (&best, &k) in s.best.iter().zip(&s.index) {
                 if let Some(o) = out.get_mut(k as usize) {
                     *o = if best <= max_t { best * scale } else { miss };
@@ -275,7 +279,7 @@ impl Walls {
     fn cast_with(
         &self,
         s: &mut Scratch,
-        grid: &Cells,
+        map: &OccupancyMap,
         px: f64,
         py: f64,
         dirs: &[(f64, f64)],
@@ -316,39 +320,22 @@ impl Walls {
                 *i = k as u32;
             }
         }
-        let b = BUCKET as f64;
-        let clamp_x = |v: f64| ((v / b) as usize).min(self.buckets_x - 1);
-        let clamp_y = |v: f64| ((v / b) as usize).min(self.buckets_y - 1);
         for (slot, facing) in FACINGS.iter().enumerate() {
             // The buckets that can hold a segment of this facing in range.
-            let (x0, x1, y0, y1) = match facing {
+            let area = match facing {
                 Facing::Down => (px - max_t, px + max_t, py, py + max_t),
                 Facing::Up => (px - max_t, px + max_t, py - max_t, py),
                 Facing::Left => (px, px + max_t, py - max_t, py + max_t),
                 Facing::Right => (px - max_t, px, py - max_t, py + max_t),
             };
-            let filed = &self.filed[slot];
-            for by in clamp_y(y0)..=clamp_y(y1) {
-                let row = by * self.buckets_x;
-                let from = filed.start[row + clamp_x(x0)] as usize;
-                let to = filed.start[row + clamp_x(x1) + 1] as usize;
-                for seg in &filed.segs[from..to] {
-                    match facing {
-                        Facing::Down => {
-                            hits::<false, false>(s, &start, grid, px, py, seg, seg.c - py, max_t)
-                        }
-                        Facing::Up => {
-                            hits::<false, true>(s, &start, grid, px, py, seg, py - seg.c, max_t)
-                        }
-                        Facing::Left => {
-                            hits::<true, false>(s, &start, grid, px, py, seg, seg.c - px, max_t)
-                        }
-                        Facing::Right => {
-                            hits::<true, true>(s, &start, grid, px, py, seg, px - seg.c, max_t)
-                        }
-                    }
+            self.each_filed_in(slot, area, |seg| match facing {
+                Facing::Down => {
+                    hits::<false, false>(s, &start, map, px, py, seg, seg.c - py, max_t)
                 }
-            }
+                Facing::Up => hits::<false, true>(s, &start, map, px, py, seg, py - seg.c, max_t),
+                Facing::Left => hits::<true, false>(s, &start, map, px, py, seg, seg.c - px, max_t),
+                Facing::Right => hits::<true, true>(s, &start, map, px, py, seg, px - seg.c, max_t),
+            });
         }
     }
 }
@@ -362,7 +349,7 @@ impl Walls {
 fn hits<const VERTICAL: bool, const DOWNWARDS: bool>(
     s: &mut Scratch,
     start: &[u32; BINS + 1],
-    grid: &Cells,
+    map: &OccupancyMap,
     px: f64,
     py: f64,
     seg: &Seg,
@@ -435,7 +422,7 @@ fn hits<const VERTICAL: bool, const DOWNWARDS: bool>(
                 } else {
                     (along, c, d, ray.dy)
                 };
-                hit = grid.occupied_beyond(vx, vy, dx, dy);
+                hit = occupied_beyond(map, vx, vy, dx, dy);
             }
             *best = if hit { t } else { *best };
         }
