@@ -1041,6 +1041,20 @@ fn chunk_key(k: usize) -> u64 {
     k as u64 + 1
 }
 
+/// The list's header entry and its chunks' entries, from a blackboard writer's or
+/// reader's `entry` (the two sides open the same keys).
+fn list_entries<H, C, E: std::fmt::Debug>(
+    header: impl FnOnce(&u64) -> Result<H, E>,
+    mut chunk: impl FnMut(&u64) -> Result<C, E>,
+) -> Result<(H, Vec<C>), TransportError> {
+    let header = header(&HEADER_KEY).map_err(|e| svc_err("service-list header", e))?;
+    let chunks = (0..LIST_CHUNKS)
+        .map(|k| chunk(&chunk_key(k)))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| svc_err("service-list chunk", e))?;
+    Ok((header, chunks))
+}
+
 /// How many chunks hold `count` entries.
 fn chunks_for(count: usize) -> usize {
     count.min(MAX_LISTED_SERVICES).div_ceil(CHUNK_ENTRIES)
@@ -1079,13 +1093,10 @@ impl ListWriter {
             .writer_builder()
             .create()
             .map_err(|e| svc_err(&name, e))?;
-        let header = writer
-            .entry::<ListHeader>(&HEADER_KEY)
-            .map_err(|e| svc_err("service-list header", e))?;
-        let chunks = (0..LIST_CHUNKS)
-            .map(|k| writer.entry::<ListChunk>(&chunk_key(k)))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| svc_err("service-list chunk", e))?;
+        let (header, chunks) = list_entries(
+            |k| writer.entry::<ListHeader>(k),
+            |k| writer.entry::<ListChunk>(k),
+        )?;
         Ok(ListWriter {
             header,
             chunks,
@@ -1203,13 +1214,10 @@ impl ListReader {
             .reader_builder()
             .create()
             .map_err(|e| svc_err(&name, e))?;
-        let header = reader
-            .entry::<ListHeader>(&HEADER_KEY)
-            .map_err(|e| svc_err("service-list header", e))?;
-        let chunks = (0..LIST_CHUNKS)
-            .map(|k| reader.entry::<ListChunk>(&chunk_key(k)))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| svc_err("service-list chunk", e))?;
+        let (header, chunks) = list_entries(
+            |k| reader.entry::<ListHeader>(k),
+            |k| reader.entry::<ListChunk>(k),
+        )?;
         self.current = Some(OpenList {
             epoch,
             header,
