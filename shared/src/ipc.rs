@@ -320,6 +320,9 @@ pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
         CallbackProgression::Continue
     });
     let n = dead.len();
+    if only.is_none() {
+        remove_half_removed_monitors(&std::path::Path::new(&iox2_root()).join("nodes"));
+    }
     for view in dead {
         if view.details().is_none() {
             // Killed while its node was being made: no details, so iceoryx2 would look
@@ -363,6 +366,47 @@ fn remove_detail_less_node(id: &str) {
         let _ = std::fs::remove_file(nodes.join(format!("iox2_{id}.{suffix}")));
     }
     tracing::info!(node = id, "removed a dead node that was never finished");
+}
+
+/// Removes the monitor files of nodes whose state file is gone, in `nodes` (our root's
+/// `nodes/`). iceoryx2 lists nodes by their state file (`iox2_<id>.node_monitor`) and
+/// removes it first when a node is dropped, then its owner lock and its context: a
+/// process killed in between (a SIGKILL after a slow shutdown) leaves those two behind,
+/// where no node listing ever finds them. A live node always has its state file but for
+/// microseconds while it is made or dropped, so only files older than [`STILLBORN_AFTER`]
+/// are taken. Returns how many nodes' leftovers were removed.
+fn remove_half_removed_monitors(nodes: &std::path::Path) -> usize {
+    const STATE: &str = ".node_monitor";
+    let Ok(dir) = std::fs::read_dir(nodes) else {
+        return 0;
+    };
+    let mut orphans = std::collections::BTreeSet::new();
+    for entry in dir.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(id) = ["_context", "_owner_lock"]
+            .iter()
+            .find_map(|tail| name.strip_suffix(&format!("{STATE}{tail}")))
+            .and_then(|stem| stem.strip_prefix("iox2_"))
+        else {
+            continue;
+        };
+        let old = entry
+            .metadata()
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|m| m.elapsed().ok())
+            .is_some_and(|age| age >= STILLBORN_AFTER);
+        if old && !nodes.join(format!("iox2_{id}{STATE}")).exists() {
+            orphans.insert(id.to_string());
+        }
+    }
+    for id in &orphans {
+        for tail in ["_context", "_owner_lock"] {
+            let _ = std::fs::remove_file(nodes.join(format!("iox2_{id}{STATE}{tail}")));
+        }
+        tracing::info!(node = %id, "removed what a node killed while it was dropped left");
+    }
+    orphans.len()
 }
 
 /// The pid of the process that created an iceoryx2 node, if it can be told.
@@ -1974,6 +2018,54 @@ mod tests {
         assert!(exists(&sized), "a sized one stays");
         std::fs::remove_file(&fresh).unwrap();
         std::fs::remove_file(&sized).unwrap();
+    }
+
+    #[test]
+    fn monitor_files_left_without_their_state_file_are_removed_once_old() {
+        let dir = std::env::temp_dir().join(format!("muster-monitors-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let long_ago = std::time::SystemTime::now() - Duration::from_secs(5);
+        let make = |name: &str, old: bool| {
+            let f = std::fs::File::create(dir.join(name)).unwrap();
+            if old {
+                f.set_modified(long_ago).unwrap();
+            }
+        };
+        // Killed while dropped: state file gone, owner lock and context left, long ago.
+        make("iox2_11.node_monitor_owner_lock", true);
+        make("iox2_11.node_monitor_context", true);
+        // Killed with only the context left.
+        make("iox2_12.node_monitor_context", true);
+        // Alive: all three files.
+        for tail in ["", "_owner_lock", "_context"] {
+            make(&format!("iox2_13.node_monitor{tail}"), true);
+        }
+        // Being made right now: no state file yet, but young.
+        make("iox2_14.node_monitor_context", false);
+        // Something else entirely.
+        make("iox2_15.details", true);
+        assert_eq!(remove_half_removed_monitors(&dir), 2);
+        let mut left: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        assert_eq!(
+            left,
+            [
+                "iox2_13.node_monitor",
+                "iox2_13.node_monitor_context",
+                "iox2_13.node_monitor_owner_lock",
+                "iox2_14.node_monitor_context",
+                "iox2_15.details",
+            ]
+        );
+        assert_eq!(
+            remove_half_removed_monitors(&dir),
+            0,
+            "nothing more to take"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// A snapshot of `count` entries that all say which write they are (`quota`).
