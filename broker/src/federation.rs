@@ -90,6 +90,13 @@ const LIST_RETRY_MAX: Duration = Duration::from_secs(4);
 /// publication a peer missed (made before the peer's subscription was known here, so
 /// Zenoh sent it nowhere) reaches it then.
 const LIST_REFRESH: Duration = Duration::from_secs(2);
+/// A request out on another host that has had no answer (queued, granted or refused)
+/// this long is sent again, the wait doubling up to [`REQUEST_RETRY_MAX`]: a put made
+/// before Zenoh knew the peer's subscription went nowhere, and so did its answer if the
+/// way back was not known yet. The peer takes a repeat as the same request (its broker
+/// answers a pending one once, its system a granted one with the same session).
+const REQUEST_RETRY_FIRST: Duration = Duration::from_secs(1);
+const REQUEST_RETRY_MAX: Duration = Duration::from_secs(4);
 
 /// A list's version, sent as the Zenoh attachment of its publication and of the
 /// queryable's reply: Unix ns of the change, kept rising. A peer takes a list only if
@@ -478,6 +485,62 @@ pub struct FedStats {
     pub hosts_lost: u64,
     /// Local users' sessions on other hosts ended because the host left.
     pub sessions_lost: u64,
+    /// Requests sent to other hosts again, having had no answer.
+    pub requests_resent: u64,
+}
+
+/// Messages awaiting an answer, each sent again when its wait is over, the wait
+/// doubling from `first` up to `max`.
+struct Retries<K, M> {
+    first: Duration,
+    max: Duration,
+    /// key → (message, when it is next sent, the wait after that).
+    waiting: BTreeMap<K, (M, Instant, Duration)>,
+}
+
+impl<K: Ord + Clone, M: Clone> Retries<K, M> {
+    fn new(first: Duration, max: Duration) -> Self {
+        Retries {
+            first,
+            max,
+            waiting: BTreeMap::new(),
+        }
+    }
+
+    /// `msg` was sent for `key` at `now` (a new send starts the waits again).
+    fn sent(&mut self, key: K, msg: M, now: Instant) {
+        let next = (self.first * 2).min(self.max);
+        self.waiting.insert(key, (msg, now + self.first, next));
+    }
+
+    /// `key` has its answer: no more sends.
+    fn answered(&mut self, key: &K) {
+        self.waiting.remove(key);
+    }
+
+    /// Keeps only the keys `keep` says still wait.
+    fn retain(&mut self, mut keep: impl FnMut(&K) -> bool) {
+        self.waiting.retain(|k, _| keep(k));
+    }
+
+    /// When the next send is due.
+    fn next_due(&self) -> Option<Instant> {
+        self.waiting.values().map(|(_, t, _)| *t).min()
+    }
+
+    /// The messages due at `now`, in key order; each is due again after its next wait.
+    fn due(&mut self, now: Instant) -> Vec<(K, M)> {
+        let max = self.max;
+        self.waiting
+            .iter_mut()
+            .filter(|(_, (_, t, _))| *t <= now)
+            .map(|(k, (m, t, wait))| {
+                *t = now + *wait;
+                *wait = (*wait * 2).min(max);
+                (k.clone(), m.clone())
+            })
+            .collect()
+    }
 }
 
 /// What a Zenoh callback hands the broker's thread.
@@ -532,6 +595,8 @@ pub struct Federation {
     list_changed: bool,
     /// Requests of local users out on other hosts: (user, req) → host.
     outstanding: BTreeMap<(UserId, u64), String>,
+    /// Those of them with no answer yet, and when each is sent again.
+    unanswered: Retries<(UserId, u64), FedMsg>,
     /// Sessions of local users on other hosts: (user, session) → host.
     far: BTreeMap<(UserId, SessionId), String>,
     /// Inboxes of other hosts' systems (`system@host`), for local users' input and ends.
@@ -728,6 +793,7 @@ impl Federation {
             lists: BTreeMap::new(),
             list_changed: false,
             outstanding: BTreeMap::new(),
+            unanswered: Retries::new(REQUEST_RETRY_FIRST, REQUEST_RETRY_MAX),
             far: BTreeMap::new(),
             systems: BTreeMap::new(),
             foreign: BTreeMap::new(),
@@ -783,6 +849,7 @@ impl Federation {
             .iter()
             .map(|(t, _)| *t)
             .chain(self.list_asked.values().map(|(t, _)| *t))
+            .chain(self.unanswered.next_due())
             .chain(std::iter::once(self.next_refresh))
             .map(|t| t.saturating_duration_since(now))
             .min()
@@ -802,6 +869,15 @@ impl Federation {
             }
         }
         self.lingering.retain(|(t, _)| *t > now);
+        let outstanding = &self.outstanding;
+        self.unanswered.retain(|k| outstanding.contains_key(k));
+        for (key, msg) in self.unanswered.due(now) {
+            if let Some(host) = self.outstanding.get(&key).cloned() {
+                self.stats.requests_resent += 1;
+                tracing::debug!(user = %key.0, req = key.1, host, "federation: a request with no answer, sent again");
+                self.send(&host, &msg);
+            }
+        }
         let due: Vec<String> = self
             .list_asked
             .iter()
@@ -979,15 +1055,15 @@ impl Federation {
                 self.outstanding.insert((user.clone(), *req), host.clone());
                 self.stats.requests_out += 1;
                 let remote = contact(user, *req);
-                self.send(
-                    &host,
-                    &FedMsg::Request {
-                        user: user.clone(),
-                        req: *req,
-                        service: there,
-                        remote,
-                    },
-                );
+                let m = FedMsg::Request {
+                    user: user.clone(),
+                    req: *req,
+                    service: there,
+                    remote,
+                };
+                self.send(&host, &m);
+                self.unanswered
+                    .sent((user.clone(), *req), m, Instant::now());
                 true
             }
             ToBroker::Cancel { user, req } => {
@@ -1698,7 +1774,10 @@ impl Federation {
             {
                 return;
             }
-            m @ ToUser::Queued { .. } => m,
+            ToUser::Queued { req, position } => {
+                self.unanswered.answered(&(user.clone(), req));
+                ToUser::Queued { req, position }
+            }
             ToUser::Refused { req, reason } => {
                 self.outstanding.remove(&(user.clone(), req));
                 ToUser::Refused { req, reason }
@@ -2004,6 +2083,36 @@ mod tests {
         // The JSON is a valid Zenoh access_control section.
         let mut c = zenoh::Config::default();
         c.insert_json5("access_control", &z.to_string()).unwrap();
+    }
+
+    #[test]
+    fn unanswered_messages_are_sent_again_with_doubling_waits_until_answered() {
+        let ms = Duration::from_millis;
+        let t0 = Instant::now();
+        let mut r: Retries<u32, &str> = Retries::new(ms(1000), ms(4000));
+        assert_eq!(r.next_due(), None);
+        assert!(r.due(t0 + ms(10_000)).is_empty());
+        r.sent(1, "one", t0);
+        r.sent(2, "two", t0 + ms(500));
+        assert_eq!(r.next_due(), Some(t0 + ms(1000)));
+        assert!(r.due(t0 + ms(999)).is_empty(), "not before its wait");
+        assert_eq!(r.due(t0 + ms(1000)), [(1, "one")]);
+        // 1 waits 2 s now, 2 its first second.
+        assert_eq!(r.next_due(), Some(t0 + ms(1500)));
+        assert_eq!(r.due(t0 + ms(1500)), [(2, "two")]);
+        assert!(r.due(t0 + ms(2999)).is_empty());
+        assert_eq!(r.due(t0 + ms(3000)), [(1, "one")]);
+        // Then 4 s, and 4 s again (the cap).
+        assert_eq!(r.next_due(), Some(t0 + ms(3500)));
+        r.answered(&2);
+        assert_eq!(r.next_due(), Some(t0 + ms(7000)));
+        assert_eq!(r.due(t0 + ms(7000)), [(1, "one")]);
+        assert_eq!(r.next_due(), Some(t0 + ms(11_000)));
+        // Sent anew: the waits start again.
+        r.sent(1, "one again", t0 + ms(8000));
+        assert_eq!(r.due(t0 + ms(9000)), [(1, "one again")]);
+        r.retain(|k| *k != 1);
+        assert_eq!(r.next_due(), None);
     }
 
     #[test]

@@ -180,9 +180,16 @@ impl Fed {
                 // SAFETY: kill(2) on the child we started (not yet reaped: the waiting
                 // thread has not returned).
                 unsafe { libc::kill(pid, libc::SIGKILL) };
-                let _ = rx.recv_timeout(Duration::from_secs(5));
+                let said = match rx.recv_timeout(Duration::from_secs(5)) {
+                    Ok(Ok(out)) => format!(
+                        "; its stdout:\n{}\nits stderr:\n{}",
+                        String::from_utf8_lossy(&out.stdout),
+                        String::from_utf8_lossy(&out.stderr)
+                    ),
+                    _ => String::new(),
+                };
                 panic!(
-                    "`muster {}` did not finish within {timeout:?}",
+                    "`muster {}` did not finish within {timeout:?}{said}",
                     args.join(" ")
                 );
             }
