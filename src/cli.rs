@@ -21,6 +21,13 @@ pub struct Cli {
     /// and `muster up --hosts --netns` start brokers in theirs.
     #[arg(long, global = true, hide = true)]
     pub in_netns: Option<String>,
+    /// Scheduling niceness of this process, -20 (first) to 19 (last). The broker and
+    /// systems default to -5, so a host crowded with user processes still serves
+    /// them first (lowering it needs root, CAP_SYS_NICE or RLIMIT_NICE; without, they
+    /// stay at the niceness they were started with, and say so); other commands keep
+    /// theirs. `--nice 0` turns the boost off.
+    #[arg(long, global = true, allow_hyphen_values = true, value_parser = clap::value_parser!(i32).range(-20..=19))]
+    pub nice: Option<i32>,
     #[command(subcommand)]
     pub command: Command,
 }

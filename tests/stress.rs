@@ -131,6 +131,19 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
         "{:#}",
         r["per_hop"]
     );
+    // The requests sent in the first 10 s are a part of the relayed ones, on the same
+    // hops (this run lasts about 10 s: most of them).
+    assert_eq!(names("per_hop_first_10s"), names("per_hop"));
+    let early = r["per_hop_first_10s"][0]["latency"]["count"]
+        .as_u64()
+        .unwrap();
+    let relayed = r["per_hop"][0]["latency"]["count"].as_u64().unwrap();
+    assert!(early <= relayed && early > 0, "{early} of {relayed}");
+    assert!(
+        r["per_hop_whole_first_10s"]["count"].as_u64().unwrap() >= early,
+        "{:#}",
+        r["per_hop_whole_first_10s"]
+    );
     // The system's own copy is written for every grant to a local user.
     assert!(r["per_hop_own_copy"]["count"].as_u64().unwrap() >= stamped);
     // (Histograms keep 3 significant digits: a little room.)
@@ -182,4 +195,60 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
         "the red request-p99 line is drawn: {coloured} pixels"
     );
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The niceness of every thread of process `pid` (field 19 of `/proc/PID/task/TID/stat`).
+fn thread_niceness(pid: i32) -> Vec<i32> {
+    let mut out = Vec::new();
+    for task in std::fs::read_dir(format!("/proc/{pid}/task")).unwrap() {
+        let stat = std::fs::read_to_string(task.unwrap().path().join("stat")).unwrap();
+        // After the command's closing parenthesis come fields 3 onwards.
+        let rest = &stat[stat.rfind(')').unwrap() + 1..];
+        out.push(
+            rest.split_whitespace()
+                .nth(19 - 3)
+                .unwrap()
+                .parse()
+                .unwrap(),
+        );
+    }
+    out
+}
+
+#[test]
+fn the_broker_and_systems_run_ahead_of_user_processes_unless_told_otherwise() {
+    // Children start at the niceness of the thread that spawns them: this one's.
+    // SAFETY: getpriority(2) on the calling thread.
+    let started = unsafe { libc::getpriority(libc::PRIO_PROCESS, 0) };
+    // Whether this machine lets a process lower its niceness to -5 (root, CAP_SYS_NICE
+    // or RLIMIT_NICE): tried on a thread of our own that ends right after.
+    let may = std::thread::spawn(|| muster_shared::reactor::set_nice(-5).is_ok())
+        .join()
+        .unwrap();
+    let mut f = Fed::new("nice");
+    let broker = f.broker(&[]);
+    let calm = f.spawn(&["--nice", "4", "system", "synthetic", "--name", "calm"]);
+    let eager = f.system("eager", &[]);
+    f.wait_list(20 * SEC, |l| {
+        let names: std::collections::BTreeSet<&str> =
+            l.iter().filter_map(|s| s["system"].as_str()).collect();
+        names.contains("calm") && names.contains("eager")
+    });
+    let want = if may { -5 } else { started };
+    for (what, i, nice) in [
+        ("broker", broker, want),
+        ("eager", eager, want),
+        ("calm", calm, 4),
+    ] {
+        let pid = f.proc(i).pid();
+        let threads = thread_niceness(pid);
+        assert!(threads.len() > 1, "{what}: {threads:?}");
+        assert!(
+            threads.iter().all(|n| *n == nice),
+            "{what} (may lower: {may}): {threads:?}, want {nice}"
+        );
+    }
+    // A niceness out of range is refused before anything runs.
+    let (code, _) = f.run(&["--nice", "-21", "broker"], 10 * SEC);
+    assert_eq!(code, 2, "clap's usage error");
 }

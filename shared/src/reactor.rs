@@ -174,6 +174,30 @@ impl SignalPipe {
     }
 }
 
+/// Sets the calling thread's niceness (-20 first to 19 last); threads it starts later
+/// take it too (Linux keeps one per thread). Lowering it needs root, CAP_SYS_NICE or
+/// RLIMIT_NICE: without, the error says so and nothing changes.
+pub fn set_nice(nice: i32) -> io::Result<()> {
+    if !(-20..=19).contains(&nice) {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!("niceness {nice} is outside -20..=19"),
+        ));
+    }
+    // SAFETY: setpriority(2) on the calling thread (Linux: `who` 0 is the caller).
+    if unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, nice) } != 0 {
+        let e = io::Error::last_os_error();
+        return Err(match e.kind() {
+            io::ErrorKind::PermissionDenied => io::Error::new(
+                e.kind(),
+                format!("not permitted to set niceness {nice} (it needs root, CAP_SYS_NICE or RLIMIT_NICE): {e}"),
+            ),
+            _ => e,
+        });
+    }
+    Ok(())
+}
+
 /// Raises the soft RLIMIT_NOFILE to the hard limit (the broker holds a few fds per peer).
 /// Returns the new soft limit.
 pub fn raise_fd_limit() -> io::Result<u64> {
@@ -199,6 +223,26 @@ pub fn raise_fd_limit() -> io::Result<u64> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_threads_niceness_is_set_and_its_new_threads_take_it() {
+        let nice_now = || {
+            // SAFETY: getpriority(2) on the calling thread.
+            unsafe { libc::getpriority(libc::PRIO_PROCESS, 0) }
+        };
+        let (own, child) = std::thread::spawn(move || {
+            set_nice(7).unwrap();
+            let child = std::thread::spawn(nice_now).join().unwrap();
+            (nice_now(), child)
+        })
+        .join()
+        .unwrap();
+        assert_eq!((own, child), (7, 7));
+        assert_ne!(nice_now(), 7, "other threads keep theirs");
+        let e = set_nice(20).unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::InvalidInput, "{e}");
+        assert!(e.to_string().contains("-20..=19"), "{e}");
+    }
 
     #[test]
     fn a_stopped_process_is_told_from_a_running_one() {

@@ -61,12 +61,36 @@ pub(crate) fn say(line: &str) {
     }
 }
 
+/// The broker's and systems' niceness unless `--nice` says otherwise: ahead of user
+/// processes on a crowded host. Measured with `muster stress --users 900`, 20 s runs:
+/// service request p99 over the first 10 s (900 users starting) 36-50 ms in 3 of 4 runs
+/// at -5, against 167-589 ms in 4 of 4 at 0 (README, "Storms").
+pub const INFRASTRUCTURE_NICE: i32 = -5;
+
 /// Runs the parsed command.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     if let Some(ns) = &cli.in_netns {
         netns::enter(ns)?;
     }
     let inst = Instance::new(&cli.instance).context("--instance")?;
+    // Before any thread starts: Linux keeps a niceness per thread, and new threads
+    // take their creator's.
+    let infrastructure = matches!(cli.command, Command::Broker(_) | Command::System(_));
+    match (cli.nice, infrastructure) {
+        (Some(n), _) => {
+            if let Err(e) = muster_shared::reactor::set_nice(n) {
+                tracing::warn!("--nice {n}: {e}");
+            }
+        }
+        (None, true) => {
+            if let Err(e) = muster_shared::reactor::set_nice(INFRASTRUCTURE_NICE) {
+                tracing::info!(
+                    "running at the niceness started with, not {INFRASTRUCTURE_NICE}: {e}"
+                );
+            }
+        }
+        (None, false) => {}
+    }
     match cli.command {
         Command::Broker(a) => broker::run(&inst, a),
         Command::System(s) => system::run(&inst, s),

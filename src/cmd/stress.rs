@@ -381,7 +381,9 @@ struct PerHop {
     whole: Histogram<u64>,
 }
 
-fn per_hop(dir: &std::path::Path) -> PerHop {
+/// Per hop, of the requests whose user sent them at a time (CLOCK_MONOTONIC ns) that
+/// `sent_at` keeps.
+fn per_hop(dir: &std::path::Path, sent_at: impl Fn(u64) -> bool) -> PerHop {
     use muster_shared::trace::read_dir;
     let mut paths: HashMap<(String, u64), [Option<u64>; Stage::ALL.len()]> = HashMap::new();
     for (stage, user, req, ns) in read_dir(dir) {
@@ -403,6 +405,9 @@ fn per_hop(dir: &std::path::Path) -> PerHop {
     };
     let us = |from: u64, to: u64| ((to - from) / 1000).max(1);
     for stamps in paths.values() {
+        if !at(stamps, Stage::UserSend).is_some_and(&sent_at) {
+            continue;
+        }
         if let (Some(a), Some(b)) = (at(stamps, Stage::SystemSend), at(stamps, Stage::SystemSent)) {
             if b >= a {
                 let _ = out.own_copy.record(us(a, b));
@@ -530,7 +535,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .collect();
 
     // Aggregate.
-    let hops = per_hop(&trace_dir);
+    let hops = per_hop(&trace_dir, |_| true);
+    // The start-up storm's: requests sent in the first 10 s.
+    let early_end = (start_ms + 10_000) * 1_000_000;
+    let early_hops = per_hop(&trace_dir, |ns| ns < early_end);
     let _ = std::fs::remove_dir_all(&trace_dir);
     let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
     let mut termination = histogram();
@@ -624,6 +632,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "per_hop_direct": DIRECT_HOPS.iter().zip(&hops.direct).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
         "per_hop_own_copy": summary(&hops.own_copy),
         "per_hop_whole": summary(&hops.whole),
+        "per_hop_first_10s": RELAY_HOPS.iter().zip(&early_hops.relay).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
+        "per_hop_whole_first_10s": summary(&early_hops.whole),
     });
     if let Some(dir) = &a.report {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -694,6 +704,13 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             println!("{}", line("  system: its own copy written", &hops.own_copy));
         }
         println!("{}", line("  whole path (stamped)", &hops.whole));
+        if !early_hops.relay[0].is_empty() {
+            println!("  requests sent in the first 10 s, the broker's copy first:");
+            for (name, h) in RELAY_HOPS.iter().zip(&early_hops.relay) {
+                println!("{}", line(&format!("    {name}"), h));
+            }
+            println!("{}", line("    whole path (stamped)", &early_hops.whole));
+        }
         if let Some(h) = broker["handling"].as_object() {
             println!("\nbroker, time to handle (us):");
             for (kind, v) in h {
