@@ -69,6 +69,11 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
         }
         assert!(r[k]["count"].as_u64().unwrap() > 0, "{k}");
     }
+    // The requests made while users leave (from the second before the first left) are
+    // some of all of them: the users leave about 10 s in, and ask about every 2 s.
+    let leaving = r["service_request_leaving"]["count"].as_u64().unwrap();
+    let all = r["service_request"]["count"].as_u64().unwrap();
+    assert!(leaving > 0 && leaving < all, "{leaving} of {all}");
     // The per-hop breakdown: each granted request's stamps, joined across the user, the
     // broker and the system. A local user takes whichever copy of its grant comes first:
     // the broker's (relayed as soon as the system answered) or the system's own. Every

@@ -79,6 +79,24 @@ impl Timeline {
         (early, late)
     }
 
+    /// The requests sent from the second before the first user left to the end: the
+    /// leaving storm's (empty if nobody left).
+    fn leaving_requests(&self) -> Histogram<u64> {
+        let mut h = histogram();
+        let first_gone = self
+            .online
+            .iter()
+            .find(|(_, delta)| **delta < 0)
+            .map(|(s, _)| *s);
+        if let Some(gone) = first_gone {
+            // (A departure counts from the second after the user's last; see `add`.)
+            for (_, r) in self.request.range(gone.saturating_sub(2)..) {
+                let _ = h.add(r);
+            }
+        }
+        h
+    }
+
     fn to_json(&self) -> Value {
         // Up to the last sample or the last departure, whichever is later.
         let last = [&self.list, &self.request]
@@ -607,13 +625,14 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .value_at_quantile(0.5)
         .max(1) as f64;
     let (early, late) = timeline.split_requests(10);
+    let leaving = timeline.leaving_requests();
     let report = json!({
         "users": a.load.users, "services": a.load.services, "systems": a.load.systems,
         "duration_s": a.duration.as_secs_f64(), "run_s": run_time.as_secs_f64(),
         "errors": errors, "missing_user_reports": missing,
         "totals": totals, "system_grants": system_grants, "refusals": refusals, "over_quota": over_quota, "checks": checks,
         "list": summary(&list), "service_request": summary(&request),
-        "service_request_first_10s": summary(&early), "service_request_after_10s": summary(&late), "update": summary(&update), "termination": summary(&termination),
+        "service_request_first_10s": summary(&early), "service_request_after_10s": summary(&late), "service_request_leaving": summary(&leaving), "update": summary(&update), "termination": summary(&termination),
         "floor": summary(&floor),
         "floor_udp": if a.remote { summary(&floor_udp) } else { Value::Null },
         "transport": if a.remote { "udp" } else { "shm" },
@@ -687,6 +706,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         }
         println!("{}", line("service request, first 10 s", &early));
         println!("{}", line("service request, after 10 s", &late));
+        println!("{}", line("service request, users leaving", &leaving));
         println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
         if !hops.relay[0].is_empty() {
             println!("  the broker's copy of the grant first:");
