@@ -52,10 +52,13 @@ impl Navigation {
     }
 
     fn cell(&self, x: f64, y: f64) -> Option<usize> {
-        let i = ((x - self.origin.0) / NAV_CELL).floor();
-        let j = ((y - self.origin.1) / NAV_CELL).floor();
-        (i >= 0.0 && j >= 0.0 && (i as usize) < self.nx && (j as usize) < self.ny)
-            .then(|| j as usize * self.nx + i as usize)
+        crate::map::grid_cell(
+            (x - self.origin.0) / NAV_CELL,
+            (y - self.origin.1) / NAV_CELL,
+            self.nx,
+            self.ny,
+        )
+        .map(|(i, j)| j * self.nx + i)
     }
 
     fn centre(&self, k: usize) -> (f64, f64) {
