@@ -5,17 +5,9 @@
 
 mod common;
 
-use common::{find, ids, Fed, SEC};
+use common::{find, free_tcp_port, ids, Fed, SEC};
 use serde_json::Value;
 use std::time::Instant;
-
-/// A free loopback TCP port (bound and released).
-fn free_tcp_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|s| s.local_addr())
-        .map(|a| a.port())
-        .expect("a free TCP port")
-}
 
 /// Hosts of one federation, each its own instance; the first listens for the others.
 struct Hosts {

@@ -4,9 +4,11 @@
 #![allow(dead_code)]
 
 use serde_json::Value;
+use std::collections::BTreeSet;
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, ChildStdin, Command, Stdio};
 use std::sync::mpsc::{self, Receiver};
+use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 pub const BIN: &str = env!("CARGO_BIN_EXE_muster");
@@ -290,12 +292,36 @@ impl RemoteSetup {
     }
 }
 
+/// A port `bind` found free, never one this test process handed out before: the
+/// kernel may give a port just released to the next bind, and two brokers of one
+/// federation given the same port each found themselves there ("CONNECTION_TO_SELF").
+fn fresh_port(bind: impl Fn() -> std::io::Result<u16>) -> u16 {
+    static GIVEN: Mutex<BTreeSet<u16>> = Mutex::new(BTreeSet::new());
+    for _ in 0..1000 {
+        let port = bind().expect("a free port");
+        if GIVEN.lock().unwrap().insert(port) {
+            return port;
+        }
+    }
+    panic!("no port this process has not handed out already, in 1000 binds")
+}
+
 /// A free loopback UDP port (bound and released; tests run on loopback only).
 pub fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .and_then(|s| s.local_addr())
-        .map(|a| a.port())
-        .expect("a free UDP port")
+    fresh_port(|| {
+        std::net::UdpSocket::bind("127.0.0.1:0")
+            .and_then(|s| s.local_addr())
+            .map(|a| a.port())
+    })
+}
+
+/// A free loopback TCP port (bound and released), as [`free_udp_port`].
+pub fn free_tcp_port() -> u16 {
+    fresh_port(|| {
+        std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|s| s.local_addr())
+            .map(|a| a.port())
+    })
 }
 
 impl Fed {
