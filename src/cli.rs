@@ -24,8 +24,8 @@ pub struct Cli {
     /// Scheduling niceness of this process, -20 (first) to 19 (last). The broker and
     /// systems default to -5, so a host crowded with user processes still serves
     /// them first (lowering it needs root, CAP_SYS_NICE or RLIMIT_NICE; without, they
-    /// stay at the niceness they were started with, and say so); other commands keep
-    /// theirs. `--nice 0` turns the boost off.
+    /// keep the niceness they were started with, and say so at debug level); other
+    /// commands keep theirs. `--nice 0` turns the boost off.
     #[arg(long, global = true, allow_hyphen_values = true, value_parser = clap::value_parser!(i32).range(-20..=19))]
     pub nice: Option<i32>,
     #[command(subcommand)]

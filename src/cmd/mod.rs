@@ -83,8 +83,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             }
         }
         (None, true) => {
+            // Expected without privileges (a newcomer's `muster up`): quietly.
             if let Err(e) = muster_shared::reactor::set_nice(INFRASTRUCTURE_NICE) {
-                tracing::info!(
+                tracing::debug!(
                     "running at the niceness started with, not {INFRASTRUCTURE_NICE}: {e}"
                 );
             }
