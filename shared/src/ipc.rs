@@ -249,17 +249,26 @@ pub fn remove_stillborn_segments() -> usize {
             continue;
         }
         let Ok(meta) = entry.metadata() else { continue };
-        let old = meta
-            .modified()
-            .ok()
-            .and_then(|m| m.elapsed().ok())
-            .is_some_and(|age| age >= STILLBORN_AFTER);
-        if meta.is_file() && meta.len() == 0 && old && std::fs::remove_file(entry.path()).is_ok() {
+        if meta.is_file()
+            && meta.len() == 0
+            && old(&meta)
+            && std::fs::remove_file(entry.path()).is_ok()
+        {
             tracing::info!(segment = %entry.file_name().to_string_lossy(), "removed an empty segment its dead creator never sized");
             n += 1;
         }
     }
     n
+}
+
+/// Whether a file was last written at least [`STILLBORN_AFTER`] ago: what a live
+/// process makes and fills within microseconds is not taken for a dead one's leftover
+/// before then.
+fn old(meta: &std::fs::Metadata) -> bool {
+    meta.modified()
+        .ok()
+        .and_then(|m| m.elapsed().ok())
+        .is_some_and(|age| age >= STILLBORN_AFTER)
 }
 
 fn cleanup_after_inner(pid: Option<u32>) -> usize {
@@ -274,8 +283,7 @@ fn cleanup_after_inner(pid: Option<u32>) -> usize {
         n += cleanup_dead_nodes(Some(pid));
     }
     // The rest beside whatever the host is doing, never ahead of it.
-    // SAFETY: setpriority(2) on the calling thread (Linux: `who` 0 is the caller).
-    unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, 19) };
+    let _ = crate::reactor::set_nice(19);
     n + cleanup_dead_nodes(None)
 }
 
@@ -348,24 +356,25 @@ pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
 /// may not hold its monitor yet, is left alone.
 fn remove_detail_less_node(id: &str) {
     let nodes = std::path::Path::new(&iox2_root()).join("nodes");
-    let monitor = nodes.join(format!("iox2_{id}.node_monitor"));
-    let young = std::fs::metadata(&monitor)
-        .and_then(|m| m.modified())
-        .ok()
-        .and_then(|m| m.elapsed().ok())
-        .is_none_or(|age| age < STILLBORN_AFTER);
-    if young {
+    let monitor = nodes.join(format!("iox2_{id}{MONITOR}"));
+    if !std::fs::metadata(&monitor).as_ref().is_ok_and(old) {
         return;
     }
-    let _ = std::fs::remove_dir_all(nodes.join(id));
-    for suffix in [
-        "node_monitor",
-        "node_monitor_context",
-        "node_monitor_owner_lock",
-    ] {
-        let _ = std::fs::remove_file(nodes.join(format!("iox2_{id}.{suffix}")));
-    }
+    remove_node_files(&nodes, id);
     tracing::info!(node = id, "removed a dead node that was never finished");
+}
+
+/// A node's monitor state file is `iox2_<id>` and this, in our root's `nodes/`; its
+/// owner lock and context add [`MONITOR_TAILS`].
+const MONITOR: &str = ".node_monitor";
+const MONITOR_TAILS: [&str; 2] = ["_context", "_owner_lock"];
+
+/// Removes whatever is left of node `id` in `nodes`: its folder and its monitor's files.
+fn remove_node_files(nodes: &std::path::Path, id: &str) {
+    let _ = std::fs::remove_dir_all(nodes.join(id));
+    for tail in std::iter::once("").chain(MONITOR_TAILS) {
+        let _ = std::fs::remove_file(nodes.join(format!("iox2_{id}{MONITOR}{tail}")));
+    }
 }
 
 /// Removes the monitor files of nodes whose state file is gone, in `nodes` (our root's
@@ -376,34 +385,27 @@ fn remove_detail_less_node(id: &str) {
 /// microseconds while it is made or dropped, so only files older than [`STILLBORN_AFTER`]
 /// are taken. Returns how many nodes' leftovers were removed.
 fn remove_half_removed_monitors(nodes: &std::path::Path) -> usize {
-    const STATE: &str = ".node_monitor";
     let Ok(dir) = std::fs::read_dir(nodes) else {
         return 0;
     };
     let mut orphans = std::collections::BTreeSet::new();
     for entry in dir.flatten() {
         let name = entry.file_name().to_string_lossy().into_owned();
-        let Some(id) = ["_context", "_owner_lock"]
+        let Some(id) = MONITOR_TAILS
             .iter()
-            .find_map(|tail| name.strip_suffix(&format!("{STATE}{tail}")))
+            .find_map(|tail| name.strip_suffix(&format!("{MONITOR}{tail}")))
             .and_then(|stem| stem.strip_prefix("iox2_"))
         else {
             continue;
         };
-        let old = entry
-            .metadata()
-            .and_then(|m| m.modified())
-            .ok()
-            .and_then(|m| m.elapsed().ok())
-            .is_some_and(|age| age >= STILLBORN_AFTER);
-        if old && !nodes.join(format!("iox2_{id}{STATE}")).exists() {
+        if entry.metadata().as_ref().is_ok_and(old)
+            && !nodes.join(format!("iox2_{id}{MONITOR}")).exists()
+        {
             orphans.insert(id.to_string());
         }
     }
     for id in &orphans {
-        for tail in ["_context", "_owner_lock"] {
-            let _ = std::fs::remove_file(nodes.join(format!("iox2_{id}{STATE}{tail}")));
-        }
+        remove_node_files(nodes, id);
         tracing::info!(node = %id, "removed what a node killed while it was dropped left");
     }
     orphans.len()
