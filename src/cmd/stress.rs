@@ -399,12 +399,14 @@ struct PerHop {
     whole: Histogram<u64>,
 }
 
-/// Per hop, of the requests whose user sent them at a time (CLOCK_MONOTONIC ns) that
-/// `sent_at` keeps.
-fn per_hop(dir: &std::path::Path, sent_at: impl Fn(u64) -> bool) -> PerHop {
-    use muster_shared::trace::read_dir;
-    let mut paths: HashMap<(String, u64), [Option<u64>; Stage::ALL.len()]> = HashMap::new();
-    for (stage, user, req, ns) in read_dir(dir) {
+/// Each stamped request's stamps (CLOCK_MONOTONIC ns), by stage in [`Stage::ALL`]'s
+/// order.
+type Stamps = HashMap<(String, u64), [Option<u64>; Stage::ALL.len()]>;
+
+/// The stamps every process wrote to `dir`, joined by user and request.
+fn read_stamps(dir: &std::path::Path) -> Stamps {
+    let mut paths = Stamps::new();
+    for (stage, user, req, ns) in muster_shared::trace::read_dir(dir) {
         let i = Stage::ALL.iter().position(|s| *s == stage).unwrap_or(0);
         let slot = &mut paths.entry((user, req)).or_default()[i];
         // A request sent again (UDP) keeps its first stamps.
@@ -412,6 +414,39 @@ fn per_hop(dir: &std::path::Path, sent_at: impl Fn(u64) -> bool) -> PerHop {
             *slot = Some(ns);
         }
     }
+    paths
+}
+
+/// A path's hops for the JSON report: each name with its latency summary.
+fn hops_json(names: &[&str], hops: &[Histogram<u64>]) -> Vec<Value> {
+    names
+        .iter()
+        .zip(hops)
+        .map(|(name, h)| json!({"hop": name, "latency": summary(h)}))
+        .collect()
+}
+
+/// Prints a path's hops under `title` (each as `line` makes it), if any request took
+/// it; says whether one did.
+fn print_hops(
+    title: &str,
+    names: &[&str],
+    hops: &[Histogram<u64>],
+    line: impl Fn(&str, &Histogram<u64>) -> String,
+) -> bool {
+    if hops[0].is_empty() {
+        return false;
+    }
+    println!("  {title}:");
+    for (name, h) in names.iter().zip(hops) {
+        println!("{}", line(&format!("    {name}"), h));
+    }
+    true
+}
+
+/// Per hop, of the requests whose user sent them at a time (CLOCK_MONOTONIC ns) that
+/// `sent_at` keeps.
+fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
     let at = |stamps: &[Option<u64>; Stage::ALL.len()], s: Stage| {
         stamps[Stage::ALL.iter().position(|x| *x == s).unwrap_or(0)]
     };
@@ -553,10 +588,12 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .collect();
 
     // Aggregate.
-    let hops = per_hop(&trace_dir, |_| true);
+    let stamps = read_stamps(&trace_dir);
+    let hops = per_hop(&stamps, |_| true);
     // The start-up storm's: requests sent in the first 10 s.
     let early_end = (start_ms + 10_000) * 1_000_000;
-    let early_hops = per_hop(&trace_dir, |ns| ns < early_end);
+    let early_hops = per_hop(&stamps, |ns| ns < early_end);
+    drop(stamps);
     let _ = std::fs::remove_dir_all(&trace_dir);
     let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
     let mut termination = histogram();
@@ -647,11 +684,11 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             "termination": termination.value_at_quantile(0.5) as f64 / floor_base_p50,
         },
         "broker": broker,
-        "per_hop": RELAY_HOPS.iter().zip(&hops.relay).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
-        "per_hop_direct": DIRECT_HOPS.iter().zip(&hops.direct).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
+        "per_hop": hops_json(&RELAY_HOPS, &hops.relay),
+        "per_hop_direct": hops_json(&DIRECT_HOPS, &hops.direct),
         "per_hop_own_copy": summary(&hops.own_copy),
         "per_hop_whole": summary(&hops.whole),
-        "per_hop_first_10s": RELAY_HOPS.iter().zip(&early_hops.relay).map(|(name, h)| json!({"hop": name, "latency": summary(h)})).collect::<Vec<_>>(),
+        "per_hop_first_10s": hops_json(&RELAY_HOPS, &early_hops.relay),
         "per_hop_whole_first_10s": summary(&early_hops.whole),
     });
     if let Some(dir) = &a.report {
@@ -708,27 +745,28 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", line("service request, after 10 s", &late));
         println!("{}", line("service request, users leaving", &leaving));
         println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
-        if !hops.relay[0].is_empty() {
-            println!("  the broker's copy of the grant first:");
-            for (name, h) in RELAY_HOPS.iter().zip(&hops.relay) {
-                println!("{}", line(&format!("    {name}"), h));
-            }
-        }
-        if !hops.direct[0].is_empty() {
-            println!("  the system's own copy first:");
-            for (name, h) in DIRECT_HOPS.iter().zip(&hops.direct) {
-                println!("{}", line(&format!("    {name}"), h));
-            }
-        }
+        print_hops(
+            "the broker's copy of the grant first",
+            &RELAY_HOPS,
+            &hops.relay,
+            line,
+        );
+        print_hops(
+            "the system's own copy first",
+            &DIRECT_HOPS,
+            &hops.direct,
+            line,
+        );
         if !hops.own_copy.is_empty() {
             println!("{}", line("  system: its own copy written", &hops.own_copy));
         }
         println!("{}", line("  whole path (stamped)", &hops.whole));
-        if !early_hops.relay[0].is_empty() {
-            println!("  requests sent in the first 10 s, the broker's copy first:");
-            for (name, h) in RELAY_HOPS.iter().zip(&early_hops.relay) {
-                println!("{}", line(&format!("    {name}"), h));
-            }
+        if print_hops(
+            "requests sent in the first 10 s, the broker's copy first",
+            &RELAY_HOPS,
+            &early_hops.relay,
+            line,
+        ) {
             println!("{}", line("    whole path (stamped)", &early_hops.whole));
         }
         if let Some(h) = broker["handling"].as_object() {
