@@ -406,8 +406,9 @@ impl OccupancyMap {
         out.resize(dirs.len(), max);
         let inv_res = 1.0 / self.resolution;
         let (px, py) = ((x - self.origin.0) * inv_res, (y - self.origin.1) * inv_res);
-        let inside = px >= 0.0 && py >= 0.0 && px < self.width as f64 && py < self.height as f64;
-        if !inside || self.occupied[py as usize * self.width + px as usize] {
+        let free = grid_cell(px, py, self.width, self.height)
+            .is_some_and(|(i, j)| !self.occupied[j * self.width + i]);
+        if !free {
             // Outside the map or inside a wall: every ray ends where it starts.
             out.fill(0.0);
             return;
@@ -506,10 +507,9 @@ impl Ray {
         self.turns -= 1;
         let t = self.t;
         let (px, py) = (self.gx + self.dx * t, self.gy + self.dy * t);
-        if !(px >= 0.0 && py >= 0.0 && px < map.width as f64 && py < map.height as f64) {
+        let Some((i, j)) = grid_cell(px, py, map.width, map.height) else {
             return Some(Some(t * map.resolution)); // the map's edge counts as a wall
-        }
-        let (i, j) = (px as usize, py as usize);
+        };
         // Every cell of the coarse block is at least this far from a wall.
         let c = f64::from(map.coarse[(j / COARSE) * map.coarse_x + i / COARSE]);
         if c > NEAR {
@@ -534,11 +534,11 @@ impl Ray {
     }
 }
 
-#[inline]
 /// The cell (column, row) at grid coordinates `(u, v)` (in cells from the origin) on
 /// a `w` × `h` grid, if on it; NaN is off it. The same as flooring both and checking
 /// the bounds, without `floor`, a library call on x86-64's baseline: for a coordinate
 /// not below zero truncation is the floor, and one too large to fit saturates.
+#[inline]
 pub(crate) fn grid_cell(u: f64, v: f64, w: usize, h: usize) -> Option<(usize, usize)> {
     if !(u >= 0.0 && v >= 0.0) {
         return None;
@@ -547,6 +547,7 @@ pub(crate) fn grid_cell(u: f64, v: f64, w: usize, h: usize) -> Option<(usize, us
     (i < w && j < h).then_some((i, j))
 }
 
+#[inline]
 fn tile_index(tiles_x: usize, i: usize, j: usize) -> usize {
     ((j / TILE) * tiles_x + i / TILE) * (TILE * TILE) + (j % TILE) * TILE + i % TILE
 }
