@@ -161,7 +161,7 @@ impl Net {
 
     fn add_system(&mut self, opts: SyntheticOptions) {
         let k = self.systems.len();
-        let mut core = SystemCore::new(&opts.name, 100 + k as u32, opts.specs(), 9);
+        let mut core = SystemCore::new(&opts.name, 100 + k as u32, opts.specs());
         let udp: SocketAddr = format!("10.0.1.{}:9000", k + 1).parse().unwrap();
         core.set_udp(Some(udp.to_string()));
         core.register();

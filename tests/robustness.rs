@@ -220,6 +220,7 @@ fn a_local_process_can_speak_only_as_itself() {
     // And it offers itself t1's only s1 session, past arbitration, as if it were the broker.
     let offer = muster_shared::protocol::ToSystem::Offer {
         ticket: 1,
+        session: muster_shared::types::SessionId(1),
         user: UserId("mallory".into()),
         user_pid: std::process::id(),
         req: 1,

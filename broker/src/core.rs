@@ -8,11 +8,13 @@
 
 use muster_shared::protocol::{
     ActiveSession, BrokerEvent, BrokerStatus, LinkInfo, Operation, QueueStatus, SessionDigest,
-    SessionStatus, SystemStatus, ToBroker, ToSystem, ToUser, UserStatus, MAX_STATUS_ROWS,
+    SessionLimit, SessionStatus, SystemStatus, ToBroker, ToSystem, ToUser, UserStatus,
+    MAX_STATUS_ROWS,
 };
 use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
 use muster_shared::types::{
-    validate_registration, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId, UserId,
+    validate_registration, EndReason, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId,
+    UserId,
 };
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Duration;
@@ -89,8 +91,8 @@ pub enum Output {
     },
     /// Stop watching the user; forget its ports.
     ForgetUser(UserId),
-    /// A system granted a user's request (the system told a local user itself; the
-    /// shell tells remote users).
+    /// The broker granted a user's request (its system was sent the offer just before):
+    /// the shell tells the user, over shared memory, UDP or the federation.
     Granted {
         /// The user.
         user: UserId,
@@ -139,8 +141,11 @@ pub struct BrokerStats {
     pub requests: u64,
     /// Requests forwarded to systems (immediately or from a queue).
     pub offers: u64,
-    /// Grants reported by systems.
+    /// Requests granted.
     pub grants: u64,
+    /// Grants ended because their system could not take them (it refused, did not
+    /// answer, or went) before confirming.
+    pub grants_undone: u64,
     /// Refusals by reason code.
     pub refusals: BTreeMap<&'static str, u64>,
     /// Requests queued.
@@ -163,6 +168,8 @@ struct SystemRec {
     sessions: BTreeMap<SessionId, (String, UserId)>,
     /// When it last answered a ping (or registered).
     last_answer: Duration,
+    /// Its own limit over all its services, if it set one ([`ToBroker::Limit`]).
+    limit: Option<SessionLimit>,
 }
 
 #[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug, Clone, PartialEq, Eq)]
@@ -200,6 +207,8 @@ struct Offer {
     user: UserId,
     req: u64,
     service: ServiceId,
+    /// The session granted.
+    session: SessionId,
     deadline: Duration,
 }
 
@@ -390,12 +399,16 @@ impl Broker {
                 });
             }
         }
+        // Grants the last primary made that their systems have not confirmed: the
+        // offer and the grant again (it may have died between the two). Both sides take
+        // a repeat as the same session.
         let tickets: Vec<u64> = self.offers.keys().copied().collect();
         for ticket in tickets {
             if let Some(o) = self.offers.get_mut(&ticket) {
                 o.deadline = now + self.cfg.offer_timeout;
             }
             self.send_offer(ticket);
+            self.send_grant(ticket);
         }
         self.list_dirty = true;
     }
@@ -533,6 +546,7 @@ impl Broker {
             }
             ToBroker::Pong { system, .. }
             | ToBroker::OfferAnswer { system, .. }
+            | ToBroker::Limit { system, .. }
             | ToBroker::SessionEnded { system, .. }
             | ToBroker::Withdraw { system, .. }
             | ToBroker::Restore { system, .. }
@@ -584,6 +598,7 @@ impl Broker {
                 let id = ServiceId::new(&system, &service);
                 self.dispatch_queue(now, &id);
             }
+            ToBroker::Limit { system, limit } => self.set_limit(now, &system, limit),
             ToBroker::Unregister { system } => {
                 if self.systems.contains_key(&system) {
                     self.remove_system(&system, Removal::Unregistered);
@@ -808,7 +823,18 @@ impl Broker {
         for ticket in expired {
             if let Some(offer) = self.offers.remove(&ticket) {
                 self.release_pending(&offer.service);
-                self.refuse(&offer.user, offer.req, Refusal::SystemGone);
+                // It may yet open the session: it is told to end it.
+                if let Some(svc) = self.services.get(&offer.service) {
+                    self.out.push_back(Output::ToSystem(
+                        svc.system.clone(),
+                        ToSystem::Terminate {
+                            session: offer.session,
+                            reason: "not confirmed in time".into(),
+                        },
+                    ));
+                }
+                let reason = EndReason::BySystem("the system did not answer".into());
+                self.undo_grant(&offer, reason);
                 self.dispatch_queue(now, &offer.service);
             }
         }
@@ -904,6 +930,7 @@ impl Broker {
             awaiting: None,
             sessions: BTreeMap::new(),
             last_answer: now,
+            limit: None,
         };
         for spec in services {
             let id = ServiceId::new(&system, &spec.name);
@@ -1016,54 +1043,102 @@ impl Broker {
             );
             return;
         }
-        let offer = self.offers.remove(&ticket);
-        if let Some(o) = &offer {
-            self.release_pending(&o.service);
-        }
+        // A late answer (the offer timed out, its user was told and the system told to
+        // end the session) changes nothing.
+        let Some(o) = self.offers.remove(&ticket) else {
+            return;
+        };
+        self.release_pending(&o.service);
         match answer {
             Ok(session) => {
-                self.stats.grants += 1;
-                // A late grant (the offer timed out) is not counted: its user was refused
-                // and ends the session on sight.
-                let Some(o) = &offer else { return };
                 muster_shared::trace::stamp(
                     muster_shared::trace::Stage::BrokerAnswer,
                     &o.user,
                     o.req,
                 );
-                let (service, user) = (o.service.clone(), o.user.clone());
+                if session != o.session {
+                    // It holds this request under another number (opened before this
+                    // broker's rule): its set is the truth, and the user's grant is void.
+                    tracing::warn!(
+                        system,
+                        granted = %o.session,
+                        held = %session,
+                        "a grant confirmed under another session"
+                    );
+                    self.undo_grant(
+                        &o,
+                        EndReason::BySystem("the system holds this request under another session".into()),
+                    );
+                }
                 if let (Some(svc), Some(sys)) = (
-                    self.services.get_mut(&service),
+                    self.services.get_mut(&o.service),
                     self.systems.get_mut(system),
                 ) {
                     svc.sessions.insert(session);
                     sys.sessions
-                        .insert(session, (svc.spec.name.clone(), user.clone()));
-                    push_event(&mut self.events, || BrokerEvent::Granted {
-                        user: user.clone(),
-                        req: o.req,
-                        service: service.clone(),
-                        session,
-                    });
-                    self.out.push_back(Output::Granted {
-                        user,
-                        req: o.req,
-                        session,
-                        kind: svc.spec.kind,
-                        payload: svc.spec.payload.clone(),
-                        service,
-                        system_pid: sys.pid,
-                    });
+                        .insert(session, (svc.spec.name.clone(), o.user.clone()));
                 }
                 self.list_dirty = true;
             }
             Err(reason) => {
-                if let Some(o) = offer {
-                    self.refuse(&o.user, o.req, Refusal::SystemRefused(reason));
-                    self.dispatch_queue(now, &o.service);
-                }
+                self.undo_grant(&o, EndReason::BySystem(reason));
+                self.dispatch_queue(now, &o.service);
             }
         }
+    }
+
+    /// Ends a grant its system did not take: the user is told why.
+    fn undo_grant(&mut self, o: &Offer, reason: EndReason) {
+        self.stats.grants_undone += 1;
+        self.ev(|| BrokerEvent::SessionEnded {
+            service: o.service.clone(),
+            session: o.session,
+        });
+        self.out.push_back(Output::ToUser(
+            o.user.clone(),
+            ToUser::Ended {
+                session: o.session,
+                reason,
+            },
+        ));
+    }
+
+    /// A system's own limit over all its services: requests beyond it are refused here,
+    /// with its reason; sessions it holds beyond it go on.
+    fn set_limit(&mut self, now: Duration, system: &str, limit: Option<SessionLimit>) {
+        let Some(sys) = self.systems.get_mut(system) else {
+            return;
+        };
+        let raised = match (&sys.limit, &limit) {
+            (_, None) => true,
+            (None, Some(_)) => false,
+            (Some(a), Some(b)) => b.sessions > a.sessions,
+        };
+        sys.limit = limit;
+        if raised {
+            let ids: Vec<ServiceId> = sys
+                .services
+                .iter()
+                .map(|n| ServiceId::new(system, n))
+                .collect();
+            for id in ids {
+                self.dispatch_queue(now, &id);
+            }
+        }
+    }
+
+    /// Why `system` takes no more sessions now, if its own limit is reached (its
+    /// sessions and the grants it has not confirmed yet).
+    fn over_limit(&self, system: &str) -> Option<String> {
+        let sys = self.systems.get(system)?;
+        let limit = sys.limit.as_ref()?;
+        let unconfirmed = sys
+            .services
+            .iter()
+            .filter_map(|n| self.services.get(&ServiceId::new(system, n)))
+            .map(|s| s.pending as usize)
+            .sum::<usize>();
+        (sys.sessions.len() + unconfirmed >= limit.sessions as usize).then(|| limit.reason.clone())
     }
 
     /// Makes the broker's sessions of `system` the system's own set: sessions it no
@@ -1125,7 +1200,20 @@ impl Broker {
             session,
         });
         self.list_dirty = true;
+        // A system with a limit of its own over all its services frees a place for any.
+        let others: Vec<ServiceId> = match self.systems.get(system) {
+            Some(s) if s.limit.is_some() => s
+                .services
+                .iter()
+                .map(|n| ServiceId::new(system, n))
+                .filter(|o| *o != id)
+                .collect(),
+            _ => Vec::new(),
+        };
         self.dispatch_queue(now, &id);
+        for o in others {
+            self.dispatch_queue(now, &o);
+        }
     }
 
     fn set_withdrawn(&mut self, system: &str, service: &str, withdrawn: bool) {
@@ -1211,12 +1299,13 @@ impl Broker {
                 .push_back(Output::ToUser(user, ToUser::Queued { req, position }));
             return;
         }
-        if self
+        if let Some(ticket) = self
             .offers
-            .values()
-            .any(|o| o.user == user && o.req == req && o.service == service)
+            .iter()
+            .find(|(_, o)| o.user == user && o.req == req && o.service == service)
+            .map(|(t, _)| *t)
         {
-            return;
+            return self.send_grant(ticket);
         }
         let already = svc.queue.iter().any(|w| w.user == user)
             || self
@@ -1256,25 +1345,46 @@ impl Broker {
             .push_back(Output::ToUser(user, ToUser::Queued { req, position }));
     }
 
+    /// Grants `req` of `user` for `service` (its quota has room): the system is sent the
+    /// offer first, so the user's first input or end reaches it after the offer, and
+    /// then the user its grant. The system confirms or, rarely, cannot take it after all
+    /// ([`Broker::undo_grant`]).
     fn offer(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
-        let Some(svc) = self.services.get_mut(&service) else {
+        let Some(svc) = self.services.get(&service) else {
             return self.refuse(&user, req, Refusal::Unknown);
         };
+        if let Some(reason) = self.over_limit(&svc.system) {
+            self.refuse(&user, req, Refusal::SystemRefused(reason));
+            return;
+        }
+        let svc = self.services.get_mut(&service).expect("checked above");
         svc.pending += 1;
         let ticket = self.next_ticket;
         self.next_ticket += 1;
+        let session = SessionId::for_request(&service, &user, req);
         self.offers.insert(
             ticket,
             Offer {
                 user,
                 req,
                 service,
+                session,
                 deadline: now + self.cfg.offer_timeout,
             },
         );
         self.stats.offers += 1;
+        self.stats.grants += 1;
         self.list_dirty = true;
         self.send_offer(ticket);
+        self.send_grant(ticket);
+        if let Some(o) = self.offers.get(&ticket) {
+            push_event(&mut self.events, || BrokerEvent::Granted {
+                user: o.user.clone(),
+                req: o.req,
+                service: o.service.clone(),
+                session: o.session,
+            });
+        }
     }
 
     /// Sends offer `ticket` to its system.
@@ -1290,6 +1400,7 @@ impl Broker {
             svc.system.clone(),
             ToSystem::Offer {
                 ticket,
+                session: o.session,
                 user: o.user.clone(),
                 user_pid,
                 req: o.req,
@@ -1297,6 +1408,26 @@ impl Broker {
                 remote: None,
             },
         ));
+    }
+
+    /// Tells offer `ticket`'s user of its grant.
+    fn send_grant(&mut self, ticket: u64) {
+        let Some(o) = self.offers.get(&ticket) else {
+            return;
+        };
+        let Some(svc) = self.services.get(&o.service) else {
+            return;
+        };
+        let system_pid = self.systems.get(&svc.system).map_or(0, |s| s.pid);
+        self.out.push_back(Output::Granted {
+            user: o.user.clone(),
+            req: o.req,
+            session: o.session,
+            kind: svc.spec.kind,
+            payload: svc.spec.payload.clone(),
+            service: o.service.clone(),
+            system_pid,
+        });
     }
 
     fn cancel(&mut self, now: Duration, user: &UserId, req: u64) {
@@ -1336,12 +1467,19 @@ impl Broker {
     fn dispatch_queue(&mut self, now: Duration, id: &ServiceId) {
         let mut moved = false;
         loop {
-            let Some(svc) = self.services.get_mut(id) else {
+            let Some(svc) = self.services.get(id) else {
                 return;
             };
             if svc.withdrawn || svc.used() >= svc.spec.quota as usize {
                 break;
             }
+            // Waiting requests wait out their system's own limit too.
+            if self.over_limit(&svc.system).is_some() {
+                break;
+            }
+            let Some(svc) = self.services.get_mut(id) else {
+                return;
+            };
             let Some(w) = svc.queue.pop_front() else {
                 break;
             };
@@ -1404,7 +1542,12 @@ impl Broker {
             .collect();
         for t in stale {
             if let Some(o) = self.offers.remove(&t) {
-                self.refuse(&o.user, o.req, why.clone());
+                let reason = match &why {
+                    Refusal::Withdrawn => EndReason::Withdrawn,
+                    Refusal::SystemGone => EndReason::PeerGone,
+                    other => EndReason::BySystem(other.to_string()),
+                };
+                self.undo_grant(&o, reason);
             }
         }
         self.list_dirty = true;

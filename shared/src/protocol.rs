@@ -201,6 +201,25 @@ pub struct RemoteContact {
     pub key: [u8; 32],
 }
 
+/// A system's limit on its sessions over all its services ([`ToBroker::Limit`]).
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Debug,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+)]
+pub struct SessionLimit {
+    /// Sessions it takes at once (0: none for now).
+    pub sessions: u32,
+    /// Why no more, as users are told (e.g. "overloaded").
+    pub reason: String,
+}
+
 /// A link a user runs, reported to the broker so that it is visible.
 #[derive(
     rkyv::Archive,
@@ -301,6 +320,16 @@ mod to_broker {
             system: String,
             /// Service name.
             service: String,
+        },
+        /// How many sessions the system takes at once over all its services, and why no
+        /// more (`None`: no limit of its own, only its services' quotas). Sent after each
+        /// registration and whenever it changes: the broker refuses requests beyond it
+        /// itself, with this reason, as the system would.
+        Limit {
+            /// System name.
+            system: String,
+            /// The limit.
+            limit: Option<SessionLimit>,
         },
         /// The system leaves on purpose.
         Unregister {
@@ -554,6 +583,7 @@ impl ToBroker {
             ToBroker::SessionEnded { .. } => "session_ended",
             ToBroker::Withdraw { .. } => "withdraw",
             ToBroker::Restore { .. } => "restore",
+            ToBroker::Limit { .. } => "limit",
             ToBroker::Unregister { .. } => "unregister",
             ToBroker::Hello { .. } => "hello",
             ToBroker::Request { .. } => "request",
@@ -591,10 +621,16 @@ pub enum ToSystem {
     /// The broker's sessions of this system differ from the system's digest: send them
     /// all ([`ToBroker::Sessions`]).
     ReportSessions,
-    /// A user's request the broker forwards; answer with [`ToBroker::OfferAnswer`].
+    /// A user's request the broker granted: open session `session` for it. The broker
+    /// told the user right after sending this, so the user's first input or end comes
+    /// after it. Answer with [`ToBroker::OfferAnswer`]: `Ok(session)` confirms;
+    /// `Err(reason)` (the system cannot take it after all) makes the broker end the
+    /// user's session with that reason.
     Offer {
         /// Echo this.
         ticket: u64,
+        /// The session the broker granted ([`SessionId::for_request`]).
+        session: SessionId,
         /// The requesting user.
         user: UserId,
         /// The user's process id (0 if unknown), watched for death.
@@ -660,7 +696,10 @@ pub enum ToUser {
         /// Why.
         reason: Refusal,
     },
-    /// Sent by the system: the session is granted; updates follow on this inbox.
+    /// The session is granted; updates follow on this inbox. The broker sends it as
+    /// it grants (`relayed`), over its port open since the hello; the system's own
+    /// copy (not `relayed`) comes only where the system must set the session up with
+    /// the user itself (a remote user's UDP path).
     Granted {
         /// Request number.
         req: u64,
@@ -674,10 +713,7 @@ pub enum ToUser {
         payload: String,
         /// The system's process id, watched for death.
         system_pid: u32,
-        /// Sent by the broker on the system's behalf, as soon as the system answered
-        /// its offer. A local user gets two copies: this one, over the broker's port
-        /// (open since its hello), and the system's own, which may wait for the
-        /// system's first ports to this user and comes before any update.
+        /// Sent by the broker, which decides ([`ToSystem::Offer`]).
         #[serde(default)]
         relayed: bool,
     },
@@ -702,7 +738,8 @@ pub enum ToUser {
         /// The status.
         status: TaskStatus,
     },
-    /// Sent by the system: the session ended.
+    /// The session ended. Sent by the system; or by the broker, for a session it
+    /// granted that the system could not take or did not answer for.
     Ended {
         /// The session.
         session: SessionId,

@@ -230,7 +230,8 @@ impl fmt::Display for ServiceId {
     }
 }
 
-/// A one-to-one session, numbered by the system that granted it (unique per system process).
+/// A one-to-one session, numbered by the broker that granted it after the request it
+/// grants ([`SessionId::for_request`]).
 #[derive(
     rkyv::Archive,
     rkyv::Serialize,
@@ -248,6 +249,27 @@ impl fmt::Display for ServiceId {
 )]
 #[rkyv(derive(PartialEq, Eq, PartialOrd, Ord))]
 pub struct SessionId(pub u64);
+
+impl SessionId {
+    /// The session that grants request `req` of `user` for `service`: the first 8 bytes
+    /// of a SHA-256 over the three. A request granted again (a retry that crossed a
+    /// broker's restart or takeover, or a standby that took over) gets the same session
+    /// from any broker, so its system opens it once; and no request can be shaped to
+    /// take another's number.
+    pub fn for_request(service: &ServiceId, user: &UserId, req: u64) -> SessionId {
+        use sha2::Digest;
+        let mut h = sha2::Sha256::new();
+        for part in [service.0.as_bytes(), user.0.as_bytes()] {
+            h.update((part.len() as u64).to_le_bytes());
+            h.update(part);
+        }
+        h.update(req.to_le_bytes());
+        let d = h.finalize();
+        let mut first = [0u8; 8];
+        first.copy_from_slice(&d[..8]);
+        SessionId(u64::from_le_bytes(first))
+    }
+}
 
 impl fmt::Display for SessionId {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {

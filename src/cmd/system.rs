@@ -33,7 +33,7 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
             }
             let specs = opts.specs();
             validate_registration(&opts.name, &specs)?;
-            let core = SystemCore::new(&opts.name, std::process::id(), specs, salt());
+            let core = SystemCore::new(&opts.name, std::process::id(), specs);
             let run = muster_systems::RunOptions { udp: a.udp };
             let core = muster_systems::run_system_with(inst, core, Synthetic::new(&opts), &run)?;
             if a.stats_json {
@@ -47,13 +47,6 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
         SystemCommand::Tracking(a) => tracking(inst, a),
         SystemCommand::Delivery(a) => delivery(inst, a),
     }
-}
-
-fn salt() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_nanos() as u64)
-        .unwrap_or(0)
 }
 
 /// The scenario and map a robot system shares with the simulator.
@@ -134,7 +127,7 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
     let links = open_links(&node, inst.as_str(), &robots, a.common.wait_sim)?;
     let mut app = TrackingApp::new(&scenario, map, links, &opts)?;
     show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
-    let core = SystemCore::new(&a.name, std::process::id(), specs, salt());
+    let core = SystemCore::new(&a.name, std::process::id(), specs);
     let run = muster_systems::RunOptions { udp: a.common.udp };
     let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
     if a.common.stats_json {
@@ -182,7 +175,7 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
     let link = links.pop().context("no link")?;
     let mut app = DeliveryApp::new(&scenario, map, link, &opts)?;
     show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
-    let core = SystemCore::new(&a.name, std::process::id(), specs, salt());
+    let core = SystemCore::new(&a.name, std::process::id(), specs);
     let run = muster_systems::RunOptions { udp: a.common.udp };
     let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
     if a.common.stats_json {

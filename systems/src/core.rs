@@ -2,7 +2,9 @@
 //! pings, offers, sessions with sequence numbers, withdrawal. No I/O, no clock.
 
 use muster_shared::names::Address;
-use muster_shared::protocol::{ActiveSession, SessionDigest, ToBroker, ToSystem, ToUser};
+use muster_shared::protocol::{
+    ActiveSession, SessionDigest, SessionLimit, ToBroker, ToSystem, ToUser,
+};
 use muster_shared::types::{
     EndReason, Payload, ServiceId, ServiceKind, ServiceSpec, SessionId, TaskStatus, UserId,
 };
@@ -116,8 +118,6 @@ pub struct SystemCore {
     served: VecDeque<(UserId, u64, String)>,
     served_set: HashSet<(UserId, u64, String)>,
     state: BrokerState,
-    session_prefix: u64,
-    next_session: u64,
     /// The pid of the broker that registered us (from its `Registered`).
     broker_pid: Option<u32>,
     impersonations: u64,
@@ -130,9 +130,8 @@ pub struct SystemCore {
 }
 
 impl SystemCore {
-    /// A system named `name` in process `pid` offering `specs`. `salt` makes session ids
-    /// unique across restarts of the same system (e.g. a start time).
-    pub fn new(name: &str, pid: u32, specs: Vec<ServiceSpec>, salt: u64) -> Self {
+    /// A system named `name` in process `pid` offering `specs`.
+    pub fn new(name: &str, pid: u32, specs: Vec<ServiceSpec>) -> Self {
         SystemCore {
             name: name.to_string(),
             pid,
@@ -142,11 +141,6 @@ impl SystemCore {
             served: VecDeque::new(),
             served_set: HashSet::new(),
             state: BrokerState::Unregistered,
-            session_prefix: mix64(
-                salt ^ (u64::from(pid) << 32)
-                    ^ name.bytes().fold(0u64, |h, b| mix64(h ^ u64::from(b))),
-            ),
-            next_session: 1,
             broker_pid: None,
             impersonations: 0,
             overloaded: false,
@@ -207,16 +201,45 @@ impl SystemCore {
         r
     }
 
-    /// Refuse new offers ("overloaded") while `true`.
+    /// Take no new sessions ("overloaded") while `true`.
     pub fn set_overloaded(&mut self, value: bool) {
-        self.overloaded = value;
+        self.limit_changes(|c| c.overloaded = value);
     }
 
-    /// Refuse new offers, with `reason`, while the system holds `limit` sessions or more
-    /// over all its services (e.g. a robot's processing budget, which may be smaller than
-    /// the quotas); `None` lifts the limit. Sessions already held are never ended by it.
+    /// Take no new sessions, with `reason`, while the system holds `limit` sessions or
+    /// more over all its services (e.g. a robot's processing budget, which may be smaller
+    /// than the quotas); `None` lifts the limit. Sessions already held are never ended by
+    /// it. The broker is told, and refuses requests beyond it itself.
     pub fn set_session_limit(&mut self, limit: Option<usize>, reason: &str) {
-        self.session_limit = limit.map(|l| (l, reason.to_string()));
+        self.limit_changes(|c| c.session_limit = limit.map(|l| (l, reason.to_string())));
+    }
+
+    /// The limit the broker holds this system to: none while overloaded, else its
+    /// session limit.
+    fn limit(&self) -> Option<SessionLimit> {
+        if self.overloaded {
+            return Some(SessionLimit {
+                sessions: 0,
+                reason: "overloaded".into(),
+            });
+        }
+        self.session_limit.as_ref().map(|(l, reason)| SessionLimit {
+            sessions: u32::try_from(*l).unwrap_or(u32::MAX),
+            reason: reason.clone(),
+        })
+    }
+
+    /// Applies `change`, and tells a broker that registered us if the limit moved.
+    fn limit_changes(&mut self, change: impl FnOnce(&mut Self)) {
+        let before = self.limit();
+        change(self);
+        let after = self.limit();
+        if after != before && matches!(self.state, BrokerState::Registered { .. }) {
+            self.send_broker(ToBroker::Limit {
+                system: self.name.clone(),
+                limit: after,
+            });
+        }
     }
 
     /// Announce a UDP endpoint for remote users (`ip:port`) in the registration.
@@ -309,6 +332,12 @@ impl SystemCore {
                         service,
                     });
                 }
+                if let Some(limit) = self.limit() {
+                    self.send_broker(ToBroker::Limit {
+                        system: self.name.clone(),
+                        limit: Some(limit),
+                    });
+                }
                 self.events.push_back(SystemEvent::Registered);
             }
             ToSystem::RegistrationRefused { reason } => {
@@ -338,12 +367,13 @@ impl SystemCore {
             }
             ToSystem::Offer {
                 ticket,
+                session,
                 user,
                 user_pid,
                 req,
                 service,
                 remote: _,
-            } => self.offer(ticket, user, user_pid, req, service),
+            } => self.offer(ticket, session, user, user_pid, req, service),
             ToSystem::Input {
                 user,
                 session,
@@ -402,104 +432,102 @@ impl SystemCore {
         }
     }
 
-    fn offer(&mut self, ticket: u64, user: UserId, user_pid: u32, req: u64, service: String) {
-        // The same request offered again (a retry that crossed a broker restart, or a
-        // duplicate): answer with the session it already has, never a second grant.
-        let existing = self
-            .sessions
-            .iter()
-            .find(|(_, s)| s.user == user && s.req == req && s.service == service)
-            .map(|(id, _)| *id);
+    /// Opens session `session`, which the broker granted (it told the user), or says
+    /// why it cannot: the broker then ends the user's grant with that reason. The broker
+    /// holds the system to its quotas and limit, so a refusal here is a race (a change
+    /// on its way to the broker) or a repeat.
+    fn offer(
+        &mut self,
+        ticket: u64,
+        session: SessionId,
+        user: UserId,
+        user_pid: u32,
+        req: u64,
+        service: String,
+    ) {
+        let answer = |c: &mut Self, answer| {
+            c.send_broker(ToBroker::OfferAnswer {
+                system: c.name.clone(),
+                ticket,
+                answer,
+            })
+        };
+        // The same request offered again (a retry that crossed a broker restart or
+        // takeover): confirm the session it has, never open a second.
         if self
             .served_set
             .contains(&(user.clone(), req, service.clone()))
         {
-            self.send_broker(ToBroker::OfferAnswer {
-                system: self.name.clone(),
-                ticket,
-                answer: Err("request already served: its session has ended".to_string()),
-            });
-            return;
+            let reason = "request already served: its session has ended".to_string();
+            return answer(self, Err(reason));
         }
-        if let Some(session) = existing {
+        let held = self
+            .sessions
+            .iter()
+            .find(|(_, s)| s.user == user && s.req == req && s.service == service)
+            .map(|(id, _)| *id);
+        if let Some(held) = held {
             if let Some(spec) = self.specs.iter().find(|s| s.name == service) {
-                let granted = self.granted(req, session, spec);
+                let granted = self.granted(req, held, spec);
                 self.out
                     .push_back(SystemOutput::ToUser(user.clone(), granted));
             }
-            self.send_broker(ToBroker::OfferAnswer {
-                system: self.name.clone(),
-                ticket,
-                answer: Ok(session),
-            });
-            return;
+            return answer(self, Ok(held));
         }
         let over_budget = self
             .session_limit
             .as_ref()
             .filter(|(l, _)| self.sessions.len() >= *l)
             .map(|(_, reason)| reason.clone());
-        let answer = match self.specs.iter().find(|s| s.name == service) {
-            None => Err(format!("no service {service:?} here")),
-            Some(_) if self.withdrawn.contains(&service) => Err("service withdrawn".to_string()),
-            Some(_) if self.overloaded => Err("overloaded".to_string()),
-            Some(_) if over_budget.is_some() => Err(over_budget.unwrap_or_default()),
+        let refusal = match self.specs.iter().find(|s| s.name == service) {
+            None => Some(format!("no service {service:?} here")),
+            Some(_) if self.sessions.contains_key(&session) => {
+                Some(format!("session {session} is another request's"))
+            }
+            Some(_) if self.withdrawn.contains(&service) => Some("service withdrawn".to_string()),
+            Some(_) if self.overloaded => Some("overloaded".to_string()),
+            Some(_) if over_budget.is_some() => over_budget,
             Some(spec) if self.sessions_of(&service) >= spec.quota as usize => {
-                Err(format!("overloaded: all {} sessions in use", spec.quota))
+                Some(format!("overloaded: all {} sessions in use", spec.quota))
             }
-            Some(spec) => Ok(spec.clone()),
+            Some(_) => None,
         };
-        match answer {
-            Ok(spec) => {
-                // A bijection of a counter: ids never repeat in a run however many sessions
-                // it grants (no aliasing after 2^24), and runs and systems start at
-                // unrelated points of the 64-bit space.
-                let session = SessionId(mix64(self.session_prefix.wrapping_add(self.next_session)));
-                self.next_session += 1;
-                self.sessions.insert(
-                    session,
-                    Session {
-                        user: user.clone(),
-                        service: service.clone(),
-                        seq: 0,
-                        req,
-                        user_pid,
-                    },
-                );
-                let in_use = self.sessions_of(&service);
-                let r = self.report.entry(service.clone()).or_default();
-                r.grants += 1;
-                r.max_in_use = r.max_in_use.max(in_use);
-                // The broker first: its port is warm, and it passes the grant on to a
-                // local user at once, while this system may still be opening its first
-                // ports to that user for the copy below (which comes before any update).
-                self.send_broker(ToBroker::OfferAnswer {
-                    system: self.name.clone(),
-                    ticket,
-                    answer: Ok(session),
-                });
-                if user_pid != 0 {
-                    self.out
-                        .push_back(SystemOutput::WatchUser(user.clone(), user_pid));
-                }
-                let granted = self.granted(req, session, &spec);
-                self.out
-                    .push_back(SystemOutput::ToUser(user.clone(), granted));
-                self.events.push_back(SystemEvent::SessionStarted {
-                    session,
-                    user,
-                    service,
-                });
-            }
-            Err(reason) => {
-                self.report.entry(service.clone()).or_default().refusals += 1;
-                self.send_broker(ToBroker::OfferAnswer {
-                    system: self.name.clone(),
-                    ticket,
-                    answer: Err(reason),
-                });
-            }
+        if let Some(reason) = refusal {
+            self.report.entry(service.clone()).or_default().refusals += 1;
+            return answer(self, Err(reason));
         }
+        let Some(spec) = self.specs.iter().find(|s| s.name == service).cloned() else {
+            return;
+        };
+        self.sessions.insert(
+            session,
+            Session {
+                user: user.clone(),
+                service: service.clone(),
+                seq: 0,
+                req,
+                user_pid,
+            },
+        );
+        let in_use = self.sessions_of(&service);
+        let r = self.report.entry(service.clone()).or_default();
+        r.grants += 1;
+        r.max_in_use = r.max_in_use.max(in_use);
+        answer(self, Ok(session));
+        if user_pid != 0 {
+            self.out
+                .push_back(SystemOutput::WatchUser(user.clone(), user_pid));
+        }
+        // The session opened: the shell sets up a remote user's path with it (a local
+        // user heard from the broker, and hears from us with the first update).
+        let granted = self.granted(req, session, &spec);
+        self.out
+            .push_back(SystemOutput::ToUser(user.clone(), granted));
+        self.events.push_back(SystemEvent::SessionStarted {
+            session,
+            user,
+            service,
+        });
     }
 
     /// Streams one data update to every session of `service`. Returns how many got it.
@@ -654,13 +682,6 @@ impl SystemCore {
     }
 }
 
-/// The splitmix64 finalizer: a bijection on `u64` that scatters neighbours.
-fn mix64(mut z: u64) -> u64 {
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -685,7 +706,6 @@ mod tests {
                 spec("a", ServiceKind::Data, 1),
                 spec("c", ServiceKind::Command, 2),
             ],
-            1,
         )
     }
 
@@ -693,9 +713,15 @@ mod tests {
         std::iter::from_fn(|| c.poll_output()).collect()
     }
 
+    /// The session the broker grants request `req` of `user` for service `service` of t1.
+    fn sid(user: &str, req: u64, service: &str) -> SessionId {
+        SessionId::for_request(&ServiceId::new("t1", service), &UserId(user.into()), req)
+    }
+
     fn offer(c: &mut SystemCore, ticket: u64, user: &str, service: &str) -> Vec<SystemOutput> {
         c.handle(ToSystem::Offer {
             ticket,
+            session: sid(user, ticket, service),
             user: UserId(user.into()),
             user_pid: 0,
             req: ticket,
@@ -753,6 +779,7 @@ mod tests {
         c.handle(registered(3));
         let offer = ToSystem::Offer {
             ticket: 1,
+            session: sid("m", 1, "a"),
             user: UserId("m".into()),
             user_pid: 66,
             req: 1,
@@ -774,6 +801,7 @@ mod tests {
         // The same request (user u1, req 5) offered again under a new ticket.
         c.handle(ToSystem::Offer {
             ticket: 99,
+            session: sid("u1", 5, "c"),
             user: UserId("u1".into()),
             user_pid: 0,
             req: 5,
@@ -791,18 +819,17 @@ mod tests {
     }
 
     #[test]
-    fn grants_tell_the_user_directly_and_the_broker() {
+    fn an_offer_opens_the_brokers_session_and_confirms_it() {
         let mut c = core();
         let out = offer(&mut c, 1, "u1", "a");
         let session = answer(&out).unwrap().unwrap();
+        assert_eq!(session, sid("u1", 1, "a"));
         let to_user = out
             .iter()
             .position(|o| matches!(o,
             SystemOutput::ToUser(u, ToUser::Granted { session: s, kind: ServiceKind::Data, system_pid: 7, relayed: false, .. })
                 if u.0 == "u1" && *s == session))
-            .expect("the user's own copy");
-        // The broker's answer goes first: the broker passes the grant on over its warm
-        // port while this system may still be opening its first ports to the user.
+            .expect("the session opened (a remote user's path is set up from it)");
         let to_broker = out
             .iter()
             .position(|o| matches!(o, SystemOutput::ToBroker(ToBroker::OfferAnswer { .. })))
@@ -984,16 +1011,61 @@ mod tests {
     }
 
     #[test]
-    fn session_ids_never_alias_in_a_run_or_across_systems() {
-        let a = SystemCore::new("t1", 100, vec![], 9).session_prefix;
-        let b = SystemCore::new("t2", 101, vec![], 9).session_prefix;
-        let id = |p: u64, n: u64| mix64(p.wrapping_add(n));
-        // The old layout aliased counter n with n + 2^24.
-        assert_ne!(id(a, 1), id(a, 1 + (1 << 24)));
-        let mut seen = std::collections::HashSet::new();
-        for n in 1..=50_000u64 {
-            assert!(seen.insert(id(a, n)));
-            assert!(seen.insert(id(b, n)));
-        }
+    fn a_session_number_another_request_holds_is_refused_and_changes_nothing() {
+        let mut c = core();
+        let first = answer(&offer(&mut c, 1, "u1", "c")).unwrap().unwrap();
+        // A request whose number collides with that session (a hostile or broken
+        // broker): refused, and the session held goes on as it was.
+        c.handle(ToSystem::Offer {
+            ticket: 2,
+            session: first,
+            user: UserId("u2".into()),
+            user_pid: 0,
+            req: 7,
+            service: "c".into(),
+            remote: None,
+        });
+        let out = outs(&mut c);
+        assert!(answer(&out).unwrap().unwrap_err().contains("another request's"));
+        let held: Vec<(SessionId, String)> = c.sessions().map(|(s, u, _)| (s, u.0.clone())).collect();
+        assert_eq!(held, [(first, "u1".to_string())]);
+        assert_eq!(c.report()["c"].refusals, 1);
+    }
+
+    #[test]
+    fn the_broker_hears_the_limit_when_registered_and_whenever_it_moves() {
+        let limits = |out: Vec<SystemOutput>| -> Vec<Option<(u32, String)>> {
+            out.into_iter()
+                .filter_map(|o| match o {
+                    SystemOutput::ToBroker(ToBroker::Limit { system, limit }) => {
+                        assert_eq!(system, "t1");
+                        Some(limit.map(|l| (l.sessions, l.reason)))
+                    }
+                    _ => None,
+                })
+                .collect()
+        };
+        let mut c = core();
+        // Before any broker registered us, nobody is told.
+        c.set_session_limit(Some(3), "overburdened");
+        c.register();
+        assert_eq!(limits(outs(&mut c)), []);
+        // With the registration, the broker hears it.
+        c.handle(ToSystem::Registered {
+            epoch: 1,
+            broker_pid: 3,
+        });
+        assert_eq!(limits(outs(&mut c)), [Some((3, "overburdened".into()))]);
+        // Overloaded takes no session at all; then back to the limit; then none.
+        c.set_overloaded(true);
+        assert_eq!(limits(outs(&mut c)), [Some((0, "overloaded".into()))]);
+        c.set_session_limit(Some(5), "overburdened");
+        assert_eq!(limits(outs(&mut c)), [], "still overloaded: no change");
+        c.set_overloaded(false);
+        assert_eq!(limits(outs(&mut c)), [Some((5, "overburdened".into()))]);
+        c.set_session_limit(Some(5), "overburdened");
+        assert_eq!(limits(outs(&mut c)), [], "the same limit again");
+        c.set_session_limit(None, "");
+        assert_eq!(limits(outs(&mut c)), [None]);
     }
 }

@@ -377,11 +377,16 @@ impl UdpSessions {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use muster_shared::types::{ServiceKind, ServiceSpec};
+    use muster_shared::types::{ServiceId, ServiceKind, ServiceSpec};
 
     fn offer(core: &mut SystemCore, r: &mut RemoteSessions, now: Instant, ticket: u64, key: u8) {
         let msg = ToSystem::Offer {
             ticket,
+            session: SessionId::for_request(
+                &ServiceId::new("t1", "s0"),
+                &UserId("alice.x".into()),
+                1,
+            ),
             user: UserId("alice.x".into()),
             user_pid: 0,
             req: 1,
@@ -422,7 +427,7 @@ mod tests {
             quota: 5,
             payload: "pose2d".into(),
         };
-        let mut core = SystemCore::new("t1", 1, vec![spec], 9);
+        let mut core = SystemCore::new("t1", 1, vec![spec]);
         let mut r = RemoteSessions::default();
         let now = Instant::now();
         let mut k1 = SessionCipher::new(&[1; 32], Side::User);

@@ -316,6 +316,10 @@ pub fn run_system_with<A: SystemApp>(
                 }
             }
         }
+        // Everything waiting, the broker's offers first: the inbox is read writer by
+        // writer, and a user's first input or end, sent once it heard of its grant,
+        // may be read before the offer the broker sent just ahead of that grant.
+        let mut batch = Vec::new();
         while let Some((frame, pid)) = shell.endpoint.recv_from() {
             match decode::<ToSystem>(&frame) {
                 Ok(msg) if !core.sender_allowed(pid, &msg, |a| shell.endpoint.owner_pid(a)) => {}
@@ -323,13 +327,17 @@ pub fn run_system_with<A: SystemApp>(
                     if let ToSystem::Offer { user, req, .. } = &msg {
                         muster_shared::trace::stamp(Stage::SystemRecv, user, *req);
                     }
-                    if let Some(r) = shell.remote.as_mut() {
-                        r.logic.note(&msg);
-                    }
-                    core.handle(msg)
+                    batch.push(msg);
                 }
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),
             }
+        }
+        batch.sort_by_key(|m| !matches!(m, ToSystem::Offer { .. }));
+        for msg in batch {
+            if let Some(r) = shell.remote.as_mut() {
+                r.logic.note(&msg);
+            }
+            core.handle(msg)
         }
         if let Some(r) = shell.remote.as_mut() {
             r.logic.handle_timeout(Instant::now(), &mut core);
@@ -372,13 +380,6 @@ impl Shell {
 
     fn flush_outputs(&mut self, core: &mut SystemCore, dead_users: &mut Vec<UserId>) {
         while let Some(out) = core.poll_output() {
-            if let SystemOutput::ToUser(
-                user,
-                muster_shared::protocol::ToUser::Granted { req, .. },
-            ) = &out
-            {
-                muster_shared::trace::stamp(Stage::SystemSend, user, *req);
-            }
             let out = match self.remote.as_mut() {
                 Some(r) => match r.logic.route(Instant::now(), out) {
                     Some(o) => o,
@@ -409,30 +410,16 @@ impl Shell {
                         Ok(()) => {}
                     }
                 }
+                // A local user heard of its grant from the broker; the session's first
+                // update or status opens our ports to it.
+                SystemOutput::ToUser(_, muster_shared::protocol::ToUser::Granted { .. }) => {}
                 SystemOutput::ToUser(user, msg) => {
                     // Updates are a stream (a full inbox drops one, counted as a gap);
                     // everything else is control and is held back, never dropped.
                     if matches!(msg, muster_shared::protocol::ToUser::Update { .. }) {
                         self.endpoint.send_or_log(&Address::User(user), &msg)
                     } else {
-                        let to = Address::User(user);
-                        if matches!(msg, muster_shared::protocol::ToUser::Granted { .. })
-                            && !self.endpoint.has_ports(&to)
-                        {
-                            // The first ports to this user cost more than the rest of the
-                            // request's path. The broker, just woken with this system's
-                            // answer, passes the grant on first: on a busy core it would
-                            // otherwise wait for them.
-                            std::thread::yield_now();
-                        }
-                        self.endpoint.send_control(&to, &msg);
-                        if let (
-                            Address::User(user),
-                            muster_shared::protocol::ToUser::Granted { req, .. },
-                        ) = (&to, &msg)
-                        {
-                            muster_shared::trace::stamp(Stage::SystemSent, user, *req);
-                        }
+                        self.endpoint.send_control(&Address::User(user), &msg);
                     }
                 }
                 SystemOutput::WatchBroker(pid) => {

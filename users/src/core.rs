@@ -330,12 +330,18 @@ impl UserCore {
                     .unwrap_or_default();
                 *system_pid == pid && owner(&Address::System(system)) == Some(pid)
             }
-            ToUser::Update { session, .. }
-            | ToUser::Status { session, .. }
-            | ToUser::Ended { session, .. } => self
+            ToUser::Update { session, .. } | ToUser::Status { session, .. } => self
                 .sessions
                 .get(session)
                 .is_none_or(|s| s.system_pid == pid),
+            // The broker ends a grant its system could not take.
+            ToUser::Ended { session, .. } => {
+                self.sessions
+                    .get(session)
+                    .is_none_or(|s| s.system_pid == pid)
+                    || self.broker_pid == Some(pid)
+                    || owner(&Address::Broker) == Some(pid)
+            }
         };
         muster_shared::protocol::note_impersonation(
             ok,
