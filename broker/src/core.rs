@@ -1043,9 +1043,25 @@ impl Broker {
             );
             return;
         }
-        // A late answer (the offer timed out, its user was told and the system told to
-        // end the session) changes nothing.
         let Some(o) = self.offers.remove(&ticket) else {
+            // A late confirmation: the grant ended (its offer timed out, or a repeat of
+            // it was refused) and its user was told. The system is told to end the
+            // session, unless it is one counted (a repeat of a confirmed offer).
+            if let Ok(session) = answer {
+                let counted = self
+                    .systems
+                    .get(system)
+                    .is_some_and(|s| s.sessions.contains_key(&session));
+                if !counted {
+                    self.out.push_back(Output::ToSystem(
+                        system.to_string(),
+                        ToSystem::Terminate {
+                            session,
+                            reason: "its grant has ended".into(),
+                        },
+                    ));
+                }
+            }
             return;
         };
         self.release_pending(&o.service);
@@ -1316,12 +1332,19 @@ impl Broker {
             return self.refuse(&user, req, Refusal::AlreadyPending);
         }
         let quota = svc.spec.quota;
-        if svc.used() < quota as usize && svc.queue.is_empty() {
+        let room = svc.used() < quota as usize;
+        let over_limit = self.over_limit(&svc.system);
+        if room && svc.queue.is_empty() && over_limit.is_none() {
             return self.offer(now, user, req, service);
         }
         if !svc.spec.queue {
-            return self.refuse(&user, req, Refusal::QuotaFull { quota });
+            let reason = match over_limit {
+                Some(reason) if room => Refusal::SystemRefused(reason),
+                _ => Refusal::QuotaFull { quota },
+            };
+            return self.refuse(&user, req, reason);
         }
+        // A task queue waits out the quota and the system's own limit alike.
         let waiting = svc.queue.len();
         if waiting >= self.cfg.queue_capacity as usize {
             let waiting = u16::try_from(waiting).unwrap_or(u16::MAX);

@@ -79,6 +79,31 @@ fn answers(out: &[Output], u: u32, req: u64) -> Vec<ToUser> {
         .collect()
 }
 
+/// The session `out` grants user `u` for request `req`, if it does.
+fn granted(out: &[Output], u: u32, req: u64) -> Option<SessionId> {
+    out.iter().find_map(|o| match o {
+        Output::Granted {
+            user: who,
+            req: r,
+            session,
+            ..
+        } if *who == user(u) && *r == req => Some(*session),
+        _ => None,
+    })
+}
+
+/// The sessions of user `u` that `out` ends, with why.
+fn ended(out: &[Output], u: u32) -> Vec<(SessionId, EndReason)> {
+    out.iter()
+        .filter_map(|o| match o {
+            Output::ToUser(who, ToUser::Ended { session, reason }) if *who == user(u) => {
+                Some((*session, reason.clone()))
+            }
+            _ => None,
+        })
+        .collect()
+}
+
 fn offers(out: &[Output]) -> Vec<(String, u64, UserId, u64)> {
     out.iter()
         .filter_map(|o| match o {
@@ -93,15 +118,19 @@ fn offers(out: &[Output]) -> Vec<(String, u64, UserId, u64)> {
         .collect()
 }
 
-fn grant(b: &mut Broker, now: Duration, system: &str, ticket: u64, session: u64) {
+/// `system` confirms offer `ticket` (with the session the broker granted: 0 if the
+/// ticket is not out); returns the session.
+fn grant(b: &mut Broker, now: Duration, system: &str, ticket: u64) -> SessionId {
+    let session = b.offers.get(&ticket).map_or(SessionId(0), |o| o.session);
     b.handle(
         now,
         ToBroker::OfferAnswer {
             system: system.into(),
             ticket,
-            answer: Ok(SessionId(session)),
+            answer: Ok(session),
         },
     );
+    session
 }
 
 fn view<'a>(views: &'a [ServiceView], id: &str) -> &'a ServiceView {
@@ -399,8 +428,8 @@ fn queue_and_quota_arbitration() {
             position: 2
         }]
     );
-    grant(&mut b, S, "q", off[0].1, 1);
-    grant(&mut b, S, "q", off[1].1, 2);
+    let first = grant(&mut b, S, "q", off[0].1);
+    grant(&mut b, S, "q", off[1].1);
     let views = b.views();
     assert_eq!(view(&views, "q/a").in_use, 2);
     assert_eq!(view(&views, "q/a").queued, 2);
@@ -410,7 +439,7 @@ fn queue_and_quota_arbitration() {
         S,
         ToBroker::SessionEnded {
             system: "q".into(),
-            session: SessionId(1),
+            session: first,
         },
     );
     let out = drain(&mut b);
@@ -428,7 +457,7 @@ fn queue_and_quota_arbitration() {
     // Without a queue: quota full.
     request(&mut b, S, 1, 20, "q/n");
     let t = offers(&drain(&mut b))[0].1;
-    grant(&mut b, S, "q", t, 3);
+    grant(&mut b, S, "q", t);
     request(&mut b, S, 2, 21, "q/n");
     assert_eq!(
         answers(&drain(&mut b), 2, 21),
@@ -545,8 +574,13 @@ fn unknown_withdrawn_refused_and_timed_out_requests() {
     );
     assert!(!b.views()[0].withdrawn);
 
+    // The broker grants at once; a system that cannot take the grant after all (its
+    // overload was on its way) makes the broker end it, with the system's reason.
     request(&mut b, S, 1, 4, "s/a");
-    let t = offers(&drain(&mut b))[0].1;
+    let out = drain(&mut b);
+    let t = offers(&out)[0].1;
+    let session = granted(&out, 1, 4).expect("granted at once");
+    assert_eq!(session, SessionId::for_request(&ServiceId("s/a".into()), &user(1), 4));
     b.handle(
         S,
         ToBroker::OfferAnswer {
@@ -555,28 +589,36 @@ fn unknown_withdrawn_refused_and_timed_out_requests() {
             answer: Err("overloaded".into()),
         },
     );
+    let out = drain(&mut b);
+    assert_eq!(answers(&out, 1, 4), vec![]);
     assert_eq!(
-        answers(&drain(&mut b), 1, 4),
-        vec![ToUser::Refused {
-            req: 4,
-            reason: Refusal::SystemRefused("overloaded".into())
-        }]
+        ended(&out, 1),
+        [(session, EndReason::BySystem("overloaded".into()))]
     );
     assert_eq!(b.views()[0].in_use, 0);
+    assert_eq!(b.stats().grants_undone, 1);
 
+    // A system that never answers: the user's grant ends, and the system is told to
+    // end the session should it open it late.
     request(&mut b, S, 1, 5, "s/a");
-    drain(&mut b);
-    assert_eq!(b.views()[0].in_use, 1, "a pending offer holds quota");
+    let session = granted(&drain(&mut b), 1, 5).expect("granted at once");
+    assert_eq!(b.views()[0].in_use, 1, "an unconfirmed grant holds quota");
     b.handle_timeout(S + BrokerConfig::default().offer_timeout);
     let out = drain(&mut b);
+    assert_eq!(answers(&out, 1, 5), vec![]);
     assert_eq!(
-        answers(&out, 1, 5),
-        vec![ToUser::Refused {
-            req: 5,
-            reason: Refusal::SystemGone
-        }]
+        ended(&out, 1),
+        [(session, EndReason::BySystem("the system did not answer".into()))]
     );
+    assert!(out.contains(&Output::ToSystem(
+        "s".into(),
+        ToSystem::Terminate {
+            session,
+            reason: "not confirmed in time".into()
+        }
+    )));
     assert_eq!(b.views()[0].in_use, 0);
+    assert_eq!(b.stats().grants_undone, 2);
 }
 
 #[test]
@@ -585,16 +627,12 @@ fn a_dead_system_takes_its_services_and_queue_with_it() {
     register(&mut b, S, "s", 7, vec![spec("a", 1, true)]);
     request(&mut b, S, 1, 1, "s/a");
     request(&mut b, S, 2, 2, "s/a");
-    drain(&mut b);
+    let session = granted(&drain(&mut b), 1, 1).expect("granted at once");
     b.system_died(S, "s");
     let out = drain(&mut b);
-    assert_eq!(
-        answers(&out, 1, 1),
-        vec![ToUser::Refused {
-            req: 1,
-            reason: Refusal::SystemGone
-        }]
-    );
+    // The grant it had not confirmed ends; the queued request is refused.
+    assert_eq!(answers(&out, 1, 1), vec![]);
+    assert_eq!(ended(&out, 1), [(session, EndReason::PeerGone)]);
     assert_eq!(
         answers(&out, 2, 2),
         vec![ToUser::Refused {
@@ -862,8 +900,9 @@ fn op() -> impl Strategy<Value = Op> {
 
 proptest! {
     /// Whatever happens, a service never has more sessions plus offers out than its quota,
-    /// a queue never exceeds its capacity, and every request gets exactly one final answer
-    /// (an offer or a refusal) unless it is still queued or was cancelled.
+    /// a queue never exceeds its capacity, and every request gets at most one final
+    /// answer (a grant or a refusal); one that has none is still queued, was cancelled or
+    /// went with its user.
     #[test]
     fn quotas_hold_and_every_request_is_answered(ops in proptest::collection::vec(op(), 1..120)) {
         let cfg = BrokerConfig { queue_capacity: 3, ..BrokerConfig::default() };
@@ -873,9 +912,9 @@ proptest! {
             vec![spec("a", 1, true), spec("b", 2, false), spec("c", 3, true)]);
         let mut now = Duration::ZERO;
         let mut next_req = 1u64;
-        let mut outstanding: Vec<(String, u64, UserId, u64)> = Vec::new(); // live offers
-        let mut sessions: Vec<u64> = Vec::new();
-        let mut next_session = 1u64;
+        // Live offers: system, ticket, user, request, session.
+        let mut outstanding: Vec<(String, u64, UserId, u64, SessionId)> = Vec::new();
+        let mut sessions: Vec<SessionId> = Vec::new();
         let mut final_answers: BTreeMap<(UserId, u64), u32> = BTreeMap::new();
         let mut cancelled: BTreeSet<(UserId, u64)> = BTreeSet::new();
         let mut asked: Vec<(UserId, u64)> = Vec::new();
@@ -887,19 +926,17 @@ proptest! {
                     next_req += 1;
                 }
                 Op::Grant(i) if !outstanding.is_empty() => {
-                    let (sys, t, who, r) = outstanding.remove(i % outstanding.len());
-                    *final_answers.entry((who, r)).or_default() += 1;
-                    grant(&mut b, now, &sys, t, next_session);
-                    sessions.push(next_session);
-                    next_session += 1;
+                    let (sys, t, _, _, session) = outstanding.remove(i % outstanding.len());
+                    prop_assert_eq!(grant(&mut b, now, &sys, t), session);
+                    sessions.push(session);
                 }
                 Op::Refuse(i) if !outstanding.is_empty() => {
-                    let (sys, t, _, _) = outstanding.remove(i % outstanding.len());
+                    let (sys, t, _, _, _) = outstanding.remove(i % outstanding.len());
                     b.handle(now, ToBroker::OfferAnswer { system: sys, ticket: t, answer: Err("no".into()) });
                 }
                 Op::End(i) if !sessions.is_empty() => {
                     let s = sessions.remove(i % sessions.len());
-                    b.handle(now, ToBroker::SessionEnded { system: "s".into(), session: SessionId(s) });
+                    b.handle(now, ToBroker::SessionEnded { system: "s".into(), session: s });
                 }
                 Op::Cancel(u) => {
                     if let Some((who, r)) = asked.iter().rev().find(|(w, _)| *w == user(u)).cloned() {
@@ -917,8 +954,15 @@ proptest! {
             }
             for o in drain(&mut b) {
                 match o {
-                    Output::ToSystem(sys, ToSystem::Offer { ticket, user, req, .. }) => {
-                        outstanding.push((sys, ticket, user, req));
+                    Output::ToSystem(sys, ToSystem::Offer { ticket, user, req, session, .. }) => {
+                        outstanding.push((sys, ticket, user, req, session));
+                    }
+                    Output::Granted { user, req, .. } => {
+                        *final_answers.entry((user, req)).or_default() += 1;
+                    }
+                    Output::ToUser(_, ToUser::Ended { session, .. }) => {
+                        // A timed-out grant ends; its system can no longer confirm it.
+                        outstanding.retain(|o| o.4 != session);
                     }
                     Output::ToSystem(sys, ToSystem::Ping { nonce }) => {
                         b.handle(
@@ -931,8 +975,6 @@ proptest! {
                         );
                     }
                     Output::ToUser(user, ToUser::Refused { req, .. }) => {
-                        // A timed-out offer is refused; the system can no longer grant it.
-                        outstanding.retain(|(_, _, w, r)| !(*w == user && *r == req));
                         *final_answers.entry((user, req)).or_default() += 1;
                     }
                     _ => {}
@@ -946,18 +988,17 @@ proptest! {
         for (k, n) in &final_answers {
             prop_assert!(*n <= 1, "request {:?} answered {} times", k, n);
         }
-        // Every request not answered, cancelled or dropped with its dead user is either
-        // queued or has a live offer.
+        // Every queued request is one not answered (nor cancelled); every live offer
+        // was granted.
         let queued: usize = b.views().iter().map(|v| v.queued as usize).sum();
         let unanswered = asked
             .iter()
             .filter(|k| !final_answers.contains_key(*k) && !cancelled.contains(*k))
             .count();
-        let live_offers = outstanding
-            .iter()
-            .filter(|(_, _, w, r)| !cancelled.contains(&(w.clone(), *r)))
-            .count();
-        prop_assert!(unanswered >= queued + live_offers);
+        prop_assert!(unanswered >= queued);
+        for (_, _, w, r, _) in &outstanding {
+            prop_assert_eq!(final_answers.get(&(w.clone(), *r)), Some(&1));
+        }
     }
 }
 
@@ -969,16 +1010,15 @@ fn only_the_offered_system_may_answer_and_tickets_differ_across_runs() {
     drain(&mut b);
     request(&mut b, S, 1, 1, "t/a");
     let (_, ticket, _, _) = offers(&drain(&mut b))[0].clone();
-    // Another system answers t's offer.
-    grant(&mut b, S, "u", ticket, 77);
-    assert!(answers(&drain(&mut b), 1, 1).is_empty(), "no grant from u");
+    // Another system answers t's offer: nothing changes.
+    grant(&mut b, S, "u", ticket);
+    assert!(drain(&mut b).is_empty());
     assert_eq!(b.stats().foreign_answers, 1);
     assert_eq!(view(&b.views(), "u/a").in_use, 0);
-    grant(&mut b, S, "t", ticket, 5);
-    let out = drain(&mut b);
-    assert!(out
-        .iter()
-        .any(|o| matches!(o, Output::Granted { session, .. } if session.0 == 5)));
+    assert_eq!(view(&b.views(), "t/a").in_use, 1);
+    let session = grant(&mut b, S, "t", ticket);
+    assert!(drain(&mut b).is_empty(), "confirmed: nothing more to say");
+    assert_eq!(b.systems["t"].sessions.keys().collect::<Vec<_>>(), [&session]);
     // A broker of another run numbers its offers elsewhere.
     let mut other = Broker::new(BrokerConfig::default(), 43, 1000);
     register(&mut other, S, "t", 7, vec![spec("a", 5, false)]);
@@ -994,13 +1034,16 @@ fn the_same_request_again_while_its_offer_is_out_is_not_a_duplicate() {
     register(&mut b, S, "t", 7, vec![spec("a", 5, false)]);
     drain(&mut b);
     request(&mut b, S, 1, 1, "t/a");
-    assert_eq!(offers(&drain(&mut b)).len(), 1);
-    // The user reconnected and asks again with the same request number.
+    let out = drain(&mut b);
+    assert_eq!(offers(&out).len(), 1);
+    let session = granted(&out, 1, 1).expect("granted");
+    // The user reconnected and asks again with the same request number: its grant
+    // again (the first may have been lost with the user's connection), no second offer.
     request(&mut b, S, 1, 1, "t/a");
-    assert!(
-        drain(&mut b).is_empty(),
-        "no already_pending, no second offer"
-    );
+    let out = drain(&mut b);
+    assert!(offers(&out).is_empty(), "no second offer");
+    assert!(answers(&out, 1, 1).is_empty(), "no already_pending");
+    assert_eq!(granted(&out, 1, 1), Some(session));
     // Another request number for the same service still is a duplicate.
     request(&mut b, S, 1, 2, "t/a");
     assert!(matches!(
@@ -1023,7 +1066,7 @@ fn the_event_feed_tells_what_happened_in_order() {
     register(&mut b, S, "t1", 7, vec![spec("s", 1, true)]);
     request(&mut b, S, 1, 1, "t1/s");
     let (_, ticket, _, _) = offers(&drain(&mut b))[0].clone();
-    grant(&mut b, S, "t1", ticket, 99);
+    let s99 = grant(&mut b, S, "t1", ticket);
     request(&mut b, S, 2, 1, "t1/s"); // queued behind u1
     request(&mut b, S, 3, 1, "t9/s"); // unknown
     b.handle(
@@ -1037,7 +1080,7 @@ fn the_event_feed_tells_what_happened_in_order() {
         S,
         ToBroker::SessionEnded {
             system: "t1".into(),
-            session: SessionId(99),
+            session: s99,
         },
     );
     b.system_died(S, "t1");
@@ -1065,7 +1108,7 @@ fn the_event_feed_tells_what_happened_in_order() {
             user: user(1),
             req: 1,
             service: id.clone(),
-            session: SessionId(99),
+            session: s99,
         },
         E::UserJoined { user: user(2) },
         E::Requested {
@@ -1093,7 +1136,7 @@ fn the_event_feed_tells_what_happened_in_order() {
         refused(2, "withdrawn", &Refusal::Withdrawn.to_string()),
         E::SessionEnded {
             service: id,
-            session: SessionId(99),
+            session: s99,
         },
         E::SystemRemoved {
             system: "t1".into(),
@@ -1111,7 +1154,8 @@ fn the_event_feed_tells_what_happened_in_order() {
     };
     let json = serde_json::to_value(&rec).unwrap();
     assert_eq!(json["event"], "granted");
-    assert_eq!(json["session"], "0000000000000063");
+    assert_eq!(json["session"], format!("{s99}"));
+    assert_eq!(format!("{s99}").len(), 16, "16 hex digits");
     let back: muster_shared::protocol::EventRecord = serde_json::from_value(json).unwrap();
     assert_eq!(back, rec);
 }
@@ -1123,7 +1167,7 @@ fn operators_read_the_status_move_and_drop_queued_requests_and_end_sessions() {
     register(&mut b, S, "d1", 7, vec![spec("s", 1, true)]);
     request(&mut b, S, 1, 1, "d1/s");
     let (_, ticket, _, _) = offers(&drain(&mut b))[0].clone();
-    grant(&mut b, S, "d1", ticket, 77);
+    let s77 = grant(&mut b, S, "d1", ticket);
     request(&mut b, S, 2, 1, "d1/s");
     request(&mut b, S, 3, 1, "d1/s");
     drain(&mut b);
@@ -1157,7 +1201,7 @@ fn operators_read_the_status_move_and_drop_queued_requests_and_end_sessions() {
     assert_eq!(st.systems[0].last_answer_ms, Some(1000));
     assert_eq!(st.systems[0].delinquencies, 0);
     assert_eq!(st.sessions_total, 1);
-    assert_eq!(st.sessions[0].session, SessionId(77));
+    assert_eq!(st.sessions[0].session, s77);
     assert_eq!(st.sessions[0].user, user(1));
     assert_eq!(st.queues[0].waiting, vec![(user(2), 1), (user(3), 1)]);
     // u3 moves to the head; both hear their new places.
@@ -1208,15 +1252,13 @@ fn operators_read_the_status_move_and_drop_queued_requests_and_end_sessions() {
     let (answer, out) = op(
         &mut b,
         4,
-        Op_::EndSession {
-            session: SessionId(77),
-        },
+        Op_::EndSession { session: s77 },
     );
     assert_eq!(answer, Ok(None));
     assert!(out.contains(&Output::ToSystem(
         "d1".into(),
         ToSystem::Terminate {
-            session: SessionId(77),
+            session: s77,
             reason: "ended by an operator".into()
         }
     )));
@@ -1263,4 +1305,66 @@ fn operators_read_the_status_move_and_drop_queued_requests_and_end_sessions() {
         ToSystem::Revoked { user: user(1) }
     )));
     assert!(!b.users().any(|u| *u == user(1)));
+}
+
+#[test]
+fn a_systems_own_limit_is_held_here_with_its_reason_and_queues_wait_it_out() {
+    let mut b = broker();
+    register(&mut b, S, "t", 7, vec![spec("a", 5, false), spec("q", 5, true)]);
+    let limit = |b: &mut Broker, n: Option<u32>| {
+        b.handle(
+            S,
+            ToBroker::Limit {
+                system: "t".into(),
+                limit: n.map(|sessions| SessionLimit {
+                    sessions,
+                    reason: "overburdened".into(),
+                }),
+            },
+        );
+    };
+    limit(&mut b, Some(2));
+    drain(&mut b);
+    // Two sessions over its two services, one of them not confirmed yet: the limit.
+    request(&mut b, S, 1, 1, "t/a");
+    let t1 = offers(&drain(&mut b))[0].1;
+    let s1 = grant(&mut b, S, "t", t1);
+    request(&mut b, S, 2, 1, "t/q");
+    assert!(granted(&drain(&mut b), 2, 1).is_some());
+    // A third is refused here with the system's reason, without asking it.
+    request(&mut b, S, 3, 1, "t/a");
+    let out = drain(&mut b);
+    assert!(offers(&out).is_empty());
+    assert_eq!(
+        answers(&out, 3, 1),
+        vec![ToUser::Refused {
+            req: 1,
+            reason: Refusal::SystemRefused("overburdened".into())
+        }]
+    );
+    // A request for the service with a task queue waits in it instead.
+    request(&mut b, S, 4, 1, "t/q");
+    assert_eq!(
+        answers(&drain(&mut b), 4, 1),
+        vec![ToUser::Queued { req: 1, position: 1 }]
+    );
+    // A session of the other service ends: the limit has room, and the queue's head
+    // takes it.
+    b.handle(S, ToBroker::SessionEnded { system: "t".into(), session: s1 });
+    assert!(granted(&drain(&mut b), 4, 1).is_some());
+    request(&mut b, S, 5, 1, "t/q");
+    assert_eq!(
+        answers(&drain(&mut b), 5, 1),
+        vec![ToUser::Queued { req: 1, position: 1 }]
+    );
+    // Raising the limit lets the queue on at once.
+    limit(&mut b, Some(3));
+    assert!(granted(&drain(&mut b), 5, 1).is_some());
+    // Overloaded (a limit of 0) refuses everything; lifting it lets requests through.
+    limit(&mut b, Some(0));
+    request(&mut b, S, 6, 1, "t/a");
+    assert_eq!(answers(&drain(&mut b), 6, 1).len(), 1);
+    limit(&mut b, None);
+    request(&mut b, S, 6, 2, "t/a");
+    assert!(granted(&drain(&mut b), 6, 2).is_some());
 }

@@ -99,9 +99,9 @@ struct World {
     alive: BTreeSet<String>,
     users: BTreeSet<UserId>,
     sessions: BTreeMap<SessionId, Held>,
-    next_session: u64,
-    /// Offers received and not answered yet: (system, ticket, user, req, service).
-    offers: Vec<(String, u64, UserId, u64, String)>,
+    /// Offers received and not answered yet: (system, ticket, user, req, service,
+    /// the session granted).
+    offers: Vec<(String, u64, UserId, u64, String, SessionId)>,
     /// Requests each user has out: (user, req) → service.
     pending: BTreeMap<(UserId, u64), ServiceId>,
     next_req: u64,
@@ -156,10 +156,27 @@ impl World {
                         user,
                         req,
                         service,
+                        session,
                         ..
                     },
                 ) if self.alive.contains(&system) => {
-                    self.offers.push((system, ticket, user, req, service));
+                    self.offers
+                        .push((system, ticket, user, req, service, session));
+                }
+                // A grant that was not confirmed in time: its system reads this after the
+                // offer, so it opens the session (if it would) and ends it at once.
+                Output::ToSystem(system, ToSystem::Terminate { session, .. })
+                    if self.alive.contains(&system) =>
+                {
+                    if let Some(i) = self.offers.iter().position(|o| o.5 == session) {
+                        let (_, _, u, req, service, _) = self.offers.remove(i);
+                        self.served.insert((u, req, service));
+                    } else if let Some(h) = self.end(session) {
+                        pongs.push(ToBroker::SessionEnded {
+                            system: h.system,
+                            session,
+                        });
+                    }
                 }
                 Output::ToSystem(system, ToSystem::Ping { nonce })
                     if self.alive.contains(&system) =>
@@ -180,6 +197,9 @@ impl World {
                 }
                 Output::ToUser(u, muster_shared::protocol::ToUser::Refused { req, .. }) => {
                     self.pending.remove(&(u, req));
+                }
+                Output::Granted { user, req, .. } => {
+                    self.pending.remove(&(user, req));
                 }
                 _ => {}
             }
@@ -238,7 +258,8 @@ impl World {
                 if self.offers.is_empty() {
                     return;
                 }
-                let (system, ticket, u, req, service) = self.offers.remove(i % self.offers.len());
+                let (system, ticket, u, req, service, session) =
+                    self.offers.remove(i % self.offers.len());
                 if !self.alive.contains(&system) {
                     return;
                 }
@@ -253,10 +274,8 @@ impl World {
                         Err("request already served".to_string())
                     }
                     None if grant && self.users.contains(&u) => {
-                        self.next_session += 1;
-                        let id = SessionId(self.next_session);
                         self.sessions.insert(
-                            id,
+                            session,
                             Held {
                                 system: system.clone(),
                                 service: service.clone(),
@@ -264,14 +283,13 @@ impl World {
                                 req,
                             },
                         );
-                        Ok(id)
+                        Ok(session)
                     }
                     None => Err("refused".to_string()),
                 };
                 if let Ok(id) = answer {
                     self.granted.entry((u.clone(), req)).or_default().insert(id);
                 }
-                let wanted = self.pending.remove(&(u, req)).is_some();
                 core.handle(
                     self.now,
                     ToBroker::OfferAnswer {
@@ -280,19 +298,6 @@ impl World {
                         answer: answer.clone(),
                     },
                 );
-                // A grant for a request its user no longer has out (refused after a
-                // timeout, or cancelled): the user ends it on sight.
-                if let (Ok(id), None, false) = (answer, existing, wanted) {
-                    if self.end(id).is_some() {
-                        core.handle(
-                            self.now,
-                            ToBroker::SessionEnded {
-                                system,
-                                session: id,
-                            },
-                        );
-                    }
-                }
             }
             Action::End(i) => {
                 let Some(id) = self
