@@ -1004,7 +1004,7 @@ impl UdpFront {
                 kind,
                 payload,
                 ..
-            } => {
+            } if self.by_user.contains_key(&user) => {
                 let system = service.split().map(|(s, _)| s.to_string())?;
                 let system_addr = dir.system_udp(&system)?.to_string();
                 let _ = self.granted(FarGrant {
@@ -1095,8 +1095,9 @@ impl UdpFront {
         let (Some(id), Some(key)) = (id, key) else {
             return Err(g);
         };
+        let (user, req) = (g.user, g.req);
         let d = Down::Granted {
-            req: g.req,
+            req,
             session: g.session,
             service: g.service,
             kind: g.kind,
@@ -1104,7 +1105,8 @@ impl UdpFront {
             system_addr: self.reachable(&g.system_addr),
             key,
         };
-        self.answer(id, g.req, d, true);
+        self.answer(id, req, d, true);
+        muster_shared::trace::stamp(muster_shared::trace::Stage::BrokerRelay, &user, req);
         Ok(())
     }
 

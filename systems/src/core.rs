@@ -513,6 +513,7 @@ impl SystemCore {
         let r = self.report.entry(service.clone()).or_default();
         r.grants += 1;
         r.max_in_use = r.max_in_use.max(in_use);
+        muster_shared::trace::stamp(muster_shared::trace::Stage::SystemSend, &user, req);
         answer(self, Ok(session));
         if user_pid != 0 {
             self.out

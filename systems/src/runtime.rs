@@ -250,6 +250,7 @@ pub fn run_system_with<A: SystemApp>(
             .min();
         let tokens = shell.reactor.wait(timeout)?;
         let now = start.elapsed();
+        let mut udp_readable = false;
         for token in tokens {
             match token {
                 TOKEN_BELL => {
@@ -280,11 +281,8 @@ pub fn run_system_with<A: SystemApp>(
                         return Ok(core);
                     }
                 }
-                TOKEN_UDP => {
-                    if let Some(r) = shell.remote.as_mut() {
-                        r.on_readable(&mut core);
-                    }
-                }
+                // Read after the inbox, below.
+                TOKEN_UDP => udp_readable = true,
                 TOKEN_CONTROL => {
                     for line in control.take() {
                         if !apply_control(&mut core, &line) {
@@ -338,6 +336,15 @@ pub fn run_system_with<A: SystemApp>(
                 r.logic.note(&msg);
             }
             core.handle(msg)
+        }
+        // A remote user's first datagram of a session comes after its grant, which the
+        // broker sent after the offer read above: the session is open (its key known)
+        // once the offer's outputs are routed.
+        if udp_readable && shell.remote.is_some() {
+            shell.flush(&mut core);
+            if let Some(r) = shell.remote.as_mut() {
+                r.on_readable(&mut core);
+            }
         }
         if let Some(r) = shell.remote.as_mut() {
             r.logic.handle_timeout(Instant::now(), &mut core);

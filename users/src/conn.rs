@@ -845,7 +845,7 @@ impl RemoteConn {
                     kind,
                     payload,
                     system_pid: 0,
-                    relayed: false,
+                    relayed: true,
                 });
                 let early = std::mem::take(&mut self.early);
                 let (mine, rest): (Vec<_>, Vec<_>) = early
