@@ -1083,7 +1083,9 @@ impl Broker {
                     );
                     self.undo_grant(
                         &o,
-                        EndReason::BySystem("the system holds this request under another session".into()),
+                        EndReason::BySystem(
+                            "the system holds this request under another session".into(),
+                        ),
                     );
                 }
                 if let (Some(svc), Some(sys)) = (
@@ -1323,11 +1325,9 @@ impl Broker {
         {
             return self.send_grant(ticket);
         }
-        let already = svc.queue.iter().any(|w| w.user == user)
-            || self
-                .offers
-                .values()
-                .any(|o| o.user == user && o.service == service);
+        // (A grant its system has not confirmed yet is a session the user holds, like
+        // any other: no bar to asking again.)
+        let already = svc.queue.iter().any(|w| w.user == user);
         if already {
             return self.refuse(&user, req, Refusal::AlreadyPending);
         }

@@ -1211,6 +1211,35 @@ impl Federation {
                 self.send(&host, &msg);
                 None
             }
+            // A user of another host with an inbox here: its grant goes to its host
+            // (whose broker passes it on), and the session's frames come from this
+            // system's process.
+            Output::Granted {
+                user,
+                req,
+                session,
+                service,
+                kind,
+                payload,
+                system_pid,
+            } if self.foreign.get(&user).is_some_and(|f| f.proxy.is_some()) => {
+                let system = service.split().map(|(s, _)| s.to_string())?;
+                let f = self.foreign.get_mut(&user)?;
+                f.sessions.insert(session, (system, system_pid));
+                let host = f.host.clone();
+                let msg = ToUser::Granted {
+                    req,
+                    session,
+                    service,
+                    kind,
+                    payload,
+                    system_pid,
+                    relayed: true,
+                };
+                let user = local_part(&user);
+                self.send(&host, &FedMsg::ToUser { user, msg });
+                None
+            }
             Output::ToUser(user, msg)
                 if self.foreign.get(&user).is_some_and(|f| f.proxy.is_none()) =>
             {
@@ -1919,8 +1948,12 @@ impl Federation {
                 ToUser::Update { session, .. } | ToUser::Status { session, .. } => {
                     f.sessions.get(session).is_some_and(|(_, p)| *p == sender)
                 }
+                // Its system's, or ours (a grant its system did not take).
                 ToUser::Ended { session, .. } => {
-                    let ok = f.sessions.get(session).is_some_and(|(_, p)| *p == sender);
+                    let ok = f
+                        .sessions
+                        .get(session)
+                        .is_some_and(|(_, p)| *p == sender || sender == pid);
                     if ok {
                         f.sessions.remove(session);
                     }

@@ -1326,11 +1326,10 @@ impl Shell {
                 None => out,
             };
             match out {
-                // A local user hears of its grant from the broker at once, over a port
-                // open since its hello, and then from the system itself: the system's
-                // first ports to a user cost more than the rest of the request's path.
-                // (Remote users' grants went to the UDP front; a user of another host
-                // hears through its own host's broker.)
+                // A local user hears of its grant from the broker, over a port open
+                // since its hello, right after its system was sent the offer. (Remote
+                // users' grants went to the UDP front; a user of another host hears
+                // through its own host's broker.)
                 Output::Granted {
                     user,
                     req,

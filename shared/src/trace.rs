@@ -2,10 +2,11 @@
 //!
 //! With `MUSTER_TRACE_DIR` set, every process on the path notes when a request passed
 //! it (CLOCK_MONOTONIC ns, one clock for every process on the host), keyed by the user
-//! and its request number: the user sending it, the broker receiving it and sending the
-//! offer, the system receiving the offer and answering, the broker passing the grant
-//! on, the system's own copy written, the user receiving the first copy. Each process writes its stamps to `DIR/trace-PID.csv` when it exits; the
-//! stress harness joins them. Without the variable a stamp costs one load.
+//! and its request number: the user sending it, the broker receiving it, sending the
+//! offer and then the grant, the user receiving the grant; and off the user's path, the
+//! system receiving the offer and confirming it, the broker taking the confirmation.
+//! Each process writes its stamps to `DIR/trace-PID.csv` when it exits; the stress
+//! harness joins them. Without the variable a stamp costs one load.
 
 use crate::protocol::monotonic_ns;
 use crate::types::UserId;
@@ -29,25 +30,19 @@ pub enum Stage {
     BrokerSend,
     /// The system took the offer.
     SystemRecv,
-    /// The system made the grant (its answer to the broker, then the user's copy).
+    /// The system opened the session and confirms it.
     SystemSend,
-    /// The broker took the system's answer.
+    /// The broker took the system's confirmation.
     BrokerAnswer,
-    /// The broker sent the grant on to the (local) user.
+    /// The broker sent the grant to the user (over shared memory or UDP).
     BrokerRelay,
-    /// The system's own copy of the grant is written into the user's inbox (on shared
-    /// memory: after opening the ports to the user, the first contact between the two
-    /// processes, if they had none).
-    SystemSent,
-    /// The user took the grant, the broker's copy first.
+    /// The user took the grant.
     UserRecv,
-    /// The user took the grant, the system's own copy first (always, over UDP).
-    UserRecvDirect,
 }
 
 impl Stage {
     /// Every stage.
-    pub const ALL: [Stage; 10] = [
+    pub const ALL: [Stage; 8] = [
         Stage::UserSend,
         Stage::BrokerRecv,
         Stage::BrokerSend,
@@ -55,9 +50,7 @@ impl Stage {
         Stage::SystemSend,
         Stage::BrokerAnswer,
         Stage::BrokerRelay,
-        Stage::SystemSent,
         Stage::UserRecv,
-        Stage::UserRecvDirect,
     ];
 
     /// Its name in the files.
@@ -70,9 +63,7 @@ impl Stage {
             Stage::SystemSend => "system_send",
             Stage::BrokerAnswer => "broker_answer",
             Stage::BrokerRelay => "broker_relay",
-            Stage::SystemSent => "system_sent",
             Stage::UserRecv => "user_recv",
-            Stage::UserRecvDirect => "user_recv_direct",
         }
     }
 
@@ -178,10 +169,10 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         std::fs::write(
             dir.join("trace-1.csv"),
-            "user_send,u1-ab,3,100\nbroker_recv,u1-ab,3,150\nnonsense\nuser_recv,u1-ab,x,1\nwho_knows,u,1,1\nsystem_sent,u1-ab,3,170,extra\n",
+            "user_send,u1-ab,3,100\nbroker_recv,u1-ab,3,150\nnonsense\nuser_recv,u1-ab,x,1\nwho_knows,u,1,1\nsystem_send,u1-ab,3,170,extra\n",
         )
         .unwrap();
-        std::fs::write(dir.join("trace-2.csv"), "system_sent,alice.7,9,200\n").unwrap();
+        std::fs::write(dir.join("trace-2.csv"), "system_send,alice.7,9,200\n").unwrap();
         let mut got = read_dir(&dir);
         got.sort();
         assert_eq!(
@@ -189,7 +180,7 @@ mod tests {
             [
                 (Stage::UserSend, "u1-ab".to_string(), 3, 100),
                 (Stage::BrokerRecv, "u1-ab".to_string(), 3, 150),
-                (Stage::SystemSent, "alice.7".to_string(), 9, 200),
+                (Stage::SystemSend, "alice.7".to_string(), 9, 200),
             ]
         );
         std::fs::remove_dir_all(&dir).unwrap();

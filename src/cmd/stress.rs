@@ -345,57 +345,42 @@ fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result
     })
 }
 
-/// A granted request's path when the broker's copy of the grant reached the user first
-/// (shared memory), and the hop between each two stamps.
-const RELAY_PATH: [Stage; 8] = [
+/// A granted request's path to its user, and the hop between each two stamps: the
+/// broker sends the offer to the system, then the grant to the user.
+const GRANT_PATH: [Stage; 5] = [
     Stage::UserSend,
     Stage::BrokerRecv,
+    Stage::BrokerSend,
+    Stage::BrokerRelay,
+    Stage::UserRecv,
+];
+const GRANT_HOPS: [&str; 4] = [
+    "user → broker",
+    "broker (handling, queue, the offer sent)",
+    "broker (the grant sent)",
+    "broker → user",
+];
+
+/// The system's side, off the user's path: it opens the session and confirms it.
+const CONFIRM_PATH: [Stage; 4] = [
     Stage::BrokerSend,
     Stage::SystemRecv,
     Stage::SystemSend,
     Stage::BrokerAnswer,
-    Stage::BrokerRelay,
-    Stage::UserRecv,
 ];
-const RELAY_HOPS: [&str; 7] = [
-    "user → broker",
-    "broker (handling, queue)",
-    "broker → system",
-    "system (handling)",
-    "system → broker (answer)",
-    "broker (handling the answer)",
-    "broker → user (its copy)",
-];
-
-/// The path when the system's own copy reached the user first (always over UDP).
-const DIRECT_PATH: [Stage; 7] = [
-    Stage::UserSend,
-    Stage::BrokerRecv,
-    Stage::BrokerSend,
-    Stage::SystemRecv,
-    Stage::SystemSend,
-    Stage::SystemSent,
-    Stage::UserRecvDirect,
-];
-const DIRECT_HOPS: [&str; 6] = [
-    "user → broker",
-    "broker (handling, queue)",
-    "broker → system",
-    "system (handling)",
-    "system: its copy written",
-    "system → user (its copy)",
+const CONFIRM_HOPS: [&str; 3] = [
+    "broker → system (the offer)",
+    "system (opening the session)",
+    "system → broker (its confirmation)",
 ];
 
 /// Per-hop latency (µs) of granted requests whose stamps all came.
 struct PerHop {
-    /// The hops of [`RELAY_PATH`], of requests the broker's copy reached first.
-    relay: Vec<Histogram<u64>>,
-    /// The hops of [`DIRECT_PATH`], of requests the system's copy reached first.
-    direct: Vec<Histogram<u64>>,
-    /// On shared memory, the system writing its own copy (its first ports to a user
-    /// the system had none to, if so), whichever copy came first.
-    own_copy: Histogram<u64>,
-    /// The whole path, user send to the first copy taken.
+    /// The hops of [`GRANT_PATH`].
+    grant: Vec<Histogram<u64>>,
+    /// The hops of [`CONFIRM_PATH`].
+    confirm: Vec<Histogram<u64>>,
+    /// The whole path, user send to grant taken.
     whole: Histogram<u64>,
 }
 
@@ -447,45 +432,33 @@ fn print_hops(
 /// Per hop, of the requests whose user sent them at a time (CLOCK_MONOTONIC ns) that
 /// `sent_at` keeps.
 fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
-    let at = |stamps: &[Option<u64>; Stage::ALL.len()], s: Stage| {
-        stamps[Stage::ALL.iter().position(|x| *x == s).unwrap_or(0)]
+    let at = |stamps: &[Option<u64>; Stage::ALL.len()], s: &Stage| {
+        stamps[Stage::ALL.iter().position(|x| x == s).unwrap_or(0)]
     };
     let mut out = PerHop {
-        relay: RELAY_HOPS.iter().map(|_| histogram()).collect(),
-        direct: DIRECT_HOPS.iter().map(|_| histogram()).collect(),
-        own_copy: histogram(),
+        grant: GRANT_HOPS.iter().map(|_| histogram()).collect(),
+        confirm: CONFIRM_HOPS.iter().map(|_| histogram()).collect(),
         whole: histogram(),
     };
     let us = |from: u64, to: u64| ((to - from) / 1000).max(1);
+    // A path's stamps, if all came in order.
+    let path = |stamps, path: &[Stage]| -> Option<Vec<u64>> {
+        let t: Vec<u64> = path.iter().map(|s| at(stamps, s)).collect::<Option<_>>()?;
+        t.windows(2).all(|w| w[0] <= w[1]).then_some(t)
+    };
     for stamps in paths.values() {
-        if !at(stamps, Stage::UserSend).is_some_and(&sent_at) {
+        if !at(stamps, &Stage::UserSend).is_some_and(&sent_at) {
             continue;
         }
-        if let (Some(a), Some(b)) = (at(stamps, Stage::SystemSend), at(stamps, Stage::SystemSent)) {
-            if b >= a {
-                let _ = out.own_copy.record(us(a, b));
+        if let Some(t) = path(stamps, &CONFIRM_PATH) {
+            for (h, w) in out.confirm.iter_mut().zip(t.windows(2)) {
+                let _ = h.record(us(w[0], w[1]));
             }
         }
-        let (path, hops): (&[Stage], &mut Vec<Histogram<u64>>) =
-            if at(stamps, Stage::UserRecv).is_some() {
-                (&RELAY_PATH, &mut out.relay)
-            } else {
-                (&DIRECT_PATH, &mut out.direct)
-            };
-        let t: Option<Vec<u64>> = path
-            .iter()
-            .map(|s| match s {
-                // A grant over UDP goes out through the system's endpoint: no stamp
-                // of its own.
-                Stage::SystemSent => at(stamps, *s).or(at(stamps, Stage::SystemSend)),
-                _ => at(stamps, *s),
-            })
-            .collect();
-        let Some(t) = t else { continue };
-        if t.windows(2).any(|w| w[1] < w[0]) {
+        let Some(t) = path(stamps, &GRANT_PATH) else {
             continue;
-        }
-        for (h, w) in hops.iter_mut().zip(t.windows(2)) {
+        };
+        for (h, w) in out.grant.iter_mut().zip(t.windows(2)) {
             let _ = h.record(us(w[0], w[1]));
         }
         let _ = out.whole.record(us(t[0], t[t.len() - 1]));
@@ -684,11 +657,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             "termination": termination.value_at_quantile(0.5) as f64 / floor_base_p50,
         },
         "broker": broker,
-        "per_hop": hops_json(&RELAY_HOPS, &hops.relay),
-        "per_hop_direct": hops_json(&DIRECT_HOPS, &hops.direct),
-        "per_hop_own_copy": summary(&hops.own_copy),
+        "per_hop": hops_json(&GRANT_HOPS, &hops.grant),
+        "per_hop_confirm": hops_json(&CONFIRM_HOPS, &hops.confirm),
         "per_hop_whole": summary(&hops.whole),
-        "per_hop_first_10s": hops_json(&RELAY_HOPS, &early_hops.relay),
+        "per_hop_first_10s": hops_json(&GRANT_HOPS, &early_hops.grant),
         "per_hop_whole_first_10s": summary(&early_hops.whole),
     });
     if let Some(dir) = &a.report {
@@ -745,26 +717,18 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", line("service request, after 10 s", &late));
         println!("{}", line("service request, users leaving", &leaving));
         println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
-        print_hops(
-            "the broker's copy of the grant first",
-            &RELAY_HOPS,
-            &hops.relay,
-            line,
-        );
-        print_hops(
-            "the system's own copy first",
-            &DIRECT_HOPS,
-            &hops.direct,
-            line,
-        );
-        if !hops.own_copy.is_empty() {
-            println!("{}", line("  system: its own copy written", &hops.own_copy));
-        }
+        print_hops("to the user", &GRANT_HOPS, &hops.grant, line);
         println!("{}", line("  whole path (stamped)", &hops.whole));
+        print_hops(
+            "the system, off the user's path",
+            &CONFIRM_HOPS,
+            &hops.confirm,
+            line,
+        );
         if print_hops(
-            "requests sent in the first 10 s, the broker's copy first",
-            &RELAY_HOPS,
-            &early_hops.relay,
+            "requests sent in the first 10 s, to the user",
+            &GRANT_HOPS,
+            &early_hops.grant,
             line,
         ) {
             println!("{}", line("    whole path (stamped)", &early_hops.whole));

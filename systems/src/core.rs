@@ -1027,8 +1027,12 @@ mod tests {
             remote: None,
         });
         let out = outs(&mut c);
-        assert!(answer(&out).unwrap().unwrap_err().contains("another request's"));
-        let held: Vec<(SessionId, String)> = c.sessions().map(|(s, u, _)| (s, u.0.clone())).collect();
+        assert!(answer(&out)
+            .unwrap()
+            .unwrap_err()
+            .contains("another request's"));
+        let held: Vec<(SessionId, String)> =
+            c.sessions().map(|(s, u, _)| (s, u.0.clone())).collect();
         assert_eq!(held, [(first, "u1".to_string())]);
         assert_eq!(c.report()["c"].refusals, 1);
     }

@@ -773,12 +773,7 @@ impl UserCore {
             ));
             return;
         };
-        let stage = if copy == RELAYED {
-            muster_shared::trace::Stage::UserRecv
-        } else {
-            muster_shared::trace::Stage::UserRecvDirect
-        };
-        muster_shared::trace::stamp(stage, &self.id, req);
+        muster_shared::trace::stamp(muster_shared::trace::Stage::UserRecv, &self.id, req);
         self.out
             .push_back(UserOutput::WatchSystem(system.clone(), system_pid));
         self.sessions.insert(
@@ -1093,10 +1088,20 @@ mod tests {
         };
         assert!(!u.sender_allowed(Some(66), &ended, owner));
         assert!(
-            !u.sender_allowed(Some(3), &ended, owner),
-            "only the granting system ends it"
+            u.sender_allowed(Some(3), &ended, owner),
+            "the broker ends a grant its system did not take"
         );
         assert!(u.sender_allowed(Some(50), &ended, owner));
+        let update = ToUser::Update {
+            session: SessionId(7),
+            seq: 1,
+            sent_ns: 0,
+            payload: Payload::Goal2d { x: 1.0, y: 2.0 },
+        };
+        assert!(
+            !u.sender_allowed(Some(3), &update, owner),
+            "only the granting system streams"
+        );
         assert!(
             u.sender_allowed(None, &ended, owner),
             "an unknown writer is let through"
