@@ -1313,6 +1313,7 @@ impl Shell {
                     Some(o) => o,
                     None => {
                         d.transmit();
+                        self.endpoint.ring_pending();
                         continue;
                     }
                 },
@@ -1321,7 +1322,10 @@ impl Shell {
             let out = match self.fed.as_mut() {
                 Some(f) => match f.route(core, out) {
                     Some(o) => o,
-                    None => continue,
+                    None => {
+                        self.endpoint.ring_pending();
+                        continue;
+                    }
                 },
                 None => out,
             };
@@ -1351,14 +1355,24 @@ impl Shell {
                         system_pid,
                         relayed: true,
                     };
+                    muster_shared::trace::stamp(Stage::BrokerRelay, &user, req);
                     self.endpoint
                         .send_control(&Address::User(user.clone()), &msg);
-                    muster_shared::trace::stamp(Stage::BrokerRelay, &user, req);
+                    self.endpoint.ring_pending();
                 }
-                Output::ToSystem(name, msg) => {
+                // An offer is written at once and its bell rung after the grant that
+                // follows it: the user's wake-up does not wait behind the system's
+                // (which, woken first on a busy core, would run before the broker sent
+                // the grant), and a user that heard of its grant finds the offer in the
+                // system's inbox before its own first frame.
+                Output::ToSystem(name, msg @ ToSystem::Offer { .. }) => {
                     if let ToSystem::Offer { user, req, .. } = &msg {
                         muster_shared::trace::stamp(Stage::BrokerSend, user, *req);
                     }
+                    self.endpoint
+                        .send_control_quiet(&Address::System(name), &msg)
+                }
+                Output::ToSystem(name, msg) => {
                     self.endpoint.send_control(&Address::System(name), &msg)
                 }
                 Output::ToUser(user, msg) => self.endpoint.send_control(&Address::User(user), &msg),
@@ -1370,6 +1384,8 @@ impl Shell {
                 Output::ForgetUser(user) => self.forget(Address::User(user)),
             }
         }
+        // Offers whose grant went another way (or none followed).
+        self.endpoint.ring_pending();
         // And anything routing the outputs changed.
         self.write_list(core);
         self.publish_events(core);

@@ -1105,8 +1105,8 @@ impl UdpFront {
             system_addr: self.reachable(&g.system_addr),
             key,
         };
-        self.answer(id, req, d, true);
         muster_shared::trace::stamp(muster_shared::trace::Stage::BrokerRelay, &user, req);
+        self.answer(id, req, d, true);
         Ok(())
     }
 

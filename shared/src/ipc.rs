@@ -455,6 +455,11 @@ pub struct Endpoint {
     /// The process behind each publisher writing to this inbox (iceoryx2 records the
     /// node, and the node id the pid of the process that created it).
     senders: HashMap<iceoryx2::identifiers::UniquePublisherId, Option<u32>>,
+    /// Peers sent frames by [`Endpoint::send_control_quiet`] whose bells
+    /// [`Endpoint::ring_pending`] rings.
+    pending_bells: Vec<Address>,
+    /// Set while a quiet send is in progress: the frame is written, the bell left.
+    quiet: bool,
 }
 
 /// Most control frames held back for one peer whose inbox is full; beyond it the peer
@@ -555,6 +560,8 @@ impl Endpoint {
             backlog: HashMap::new(),
             inbox_svc: svc,
             senders: HashMap::new(),
+            pending_bells: Vec::new(),
+            quiet: false,
         })
     }
 
@@ -794,6 +801,26 @@ impl Endpoint {
         }
     }
 
+    /// [`Endpoint::send_control`], but the frame is only written: `to`'s bell rings at
+    /// the next [`Endpoint::ring_pending`]. A frame written before another peer's frame
+    /// is visible before it, so a process that reads `to`'s inbox after hearing from
+    /// that peer finds it, bell or not; and the other peer's bell rings first, so its
+    /// wake-up does not wait behind `to`'s.
+    pub fn send_control_quiet<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        self.quiet = true;
+        self.send_control(to, msg);
+        self.quiet = false;
+    }
+
+    /// Rings the bells [`Endpoint::send_control_quiet`] left, once per peer.
+    pub fn ring_pending(&mut self) {
+        for to in std::mem::take(&mut self.pending_bells) {
+            if let Err(e) = self.ring(&to, bell::MESSAGE) {
+                tracing::debug!("{e}");
+            }
+        }
+    }
+
     fn hold(q: &mut VecDeque<Vec<u8>>, to: &Address, frame: Vec<u8>, dropped: &mut u64) {
         if q.len() >= MAX_BACKLOG {
             q.pop_front();
@@ -871,6 +898,7 @@ impl Endpoint {
                 ),
             });
         }
+        let quiet = self.quiet;
         let peer = self.peer(to)?;
         let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
             peer: to.clone(),
@@ -894,9 +922,13 @@ impl Endpoint {
                 },
             );
         }
-        peer.notifier
-            .notify_with_custom_event_id(EventId::new(bell::MESSAGE))
-            .map_err(|e| send_err(&e))?;
+        if !quiet {
+            peer.notifier
+                .notify_with_custom_event_id(EventId::new(bell::MESSAGE))
+                .map_err(|e| send_err(&e))?;
+        } else if !self.pending_bells.contains(to) {
+            self.pending_bells.push(to.clone());
+        }
         Ok(())
     }
 

@@ -26,7 +26,7 @@ pub enum Stage {
     UserSend,
     /// The broker took it from its inbox (or its UDP front).
     BrokerRecv,
-    /// The broker sent the offer to the system.
+    /// The broker sends the offer to the system.
     BrokerSend,
     /// The system took the offer.
     SystemRecv,
@@ -34,7 +34,7 @@ pub enum Stage {
     SystemSend,
     /// The broker took the system's confirmation.
     BrokerAnswer,
-    /// The broker sent the grant to the user (over shared memory or UDP).
+    /// The broker sends the grant to the user (over shared memory or UDP).
     BrokerRelay,
     /// The user took the grant.
     UserRecv,
