@@ -418,6 +418,11 @@ impl Broker {
         self.out.pop_front()
     }
 
+    /// How many outputs wait for [`Broker::poll_output`].
+    pub fn outputs_waiting(&self) -> usize {
+        self.out.len()
+    }
+
     /// Counters so far.
     pub fn stats(&self) -> &BrokerStats {
         &self.stats

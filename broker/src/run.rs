@@ -261,6 +261,9 @@ type Fed<'a> = &'a mut Option<Federation>;
 
 /// List watchers are rung at most this often; the blackboard itself is updated at once.
 const RING_EVERY: Duration = Duration::from_millis(100);
+/// Up to this many outputs of one flush go out before the list is written; more, and
+/// the list goes first.
+const LIST_AFTER_AT_MOST: usize = 16;
 
 /// Runs a broker on `inst` until SIGINT or SIGTERM; returns what it did.
 pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerError> {
@@ -1291,9 +1294,14 @@ impl Shell {
         core: &mut Broker,
         dead: &mut Vec<Address>,
     ) -> Result<(), BrokerError> {
-        // The list first: a broker restarting under load has hundreds of welcomes to
+        // A few frames (a grant and its offer, a refusal) go before the list, which a
+        // change rewrites in part and which nobody on their path waits for; a storm of
+        // them after it: a broker restarting under load has hundreds of welcomes to
         // send (each opening a port), and the list must not wait behind them.
-        self.write_list(core);
+        let list_first = core.outputs_waiting() > LIST_AFTER_AT_MOST;
+        if list_first {
+            self.write_list(core);
+        }
         self.deliver_federation(core);
         while let Some(mut out) = core.poll_output() {
             // An operator's status gets the shell's own figures.
@@ -1386,7 +1394,7 @@ impl Shell {
         }
         // Offers whose grant went another way (or none followed).
         self.endpoint.ring_pending();
-        // And anything routing the outputs changed.
+        // The list, if it did not go first; and anything routing the outputs changed.
         self.write_list(core);
         self.publish_events(core);
         Ok(())
