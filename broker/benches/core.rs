@@ -67,14 +67,21 @@ fn loaded() -> (Broker, Duration) {
 }
 
 /// Empties the core's outputs; returns the ticket of the last offer among them.
-fn drain(core: &mut Broker) -> Option<u64> {
-    let mut ticket = None;
+/// Takes the outputs; gives the offer's ticket and the session granted, if any.
+fn drain(core: &mut Broker) -> Option<(u64, SessionId)> {
+    let mut offer = None;
     while let Some(o) = core.poll_output() {
-        if let Output::ToSystem(_, ToSystem::Offer { ticket: t, .. }) = o {
-            ticket = Some(t);
+        if let Output::ToSystem(
+            _,
+            ToSystem::Offer {
+                ticket, session, ..
+            },
+        ) = o
+        {
+            offer = Some((ticket, session));
         }
     }
-    ticket
+    offer
 }
 
 /// One request cycle; `time` says which message's handling is timed.
@@ -108,7 +115,7 @@ impl Cycle {
             }
             ticket
         };
-        let ticket = handle(
+        let (ticket, session) = handle(
             &mut self.core,
             ToBroker::Request {
                 user,
@@ -118,7 +125,6 @@ impl Cycle {
             Timed::Request,
         )
         .expect("an offer");
-        let session = SessionId(self.n);
         handle(
             &mut self.core,
             ToBroker::OfferAnswer {
@@ -141,7 +147,7 @@ fn handling(c: &mut Criterion) {
     let mut g = c.benchmark_group("broker_handle");
     for (name, timed) in [
         ("request", Timed::Request),
-        ("offer_answer_grant", Timed::OfferAnswer),
+        ("offer_answer_confirm", Timed::OfferAnswer),
         ("session_ended", Timed::SessionEnded),
     ] {
         let (core, now) = loaded();

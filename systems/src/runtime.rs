@@ -251,6 +251,7 @@ pub fn run_system_with<A: SystemApp>(
         let tokens = shell.reactor.wait(timeout)?;
         let now = start.elapsed();
         let mut udp_readable = false;
+        let mut control_lines = Vec::new();
         for token in tokens {
             match token {
                 TOKEN_BELL => {
@@ -283,15 +284,8 @@ pub fn run_system_with<A: SystemApp>(
                 }
                 // Read after the inbox, below.
                 TOKEN_UDP => udp_readable = true,
-                TOKEN_CONTROL => {
-                    for line in control.take() {
-                        if !apply_control(&mut core, &line) {
-                            core.shutdown();
-                            shell.flush(&mut core);
-                            return Ok(core);
-                        }
-                    }
-                }
+                // Applied after the inbox, below.
+                TOKEN_CONTROL => control_lines.extend(control.take()),
                 TOKEN_BROKER => {
                     if shell.broker.as_ref().is_some_and(PidFd::exited) {
                         tracing::warn!("broker died; sessions go on, waiting for a new broker");
@@ -344,6 +338,15 @@ pub fn run_system_with<A: SystemApp>(
             shell.flush(&mut core);
             if let Some(r) = shell.remote.as_mut() {
                 r.on_readable(&mut core);
+            }
+        }
+        // An operator's line comes after what the broker sent before it was typed (a
+        // grant its user was told of, then withdrawn: the session opens, then ends).
+        for line in control_lines {
+            if !apply_control(&mut core, &line) {
+                core.shutdown();
+                shell.flush(&mut core);
+                return Ok(core);
             }
         }
         if let Some(r) = shell.remote.as_mut() {
