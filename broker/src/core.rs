@@ -93,22 +93,46 @@ pub enum Output {
     ForgetUser(UserId),
     /// The broker granted a user's request (its system was sent the offer just before):
     /// the shell tells the user, over shared memory, UDP or the federation.
-    Granted {
-        /// The user.
-        user: UserId,
-        /// Its request number.
-        req: u64,
-        /// The session.
-        session: SessionId,
-        /// The service.
-        service: ServiceId,
-        /// Data or command.
-        kind: ServiceKind,
-        /// Payload type.
-        payload: String,
-        /// The system's pid.
-        system_pid: u32,
-    },
+    Granted(Grant),
+}
+
+/// A grant the broker made ([`Output::Granted`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Grant {
+    /// The user.
+    pub user: UserId,
+    /// Its request number.
+    pub req: u64,
+    /// The session.
+    pub session: SessionId,
+    /// The service.
+    pub service: ServiceId,
+    /// Data or command.
+    pub kind: ServiceKind,
+    /// Payload type.
+    pub payload: String,
+    /// The system's pid.
+    pub system_pid: u32,
+}
+
+impl Grant {
+    /// The message that tells its user, from the broker.
+    pub fn message(&self) -> ToUser {
+        ToUser::Granted {
+            req: self.req,
+            session: self.session,
+            service: self.service.clone(),
+            kind: self.kind,
+            payload: self.payload.clone(),
+            system_pid: self.system_pid,
+            relayed: true,
+        }
+    }
+
+    /// The system's name.
+    pub fn system(&self) -> Option<String> {
+        self.service.split().map(|(s, _)| s.to_string())
+    }
 }
 
 /// Why a system left the registry.
@@ -1447,7 +1471,7 @@ impl Broker {
             return;
         };
         let system_pid = self.systems.get(&svc.system).map_or(0, |s| s.pid);
-        self.out.push_back(Output::Granted {
+        self.out.push_back(Output::Granted(Grant {
             user: o.user.clone(),
             req: o.req,
             session: o.session,
@@ -1455,7 +1479,7 @@ impl Broker {
             payload: svc.spec.payload.clone(),
             service: o.service.clone(),
             system_pid,
-        });
+        }));
     }
 
     fn cancel(&mut self, now: Duration, user: &UserId, req: u64) {

@@ -82,12 +82,7 @@ fn answers(out: &[Output], u: u32, req: u64) -> Vec<ToUser> {
 /// The session `out` grants user `u` for request `req`, if it does.
 fn granted(out: &[Output], u: u32, req: u64) -> Option<SessionId> {
     out.iter().find_map(|o| match o {
-        Output::Granted {
-            user: who,
-            req: r,
-            session,
-            ..
-        } if *who == user(u) && *r == req => Some(*session),
+        Output::Granted(g) if g.user == user(u) && g.req == req => Some(g.session),
         _ => None,
     })
 }
@@ -965,8 +960,8 @@ proptest! {
                     Output::ToSystem(sys, ToSystem::Offer { ticket, user, req, session, .. }) => {
                         outstanding.push((sys, ticket, user, req, session));
                     }
-                    Output::Granted { user, req, .. } => {
-                        *final_answers.entry((user, req)).or_default() += 1;
+                    Output::Granted(g) => {
+                        *final_answers.entry((g.user, g.req)).or_default() += 1;
                     }
                     Output::ToUser(_, ToUser::Ended { session, .. }) => {
                         // A timed-out grant ends; its system can no longer confirm it.

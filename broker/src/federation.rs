@@ -449,6 +449,21 @@ pub struct FarGrant {
     pub system_addr: String,
 }
 
+impl FarGrant {
+    /// Grant `g` as its user reaches the system: at `system_addr`.
+    pub fn new(g: crate::core::Grant, system_addr: String) -> Self {
+        FarGrant {
+            user: g.user,
+            req: g.req,
+            session: g.session,
+            service: g.service,
+            kind: g.kind,
+            payload: g.payload,
+            system_addr,
+        }
+    }
+}
+
 impl FedMsg {
     /// Whether the frame travels on the users' key (`req/`) rather than on the
     /// systems' (`in/`): access control tells the two apart.
@@ -1168,32 +1183,19 @@ impl Federation {
                 }
                 Some(Output::ToSystem(system, offer))
             }
-            Output::Granted {
-                user,
-                req,
-                session,
-                service,
-                kind,
-                payload,
-                ..
-            } if self.contacts.contains_key(&(user.clone(), req)) => {
-                self.contacts.remove(&(user.clone(), req));
-                let system = service.split().map(|(s, _)| s.to_string())?;
+            Output::Granted(g) if self.contacts.contains_key(&(g.user.clone(), g.req)) => {
+                self.contacts.remove(&(g.user.clone(), g.req));
+                let system = g.system()?;
                 let addr = core.system_udp(&system).map(|a| self.reachable(a));
-                let f = self.foreign.get_mut(&user)?;
+                let f = self.foreign.get_mut(&g.user)?;
                 let host = f.host.clone();
-                let home = local_part(&user);
+                let home = local_part(&g.user);
                 let msg = match addr {
                     Some(system_addr) => {
-                        f.sessions.insert(session, (system, 0));
+                        f.sessions.insert(g.session, (system, 0));
                         FedMsg::Granted(FarGrant {
                             user: home,
-                            req,
-                            session,
-                            service,
-                            kind,
-                            payload,
-                            system_addr,
+                            ..FarGrant::new(g, system_addr)
                         })
                     }
                     // The system dropped its UDP endpoint (re-registered without one)
@@ -1201,9 +1203,10 @@ impl Federation {
                     None => FedMsg::ToUser {
                         user: home,
                         msg: ToUser::Refused {
-                            req,
+                            req: g.req,
                             reason: Refusal::BadRequest(format!(
-                                "{service} is on a system without a UDP endpoint: local users only"
+                                "{} is on a system without a UDP endpoint: local users only",
+                                g.service
                             )),
                         },
                     },
@@ -1214,29 +1217,11 @@ impl Federation {
             // A user of another host with an inbox here: its grant goes to its host
             // (whose broker passes it on), and the session's frames come from this
             // system's process.
-            Output::Granted {
-                user,
-                req,
-                session,
-                service,
-                kind,
-                payload,
-                system_pid,
-            } if self.foreign.get(&user).is_some_and(|f| f.proxy.is_some()) => {
-                let system = service.split().map(|(s, _)| s.to_string())?;
-                let f = self.foreign.get_mut(&user)?;
-                f.sessions.insert(session, (system, system_pid));
+            Output::Granted(g) if self.foreign.get(&g.user).is_some_and(|f| f.proxy.is_some()) => {
+                let f = self.foreign.get_mut(&g.user)?;
+                f.sessions.insert(g.session, (g.system()?, g.system_pid));
                 let host = f.host.clone();
-                let msg = ToUser::Granted {
-                    req,
-                    session,
-                    service,
-                    kind,
-                    payload,
-                    system_pid,
-                    relayed: true,
-                };
-                let user = local_part(&user);
+                let (user, msg) = (local_part(&g.user), g.message());
                 self.send(&host, &FedMsg::ToUser { user, msg });
                 None
             }

@@ -198,8 +198,8 @@ impl World {
                 Output::ToUser(u, muster_shared::protocol::ToUser::Refused { req, .. }) => {
                     self.pending.remove(&(u, req));
                 }
-                Output::Granted { user, req, .. } => {
-                    self.pending.remove(&(user, req));
+                Output::Granted(g) => {
+                    self.pending.remove(&(g.user, g.req));
                 }
                 _ => {}
             }

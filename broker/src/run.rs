@@ -1342,30 +1342,13 @@ impl Shell {
                 // since its hello, right after its system was sent the offer. (Remote
                 // users' grants went to the UDP front; a user of another host hears
                 // through its own host's broker.)
-                Output::Granted {
-                    user,
-                    req,
-                    session,
-                    service,
-                    kind,
-                    payload,
-                    system_pid,
-                } => {
-                    if Federation::is_foreign(&user) {
+                Output::Granted(g) => {
+                    if Federation::is_foreign(&g.user) {
                         continue;
                     }
-                    let msg = ToUser::Granted {
-                        req,
-                        session,
-                        service,
-                        kind,
-                        payload,
-                        system_pid,
-                        relayed: true,
-                    };
-                    muster_shared::trace::stamp(Stage::BrokerRelay, &user, req);
+                    muster_shared::trace::stamp(Stage::BrokerRelay, &g.user, g.req);
                     self.endpoint
-                        .send_control(&Address::User(user.clone()), &msg);
+                        .send_control(&Address::User(g.user.clone()), &g.message());
                     self.endpoint.ring_pending();
                 }
                 // An offer is written at once and its bell rung after the grant that

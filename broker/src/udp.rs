@@ -996,26 +996,9 @@ impl UdpFront {
                 }
                 None
             }
-            Output::Granted {
-                user,
-                req,
-                session,
-                service,
-                kind,
-                payload,
-                ..
-            } if self.by_user.contains_key(&user) => {
-                let system = service.split().map(|(s, _)| s.to_string())?;
-                let system_addr = dir.system_udp(&system)?.to_string();
-                let _ = self.granted(FarGrant {
-                    user,
-                    req,
-                    session,
-                    service,
-                    kind,
-                    payload,
-                    system_addr,
-                });
+            Output::Granted(g) if self.by_user.contains_key(&g.user) => {
+                let system_addr = dir.system_udp(&g.system()?)?.to_string();
+                let _ = self.granted(FarGrant::new(g, system_addr));
                 None
             }
             Output::ToSystem(system, mut offer @ ToSystem::Offer { .. }) => {
