@@ -123,6 +123,8 @@ struct Shell {
     /// When list watchers were last rung, and whether a ring is owed.
     last_ring: Option<Instant>,
     ring_owed: bool,
+    /// When the bells of systems sent offers are rung ([`OFFER_BELL_DELAY`]).
+    offer_bells_at: Option<Instant>,
     udp: Option<UdpDriver>,
     replica: Replication,
     /// This host's membership in a federation, if it joined one.
@@ -261,6 +263,10 @@ type Fed<'a> = &'a mut Option<Federation>;
 
 /// List watchers are rung at most this often; the blackboard itself is updated at once.
 const RING_EVERY: Duration = Duration::from_millis(100);
+/// How long after an offer its system's bell rings. The user told of its grant runs
+/// first; a user's first frame to the system rings it at once anyway. (The reactor
+/// waits in whole milliseconds.)
+const OFFER_BELL_DELAY: Duration = Duration::from_micros(500);
 /// Up to this many outputs of one flush go out before the list is written; more, and
 /// the list goes first.
 const LIST_AFTER_AT_MOST: usize = 16;
@@ -961,6 +967,7 @@ fn serve(
         snapshot: Box::new(ServiceListSnapshot::empty()),
         last_ring: None,
         ring_owed: false,
+        offer_bells_at: None,
         handling: Handling::new(keep_log),
         udp,
         replica: Replication {
@@ -1033,6 +1040,9 @@ fn serve(
                 .map(|(t, _)| t.saturating_duration_since(Instant::now())),
             takeover_ring.map(|t| t.saturating_duration_since(Instant::now())),
             shell.fed.as_ref().and_then(Federation::next_due),
+            shell
+                .offer_bells_at
+                .map(|t| t.saturating_duration_since(Instant::now())),
         ]
         .into_iter()
         .flatten()
@@ -1042,6 +1052,10 @@ fn serve(
         // broker serves the instance: act on nothing.
         if !shell.fence.holds(me) {
             return Err(fenced(&shell.fence));
+        }
+        if shell.offer_bells_at.is_some_and(|t| Instant::now() >= t) {
+            shell.offer_bells_at = None;
+            shell.endpoint.ring_pending();
         }
         let now = host_now();
         let mut died: Vec<Address> = Vec::new();
@@ -1321,7 +1335,6 @@ impl Shell {
                     Some(o) => o,
                     None => {
                         d.transmit();
-                        self.endpoint.ring_pending();
                         continue;
                     }
                 },
@@ -1330,10 +1343,7 @@ impl Shell {
             let out = match self.fed.as_mut() {
                 Some(f) => match f.route(core, out) {
                     Some(o) => o,
-                    None => {
-                        self.endpoint.ring_pending();
-                        continue;
-                    }
+                    None => continue,
                 },
                 None => out,
             };
@@ -1349,7 +1359,6 @@ impl Shell {
                     muster_shared::trace::stamp(Stage::BrokerRelay, &g.user, g.req);
                     self.endpoint
                         .send_control(&Address::User(g.user.clone()), &g.message());
-                    self.endpoint.ring_pending();
                 }
                 // An offer is written at once and its bell rung after the grant that
                 // follows it: the user's wake-up does not wait behind the system's
@@ -1375,8 +1384,12 @@ impl Shell {
                 Output::ForgetUser(user) => self.forget(Address::User(user)),
             }
         }
-        // Offers whose grant went another way (or none followed).
-        self.endpoint.ring_pending();
+        // The systems sent offers are woken a moment later: their part is off the
+        // user's path, and on a busy core their wake-up would go before the user's.
+        if self.endpoint.bells_pending() {
+            self.offer_bells_at
+                .get_or_insert_with(|| Instant::now() + OFFER_BELL_DELAY);
+        }
         // The list, if it did not go first; and anything routing the outputs changed.
         self.write_list(core);
         self.publish_events(core);

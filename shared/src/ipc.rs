@@ -812,6 +812,11 @@ impl Endpoint {
         self.quiet = false;
     }
 
+    /// Whether [`Endpoint::send_control_quiet`] left bells to ring.
+    pub fn bells_pending(&self) -> bool {
+        !self.pending_bells.is_empty()
+    }
+
     /// Rings the bells [`Endpoint::send_control_quiet`] left, once per peer.
     pub fn ring_pending(&mut self) {
         for to in std::mem::take(&mut self.pending_bells) {
