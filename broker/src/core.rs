@@ -1522,7 +1522,7 @@ impl Broker {
             let Some(svc) = self.services.get(id) else {
                 return;
             };
-            if svc.withdrawn || svc.used() >= svc.spec.quota as usize {
+            if svc.withdrawn || svc.used() >= svc.spec.quota as usize || svc.queue.is_empty() {
                 break;
             }
             // Waiting requests wait out their system's own limit too.
