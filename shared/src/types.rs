@@ -540,6 +540,31 @@ impl fmt::Display for TaskStatus {
 mod tests {
     use super::*;
 
+    #[test]
+    fn a_requests_session_is_the_same_from_any_broker_and_differs_from_others() {
+        let s = |svc: &str, user: &str, req| {
+            SessionId::for_request(&ServiceId(svc.into()), &UserId(user.into()), req)
+        };
+        // Fixed: brokers of different runs (and builds) agree.
+        assert_eq!(s("t1/s0", "u1-ab", 7), s("t1/s0", "u1-ab", 7));
+        assert_eq!(format!("{}", s("t1/s0", "u1-ab", 7)), "173fb7d8109c04e4");
+        // Each part counts, and the parts' boundaries too ("t1/s" + "0u" is not
+        // "t1/s0" + "u").
+        let mut seen = std::collections::HashSet::new();
+        for (svc, user, req) in [
+            ("t1/s0", "u1-ab", 7),
+            ("t1/s0", "u1-ab", 8),
+            ("t1/s1", "u1-ab", 7),
+            ("t1/s0", "u2-ab", 7),
+            ("t1/s", "0u1-ab", 7),
+        ] {
+            assert!(seen.insert(s(svc, user, req)), "{svc} {user} {req}");
+        }
+        for req in 0..100_000 {
+            assert!(seen.insert(s("t1/s0", "u1-ab", 1_000 + req)));
+        }
+    }
+
     fn spec(name: &str) -> ServiceSpec {
         ServiceSpec {
             name: name.into(),
