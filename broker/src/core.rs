@@ -491,6 +491,11 @@ impl Broker {
             .map(|generation| (generation, views))
     }
 
+    /// Whether the list changed since it was last taken.
+    pub fn list_changed(&self) -> bool {
+        self.list_dirty
+    }
+
     /// If the list changed since the last call: the new generation, with `views` made
     /// the new rows (written over in place, see [`Broker::fill_views`]).
     pub fn take_list_change_into(&mut self, views: &mut Vec<ServiceView>) -> Option<u64> {

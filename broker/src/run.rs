@@ -125,6 +125,8 @@ struct Shell {
     ring_owed: bool,
     /// When the bells of systems sent offers are rung ([`OFFER_BELL_DELAY`]).
     offer_bells_at: Option<Instant>,
+    /// When a change of this host's list is written ([`LIST_DELAY`]).
+    list_at: Option<Instant>,
     udp: Option<UdpDriver>,
     replica: Replication,
     /// This host's membership in a federation, if it joined one.
@@ -267,6 +269,8 @@ const RING_EVERY: Duration = Duration::from_millis(100);
 /// first; a user's first frame to the system rings it at once anyway. (The reactor
 /// waits in whole milliseconds.)
 const OFFER_BELL_DELAY: Duration = Duration::from_micros(500);
+/// How long after a small change of the list (a count in use) it is written.
+const LIST_DELAY: Duration = Duration::from_micros(500);
 /// Up to this many outputs of one flush go out before the list is written; more, and
 /// the list goes first.
 const LIST_AFTER_AT_MOST: usize = 16;
@@ -968,6 +972,7 @@ fn serve(
         last_ring: None,
         ring_owed: false,
         offer_bells_at: None,
+        list_at: None,
         handling: Handling::new(keep_log),
         udp,
         replica: Replication {
@@ -1043,6 +1048,9 @@ fn serve(
             shell
                 .offer_bells_at
                 .map(|t| t.saturating_duration_since(Instant::now())),
+            shell
+                .list_at
+                .map(|t| t.saturating_duration_since(Instant::now())),
         ]
         .into_iter()
         .flatten()
@@ -1056,6 +1064,12 @@ fn serve(
         if shell.offer_bells_at.is_some_and(|t| Instant::now() >= t) {
             shell.offer_bells_at = None;
             shell.endpoint.ring_pending();
+        }
+        if shell.list_at.is_some_and(|t| Instant::now() >= t) {
+            shell.list_at = None;
+            shell.write_list(&mut core);
+            // The list taken is an input of the core's, for the standbys too.
+            shell.replica.publish(&mut core);
         }
         let now = host_now();
         let mut died: Vec<Address> = Vec::new();
@@ -1391,7 +1405,16 @@ impl Shell {
                 .get_or_insert_with(|| Instant::now() + OFFER_BELL_DELAY);
         }
         // The list, if it did not go first; and anything routing the outputs changed.
-        self.write_list(core);
+        // A change of this host's own list alone (a grant, an end: the counts in use)
+        // is written a moment later, once the peers woken by these outputs have had
+        // the cores: the broker's rewrite of its rows would keep from its core the user
+        // just woken there. Its watchers are rung at most every 100 ms anyway.
+        if !list_first && self.fed.is_none() && core.list_changed() {
+            self.list_at
+                .get_or_insert_with(|| Instant::now() + LIST_DELAY);
+        } else {
+            self.write_list(core);
+        }
         self.publish_events(core);
         Ok(())
     }
