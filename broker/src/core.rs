@@ -1168,14 +1168,20 @@ impl Broker {
         };
         sys.limit = limit;
         if raised {
-            let ids: Vec<ServiceId> = sys
-                .services
-                .iter()
-                .map(|n| ServiceId::new(system, n))
-                .collect();
-            for id in ids {
-                self.dispatch_queue(now, &id);
-            }
+            self.dispatch_system_queues(now, system);
+        }
+    }
+
+    /// Moves the queues of every service of `system` (a place under its own limit
+    /// serves any of them).
+    fn dispatch_system_queues(&mut self, now: Duration, system: &str) {
+        let ids: Vec<ServiceId> = self
+            .systems
+            .get(system)
+            .map(|s| s.services.iter().map(|n| ServiceId::new(system, n)).collect())
+            .unwrap_or_default();
+        for id in ids {
+            self.dispatch_queue(now, &id);
         }
     }
 
@@ -1252,19 +1258,10 @@ impl Broker {
             session,
         });
         self.list_dirty = true;
-        // A system with a limit of its own over all its services frees a place for any.
-        let others: Vec<ServiceId> = match self.systems.get(system) {
-            Some(s) if s.limit.is_some() => s
-                .services
-                .iter()
-                .map(|n| ServiceId::new(system, n))
-                .filter(|o| *o != id)
-                .collect(),
-            _ => Vec::new(),
-        };
         self.dispatch_queue(now, &id);
-        for o in others {
-            self.dispatch_queue(now, &o);
+        // A system with a limit of its own over all its services frees a place for any.
+        if self.systems.get(system).is_some_and(|s| s.limit.is_some()) {
+            self.dispatch_system_queues(now, system);
         }
     }
 
@@ -1402,23 +1399,25 @@ impl Broker {
             .push_back(Output::ToUser(user, ToUser::Queued { req, position }));
     }
 
-    /// Grants `req` of `user` for `service` (its quota has room): the system is sent the
-    /// offer first, so the user's first input or end reaches it after the offer, and
-    /// then the user its grant. The system confirms or, rarely, cannot take it after all
+    /// Grants `req` of `user` for `service` (its quota has room and its system is within
+    /// its own limit: the callers checked): the system is sent the offer first, so the
+    /// user's first input or end reaches it after the offer, and then the user its
+    /// grant. The system confirms or, rarely, cannot take it after all
     /// ([`Broker::undo_grant`]).
     fn offer(&mut self, now: Duration, user: UserId, req: u64, service: ServiceId) {
-        let Some(svc) = self.services.get(&service) else {
+        let Some(svc) = self.services.get_mut(&service) else {
             return self.refuse(&user, req, Refusal::Unknown);
         };
-        if let Some(reason) = self.over_limit(&svc.system) {
-            self.refuse(&user, req, Refusal::SystemRefused(reason));
-            return;
-        }
-        let svc = self.services.get_mut(&service).expect("checked above");
         svc.pending += 1;
         let ticket = self.next_ticket;
         self.next_ticket += 1;
         let session = SessionId::for_request(&service, &user, req);
+        push_event(&mut self.events, || BrokerEvent::Granted {
+            user: user.clone(),
+            req,
+            service: service.clone(),
+            session,
+        });
         self.offers.insert(
             ticket,
             Offer {
@@ -1434,14 +1433,6 @@ impl Broker {
         self.list_dirty = true;
         self.send_offer(ticket);
         self.send_grant(ticket);
-        if let Some(o) = self.offers.get(&ticket) {
-            push_event(&mut self.events, || BrokerEvent::Granted {
-                user: o.user.clone(),
-                req: o.req,
-                service: o.service.clone(),
-                session: o.session,
-            });
-        }
     }
 
     /// Sends offer `ticket` to its system.
