@@ -1178,7 +1178,12 @@ impl Broker {
         let ids: Vec<ServiceId> = self
             .systems
             .get(system)
-            .map(|s| s.services.iter().map(|n| ServiceId::new(system, n)).collect())
+            .map(|s| {
+                s.services
+                    .iter()
+                    .map(|n| ServiceId::new(system, n))
+                    .collect()
+            })
             .unwrap_or_default();
         for id in ids {
             self.dispatch_queue(now, &id);

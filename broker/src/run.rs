@@ -123,10 +123,9 @@ struct Shell {
     /// When list watchers were last rung, and whether a ring is owed.
     last_ring: Option<Instant>,
     ring_owed: bool,
-    /// When the bells of systems sent offers are rung ([`OFFER_BELL_DELAY`]).
-    offer_bells_at: Option<Instant>,
-    /// When a change of this host's list is written ([`LIST_DELAY`]).
-    list_at: Option<Instant>,
+    /// When what waits for the peers just woken is done ([`AFTER_WAKING`]): the bells
+    /// of systems sent offers, and a change of this host's list's counts.
+    deferred_at: Option<Instant>,
     udp: Option<UdpDriver>,
     replica: Replication,
     /// This host's membership in a federation, if it joined one.
@@ -265,12 +264,11 @@ type Fed<'a> = &'a mut Option<Federation>;
 
 /// List watchers are rung at most this often; the blackboard itself is updated at once.
 const RING_EVERY: Duration = Duration::from_millis(100);
-/// How long after an offer its system's bell rings. The user told of its grant runs
-/// first; a user's first frame to the system rings it at once anyway. (The reactor
-/// waits in whole milliseconds.)
-const OFFER_BELL_DELAY: Duration = Duration::from_micros(500);
-/// How long after a small change of the list (a count in use) it is written.
-const LIST_DELAY: Duration = Duration::from_micros(500);
+/// How long after a flush the bells of systems sent offers ring and a change of the
+/// list's counts in use is written: the user told of its grant runs first (a user's
+/// first frame to the system rings it at once anyway). The reactor waits in whole
+/// milliseconds.
+const AFTER_WAKING: Duration = Duration::from_micros(500);
 /// Up to this many outputs of one flush go out before the list is written; more, and
 /// the list goes first.
 const LIST_AFTER_AT_MOST: usize = 16;
@@ -971,8 +969,7 @@ fn serve(
         snapshot: Box::new(ServiceListSnapshot::empty()),
         last_ring: None,
         ring_owed: false,
-        offer_bells_at: None,
-        list_at: None,
+        deferred_at: None,
         handling: Handling::new(keep_log),
         udp,
         replica: Replication {
@@ -1046,10 +1043,7 @@ fn serve(
             takeover_ring.map(|t| t.saturating_duration_since(Instant::now())),
             shell.fed.as_ref().and_then(Federation::next_due),
             shell
-                .offer_bells_at
-                .map(|t| t.saturating_duration_since(Instant::now())),
-            shell
-                .list_at
+                .deferred_at
                 .map(|t| t.saturating_duration_since(Instant::now())),
         ]
         .into_iter()
@@ -1061,12 +1055,9 @@ fn serve(
         if !shell.fence.holds(me) {
             return Err(fenced(&shell.fence));
         }
-        if shell.offer_bells_at.is_some_and(|t| Instant::now() >= t) {
-            shell.offer_bells_at = None;
+        if shell.deferred_at.is_some_and(|t| Instant::now() >= t) {
+            shell.deferred_at = None;
             shell.endpoint.ring_pending();
-        }
-        if shell.list_at.is_some_and(|t| Instant::now() >= t) {
-            shell.list_at = None;
             shell.write_list(&mut core);
             // The list taken is an input of the core's, for the standbys too.
             shell.replica.publish(&mut core);
@@ -1374,8 +1365,8 @@ impl Shell {
                     self.endpoint
                         .send_control(&Address::User(g.user.clone()), &g.message());
                 }
-                // An offer is written at once and its bell rung after the grant that
-                // follows it: the user's wake-up does not wait behind the system's
+                // An offer is written at once and its bell rung a moment after the grant
+                // that follows it: the user's wake-up does not wait behind the system's
                 // (which, woken first on a busy core, would run before the broker sent
                 // the grant), and a user that heard of its grant finds the offer in the
                 // system's inbox before its own first frame.
@@ -1400,20 +1391,18 @@ impl Shell {
         }
         // The systems sent offers are woken a moment later: their part is off the
         // user's path, and on a busy core their wake-up would go before the user's.
-        if self.endpoint.bells_pending() {
-            self.offer_bells_at
-                .get_or_insert_with(|| Instant::now() + OFFER_BELL_DELAY);
-        }
         // The list, if it did not go first; and anything routing the outputs changed.
         // A change of this host's own list alone (a grant, an end: the counts in use)
-        // is written a moment later, once the peers woken by these outputs have had
-        // the cores: the broker's rewrite of its rows would keep from its core the user
-        // just woken there. Its watchers are rung at most every 100 ms anyway.
-        if !list_first && self.fed.is_none() && core.list_changed() {
-            self.list_at
-                .get_or_insert_with(|| Instant::now() + LIST_DELAY);
-        } else {
+        // is written a moment later too: the broker's rewrite of its rows would keep
+        // from its core the user just woken there. Its watchers are rung at most every
+        // 100 ms anyway.
+        let defer_list = !list_first && self.fed.is_none() && core.list_changed();
+        if !defer_list {
             self.write_list(core);
+        }
+        if defer_list || self.endpoint.bells_pending() {
+            self.deferred_at
+                .get_or_insert_with(|| Instant::now() + AFTER_WAKING);
         }
         self.publish_events(core);
         Ok(())
