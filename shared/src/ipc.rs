@@ -458,8 +458,6 @@ pub struct Endpoint {
     /// Peers sent frames by [`Endpoint::send_control_quiet`] whose bells
     /// [`Endpoint::ring_pending`] rings.
     pending_bells: Vec<Address>,
-    /// Set while a quiet send is in progress: the frame is written, the bell left.
-    quiet: bool,
 }
 
 /// Most control frames held back for one peer whose inbox is full; beyond it the peer
@@ -561,7 +559,6 @@ impl Endpoint {
             inbox_svc: svc,
             senders: HashMap::new(),
             pending_bells: Vec::new(),
-            quiet: false,
         })
     }
 
@@ -776,6 +773,12 @@ impl Endpoint {
     /// dropped (up to [`MAX_BACKLOG`] frames per peer). Errors other than a full inbox
     /// are logged as in [`Endpoint::send_or_log`].
     pub fn send_control<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        self.control(to, msg, true)
+    }
+
+    /// [`Endpoint::send_control`], ringing `to`'s bell now if `ring`, else leaving it
+    /// for [`Endpoint::ring_pending`].
+    fn control<T: serde::Serialize>(&mut self, to: &Address, msg: &T, ring: bool) {
         let frame = match crate::protocol::encode(msg) {
             Ok(f) => f,
             Err(source) => {
@@ -790,7 +793,7 @@ impl Endpoint {
             // Behind earlier frames: keep the order.
             return Self::hold(q, to, frame, &mut self.dropped_sends);
         }
-        match self.send(to, &frame) {
+        match self.send_ringing(to, &frame, ring) {
             Ok(()) => {}
             Err(TransportError::Full(_)) => {
                 self.dropped_sends -= 1; // not dropped: held back
@@ -807,9 +810,7 @@ impl Endpoint {
     /// that peer finds it, bell or not; and the other peer's bell rings first, so its
     /// wake-up does not wait behind `to`'s.
     pub fn send_control_quiet<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
-        self.quiet = true;
-        self.send_control(to, msg);
-        self.quiet = false;
+        self.control(to, msg, false)
     }
 
     /// Whether [`Endpoint::send_control_quiet`] left bells to ring.
@@ -845,7 +846,7 @@ impl Endpoint {
                 continue;
             };
             while let Some(frame) = q.front() {
-                match self.try_send(&to, frame) {
+                match self.try_send(&to, frame, true) {
                     Ok(()) => {
                         q.pop_front();
                     }
@@ -874,12 +875,22 @@ impl Endpoint {
     /// Behind held-back control frames, it is not sent (a data update overtaking them
     /// would break their order) and counts as full.
     pub fn send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
+        self.send_ringing(to, frame, true)
+    }
+
+    /// [`Endpoint::send`]; the bell is left for [`Endpoint::ring_pending`] unless `ring`.
+    fn send_ringing(
+        &mut self,
+        to: &Address,
+        frame: &[u8],
+        ring: bool,
+    ) -> Result<(), TransportError> {
         self.lingering.remove(to);
         if self.backlog.contains_key(to) {
             self.dropped_sends += 1;
             return Err(TransportError::Full(to.clone()));
         }
-        let result = self.try_send(to, frame);
+        let result = self.try_send(to, frame, ring);
         match &result {
             Ok(()) => {}
             Err(TransportError::Full(_)) => self.dropped_sends += 1,
@@ -892,7 +903,7 @@ impl Endpoint {
         result
     }
 
-    fn try_send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
+    fn try_send(&mut self, to: &Address, frame: &[u8], ring: bool) -> Result<(), TransportError> {
         let large = matches!((&self.me, to), (Address::System(_), Address::Broker));
         if !large && frame.len() > SMALL_FRAME {
             return Err(TransportError::Send {
@@ -903,7 +914,6 @@ impl Endpoint {
                 ),
             });
         }
-        let quiet = self.quiet;
         let peer = self.peer(to)?;
         let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
             peer: to.clone(),
@@ -927,7 +937,7 @@ impl Endpoint {
                 },
             );
         }
-        if !quiet {
+        if ring {
             peer.notifier
                 .notify_with_custom_event_id(EventId::new(bell::MESSAGE))
                 .map_err(|e| send_err(&e))?;
