@@ -461,43 +461,43 @@ impl SystemCore {
             let reason = "request already served: its session has ended".to_string();
             return answer(self, Err(reason));
         }
+        let spec = self.specs.iter().find(|s| s.name == service).cloned();
         let held = self
             .sessions
             .iter()
             .find(|(_, s)| s.user == user && s.req == req && s.service == service)
             .map(|(id, _)| *id);
         if let Some(held) = held {
-            if let Some(spec) = self.specs.iter().find(|s| s.name == service) {
+            if let Some(spec) = &spec {
                 let granted = self.granted(req, held, spec);
                 self.out
                     .push_back(SystemOutput::ToUser(user.clone(), granted));
             }
             return answer(self, Ok(held));
         }
-        let over_budget = self
-            .session_limit
-            .as_ref()
-            .filter(|(l, _)| self.sessions.len() >= *l)
-            .map(|(_, reason)| reason.clone());
-        let refusal = match self.specs.iter().find(|s| s.name == service) {
-            None => Some(format!("no service {service:?} here")),
+        // The limit the broker was told (overloaded, or the budget over all services).
+        let over_limit = self
+            .limit()
+            .filter(|l| self.sessions.len() >= l.sessions as usize)
+            .map(|l| l.reason);
+        let spec = match spec {
+            None => Err(format!("no service {service:?} here")),
             Some(_) if self.sessions.contains_key(&session) => {
-                Some(format!("session {session} is another request's"))
+                Err(format!("session {session} is another request's"))
             }
-            Some(_) if self.withdrawn.contains(&service) => Some("service withdrawn".to_string()),
-            Some(_) if self.overloaded => Some("overloaded".to_string()),
-            Some(_) if over_budget.is_some() => over_budget,
+            Some(_) if self.withdrawn.contains(&service) => Err("service withdrawn".to_string()),
+            Some(_) if over_limit.is_some() => Err(over_limit.unwrap_or_default()),
             Some(spec) if self.sessions_of(&service) >= spec.quota as usize => {
-                Some(format!("overloaded: all {} sessions in use", spec.quota))
+                Err(format!("overloaded: all {} sessions in use", spec.quota))
             }
-            Some(_) => None,
+            Some(spec) => Ok(spec),
         };
-        if let Some(reason) = refusal {
-            self.report.entry(service.clone()).or_default().refusals += 1;
-            return answer(self, Err(reason));
-        }
-        let Some(spec) = self.specs.iter().find(|s| s.name == service).cloned() else {
-            return;
+        let spec = match spec {
+            Ok(spec) => spec,
+            Err(reason) => {
+                self.report.entry(service.clone()).or_default().refusals += 1;
+                return answer(self, Err(reason));
+            }
         };
         self.sessions.insert(
             session,
