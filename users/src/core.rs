@@ -308,17 +308,19 @@ impl UserCore {
         mut owner: impl FnMut(&Address) -> Option<u32>,
     ) -> bool {
         let Some(pid) = pid else { return true };
+        let broker_pid = self.broker_pid;
+        let from_broker = |owner: &mut dyn FnMut(&Address) -> Option<u32>| {
+            broker_pid == Some(pid) || owner(&Address::Broker) == Some(pid)
+        };
         let ok = match msg {
             ToUser::Welcome { broker_pid, .. } => {
                 *broker_pid == pid && owner(&Address::Broker) == Some(pid)
             }
             ToUser::Queued { .. } | ToUser::Refused { .. } | ToUser::Operated { .. } => {
-                self.broker_pid == Some(pid) || owner(&Address::Broker) == Some(pid)
+                from_broker(&mut owner)
             }
             // The broker's copy of a grant comes from the broker.
-            ToUser::Granted { relayed: true, .. } => {
-                self.broker_pid == Some(pid) || owner(&Address::Broker) == Some(pid)
-            }
+            ToUser::Granted { relayed: true, .. } => from_broker(&mut owner),
             ToUser::Granted {
                 service,
                 system_pid,
@@ -339,8 +341,7 @@ impl UserCore {
                 self.sessions
                     .get(session)
                     .is_none_or(|s| s.system_pid == pid)
-                    || self.broker_pid == Some(pid)
-                    || owner(&Address::Broker) == Some(pid)
+                    || from_broker(&mut owner)
             }
         };
         muster_shared::protocol::note_impersonation(
