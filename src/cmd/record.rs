@@ -10,11 +10,11 @@
 //! | `/robots` | `foxglove.SceneUpdate` | the robots, named |
 //! | `/people` | `foxglove.SceneUpdate` | the people, in their beacons' colours |
 //! | `/ROBOT/laser` | `foxglove.LaserScan` | each robot's laser scans, in its frame |
-//! | `/ROBOT/detections` | JSON | each robot's camera detections (colour, bearing, range) |
+//! | `/ROBOT/detections` | JSON, `muster.Detections` | each robot's camera detections (colour, bearing, range) |
 //! | `/tracks` | `foxglove.SceneUpdate` | the targets the tracking systems track (a disc of their uncertainty, their velocity, named) |
 //! | `/plans` | `foxglove.SceneUpdate` | the paths the delivery robots plan, from where they believe they are to their goal |
-//! | `/muster/events` | JSON | the broker's event feed (`muster events`) |
-//! | `/muster/list` | JSON | the service list at each change |
+//! | `/muster/events` | JSON, `muster.Event` | the broker's event feed (`muster events`) |
+//! | `/muster/list` | JSON, `muster.ServiceList` | the service list at each change |
 //!
 //! Log times are the recorder's clock (Unix time) when it took each sample; the world's
 //! own (simulated) time is in each message.
@@ -116,14 +116,100 @@ fn body(
     }
 }
 
-fn json_channel(ctx: &Arc<Context>, topic: &str, schema: &str) -> anyhow::Result<Arc<RawChannel>> {
+/// The JSON channels' schemas. Foxglove and Lichtblick take a JSON channel's fields from
+/// its schema's `properties` (a schema without them is refused, "Failed to parse channel
+/// schema"), each of one plain type: no `null`, no type lists, no `$ref`. A field that is
+/// sometimes absent or null is still named with its type; an event's other fields depend
+/// on its kind (`event`) and are not named.
+mod json_schema {
+    use serde_json::{json, Value};
+
+    /// `/muster/events`: one [`muster_shared::protocol::EventRecord`].
+    pub fn event() -> Value {
+        json!({
+            "title": "muster.Event",
+            "description": "One event of the broker's feed; its other fields depend on `event`",
+            "type": "object",
+            "properties": {
+                "epoch": {"type": "string", "description": "The broker run, 16 hex digits"},
+                "seq": {"type": "integer", "description": "Number on this run's feed, from 1"},
+                "t_ns": {"type": "integer", "description": "Unix time of publishing, ns"},
+                "event": {"type": "string", "description": "What happened (registered, granted, refused, ...)"},
+                "user": {"type": "string"},
+                "system": {"type": "string"},
+                "service": {"type": "string"},
+                "req": {"type": "integer", "description": "The user's request number"},
+                "session": {"type": "string", "description": "16 hex digits"},
+                "code": {"type": "string"},
+                "reason": {"type": "string"},
+            },
+        })
+    }
+
+    /// `/muster/list`: the list's generation and its rows
+    /// ([`muster_shared::snapshot::ServiceView`]).
+    pub fn service_list() -> Value {
+        json!({
+            "title": "muster.ServiceList",
+            "type": "object",
+            "properties": {
+                "generation": {"type": "integer"},
+                "services": {"type": "array", "items": {
+                    "type": "object",
+                    "properties": {
+                        "id": {"type": "string"},
+                        "system": {"type": "string"},
+                        "name": {"type": "string"},
+                        "description": {"type": "string"},
+                        "kind": {"type": "string"},
+                        "queue": {"type": "boolean"},
+                        "quota": {"type": "integer"},
+                        "in_use": {"type": "integer"},
+                        "queued": {"type": "integer"},
+                        "links": {"type": "integer"},
+                        "withdrawn": {"type": "boolean"},
+                        "payload": {"type": "string"},
+                        "host": {"type": "string"},
+                        "remote": {"type": "boolean"},
+                    },
+                }},
+            },
+        })
+    }
+
+    /// `/ROBOT/detections`: a camera frame's detections.
+    pub fn detections() -> Value {
+        json!({
+            "title": "muster.Detections",
+            "type": "object",
+            "properties": {
+                "time": {"type": "number", "description": "The frame's simulated time, s"},
+                "detections": {"type": "array", "items": {
+                    "type": "object",
+                    "properties": {
+                        "colour": {"type": "string", "description": "The beacon's colour (null: none seen)"},
+                        "bearing": {"type": "number", "description": "rad, in the robot's frame"},
+                        "range": {"type": "number", "description": "m"},
+                    },
+                }},
+            },
+        })
+    }
+}
+
+fn json_channel(
+    ctx: &Arc<Context>,
+    topic: &str,
+    schema: &serde_json::Value,
+) -> anyhow::Result<Arc<RawChannel>> {
+    let name = schema["title"].as_str().unwrap_or("muster.Json");
     Ok(ChannelBuilder::new(topic)
         .context(ctx)
         .message_encoding("json")
         .schema(Schema::new(
-            schema,
+            name,
             "jsonschema",
-            br#"{"type": "object"}"#.to_vec(),
+            schema.to_string().into_bytes(),
         ))
         .build_raw()?)
 }
@@ -181,8 +267,8 @@ impl Scene {
             robots: channel("/robots").build(),
             people: channel("/people").build(),
             scans: BTreeMap::new(),
-            events: json_channel(ctx, "/muster/events", "muster.Event")?,
-            list: json_channel(ctx, "/muster/list", "muster.ServiceList")?,
+            events: json_channel(ctx, "/muster/events", &json_schema::event())?,
+            list: json_channel(ctx, "/muster/list", &json_schema::service_list())?,
             tracks: channel("/tracks").build(),
             plans: channel("/plans").build(),
             systems: std::collections::BTreeSet::new(),
@@ -586,7 +672,7 @@ impl Scene {
             let dets = json_channel(
                 &self.ctx,
                 &format!("/{robot}/detections"),
-                "muster.Detections",
+                &json_schema::detections(),
             )?;
             self.scans.insert(robot.to_string(), (scan, dets));
         }
@@ -685,4 +771,161 @@ pub fn run(inst: &Instance, a: RecordArgs) -> anyhow::Result<ExitCode> {
         serde_json::json!({"out": out, "messages": total, "topics": scene.counts})
     );
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::json_schema;
+    use muster_shared::protocol::{BrokerEvent, EventRecord};
+    use muster_shared::snapshot::ServiceView;
+    use muster_shared::types::{ServiceId, SessionId, UserId};
+    use serde_json::{json, Value};
+
+    const PLAIN: [&str; 6] = ["boolean", "string", "number", "integer", "object", "array"];
+
+    /// What Foxglove's and Lichtblick's `parseJsonSchema` take: an object with
+    /// `properties`, each of one plain type, arrays with typed items; `path` names the
+    /// first thing they would refuse.
+    fn parsable(schema: &Value, path: &str) -> Result<(), String> {
+        if schema["type"] != "object" {
+            return Err(format!("{path}: not an object"));
+        }
+        let props = schema["properties"]
+            .as_object()
+            .ok_or(format!("{path}: no properties"))?;
+        for (name, p) in props {
+            let path = format!("{path}.{name}");
+            let ty = p["type"]
+                .as_str()
+                .ok_or(format!("{path}: no single type"))?;
+            if !PLAIN.contains(&ty) {
+                return Err(format!("{path}: type {ty}"));
+            }
+            if ty == "object" {
+                parsable(p, &path)?;
+            }
+            if ty == "array" {
+                let item = &p["items"];
+                match item["type"].as_str() {
+                    Some("object") => parsable(item, &path)?,
+                    Some(t) if PLAIN.contains(&t) && t != "array" => {}
+                    _ => return Err(format!("{path}: items of no plain type")),
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Every field `schema` names that `v` has (and is not null) has the named type.
+    fn conforms(schema: &Value, v: &Value, path: &str) -> Result<(), String> {
+        let Some(props) = schema["properties"].as_object() else {
+            return Ok(());
+        };
+        for (name, p) in props {
+            let Some(field) = v.get(name).filter(|f| !f.is_null()) else {
+                continue;
+            };
+            let path = format!("{path}.{name}");
+            let ok = match p["type"].as_str() {
+                Some("boolean") => field.is_boolean(),
+                Some("string") => field.is_string(),
+                Some("number") => field.is_number(),
+                Some("integer") => field.is_u64() || field.is_i64(),
+                Some("object") => {
+                    conforms(p, field, &path)?;
+                    field.is_object()
+                }
+                Some("array") => {
+                    for (i, item) in field.as_array().into_iter().flatten().enumerate() {
+                        conforms(&p["items"], item, &format!("{path}[{i}]"))?;
+                    }
+                    field.is_array()
+                }
+                _ => false,
+            };
+            if !ok {
+                return Err(format!("{path}: {field} is not {}", p["type"]));
+            }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn the_json_channels_schemas_are_ones_foxglove_parses_and_describe_their_messages() {
+        for (schema, name) in [
+            (json_schema::event(), "muster.Event"),
+            (json_schema::service_list(), "muster.ServiceList"),
+            (json_schema::detections(), "muster.Detections"),
+        ] {
+            assert_eq!(schema["title"], name);
+            assert_eq!(parsable(&schema, name), Ok(()));
+        }
+        // The check refuses what Foxglove refuses.
+        assert!(parsable(&json!({"type": "object"}), "s").is_err());
+        let nullable = json!({"type": "object", "properties": {"a": {"type": ["string", "null"]}}});
+        assert!(parsable(&nullable, "s").is_err());
+
+        let service = ServiceId("T1/track".into());
+        let user = UserId("u1-ab".into());
+        let events = [
+            BrokerEvent::Granted {
+                user: user.clone(),
+                req: 7,
+                service: service.clone(),
+                session: SessionId(0x173f_b7d8_109c_04e4),
+            },
+            BrokerEvent::Refused {
+                user: user.clone(),
+                req: 8,
+                code: "quota_full".into(),
+                reason: "quota full".into(),
+            },
+            BrokerEvent::Registered {
+                system: "T1".into(),
+                services: vec!["track".into()],
+            },
+            BrokerEvent::Withdrawn {
+                service,
+                withdrawn: true,
+            },
+        ];
+        for event in events {
+            let rec = serde_json::to_value(EventRecord {
+                epoch: "00000000000000ab".into(),
+                seq: 3,
+                t_ns: 1_700_000_000_000_000_000,
+                event,
+            })
+            .unwrap();
+            for always in ["epoch", "seq", "t_ns", "event"] {
+                assert!(rec.get(always).is_some(), "{rec}");
+            }
+            assert_eq!(conforms(&json_schema::event(), &rec, "event"), Ok(()));
+        }
+        let row = ServiceView {
+            id: "T1/track".into(),
+            system: "T1".into(),
+            name: "track".into(),
+            quota: 3,
+            in_use: 1,
+            ..ServiceView::default()
+        };
+        let list = json!({"generation": 4, "services": [row]});
+        let list_schema = json_schema::service_list();
+        assert_eq!(conforms(&list_schema, &list, "list"), Ok(()));
+        // Every field of a row is named.
+        let row = &list["services"][0];
+        let named = &list_schema["properties"]["services"]["items"]["properties"];
+        for field in row.as_object().unwrap().keys() {
+            assert!(named.get(field).is_some(), "{field} is not in the schema");
+        }
+        let dets = json!({"time": 1.5, "detections": [
+            {"colour": "red", "bearing": 0.25, "range": 3.0},
+            {"colour": null, "bearing": -0.5, "range": 7.5},
+        ]});
+        assert_eq!(conforms(&json_schema::detections(), &dets, "dets"), Ok(()));
+        // And the check finds a field of the wrong type.
+        let wrong = json!({"time": "soon", "detections": []});
+        assert!(conforms(&json_schema::detections(), &wrong, "dets").is_err());
+    }
 }
