@@ -338,6 +338,11 @@ impl Broker {
         self.events.as_mut()?.pop_front()
     }
 
+    /// Whether events wait for [`Broker::poll_event`].
+    pub fn events_waiting(&self) -> bool {
+        self.events.as_ref().is_some_and(|e| !e.is_empty())
+    }
+
     fn ev(&mut self, e: impl FnOnce() -> BrokerEvent) {
         push_event(&mut self.events, e);
     }

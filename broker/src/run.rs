@@ -1058,6 +1058,7 @@ fn serve(
         if shell.deferred_at.is_some_and(|t| Instant::now() >= t) {
             shell.deferred_at = None;
             shell.endpoint.ring_pending();
+            shell.publish_events(&mut core);
             shell.write_list(&mut core);
             // The list taken is an input of the core's, for the standbys too.
             shell.replica.publish(&mut core);
@@ -1094,6 +1095,8 @@ fn serve(
                                 shell.fence.remove();
                             }
                         }
+                        // The feed's readers get what a deferral still held.
+                        shell.publish_events(&mut core);
                         presence.finish();
                         return Ok(BrokerReport {
                             stats: core.stats().clone(),
@@ -1396,15 +1399,21 @@ impl Shell {
         // is written a moment later too: the broker's rewrite of its rows would keep
         // from its core the user just woken there. Its watchers are rung at most every
         // 100 ms anyway.
+        // The event feed too, when the flush was a few frames: its records (serialized,
+        // published, their readers rung) would otherwise hold the core tens of µs
+        // after the grant, with the user queued behind the broker there.
         let defer_list = !list_first && self.fed.is_none() && core.list_changed();
         if !defer_list {
             self.write_list(core);
         }
-        if defer_list || self.endpoint.bells_pending() {
+        let defer_events = !list_first && core.events_waiting();
+        if !defer_events {
+            self.publish_events(core);
+        }
+        if defer_list || defer_events || self.endpoint.bells_pending() {
             self.deferred_at
                 .get_or_insert_with(|| Instant::now() + AFTER_WAKING);
         }
-        self.publish_events(core);
         Ok(())
     }
 

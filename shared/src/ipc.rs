@@ -1701,7 +1701,7 @@ const EVENT_BUFFER: usize = 256;
 fn event_services(
     node: &Node<Ipc>,
     inst: &Instance,
-) -> Result<(StreamFactory, EventFactory), TransportError> {
+) -> Result<(StreamFactory, EventFactory, EventFactory), TransportError> {
     let name = inst.events();
     let stream = node
         .service_builder(&service_name(&name)?)
@@ -1716,16 +1716,19 @@ fn event_services(
         .enable_safe_overflow(true)
         .open_or_create()
         .map_err(|e| svc_err(&name, e))?;
-    let bell_name = inst.events_bell();
-    let bell = node
-        .service_builder(&service_name(&bell_name)?)
-        .event()
-        .max_notifiers(8)
-        .max_listeners(MAX_EVENT_READERS)
-        .max_nodes(MAX_EVENT_READERS + 8)
-        .open_or_create()
-        .map_err(|e| svc_err(&bell_name, e))?;
-    Ok((stream, bell))
+    let bell = |name: String, notifiers: usize, listeners: usize| {
+        node.service_builder(&service_name(&name)?)
+            .event()
+            .max_notifiers(notifiers)
+            .max_listeners(listeners)
+            .max_nodes(MAX_EVENT_READERS + 8)
+            .open_or_create()
+            .map_err(|e| svc_err(&name, e))
+    };
+    // News: the brokers ring, the readers listen. Hello: the other way round.
+    let news = bell(inst.events_bell(), 8, MAX_EVENT_READERS)?;
+    let hello = bell(inst.events_hello(), MAX_EVENT_READERS, 8)?;
+    Ok((stream, news, hello))
 }
 
 /// The id a reader rings the feed's bell with when it opens: the broker then hands it
@@ -1744,7 +1747,7 @@ pub struct EventWriter {
 impl EventWriter {
     /// Opens the feed for writing, for the broker run numbered `epoch`.
     pub fn open(node: &Node<Ipc>, inst: &Instance, epoch: u64) -> Result<Self, TransportError> {
-        let (stream, bell) = event_services(node, inst)?;
+        let (stream, news, hello) = event_services(node, inst)?;
         let publisher = stream
             .publisher_builder()
             .initial_max_slice_len(MAX_EVENT)
@@ -1752,14 +1755,14 @@ impl EventWriter {
             .backpressure_strategy(BackpressureStrategy::DiscardData)
             .create()
             .map_err(|e| svc_err(&inst.events(), e))?;
-        let notifier = bell
+        let notifier = news
             .notifier_builder()
             .create()
             .map_err(|e| svc_err(&inst.events_bell(), e))?;
-        let listener = bell
+        let listener = hello
             .listener_builder()
             .create()
-            .map_err(|e| svc_err(&inst.events_bell(), e))?;
+            .map_err(|e| svc_err(&inst.events_hello(), e))?;
         Ok(EventWriter {
             publisher,
             notifier,
@@ -1945,20 +1948,20 @@ pub struct EventReader {
 impl EventReader {
     /// Opens the feed for reading: the first events read are the feed's recent history.
     pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
-        let (stream, bell) = event_services(node, inst)?;
+        let (stream, news, hello) = event_services(node, inst)?;
         let subscriber = stream
             .subscriber_builder()
             .buffer_size(EVENT_BUFFER)
             .create()
             .map_err(|e| svc_err(&inst.events(), e))?;
-        let listener = bell
+        let listener = news
             .listener_builder()
             .create()
             .map_err(|e| svc_err(&inst.events_bell(), e))?;
-        let notifier = bell
+        let notifier = hello
             .notifier_builder()
             .create()
-            .map_err(|e| svc_err(&inst.events_bell(), e))?;
+            .map_err(|e| svc_err(&inst.events_hello(), e))?;
         // Tell the broker we are here, for the history.
         if let Err(e) = notifier.notify_with_custom_event_id(EventId::new(READER_HELLO)) {
             tracing::debug!("events bell: {e:?}");
@@ -2043,6 +2046,52 @@ mod tests {
         let got = late.latest().unwrap();
         assert_eq!(got.plans[0].path.len(), 64);
         assert_eq!(got.tracks, view.tracks);
+    }
+
+    /// Whether `fd` is readable now.
+    fn readable(fd: RawFd) -> bool {
+        let mut p = libc::pollfd {
+            fd,
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        // SAFETY: one valid pollfd, no wait.
+        unsafe { libc::poll(&mut p, 1, 0) == 1 }
+    }
+
+    #[test]
+    fn the_feed_rings_its_readers_not_the_broker_and_a_reader_rings_the_broker() {
+        use crate::protocol::BrokerEvent;
+        use crate::types::UserId;
+        let inst = Instance::new(&format!("feed-test-{}", std::process::id())).unwrap();
+        let node = create_node("feed-test", false).unwrap();
+        let mut w = EventWriter::open(&node, &inst, 0xab).unwrap();
+        assert!(!readable(w.fd()));
+        // A reader that opens says so: the broker's bell rings, and the history is
+        // handed over.
+        let mut r = EventReader::open(&node, &inst).unwrap();
+        assert!(readable(w.fd()), "a reader's hello rings the broker");
+        w.on_bell();
+        assert!(!readable(w.fd()), "drained");
+        for n in 1..=3 {
+            let json = w
+                .publish(BrokerEvent::UserJoined {
+                    user: UserId(format!("u{n}")),
+                })
+                .unwrap()
+                .unwrap();
+            assert!(json.contains(&format!("\"seq\":{n}")), "{json}");
+        }
+        w.ring();
+        // The news wakes the reader; the broker's own bell stays quiet (it used to
+        // share the bell, and each publish woke the broker itself for nothing).
+        assert!(readable(r.fd()), "the reader is rung");
+        assert!(!readable(w.fd()), "the broker is not rung by its own news");
+        let seqs: Vec<u64> = std::iter::from_fn(|| r.next_event())
+            .map(|e| e.seq)
+            .collect();
+        assert_eq!(seqs, [1, 2, 3]);
+        assert_eq!(r.next_event(), None);
     }
 
     #[test]

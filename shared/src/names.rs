@@ -99,9 +99,15 @@ impl Instance {
         format!("muster/{}/broker/events", self.0)
     }
 
-    /// The event rung when the feed has new events.
+    /// The event rung when the feed has new events (the readers listen).
     pub fn events_bell(&self) -> String {
         format!("muster/{}/broker/events-bell", self.0)
+    }
+
+    /// The event a reader rings when it opens the feed (the broker listens): a bell of
+    /// its own, so that the broker's news does not wake the broker.
+    pub fn events_hello(&self) -> String {
+        format!("muster/{}/broker/events-hello", self.0)
     }
 
     /// What system `system` shows of its own state (its estimates, tracks and plans),

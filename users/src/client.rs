@@ -394,8 +394,19 @@ impl UserClient {
     /// One wait on the reactor (bounded by `deadline` and the transport's own timers)
     /// and the handling of what woke it. Returns whether the extra fd is readable.
     fn turn(&mut self, deadline: Instant) -> Result<bool, UserError> {
+        // A remote connection's timers, and what it owes since the last turn (see
+        // below), before waiting.
+        let news = self.events.len();
+        if let Transport::Remote(r) = &mut self.transport {
+            r.tick(&mut self.core);
+            self.pump()?;
+        }
         let now = Instant::now();
         let mut wait = deadline.saturating_duration_since(now);
+        if self.events.len() > news {
+            // Only a look: the timers made news for the caller.
+            wait = Duration::ZERO;
+        }
         match &mut self.transport {
             Transport::Local(l) => {
                 if let Some(linger) = l.endpoint.sweep() {
@@ -414,11 +425,20 @@ impl UserClient {
         for t in tokens {
             self.on_token(t, &mut extra)?;
         }
-        match &mut self.transport {
-            Transport::Remote(r) => r.tick(&mut self.core),
-            Transport::Local(l) => l.look_for_successor(&mut self.core, &self.reactor),
+        if let Transport::Local(l) = &mut self.transport {
+            l.look_for_successor(&mut self.core, &self.reactor);
         }
         self.pump()?;
+        // News for the application (a grant) goes to it before the datagrams the
+        // connection owes for it (its acknowledgement, the session's first keepalive):
+        // those wake the broker or a system, which on a busy core would run first. They
+        // go at the next turn, or with the application's next send.
+        if let Transport::Remote(r) = &mut self.transport {
+            if self.events.is_empty() {
+                r.tick(&mut self.core);
+                self.pump()?;
+            }
+        }
         Ok(extra)
     }
 

@@ -256,7 +256,11 @@ impl RemoteLink {
         self.transmit();
     }
 
-    /// Reads waiting datagrams and hands their messages to the core.
+    /// Reads waiting datagrams and hands their messages to the core. What the
+    /// connection owes in return (acknowledgements, a new session's first keepalive)
+    /// goes out with the next [`RemoteLink::tick`] or send: the caller hands the core's
+    /// news to the application first, since a datagram to the broker or a system wakes
+    /// a process that runs before this one.
     pub fn on_readable(&mut self, core: &mut UserCore) {
         let mut buf = [0u8; MAX_DATAGRAM + 1];
         for _ in 0..RECV_BATCH {
@@ -275,7 +279,6 @@ impl RemoteLink {
             }
         }
         self.deliver_held(Instant::now(), core);
-        self.transmit();
     }
 
     /// Hands the connection the delayed datagrams that are due, and sends the due ones.
