@@ -1014,6 +1014,14 @@ pub struct SimArgs {
     /// Write the map (built-in office unless `--map`) as map_server YAML + PGM and exit.
     #[arg(long)]
     pub export_map: Option<std::path::PathBuf>,
+    /// Also bridge every robot to ROS 2: `scan`, `sonar`, `odom`, `ground_truth` and
+    /// `cmd_vel` in each robot's namespace, `/clock` (sim time), `/map`, `/people`,
+    /// `/tf`, `/tf_static` (see the README's "ROS 2").
+    #[arg(long)]
+    pub ros2: bool,
+    /// ROS domain id for `--ros2` (default: `ROS_DOMAIN_ID`, else 0).
+    #[arg(long, requires = "ros2", value_parser = clap::value_parser!(u16).range(0..=232))]
+    pub domain: Option<u16>,
 }
 
 #[derive(Args, Debug, Clone)]

@@ -5,6 +5,7 @@ use anyhow::Context;
 use muster_shared::ipc::create_node;
 use muster_shared::reactor::{Reactor, SignalPipe};
 use muster_shared::Instance;
+use muster_ros2::sim::{SimBridge, SimBridgeOptions};
 use muster_sim_world::map::OccupancyMap;
 use muster_sim_world::scenario::Scenario;
 use muster_sim_world::shm::SimShm;
@@ -75,6 +76,18 @@ fn simulate(
 ) -> anyhow::Result<ExitCode> {
     let node = create_node(&format!("muster-sim-{inst}"), true)?;
     let mut shm = SimShm::open(&node, inst.as_str(), world)?;
+    let mut ros2 = if a.ros2 {
+        let domain = a.domain.or_else(muster_ros2::domain_from_env).unwrap_or(0);
+        Some(SimBridge::new(
+            world,
+            SimBridgeOptions {
+                domain,
+                ..SimBridgeOptions::default()
+            },
+        )?)
+    } else {
+        None
+    };
     let mut signals = SignalPipe::install()?;
     let mut reactor = Reactor::new()?;
     reactor.add(signals.raw(), 0)?;
@@ -93,14 +106,23 @@ fn simulate(
     let mut next_world = 0.0;
     let mut last_report = Instant::now();
     shm.publish(world, true)?;
+    if let Some(r) = &mut ros2 {
+        r.publish(world);
+    }
     loop {
         shm.take_commands(world);
+        if let Some(r) = &mut ros2 {
+            r.take_commands(world);
+        }
         world.step(scenario.dt);
         let due = world.time() + 1e-9 >= next_world;
         if due {
             next_world += 1.0 / WORLD_RATE_HZ;
         }
         shm.publish(world, due)?;
+        if let Some(r) = &mut ros2 {
+            r.publish(world);
+        }
         if end.is_some_and(|e| world.time() >= e) {
             break;
         }
@@ -128,7 +150,12 @@ fn simulate(
             );
         }
     }
-    tracing::info!(sim_time = world.time(), wall = ?start.elapsed(), "simulator stopped");
+    tracing::info!(
+        sim_time = world.time(),
+        wall = ?start.elapsed(),
+        ros2_errors = ros2.as_ref().map_or(0, SimBridge::errors),
+        "simulator stopped"
+    );
     Ok(ExitCode::SUCCESS)
 }
 

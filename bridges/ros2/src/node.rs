@@ -1,0 +1,139 @@
+//! One ROS 2 node on `ros2-client` (pure-Rust DDS, no ROS install): topics by name and
+//! type, publishers that never stall their caller, and errors counted instead of
+//! fatal.
+
+use crate::Ros2Error;
+use ros2_client::qos::{Durability, History, Reliability, WhenFull};
+use ros2_client::{
+    Context, ContextOptions, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher,
+    QosProfile, Subscription,
+};
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+use std::cell::Cell;
+
+/// A ROS message type: (package, name), e.g. `("sensor_msgs", "LaserScan")`.
+pub type RosType = (&'static str, &'static str);
+
+/// Reliable, volatile, keep-last `depth`: matches reliable and best-effort subscribers
+/// alike. A full send window drops the sample at once (the caller is a real-time loop:
+/// a slow subscriber loses samples, it never stalls the world).
+pub fn qos_reliable(depth: usize) -> QosProfile {
+    QosProfile::publisher_default()
+        .reliability(Reliability::Reliable {
+            when_full: WhenFull::Fail,
+        })
+        .durability(Durability::Volatile)
+        .history(History::KeepLast {
+            depth: depth.max(1),
+        })
+}
+
+/// Reliable and transient-local, keep-last 1: a late subscriber gets the last sample
+/// (the `/map` and `/tf_static` convention).
+pub fn qos_latched() -> QosProfile {
+    qos_reliable(1).durability(Durability::TransientLocal)
+}
+
+/// Best-effort, volatile, keep-last `depth`, for what muster takes in: matches best-effort
+/// and reliable publishers alike.
+pub fn qos_sensor_in(depth: usize) -> QosProfile {
+    QosProfile::subscription_default()
+        .reliability(Reliability::BestEffort)
+        .history(History::KeepLast {
+            depth: depth.max(1),
+        })
+}
+
+/// A node in one ROS domain.
+pub struct Ros2Node {
+    // The node keeps its context alive; both are dropped together.
+    node: Node,
+    _context: Context,
+    errors: Cell<u64>,
+}
+
+impl Ros2Node {
+    /// Joins domain `domain` as node `namespace/name`.
+    pub fn new(domain: u16, namespace: &str, name: &str) -> Result<Self, Ros2Error> {
+        if domain > 232 {
+            return Err(Ros2Error::Domain(domain));
+        }
+        let context = Context::with_options(ContextOptions::new().domain_id(domain))
+            .map_err(|e| Ros2Error::create("ROS 2 context", e))?;
+        let node_name =
+            NodeName::new(namespace, name).map_err(|e| Ros2Error::create("node name", e))?;
+        let node = context
+            .new_node(node_name, NodeOptions::new().enable_rosout(true))
+            .map_err(|e| Ros2Error::create("ROS 2 node", e))?;
+        Ok(Ros2Node {
+            node,
+            _context: context,
+            errors: Cell::new(0),
+        })
+    }
+
+    fn topic(&mut self, name: &str, ty: RosType, qos: &QosProfile) -> Result<ros2_client::dds::rustdds::Topic, Ros2Error> {
+        let parsed = Name::parse(name).map_err(|e| Ros2Error::create(name, e))?;
+        self.node
+            .create_topic(&parsed, MessageTypeName::new(ty.0, ty.1), qos)
+            .map_err(|e| Ros2Error::create(name, e))
+    }
+
+    /// A publisher of `ty` on topic `name` (absolute, e.g. `/T1/scan`).
+    pub fn publisher<M: Serialize>(
+        &mut self,
+        name: &str,
+        ty: RosType,
+        qos: QosProfile,
+    ) -> Result<Publisher<M>, Ros2Error> {
+        let topic = self.topic(name, ty, &qos)?;
+        self.node
+            .create_publisher(&topic, Some(qos))
+            .map_err(|e| Ros2Error::create(name, e))
+    }
+
+    /// A subscription to `ty` on topic `name`.
+    pub fn subscription<M: DeserializeOwned + 'static>(
+        &mut self,
+        name: &str,
+        ty: RosType,
+        qos: QosProfile,
+    ) -> Result<Subscription<M>, Ros2Error> {
+        let topic = self.topic(name, ty, &qos)?;
+        self.node
+            .create_subscription(&topic, Some(qos))
+            .map_err(|e| Ros2Error::create(name, e))
+    }
+
+    /// Publishes `msg`; a failure (a full send window, a closed writer) is counted and
+    /// logged now and then, never returned: one lost sample must not stop a robot.
+    pub fn send<M: Serialize>(&self, p: &Publisher<M>, msg: M, what: &str) {
+        if let Err(e) = p.publish(msg) {
+            let e = match e {
+                ros2_client::WriteError::WouldBlock { .. } => "send window full".to_string(),
+                other => other.to_string(),
+            };
+            self.warn_limited(&format!("{what}: sample not sent: {e}"));
+        }
+    }
+
+    /// Counts an error and logs the first and then every 1000th.
+    pub fn warn_limited(&self, what: &str) {
+        let n = self.errors.get() + 1;
+        self.errors.set(n);
+        if n == 1 || n.is_multiple_of(1000) {
+            tracing::warn!(errors = n, "ROS 2: {what}");
+        }
+    }
+
+    /// Errors counted so far.
+    pub fn errors(&self) -> u64 {
+        self.errors.get()
+    }
+
+    /// The node, for what this wrapper does not cover.
+    pub fn inner(&mut self) -> &mut Node {
+        &mut self.node
+    }
+}
