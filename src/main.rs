@@ -14,7 +14,8 @@ fn main() -> std::process::ExitCode {
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
                 tracing_subscriber::EnvFilter::new(
-                    "info,zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn",
+                    // ros2-client warns that ROS_DISTRO is unset: muster needs no ROS install.
+                    "info,zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn,rustdds=warn,ros2_client=warn,ros2_client::distributions=error",
                 )
             }),
         )

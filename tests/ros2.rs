@@ -8,9 +8,6 @@ use common::Fed;
 use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
-use std::time::Duration;
-
-const SEC: Duration = Duration::from_secs(1);
 
 /// A ROS domain for test `k` of this process, away from 0 (where a developer's own ROS
 /// may run) and from other test processes' as far as the pid spreads them.
@@ -72,7 +69,8 @@ at = [1.5, 7.0]
 }
 
 fn f(v: &Value, k: &str) -> f64 {
-    v[k].as_f64().unwrap_or_else(|| panic!("{k} missing in {v}"))
+    v[k].as_f64()
+        .unwrap_or_else(|| panic!("{k} missing in {v}"))
 }
 
 #[test]
@@ -95,7 +93,10 @@ fn the_simulators_robots_appear_in_ros2() {
         &ds,
     ]);
     let out = Command::new(&python)
-        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/ros2/sim_check.py"))
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/ros2/sim_check.py"
+        ))
         .arg("R1")
         .env("ROS_DOMAIN_ID", &ds)
         .output()
@@ -117,9 +118,18 @@ fn the_simulators_robots_appear_in_ros2() {
     let scan = &v["scan"];
     assert_eq!(scan["frame_id"], "R1/laser");
     assert_eq!(scan["n"], 181);
-    assert!((f(scan, "angle_min") + std::f64::consts::FRAC_PI_2).abs() < 1e-5, "{scan}");
-    assert!((f(scan, "angle_max") - std::f64::consts::FRAC_PI_2).abs() < 1e-5, "{scan}");
-    assert!((f(scan, "angle_increment") - 1f64.to_radians()).abs() < 1e-6, "{scan}");
+    assert!(
+        (f(scan, "angle_min") + std::f64::consts::FRAC_PI_2).abs() < 1e-5,
+        "{scan}"
+    );
+    assert!(
+        (f(scan, "angle_max") - std::f64::consts::FRAC_PI_2).abs() < 1e-5,
+        "{scan}"
+    );
+    assert!(
+        (f(scan, "angle_increment") - 1f64.to_radians()).abs() < 1e-6,
+        "{scan}"
+    );
     assert_eq!(f(scan, "range_min"), 0.0);
     assert_eq!(f(scan, "range_max"), 8.0);
     assert!((f(scan, "scan_time") - 0.1).abs() < 1e-6);
@@ -133,8 +143,13 @@ fn the_simulators_robots_appear_in_ros2() {
             continue; // at the range's edge either answer is right
         }
         if side < 8.0 {
-            let got = r.as_f64().unwrap_or_else(|| panic!("beam {k}: {r}, expected {side:.3}"));
-            assert!((got - side).abs() < 0.08, "beam {k}: {got}, expected {side:.3}");
+            let got = r
+                .as_f64()
+                .unwrap_or_else(|| panic!("beam {k}: {r}, expected {side:.3}"));
+            assert!(
+                (got - side).abs() < 0.08,
+                "beam {k}: {got}, expected {side:.3}"
+            );
         } else {
             assert_eq!(r, "inf", "beam {k}: no wall within 8 m");
             infinite += 1;
@@ -155,22 +170,34 @@ fn the_simulators_robots_appear_in_ros2() {
     // when commands stop it stops (the drive's 0.5 s command timeout).
     let moved = f(drive, "stopped_at") - f(drive, "before");
     assert!(moved > 1.0 && moved < 3.5, "moved {moved} m: {drive}");
-    assert!((f(drive, "later") - f(drive, "stopped_at")).abs() < 1e-3, "still moving: {drive}");
+    assert!(
+        (f(drive, "later") - f(drive, "stopped_at")).abs() < 1e-3,
+        "still moving: {drive}"
+    );
     assert!(f(drive, "twist_after_stop").abs() < 1e-3, "{drive}");
 
     // /clock is sim time, and an rclpy node with use_sim_time follows it.
     assert_eq!(v["clock_increases"], true);
     assert!(f(&v, "clock") > 1.0);
-    assert!((f(&v, "node_clock") - f(&v, "clock_at_node_clock")).abs() < 0.5, "{v}");
+    assert!(
+        (f(&v, "node_clock") - f(&v, "clock_at_node_clock")).abs() < 0.5,
+        "{v}"
+    );
 
     // /map (transient-local: this subscriber came after it was sent).
     let map = &v["map"];
     assert_eq!(map["frame_id"], "map");
-    assert_eq!((map["width"].as_u64(), map["height"].as_u64()), (Some(480), Some(160)));
+    assert_eq!(
+        (map["width"].as_u64(), map["height"].as_u64()),
+        (Some(480), Some(160))
+    );
     assert!((f(map, "resolution") - 0.05).abs() < 1e-6);
     assert_eq!(map["occupied"], 2 * 480 + 2 * 158);
     assert_eq!(map["free"], 478 * 158);
-    assert_eq!((map["corner"].as_i64(), map["centre"].as_i64()), (Some(100), Some(0)));
+    assert_eq!(
+        (map["corner"].as_i64(), map["centre"].as_i64()),
+        (Some(100), Some(0))
+    );
 
     // People: alice, a red cylinder and her name, in the map frame.
     let people = v["people"].as_array().unwrap();
@@ -178,14 +205,30 @@ fn the_simulators_robots_appear_in_ros2() {
     assert_eq!(people[0]["ns"], "people");
     assert_eq!(people[0]["type"], 3);
     assert_eq!(people[0]["frame_id"], "map");
-    assert!(f(&people[0], "x") < 2.5, "alice stays behind R1: {people:?}");
+    assert!(
+        f(&people[0], "x") < 2.5,
+        "alice stays behind R1: {people:?}"
+    );
     assert_eq!(people[1]["text"], "alice");
-    let rgba: Vec<f64> = people[0]["rgba"].as_array().unwrap().iter().map(|c| c.as_f64().unwrap()).collect();
-    assert!(rgba[0] > 0.5 && rgba[1] < 0.5 && rgba[2] < 0.5 && rgba[3] == 1.0, "{rgba:?}");
+    let rgba: Vec<f64> = people[0]["rgba"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c.as_f64().unwrap())
+        .collect();
+    assert!(
+        rgba[0] > 0.5 && rgba[1] < 0.5 && rgba[2] < 0.5 && rgba[3] == 1.0,
+        "{rgba:?}"
+    );
 
     // Sonar: the Pioneer ring, one frame per transducer.
     let sonar = &v["sonar"];
-    let frames: Vec<&str> = sonar["frames"].as_array().unwrap().iter().map(|s| s.as_str().unwrap()).collect();
+    let frames: Vec<&str> = sonar["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s.as_str().unwrap())
+        .collect();
     assert_eq!(frames.len(), 16);
     assert!(frames.contains(&"R1/sonar_0") && frames.contains(&"R1/sonar_15"));
     assert_eq!(sonar["radiation_type"], 0);
@@ -208,7 +251,11 @@ fn the_simulators_robots_appear_in_ros2() {
         assert_eq!(topics[name], serde_json::json!([ty]), "{name} in {topics}");
     }
     assert!(
-        v["nodes"].as_array().unwrap().iter().any(|n| n == "muster_sim"),
+        v["nodes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|n| n == "muster_sim"),
         "nodes: {}",
         v["nodes"]
     );

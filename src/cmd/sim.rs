@@ -2,10 +2,10 @@
 
 use crate::cli::SimArgs;
 use anyhow::Context;
+use muster_ros2::sim::{SimBridge, SimBridgeOptions};
 use muster_shared::ipc::create_node;
 use muster_shared::reactor::{Reactor, SignalPipe};
 use muster_shared::Instance;
-use muster_ros2::sim::{SimBridge, SimBridgeOptions};
 use muster_sim_world::map::OccupancyMap;
 use muster_sim_world::scenario::Scenario;
 use muster_sim_world::shm::SimShm;

@@ -46,8 +46,12 @@ def spin_for(seconds):
     spin_until(lambda: False, seconds)
 
 
+def secs(t):
+    return t.sec + t.nanosec * 1e-9
+
+
 def stamp(h):
-    return h.stamp.sec + h.stamp.nanosec * 1e-9
+    return secs(h.stamp)
 
 
 def yaw(q):
@@ -77,8 +81,8 @@ if seen["truth"]:
     out["truth"] = {"frame_id": t.header.frame_id, "x": t.pose.pose.position.x, "y": t.pose.pose.position.y,
                     "yaw": yaw(t.pose.pose.orientation)}
 if seen["clock"]:
-    out["clock"] = stamp(seen["clock"][-1].clock) if hasattr(seen["clock"][-1].clock, "sec") else None
-    out["clock_increases"] = all(stamp(a.clock) <= stamp(b.clock) for a, b in zip(seen["clock"], seen["clock"][1:]))
+    out["clock"] = secs(seen["clock"][-1].clock)
+    out["clock_increases"] = all(secs(a.clock) <= secs(b.clock) for a, b in zip(seen["clock"], seen["clock"][1:]))
 if seen["map"]:
     m = seen["map"][-1]
     out["map"] = {"frame_id": m.header.frame_id, "width": m.info.width, "height": m.info.height,
@@ -99,7 +103,7 @@ if seen["sonar"]:
 # The node's own clock follows /clock (use_sim_time).
 if seen["clock"]:
     out["node_clock"] = node.get_clock().now().nanoseconds * 1e-9
-    out["clock_at_node_clock"] = stamp(seen["clock"][-1].clock)
+    out["clock_at_node_clock"] = secs(seen["clock"][-1].clock)
 
 out["topics"] = {name: types for name, types in node.get_topic_names_and_types()}
 out["nodes"] = node.get_node_names()

@@ -36,7 +36,12 @@ impl Ros2Error {
 
 /// The ROS domain id from `ROS_DOMAIN_ID`, if set and valid.
 pub fn domain_from_env() -> Option<u16> {
-    std::env::var("ROS_DOMAIN_ID").ok()?.trim().parse().ok().filter(|d| *d <= 232)
+    std::env::var("ROS_DOMAIN_ID")
+        .ok()?
+        .trim()
+        .parse()
+        .ok()
+        .filter(|d| *d <= 232)
 }
 
 /// A muster name (robot, system, service) as a ROS name token: `[A-Za-z0-9_]`, not

@@ -219,7 +219,10 @@ impl<'de> Deserialize<'de> for Covariance {
             fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
                 f.write_str("36 float64")
             }
-            fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut a: A) -> Result<Covariance, A::Error> {
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut a: A,
+            ) -> Result<Covariance, A::Error> {
                 let mut c = [0.0; 36];
                 for (k, v) in c.iter_mut().enumerate() {
                     *v = a
@@ -468,10 +471,9 @@ mod tests {
         let b = cdr(&Covariance::diagonal([1.0, 2.0, 3.0, 4.0, 5.0, 6.0]));
         assert_eq!(b.len(), 36 * 8);
         assert_eq!(f64::from_le_bytes(b[7 * 8..8 * 8].try_into().unwrap()), 2.0);
-        let back: Covariance =
-            cdr_encoding::from_bytes::<Covariance, byteorder::LittleEndian>(&b)
-                .unwrap()
-                .0;
+        let back: Covariance = cdr_encoding::from_bytes::<Covariance, byteorder::LittleEndian>(&b)
+            .unwrap()
+            .0;
         assert_eq!(back, Covariance::diagonal([1.0, 2.0, 3.0, 4.0, 5.0, 6.0]));
     }
 

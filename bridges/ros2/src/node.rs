@@ -73,7 +73,12 @@ impl Ros2Node {
         })
     }
 
-    fn topic(&mut self, name: &str, ty: RosType, qos: &QosProfile) -> Result<ros2_client::dds::rustdds::Topic, Ros2Error> {
+    fn topic(
+        &mut self,
+        name: &str,
+        ty: RosType,
+        qos: &QosProfile,
+    ) -> Result<ros2_client::dds::rustdds::Topic, Ros2Error> {
         let parsed = Name::parse(name).map_err(|e| Ros2Error::create(name, e))?;
         self.node
             .create_topic(&parsed, MessageTypeName::new(ty.0, ty.1), qos)

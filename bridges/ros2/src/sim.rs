@@ -59,7 +59,6 @@ struct RobotTopics {
 /// The simulator's ROS 2 side. Call [`SimBridge::take_commands`] before each step and
 /// [`SimBridge::publish`] after it.
 pub struct SimBridge {
-    node: Ros2Node,
     clock: Publisher<Clock>,
     tf: Publisher<TfMessage>,
     _tf_static: Publisher<TfMessage>,
@@ -69,6 +68,8 @@ pub struct SimBridge {
     opts: SimBridgeOptions,
     next_odom: f64,
     next_people: f64,
+    // Last: the publishers above leave the DDS participant before it closes.
+    node: Ros2Node,
 }
 
 impl SimBridge {
@@ -76,17 +77,19 @@ impl SimBridge {
     /// and sends the map and the static transforms (latched: late subscribers get them).
     pub fn new(world: &World, opts: SimBridgeOptions) -> Result<Self, Ros2Error> {
         let mut node = Ros2Node::new(opts.domain, "/", "muster_sim")?;
-        let clock = node.publisher::<Clock>("/clock", ("rosgraph_msgs", "Clock"), qos_reliable(1))?;
-        let tf = node.publisher::<TfMessage>("/tf", ("tf2_msgs", "TFMessage"), qos_reliable(100))?;
+        let clock =
+            node.publisher::<Clock>("/clock", ("rosgraph_msgs", "Clock"), qos_reliable(1))?;
+        let tf =
+            node.publisher::<TfMessage>("/tf", ("tf2_msgs", "TFMessage"), qos_reliable(100))?;
         let tf_static =
             node.publisher::<TfMessage>("/tf_static", ("tf2_msgs", "TFMessage"), qos_latched())?;
-        let map = node.publisher::<OccupancyGrid>(
-            "/map",
-            ("nav_msgs", "OccupancyGrid"),
-            qos_latched(),
+        let map =
+            node.publisher::<OccupancyGrid>("/map", ("nav_msgs", "OccupancyGrid"), qos_latched())?;
+        let people = node.publisher::<MarkerArray>(
+            "/people",
+            ("visualization_msgs", "MarkerArray"),
+            qos_reliable(1),
         )?;
-        let people =
-            node.publisher::<MarkerArray>("/people", ("visualization_msgs", "MarkerArray"), qos_reliable(1))?;
         let mut robots = Vec::with_capacity(world.robots().len());
         let mut statics = Vec::new();
         for r in world.robots() {
@@ -119,7 +122,11 @@ impl SimBridge {
             robots.push(RobotTopics {
                 scan,
                 sonar,
-                odom: node.publisher(&format!("{ns}/odom"), ("nav_msgs", "Odometry"), qos_reliable(5))?,
+                odom: node.publisher(
+                    &format!("{ns}/odom"),
+                    ("nav_msgs", "Odometry"),
+                    qos_reliable(5),
+                )?,
                 ground_truth: node.publisher(
                     &format!("{ns}/ground_truth"),
                     ("nav_msgs", "Odometry"),
@@ -147,7 +154,11 @@ impl SimBridge {
             _map: map,
             node,
         };
-        bridge.node.send(&bridge._map, occupancy_grid(world.map(), world.time()), "/map");
+        bridge.node.send(
+            &bridge._map,
+            occupancy_grid(world.map(), world.time()),
+            "/map",
+        );
         let statics = TfMessage {
             transforms: statics
                 .into_iter()
@@ -193,7 +204,13 @@ impl SimBridge {
     /// odometry, ground truth, `/tf` and people when their rate says so.
     pub fn publish(&mut self, world: &World) {
         let now = world.time();
-        self.node.send(&self.clock, Clock { clock: sim_time(now) }, "/clock");
+        self.node.send(
+            &self.clock,
+            Clock {
+                clock: sim_time(now),
+            },
+            "/clock",
+        );
         for (t, r) in self.robots.iter_mut().zip(world.robots()) {
             if let (Some(p), Some(params)) = (&t.scan, &r.spec.laser) {
                 if r.laser_time > t.laser_stamp {
@@ -274,7 +291,11 @@ fn no_return_is_inf(r: f32, max: f64) -> f32 {
 
 /// The robot's last scan. The simulator's beams run right to left over the field of
 /// view, centred on the heading: ROS's counter-clockwise order from `angle_min`.
-pub fn laser_scan(name: &str, r: &Robot, params: &muster_sim_world::scenario::LaserParams) -> LaserScan {
+pub fn laser_scan(
+    name: &str,
+    r: &Robot,
+    params: &muster_sim_world::scenario::LaserParams,
+) -> LaserScan {
     let n = r.laser.len();
     let fov = params.fov_deg.to_radians();
     let (min, inc) = if n > 1 {
@@ -291,7 +312,11 @@ pub fn laser_scan(name: &str, r: &Robot, params: &muster_sim_world::scenario::La
         scan_time: (1.0 / params.rate.max(1e-6)) as f32,
         range_min: 0.0,
         range_max: params.range as f32,
-        ranges: r.laser.iter().map(|&v| no_return_is_inf(v, params.range)).collect(),
+        ranges: r
+            .laser
+            .iter()
+            .map(|&v| no_return_is_inf(v, params.range))
+            .collect(),
         intensities: Vec::new(),
     }
 }
@@ -349,7 +374,11 @@ pub fn occupancy_grid(map: &OccupancyMap, now: f64) -> OccupancyGrid {
     let mut data = Vec::with_capacity(w * h);
     for j in 0..h {
         for i in 0..w {
-            data.push(if map.occupied(i as i64, j as i64) { 100 } else { 0 });
+            data.push(if map.occupied(i as i64, j as i64) {
+                100
+            } else {
+                0
+            });
         }
     }
     let (ox, oy) = map.origin();
