@@ -890,8 +890,13 @@ pub enum UserVerb {
         #[arg(long, default_value = "5s", value_parser = duration)]
         duration: Duration,
         /// For a command service: send this goal once granted, `X,Y` in metres.
-        #[arg(long, allow_hyphen_values = true)]
+        #[arg(long, allow_hyphen_values = true, conflicts_with = "twist")]
         goal: Option<String>,
+        /// For a command service taking `twist`: drive at `V,W` (m/s, rad/s), sent 10
+        /// times a second while the session lasts, as a joystick does (the robot stops
+        /// when it stops coming).
+        #[arg(long, allow_hyphen_values = true)]
+        twist: Option<String>,
         /// One JSON object a line.
         #[arg(long)]
         json: bool,

@@ -326,6 +326,15 @@ pub enum Payload {
     Text(String),
     /// A tracked target in the world frame (a tracking system's estimate).
     Track2d(Track2d),
+    /// A velocity command in the robot's frame: forward speed (m/s) and turn rate
+    /// (rad/s, counter-clockwise), as ROS's `geometry_msgs/Twist` linear.x and angular.z.
+    /// A driver keeps sending it; the robot stops when it stops coming.
+    Twist {
+        /// Forward speed, m/s.
+        v: f64,
+        /// Turn rate, rad/s.
+        w: f64,
+    },
 }
 
 /// Most robots a [`Track2d`] names as seeing its target.
@@ -362,6 +371,7 @@ impl Payload {
             Payload::Scalar(_) => "scalar",
             Payload::Text(_) => "text",
             Payload::Track2d(_) => "track2d",
+            Payload::Twist { .. } => "twist",
         }
     }
 
@@ -392,6 +402,7 @@ impl fmt::Display for Payload {
                 write!(f, "pose2d x={x:.3} y={y:.3} theta={theta:.3}")
             }
             Payload::Goal2d { x, y } => write!(f, "goal2d x={x:.3} y={y:.3}"),
+            Payload::Twist { v, w } => write!(f, "twist v={v:.3} w={w:.3}"),
             Payload::Scalar(v) => write!(f, "scalar {v}"),
             Payload::Text(t) => write!(f, "text {t}"),
             Payload::Track2d(t) => {

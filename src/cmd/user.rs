@@ -37,10 +37,18 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             id,
             duration,
             goal,
+            twist,
             json,
         }) => {
-            let goal = goal.map(|g| parse_goal(&g)).transpose()?;
-            request(client, &ServiceId(id), duration, goal, json)
+            let input = match (goal, twist) {
+                (Some(g), _) => Some(Input::Once(parse_goal(&g)?)),
+                (None, Some(t)) => {
+                    let (v, w) = parse_point("--twist", &t)?;
+                    Some(Input::Repeated(Payload::Twist { v, w }))
+                }
+                (None, None) => None,
+            };
+            request(client, &ServiceId(id), duration, input, json)
         }
         Some(UserVerb::Watch { duration, json }) => watch(client, duration, json),
         Some(UserVerb::Idle { duration }) => idle(client, duration, started),
@@ -90,6 +98,17 @@ pub fn connect(
     Ok(UserClient::connect_remote(remote, opts)?)
 }
 
+/// Task input a request sends once granted.
+enum Input {
+    /// Sent once (a goal).
+    Once(Payload),
+    /// Sent every [`REPEAT_INPUT`] while the session lasts (a velocity).
+    Repeated(Payload),
+}
+
+/// How often repeated input goes out.
+const REPEAT_INPUT: Duration = Duration::from_millis(100);
+
 fn parse_goal(s: &str) -> anyhow::Result<Payload> {
     let (x, y) = parse_point("--goal", s)?;
     Ok(Payload::Goal2d { x, y })
@@ -113,6 +132,7 @@ pub fn payload_json(p: &Payload) -> Value {
             json!({"type": "pose2d", "x": x, "y": y, "theta": theta})
         }
         Payload::Goal2d { x, y } => json!({"type": "goal2d", "x": x, "y": y}),
+        Payload::Twist { v, w } => json!({"type": "twist", "v": v, "w": w}),
         Payload::Scalar(v) => json!({"type": "scalar", "value": v}),
         Payload::Text(t) => json!({"type": "text", "text": t}),
         Payload::Track2d(t) => json!({"type": "track2d", "x": t.x, "y": t.y, "vx": t.vx,
@@ -209,7 +229,7 @@ fn request(
     mut client: UserClient,
     id: &ServiceId,
     duration: Duration,
-    goal: Option<Payload>,
+    input: Option<Input>,
     as_json: bool,
 ) -> anyhow::Result<ExitCode> {
     let req = client.request(id)?;
@@ -262,23 +282,40 @@ fn request(
         }
     };
     let (session, kind) = session;
-    if let Some(g) = goal {
-        if kind == ServiceKind::Command {
-            client.input(session, g).map_err(|e| anyhow::anyhow!(e))?;
-        } else {
-            eprintln!("muster: --goal ignored: {id} is a data service");
+    let (first, repeated) = match input {
+        Some(_) if kind != ServiceKind::Command => {
+            eprintln!("muster: --goal/--twist ignored: {id} is a data service");
+            (None, None)
         }
+        Some(Input::Once(p)) => (Some(p), None),
+        Some(Input::Repeated(p)) => (Some(p.clone()), Some(p)),
+        None => (None, None),
+    };
+    if let Some(p) = first {
+        client.input(session, p).map_err(|e| anyhow::anyhow!(e))?;
     }
     // Counted as the updates arrive: the session is gone from the client once ended.
     let mut counters = muster_users::core::SessionCounters::default();
-    let end = stream(
-        &mut client,
-        session,
-        Instant::now() + duration,
-        as_json,
-        &mut counters,
-        |_| true,
-    )?;
+    let end_at = Instant::now() + duration;
+    let end = loop {
+        let until = match repeated {
+            Some(_) => (Instant::now() + REPEAT_INPUT).min(end_at),
+            None => end_at,
+        };
+        let end = stream(&mut client, session, until, as_json, &mut counters, |_| {
+            true
+        })?;
+        // Ended, the duration over, or interrupted (back before its deadline).
+        let now = Instant::now();
+        if end.is_some() || now >= end_at || now < until {
+            break end;
+        }
+        if let Some(p) = &repeated {
+            client
+                .input(session, p.clone())
+                .map_err(|e| anyhow::anyhow!(e))?;
+        }
+    };
     if end.is_none() {
         client.end(session);
     }

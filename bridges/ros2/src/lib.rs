@@ -1,5 +1,6 @@
-//! muster and ROS 2: the simulator's robots as ROS 2 topics ([`sim::SimBridge`]), on
-//! `ros2-client` (Atostek's pure-Rust DDS: no ROS install, no C++ build).
+//! muster and ROS 2, on `ros2-client` (Atostek's pure-Rust DDS: no ROS install, no C++
+//! build): the simulator's robots as ROS 2 topics ([`sim::SimBridge`]), and a ROS 2
+//! robot as a muster system with no code ([`system::Ros2System`]).
 //!
 //! The messages are serde structs in their definitions' field order ([`msgs`]), so their
 //! CDR bytes are what rclpy and Fast DDS send.
@@ -7,6 +8,7 @@
 pub mod msgs;
 pub mod node;
 pub mod sim;
+pub mod system;
 
 /// Why joining ROS 2 failed.
 #[derive(Debug, thiserror::Error)]

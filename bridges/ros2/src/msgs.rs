@@ -11,6 +11,14 @@ macro_rules! messages {
     ($($t:ty),* $(,)?) => { $(impl ros2_client::Message for $t {})* };
 }
 messages!(
+    PoseWithCovarianceStamped,
+    Pose2D,
+    StringMsg,
+    Float64,
+    Float32,
+    Int32,
+    Int64,
+    Bool,
     Header,
     Clock,
     LaserScan,
@@ -283,6 +291,56 @@ pub struct PoseStamped {
     pub header: Header,
     /// The pose.
     pub pose: Pose,
+}
+
+/// `geometry_msgs/PoseWithCovarianceStamped` (AMCL's `amcl_pose`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseWithCovarianceStamped {
+    /// Stamp and frame.
+    pub header: Header,
+    /// The pose and its covariance.
+    pub pose: PoseWithCovariance,
+}
+
+/// `geometry_msgs/Pose2D`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Pose2D {
+    /// x, m.
+    pub x: f64,
+    /// y, m.
+    pub y: f64,
+    /// Heading, rad.
+    pub theta: f64,
+}
+
+/// `std_msgs/String`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StringMsg {
+    /// The text.
+    pub data: String,
+}
+
+macro_rules! std_value {
+    ($($(#[$doc:meta])* $name:ident($t:ty);)*) => {$(
+        $(#[$doc])*
+        #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+        pub struct $name {
+            /// The value.
+            pub data: $t,
+        }
+    )*};
+}
+std_value! {
+    /// `std_msgs/Float64`.
+    Float64(f64);
+    /// `std_msgs/Float32`.
+    Float32(f32);
+    /// `std_msgs/Int32`.
+    Int32(i32);
+    /// `std_msgs/Int64`.
+    Int64(i64);
+    /// `std_msgs/Bool`.
+    Bool(bool);
 }
 
 /// `nav_msgs/MapMetaData`.

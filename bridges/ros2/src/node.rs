@@ -49,7 +49,7 @@ pub fn qos_sensor_in(depth: usize) -> QosProfile {
 pub struct Ros2Node {
     // The node keeps its context alive; both are dropped together.
     node: Node,
-    _context: Context,
+    context: Context,
     errors: Cell<u64>,
 }
 
@@ -68,7 +68,7 @@ impl Ros2Node {
             .map_err(|e| Ros2Error::create("ROS 2 node", e))?;
         Ok(Ros2Node {
             node,
-            _context: context,
+            context,
             errors: Cell::new(0),
         })
     }
@@ -137,8 +137,47 @@ impl Ros2Node {
         self.errors.get()
     }
 
+    /// The ROS types (`pkg/msg/Type`) DDS discovery has seen on topic `name` (e.g.
+    /// `/turtle/odom`), from every participant, this one included.
+    pub fn discovered_types(&self, name: &str) -> Vec<String> {
+        let dds = format!("rt{name}");
+        let mut types: Vec<String> = self
+            .context
+            .discovered_topics()
+            .into_iter()
+            .filter(|t| t.name == dds)
+            .map(|t| ros_type_of_dds(&t.type_name))
+            .collect();
+        types.sort();
+        types.dedup();
+        types
+    }
+
     /// The node, for what this wrapper does not cover.
     pub fn inner(&mut self) -> &mut Node {
         &mut self.node
+    }
+}
+
+/// A DDS type name (`nav_msgs::msg::dds_::Odometry_`) as ROS writes it
+/// (`nav_msgs/msg/Odometry`); other names unchanged.
+pub fn ros_type_of_dds(t: &str) -> String {
+    match t.split("::").collect::<Vec<_>>()[..] {
+        [pkg, kind, "dds_", name] => {
+            format!("{pkg}/{kind}/{}", name.strip_suffix('_').unwrap_or(name))
+        }
+        _ => t.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn dds_type_names_read_as_ros_types() {
+        assert_eq!(
+            super::ros_type_of_dds("nav_msgs::msg::dds_::Odometry_"),
+            "nav_msgs/msg/Odometry"
+        );
+        assert_eq!(super::ros_type_of_dds("odd"), "odd");
     }
 }
