@@ -735,6 +735,26 @@ pub enum SystemCommand {
     /// The paper's delivery robot on the simulator: one command service (`goal2d`) with
     /// a task queue; plans, drives, avoids, reports, goes home when idle.
     Delivery(DeliveryArgs),
+    /// A ROS 2 robot as a muster system, with no code: its topics become services as the
+    /// config file says (see the README's "ROS 2").
+    Ros2(Ros2SystemArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct Ros2SystemArgs {
+    /// The config: the system's name, its data and command services and their topics.
+    #[arg(long)]
+    pub config: std::path::PathBuf,
+    /// ROS domain id (default: `ROS_DOMAIN_ID`, else 0).
+    #[arg(long, value_parser = clap::value_parser!(u16).range(0..=232))]
+    pub domain: Option<u16>,
+    /// Twist services: zero velocity when a session's input stops this long (a service's
+    /// own `deadman` in the file wins).
+    #[arg(long, default_value = "0.5s", value_parser = duration)]
+    pub deadman: Duration,
+    /// Serve remote users' sessions on this UDP address (e.g. `127.0.0.1:0`).
+    #[arg(long)]
+    pub udp: Option<std::net::SocketAddr>,
 }
 
 /// What every robot system on the simulator takes.

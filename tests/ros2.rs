@@ -9,6 +9,8 @@ use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
 
+const SEC: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// A ROS domain for test `k` of this process, away from 0 (where a developer's own ROS
 /// may run) and from other test processes' as far as the pid spreads them.
 fn domain(k: u32) -> u16 {
@@ -259,4 +261,372 @@ fn the_simulators_robots_appear_in_ros2() {
         "nodes: {}",
         v["nodes"]
     );
+}
+
+/// The rclpy robot (tests/ros2/robot.py) in `namespace`, starting at `start`.
+fn robot(python: &str, domain: u16, namespace: &str, start: &str, extra: &[&str]) -> Command {
+    let mut c = Command::new(python);
+    c.arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/ros2/robot.py"))
+        .args([namespace, start])
+        .args(extra)
+        .env("ROS_DOMAIN_ID", domain.to_string());
+    c
+}
+
+const TURTLE: &str = r#"
+system = "turtle"
+namespace = "/turtle"
+silent_after = "2s"
+
+[[data]]
+name = "pose"
+topic = "odom"
+type = "nav_msgs/msg/Odometry"
+
+[[data]]
+name = "say"
+topic = "chatter"
+type = "std_msgs/msg/String"
+quota = 3
+
+[[command]]
+name = "goal"
+payload = "goal2d"
+tolerance = 0.5
+
+[[command]]
+name = "drive"
+payload = "twist"
+deadman = "500ms"
+"#;
+
+/// Reads a process's JSON lines until `pred` holds for one (returned), or panics.
+fn until(
+    p: &common::Proc,
+    what: &str,
+    timeout: std::time::Duration,
+    mut pred: impl FnMut(&Value) -> bool,
+) -> Value {
+    let end = std::time::Instant::now() + timeout;
+    let mut seen = Vec::new();
+    loop {
+        let left = end.saturating_duration_since(std::time::Instant::now());
+        match p.line(left) {
+            Some(l) => {
+                if let Ok(v) = serde_json::from_str::<Value>(&l) {
+                    if pred(&v) {
+                        return v;
+                    }
+                }
+                seen.push(l);
+            }
+            None => panic!("{what}: not seen within {timeout:?}; saw {seen:?}"),
+        }
+    }
+}
+
+fn row<'a>(list: &'a [Value], id: &str) -> &'a Value {
+    common::find(list, id).unwrap_or_else(|| panic!("{id} not listed: {list:?}"))
+}
+
+#[test]
+fn a_ros2_robot_becomes_a_muster_system() {
+    use std::time::Instant;
+    let Some(python) = rclpy() else { return };
+    let d = domain(1);
+    let dir = std::env::temp_dir().join(format!("muster-ros2-robot-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let config = dir.join("turtle.toml");
+    std::fs::write(&config, TURTLE).unwrap();
+    let mut fed = Fed::new("ros2sys");
+    fed.broker(&[]);
+    let bot = fed.spawn_command(robot(&python, d, "/turtle", "1,2", &[]));
+    until(fed.proc(bot), "the robot up", 20 * SEC, |v| {
+        v["event"] == "up"
+    });
+    let ds = d.to_string();
+    fed.spawn(&[
+        "system",
+        "ros2",
+        "--config",
+        config.to_str().unwrap(),
+        "--domain",
+        &ds,
+    ]);
+
+    // Listed as the file says, and offered once the robot's topics are heard.
+    let (list, _) = fed.wait_list(30 * SEC, |l| {
+        ["turtle/pose", "turtle/say", "turtle/goal", "turtle/drive"]
+            .iter()
+            .all(|id| common::find(l, id).is_some_and(|r| r["withdrawn"] == false))
+    });
+    let kinds = |id: &str| {
+        let r = row(&list, id);
+        (
+            r["kind"].as_str().unwrap().to_string(),
+            r["payload"].as_str().unwrap().to_string(),
+            r["quota"].as_u64(),
+        )
+    };
+    assert_eq!(
+        kinds("turtle/pose"),
+        ("data".into(), "pose2d".into(), Some(10))
+    );
+    assert_eq!(kinds("turtle/say"), ("data".into(), "text".into(), Some(3)));
+    assert_eq!(
+        kinds("turtle/goal"),
+        ("command".into(), "goal2d".into(), Some(1))
+    );
+    assert_eq!(
+        kinds("turtle/drive"),
+        ("command".into(), "twist".into(), Some(1))
+    );
+    assert_eq!(row(&list, "turtle/goal")["queue"], true);
+
+    // A muster user streams the robot's pose (it stands at (1, 2)) and its chatter.
+    let (code, out) = fed.run(
+        &[
+            "user",
+            "request",
+            "turtle/pose",
+            "--duration",
+            "2s",
+            "--json",
+        ],
+        30 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let poses: Vec<Value> = out
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter(|v| v["payload"]["type"] == "pose2d")
+        .collect();
+    assert!(
+        poses.len() >= 10,
+        "{} poses in 2 s at 20 Hz: {out}",
+        poses.len()
+    );
+    for p in &poses {
+        assert!(
+            (f(&p["payload"], "x") - 1.0).abs() < 1e-9
+                && (f(&p["payload"], "y") - 2.0).abs() < 1e-9,
+            "{p}"
+        );
+    }
+    let (code, out) = fed.run(
+        &[
+            "user",
+            "request",
+            "turtle/say",
+            "--duration",
+            "2s",
+            "--json",
+        ],
+        30 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    assert!(
+        out.lines().any(|l| l.contains("\"text\":\"hello ")),
+        "{out}"
+    );
+
+    // A goal: the robot gets a PoseStamped on /turtle/goal_pose in frame map, facing the
+    // goal, drives there, and the user hears accepted, driving, arrived.
+    let user = fed.spawn(&[
+        "user",
+        "request",
+        "turtle/goal",
+        "--goal",
+        "3,2",
+        "--duration",
+        "40s",
+        "--json",
+    ]);
+    let g = until(
+        fed.proc(bot),
+        "the goal on /turtle/goal_pose",
+        20 * SEC,
+        |v| v["event"] == "goal",
+    );
+    assert_eq!((f(&g, "x"), f(&g, "y")), (3.0, 2.0));
+    assert_eq!(g["frame"], "map");
+    assert!(
+        f(&g, "z").abs() < 1e-9 && (f(&g, "w") - 1.0).abs() < 1e-9,
+        "heading +x: {g}"
+    );
+    let mut statuses = Vec::new();
+    until(fed.proc(user), "arrival", 30 * SEC, |v| {
+        if let Some(s) = v["status"].as_str() {
+            statuses.push(s.to_string());
+        }
+        v["status"]
+            .as_str()
+            .is_some_and(|s| s.starts_with("done: arrived within"))
+    });
+    // The closure above saw every status line; check their order.
+    let user_statuses = statuses;
+    let pos = |p: &str| user_statuses.iter().position(|s| s.starts_with(p));
+    let (acc, drv) = (
+        pos("working: accepted goal (3.00, 2.00)"),
+        pos("working: driving: at ("),
+    );
+    assert!(
+        acc.is_some() && drv.is_some() && acc < drv,
+        "{user_statuses:?}"
+    );
+    fed.proc(user).signal(libc::SIGTERM);
+
+    // Driving by twist, and the deadman: the user is SIGKILLed, the robot is sent zero.
+    let driver = fed.spawn(&[
+        "user",
+        "request",
+        "turtle/drive",
+        "--twist",
+        "0.3,0.1",
+        "--duration",
+        "60s",
+        "--json",
+    ]);
+    let c = until(fed.proc(bot), "cmd_vel from the user", 20 * SEC, |v| {
+        v["event"] == "cmd_vel" && v["v"] != 0.0
+    });
+    assert_eq!((f(&c, "v"), f(&c, "w")), (0.3, 0.1));
+    fed.proc(driver).signal(libc::SIGKILL);
+    let killed = Instant::now();
+    let stop = until(
+        fed.proc(bot),
+        "zero velocity after the user died",
+        10 * SEC,
+        |v| v["event"] == "cmd_vel" && v["v"] == 0.0 && v["w"] == 0.0,
+    );
+    eprintln!(
+        "deadman: the robot was stopped {:?} after its driver was SIGKILLed",
+        killed.elapsed()
+    );
+    assert!(f(&stop, "t") > f(&c, "t"));
+
+    // The robot vanishes mid-session: its user is told why, every service is withdrawn;
+    // it comes back and so do they.
+    let watcher = fed.spawn(&[
+        "user",
+        "request",
+        "turtle/pose",
+        "--duration",
+        "60s",
+        "--json",
+    ]);
+    until(fed.proc(watcher), "pose updates", 20 * SEC, |v| {
+        v["payload"]["type"] == "pose2d"
+    });
+    fed.proc(bot).signal(libc::SIGKILL);
+    let ended = until(fed.proc(watcher), "the session's end", 20 * SEC, |v| {
+        v["ended"] == true
+    });
+    assert_eq!(
+        ended["reason"], "ended by the system: robot silent: nothing on /turtle/odom for 2s",
+        "{ended}"
+    );
+    fed.wait_list(20 * SEC, |l| {
+        ["turtle/pose", "turtle/say", "turtle/goal", "turtle/drive"]
+            .iter()
+            .all(|id| common::find(l, id).is_some_and(|r| r["withdrawn"] == true))
+    });
+    let (code, out) = fed.run(&["user", "request", "turtle/goal", "--json"], 30 * SEC);
+    assert_eq!(code, 3, "a withdrawn service is refused: {out}");
+    assert!(out.contains("\"code\":\"withdrawn\""), "{out}");
+    fed.spawn_command(robot(&python, d, "/turtle", "1,2", &[]));
+    fed.wait_list(30 * SEC, |l| {
+        ["turtle/pose", "turtle/say", "turtle/goal", "turtle/drive"]
+            .iter()
+            .all(|id| common::find(l, id).is_some_and(|r| r["withdrawn"] == false))
+    });
+    fed.shutdown();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_ros2_robot_that_sends_bad_input_gets_clear_errors() {
+    let Some(python) = rclpy() else { return };
+    let d = domain(2);
+    let dir = std::env::temp_dir().join(format!("muster-ros2-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let config = dir.join("bad.toml");
+    std::fs::write(
+        &config,
+        r#"
+system = "bad"
+namespace = "/bad"
+watch = ["odom"]
+
+[[data]]
+name = "pose"
+topic = "odom"
+type = "nav_msgs/msg/Odometry"
+
+[[data]]
+name = "battery"
+topic = "battery"
+type = "std_msgs/msg/Float32"
+"#,
+    )
+    .unwrap();
+    let log = dir.join("system.log");
+    let mut fed = Fed::new("ros2bad");
+    fed.broker(&[]);
+    let ds = d.to_string();
+    let mut sys = fed.command(&[
+        "system",
+        "ros2",
+        "--config",
+        config.to_str().unwrap(),
+        "--domain",
+        &ds,
+    ]);
+    sys.stderr(std::fs::File::create(&log).unwrap());
+    let mut sys = sys.stdin(std::process::Stdio::null()).spawn().unwrap();
+    fed.spawn_command(robot(
+        &python,
+        d,
+        "/bad",
+        "5,5",
+        &["--wrong-type", "--malformed", "20"],
+    ));
+
+    // Good samples after bad ones still flow.
+    fed.wait_list(30 * SEC, |l| {
+        common::find(l, "bad/pose").is_some_and(|r| r["withdrawn"] == false)
+    });
+    let (code, out) = fed.run(
+        &["user", "request", "bad/pose", "--duration", "2s", "--json"],
+        30 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    assert!(
+        out.lines().filter(|l| l.contains("\"pose2d\"")).count() >= 10,
+        "{out}"
+    );
+
+    // The wrong type is named, with both types, in the system's log.
+    let end = std::time::Instant::now() + 20 * SEC;
+    let want = "topic /bad/battery has type std_msgs/msg/String on the ROS graph, but the config says std_msgs/msg/Float32";
+    while !std::fs::read_to_string(&log)
+        .unwrap_or_default()
+        .contains(want)
+    {
+        assert!(
+            std::time::Instant::now() < end,
+            "no type error in: {}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        );
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+    assert_eq!(sys.try_wait().unwrap(), None, "the system stays up");
+    // SAFETY: our own child.
+    unsafe { libc::kill(sys.id() as i32, libc::SIGTERM) };
+    let status = sys.wait().unwrap();
+    assert!(status.success(), "{status:?}");
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(!text.contains("panicked"), "{text}");
+    fed.shutdown();
+    let _ = std::fs::remove_dir_all(&dir);
 }

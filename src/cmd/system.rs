@@ -1,6 +1,6 @@
 //! `muster system ...`.
 
-use crate::cli::{DeliveryArgs, RobotSystemArgs, SystemCommand, TrackingArgs};
+use crate::cli::{DeliveryArgs, RobotSystemArgs, Ros2SystemArgs, SystemCommand, TrackingArgs};
 use anyhow::Context;
 use muster_robots::shell::{
     delivery_specs, open_links, tracking_specs, DeliveryApp, DeliveryOptions, TrackingApp,
@@ -46,7 +46,23 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
         }
         SystemCommand::Tracking(a) => tracking(inst, a),
         SystemCommand::Delivery(a) => delivery(inst, a),
+        SystemCommand::Ros2(a) => ros2(inst, a),
     }
+}
+
+fn ros2(inst: &Instance, a: Ros2SystemArgs) -> anyhow::Result<ExitCode> {
+    use muster_ros2::system::{config::Ros2SystemConfig, Ros2System, Ros2SystemOptions};
+    anyhow::ensure!(!a.deadman.is_zero(), "--deadman must be > 0");
+    let cfg = Ros2SystemConfig::load(&a.config)?;
+    let opts = Ros2SystemOptions {
+        domain: a.domain.or_else(muster_ros2::domain_from_env).unwrap_or(0),
+        deadman: a.deadman,
+    };
+    let app = Ros2System::new(&cfg, &opts)?;
+    let core = SystemCore::new(&cfg.system, std::process::id(), cfg.specs());
+    let run = muster_systems::RunOptions { udp: a.udp };
+    muster_systems::run_system_with(inst, core, app, &run)?;
+    Ok(ExitCode::SUCCESS)
 }
 
 /// The scenario and map a robot system shares with the simulator.

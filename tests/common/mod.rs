@@ -108,13 +108,18 @@ impl Fed {
 
     /// Starts a long-running process; returns its index.
     pub fn spawn(&mut self, args: &[&str]) -> usize {
-        let mut child = self
-            .command(args)
+        let c = self.command(args);
+        self.spawn_command(c)
+    }
+
+    /// Starts any long-running program (a test's rclpy node), torn down with the rest.
+    pub fn spawn_command(&mut self, mut c: Command) -> usize {
+        let mut child = c
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
-            .expect("spawn muster");
+            .expect("spawn");
         let stdout = child.stdout.take().expect("stdout");
         let stdin = child.stdin.take();
         let (tx, lines) = mpsc::channel();

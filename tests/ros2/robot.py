@@ -1,0 +1,109 @@
+"""A ROS 2 robot written in rclpy, nobody's muster code: a differential-drive integrator
+that publishes `odom` (nav_msgs/Odometry, 20 Hz) and `chatter` (std_msgs/String, 2 Hz)
+in its namespace, obeys `cmd_vel` (geometry_msgs/Twist), and, like a navigation stack,
+drives itself at 0.5 m/s towards each `goal_pose` (geometry_msgs/PoseStamped) it gets.
+
+Prints one JSON line per event (goals and velocity commands received) for tests/ros2.rs.
+Arguments: NAMESPACE X,Y [--duration S] [--wrong-type] [--malformed N]
+  --wrong-type   also publishes `battery` as std_msgs/String (the config says Float32)
+  --malformed N  publishes N truncated Odometry samples on `odom` first (raw CDR bytes)
+"""
+
+import argparse
+import json
+import math
+import time
+
+import rclpy
+from geometry_msgs.msg import PoseStamped, Twist
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.serialization import serialize_message
+from std_msgs.msg import String
+
+ap = argparse.ArgumentParser()
+ap.add_argument("namespace")
+ap.add_argument("start")
+ap.add_argument("--duration", type=float, default=120.0)
+ap.add_argument("--wrong-type", action="store_true")
+ap.add_argument("--malformed", type=int, default=0)
+a = ap.parse_args()
+
+x, y = (float(v) for v in a.start.split(","))
+theta = 0.0
+rclpy.init()
+node = Node("fake_robot", namespace=a.namespace)
+odom_pub = node.create_publisher(Odometry, "odom", 10)
+chatter = node.create_publisher(String, "chatter", 10)
+battery = node.create_publisher(String, "battery", 10) if a.wrong_type else None
+cmd = {"v": 0.0, "w": 0.0, "at": -1.0}
+goal = {"xy": None}
+
+
+def say(**kv):
+    kv["t"] = time.monotonic()
+    print(json.dumps(kv), flush=True)
+
+
+def on_cmd(m):
+    cmd.update(v=m.linear.x, w=m.angular.z, at=time.monotonic())
+    say(event="cmd_vel", v=m.linear.x, w=m.angular.z)
+
+
+def on_goal(m):
+    goal["xy"] = (m.pose.position.x, m.pose.position.y)
+    say(event="goal", x=m.pose.position.x, y=m.pose.position.y, frame=m.header.frame_id,
+        z=m.pose.orientation.z, w=m.pose.orientation.w)
+
+
+node.create_subscription(Twist, "cmd_vel", on_cmd, 10)
+node.create_subscription(PoseStamped, "goal_pose", on_goal, 10)
+
+if a.malformed:
+    # Raw bytes on the Odometry topic: a CDR header and a cut-off message.
+    good = serialize_message(Odometry())
+    for _ in range(a.malformed):
+        odom_pub.publish(good[:24])
+
+dt = 0.05
+n = 0
+end = time.monotonic() + a.duration
+say(event="up")
+while time.monotonic() < end:
+    now = time.monotonic()
+    if now - cmd["at"] < 0.5:
+        v, w = cmd["v"], cmd["w"]
+    elif goal["xy"] is not None:
+        gx, gy = goal["xy"]
+        d = math.hypot(gx - x, gy - y)
+        if d < 0.2:
+            goal["xy"] = None
+            v, w = 0.0, 0.0
+        else:
+            theta = math.atan2(gy - y, gx - x)
+            v, w = 0.5, 0.0
+    else:
+        v, w = 0.0, 0.0
+    x += v * math.cos(theta) * dt
+    y += v * math.sin(theta) * dt
+    theta += w * dt
+    o = Odometry()
+    o.header.frame_id = "odom"
+    o.header.stamp = node.get_clock().now().to_msg()
+    o.child_frame_id = "base_link"
+    o.pose.pose.position.x = x
+    o.pose.pose.position.y = y
+    o.pose.pose.orientation.z = math.sin(theta / 2)
+    o.pose.pose.orientation.w = math.cos(theta / 2)
+    o.twist.twist.linear.x = v
+    o.twist.twist.angular.z = w
+    odom_pub.publish(o)
+    if n % 10 == 0:
+        chatter.publish(String(data=f"hello {n // 10}"))
+        if battery is not None:
+            battery.publish(String(data="full"))
+    n += 1
+    rclpy.spin_once(node, timeout_sec=0)
+    time.sleep(dt)
+node.destroy_node()
+rclpy.shutdown()
