@@ -12,6 +12,7 @@ Arguments: NAMESPACE X,Y [--duration S] [--wrong-type] [--malformed N]
 import argparse
 import json
 import math
+import signal
 import time
 
 import rclpy
@@ -68,8 +69,10 @@ if a.malformed:
 dt = 0.05
 n = 0
 end = time.monotonic() + a.duration
+stopping = []
+signal.signal(signal.SIGTERM, lambda *_: stopping.append(1))
 say(event="up")
-while time.monotonic() < end:
+while time.monotonic() < end and not stopping:
     now = time.monotonic()
     if now - cmd["at"] < 0.5:
         v, w = cmd["v"], cmd["w"]

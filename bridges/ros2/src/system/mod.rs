@@ -45,6 +45,10 @@ impl Default for Ros2SystemOptions {
 const STATUS_EVERY: Duration = Duration::from_secs(1);
 /// How often DDS discovery is asked whether a topic has another type.
 const TYPE_CHECK_EVERY: Duration = Duration::from_secs(2);
+/// A topic never heard yet gets this long at least before it counts as silent: DDS
+/// discovery between two participants takes seconds (measured: 1-4 s between
+/// ros2-client and Fast DDS on one host).
+const DISCOVERY_GRACE: Duration = Duration::from_secs(10);
 /// Moving less than this counts as no progress, m.
 const PROGRESS: f64 = 0.05;
 
@@ -275,8 +279,7 @@ impl Ros2System {
         let started = self.started.unwrap_or(now);
         self.watched.iter().find_map(|&k| {
             let i = &self.inputs[k];
-            let last = i.last_heard.unwrap_or(started);
-            (now.saturating_sub(last) >= self.silent_after).then(|| match &i.mismatch {
+            (now >= self.deadline(i, started)).then(|| match &i.mismatch {
                 Some(m) => m.clone(),
                 None => format!(
                     "robot silent: nothing on {} for {}",
@@ -285,6 +288,14 @@ impl Ros2System {
                 ),
             })
         })
+    }
+
+    /// When input `i` counts as silent.
+    fn deadline(&self, i: &TopicIn, started: Duration) -> Duration {
+        match i.last_heard {
+            Some(t) => t + self.silent_after,
+            None => started + self.silent_after.max(DISCOVERY_GRACE),
+        }
     }
 
     fn stop(&self, t: &TwistService) {
@@ -623,8 +634,7 @@ impl SystemApp for Ros2System {
         let mut next = self.next_type_check;
         if self.silenced.is_none() {
             for &k in &self.watched {
-                let last = self.inputs[k].last_heard.unwrap_or(started);
-                next = next.min(last + self.silent_after);
+                next = next.min(self.deadline(&self.inputs[k], started));
             }
         }
         for t in &self.twists {
