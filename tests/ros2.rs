@@ -491,6 +491,36 @@ fn a_ros2_robot_becomes_a_muster_system() {
         v["event"] == "cmd_vel" && v["v"] != 0.0
     });
     assert_eq!((f(&c, "v"), f(&c, "w")), (0.3, 0.1));
+    // The driver freezes (alive, silent): the deadman stops the robot.
+    fed.proc(driver).signal(libc::SIGSTOP);
+    let frozen = Instant::now();
+    let mut last_moving = f(&c, "t");
+    let stop = until(
+        fed.proc(bot),
+        "zero velocity from the deadman",
+        10 * SEC,
+        |v| {
+            if v["event"] == "cmd_vel" && v["v"] != 0.0 {
+                last_moving = f(v, "t");
+            }
+            v["event"] == "cmd_vel" && v["v"] == 0.0 && v["w"] == 0.0
+        },
+    );
+    let gap = f(&stop, "t") - last_moving;
+    eprintln!(
+        "deadman: zero velocity {gap:.3} s after the last input, {:?} after the driver froze",
+        frozen.elapsed()
+    );
+    // Only the deadman stops it, and not before its time.
+    assert!(
+        gap >= 0.45,
+        "stopped {gap} s after the last input, before the 0.5 s deadman"
+    );
+    // It wakes, drives again, and dies: its session ends and the robot is stopped.
+    fed.proc(driver).signal(libc::SIGCONT);
+    until(fed.proc(bot), "cmd_vel again", 20 * SEC, |v| {
+        v["event"] == "cmd_vel" && v["v"] != 0.0
+    });
     fed.proc(driver).signal(libc::SIGKILL);
     let killed = Instant::now();
     let stop = until(
