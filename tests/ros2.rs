@@ -273,32 +273,8 @@ fn robot(python: &str, domain: u16, namespace: &str, start: &str, extra: &[&str]
     c
 }
 
-const TURTLE: &str = r#"
-system = "turtle"
-namespace = "/turtle"
-silent_after = "2s"
-
-[[data]]
-name = "pose"
-topic = "odom"
-type = "nav_msgs/msg/Odometry"
-
-[[data]]
-name = "say"
-topic = "chatter"
-type = "std_msgs/msg/String"
-quota = 3
-
-[[command]]
-name = "goal"
-payload = "goal2d"
-tolerance = 0.5
-
-[[command]]
-name = "drive"
-payload = "twist"
-deadman = "500ms"
-"#;
+/// The README's example config (`docs/ros2/turtle.toml`).
+const TURTLE: &str = include_str!("../docs/ros2/turtle.toml");
 
 /// Reads a process's JSON lines until `pred` holds for one (returned), or panics.
 fn until(
