@@ -273,6 +273,16 @@ fn robot(python: &str, domain: u16, namespace: &str, start: &str, extra: &[&str]
     c
 }
 
+/// The services of the README's example.
+const TURTLE_SERVICES: [&str; 6] = [
+    "turtle/pose",
+    "turtle/say",
+    "turtle/goal",
+    "turtle/drive",
+    "turtle/scan",
+    "turtle/odom",
+];
+
 /// The README's example config (`docs/ros2/turtle.toml`).
 const TURTLE: &str = include_str!("../docs/ros2/turtle.toml");
 
@@ -332,7 +342,7 @@ fn a_ros2_robot_becomes_a_muster_system() {
 
     // Listed as the file says, and offered once the robot's topics are heard.
     let (list, _) = fed.wait_list(30 * SEC, |l| {
-        ["turtle/pose", "turtle/say", "turtle/goal", "turtle/drive"]
+        TURTLE_SERVICES
             .iter()
             .all(|id| common::find(l, id).is_some_and(|r| r["withdrawn"] == false))
     });
@@ -403,6 +413,84 @@ fn a_ros2_robot_becomes_a_muster_system() {
     assert_eq!(code, 0, "{out}");
     assert!(
         out.lines().any(|l| l.contains("\"text\":\"hello ")),
+        "{out}"
+    );
+
+    // Open payloads: the robot's LaserScan and its whole Odometry, types muster has no
+    // payload of its own for, listed with their encoding, decoded for the user by the
+    // definition that came with the grant.
+    assert_eq!(
+        row(&list, "turtle/scan")["payload"],
+        "sensor_msgs/msg/LaserScan"
+    );
+    assert_eq!(row(&list, "turtle/scan")["encoding"], "cdr");
+    assert_eq!(
+        row(&list, "turtle/odom")["payload"],
+        "nav_msgs/msg/Odometry"
+    );
+    assert_eq!(row(&list, "turtle/pose")["encoding"], "");
+    let (code, out) = fed.run(
+        &[
+            "user",
+            "request",
+            "turtle/scan",
+            "--duration",
+            "2s",
+            "--json",
+        ],
+        30 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let lines: Vec<Value> = out
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    assert_eq!(lines[0]["payload"], "sensor_msgs/msg/LaserScan", "{out}");
+    let scans: Vec<&Value> = lines.iter().filter(|v| v["payload"].is_object()).collect();
+    assert!(scans.len() >= 2, "{out}");
+    for s in &scans {
+        let p = &s["payload"];
+        assert_eq!(p["type"], "sensor_msgs/msg/LaserScan");
+        assert_eq!(p["encoding"], "cdr");
+        let v = &p["value"];
+        assert_eq!(v["header"]["frame_id"], "laser", "{p}");
+        assert_eq!(v["header"]["stamp"]["sec"], 7);
+        assert_eq!(v["angle_min"], -0.75);
+        assert_eq!(v["range_max"], 8.0);
+        assert_eq!(v["ranges"], serde_json::json!([1.0, 2.0, "inf", 4.5]));
+        assert_eq!(v["intensities"], serde_json::json!([]));
+    }
+    let (code, out) = fed.run(
+        &[
+            "user",
+            "request",
+            "turtle/odom",
+            "--duration",
+            "1s",
+            "--json",
+        ],
+        30 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let odom: Value = out
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .find(|v| v["payload"].is_object())
+        .unwrap_or_else(|| panic!("no odometry: {out}"));
+    let v = &odom["payload"]["value"];
+    assert_eq!(v["header"]["frame_id"], "odom");
+    assert_eq!(v["child_frame_id"], "base_link");
+    let position = &v["pose"]["pose"]["position"];
+    assert_eq!((f(position, "x"), f(position, "y")), (1.0, 2.0));
+    assert_eq!(v["pose"]["covariance"].as_array().map(Vec::len), Some(36));
+    // The text view prints it decoded too.
+    let (code, out) = fed.run(
+        &["user", "request", "turtle/scan", "--duration", "1s"],
+        30 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    assert!(
+        out.contains("sensor_msgs/msg/LaserScan {\"angle_increment\":0.5"),
         "{out}"
     );
 
@@ -540,7 +628,7 @@ fn a_ros2_robot_becomes_a_muster_system() {
         "{ended}"
     );
     fed.wait_list(20 * SEC, |l| {
-        ["turtle/pose", "turtle/say", "turtle/goal", "turtle/drive"]
+        TURTLE_SERVICES
             .iter()
             .all(|id| common::find(l, id).is_some_and(|r| r["withdrawn"] == true))
     });
@@ -549,7 +637,7 @@ fn a_ros2_robot_becomes_a_muster_system() {
     assert!(out.contains("\"code\":\"withdrawn\""), "{out}");
     fed.spawn_command(robot(&python, d, "/turtle", "1,2", &[]));
     fed.wait_list(30 * SEC, |l| {
-        ["turtle/pose", "turtle/say", "turtle/goal", "turtle/drive"]
+        TURTLE_SERVICES
             .iter()
             .all(|id| common::find(l, id).is_some_and(|r| r["withdrawn"] == false))
     });

@@ -29,6 +29,7 @@ fn specs() -> Vec<ServiceSpec> {
             queue: false,
             quota: 1000,
             payload: "pose2d".into(),
+            schema: None,
         })
         .collect()
 }
@@ -254,6 +255,7 @@ fn codec(c: &mut Criterion) {
         service: ServiceId::new("f3", "s1"),
         kind: ServiceKind::Data,
         payload: "pose2d".into(),
+        schema: None,
         system_pid: 1003,
         relayed: false,
     };

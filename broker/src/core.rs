@@ -111,6 +111,8 @@ pub struct Grant {
     pub kind: ServiceKind,
     /// Payload type.
     pub payload: String,
+    /// An open payload type's schema.
+    pub schema: Option<muster_shared::types::Schema>,
     /// The system's pid.
     pub system_pid: u32,
 }
@@ -124,6 +126,7 @@ impl Grant {
             service: self.service.clone(),
             kind: self.kind,
             payload: self.payload.clone(),
+            schema: self.schema.clone(),
             system_pid: self.system_pid,
             relayed: true,
         }
@@ -541,6 +544,13 @@ impl Broker {
             set(&mut v.description, &s.spec.description);
             set(&mut v.kind, s.spec.kind.as_str());
             set(&mut v.payload, &s.spec.payload);
+            set(
+                &mut v.encoding,
+                s.spec
+                    .schema
+                    .as_ref()
+                    .map_or("", |sc| sc.encoding.message_encoding()),
+            );
             v.queue = s.spec.queue;
             v.quota = s.spec.quota;
             v.in_use = u16::try_from(s.used()).unwrap_or(u16::MAX);
@@ -1483,6 +1493,7 @@ impl Broker {
             session: o.session,
             kind: svc.spec.kind,
             payload: svc.spec.payload.clone(),
+            schema: svc.spec.schema.clone(),
             service: o.service.clone(),
             system_pid,
         }));

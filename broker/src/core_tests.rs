@@ -13,6 +13,7 @@ fn spec(name: &str, quota: u16, queue: bool) -> ServiceSpec {
         queue,
         quota,
         payload: "pose2d".into(),
+        schema: None,
     }
 }
 

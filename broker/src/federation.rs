@@ -1854,6 +1854,9 @@ impl Federation {
                     service,
                     kind,
                     payload,
+                    // Schemas do not cross hosts yet: another host's open-type samples
+                    // reach this host's users as bytes.
+                    schema: None,
                     system_pid: self.pid,
                     relayed: false,
                 }

@@ -21,6 +21,7 @@ fn specs() -> Vec<ServiceSpec> {
             queue: true,
             quota: 2,
             payload: "pose2d".into(),
+            schema: None,
         },
         ServiceSpec {
             name: "b".into(),
@@ -29,6 +30,7 @@ fn specs() -> Vec<ServiceSpec> {
             queue: false,
             quota: 1,
             payload: "goal2d".into(),
+            schema: None,
         },
     ]
 }

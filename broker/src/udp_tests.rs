@@ -266,6 +266,7 @@ fn links_over_services_a_user_may_not_use_are_not_counted() {
         queue: false,
         quota: 5,
         payload: "pose2d".into(),
+        schema: None,
     };
     for (system, specs) in [
         (

@@ -7,6 +7,7 @@ pub mod ipc;
 pub mod names;
 pub mod protocol;
 pub mod reactor;
+pub mod ros2msg;
 pub mod snapshot;
 pub mod trace;
 pub mod types;

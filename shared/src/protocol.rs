@@ -711,6 +711,9 @@ pub enum ToUser {
         kind: ServiceKind,
         /// Payload type name.
         payload: String,
+        /// The schema of an open payload type (its updates are
+        /// [`crate::types::Payload::Encoded`]).
+        schema: Option<crate::types::Schema>,
         /// The system's process id, watched for death.
         system_pid: u32,
         /// Sent by the broker, which decides ([`ToSystem::Offer`]).

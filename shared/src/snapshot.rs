@@ -64,6 +64,9 @@ pub struct ServiceEntry {
     pub description: FixedStr<{ MAX_DESCRIPTION + 1 }>,
     /// Payload type name.
     pub payload: FixedStr<{ MAX_PAYLOAD_TYPE + 1 }>,
+    /// How an open payload type's samples are encoded (`cdr`, `json`); empty for the
+    /// built-in types.
+    pub encoding: FixedStr<15>,
     /// Quota.
     pub quota: u16,
     /// Sessions in use (granted and being granted).
@@ -118,6 +121,7 @@ impl ServiceEntry {
             links: self.links,
             withdrawn: self.withdrawn == 1,
             payload: self.payload.as_str().to_string(),
+            encoding: self.encoding.as_str().to_string(),
             host: self.host.as_str().to_string(),
             remote: self.remote == 1,
         }
@@ -147,6 +151,7 @@ impl ServiceListSnapshot {
         name: FixedStr::EMPTY,
         description: FixedStr::EMPTY,
         payload: FixedStr::EMPTY,
+        encoding: FixedStr::EMPTY,
         quota: 0,
         in_use: 0,
         queued: 0,
@@ -260,6 +265,10 @@ pub struct ServiceView {
     pub withdrawn: bool,
     /// Payload type.
     pub payload: String,
+    /// How an open payload type's samples are encoded (`cdr` for ROS 2 messages, `json`);
+    /// empty for the built-in types.
+    #[serde(default)]
+    pub encoding: String,
     /// The host offering it, in a federation (`muster broker --federate`); empty otherwise.
     pub host: String,
     /// Offered on another host: the id is `system@host/name`, and a request for it goes
@@ -275,6 +284,7 @@ impl ServiceView {
             name: FixedStr::new(&self.name),
             description: FixedStr::new(&self.description),
             payload: FixedStr::new(&self.payload),
+            encoding: FixedStr::new(&self.encoding),
             quota: self.quota,
             in_use: self.in_use,
             queued: self.queued,
@@ -314,7 +324,8 @@ mod tests {
             queued: 2,
             links: 1,
             withdrawn: false,
-            payload: "goal2d".into(),
+            payload: "geometry_msgs/msg/PoseWithCovarianceStamped".into(),
+            encoding: "cdr".into(),
             host: String::new(),
             remote: false,
         };

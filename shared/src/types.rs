@@ -11,8 +11,15 @@ pub const MAX_HOST_NAME: usize = 31;
 pub const MAX_SERVICE_NAME: usize = 31;
 /// Longest service description, in bytes.
 pub const MAX_DESCRIPTION: usize = 95;
-/// Longest payload type name, in bytes.
-pub const MAX_PAYLOAD_TYPE: usize = 23;
+/// Longest payload type name, in bytes (an open type's name, such as
+/// `geometry_msgs/msg/PoseWithCovarianceStamped`, is its schema's).
+pub const MAX_PAYLOAD_TYPE: usize = 63;
+/// Longest schema a service may declare, in bytes (it travels in the grant, whose frame
+/// is 4 KiB on the local path).
+pub const MAX_SCHEMA: usize = 3 * 1024;
+/// Largest encoded sample of an open payload type, in bytes (an update's frame is 4 KiB
+/// on the local path).
+pub const MAX_ENCODED: usize = 3584;
 /// Largest quota a service may declare.
 pub const MAX_QUOTA: u16 = 1000;
 /// Largest number of services one system may register.
@@ -93,8 +100,87 @@ pub struct ServiceSpec {
     pub queue: bool,
     /// How many sessions the service accepts at once.
     pub quota: u16,
-    /// Payload type name (e.g. `pose2d`, `goal2d`), used to check that a link makes sense.
+    /// Payload type name (e.g. `pose2d`, `goal2d`), used to check that a link makes sense;
+    /// an open type's name is its schema's (e.g. `sensor_msgs/msg/LaserScan`).
     pub payload: String,
+    /// The schema of an open payload type, whose updates are [`Payload::Encoded`]; `None`
+    /// for the built-in types.
+    #[serde(default)]
+    pub schema: Option<Schema>,
+}
+
+/// How a schema is written, and so how its samples are encoded (MCAP's names).
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Copy,
+    Debug,
+    PartialEq,
+    Eq,
+    Hash,
+    Serialize,
+    Deserialize,
+)]
+pub enum SchemaEncoding {
+    /// A ROS 2 message definition with its dependencies; samples are CDR (with the
+    /// 4-byte encapsulation header, as in MCAP and rosbag2).
+    Ros2Msg,
+    /// A JSON Schema; samples are UTF-8 JSON.
+    JsonSchema,
+}
+
+impl SchemaEncoding {
+    /// MCAP's schema encoding name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SchemaEncoding::Ros2Msg => "ros2msg",
+            SchemaEncoding::JsonSchema => "jsonschema",
+        }
+    }
+
+    /// MCAP's message encoding name of the samples.
+    pub fn message_encoding(self) -> &'static str {
+        match self {
+            SchemaEncoding::Ros2Msg => "cdr",
+            SchemaEncoding::JsonSchema => "json",
+        }
+    }
+}
+
+/// An open payload type's schema: what a user needs to read a sample of a type it has
+/// never seen.
+#[derive(
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+    Clone,
+    Debug,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+)]
+pub struct Schema {
+    /// How it is written.
+    pub encoding: SchemaEncoding,
+    /// The schema text.
+    pub text: String,
+}
+
+impl Schema {
+    /// Reads `data`, a sample of type `type_name` under this schema, as JSON.
+    pub fn decode(&self, type_name: &str, data: &[u8]) -> Result<serde_json::Value, String> {
+        match self.encoding {
+            SchemaEncoding::Ros2Msg => crate::ros2msg::Definitions::parse(type_name, &self.text)
+                .and_then(|d| d.decode(data))
+                .map_err(|e| e.to_string()),
+            SchemaEncoding::JsonSchema => {
+                serde_json::from_slice(data).map_err(|e| format!("JSON sample: {e}"))
+            }
+        }
+    }
 }
 
 /// Why a [`ServiceSpec`] or a system name was rejected.
@@ -124,6 +210,22 @@ pub enum SpecError {
     /// Two services of one system share a name; rename one.
     #[error("service {0:?} is declared twice")]
     Duplicate(String),
+    /// A schema is longer than [`MAX_SCHEMA`] bytes; strip its comments or split the type.
+    #[error("schema of {service:?} is {len} bytes, at most {MAX_SCHEMA}")]
+    SchemaTooLong {
+        /// The service.
+        service: String,
+        /// Its length.
+        len: usize,
+    },
+    /// A schema does not parse; the detail says where.
+    #[error("schema of {service:?}: {detail}")]
+    BadSchema {
+        /// The service.
+        service: String,
+        /// What is wrong.
+        detail: String,
+    },
     /// More services than [`MAX_SERVICES_PER_SYSTEM`]; split the system.
     #[error("{0} services declared, at most {MAX_SERVICES_PER_SYSTEM} per system")]
     TooMany(usize),
@@ -151,7 +253,40 @@ impl ServiceSpec {
     /// Checks every field against the protocol's limits.
     pub fn validate(&self) -> Result<(), SpecError> {
         check_name("service name", &self.name, MAX_SERVICE_NAME)?;
-        check_name("payload type", &self.payload, MAX_PAYLOAD_TYPE)?;
+        match &self.schema {
+            None => check_name("payload type", &self.payload, MAX_PAYLOAD_TYPE)?,
+            Some(schema) => {
+                // An open type's name is its schema's: `pkg/msg/Type` has slashes.
+                let name_ok = !self.payload.is_empty()
+                    && self.payload.len() <= MAX_PAYLOAD_TYPE
+                    && self
+                        .payload
+                        .bytes()
+                        .all(|b| b.is_ascii_alphanumeric() || b"_-./".contains(&b))
+                    && !is_builtin_payload(&self.payload);
+                if !name_ok {
+                    return Err(SpecError::BadName {
+                        what: "open payload type".into(),
+                        value: self.payload.clone(),
+                        max: MAX_PAYLOAD_TYPE,
+                    });
+                }
+                if schema.text.len() > MAX_SCHEMA {
+                    return Err(SpecError::SchemaTooLong {
+                        service: self.name.clone(),
+                        len: schema.text.len(),
+                    });
+                }
+                if schema.encoding == SchemaEncoding::Ros2Msg {
+                    crate::ros2msg::Definitions::parse(&self.payload, &schema.text).map_err(
+                        |e| SpecError::BadSchema {
+                            service: self.name.clone(),
+                            detail: e.to_string(),
+                        },
+                    )?;
+                }
+            }
+        }
         if self.description.len() > MAX_DESCRIPTION {
             return Err(SpecError::DescriptionTooLong(self.name.clone()));
         }
@@ -335,6 +470,22 @@ pub enum Payload {
         /// Turn rate, rad/s.
         w: f64,
     },
+    /// A sample of an open payload type, encoded as its service's [`Schema`] says (CDR
+    /// for a ROS 2 message, UTF-8 for JSON); at most [`MAX_ENCODED`] bytes.
+    Encoded {
+        /// The type's name (the service's payload type).
+        type_name: String,
+        /// The sample.
+        data: Vec<u8>,
+    },
+}
+
+/// The built-in payload types' names.
+pub const BUILTIN_PAYLOADS: [&str; 6] = ["pose2d", "goal2d", "scalar", "text", "track2d", "twist"];
+
+/// Whether `name` is a built-in payload type.
+pub fn is_builtin_payload(name: &str) -> bool {
+    BUILTIN_PAYLOADS.contains(&name)
 }
 
 /// Most robots a [`Track2d`] names as seeing its target.
@@ -364,7 +515,7 @@ pub struct Track2d {
 
 impl Payload {
     /// The payload type name this value belongs to.
-    pub fn type_name(&self) -> &'static str {
+    pub fn type_name(&self) -> &str {
         match self {
             Payload::Pose2d { .. } => "pose2d",
             Payload::Goal2d { .. } => "goal2d",
@@ -372,6 +523,7 @@ impl Payload {
             Payload::Text(_) => "text",
             Payload::Track2d(_) => "track2d",
             Payload::Twist { .. } => "twist",
+            Payload::Encoded { type_name, .. } => type_name,
         }
     }
 
@@ -403,6 +555,7 @@ impl fmt::Display for Payload {
             }
             Payload::Goal2d { x, y } => write!(f, "goal2d x={x:.3} y={y:.3}"),
             Payload::Twist { v, w } => write!(f, "twist v={v:.3} w={w:.3}"),
+            Payload::Encoded { type_name, data } => write!(f, "{type_name} ({} bytes)", data.len()),
             Payload::Scalar(v) => write!(f, "scalar {v}"),
             Payload::Text(t) => write!(f, "text {t}"),
             Payload::Track2d(t) => {
@@ -584,6 +737,7 @@ mod tests {
             queue: false,
             quota: 10,
             payload: "pose2d".into(),
+            schema: None,
         }
     }
 

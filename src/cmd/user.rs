@@ -2,7 +2,7 @@
 
 use crate::cli::{UserArgs, UserVerb};
 use anyhow::Context;
-use muster_shared::types::{EndReason, Payload, ServiceId, ServiceKind};
+use muster_shared::types::{EndReason, Payload, Schema, ServiceId, ServiceKind};
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
 use serde_json::{json, Value};
@@ -125,9 +125,40 @@ pub fn parse_point(flag: &str, s: &str) -> anyhow::Result<(f64, f64)> {
     Ok((x, y))
 }
 
+/// A payload as JSON, an open type's sample decoded by its schema:
+/// `{"type": "sensor_msgs/msg/LaserScan", "encoding": "cdr", "value": {..}}`; without its
+/// schema, or if it does not decode, its size and bytes in hex (and why).
+pub fn payload_json_with(p: &Payload, schema: Option<&Schema>) -> Value {
+    let Payload::Encoded { type_name, data } = p else {
+        return payload_json(p);
+    };
+    match schema.map(|s| (s, s.decode(type_name, data))) {
+        Some((s, Ok(value))) => json!({"type": type_name,
+            "encoding": s.encoding.message_encoding(), "value": value}),
+        Some((_, Err(e))) => {
+            json!({"type": type_name, "bytes": data.len(), "hex": hex::encode(data), "error": e})
+        }
+        None => json!({"type": type_name, "bytes": data.len(), "hex": hex::encode(data)}),
+    }
+}
+
+/// A payload as one line of text, an open type's sample decoded by its schema.
+pub fn payload_text(p: &Payload, schema: Option<&Schema>) -> String {
+    match p {
+        Payload::Encoded { type_name, .. } => match payload_json_with(p, schema).get("value") {
+            Some(v) => format!("{type_name} {v}"),
+            None => p.to_string(),
+        },
+        other => other.to_string(),
+    }
+}
+
 /// A payload as JSON: `{"type": "pose2d", "x": ..}`.
 pub fn payload_json(p: &Payload) -> Value {
     match p {
+        Payload::Encoded { type_name, data } => {
+            json!({"type": type_name, "bytes": data.len(), "hex": hex::encode(data)})
+        }
         Payload::Pose2d { x, y, theta } => {
             json!({"type": "pose2d", "x": x, "y": y, "theta": theta})
         }
@@ -241,15 +272,18 @@ fn request(
                 req: r,
                 session,
                 kind,
+                payload,
+                schema,
                 ..
             })) if r == req => {
                 emit(
                     as_json,
                     json!({"granted": true, "reason": null, "queue_position": first_position,
-                           "session": session.to_string(), "service": id.0, "kind": kind.as_str()}),
-                    format!("granted: session {session} on {id} ({kind})"),
+                           "session": session.to_string(), "service": id.0, "kind": kind.as_str(),
+                           "payload": payload}),
+                    format!("granted: session {session} on {id} ({kind}, {payload})"),
                 );
-                break (session, kind);
+                break (session, kind, schema);
             }
             Ok(Some(UserEvent::Refused { req: r, reason, .. })) if r == req => {
                 emit(
@@ -281,7 +315,7 @@ fn request(
             Err(e) => return Err(e.into()),
         }
     };
-    let (session, kind) = session;
+    let (session, kind, schema) = session;
     let (first, repeated) = match input {
         Some(_) if kind != ServiceKind::Command => {
             eprintln!("muster: --goal/--twist ignored: {id} is a data service");
@@ -302,9 +336,15 @@ fn request(
             Some(_) => (Instant::now() + REPEAT_INPUT).min(end_at),
             None => end_at,
         };
-        let end = stream(&mut client, session, until, as_json, &mut counters, |_| {
-            true
-        })?;
+        let end = stream(
+            &mut client,
+            session,
+            schema.as_ref(),
+            until,
+            as_json,
+            &mut counters,
+            |_| true,
+        )?;
         // Ended, the duration over, or interrupted (back before its deadline).
         let now = Instant::now();
         if end.is_some() || now >= end_at || now < until {
@@ -336,6 +376,7 @@ fn request(
 fn stream(
     client: &mut UserClient,
     session: muster_shared::types::SessionId,
+    schema: Option<&Schema>,
     deadline: Instant,
     as_json: bool,
     counters: &mut muster_users::core::SessionCounters,
@@ -354,9 +395,10 @@ fn stream(
                 counters.gaps += gap;
                 emit(
                     as_json,
-                    json!({"seq": seq, "gap": gap, "payload": payload_json(&payload)}),
+                    json!({"seq": seq, "gap": gap, "payload": payload_json_with(&payload, schema)}),
                     format!(
-                        "#{seq} {payload}{}",
+                        "#{seq} {}{}",
+                        payload_text(&payload, schema),
                         if gap > 0 {
                             format!(" ({gap} lost)")
                         } else {

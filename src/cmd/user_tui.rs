@@ -160,6 +160,7 @@ impl View {
                 session,
                 service,
                 kind,
+                ..
             } => {
                 self.note(format!("granted {service}: session {session} ({kind})"));
                 self.held

@@ -427,6 +427,7 @@ impl SystemCore {
             service: ServiceId::new(&self.name, &spec.name),
             kind: spec.kind,
             payload: spec.payload.clone(),
+            schema: spec.schema.clone(),
             system_pid: self.pid,
             relayed: false,
         }
@@ -696,6 +697,7 @@ mod tests {
             queue: false,
             quota,
             payload: "pose2d".into(),
+            schema: None,
         }
     }
 

@@ -426,6 +426,7 @@ mod tests {
             queue: false,
             quota: 5,
             payload: "pose2d".into(),
+            schema: None,
         };
         let mut core = SystemCore::new("t1", 1, vec![spec]);
         let mut r = RemoteSessions::default();

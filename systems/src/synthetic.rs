@@ -53,6 +53,7 @@ impl SyntheticOptions {
                 queue: self.queue,
                 quota: self.quota,
                 payload: payload.clone(),
+                schema: None,
             })
             .collect()
     }

@@ -1,6 +1,7 @@
 """A ROS 2 robot written in rclpy, nobody's muster code: a differential-drive integrator
-that publishes `odom` (nav_msgs/Odometry, 20 Hz) and `chatter` (std_msgs/String, 2 Hz)
-in its namespace, obeys `cmd_vel` (geometry_msgs/Twist), and, like a navigation stack,
+that publishes `odom` (nav_msgs/Odometry, 20 Hz), `chatter` (std_msgs/String, 2 Hz) and
+`scan` (sensor_msgs/LaserScan, 2 Hz: four beams reading 1, 2, no return, 4.5 m) in its
+namespace, obeys `cmd_vel` (geometry_msgs/Twist), and, like a navigation stack,
 drives itself at 0.5 m/s towards each `goal_pose` (geometry_msgs/PoseStamped) it gets.
 
 Prints one JSON line per event (goals and velocity commands received) for tests/ros2.rs.
@@ -18,6 +19,7 @@ import time
 import rclpy
 from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import Odometry
+from sensor_msgs.msg import LaserScan
 from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
@@ -36,6 +38,7 @@ rclpy.init()
 node = Node("fake_robot", namespace=a.namespace)
 odom_pub = node.create_publisher(Odometry, "odom", 10)
 chatter = node.create_publisher(String, "chatter", 10)
+scan_pub = node.create_publisher(LaserScan, "scan", 10)
 battery = node.create_publisher(String, "battery", 10) if a.wrong_type else None
 cmd = {"v": 0.0, "w": 0.0, "at": -1.0}
 goal = {"xy": None}
@@ -103,6 +106,14 @@ while time.monotonic() < end and not stopping:
     odom_pub.publish(o)
     if n % 10 == 0:
         chatter.publish(String(data=f"hello {n // 10}"))
+        sc = LaserScan()
+        sc.header.frame_id = "laser"
+        sc.header.stamp.sec = 7
+        sc.header.stamp.nanosec = n
+        sc.angle_min, sc.angle_max, sc.angle_increment = -0.75, 0.75, 0.5
+        sc.range_min, sc.range_max = 0.1, 8.0
+        sc.ranges = [1.0, 2.0, math.inf, 4.5]
+        scan_pub.publish(sc)
         if battery is not None:
             battery.publish(String(data="full"))
     n += 1

@@ -844,6 +844,9 @@ impl RemoteConn {
                     service,
                     kind,
                     payload,
+                    // Open types' schemas do not travel over UDP yet: a remote user
+                    // gets their samples as bytes.
+                    schema: None,
                     system_pid: 0,
                     relayed: true,
                 });

@@ -56,6 +56,10 @@ pub enum UserEvent {
         service: ServiceId,
         /// Data or command.
         kind: ServiceKind,
+        /// Payload type.
+        payload: String,
+        /// An open payload type's schema: how to read its [`Payload::Encoded`] updates.
+        schema: Option<muster_shared::types::Schema>,
     },
     /// The system confirmed a session the user ended (its `Ended` arrived).
     EndConfirmed {
@@ -691,11 +695,19 @@ impl UserCore {
                 service,
                 kind,
                 payload,
+                schema,
                 system_pid,
                 relayed,
             } => {
                 let copy = if relayed { RELAYED } else { DIRECT };
-                self.granted(req, session, service, (kind, payload), system_pid, copy)
+                self.granted(
+                    req,
+                    session,
+                    service,
+                    (kind, payload, schema),
+                    system_pid,
+                    copy,
+                )
             }
             ToUser::Update {
                 session,
@@ -733,7 +745,7 @@ impl UserCore {
         req: u64,
         session: SessionId,
         service: ServiceId,
-        (kind, payload): (ServiceKind, String),
+        (kind, payload, schema): (ServiceKind, String, Option<muster_shared::types::Schema>),
         system_pid: u32,
         copy: u8,
     ) {
@@ -796,6 +808,8 @@ impl UserCore {
             session,
             service,
             kind,
+            payload: payload.clone(),
+            schema,
         });
         let Some(link) = p.link else { return };
         let Some(l) = self.links.get_mut(&link) else {
@@ -996,6 +1010,7 @@ mod tests {
             service: ServiceId::new(system, name),
             kind: ServiceKind::Data,
             payload: "pose2d".into(),
+            schema: None,
             system_pid,
             relayed,
         }
@@ -1016,6 +1031,7 @@ mod tests {
             service: ServiceId::new(system, &service[system.len() + 1..]),
             kind,
             payload: payload.into(),
+            schema: None,
             system_pid: 50,
             relayed: false,
         });

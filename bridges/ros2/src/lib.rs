@@ -5,6 +5,7 @@
 //! The messages are serde structs in their definitions' field order ([`msgs`]), so their
 //! CDR bytes are what rclpy and Fast DDS send.
 
+pub mod definitions;
 pub mod msgs;
 pub mod node;
 pub mod sim;

@@ -111,6 +111,25 @@ impl Ros2Node {
             .map_err(|e| Ros2Error::create(name, e))
     }
 
+    /// A subscription to type `pkg/msg/name` on topic `name`, for a type known only at
+    /// run time (read with `take_seed`).
+    pub fn subscription_named<M: 'static>(
+        &mut self,
+        topic: &str,
+        pkg: &str,
+        name: &str,
+        qos: QosProfile,
+    ) -> Result<Subscription<M>, Ros2Error> {
+        let parsed = Name::parse(topic).map_err(|e| Ros2Error::create(topic, e))?;
+        let t = self
+            .node
+            .create_topic(&parsed, MessageTypeName::new(pkg, name), &qos)
+            .map_err(|e| Ros2Error::create(topic, e))?;
+        self.node
+            .create_subscription(&t, Some(qos))
+            .map_err(|e| Ros2Error::create(topic, e))
+    }
+
     /// Publishes `msg`; a failure (a full send window, a closed writer) is counted and
     /// logged now and then, never returned: one lost sample must not stop a robot.
     pub fn send<M: Serialize>(&self, p: &Publisher<M>, msg: M, what: &str) {

@@ -372,7 +372,9 @@ mod tests {
             queued: 0,
             links: 0,
             withdrawn: false,
-            payload: "pose2d".into(),
+            // The longest payload type an open type may have.
+            payload: format!("pkg_{i:03}/msg/{}", "T".repeat(52)),
+            encoding: "cdr".into(),
             host: String::new(),
             remote: false,
         }

@@ -162,6 +162,7 @@ pub fn tracking_specs(colours: &[Colour], robots: &[String], quota: u16) -> Vec<
             queue: false,
             quota,
             payload: "track2d".into(),
+            schema: None,
         })
         .collect()
 }
@@ -471,6 +472,7 @@ pub fn delivery_specs(opts: &DeliveryOptions) -> Vec<ServiceSpec> {
         queue: opts.queue,
         quota: opts.quota,
         payload: "goal2d".into(),
+        schema: None,
     }]
 }
 

@@ -25,7 +25,10 @@
 //! topic = "cmd_vel"          # zero velocity when input stops for the deadman time
 //! ```
 
-use muster_shared::types::{validate_registration, ServiceKind, ServiceSpec, SpecError};
+use crate::definitions::Library;
+use muster_shared::types::{
+    validate_registration, Schema, SchemaEncoding, ServiceKind, ServiceSpec, SpecError,
+};
 use serde::Deserialize;
 use std::time::Duration;
 
@@ -83,6 +86,12 @@ pub struct DataService {
     /// ROS type, `pkg/msg/Type` (or `pkg/Type`).
     #[serde(rename = "type")]
     pub ros_type: String,
+    /// What users get: `ros` (the ROS message itself, an open payload: its definition
+    /// travels as the schema, samples as CDR), or the built-in payload the type fits
+    /// (`pose2d`, `text`, `scalar`). Default: the built-in one where the type fits one,
+    /// else `ros`.
+    #[serde(default)]
+    pub payload: Option<String>,
     /// One line for the menu (default: says the topic and type).
     #[serde(default)]
     pub description: Option<String>,
@@ -152,8 +161,19 @@ pub struct CommandService {
     pub qos: TopicQos,
 }
 
-/// The whole file.
+/// A message type the config defines (beyond the built-in common ones).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Definition {
+    /// Its name, `pkg/msg/Type`.
+    #[serde(rename = "type")]
+    pub ros_type: String,
+    /// Its `.msg` file (relative to the config file).
+    pub file: std::path::PathBuf,
+}
+
+/// The whole file.
+#[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Ros2SystemConfig {
     /// The muster system's name.
@@ -174,6 +194,21 @@ pub struct Ros2SystemConfig {
     /// Command services.
     #[serde(default)]
     pub command: Vec<CommandService>,
+    /// Message types defined by `.msg` files.
+    #[serde(default)]
+    pub definition: Vec<Definition>,
+    /// Every definition known: the built-in ones and the file's.
+    #[serde(skip)]
+    pub library: Library,
+}
+
+/// How a data service's samples reach users.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum DataPayload {
+    /// Converted to this built-in payload.
+    Builtin(&'static str),
+    /// The ROS message itself, with this `ros2msg` schema.
+    Ros(String),
 }
 
 fn ten() -> u16 {
@@ -235,27 +270,72 @@ pub fn resolve(namespace: &str, topic: &str) -> String {
 }
 
 impl Ros2SystemConfig {
-    /// Reads and checks a config file.
+    /// Reads and checks a config file; its `[[definition]]` files are read relative to
+    /// it.
     pub fn load(path: &std::path::Path) -> Result<Self, ConfigError> {
         let p = path.display().to_string();
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
             path: p.clone(),
             source,
         })?;
-        Self::parse(&text).map_err(|e| match e {
+        let dir = path.parent().unwrap_or(std::path::Path::new("."));
+        Self::parse_in(&text, dir).map_err(|e| match e {
             ConfigError::Toml { detail, .. } => ConfigError::Toml { path: p, detail },
             other => other,
         })
     }
 
-    /// Parses and checks a config's text.
+    /// Parses and checks a config's text (definition files relative to the working
+    /// directory).
     pub fn parse(text: &str) -> Result<Self, ConfigError> {
-        let c: Ros2SystemConfig = toml::from_str(text).map_err(|e| ConfigError::Toml {
+        Self::parse_in(text, std::path::Path::new("."))
+    }
+
+    fn parse_in(text: &str, dir: &std::path::Path) -> Result<Self, ConfigError> {
+        let mut c: Ros2SystemConfig = toml::from_str(text).map_err(|e| ConfigError::Toml {
             path: String::new(),
             detail: e.to_string(),
         })?;
+        for d in &c.definition {
+            let path = dir.join(&d.file);
+            let text = std::fs::read_to_string(&path).map_err(|source| ConfigError::Io {
+                path: path.display().to_string(),
+                source,
+            })?;
+            c.library.add(&d.ros_type, &text);
+        }
         c.check()?;
         Ok(c)
+    }
+
+    /// What data service `d` sends its users.
+    pub fn data_payload(&self, d: &DataService) -> Result<DataPayload, ConfigError> {
+        let t = full_type(&d.ros_type);
+        let fits = DATA_TYPES.iter().find(|(ty, _)| *ty == t).map(|(_, p)| *p);
+        match (d.payload.as_deref(), fits) {
+            (None, Some(p)) => Ok(DataPayload::Builtin(p)),
+            (Some(p), Some(f)) if p == f => Ok(DataPayload::Builtin(f)),
+            (None | Some("ros"), _) => {
+                let schema = self
+                    .library
+                    .schema(&t)
+                    .map_err(|e| ConfigError::Invalid(format!("data service {:?}: {e}", d.name)))?;
+                if schema.len() > muster_shared::types::MAX_SCHEMA {
+                    return Err(ConfigError::Invalid(format!(
+                        "data service {:?}: the definition of {t} is {} bytes, at most {}",
+                        d.name,
+                        schema.len(),
+                        muster_shared::types::MAX_SCHEMA
+                    )));
+                }
+                Ok(DataPayload::Ros(schema))
+            }
+            (Some(p), _) => Err(ConfigError::Invalid(format!(
+                "data service {:?}: {t} cannot be offered as {p}: use ros{}",
+                d.name,
+                fits.map_or(String::new(), |f| format!(" or {f}"))
+            ))),
+        }
     }
 
     /// The namespace, `/` if none.
@@ -280,18 +360,7 @@ impl Ros2SystemConfig {
             ));
         }
         for d in &self.data {
-            let t = full_type(&d.ros_type);
-            if !DATA_TYPES.iter().any(|(ty, _)| *ty == t) {
-                return Err(ConfigError::Invalid(format!(
-                    "data service {:?}: ROS type {t} is not supported; use one of {}",
-                    d.name,
-                    DATA_TYPES
-                        .iter()
-                        .map(|(t, _)| *t)
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                )));
-            }
+            self.data_payload(d)?;
             check_qos(&d.name, &d.qos)?;
         }
         for c in &self.command {
@@ -333,10 +402,18 @@ impl Ros2SystemConfig {
         let mut specs = Vec::new();
         for d in &self.data {
             let t = full_type(&d.ros_type);
-            let payload = DATA_TYPES
-                .iter()
-                .find(|(ty, _)| *ty == t)
-                .map_or("text", |(_, p)| *p);
+            let (payload, schema) = match self.data_payload(d) {
+                Ok(DataPayload::Builtin(p)) => (p.to_string(), None),
+                Ok(DataPayload::Ros(text)) => (
+                    t.clone(),
+                    Some(Schema {
+                        encoding: SchemaEncoding::Ros2Msg,
+                        text,
+                    }),
+                ),
+                // Refused by check() already.
+                Err(_) => continue,
+            };
             specs.push(ServiceSpec {
                 name: d.name.clone(),
                 description: d
@@ -346,7 +423,8 @@ impl Ros2SystemConfig {
                 kind: ServiceKind::Data,
                 queue: d.queue,
                 quota: d.quota,
-                payload: payload.into(),
+                payload,
+                schema,
             });
         }
         for c in &self.command {
@@ -365,6 +443,7 @@ impl Ros2SystemConfig {
                 queue: c.queue.unwrap_or(c.payload == CommandPayload::Goal2d),
                 quota: c.quota,
                 payload: payload.into(),
+                schema: None,
             });
         }
         specs
@@ -479,9 +558,13 @@ deadman = "300ms"
     fn bad_configs_say_what_is_wrong() {
         let err = |t: &str| Ros2SystemConfig::parse(t).unwrap_err().to_string();
         assert!(err("system = \"x\"\n").contains("no [[data]] and no [[command]]"));
-        let e = err("system = \"x\"\n[[data]]\nname = \"s\"\ntopic = \"scan\"\ntype = \"sensor_msgs/msg/LaserScan\"\n");
+        let e = err(
+            "system = \"x\"\n[[data]]\nname = \"s\"\ntopic = \"t\"\ntype = \"my_pkg/msg/Nope\"\n",
+        );
+        assert!(e.contains("no definition of my_pkg/msg/Nope"), "{e}");
+        let e = err("system = \"x\"\n[[data]]\nname = \"s\"\ntopic = \"t\"\ntype = \"std_msgs/String\"\npayload = \"pose2d\"\n");
         assert!(
-            e.contains("sensor_msgs/msg/LaserScan is not supported"),
+            e.contains("cannot be offered as pose2d: use ros or text"),
             "{e}"
         );
         let e = err("system = \"x\"\n[[command]]\nname = \"g\"\npayload = \"pose3d\"\n");

@@ -3,10 +3,12 @@
 use crate::msgs::*;
 use crate::node::Ros2Node;
 use crate::Ros2Error;
-use muster_shared::types::Payload;
+use muster_shared::ros2msg::Definitions;
+use muster_shared::types::{Payload, MAX_ENCODED};
 use ros2_client::dds::rustdds::mio1;
 use ros2_client::{QosProfile, Subscription};
 use serde::de::DeserializeOwned;
+use std::sync::Arc;
 use std::time::Duration;
 
 /// Most samples taken from one reader in one wake-up (the rest wait for the next).
@@ -47,12 +49,63 @@ impl<M: DeserializeOwned + 'static> Reader for Typed<M> {
     }
 }
 
+/// A ROS message read by its definition and kept as little-endian CDR (with its
+/// encapsulation header), whatever byte order it came in.
+#[derive(Clone)]
+struct RawSeed(Arc<Definitions>);
+
+impl<'de> serde::de::DeserializeSeed<'de> for RawSeed {
+    type Value = Vec<u8>;
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<Vec<u8>, D::Error> {
+        self.0.transcode(d)
+    }
+}
+
+struct Raw {
+    sub: Subscription<Vec<u8>>,
+    seed: RawSeed,
+    type_name: String,
+}
+
+impl Reader for Raw {
+    fn take_all(&self, node: &Ros2Node, topic: &str, out: &mut Vec<Payload>) -> usize {
+        let mut taken = 0;
+        for _ in 0..MAX_TAKE {
+            match self.sub.take_seed(self.seed.clone()) {
+                Ok(Some((data, _))) => {
+                    taken += 1;
+                    if data.len() > MAX_ENCODED {
+                        node.warn_limited(&format!(
+                            "{topic}: a sample of {} bytes dropped: open payloads are at most {MAX_ENCODED} bytes",
+                            data.len()
+                        ));
+                        continue;
+                    }
+                    out.push(Payload::Encoded {
+                        type_name: self.type_name.clone(),
+                        data,
+                    });
+                }
+                Ok(None) => break,
+                Err(e) => node.warn_limited(&format!("{topic}: sample dropped: {e}")),
+            }
+        }
+        taken
+    }
+
+    fn register(&mut self, registry: &mio1::Registry, token: mio1::Token) -> std::io::Result<()> {
+        mio1::event::Source::register(&mut self.sub, registry, token, mio1::Interest::READABLE)
+    }
+}
+
 /// One subscribed topic.
 pub struct TopicIn {
     /// Absolute topic name.
     pub topic: String,
     /// `pkg/msg/Type`.
     pub ros_type: String,
+    /// Kept as the ROS message itself (an open payload), not converted.
+    pub raw: bool,
     /// When the last sample came (runtime time).
     pub last_heard: Option<Duration>,
     /// The last sample, converted.
@@ -155,10 +208,37 @@ impl TopicIn {
         Ok(TopicIn {
             topic: topic.to_string(),
             ros_type: ros_type.to_string(),
+            raw: false,
             last_heard: None,
             latest: None,
             mismatch: None,
             reader,
+        })
+    }
+
+    /// Subscribes `topic` as `ros_type`, defined by `defs`: samples become open
+    /// payloads (the message itself, as CDR).
+    pub fn subscribe_raw(
+        node: &mut Ros2Node,
+        topic: &str,
+        ros_type: &str,
+        qos: QosProfile,
+        defs: Arc<Definitions>,
+    ) -> Result<Self, Ros2Error> {
+        let (pkg, name) = split_type(ros_type);
+        let sub = node.subscription_named::<Vec<u8>>(topic, pkg, name, qos)?;
+        Ok(TopicIn {
+            topic: topic.to_string(),
+            ros_type: ros_type.to_string(),
+            raw: true,
+            last_heard: None,
+            latest: None,
+            mismatch: None,
+            reader: Box::new(Raw {
+                sub,
+                seed: RawSeed(defs),
+                type_name: ros_type.to_string(),
+            }),
         })
     }
 
@@ -184,4 +264,11 @@ impl TopicIn {
         }
         taken > 0
     }
+}
+
+/// `pkg/msg/Type` as (`pkg`, `Type`).
+fn split_type(t: &str) -> (&str, &str) {
+    let pkg = t.split('/').next().unwrap_or("");
+    let name = t.rsplit('/').next().unwrap_or("");
+    (pkg, name)
 }

@@ -12,8 +12,9 @@ mod inputs;
 use crate::msgs::{Header, Pose, PoseStamped, Twist, Vector3};
 use crate::node::Ros2Node;
 use crate::Ros2Error;
-use config::{full_type, resolve, CommandPayload, Ros2SystemConfig, TopicQos};
+use config::{full_type, resolve, CommandPayload, DataPayload, Ros2SystemConfig, TopicQos};
 use inputs::TopicIn;
+use muster_shared::ros2msg::Definitions;
 use muster_shared::types::{EndReason, Payload, SessionId, TaskStatus};
 use muster_systems::{SystemApp, SystemCore, SystemEvent};
 use ros2_client::dds::rustdds::mio1;
@@ -21,6 +22,7 @@ use ros2_client::qos::{Durability, History, Reliability, WhenFull};
 use ros2_client::{Publisher, QosProfile};
 use std::collections::BTreeMap;
 use std::os::fd::{AsRawFd, RawFd};
+use std::sync::Arc;
 use std::time::Duration;
 
 /// Options the command line adds to the file.
@@ -138,21 +140,38 @@ impl Ros2System {
         let mut node = Ros2Node::new(opts.domain, "/muster", &crate::ros_name(&cfg.system))?;
         let ns = cfg.namespace();
         let mut inputs: Vec<TopicIn> = Vec::new();
-        let mut input = |node: &mut Ros2Node, topic: &str, ty: &str, qos: &TopicQos| {
+        // A topic is subscribed once per type and kind (converted, or kept as the ROS
+        // message itself with its definition).
+        let mut input = |node: &mut Ros2Node,
+                         topic: &str,
+                         ty: &str,
+                         qos: &TopicQos,
+                         raw: Option<Arc<Definitions>>| {
             let topic = resolve(&ns, topic);
             let ty = full_type(ty);
             if let Some(k) = inputs
                 .iter()
-                .position(|i| i.topic == topic && i.ros_type == ty)
+                .position(|i| i.topic == topic && i.ros_type == ty && i.raw == raw.is_some())
             {
                 return Ok::<usize, Ros2Error>(k);
             }
-            inputs.push(TopicIn::subscribe(node, &topic, &ty, qos_of(qos, false))?);
+            inputs.push(match raw {
+                Some(defs) => TopicIn::subscribe_raw(node, &topic, &ty, qos_of(qos, false), defs)?,
+                None => TopicIn::subscribe(node, &topic, &ty, qos_of(qos, false))?,
+            });
             Ok(inputs.len() - 1)
         };
         let mut data = Vec::new();
         for d in &cfg.data {
-            let k = input(&mut node, &d.topic, &d.ros_type, &d.qos)?;
+            let raw = match cfg.data_payload(d) {
+                Ok(DataPayload::Ros(schema)) => Some(Arc::new(
+                    Definitions::parse(&full_type(&d.ros_type), &schema)
+                        .map_err(|e| Ros2Error::create(&d.name, e))?,
+                )),
+                Ok(DataPayload::Builtin(_)) => None,
+                Err(e) => return Err(Ros2Error::create(&d.name, e)),
+            };
+            let k = input(&mut node, &d.topic, &d.ros_type, &d.qos, raw)?;
             data.push((d.name.clone(), k));
         }
         let (mut goals, mut twists) = (Vec::new(), Vec::new());
@@ -164,6 +183,7 @@ impl Ros2System {
                         c.pose_topic.as_deref().unwrap_or("odom"),
                         c.pose_type.as_deref().unwrap_or("nav_msgs/msg/Odometry"),
                         &TopicQos::default(),
+                        None,
                     )?;
                     let topic = resolve(&ns, c.topic.as_deref().unwrap_or("goal_pose"));
                     goals.push(GoalService {
