@@ -358,6 +358,11 @@ pub struct SceneArgs {
     /// The simulator's map, as given to `muster sim --map`.
     #[arg(long)]
     pub map: Option<std::path::PathBuf>,
+    /// Also request this service (repeatable) and write its updates on
+    /// `/muster/services/ID` with their schema (an open type's own: a ROS 2 message as
+    /// `cdr` with its `ros2msg` definition).
+    #[arg(long = "service")]
+    pub services: Vec<String>,
 }
 
 #[derive(Args, Debug)]

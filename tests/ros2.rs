@@ -483,6 +483,10 @@ fn a_ros2_robot_becomes_a_muster_system() {
     let position = &v["pose"]["pose"]["position"];
     assert_eq!((f(position, "x"), f(position, "y")), (1.0, 2.0));
     assert_eq!(v["pose"]["covariance"].as_array().map(Vec::len), Some(36));
+    // Recorded: `muster record --service` writes the LaserScan as CDR with its ros2msg
+    // definition, which the Python mcap reader's ROS 2 decoder (mcap-ros2-support)
+    // decodes natively, and the pose as JSON with a JSON Schema.
+    check_recording(&fed, &dir);
     // The text view prints it decoded too.
     let (code, out) = fed.run(
         &["user", "request", "turtle/scan", "--duration", "1s"],
@@ -730,4 +734,77 @@ type = "std_msgs/msg/Float32"
     assert!(!text.contains("panicked"), "{text}");
     fed.shutdown();
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `muster record --service` of the turtle's scan and pose, read back by the Python
+/// `mcap` reader with `mcap-ros2-support`'s decoder (installed by .ci/run).
+fn check_recording(fed: &Fed, dir: &std::path::Path) {
+    let Some(python) = common::python_with("mcap_ros2.decoder", "mcap-ros2-support") else {
+        return;
+    };
+    let out = dir.join("turtle.mcap");
+    let (code, said) = fed.run(
+        &[
+            "record",
+            "--service",
+            "turtle/scan",
+            "--service",
+            "turtle/pose",
+            "--duration",
+            "3s",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        60 * SEC,
+    );
+    assert_eq!(code, 0, "{said}");
+    let script = r#"
+import json, math, sys
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+out = {"scan": [], "pose": []}
+with open(sys.argv[1], "rb") as f:
+    r = make_reader(f, decoder_factories=[DecoderFactory()])
+    for schema, channel, message, m in r.iter_decoded_messages(topics=["/muster/services/turtle/scan"]):
+        out["scan"].append({"schema": schema.name, "schema_encoding": schema.encoding,
+            "message_encoding": channel.message_encoding, "frame": m.header.frame_id,
+            "stamp": m.header.stamp.sec, "angle_min": m.angle_min,
+            "ranges": [v if math.isfinite(v) else "inf" for v in m.ranges]})
+with open(sys.argv[1], "rb") as f:
+    r = make_reader(f)
+    for schema, channel, message in r.iter_messages(topics=["/muster/services/turtle/pose"]):
+        out["pose"].append({"schema": schema.name, "schema_encoding": schema.encoding,
+            "message_encoding": channel.message_encoding, "value": json.loads(message.data)})
+print(json.dumps(out))
+"#;
+    let res = Command::new(&python)
+        .args(["-c", script, out.to_str().unwrap()])
+        .output()
+        .expect("python");
+    let stdout = String::from_utf8_lossy(&res.stdout);
+    assert!(
+        res.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&res.stderr)
+    );
+    let v: Value = serde_json::from_str(stdout.trim()).unwrap();
+    let scans = v["scan"].as_array().unwrap();
+    assert!(scans.len() >= 3, "2 Hz for 3 s: {v}");
+    for s in scans {
+        assert_eq!(s["schema"], "sensor_msgs/msg/LaserScan");
+        assert_eq!(s["schema_encoding"], "ros2msg");
+        assert_eq!(s["message_encoding"], "cdr");
+        assert_eq!(s["frame"], "laser");
+        assert_eq!(s["stamp"], 7);
+        assert_eq!(s["angle_min"], -0.75);
+        assert_eq!(s["ranges"], serde_json::json!([1.0, 2.0, "inf", 4.5]));
+    }
+    let poses = v["pose"].as_array().unwrap();
+    assert!(poses.len() >= 20, "20 Hz for 3 s: {}", poses.len());
+    assert_eq!(poses[0]["schema"], "muster.pose2d");
+    assert_eq!(poses[0]["schema_encoding"], "jsonschema");
+    assert_eq!(poses[0]["message_encoding"], "json");
+    assert_eq!(poses[0]["value"]["type"], "pose2d");
+    assert_eq!(f(&poses[0]["value"], "x"), 1.0);
+    let _ = std::fs::remove_file(&out);
 }

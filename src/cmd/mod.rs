@@ -29,6 +29,7 @@ mod standbys;
 mod stress;
 mod stress_plot;
 mod system;
+mod taps;
 mod tui;
 mod up;
 mod up_paper;

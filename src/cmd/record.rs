@@ -754,9 +754,10 @@ pub fn run(inst: &Instance, a: RecordArgs) -> anyhow::Result<ExitCode> {
         "muster record: recording instance {inst} into {}",
         out.display()
     );
+    let mut taps = super::taps::Taps::new(inst, &ctx, &a.scene.services);
     let end = a.duration.map(|d| Instant::now() + d);
     loop {
-        let any = scene.poll()?;
+        let any = scene.poll()? | taps.poll();
         if signals.drain() || end.is_some_and(|e| Instant::now() >= e) {
             break;
         }
@@ -765,10 +766,12 @@ pub fn run(inst: &Instance, a: RecordArgs) -> anyhow::Result<ExitCode> {
         }
     }
     writer.close().context("closing the MCAP file")?;
-    let total: u64 = scene.counts.values().sum();
+    let mut counts = scene.counts.clone();
+    counts.extend(taps.counts.clone());
+    let total: u64 = counts.values().sum();
     println!(
         "{}",
-        serde_json::json!({"out": out, "messages": total, "topics": scene.counts})
+        serde_json::json!({"out": out, "messages": total, "topics": counts})
     );
     Ok(ExitCode::SUCCESS)
 }

@@ -65,12 +65,13 @@ pub fn run(inst: &Instance, a: ViewArgs) -> anyhow::Result<ExitCode> {
     let latch = Arc::new(Latch::default());
     let mut scene = Scene::new(&ctx, inst, scenario, map)?;
     let server = serve(&ctx, a.listen, &latch)?;
+    let mut taps = super::taps::Taps::new(inst, &ctx, &a.scene.services);
     let end = a.duration.map(|d| Instant::now() + d);
     loop {
         if latch.take() {
             scene.log_map();
         }
-        let any = scene.poll()?;
+        let any = scene.poll()? | taps.poll();
         if signals.drain() || end.is_some_and(|e| Instant::now() >= e) {
             break;
         }

@@ -367,6 +367,16 @@ impl UserClient {
         }
     }
 
+    /// The next event if one is here, without waiting: one look at what arrived (for a
+    /// caller with a loop of its own, such as a recorder).
+    pub fn try_event(&mut self) -> Result<Option<UserEvent>, UserError> {
+        if let Some(e) = self.events.pop_front() {
+            return Ok(Some(e));
+        }
+        self.turn(Instant::now())?;
+        Ok(self.events.pop_front())
+    }
+
     /// Waits for an event, the extra fd, or the deadline.
     pub fn wait(&mut self, deadline: Instant) -> Result<Wake, UserError> {
         loop {
