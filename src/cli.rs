@@ -272,6 +272,10 @@ pub enum BenchCommand {
     /// propagation between hosts, session update latency across hosts and locally;
     /// then the same with N users per host holding sessions on other hosts.
     Federation(FederationBenchArgs),
+    /// ROS 2 against rclpy (the ROS 2 Kilted wheels): an rclpy publisher to a muster user
+    /// through `muster system ros2` beside rclpy to rclpy, a muster goal to an rclpy
+    /// subscriber, and `muster sim --ros2` with N robots and one rclpy node on every scan.
+    Ros2(Ros2BenchArgs),
     /// (internal) A user of `bench failover`.
     #[command(hide = true)]
     FailoverUser(FailoverUserArgs),
@@ -515,6 +519,34 @@ pub struct CertsArgs {
     /// Validity of the host certificates, days.
     #[arg(long, default_value_t = 825)]
     pub days: i64,
+}
+
+#[derive(Args, Debug)]
+pub struct Ros2BenchArgs {
+    /// A Python with rclpy (ROS 2 Kilted's wheels; see the README's "ROS 2").
+    #[arg(long, default_value = ".venv/bin/python")]
+    pub python: String,
+    /// ROS domain id of the bridge rows (the simulator's is the next).
+    #[arg(long, default_value_t = 90, value_parser = clap::value_parser!(u16).range(0..=231))]
+    pub domain: u16,
+    /// Samples timed one way (rclpy to muster, and rclpy to rclpy).
+    #[arg(long, default_value_t = 1000)]
+    pub samples: usize,
+    /// Their rate, Hz.
+    #[arg(long, default_value_t = 100.0)]
+    pub rate: f64,
+    /// Goals timed from a muster user to rclpy.
+    #[arg(long, default_value_t = 200)]
+    pub goals: usize,
+    /// Simulator sizes (robots), each run with one rclpy node on every scan (none: skip).
+    #[arg(long, value_delimiter = ',', default_value = "10,50,100")]
+    pub robots: Vec<usize>,
+    /// How long each simulator size is measured, once every scan flows.
+    #[arg(long, default_value = "10s", value_parser = duration)]
+    pub window: Duration,
+    /// Print one JSON object instead of tables.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(Args, Debug)]

@@ -6,6 +6,7 @@ pub mod floor;
 mod liveness;
 pub mod procfs;
 pub mod remote;
+mod ros2;
 use super::children;
 mod scale;
 
@@ -24,6 +25,7 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::Echo => floor::echo(inst),
         BenchCommand::Failover(a) => failover::run(inst, a),
         BenchCommand::Federation(a) => federation::run(inst, a),
+        BenchCommand::Ros2(a) => ros2::run(inst, a),
         BenchCommand::FailoverUser(a) => failover::user(inst, a),
     }
 }
