@@ -274,13 +274,14 @@ fn robot(python: &str, domain: u16, namespace: &str, start: &str, extra: &[&str]
 }
 
 /// The services of the README's example.
-const TURTLE_SERVICES: [&str; 6] = [
+const TURTLE_SERVICES: [&str; 7] = [
     "turtle/pose",
     "turtle/say",
     "turtle/goal",
     "turtle/drive",
     "turtle/scan",
     "turtle/odom",
+    "turtle/relay",
 ];
 
 /// The README's example config (`docs/ros2/turtle.toml`).
@@ -483,6 +484,33 @@ fn a_ros2_robot_becomes_a_muster_system() {
     let position = &v["pose"]["pose"]["position"];
     assert_eq!((f(position, "x"), f(position, "y")), (1.0, 2.0));
     assert_eq!(v["pose"]["covariance"].as_array().map(Vec::len), Some(36));
+    // A link forwards an open payload into a command service taking that type: every
+    // scan of turtle/scan is published again on /turtle/scan_relay, the same message.
+    assert_eq!(
+        row(&list, "turtle/relay")["payload"],
+        "sensor_msgs/msg/LaserScan"
+    );
+    assert_eq!(row(&list, "turtle/relay")["kind"], "command");
+    let linker = fed.spawn(&[
+        "user",
+        "link",
+        "turtle/scan",
+        "turtle/relay",
+        "--duration",
+        "20s",
+        "--json",
+    ]);
+    let relayed = until(fed.proc(bot), "a relayed scan", 20 * SEC, |v| {
+        v["event"] == "relayed"
+    });
+    assert_eq!(relayed["frame"], "laser");
+    assert_eq!(relayed["ranges"], serde_json::json!([1.0, 2.0, "inf", 4.5]));
+    let forwarded = until(fed.proc(linker), "a forwarded line", 10 * SEC, |v| {
+        v["forwarded"].is_object()
+    });
+    assert_eq!(forwarded["forwarded"]["type"], "sensor_msgs/msg/LaserScan");
+    fed.proc(linker).signal(libc::SIGTERM);
+
     // Recorded: `muster record --service` writes the LaserScan as CDR with its ros2msg
     // definition, which the Python mcap reader's ROS 2 decoder (mcap-ros2-support)
     // decodes natively, and the pose as JSON with a JSON Schema.

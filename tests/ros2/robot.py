@@ -2,7 +2,8 @@
 that publishes `odom` (nav_msgs/Odometry, 20 Hz), `chatter` (std_msgs/String, 2 Hz) and
 `scan` (sensor_msgs/LaserScan, 2 Hz: four beams reading 1, 2, no return, 4.5 m) in its
 namespace, obeys `cmd_vel` (geometry_msgs/Twist), and, like a navigation stack,
-drives itself at 0.5 m/s towards each `goal_pose` (geometry_msgs/PoseStamped) it gets.
+drives itself at 0.5 m/s towards each `goal_pose` (geometry_msgs/PoseStamped) it gets,
+and reports each LaserScan it is sent on `scan_relay`.
 
 Prints one JSON line per event (goals and velocity commands received) for tests/ros2.rs.
 Arguments: NAMESPACE X,Y [--duration S] [--wrong-type] [--malformed N]
@@ -62,6 +63,10 @@ def on_goal(m):
 
 node.create_subscription(Twist, "cmd_vel", on_cmd, 10)
 node.create_subscription(PoseStamped, "goal_pose", on_goal, 10)
+node.create_subscription(
+    LaserScan, "scan_relay",
+    lambda m: say(event="relayed", frame=m.header.frame_id,
+                  ranges=[r if math.isfinite(r) else "inf" for r in m.ranges]), 10)
 
 if a.malformed:
     # Raw bytes on the Odometry topic: a CDR header and a cut-off message.

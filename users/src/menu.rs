@@ -14,8 +14,16 @@ use std::time::{Duration, Instant};
 
 /// The service list as a numbered table.
 pub fn table(views: &[ServiceView]) -> String {
+    // Columns as wide as their longest entry (open payload types are long names).
+    let id_w = views.iter().map(|v| v.id.len()).max().unwrap_or(0).max(24);
+    let pay_w = views
+        .iter()
+        .map(|v| v.payload.len())
+        .max()
+        .unwrap_or(0)
+        .max(8);
     let mut out = format!(
-        "{:<4} {:<24} {:<8} {:<8} {:>9} {:<5} {}\n",
+        "{:<4} {:<id_w$} {:<8} {:<pay_w$} {:>9} {:<5} {}\n",
         "#", "ID", "KIND", "PAYLOAD", "IN USE", "QUEUE", "DESCRIPTION"
     );
     for (i, v) in views.iter().enumerate() {
@@ -27,7 +35,7 @@ pub fn table(views: &[ServiceView]) -> String {
         };
         let mark = if v.withdrawn { " [withdrawn]" } else { "" };
         out.push_str(&format!(
-            "{:<4} {:<24} {:<8} {:<8} {:>9} {:<5} {}{}\n",
+            "{:<4} {:<id_w$} {:<8} {:<pay_w$} {:>9} {:<5} {}{}\n",
             i + 1,
             v.id,
             v.kind,

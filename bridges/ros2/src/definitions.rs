@@ -174,5 +174,11 @@ mod tests {
         let bytes = cdr(&odom);
         let mut de = cdr_encoding::CdrDeserializer::<byteorder::LittleEndian>::new(&bytes[4..]);
         assert_eq!(d.transcode(&mut de).unwrap(), bytes);
+        // And a sample held as bytes, walked into the CDR writer, is the same message.
+        let raw = msgs::RawMsg {
+            defs: std::sync::Arc::new(d),
+            data: bytes.clone(),
+        };
+        assert_eq!(cdr(&raw), bytes);
     }
 }

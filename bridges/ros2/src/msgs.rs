@@ -31,6 +31,21 @@ messages!(
     TfMessage,
 );
 
+/// A ROS message held as its CDR bytes (with the encapsulation header), published by
+/// walking its definition (an open payload a command service puts on a topic).
+pub struct RawMsg {
+    /// The message's definition.
+    pub defs: std::sync::Arc<muster_shared::ros2msg::Definitions>,
+    /// The sample.
+    pub data: Vec<u8>,
+}
+
+impl Serialize for RawMsg {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        self.defs.reserialize(&self.data, s)
+    }
+}
+
 /// A ROS time from simulated seconds (negative and non-finite times become 0).
 pub fn sim_time(seconds: f64) -> Time {
     let nanos = if seconds.is_finite() && seconds > 0.0 {

@@ -76,12 +76,13 @@ impl Ros2Node {
     fn topic(
         &mut self,
         name: &str,
-        ty: RosType,
+        pkg: &str,
+        ty: &str,
         qos: &QosProfile,
     ) -> Result<ros2_client::dds::rustdds::Topic, Ros2Error> {
         let parsed = Name::parse(name).map_err(|e| Ros2Error::create(name, e))?;
         self.node
-            .create_topic(&parsed, MessageTypeName::new(ty.0, ty.1), qos)
+            .create_topic(&parsed, MessageTypeName::new(pkg, ty), qos)
             .map_err(|e| Ros2Error::create(name, e))
     }
 
@@ -92,7 +93,7 @@ impl Ros2Node {
         ty: RosType,
         qos: QosProfile,
     ) -> Result<Publisher<M>, Ros2Error> {
-        let topic = self.topic(name, ty, &qos)?;
+        let topic = self.topic(name, ty.0, ty.1, &qos)?;
         self.node
             .create_publisher(&topic, Some(qos))
             .map_err(|e| Ros2Error::create(name, e))
@@ -105,10 +106,25 @@ impl Ros2Node {
         ty: RosType,
         qos: QosProfile,
     ) -> Result<Subscription<M>, Ros2Error> {
-        let topic = self.topic(name, ty, &qos)?;
+        let topic = self.topic(name, ty.0, ty.1, &qos)?;
         self.node
             .create_subscription(&topic, Some(qos))
             .map_err(|e| Ros2Error::create(name, e))
+    }
+
+    /// A publisher of type `pkg/msg/name` on topic `topic`, for a type known only at run
+    /// time.
+    pub fn publisher_named<M: Serialize>(
+        &mut self,
+        topic: &str,
+        pkg: &str,
+        name: &str,
+        qos: QosProfile,
+    ) -> Result<Publisher<M>, Ros2Error> {
+        let t = self.topic(topic, pkg, name, &qos)?;
+        self.node
+            .create_publisher(&t, Some(qos))
+            .map_err(|e| Ros2Error::create(topic, e))
     }
 
     /// A subscription to type `pkg/msg/name` on topic `name`, for a type known only at
@@ -120,11 +136,7 @@ impl Ros2Node {
         name: &str,
         qos: QosProfile,
     ) -> Result<Subscription<M>, Ros2Error> {
-        let parsed = Name::parse(topic).map_err(|e| Ros2Error::create(topic, e))?;
-        let t = self
-            .node
-            .create_topic(&parsed, MessageTypeName::new(pkg, name), &qos)
-            .map_err(|e| Ros2Error::create(topic, e))?;
+        let t = self.topic(topic, pkg, name, &qos)?;
         self.node
             .create_subscription(&t, Some(qos))
             .map_err(|e| Ros2Error::create(topic, e))

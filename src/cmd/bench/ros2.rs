@@ -34,7 +34,12 @@ struct Py {
 }
 
 impl Py {
-    fn start(python: &str, script: &std::path::Path, domain: u16, args: &[&str]) -> anyhow::Result<Py> {
+    fn start(
+        python: &str,
+        script: &std::path::Path,
+        domain: u16,
+        args: &[&str],
+    ) -> anyhow::Result<Py> {
         let mut child = Command::new(python)
             .arg(script)
             .args(args)
@@ -43,7 +48,9 @@ impl Py {
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
-            .with_context(|| format!("starting {python} (rclpy: see the README's ROS 2 section)"))?;
+            .with_context(|| {
+                format!("starting {python} (rclpy: see the README's ROS 2 section)")
+            })?;
         let out = child.stdout.take().context("stdout")?;
         let (tx, lines) = mpsc::channel();
         std::thread::spawn(move || {
@@ -60,14 +67,22 @@ impl Py {
     fn json(&self, timeout: Duration) -> Option<Value> {
         let end = Instant::now() + timeout;
         loop {
-            let l = self.lines.recv_timeout(end.saturating_duration_since(Instant::now())).ok()?;
+            let l = self
+                .lines
+                .recv_timeout(end.saturating_duration_since(Instant::now()))
+                .ok()?;
             if let Ok(v) = serde_json::from_str(&l) {
                 return Some(v);
             }
         }
     }
 
-    fn expect(&self, what: &str, timeout: Duration, pred: impl Fn(&Value) -> bool) -> anyhow::Result<Value> {
+    fn expect(
+        &self,
+        what: &str,
+        timeout: Duration,
+        pred: impl Fn(&Value) -> bool,
+    ) -> anyhow::Result<Value> {
         let end = Instant::now() + timeout;
         loop {
             let v = self
@@ -125,7 +140,12 @@ name = "goal"
 payload = "goal2d"
 "#;
 
-fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, script: &std::path::Path) -> anyhow::Result<Value> {
+fn bridge_latency(
+    inst: &Instance,
+    a: &Ros2BenchArgs,
+    dir: &std::path::Path,
+    script: &std::path::Path,
+) -> anyhow::Result<Value> {
     let domain = a.domain;
     let config = dir.join("bench.toml");
     std::fs::write(&config, CONFIG)?;
@@ -135,20 +155,41 @@ fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, scr
     kids.spawn(
         inst,
         "system ros2",
-        &["system", "ros2", "--config", config.to_str().unwrap_or_default(), "--domain", &ds],
+        &[
+            "system",
+            "ros2",
+            "--config",
+            config.to_str().unwrap_or_default(),
+            "--domain",
+            &ds,
+        ],
         Stdio::null(),
     )?;
     let mut client = connect_when_listed(inst, 2, Duration::from_secs(30))?;
     let count = a.samples.to_string();
     let secs = (a.samples as f64 / a.rate + 30.0).to_string();
-    let sub = Py::start(&a.python, script, domain, &["sub", "/bench/chatter", &count, &secs])?;
-    sub.expect("subscriber", Duration::from_secs(30), |v| v["event"] == "ready")?;
+    let sub = Py::start(
+        &a.python,
+        script,
+        domain,
+        &["sub", "/bench/chatter", &count, &secs],
+    )?;
+    sub.expect("subscriber", Duration::from_secs(30), |v| {
+        v["event"] == "ready"
+    })?;
 
     // 1. rclpy → muster user, beside rclpy → rclpy. The system withdraws the service
     // until the topic is heard: ask until it is granted.
     let rate = a.rate.to_string();
-    let pubr = Py::start(&a.python, script, domain, &["pub", "/bench/chatter", &rate, &count])?;
-    pubr.expect("publisher", Duration::from_secs(30), |v| v["event"] == "ready")?;
+    let pubr = Py::start(
+        &a.python,
+        script,
+        domain,
+        &["pub", "/bench/chatter", &rate, &count],
+    )?;
+    pubr.expect("publisher", Duration::from_secs(30), |v| {
+        v["event"] == "ready"
+    })?;
     let chatter = ServiceId::new("bench", "chatter");
     let deadline = Instant::now() + Duration::from_secs(30);
     let session = loop {
@@ -156,7 +197,9 @@ fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, scr
         let mut granted = None;
         while let Some(e) = client.next_event(Instant::now() + Duration::from_secs(5))? {
             match e {
-                UserEvent::Granted { req: r, session, .. } if r == req => {
+                UserEvent::Granted {
+                    req: r, session, ..
+                } if r == req => {
                     granted = Some(session);
                     break;
                 }
@@ -173,17 +216,28 @@ fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, scr
     let mut muster = histogram();
     let end = Instant::now() + Duration::from_secs_f64(a.samples as f64 / a.rate + 20.0);
     while (muster.len() as usize) < a.samples && Instant::now() < end {
-        if let Some(UserEvent::Update { session: s, payload: Payload::Text(t), .. }) = client.next_event(end)? {
+        if let Some(UserEvent::Update {
+            session: s,
+            payload: Payload::Text(t),
+            ..
+        }) = client.next_event(end)?
+        {
             let now = monotonic_ns();
             if s == session {
-                if let Some(sent) = t.split_whitespace().nth(1).and_then(|n| n.parse::<u64>().ok()) {
+                if let Some(sent) = t
+                    .split_whitespace()
+                    .nth(1)
+                    .and_then(|n| n.parse::<u64>().ok())
+                {
                     let _ = muster.record(now.saturating_sub(sent) / 1000);
                 }
             }
         }
     }
     let mut rclpy = histogram();
-    let lat = sub.expect("latencies", Duration::from_secs(30), |v| v["latencies_us"].is_array())?;
+    let lat = sub.expect("latencies", Duration::from_secs(30), |v| {
+        v["latencies_us"].is_array()
+    })?;
     for l in lat["latencies_us"].as_array().into_iter().flatten() {
         let _ = rclpy.record(l.as_f64().unwrap_or(0.0).max(1.0) as u64);
     }
@@ -191,12 +245,21 @@ fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, scr
     client.end(session);
 
     // 2. A muster user's goal → an rclpy subscriber of PoseStamped.
-    let goals = Py::start(&a.python, script, domain, &["goals", "/bench/goal_pose", "120"])?;
-    goals.expect("goal subscriber", Duration::from_secs(30), |v| v["event"] == "ready")?;
+    let goals = Py::start(
+        &a.python,
+        script,
+        domain,
+        &["goals", "/bench/goal_pose", "120"],
+    )?;
+    goals.expect("goal subscriber", Duration::from_secs(30), |v| {
+        v["event"] == "ready"
+    })?;
     let req = client.request(&ServiceId::new("bench", "goal"))?;
     let goal_session = loop {
         match client.next_event(Instant::now() + Duration::from_secs(30))? {
-            Some(UserEvent::Granted { req: r, session, .. }) if r == req => break session,
+            Some(UserEvent::Granted {
+                req: r, session, ..
+            }) if r == req => break session,
             Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
                 anyhow::bail!("bench/goal refused: {reason}")
             }
@@ -208,7 +271,9 @@ fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, scr
     let mut sent = Vec::new();
     let warm_end = Instant::now() + Duration::from_secs(30);
     loop {
-        client.input(goal_session, Payload::Goal2d { x: -1.0, y: 0.0 }).map_err(anyhow::Error::msg)?;
+        client
+            .input(goal_session, Payload::Goal2d { x: -1.0, y: 0.0 })
+            .map_err(anyhow::Error::msg)?;
         if goals.json(Duration::from_millis(200)).is_some() || Instant::now() > warm_end {
             break;
         }
@@ -217,7 +282,13 @@ fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, scr
     for k in 0..a.goals {
         sent.push(monotonic_ns());
         client
-            .input(goal_session, Payload::Goal2d { x: k as f64, y: 0.0 })
+            .input(
+                goal_session,
+                Payload::Goal2d {
+                    x: k as f64,
+                    y: 0.0,
+                },
+            )
             .map_err(anyhow::Error::msg)?;
         // Keep the user's own inbox drained (status lines come back).
         let _ = client.next_event(Instant::now() + Duration::from_millis(20));
@@ -225,7 +296,9 @@ fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, scr
     let mut goal = histogram();
     let end = Instant::now() + Duration::from_secs(10);
     while (goal.len() as usize) < a.goals && Instant::now() < end {
-        let Some(v) = goals.json(end.saturating_duration_since(Instant::now())) else { break };
+        let Some(v) = goals.json(end.saturating_duration_since(Instant::now())) else {
+            break;
+        };
         if let (Some(x), Some(recv)) = (v["x"].as_f64(), v["recv_ns"].as_u64()) {
             if x >= 0.0 && (x as usize) < sent.len() {
                 let _ = goal.record(recv.saturating_sub(sent[x as usize]) / 1000);
@@ -239,28 +312,44 @@ fn bridge_latency(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, scr
     let ratio = muster.value_at_quantile(0.5) as f64 / rclpy.value_at_quantile(0.5).max(1) as f64;
     if !a.json {
         println!("muster bench ros2: rclpy (ROS 2 Kilted, Fast DDS) and muster on this host; one way, us");
-        println!("{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}", "path", "n", "p50", "p90", "p99", "max");
+        println!(
+            "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
+            "path", "n", "p50", "p90", "p99", "max"
+        );
         println!("{}", row("rclpy pub -> rclpy sub", &rclpy));
         println!("{}", row("rclpy pub -> muster user", &muster));
         println!("{}", row("muster goal -> rclpy sub", &goal));
         println!("ratio (muster user p50 / rclpy sub p50): {ratio:.2} (goal: <= 1.5)");
     }
-    Ok(json!({"rclpy_to_rclpy": summary(&rclpy), "rclpy_to_muster": summary(&muster),
+    Ok(
+        json!({"rclpy_to_rclpy": summary(&rclpy), "rclpy_to_muster": summary(&muster),
               "muster_goal_to_rclpy": summary(&goal), "ratio": ratio,
-              "samples": a.samples, "rate_hz": a.rate}))
+              "samples": a.samples, "rate_hz": a.rate}),
+    )
 }
 
-fn sim_scaling(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, script: &std::path::Path) -> anyhow::Result<Value> {
+fn sim_scaling(
+    inst: &Instance,
+    a: &Ros2BenchArgs,
+    dir: &std::path::Path,
+    script: &std::path::Path,
+) -> anyhow::Result<Value> {
     use muster_sim_world::map::OccupancyMap;
     use muster_sim_world::world::sample_places;
     let map = OccupancyMap::office();
     let mut rows = Vec::new();
     if !a.json && !a.robots.is_empty() {
         println!("muster sim --ros2: N wandering robots (laser 181 beams + 16 sonars, 10 Hz; odometry 20 Hz), one rclpy node on every scan");
-        println!("{:>7} {:>10} {:>16} {:>14} {:>16}", "robots", "rtf", "scans/robot/s", "sim CPU %", "CPU %/robot");
+        println!(
+            "{:>7} {:>10} {:>16} {:>14} {:>16}",
+            "robots", "rtf", "scans/robot/s", "sim CPU %", "CPU %/robot"
+        );
     }
     for &n in &a.robots {
-        anyhow::ensure!((1..=256).contains(&n), "--robots: 1..=256 each (the simulator's shared-memory world lists 256)");
+        anyhow::ensure!(
+            (1..=256).contains(&n),
+            "--robots: 1..=256 each (the simulator's shared-memory world lists 256)"
+        );
         let mut toml = String::from("seed = 1\n");
         for (k, (x, y)) in sample_places(&map, 7, n).into_iter().enumerate() {
             toml.push_str(&format!(
@@ -274,24 +363,44 @@ fn sim_scaling(inst: &Instance, a: &Ros2BenchArgs, dir: &std::path::Path, script
         let sim_inst = Instance::new(&format!("{}-sim{n}", inst.as_str()))?;
         let mut kids = Children::default();
         let pid = kids
-            .spawn(&sim_inst, "sim", &["sim", "--ros2", "--domain", &ds, "--scenario", scenario.to_str().unwrap_or_default()], Stdio::null())?
+            .spawn(
+                &sim_inst,
+                "sim",
+                &[
+                    "sim",
+                    "--ros2",
+                    "--domain",
+                    &ds,
+                    "--scenario",
+                    scenario.to_str().unwrap_or_default(),
+                ],
+                Stdio::null(),
+            )?
             .id();
         let secs = a.window.as_secs_f64();
         let ns = n.to_string();
         let ws = secs.to_string();
         let sub = Py::start(&a.python, script, domain, &["scans", &ns, &ws])?;
-        sub.expect("scan subscriber", Duration::from_secs(30), |v| v["event"] == "ready")?;
+        sub.expect("scan subscriber", Duration::from_secs(30), |v| {
+            v["event"] == "ready"
+        })?;
         // The window starts when every robot's scans flow (discovery of N writers takes a
         // while); the CPU is taken over it.
-        sub.expect("scans flowing", Duration::from_secs(90), |v| v["event"] == "flowing")?;
+        sub.expect("scans flowing", Duration::from_secs(90), |v| {
+            v["event"] == "flowing"
+        })?;
         let t0 = Instant::now();
         let c0 = super::procfs::cpu_ticks(pid);
-        let v = sub.expect("scan figures", Duration::from_secs_f64(secs + 90.0), |v| v["robots"].is_number())?;
+        let v = sub.expect("scan figures", Duration::from_secs_f64(secs + 90.0), |v| {
+            v["robots"].is_number()
+        })?;
         let c1 = super::procfs::cpu_ticks(pid);
         let wall = t0.elapsed().as_secs_f64();
         kids.stop();
         let cpu = match (c0, c1) {
-            (Some(c0), Some(c1)) => Some((c1 - c0) as f64 / super::procfs::ticks_per_second() as f64 / wall * 100.0),
+            (Some(c0), Some(c1)) => {
+                Some((c1 - c0) as f64 / super::procfs::ticks_per_second() as f64 / wall * 100.0)
+            }
             _ => None,
         };
         let rtf = v["realtime_factor"].as_f64();

@@ -115,6 +115,9 @@ pub enum CommandPayload {
     Goal2d,
     /// `twist` → `geometry_msgs/Twist` (`cmd_vel`), with a deadman.
     Twist,
+    /// The ROS message itself (`type`): an open payload a user or a link sends, published
+    /// as it comes.
+    Ros,
 }
 
 /// A command service: a published topic.
@@ -123,8 +126,11 @@ pub enum CommandPayload {
 pub struct CommandService {
     /// Service name.
     pub name: String,
-    /// `goal2d` or `twist`.
+    /// `goal2d`, `twist` or `ros`.
     pub payload: CommandPayload,
+    /// ros: the ROS type published (`pkg/msg/Type`).
+    #[serde(default, rename = "type")]
+    pub ros_type: Option<String>,
     /// Topic (default `goal_pose` for goal2d, `cmd_vel` for twist).
     #[serde(default)]
     pub topic: Option<String>,
@@ -308,6 +314,23 @@ impl Ros2SystemConfig {
         Ok(c)
     }
 
+    /// The `ros2msg` schema of type `t`, within muster's limit.
+    fn command_schema(&self, service: &str, t: &str) -> Result<String, ConfigError> {
+        let t = full_type(t);
+        let schema = self
+            .library
+            .schema(&t)
+            .map_err(|e| ConfigError::Invalid(format!("service {service:?}: {e}")))?;
+        if schema.len() > muster_shared::types::MAX_SCHEMA {
+            return Err(ConfigError::Invalid(format!(
+                "service {service:?}: the definition of {t} is {} bytes, at most {}",
+                schema.len(),
+                muster_shared::types::MAX_SCHEMA
+            )));
+        }
+        Ok(schema)
+    }
+
     /// What data service `d` sends its users.
     pub fn data_payload(&self, d: &DataService) -> Result<DataPayload, ConfigError> {
         let t = full_type(&d.ros_type);
@@ -364,6 +387,30 @@ impl Ros2SystemConfig {
             check_qos(&d.name, &d.qos)?;
         }
         for c in &self.command {
+            match (c.payload, &c.ros_type) {
+                (CommandPayload::Ros, None) => {
+                    return Err(ConfigError::Invalid(format!(
+                        "command service {:?}: payload \"ros\" needs the type it publishes",
+                        c.name
+                    )))
+                }
+                (CommandPayload::Ros, Some(t)) => {
+                    if c.topic.is_none() {
+                        return Err(ConfigError::Invalid(format!(
+                            "command service {:?}: payload \"ros\" needs a topic",
+                            c.name
+                        )));
+                    }
+                    self.command_schema(&c.name, t)?;
+                }
+                (_, Some(_)) => {
+                    return Err(ConfigError::Invalid(format!(
+                        "command service {:?}: type is for payload \"ros\"",
+                        c.name
+                    )))
+                }
+                _ => {}
+            }
             if let Some(t) = &c.pose_type {
                 if !POSE_TYPES.contains(&full_type(t).as_str()) {
                     return Err(ConfigError::Invalid(format!(
@@ -428,9 +475,27 @@ impl Ros2SystemConfig {
             });
         }
         for c in &self.command {
-            let (payload, topic, ty) = match c.payload {
-                CommandPayload::Goal2d => ("goal2d", "goal_pose", "PoseStamped"),
-                CommandPayload::Twist => ("twist", "cmd_vel", "Twist"),
+            let ros = c.ros_type.as_deref().map(full_type);
+            let (payload, topic, ty) = match (c.payload, &ros) {
+                (CommandPayload::Goal2d, _) => {
+                    ("goal2d".to_string(), "goal_pose", "PoseStamped".to_string())
+                }
+                (CommandPayload::Twist, _) => ("twist".to_string(), "cmd_vel", "Twist".to_string()),
+                (CommandPayload::Ros, Some(t)) => (t.clone(), "", t.clone()),
+                // Refused by check() already.
+                (CommandPayload::Ros, None) => continue,
+            };
+            let schema = match &ros {
+                Some(t) if c.payload == CommandPayload::Ros => {
+                    match self.command_schema(&c.name, t) {
+                        Ok(text) => Some(Schema {
+                            encoding: SchemaEncoding::Ros2Msg,
+                            text,
+                        }),
+                        Err(_) => continue,
+                    }
+                }
+                _ => None,
             };
             let topic = resolve(&ns, c.topic.as_deref().unwrap_or(topic));
             specs.push(ServiceSpec {
@@ -442,8 +507,8 @@ impl Ros2SystemConfig {
                 kind: ServiceKind::Command,
                 queue: c.queue.unwrap_or(c.payload == CommandPayload::Goal2d),
                 quota: c.quota,
-                payload: payload.into(),
-                schema: None,
+                payload,
+                schema,
             });
         }
         specs

@@ -9,7 +9,7 @@
 pub mod config;
 mod inputs;
 
-use crate::msgs::{Header, Pose, PoseStamped, Twist, Vector3};
+use crate::msgs::{Header, Pose, PoseStamped, RawMsg, Twist, Vector3};
 use crate::node::Ros2Node;
 use crate::Ros2Error;
 use config::{full_type, resolve, CommandPayload, DataPayload, Ros2SystemConfig, TopicQos};
@@ -89,6 +89,15 @@ struct TwistService {
     tasks: BTreeMap<SessionId, TwistTask>,
 }
 
+/// A command service publishing the ROS message it is sent (an open payload).
+struct RawService {
+    name: String,
+    publisher: Publisher<RawMsg>,
+    topic: String,
+    ros_type: String,
+    defs: Arc<Definitions>,
+}
+
 /// The system's logic and its ROS 2 node.
 pub struct Ros2System {
     inputs: Vec<TopicIn>,
@@ -96,6 +105,7 @@ pub struct Ros2System {
     data: Vec<(String, usize)>,
     goals: Vec<GoalService>,
     twists: Vec<TwistService>,
+    raws: Vec<RawService>,
     watched: Vec<usize>,
     silent_after: Duration,
     /// Why the robot's services are withdrawn, while they are.
@@ -174,7 +184,7 @@ impl Ros2System {
             let k = input(&mut node, &d.topic, &d.ros_type, &d.qos, raw)?;
             data.push((d.name.clone(), k));
         }
-        let (mut goals, mut twists) = (Vec::new(), Vec::new());
+        let (mut goals, mut twists, mut raws) = (Vec::new(), Vec::new(), Vec::new());
         for c in &cfg.command {
             match c.payload {
                 CommandPayload::Goal2d => {
@@ -216,6 +226,27 @@ impl Ros2System {
                         tasks: BTreeMap::new(),
                     });
                 }
+                CommandPayload::Ros => {
+                    let ty = full_type(c.ros_type.as_deref().unwrap_or_default());
+                    let topic = resolve(&ns, c.topic.as_deref().unwrap_or_default());
+                    let text = cfg
+                        .library
+                        .schema(&ty)
+                        .map_err(|e| Ros2Error::create(&c.name, e))?;
+                    let defs = Definitions::parse(&ty, &text)
+                        .map_err(|e| Ros2Error::create(&c.name, e))?;
+                    let (pkg, name) = (
+                        ty.split('/').next().unwrap_or_default(),
+                        ty.rsplit('/').next().unwrap_or_default(),
+                    );
+                    raws.push(RawService {
+                        name: c.name.clone(),
+                        publisher: node.publisher_named(&topic, pkg, name, qos_of(&c.qos, true))?,
+                        topic,
+                        ros_type: ty,
+                        defs: Arc::new(defs),
+                    });
+                }
             }
         }
         let watched = match &cfg.watch {
@@ -243,7 +274,7 @@ impl Ros2System {
             domain = opts.domain,
             system = cfg.system,
             subscribed = inputs.len(),
-            published = goals.len() + twists.len(),
+            published = goals.len() + twists.len() + raws.len(),
             "ROS 2 robot joining muster"
         );
         Ok(Ros2System {
@@ -251,6 +282,7 @@ impl Ros2System {
             data,
             goals,
             twists,
+            raws,
             watched,
             silent_after: cfg.silent_after(),
             silenced: None,
@@ -614,6 +646,34 @@ impl SystemApp for Ros2System {
                     self.goal_input(core, now, g, session, &payload);
                 } else if let Some(t) = self.twists.iter().position(|t| t.name == service) {
                     self.twist_input(core, now, t, session, &payload);
+                } else if let Some(r) = self.raws.iter().find(|r| r.name == service) {
+                    match payload {
+                        Payload::Encoded { type_name, data } if type_name == r.ros_type => {
+                            // Checked whole before it is written (a bad sample is refused,
+                            // never half-sent).
+                            match r.defs.decode(&data) {
+                                Ok(_) => {
+                                    let msg = RawMsg {
+                                        defs: r.defs.clone(),
+                                        data,
+                                    };
+                                    self.node.send(&r.publisher, msg, &r.topic);
+                                }
+                                Err(e) => core.status(
+                                    session,
+                                    TaskStatus::Rejected(format!("not a {}: {e}", r.ros_type)),
+                                ),
+                            }
+                        }
+                        other => core.status(
+                            session,
+                            TaskStatus::Rejected(format!(
+                                "cannot publish {} as {}",
+                                other.type_name(),
+                                r.ros_type
+                            )),
+                        ),
+                    }
                 }
             }
             SystemEvent::SessionEnded {
