@@ -3,7 +3,8 @@ nobody here wrote). Every stamp is CLOCK_MONOTONIC (time.monotonic_ns), the cloc
 stamps with, so one-way latencies across processes of this host are comparable.
 
 Modes (ROS_DOMAIN_ID from the environment), each printing JSON lines:
-  pub TOPIC RATE COUNT      std_msgs/String "SEQ SENT_NS" at RATE Hz, COUNT of them
+  pub TOPIC RATE COUNT      std_msgs/String "SEQ SENT_NS" at RATE Hz, COUNT of them,
+                            then untimed ones at 10 Hz until stopped
   sub TOPIC COUNT SECONDS   the same topic's one-way latencies, us (a JSON list)
   goals TOPIC SECONDS       each geometry_msgs/PoseStamped: {"x": .., "recv_ns": ..}
   scans N SECONDS           /R0/scan../R{N-1}/scan and /clock: scans received, the
@@ -47,8 +48,12 @@ if mode == "pub":
         pub.publish(String(data=f"{seq} {time.monotonic_ns()}"))
         nxt += period
         time.sleep(max(0.0, nxt - time.monotonic()))
-    spin_for(1.0)
     say(event="done", sent=count)
+    # Then keep the topic alive (10 Hz, untimed) until stopped: muster's robot stays
+    # "heard" while the other rows run.
+    while True:
+        pub.publish(String(data=f"-1 {time.monotonic_ns()}"))
+        spin_for(0.1)
 elif mode == "sub":
     from std_msgs.msg import String
     topic, count, seconds = sys.argv[2], int(sys.argv[3]), float(sys.argv[4])

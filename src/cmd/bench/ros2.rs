@@ -224,10 +224,13 @@ fn bridge_latency(
         {
             let now = monotonic_ns();
             if s == session {
-                if let Some(sent) = t
-                    .split_whitespace()
-                    .nth(1)
+                // "-1 NS": the untimed keep-alive after the timed samples.
+                let mut parts = t.split_whitespace();
+                let timed = parts.next().is_some_and(|seq| seq != "-1");
+                if let Some(sent) = parts
+                    .next()
                     .and_then(|n| n.parse::<u64>().ok())
+                    .filter(|_| timed)
                 {
                     let _ = muster.record(now.saturating_sub(sent) / 1000);
                 }
@@ -241,7 +244,6 @@ fn bridge_latency(
     for l in lat["latencies_us"].as_array().into_iter().flatten() {
         let _ = rclpy.record(l.as_f64().unwrap_or(0.0).max(1.0) as u64);
     }
-    drop(pubr);
     client.end(session);
 
     // 2. A muster user's goal → an rclpy subscriber of PoseStamped.
@@ -279,19 +281,20 @@ fn bridge_latency(
         }
     }
     while goals.json(Duration::from_millis(100)).is_some() {}
+    // One goal every 20 ms (a burst would time the subscriber's queue, not the path),
+    // the user's own inbox drained in between (status lines come back).
+    let start = Instant::now();
     for k in 0..a.goals {
         sent.push(monotonic_ns());
+        let goal = Payload::Goal2d {
+            x: k as f64,
+            y: 0.0,
+        };
         client
-            .input(
-                goal_session,
-                Payload::Goal2d {
-                    x: k as f64,
-                    y: 0.0,
-                },
-            )
+            .input(goal_session, goal)
             .map_err(anyhow::Error::msg)?;
-        // Keep the user's own inbox drained (status lines come back).
-        let _ = client.next_event(Instant::now() + Duration::from_millis(20));
+        let next = start + Duration::from_millis(20) * (k as u32 + 1);
+        while client.next_event(next)?.is_some() {}
     }
     let mut goal = histogram();
     let end = Instant::now() + Duration::from_secs(10);
@@ -307,6 +310,7 @@ fn bridge_latency(
     }
     client.end(goal_session);
     client.close();
+    drop(pubr);
     kids.stop();
 
     let ratio = muster.value_at_quantile(0.5) as f64 / rclpy.value_at_quantile(0.5).max(1) as f64;
@@ -335,7 +339,6 @@ fn sim_scaling(
     script: &std::path::Path,
 ) -> anyhow::Result<Value> {
     use muster_sim_world::map::OccupancyMap;
-    use muster_sim_world::world::sample_places;
     let map = OccupancyMap::office();
     let mut rows = Vec::new();
     if !a.json && !a.robots.is_empty() {
@@ -351,7 +354,7 @@ fn sim_scaling(
             "--robots: 1..=256 each (the simulator's shared-memory world lists 256)"
         );
         let mut toml = String::from("seed = 1\n");
-        for (k, (x, y)) in sample_places(&map, 7, n).into_iter().enumerate() {
+        for (k, (x, y)) in spots(&map, n)?.into_iter().enumerate() {
             toml.push_str(&format!(
                 "\n[[robots]]\nname = \"R{k}\"\npose = [{x:.2}, {y:.2}, 0.0]\nlaser = {{}}\nsonar = {{}}\nwander = true\n"
             ));
@@ -362,7 +365,7 @@ fn sim_scaling(
         let ds = domain.to_string();
         let sim_inst = Instance::new(&format!("{}-sim{n}", inst.as_str()))?;
         let mut kids = Children::default();
-        let pid = kids
+        let sim = kids
             .spawn(
                 &sim_inst,
                 "sim",
@@ -377,6 +380,7 @@ fn sim_scaling(
                 Stdio::null(),
             )?
             .id();
+        let pid = sim;
         let secs = a.window.as_secs_f64();
         let ns = n.to_string();
         let ws = secs.to_string();
@@ -418,4 +422,28 @@ fn sim_scaling(
                          "cpu_percent_per_robot": cpu.map(|c| c / n as f64)}));
     }
     Ok(json!(rows))
+}
+
+/// `n` start places on `map` a metre apart and half a metre from walls, row by row.
+fn spots(map: &muster_sim_world::map::OccupancyMap, n: usize) -> anyhow::Result<Vec<(f64, f64)>> {
+    let (w, h) = map.size();
+    let (ox, oy) = map.origin();
+    let mut out = Vec::with_capacity(n);
+    let mut y = oy + 1.0;
+    while y < oy + h - 0.5 && out.len() < n {
+        let mut x = ox + 1.0;
+        while x < ox + w - 0.5 && out.len() < n {
+            if map.clearance(x, y, 1.0) >= 0.5 {
+                out.push((x, y));
+            }
+            x += 1.0;
+        }
+        y += 1.0;
+    }
+    anyhow::ensure!(
+        out.len() == n,
+        "the map has room for {} robots a metre apart, not {n}",
+        out.len()
+    );
+    Ok(out)
 }
