@@ -350,8 +350,8 @@ fn sim_scaling(
     }
     for &n in &a.robots {
         anyhow::ensure!(
-            (1..=256).contains(&n),
-            "--robots: 1..=256 each (the simulator's shared-memory world lists 256)"
+            (1..=1000).contains(&n),
+            "--robots: 1..=1000 each"
         );
         let mut toml = String::from("seed = 1\n");
         for (k, (x, y)) in spots(&map, n)?.into_iter().enumerate() {
