@@ -836,3 +836,78 @@ print(json.dumps(out))
     assert_eq!(f(&poses[0]["value"], "x"), 1.0);
     let _ = std::fs::remove_file(&out);
 }
+
+/// The paper's delivery robot drives a robot it knows only through ROS 2 topics: the
+/// simulator bridged to ROS 2 on one instance, the delivery system (`--ros2`) and its
+/// user on another, so nothing passes between them but DDS.
+#[test]
+fn the_paper_delivery_robot_drives_a_robot_through_ros2() {
+    let d = domain(3).to_string();
+    let mut world = Fed::new("ros2dsim");
+    world.spawn(&["sim", "--ros2", "--domain", &d, "--speed", "4"]);
+    let mut fed = Fed::new("ros2dlv");
+    assert_ne!(world.inst, fed.inst);
+    fed.broker(&[]);
+    let delivery = fed.spawn(&[
+        "system",
+        "delivery",
+        "--ros2",
+        "--domain",
+        &d,
+        "--home-after",
+        "600",
+        "--stats-json",
+    ]);
+    fed.wait_list(30 * SEC, |l| {
+        common::find(l, "delivery/D1").is_some_and(|r| r["withdrawn"] == false)
+    });
+    // D1 starts at (30, 3) facing west along the south corridor.
+    let user = fed.spawn(&[
+        "user",
+        "request",
+        "delivery/D1",
+        "--goal",
+        "24,3",
+        "--duration",
+        "90s",
+        "--json",
+    ]);
+    let mut statuses = Vec::new();
+    until(fed.proc(user), "arrival at (24, 3)", 80 * SEC, |v| {
+        if let Some(s) = v["status"].as_str() {
+            statuses.push(s.to_string());
+        }
+        v["status"]
+            .as_str()
+            .is_some_and(|s| s.starts_with("done: arrived within"))
+    });
+    assert!(
+        statuses
+            .iter()
+            .any(|s| s.starts_with("working: accepted goal (24.00, 3.00)")),
+        "{statuses:?}"
+    );
+    let arrived = statuses.last().unwrap();
+    let within: f64 = arrived
+        .trim_start_matches("done: arrived within ")
+        .split(' ')
+        .next()
+        .and_then(|m| m.parse().ok())
+        .unwrap_or_else(|| panic!("{arrived}"));
+    assert!(within <= 1.0, "{arrived}");
+    // It localized itself from the ROS scan and odometry: against the simulator's ground
+    // truth (its `ground_truth` topic), within half a metre at the 95th percentile.
+    fed.proc(delivery).signal(libc::SIGTERM);
+    let stats = until(
+        fed.proc(delivery),
+        "the delivery system's stats",
+        20 * SEC,
+        |v| v["arrivals"].is_number(),
+    );
+    assert_eq!(stats["arrivals"], 1, "{stats}");
+    let loc = &stats["localization"]["D1"];
+    assert!(f(loc, "samples") > 5.0, "{stats}");
+    assert!(f(loc, "position_p95_m") < 0.5, "{stats}");
+    fed.shutdown();
+    world.shutdown();
+}

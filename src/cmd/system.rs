@@ -182,13 +182,22 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
     let specs = delivery_specs(&opts);
     validate_registration(&a.name, &specs)?;
     let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
-    let mut links = open_links(
-        &node,
-        inst.as_str(),
-        std::slice::from_ref(&a.robot),
-        a.common.wait_sim,
-    )?;
-    let link = links.pop().context("no link")?;
+    let link: Box<dyn muster_robots::port::RobotPort> = if a.ros2 {
+        let ns = a
+            .namespace
+            .clone()
+            .unwrap_or_else(|| format!("/{}", a.robot));
+        let domain = a.domain.or_else(muster_ros2::domain_from_env).unwrap_or(0);
+        Box::new(muster_ros2::port::Ros2Port::new(domain, &ns, &a.name)?)
+    } else {
+        let mut links = open_links(
+            &node,
+            inst.as_str(),
+            std::slice::from_ref(&a.robot),
+            a.common.wait_sim,
+        )?;
+        Box::new(links.pop().context("no link")?)
+    };
     let mut app = DeliveryApp::new(&scenario, map, link, &opts)?;
     show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
     let core = SystemCore::new(&a.name, std::process::id(), specs);

@@ -8,6 +8,7 @@
 pub mod definitions;
 pub mod msgs;
 pub mod node;
+pub mod port;
 pub mod sim;
 pub mod system;
 

@@ -349,10 +349,7 @@ fn sim_scaling(
         );
     }
     for &n in &a.robots {
-        anyhow::ensure!(
-            (1..=1000).contains(&n),
-            "--robots: 1..=1000 each"
-        );
+        anyhow::ensure!((1..=1000).contains(&n), "--robots: 1..=1000 each");
         let mut toml = String::from("seed = 1\n");
         for (k, (x, y)) in spots(&map, n)?.into_iter().enumerate() {
             toml.push_str(&format!(

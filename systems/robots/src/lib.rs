@@ -15,6 +15,7 @@ pub mod delivery;
 pub mod localizer;
 pub mod navigator;
 pub mod planner;
+pub mod port;
 pub mod sensing;
 pub mod shell;
 pub mod tracker;

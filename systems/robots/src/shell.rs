@@ -9,6 +9,7 @@ use crate::delivery::{DeliveryCore, DeliveryEvent, DeliveryParams};
 use crate::localizer::{Localizer, LocalizerParams};
 use crate::navigator::NavParams;
 use crate::planner::{Planner, PlannerParams};
+use crate::port::RobotPort;
 use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
 use crate::tracking::{TrackerRobot, TrackingCore, TrackingParams};
 use muster_shared::ipc::VizWriter;
@@ -478,7 +479,7 @@ pub fn delivery_specs(opts: &DeliveryOptions) -> Vec<ServiceSpec> {
 
 /// The delivery system as a [`SystemApp`].
 pub struct DeliveryApp {
-    link: RobotLink,
+    link: Box<dyn RobotPort>,
     geometry: SensorGeometry,
     localizer: Option<Localizer>,
     core: DeliveryCore,
@@ -501,11 +502,12 @@ pub struct DeliveryApp {
 }
 
 impl DeliveryApp {
-    /// Builds the system for `opts` on `scenario`/`map`, driving the robot behind `link`.
+    /// Builds the system for `opts` on `scenario`/`map`, driving the robot behind `link`
+    /// (the simulator's shared memory, ROS 2 topics, ...).
     pub fn new(
         scenario: &Scenario,
         map: Arc<OccupancyMap>,
-        link: RobotLink,
+        link: Box<dyn RobotPort>,
         opts: &DeliveryOptions,
     ) -> Result<Self, RobotSystemError> {
         let spec = spec_of(scenario, &opts.robot)?;
@@ -704,7 +706,7 @@ impl SystemApp for DeliveryApp {
 
     fn on_ready(&mut self, core: &mut SystemCore, _now: Duration, _index: usize) {
         self.link.drain();
-        let sample = match self.link.latest(self.after, SensorSample::from_shm) {
+        let sample = match self.link.latest(self.after) {
             Ok(Some(s)) => s,
             Ok(None) => return,
             Err(e) => {
@@ -751,10 +753,10 @@ impl SystemApp for DeliveryApp {
             tracing::warn!("{e}");
         }
         // The newest sample now says how far the simulator ran while we worked.
-        let lag = match self.link.latest(sample.time, |s| s.time) {
-            Ok(Some(t)) => (t - sample.time).max(0.0),
-            _ => 0.0,
-        };
+        let lag = self
+            .link
+            .newer_than(sample.time)
+            .map_or(0.0, |t| (t - sample.time).max(0.0));
         if self.latencies.len() < 200_000 {
             self.latencies.push(lag);
         }
