@@ -911,3 +911,75 @@ fn the_paper_delivery_robot_drives_a_robot_through_ros2() {
     fed.shutdown();
     world.shutdown();
 }
+
+/// The same delivery system drives a robot written in rclpy (tests/ros2/robot.py with
+/// `--room`: a differential drive whose laser sees the walls of the room the test's map
+/// draws), with the room's map and the robot's spec from files, as for any robot.
+#[test]
+fn the_paper_delivery_robot_drives_an_rclpy_robot() {
+    let Some(python) = rclpy() else { return };
+    let dir = std::env::temp_dir().join(format!("muster-ros2-rclpy-d1-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scenario = room(&dir);
+    let d = domain(4);
+    let mut fed = Fed::new("ros2rdlv");
+    fed.broker(&[]);
+    let bot = fed.spawn_command(robot(&python, d, "/turtle", "3,4", &["--room", "24,8"]));
+    until(fed.proc(bot), "the robot up", 20 * SEC, |v| {
+        v["event"] == "up"
+    });
+    let ds = d.to_string();
+    let delivery = fed.spawn(&[
+        "system",
+        "delivery",
+        "--ros2",
+        "--domain",
+        &ds,
+        "--namespace",
+        "/turtle",
+        "--robot",
+        "R1",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--home-after",
+        "600",
+        "--stats-json",
+    ]);
+    fed.wait_list(30 * SEC, |l| common::find(l, "delivery/R1").is_some());
+    let user = fed.spawn(&[
+        "user",
+        "request",
+        "delivery/R1",
+        "--goal",
+        "10,4",
+        "--duration",
+        "90s",
+        "--json",
+    ]);
+    let done = until(fed.proc(user), "arrival at (10, 4)", 80 * SEC, |v| {
+        v["status"]
+            .as_str()
+            .is_some_and(|s| s.starts_with("done: arrived within"))
+    });
+    // The rclpy robot was driven by velocity commands from muster's navigator.
+    let moved = until(
+        fed.proc(bot),
+        "cmd_vel from the delivery system",
+        5 * SEC,
+        |v| v["event"] == "cmd_vel",
+    );
+    assert!(moved["v"].is_number(), "{moved}");
+    fed.proc(delivery).signal(libc::SIGTERM);
+    let stats = until(
+        fed.proc(delivery),
+        "the delivery system's stats",
+        20 * SEC,
+        |v| v["arrivals"].is_number(),
+    );
+    assert_eq!(stats["arrivals"], 1, "{stats} {done}");
+    // This robot's odometry is exact: the localizer's estimate against it.
+    let loc = &stats["localization"]["R1"];
+    assert!(f(loc, "position_p95_m") < 0.5, "{stats}");
+    fed.shutdown();
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -6,7 +6,9 @@ drives itself at 0.5 m/s towards each `goal_pose` (geometry_msgs/PoseStamped) it
 and reports each LaserScan it is sent on `scan_relay`.
 
 Prints one JSON line per event (goals and velocity commands received) for tests/ros2.rs.
-Arguments: NAMESPACE X,Y [--duration S] [--wrong-type] [--malformed N]
+Arguments: NAMESPACE X,Y [--duration S] [--wrong-type] [--malformed N] [--room W,H]
+  --room W,H     its `scan` is a real one instead (10 Hz, 181 beams over 180 deg, 8 m):
+                 the walls of a W x H m room (one 5 cm cell thick along its edges)
   --wrong-type   also publishes `battery` as std_msgs/String (the config says Float32)
   --malformed N  publishes N truncated Odometry samples on `odom` first (raw CDR bytes)
 """
@@ -31,9 +33,32 @@ ap.add_argument("start")
 ap.add_argument("--duration", type=float, default=120.0)
 ap.add_argument("--wrong-type", action="store_true")
 ap.add_argument("--malformed", type=int, default=0)
+ap.add_argument("--room", default=None)
 a = ap.parse_args()
 
 x, y = (float(v) for v in a.start.split(","))
+room = tuple(float(v) for v in a.room.split(",")) if a.room else None
+
+
+def room_scan(px, py, th):
+    """Ranges from (px, py) heading th to the room's inner walls, right to left."""
+    lo_x, lo_y, hi_x, hi_y = 0.05, 0.05, room[0] - 0.05, room[1] - 0.05
+    out = []
+    for k in range(181):
+        ang = th + math.radians(-90 + k)
+        dx, dy = math.cos(ang), math.sin(ang)
+        t = math.inf
+        if dx > 1e-12:
+            t = min(t, (hi_x - px) / dx)
+        if dx < -1e-12:
+            t = min(t, (lo_x - px) / dx)
+        if dy > 1e-12:
+            t = min(t, (hi_y - py) / dy)
+        if dy < -1e-12:
+            t = min(t, (lo_y - py) / dy)
+        out.append(t if t <= 8.0 else math.inf)
+    return out
+
 theta = 0.0
 rclpy.init()
 node = Node("fake_robot", namespace=a.namespace)
@@ -109,16 +134,26 @@ while time.monotonic() < end and not stopping:
     o.twist.twist.linear.x = v
     o.twist.twist.angular.z = w
     odom_pub.publish(o)
-    if n % 10 == 0:
-        chatter.publish(String(data=f"hello {n // 10}"))
+    if room is not None and n % 2 == 0:
         sc = LaserScan()
         sc.header.frame_id = "laser"
-        sc.header.stamp.sec = 7
-        sc.header.stamp.nanosec = n
-        sc.angle_min, sc.angle_max, sc.angle_increment = -0.75, 0.75, 0.5
-        sc.range_min, sc.range_max = 0.1, 8.0
-        sc.ranges = [1.0, 2.0, math.inf, 4.5]
+        sc.header.stamp = o.header.stamp
+        sc.angle_min, sc.angle_max = -math.pi / 2, math.pi / 2
+        sc.angle_increment = math.pi / 180
+        sc.scan_time, sc.range_min, sc.range_max = 0.1, 0.0, 8.0
+        sc.ranges = room_scan(x, y, theta)
         scan_pub.publish(sc)
+    if n % 10 == 0:
+        chatter.publish(String(data=f"hello {n // 10}"))
+        if room is None:
+            sc = LaserScan()
+            sc.header.frame_id = "laser"
+            sc.header.stamp.sec = 7
+            sc.header.stamp.nanosec = n
+            sc.angle_min, sc.angle_max, sc.angle_increment = -0.75, 0.75, 0.5
+            sc.range_min, sc.range_max = 0.1, 8.0
+            sc.ranges = [1.0, 2.0, math.inf, 4.5]
+            scan_pub.publish(sc)
         if battery is not None:
             battery.publish(String(data="full"))
     n += 1
