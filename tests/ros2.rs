@@ -753,6 +753,10 @@ type = "std_msgs/msg/Float32"
         );
         std::thread::sleep(std::time::Duration::from_millis(200));
     }
+    // Said once, not at every check (one every 2 s).
+    std::thread::sleep(std::time::Duration::from_millis(4500));
+    let said = std::fs::read_to_string(&log).unwrap_or_default();
+    assert_eq!(said.matches(want).count(), 1, "{said}");
     assert_eq!(sys.try_wait().unwrap(), None, "the system stays up");
     // SAFETY: our own child.
     unsafe { libc::kill(sys.id() as i32, libc::SIGTERM) };

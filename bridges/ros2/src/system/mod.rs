@@ -112,6 +112,8 @@ pub struct Ros2System {
     silenced: Option<String>,
     started: Option<Duration>,
     next_type_check: Duration,
+    /// Topics whose other type on the ROS graph was reported.
+    type_errors: std::collections::BTreeSet<String>,
     poll: mio1::Poll,
     events: mio1::Events,
     scratch: Vec<Payload>,
@@ -288,6 +290,7 @@ impl Ros2System {
             silenced: None,
             started: None,
             next_type_check: Duration::ZERO,
+            type_errors: std::collections::BTreeSet::new(),
             poll,
             events: mio1::Events::with_capacity(64),
             scratch: Vec::new(),
@@ -397,6 +400,11 @@ impl Ros2System {
                 "geometry_msgs/msg/Twist".into(),
             )
         }));
+        topics.extend(
+            self.raws
+                .iter()
+                .map(|r| (usize::MAX, r.topic.clone(), r.ros_type.clone())),
+        );
         for (k, topic, ty) in topics {
             let others: Vec<String> = self
                 .node
@@ -410,14 +418,15 @@ impl Ros2System {
                     others.join(" and ")
                 )
             });
-            let known = self.inputs.get(k).map(|i| &i.mismatch);
-            let reported = match known {
-                Some(m) => m == &mismatch,
-                None => mismatch.is_none(),
-            };
-            if !reported {
-                if let Some(m) = &mismatch {
-                    tracing::error!("{m}");
+            // Said once while it lasts (again if it comes back).
+            match &mismatch {
+                Some(m) => {
+                    if self.type_errors.insert(topic.clone()) {
+                        tracing::error!("{m}");
+                    }
+                }
+                None => {
+                    self.type_errors.remove(&topic);
                 }
             }
             if let Some(i) = self.inputs.get_mut(k) {
