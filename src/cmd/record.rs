@@ -169,6 +169,7 @@ mod json_schema {
                         "links": {"type": "integer"},
                         "withdrawn": {"type": "boolean"},
                         "payload": {"type": "string"},
+                        "encoding": {"type": "string"},
                         "host": {"type": "string"},
                         "remote": {"type": "boolean"},
                     },
@@ -927,6 +928,42 @@ mod tests {
             {"colour": null, "bearing": -0.5, "range": 7.5},
         ]});
         assert_eq!(conforms(&json_schema::detections(), &dets, "dets"), Ok(()));
+        // The tapped services' built-in payloads (`muster record --service`): each
+        // schema is one Foxglove parses, and describes what is written.
+        use muster_shared::types::{Payload, Track2d};
+        for p in [
+            Payload::Pose2d {
+                x: 1.0,
+                y: 2.0,
+                theta: 0.5,
+            },
+            Payload::Goal2d { x: 1.0, y: 2.0 },
+            Payload::Twist { v: 0.3, w: -0.1 },
+            Payload::Scalar(4.5),
+            Payload::Text("hello".into()),
+            Payload::Track2d(Track2d {
+                x: 1.0,
+                y: 2.0,
+                vx: 0.1,
+                vy: 0.0,
+                sigma: 0.2,
+                age: 0.0,
+                seen_by: vec!["T1".into()],
+                lost: false,
+            }),
+        ] {
+            let t = p.type_name().to_string();
+            let schema = super::super::taps::builtin_schema(&t);
+            assert_eq!(parsable(&schema, &t), Ok(()));
+            let msg = super::super::user::payload_json(&p);
+            assert_eq!(conforms(&schema, &msg, &t), Ok(()));
+            for field in msg.as_object().unwrap().keys() {
+                assert!(
+                    schema["properties"].get(field).is_some(),
+                    "{t}: {field} is not in the schema"
+                );
+            }
+        }
         // And the check finds a field of the wrong type.
         let wrong = json!({"time": "soon", "detections": []});
         assert!(conforms(&json_schema::detections(), &wrong, "dets").is_err());
