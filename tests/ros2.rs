@@ -312,6 +312,16 @@ fn until(
     }
 }
 
+/// `muster user request ID --duration D --json`, which must succeed: its output.
+fn request_json(fed: &Fed, id: &str, duration: &str) -> String {
+    let (code, out) = fed.run(
+        &["user", "request", id, "--duration", duration, "--json"],
+        30 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    out
+}
+
 fn row<'a>(list: &'a [Value], id: &str) -> &'a Value {
     common::find(list, id).unwrap_or_else(|| panic!("{id} not listed: {list:?}"))
 }
@@ -371,18 +381,7 @@ fn a_ros2_robot_becomes_a_muster_system() {
     assert_eq!(row(&list, "turtle/goal")["queue"], true);
 
     // A muster user streams the robot's pose (it stands at (1, 2)) and its chatter.
-    let (code, out) = fed.run(
-        &[
-            "user",
-            "request",
-            "turtle/pose",
-            "--duration",
-            "2s",
-            "--json",
-        ],
-        30 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
+    let out = request_json(&fed, "turtle/pose", "2s");
     let poses: Vec<Value> = out
         .lines()
         .filter_map(|l| serde_json::from_str::<Value>(l).ok())
@@ -400,18 +399,7 @@ fn a_ros2_robot_becomes_a_muster_system() {
             "{p}"
         );
     }
-    let (code, out) = fed.run(
-        &[
-            "user",
-            "request",
-            "turtle/say",
-            "--duration",
-            "2s",
-            "--json",
-        ],
-        30 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
+    let out = request_json(&fed, "turtle/say", "2s");
     assert!(
         out.lines().any(|l| l.contains("\"text\":\"hello ")),
         "{out}"
@@ -430,18 +418,7 @@ fn a_ros2_robot_becomes_a_muster_system() {
         "nav_msgs/msg/Odometry"
     );
     assert_eq!(row(&list, "turtle/pose")["encoding"], "");
-    let (code, out) = fed.run(
-        &[
-            "user",
-            "request",
-            "turtle/scan",
-            "--duration",
-            "2s",
-            "--json",
-        ],
-        30 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
+    let out = request_json(&fed, "turtle/scan", "2s");
     let lines: Vec<Value> = out
         .lines()
         .filter_map(|l| serde_json::from_str(l).ok())
@@ -461,18 +438,7 @@ fn a_ros2_robot_becomes_a_muster_system() {
         assert_eq!(v["ranges"], serde_json::json!([1.0, 2.0, "inf", 4.5]));
         assert_eq!(v["intensities"], serde_json::json!([]));
     }
-    let (code, out) = fed.run(
-        &[
-            "user",
-            "request",
-            "turtle/odom",
-            "--duration",
-            "1s",
-            "--json",
-        ],
-        30 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
+    let out = request_json(&fed, "turtle/odom", "1s");
     let odom: Value = out
         .lines()
         .filter_map(|l| serde_json::from_str::<Value>(l).ok())
@@ -729,11 +695,7 @@ type = "std_msgs/msg/Float32"
     fed.wait_list(30 * SEC, |l| {
         common::find(l, "bad/pose").is_some_and(|r| r["withdrawn"] == false)
     });
-    let (code, out) = fed.run(
-        &["user", "request", "bad/pose", "--duration", "2s", "--json"],
-        30 * SEC,
-    );
-    assert_eq!(code, 0, "{out}");
+    let out = request_json(&fed, "bad/pose", "2s");
     assert!(
         out.lines().filter(|l| l.contains("\"pose2d\"")).count() >= 10,
         "{out}"
