@@ -819,6 +819,15 @@ pub struct RobotSystemArgs {
     /// Serve remote users' sessions on this UDP address (e.g. `127.0.0.1:0`).
     #[arg(long)]
     pub udp: Option<std::net::SocketAddr>,
+    /// Drive the robots through ROS 2 topics in each robot's namespace (`/ROBOT/scan`,
+    /// `odom`, `sonar`, `beacons`, `ptz`, `cmd_vel`, `ptz_cmd`) instead of the
+    /// simulator's shared memory: any ROS 2 robot, the simulator bridged by `muster sim
+    /// --ros2` among them.
+    #[arg(long)]
+    pub ros2: bool,
+    /// With `--ros2`: the ROS domain id (default: `ROS_DOMAIN_ID`, else 0).
+    #[arg(long, requires = "ros2", value_parser = clap::value_parser!(u16).range(0..=232))]
+    pub domain: Option<u16>,
 }
 
 #[derive(Args, Debug)]
@@ -880,17 +889,9 @@ pub struct DeliveryArgs {
     /// Not tasked for this long (sim seconds), it returns home.
     #[arg(long, default_value_t = 60.0)]
     pub home_after: f64,
-    /// Drive the robot through ROS 2 topics (`scan`, `odom`, `cmd_vel` in its namespace)
-    /// instead of the simulator's shared memory: any ROS 2 robot, the simulator bridged
-    /// by `muster sim --ros2` among them.
-    #[arg(long)]
-    pub ros2: bool,
     /// With `--ros2`: the robot's namespace (default `/ROBOT`).
     #[arg(long, requires = "ros2")]
     pub namespace: Option<String>,
-    /// With `--ros2`: the ROS domain id (default: `ROS_DOMAIN_ID`, else 0).
-    #[arg(long, requires = "ros2", value_parser = clap::value_parser!(u16).range(0..=232))]
-    pub domain: Option<u16>,
     #[command(flatten)]
     pub common: RobotSystemArgs,
 }

@@ -2,6 +2,7 @@
 
 use crate::cli::{DeliveryArgs, RobotSystemArgs, Ros2SystemArgs, SystemCommand, TrackingArgs};
 use anyhow::Context;
+use muster_robots::port::RobotPort;
 use muster_robots::shell::{
     delivery_specs, open_links, tracking_specs, DeliveryApp, DeliveryOptions, TrackingApp,
     TrackingOptions,
@@ -48,6 +49,11 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
         SystemCommand::Delivery(a) => delivery(inst, a),
         SystemCommand::Ros2(a) => ros2(inst, a),
     }
+}
+
+/// The ROS domain of a robot system's `--ros2`: `--domain`, else `ROS_DOMAIN_ID`, else 0.
+fn ros2_domain(a: &RobotSystemArgs) -> u16 {
+    a.domain.or_else(muster_ros2::domain_from_env).unwrap_or(0)
 }
 
 fn ros2(inst: &Instance, a: Ros2SystemArgs) -> anyhow::Result<ExitCode> {
@@ -140,7 +146,22 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
     let specs = tracking_specs(&colours, &robots, a.quota);
     validate_registration(&a.name, &specs)?;
     let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
-    let links = open_links(&node, inst.as_str(), &robots, a.common.wait_sim)?;
+    let links: Vec<Box<dyn RobotPort>> = if a.common.ros2 {
+        let domain = ros2_domain(&a.common);
+        robots
+            .iter()
+            .map(|r| {
+                let node_name = format!("{}_{r}", a.name);
+                let port = muster_ros2::port::Ros2Port::new(domain, &format!("/{r}"), &node_name)?;
+                Ok(Box::new(port) as Box<dyn RobotPort>)
+            })
+            .collect::<anyhow::Result<_>>()?
+    } else {
+        open_links(&node, inst.as_str(), &robots, a.common.wait_sim)?
+            .into_iter()
+            .map(|l| Box::new(l) as Box<dyn RobotPort>)
+            .collect()
+    };
     let mut app = TrackingApp::new(&scenario, map, links, &opts)?;
     show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
     let core = SystemCore::new(&a.name, std::process::id(), specs);
@@ -182,13 +203,16 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
     let specs = delivery_specs(&opts);
     validate_registration(&a.name, &specs)?;
     let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
-    let link: Box<dyn muster_robots::port::RobotPort> = if a.ros2 {
+    let link: Box<dyn RobotPort> = if a.common.ros2 {
         let ns = a
             .namespace
             .clone()
             .unwrap_or_else(|| format!("/{}", a.robot));
-        let domain = a.domain.or_else(muster_ros2::domain_from_env).unwrap_or(0);
-        Box::new(muster_ros2::port::Ros2Port::new(domain, &ns, &a.name)?)
+        Box::new(muster_ros2::port::Ros2Port::new(
+            ros2_domain(&a.common),
+            &ns,
+            &a.name,
+        )?)
     } else {
         let mut links = open_links(
             &node,

@@ -11,6 +11,7 @@ macro_rules! messages {
     ($($t:ty),* $(,)?) => { $(impl ros2_client::Message for $t {})* };
 }
 messages!(
+    Vector3Stamped,
     PoseWithCovarianceStamped,
     Pose2D,
     StringMsg,
@@ -151,6 +152,15 @@ pub struct Vector3 {
 
 /// `geometry_msgs/Point`.
 pub type Point = Vector3;
+
+/// `geometry_msgs/Vector3Stamped` (a camera's pan, tilt and zoom, on `ptz`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Vector3Stamped {
+    /// Stamp and frame.
+    pub header: Header,
+    /// The vector.
+    pub vector: Vector3,
+}
 
 /// `geometry_msgs/Quaternion`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -477,6 +487,8 @@ pub struct Marker {
 }
 
 impl Marker {
+    /// Shape: a sphere.
+    pub const SPHERE: i32 = 2;
     /// Shape: a cylinder.
     pub const CYLINDER: i32 = 3;
     /// Shape: camera-facing text.

@@ -1,15 +1,20 @@
 //! A ROS 2 robot as a port of muster's robot systems ([`RobotPort`]): its `scan`
 //! (`sensor_msgs/LaserScan`), `odom` (`nav_msgs/Odometry`) and, where offered,
-//! `ground_truth` are read; `cmd_vel` (`geometry_msgs/Twist`) drives it. The paper's
-//! delivery robot runs on any robot that offers these (`muster system delivery --ros2`),
-//! the simulator bridged to ROS 2 among them, with no shared memory between them.
+//! `ground_truth`, `sonar` (`sensor_msgs/Range`, frame `…/sonar_K` for transducer K),
+//! `beacons` and `ptz` (the camera's sightings and pointing, as `muster sim --ros2`
+//! publishes them: see [`crate::sim`]) are read; `cmd_vel` (`geometry_msgs/Twist`)
+//! drives it and `ptz_cmd` (`geometry_msgs/Vector3`) points its camera. The paper's
+//! delivery and tracking systems run on any robot that offers these (`muster system
+//! delivery --ros2`, `muster system tracking --ros2`), the simulator bridged to ROS 2
+//! among them, with no shared memory between them.
 
-use crate::msgs::{LaserScan, Odometry, Time, Twist, Vector3};
+use crate::msgs::{LaserScan, MarkerArray, Odometry, Range, Time, Twist, Vector3, Vector3Stamped};
 use crate::node::{qos_reliable, qos_sensor_in, Ros2Node};
 use crate::Ros2Error;
 use muster_robots::port::{PortError, RobotPort};
-use muster_robots::sensing::SensorSample;
+use muster_robots::sensing::{SensorSample, Sighting};
 use muster_sim_world::kinematics::Pose;
+use muster_sim_world::scenario::Colour;
 use ros2_client::dds::rustdds::mio1;
 use ros2_client::{Publisher, Subscription};
 use std::os::fd::{AsRawFd, RawFd};
@@ -35,7 +40,11 @@ pub struct Ros2Port {
     scan: Subscription<LaserScan>,
     odom: Subscription<Odometry>,
     truth: Subscription<Odometry>,
+    sonar: Subscription<Range>,
+    beacons: Subscription<MarkerArray>,
+    ptz: Subscription<Vector3Stamped>,
     cmd: Publisher<Twist>,
+    ptz_cmd: Publisher<Vector3>,
     cmd_topic: String,
     poll: mio1::Poll,
     events: mio1::Events,
@@ -68,6 +77,26 @@ impl Ros2Port {
             ("nav_msgs", "Odometry"),
             qos_sensor_in(10),
         )?;
+        let mut sonar = node.subscription::<Range>(
+            &format!("{ns}/sonar"),
+            ("sensor_msgs", "Range"),
+            qos_sensor_in(64),
+        )?;
+        let mut beacons = node.subscription::<MarkerArray>(
+            &format!("{ns}/beacons"),
+            ("visualization_msgs", "MarkerArray"),
+            qos_sensor_in(5),
+        )?;
+        let mut ptz = node.subscription::<Vector3Stamped>(
+            &format!("{ns}/ptz"),
+            ("geometry_msgs", "Vector3Stamped"),
+            qos_sensor_in(5),
+        )?;
+        let ptz_cmd = node.publisher::<Vector3>(
+            &format!("{ns}/ptz_cmd"),
+            ("geometry_msgs", "Vector3"),
+            qos_reliable(1),
+        )?;
         let cmd_topic = format!("{ns}/cmd_vel");
         let cmd =
             node.publisher::<Twist>(&cmd_topic, ("geometry_msgs", "Twist"), qos_reliable(1))?;
@@ -76,6 +105,9 @@ impl Ros2Port {
             &mut scan as &mut dyn mio1::event::Source,
             &mut odom,
             &mut truth,
+            &mut sonar,
+            &mut beacons,
+            &mut ptz,
         ]
         .into_iter()
         .enumerate()
@@ -89,7 +121,11 @@ impl Ros2Port {
             scan,
             odom,
             truth,
+            sonar,
+            beacons,
+            ptz,
             cmd,
+            ptz_cmd,
             cmd_topic,
             poll,
             events: mio1::Events::with_capacity(8),
@@ -145,6 +181,70 @@ impl Ros2Port {
                 Err(e) => self
                     .node
                     .warn_limited(&format!("odom: sample dropped: {e}")),
+            }
+        }
+        for _ in 0..MAX_TAKE {
+            match self.sonar.take() {
+                Ok(Some((r, _))) => {
+                    // One transducer per message, named by its frame (`…/sonar_K`).
+                    let k = r
+                        .header
+                        .frame_id
+                        .rsplit_once("sonar_")
+                        .and_then(|(_, k)| k.parse::<usize>().ok())
+                        .filter(|k| *k < 64);
+                    if let Some(k) = k {
+                        if self.sample.sonar.len() <= k {
+                            self.sample.sonar.resize(k + 1, r.max_range);
+                        }
+                        let max = r.max_range;
+                        self.sample.sonar[k] = if r.range.is_finite() && r.range < max {
+                            r.range
+                        } else {
+                            max
+                        };
+                        self.sample.sonar_time = seconds(&r.header.stamp);
+                    }
+                }
+                Ok(None) => break,
+                Err(e) => self
+                    .node
+                    .warn_limited(&format!("sonar: sample dropped: {e}")),
+            }
+        }
+        for _ in 0..MAX_TAKE {
+            match self.beacons.take() {
+                Ok(Some((m, _))) => {
+                    let stamp = m.markers.first().map(|k| seconds(&k.header.stamp));
+                    self.sample.sightings = m
+                        .markers
+                        .iter()
+                        .filter_map(|k| {
+                            let (x, y) = (k.pose.position.x, k.pose.position.y);
+                            Some(Sighting {
+                                colour: Colour::from_name(&k.ns)?,
+                                bearing: y.atan2(x),
+                                range: x.hypot(y),
+                            })
+                        })
+                        .collect();
+                    // An empty frame (nothing seen) has no stamp of its own: the newest.
+                    self.sample.camera_time = stamp.unwrap_or(self.sample.time);
+                }
+                Ok(None) => break,
+                Err(e) => self
+                    .node
+                    .warn_limited(&format!("beacons: sample dropped: {e}")),
+            }
+        }
+        for _ in 0..MAX_TAKE {
+            match self.ptz.take() {
+                Ok(Some((p, _))) => {
+                    self.sample.pan = p.vector.x;
+                    self.sample.camera_time = self.sample.camera_time.max(seconds(&p.header.stamp));
+                }
+                Ok(None) => break,
+                Err(e) => self.node.warn_limited(&format!("ptz: sample dropped: {e}")),
             }
         }
         for _ in 0..MAX_TAKE {
@@ -205,8 +305,13 @@ impl RobotPort for Ros2Port {
             .map_err(|e| PortError(format!("{}: {e}", self.cmd_topic)))
     }
 
-    fn camera(&mut self, _pan: f64, _tilt: f64, _zoom: f64) -> Result<(), PortError> {
-        // No camera on this port (the tracking system's sightings come in a later step).
-        Ok(())
+    fn camera(&mut self, pan: f64, tilt: f64, zoom: f64) -> Result<(), PortError> {
+        self.ptz_cmd
+            .publish(Vector3 {
+                x: pan,
+                y: tilt,
+                z: zoom,
+            })
+            .map_err(|e| PortError(format!("ptz_cmd: {e}")))
     }
 }

@@ -10,7 +10,14 @@
 //! - `ground_truth` — `nav_msgs/Odometry` in frame `map` (the simulator's true pose, as
 //!   Stage publishes it; for evaluation, not for a robot's own decisions);
 //! - `cmd_vel` — `geometry_msgs/Twist` subscribed: linear.x and angular.z drive the
-//!   robot, clamped to its limits; it stops when commands stop for its command timeout.
+//!   robot, clamped to its limits; it stops when commands stop for its command timeout;
+//! - with a camera: `beacons` — the beacons its camera sees, a
+//!   `visualization_msgs/MarkerArray` of spheres in frame `R/base_link` at each beacon's
+//!   place (its range along its bearing from the robot's heading), `ns` the beacon's
+//!   colour name (`red`, ...), `color` its colour, one array per frame (empty: none
+//!   seen); `ptz` — `geometry_msgs/Vector3Stamped`, the camera's pan and tilt (rad) and
+//!   zoom in x, y, z; and `ptz_cmd` — `geometry_msgs/Vector3` subscribed, where to point
+//!   it (the same axes).
 //!
 //! And `/clock` (`rosgraph_msgs/Clock`, every step: nodes run with `use_sim_time` at any
 //! speed), `/map` (`nav_msgs/OccupancyGrid`, transient-local), `/people`
@@ -45,8 +52,16 @@ impl Default for SimBridgeOptions {
     }
 }
 
+struct Camera {
+    beacons: Publisher<MarkerArray>,
+    ptz: Publisher<Vector3Stamped>,
+    ptz_cmd: Subscription<Vector3>,
+    stamp: f64,
+}
+
 struct RobotTopics {
     name: String,
+    camera: Option<Camera>,
     scan: Option<Publisher<LaserScan>>,
     sonar: Option<Publisher<Range>>,
     odom: Publisher<Odometry>,
@@ -119,7 +134,29 @@ impl SimBridge {
                 }
                 None => None,
             };
+            let camera = match &r.spec.camera {
+                Some(_) => Some(Camera {
+                    beacons: node.publisher(
+                        &format!("{ns}/beacons"),
+                        ("visualization_msgs", "MarkerArray"),
+                        qos_reliable(5),
+                    )?,
+                    ptz: node.publisher(
+                        &format!("{ns}/ptz"),
+                        ("geometry_msgs", "Vector3Stamped"),
+                        qos_reliable(5),
+                    )?,
+                    ptz_cmd: node.subscription(
+                        &format!("{ns}/ptz_cmd"),
+                        ("geometry_msgs", "Vector3"),
+                        qos_sensor_in(10),
+                    )?,
+                    stamp: -1.0,
+                }),
+                None => None,
+            };
             robots.push(RobotTopics {
+                camera,
                 scan,
                 sonar,
                 odom: node.publisher(
@@ -197,6 +234,25 @@ impl SimBridge {
             if let Some(t) = newest {
                 world.command_velocity(i, t.linear.x, t.angular.z);
             }
+            if let Some(c) = &r.camera {
+                let mut newest = None;
+                loop {
+                    match c.ptz_cmd.take() {
+                        Ok(Some((v, _))) => newest = Some(v),
+                        Ok(None) => break,
+                        Err(e) => {
+                            self.node.warn_limited(&format!(
+                                "/{}/ptz_cmd: sample dropped: {e:?}",
+                                r.name
+                            ));
+                            break;
+                        }
+                    }
+                }
+                if let Some(v) = newest {
+                    world.command_camera(i, v.x, v.y, v.z);
+                }
+            }
         }
     }
 
@@ -216,6 +272,21 @@ impl SimBridge {
                 if r.laser_time > t.laser_stamp {
                     t.laser_stamp = r.laser_time;
                     self.node.send(p, laser_scan(&t.name, r, params), "scan");
+                }
+            }
+            if let Some(c) = &mut t.camera {
+                if r.camera_time > c.stamp {
+                    c.stamp = r.camera_time;
+                    self.node.send(&c.beacons, beacons(&t.name, r), "beacons");
+                    let ptz = Vector3Stamped {
+                        header: Header::at(r.camera_time, &format!("{}/base_link", t.name)),
+                        vector: Vector3 {
+                            x: r.ptz.pan,
+                            y: r.ptz.tilt,
+                            z: r.ptz.zoom,
+                        },
+                    };
+                    self.node.send(&c.ptz, ptz, "ptz");
                 }
             }
             if let (Some(p), Some(params)) = (&t.sonar, &r.spec.sonar) {
@@ -318,6 +389,42 @@ pub fn laser_scan(
             .map(|&v| no_return_is_inf(v, params.range))
             .collect(),
         intensities: Vec::new(),
+    }
+}
+
+/// What robot `name`'s camera saw in its last frame: a sphere per beacon, `ns` its
+/// colour's name.
+pub fn beacons(name: &str, r: &Robot) -> MarkerArray {
+    let frame = format!("{name}/base_link");
+    MarkerArray {
+        markers: r
+            .detections
+            .iter()
+            .enumerate()
+            .map(|(k, d)| {
+                let [cr, cg, cb] = d.colour.rgb();
+                Marker {
+                    header: Header::at(r.camera_time, &frame),
+                    ns: d.colour.name().to_string(),
+                    id: k as i32,
+                    kind: Marker::SPHERE,
+                    action: Marker::ADD,
+                    pose: Pose::planar(d.range * d.bearing.cos(), d.range * d.bearing.sin(), 0.0),
+                    scale: Vector3 {
+                        x: 0.3,
+                        y: 0.3,
+                        z: 0.3,
+                    },
+                    color: ColorRgba {
+                        r: f32::from(cr) / 255.0,
+                        g: f32::from(cg) / 255.0,
+                        b: f32::from(cb) / 255.0,
+                        a: 1.0,
+                    },
+                    ..Marker::default()
+                }
+            })
+            .collect(),
     }
 }
 

@@ -10,7 +10,7 @@ use crate::localizer::{Localizer, LocalizerParams};
 use crate::navigator::NavParams;
 use crate::planner::{Planner, PlannerParams};
 use crate::port::RobotPort;
-use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
+use crate::sensing::{LikelihoodField, SensorGeometry};
 use crate::tracking::{TrackerRobot, TrackingCore, TrackingParams};
 use muster_shared::ipc::VizWriter;
 use muster_shared::protocol::monotonic_ns;
@@ -170,7 +170,7 @@ pub fn tracking_specs(colours: &[Colour], robots: &[String], quota: u16) -> Vec<
 
 /// The tracking system as a [`SystemApp`].
 pub struct TrackingApp {
-    links: Vec<RobotLink>,
+    links: Vec<Box<dyn RobotPort>>,
     core: TrackingCore,
     after: Vec<f64>,
     budget: bool,
@@ -219,7 +219,7 @@ impl TrackingApp {
     pub fn new(
         scenario: &Scenario,
         map: Arc<OccupancyMap>,
-        links: Vec<RobotLink>,
+        links: Vec<Box<dyn RobotPort>>,
         opts: &TrackingOptions,
     ) -> Result<Self, RobotSystemError> {
         let mut robots = Vec::new();
@@ -380,15 +380,16 @@ impl SystemApp for TrackingApp {
     }
 
     fn descriptors(&self) -> Vec<RawFd> {
-        self.links.iter().map(RobotLink::fd).collect()
+        self.links.iter().map(|l| l.fd()).collect()
     }
 
     fn on_ready(&mut self, core: &mut SystemCore, _now: Duration, index: usize) {
-        let Some(link) = self.links.get(index) else {
+        let Some(link) = self.links.get_mut(index) else {
             return;
         };
         link.drain();
-        let sample = match link.latest(self.after[index], SensorSample::from_shm) {
+        let sample = link.latest(self.after[index]);
+        let sample = match sample {
             Ok(Some(s)) => s,
             Ok(None) => return,
             Err(e) => {
@@ -405,6 +406,7 @@ impl SystemApp for TrackingApp {
                 self.truth_stats[index].add(est, sample.truth);
             }
         }
+        let link = &mut self.links[index];
         if let Some((v, w)) = cmd.velocity {
             if let Err(e) = link.velocity(v, w) {
                 tracing::warn!("robot {index}: {e}");
