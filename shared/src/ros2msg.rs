@@ -135,7 +135,7 @@ pub struct Definitions {
 pub fn full_name(name: &str, pkg: &str) -> String {
     let parts: Vec<&str> = name.split('/').collect();
     match parts[..] {
-        [t] if t == "Header" => "std_msgs/msg/Header".into(),
+        ["Header"] => "std_msgs/msg/Header".into(),
         [t] => format!("{pkg}/msg/{t}"),
         [p, t] => format!("{p}/msg/{t}"),
         _ => name.to_string(),

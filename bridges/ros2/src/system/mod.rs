@@ -639,12 +639,10 @@ impl SystemApp for Ros2System {
         match event {
             SystemEvent::SessionStarted {
                 session, service, ..
-            } => {
-                if self.twists.iter().any(|t| t.name == service)
-                    || self.goals.iter().any(|g| g.name == service)
-                {
-                    core.status(session, TaskStatus::Idle);
-                }
+            } if self.twists.iter().any(|t| t.name == service)
+                || self.goals.iter().any(|g| g.name == service) =>
+            {
+                core.status(session, TaskStatus::Idle);
             }
             SystemEvent::Input {
                 session,
