@@ -2,6 +2,8 @@
 //! venv `.ci/run` makes) and Fast DDS, talking to muster's pure-Rust DDS. Each test runs
 //! on a ROS domain of its own.
 
+#![allow(clippy::unwrap_used)]
+
 mod common;
 
 use common::Fed;
