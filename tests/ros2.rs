@@ -668,6 +668,11 @@ type = "nav_msgs/msg/Odometry"
 name = "battery"
 topic = "battery"
 type = "std_msgs/msg/Float32"
+
+[[data]]
+name = "bigscan"
+topic = "bigscan"
+type = "sensor_msgs/msg/LaserScan"
 "#,
     )
     .unwrap();
@@ -690,7 +695,7 @@ type = "std_msgs/msg/Float32"
         d,
         "/bad",
         "5,5",
-        &["--wrong-type", "--malformed", "20"],
+        &["--wrong-type", "--malformed", "20", "--oversized"],
     ));
 
     // Good samples after bad ones still flow.
@@ -717,6 +722,18 @@ type = "std_msgs/msg/Float32"
         );
         std::thread::sleep(std::time::Duration::from_millis(200));
     }
+    // A sample past the open payloads' limit (a 2000-beam scan, 8 KB) is refused with
+    // the sizes, not sent half or silently: a user of the service gets nothing of it,
+    // and the session goes on.
+    let out = request_json(&fed, "bad/bigscan", "2s");
+    assert!(!out.contains("\"seq\""), "{out}");
+    assert!(out.contains("\"ended\":true"), "{out}");
+    let said = std::fs::read_to_string(&log).unwrap_or_default();
+    assert!(
+        said.contains("/bad/bigscan: a sample of 8")
+            && said.contains("bytes dropped: open payloads are at most 3584 bytes"),
+        "{said}"
+    );
     // Said once, not at every check (one every 2 s).
     std::thread::sleep(std::time::Duration::from_millis(4500));
     let said = std::fs::read_to_string(&log).unwrap_or_default();

@@ -11,6 +11,7 @@ Arguments: NAMESPACE X,Y [--duration S] [--wrong-type] [--malformed N] [--room W
                  the walls of a W x H m room (one 5 cm cell thick along its edges)
   --wrong-type   also publishes `battery` as std_msgs/String (the config says Float32)
   --malformed N  publishes N truncated Odometry samples on `odom` first (raw CDR bytes)
+  --oversized    also publishes `bigscan`: LaserScans of 2000 beams (8 KB), at 2 Hz
 """
 
 import argparse
@@ -34,6 +35,7 @@ ap.add_argument("--duration", type=float, default=120.0)
 ap.add_argument("--wrong-type", action="store_true")
 ap.add_argument("--malformed", type=int, default=0)
 ap.add_argument("--room", default=None)
+ap.add_argument("--oversized", action="store_true")
 a = ap.parse_args()
 
 x, y = (float(v) for v in a.start.split(","))
@@ -66,6 +68,7 @@ odom_pub = node.create_publisher(Odometry, "odom", 10)
 chatter = node.create_publisher(String, "chatter", 10)
 scan_pub = node.create_publisher(LaserScan, "scan", 10)
 battery = node.create_publisher(String, "battery", 10) if a.wrong_type else None
+bigscan = node.create_publisher(LaserScan, "bigscan", 10) if a.oversized else None
 cmd = {"v": 0.0, "w": 0.0, "at": -1.0}
 goal = {"xy": None}
 
@@ -156,6 +159,11 @@ while time.monotonic() < end and not stopping:
             scan_pub.publish(sc)
         if battery is not None:
             battery.publish(String(data="full"))
+        if bigscan is not None:
+            big = LaserScan()
+            big.header.frame_id = "laser"
+            big.ranges = [1.0] * 2000
+            bigscan.publish(big)
     n += 1
     rclpy.spin_once(node, timeout_sec=0)
     time.sleep(dt)

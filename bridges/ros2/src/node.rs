@@ -51,6 +51,8 @@ pub struct Ros2Node {
     node: Node,
     context: Context,
     errors: Cell<u64>,
+    /// Errors per kind (the text before its first `:`, e.g. the topic), for the log.
+    kinds: std::cell::RefCell<std::collections::HashMap<String, u64>>,
 }
 
 impl Ros2Node {
@@ -70,6 +72,7 @@ impl Ros2Node {
             node,
             context,
             errors: Cell::new(0),
+            kinds: Default::default(),
         })
     }
 
@@ -154,12 +157,22 @@ impl Ros2Node {
         }
     }
 
-    /// Counts an error and logs the first and then every 1000th.
+    /// Counts an error and logs the first of its kind and then every 1000th.
     pub fn warn_limited(&self, what: &str) {
-        let n = self.errors.get() + 1;
-        self.errors.set(n);
-        if n == 1 || n.is_multiple_of(1000) {
-            tracing::warn!(errors = n, "ROS 2: {what}");
+        self.errors.set(self.errors.get() + 1);
+        // Counted per kind, so one noisy topic does not hide another's first error.
+        let kind = what.split(':').next().unwrap_or(what);
+        let mut kinds = self.kinds.borrow_mut();
+        // At most 256 kinds are told apart; the rest share one count.
+        let key = if kinds.contains_key(kind) || kinds.len() < 256 {
+            kind
+        } else {
+            ""
+        };
+        let n = kinds.entry(key.to_string()).or_default();
+        *n += 1;
+        if *n == 1 || n.is_multiple_of(1000) {
+            tracing::warn!(errors = *n, "ROS 2: {what}");
         }
     }
 
