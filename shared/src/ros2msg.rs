@@ -970,6 +970,33 @@ mod tests {
         assert!(d.decode(&[0, 9, 0, 0]).is_err());
     }
 
+    proptest::proptest! {
+        // Any bytes, and any corruption of a good sample: a value or an error, never a
+        // panic; what decodes re-serializes and transcodes back to a sample that decodes
+        // the same (non-finite floats aside: JSON has none).
+        #[test]
+        fn any_sample_decodes_or_is_refused(
+            bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..200),
+            flips in proptest::collection::vec((0usize..64, proptest::prelude::any::<u8>()), 0..6),
+        ) {
+            let d = Definitions::parse("my_pkg/Cloud", POINTS).unwrap();
+            let _ = d.decode(&bytes);
+            let mut s = sample();
+            for (at, v) in flips {
+                let n = s.len();
+                s[at % n] = v;
+            }
+            if let Ok(v) = d.decode(&s) {
+                let walked = d.reserialize(&s, serde_json::value::Serializer).unwrap();
+                let text = v.to_string();
+                if !text.contains("inf") && !text.contains("nan") {
+                    let again = d.decode(&d.transcode(walked).unwrap()).unwrap();
+                    proptest::prop_assert_eq!(again, v);
+                }
+            }
+        }
+    }
+
     #[test]
     fn a_sample_reserialized_and_transcoded_comes_back_byte_for_byte() {
         let d = Definitions::parse("my_pkg/Cloud", POINTS).unwrap();
