@@ -194,6 +194,12 @@ pub fn parse_fields(text: &str, pkg: &str) -> Result<Vec<Field>, Ros2MsgError> {
             Some(p) => Base::Prim(p),
             None => Base::Msg(full_name(base, pkg)),
         };
+        if fields.iter().any(|f: &Field| f.name == name) {
+            return Err(def_err(format!(
+                "line {}: field {name:?} is declared twice",
+                n + 1
+            )));
+        }
         fields.push(Field {
             name: name.to_string(),
             base,
@@ -950,6 +956,12 @@ mod tests {
         assert!(Definitions::parse("p/T", "int32\n").is_err());
         assert!(Definitions::parse("p/T", "int32[x] a\n").is_err());
         assert!(Definitions::parse("p/T", "wstring a\n").is_err());
+        // Found by the fuzzer: a name twice (its JSON would keep one of the two).
+        let e = Definitions::parse("p/T", "int16 a\nfloat32 a\n").unwrap_err();
+        assert!(
+            e.to_string().contains("field \"a\" is declared twice"),
+            "{e}"
+        );
         assert!(Definitions::parse("T", "int32 a\n").is_err());
         let cyclic = "p/A a\n================================================================================\nMSG: p/A\np/A a\n";
         assert!(Definitions::parse("p/T", cyclic).is_err());
