@@ -314,6 +314,15 @@ fn until(
     }
 }
 
+/// Stops robot system `proc` (SIGTERM) and returns what its `--stats-json` printed:
+/// grants, localization error per robot and the system's own figures.
+fn stats_on_stop(fed: &mut Fed, proc: usize) -> Value {
+    fed.proc(proc).signal(libc::SIGTERM);
+    until(fed.proc(proc), "the system's stats", 20 * SEC, |v| {
+        v["localization"].is_object()
+    })
+}
+
 /// `muster user request ID --duration D --json`, which must succeed: its output.
 fn request_json(fed: &Fed, id: &str, duration: &str) -> String {
     let (code, out) = fed.run(
@@ -882,13 +891,7 @@ fn the_paper_delivery_robot_drives_a_robot_through_ros2() {
     assert!(within <= 1.0, "{arrived}");
     // It localized itself from the ROS scan and odometry: against the simulator's ground
     // truth (its `ground_truth` topic), within half a metre at the 95th percentile.
-    fed.proc(delivery).signal(libc::SIGTERM);
-    let stats = until(
-        fed.proc(delivery),
-        "the delivery system's stats",
-        20 * SEC,
-        |v| v["arrivals"].is_number(),
-    );
+    let stats = stats_on_stop(&mut fed, delivery);
     assert_eq!(stats["arrivals"], 1, "{stats}");
     let loc = &stats["localization"]["D1"];
     assert!(f(loc, "samples") > 5.0, "{stats}");
@@ -954,13 +957,7 @@ fn the_paper_delivery_robot_drives_an_rclpy_robot() {
         |v| v["event"] == "cmd_vel",
     );
     assert!(moved["v"].is_number(), "{moved}");
-    fed.proc(delivery).signal(libc::SIGTERM);
-    let stats = until(
-        fed.proc(delivery),
-        "the delivery system's stats",
-        20 * SEC,
-        |v| v["arrivals"].is_number(),
-    );
+    let stats = stats_on_stop(&mut fed, delivery);
     assert_eq!(stats["arrivals"], 1, "{stats} {done}");
     // This robot's odometry is exact: the localizer's estimate against it.
     let loc = &stats["localization"]["R1"];
@@ -1022,13 +1019,7 @@ fn the_paper_tracking_system_tracks_through_ros2() {
         "{seen:?}"
     );
     // Each tracker localized itself from its ROS scan and odometry.
-    fed.proc(tracking).signal(libc::SIGTERM);
-    let stats = until(
-        fed.proc(tracking),
-        "the tracking system's stats",
-        20 * SEC,
-        |v| v["localization"].is_object(),
-    );
+    let stats = stats_on_stop(&mut fed, tracking);
     for r in ["T1", "T2", "T3"] {
         let loc = &stats["localization"][r];
         assert!(f(loc, "samples") > 10.0, "{r}: {stats}");

@@ -138,7 +138,7 @@ pub fn payload_json_with(p: &Payload, schema: Option<&Schema>) -> Value {
         Some((_, Err(e))) => {
             json!({"type": type_name, "bytes": data.len(), "hex": hex::encode(data), "error": e})
         }
-        None => json!({"type": type_name, "bytes": data.len(), "hex": hex::encode(data)}),
+        None => payload_json(p),
     }
 }
 

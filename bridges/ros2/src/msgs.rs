@@ -6,32 +6,6 @@
 pub use ros2_client::builtin_interfaces::Time;
 use serde::{Deserialize, Serialize};
 
-/// `ros2_client`'s marker trait for what a publisher may send.
-macro_rules! messages {
-    ($($t:ty),* $(,)?) => { $(impl ros2_client::Message for $t {})* };
-}
-messages!(
-    Vector3Stamped,
-    PoseWithCovarianceStamped,
-    Pose2D,
-    StringMsg,
-    Float64,
-    Float32,
-    Int32,
-    Int64,
-    Bool,
-    Header,
-    Clock,
-    LaserScan,
-    Range,
-    Odometry,
-    Twist,
-    PoseStamped,
-    OccupancyGrid,
-    MarkerArray,
-    TfMessage,
-);
-
 /// A ROS message held as its CDR bytes (with the encapsulation header), published by
 /// walking its definition (an open payload a command service puts on a topic).
 pub struct RawMsg {

@@ -196,11 +196,6 @@ impl Ros2Node {
         types.dedup();
         types
     }
-
-    /// The node, for what this wrapper does not cover.
-    pub fn inner(&mut self) -> &mut Node {
-        &mut self.node
-    }
 }
 
 /// A DDS type name (`nav_msgs::msg::dds_::Odometry_`) as ROS writes it

@@ -76,8 +76,9 @@ struct RobotTopics {
 pub struct SimBridge {
     clock: Publisher<Clock>,
     tf: Publisher<TfMessage>,
-    _tf_static: Publisher<TfMessage>,
-    _map: Publisher<OccupancyGrid>,
+    // Latched (transient-local): sent once, and kept so late subscribers get them.
+    tf_static: Publisher<TfMessage>,
+    map: Publisher<OccupancyGrid>,
     people: Publisher<MarkerArray>,
     robots: Vec<RobotTopics>,
     opts: SimBridgeOptions,
@@ -187,12 +188,12 @@ impl SimBridge {
             opts,
             next_odom: 0.0,
             next_people: 0.0,
-            _tf_static: tf_static,
-            _map: map,
+            tf_static,
+            map,
             node,
         };
         bridge.node.send(
-            &bridge._map,
+            &bridge.map,
             occupancy_grid(world.map(), world.time()),
             "/map",
         );
@@ -206,7 +207,7 @@ impl SimBridge {
                 })
                 .collect(),
         };
-        bridge.node.send(&bridge._tf_static, statics, "/tf_static");
+        bridge.node.send(&bridge.tf_static, statics, "/tf_static");
         tracing::info!(
             domain = bridge.opts.domain,
             robots = bridge.robots.len(),

@@ -10,7 +10,7 @@
 //! the new primary, and the new primary's own report that it serves.
 
 use super::children::Children;
-use super::{row, summary};
+use super::{header, row, summary};
 use crate::cli::{FailoverArgs, FailoverUserArgs};
 use anyhow::{bail, Context};
 use hdrhistogram::Histogram;
@@ -408,10 +408,7 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
             "muster bench failover: {} holders, {} requesters, {} services on {} systems, deadline {:?}",
             a.users, a.requesters, total, a.systems, a.deadline
         );
-        println!(
-            "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
-            "from the signal (us)", "count", "p50", "p90", "p99", "max"
-        );
+        println!("{}", header("from the signal (us)"));
         for r in &rounds {
             for (what, h) in [
                 ("standby notices", &r.to_notice),

@@ -3,7 +3,7 @@
 //! the floor the request path is measured against.
 
 use super::children::Children;
-use super::{row, summary};
+use super::{header, row, summary};
 use crate::cli::FloorArgs;
 use anyhow::{bail, Context};
 use hdrhistogram::Histogram;
@@ -134,10 +134,7 @@ pub fn run(inst: &Instance, a: FloorArgs) -> anyhow::Result<ExitCode> {
     if a.json {
         println!("{}", json!({"floor": summary(&h)}));
     } else {
-        println!(
-            "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
-            "latency (us)", "count", "p50", "p90", "p99", "max"
-        );
+        println!("{}", header("latency (us)"));
         println!("{}", row("floor: inbox+bell round trip", &h));
     }
     Ok(ExitCode::SUCCESS)

@@ -2,7 +2,7 @@
 //! shared-memory list every millisecond.
 
 use super::children::Children;
-use super::{row, summary};
+use super::{header, row, summary};
 use crate::cli::LivenessArgs;
 use anyhow::{bail, Context};
 use hdrhistogram::Histogram;
@@ -133,10 +133,7 @@ pub fn run(inst: &Instance, a: LivenessArgs) -> anyhow::Result<ExitCode> {
         );
     } else {
         println!("muster bench liveness: {} trials", a.trials);
-        println!(
-            "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
-            "latency (us)", "count", "p50", "p90", "p99", "max"
-        );
+        println!("{}", header("latency (us)"));
         println!("{}", row("system SIGKILL -> unlisted", &kill));
         println!(
             "{}",

@@ -42,6 +42,14 @@ pub fn summary(h: &hdrhistogram::Histogram<u64>) -> serde_json::Value {
     })
 }
 
+/// The header of a table of [`row`]s, `first` naming its first column.
+pub fn header(first: &str) -> String {
+    format!(
+        "{first:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
+        "count", "p50", "p90", "p99", "max"
+    )
+}
+
 /// One table row for a histogram of microseconds.
 pub fn row(name: &str, h: &hdrhistogram::Histogram<u64>) -> String {
     format!(

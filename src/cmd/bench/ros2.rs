@@ -11,7 +11,7 @@
 //!    real-time factor (from `/clock`), scans received, and the simulator's CPU per robot.
 
 use super::children::{connect_when_listed, Children};
-use super::{row, summary};
+use super::{header, row, summary};
 use crate::cli::Ros2BenchArgs;
 use anyhow::Context as _;
 use hdrhistogram::Histogram;
@@ -316,10 +316,7 @@ fn bridge_latency(
     let ratio = muster.value_at_quantile(0.5) as f64 / rclpy.value_at_quantile(0.5).max(1) as f64;
     if !a.json {
         println!("muster bench ros2: rclpy (ROS 2 Kilted, Fast DDS) and muster on this host; one way, us");
-        println!(
-            "{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
-            "path", "n", "p50", "p90", "p99", "max"
-        );
+        println!("{}", header("one way (us)"));
         println!("{}", row("rclpy pub -> rclpy sub", &rclpy));
         println!("{}", row("rclpy pub -> muster user", &muster));
         println!("{}", row("muster goal -> rclpy sub", &goal));

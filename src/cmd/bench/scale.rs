@@ -4,7 +4,7 @@
 
 use super::children::Children;
 use super::procfs;
-use super::{row, summary};
+use super::{header, row, summary};
 use crate::cli::ScaleArgs;
 use anyhow::{bail, Context};
 use hdrhistogram::Histogram;
@@ -231,10 +231,7 @@ pub fn run(inst: &Instance, a: ScaleArgs) -> anyhow::Result<ExitCode> {
         for f in failures.iter().take(5) {
             println!("  {f}");
         }
-        println!(
-            "\n{:<28} {:>7} {:>10} {:>10} {:>10} {:>10}",
-            "latency (us)", "count", "p50", "p90", "p99", "max"
-        );
+        println!("\n{}", header("latency (us)"));
         println!("{}", row("user spawn..list (queued)", &setup));
         println!("{}", row("user connect+list (in-proc)", &connect));
         println!("{}", row("list read (shared memory)", &list_read));
