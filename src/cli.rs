@@ -798,15 +798,18 @@ pub struct Ros2SystemArgs {
 #[derive(Args, Debug, Clone)]
 pub struct RobotSystemArgs {
     /// The simulator's scenario (TOML; default: the paper's). Must match `muster sim`'s.
-    #[arg(long)]
+    /// With `--ros2` the robots describe themselves instead (see `--robot-params`).
+    #[arg(long, conflicts_with = "ros2")]
     pub scenario: Option<std::path::PathBuf>,
-    /// Map (map_server YAML; default: the scenario's, or the built-in office).
+    /// Map (map_server YAML; default: the scenario's, or the built-in office; with
+    /// `--ros2`, the one on `/map`).
     #[arg(long)]
     pub map: Option<std::path::PathBuf>,
     /// Use the simulator's ground-truth poses instead of localizing (experiments only).
     #[arg(long)]
     pub ground_truth: bool,
-    /// How long to wait for the simulator to come up.
+    /// How long to wait for the simulator to come up (with `--ros2`: for each robot's
+    /// first scan, odometry and map).
     #[arg(long, default_value = "20s", value_parser = duration)]
     pub wait_sim: Duration,
     /// Seed of the filters' randomness.
@@ -828,6 +831,12 @@ pub struct RobotSystemArgs {
     /// With `--ros2`: the ROS domain id (default: `ROS_DOMAIN_ID`, else 0).
     #[arg(long, requires = "ros2", value_parser = clap::value_parser!(u16).range(0..=232))]
     pub domain: Option<u16>,
+    /// With `--ros2`: what the robots' topics do not say (TOML, a table per robot:
+    /// `radius`, `max_speed`, `start = [x, y, heading_deg]`, `home = [x, y]`, `camera`);
+    /// the laser comes from the first scan, the sonar from `/tf_static`, the map from
+    /// `/map` or `--map`.
+    #[arg(long, requires = "ros2")]
+    pub robot_params: Option<std::path::PathBuf>,
 }
 
 #[derive(Args, Debug)]

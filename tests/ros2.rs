@@ -893,6 +893,28 @@ fn the_paper_delivery_robot_drives_a_robot_through_ros2() {
     // truth (its `ground_truth` topic), within half a metre at the 95th percentile.
     let stats = stats_on_stop(&mut fed, delivery);
     assert_eq!(stats["arrivals"], 1, "{stats}");
+    // What it took D1 to be, from the robot's own topics alone (no scenario, no
+    // parameter file): the start from its first odometry, the laser from its first
+    // scan, the sonar from /tf_static and its ranges, the map from /map.
+    let me = &stats["robots"]["D1"];
+    let start: Vec<f64> = serde_json::from_value(me["start"].clone()).unwrap();
+    assert!(
+        (start[0] - 30.0).abs() < 0.01 && (start[1] - 3.0).abs() < 0.01,
+        "{me}"
+    );
+    assert!((start[2].abs() - 180.0).abs() < 0.1, "{me}");
+    assert!((f(&me["laser"], "first_deg") + 90.0).abs() < 1e-3, "{me}");
+    assert!((f(&me["laser"], "step_deg") - 1.0).abs() < 1e-3, "{me}");
+    assert_eq!(me["laser"]["range_m"], 8.0, "{me}");
+    assert_eq!(me["sonar"]["transducers"], 16, "{me}");
+    assert_eq!(me["sonar"]["range_m"], 5.0, "{me}");
+    let bearings: Vec<f64> = serde_json::from_value(me["sonar"]["bearings_deg"].clone()).unwrap();
+    assert!(
+        (bearings[0] - 90.0).abs() < 1e-6 && (bearings[11] + 170.0).abs() < 1e-6,
+        "{me}"
+    );
+    assert_eq!(me["map_m"], serde_json::json!([40.0, 20.0]), "{me}");
+    assert_eq!(me["camera"], Value::Null, "{me}");
     let loc = &stats["localization"]["D1"];
     assert!(f(loc, "samples") > 5.0, "{stats}");
     assert!(f(loc, "position_p95_m") < 0.5, "{stats}");
@@ -902,13 +924,20 @@ fn the_paper_delivery_robot_drives_a_robot_through_ros2() {
 
 /// The same delivery system drives a robot written in rclpy (tests/ros2/robot.py with
 /// `--room`: a differential drive whose laser sees the walls of the room the test's map
-/// draws), with the room's map and the robot's spec from files, as for any robot.
+/// draws), with the room's map and what its topics do not say (start, size, speed) from
+/// files, as for any robot.
 #[test]
 fn the_paper_delivery_robot_drives_an_rclpy_robot() {
     let Some(python) = rclpy() else { return };
     let dir = std::env::temp_dir().join(format!("muster-ros2-rclpy-d1-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let scenario = room(&dir);
+    room(&dir);
+    let params = dir.join("r1.toml");
+    std::fs::write(
+        &params,
+        "[R1]\nstart = [3.0, 4.0, 0.0]\nradius = 0.2\nmax_speed = 1.0\n",
+    )
+    .unwrap();
     let d = domain(4);
     let mut fed = Fed::new("ros2rdlv");
     fed.broker(&[]);
@@ -927,8 +956,10 @@ fn the_paper_delivery_robot_drives_an_rclpy_robot() {
         "/turtle",
         "--robot",
         "R1",
-        "--scenario",
-        scenario.to_str().unwrap(),
+        "--map",
+        dir.join("room.yaml").to_str().unwrap(),
+        "--robot-params",
+        params.to_str().unwrap(),
         "--home-after",
         "600",
         "--stats-json",
@@ -959,6 +990,13 @@ fn the_paper_delivery_robot_drives_an_rclpy_robot() {
     assert!(moved["v"].is_number(), "{moved}");
     let stats = stats_on_stop(&mut fed, delivery);
     assert_eq!(stats["arrivals"], 1, "{stats} {done}");
+    let me = &stats["robots"]["R1"];
+    assert_eq!(me["start"], serde_json::json!([3.0, 4.0, 0.0]), "{me}");
+    assert_eq!(me["radius_m"], 0.2, "{me}");
+    assert_eq!(me["max_speed"], 1.0, "{me}");
+    assert_eq!(me["sonar"], Value::Null, "{me}");
+    assert_eq!(me["laser"]["beams_if_symmetric"], 181, "{me}");
+    assert_eq!(me["map_m"], serde_json::json!([24.0, 8.0]), "{me}");
     // This robot's odometry is exact: the localizer's estimate against it.
     let loc = &stats["localization"]["R1"];
     assert!(f(loc, "position_p95_m") < 0.5, "{stats}");
@@ -982,6 +1020,8 @@ fn the_paper_tracking_system_tracks_through_ros2() {
         "--ros2",
         "--domain",
         &d,
+        "--robots",
+        "T1,T2,T3",
         "--stats-json",
     ]);
     fed.wait_list(30 * SEC, |l| {
@@ -1021,6 +1061,12 @@ fn the_paper_tracking_system_tracks_through_ros2() {
     // Each tracker localized itself from its ROS scan and odometry.
     let stats = stats_on_stop(&mut fed, tracking);
     for r in ["T1", "T2", "T3"] {
+        // Each camera's geometry: the simulator's, by default, once the robot's camera
+        // topics were heard.
+        assert_eq!(
+            stats["robots"][r]["camera"]["fov_deg"], 60.0,
+            "{r}: {stats}"
+        );
         let loc = &stats["localization"][r];
         assert!(f(loc, "samples") > 10.0, "{r}: {stats}");
         assert!(f(loc, "position_p95_m") < 0.5, "{r}: {stats}");

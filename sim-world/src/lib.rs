@@ -4,12 +4,12 @@
 
 pub mod bench;
 pub mod bodies;
-pub mod kinematics;
-pub mod map;
 pub mod people;
 pub mod render;
 pub mod scenario;
 pub mod sensors;
 pub mod shm;
-mod walls;
 pub mod world;
+
+// The world model the simulator shares with the robot systems, where it always was.
+pub use muster_world_model::{kinematics, map};

@@ -4,9 +4,9 @@ use crate::cli::{DeliveryArgs, RobotSystemArgs, Ros2SystemArgs, SystemCommand, T
 use anyhow::Context;
 use muster_robots::port::RobotPort;
 use muster_robots::shell::{
-    delivery_specs, open_links, tracking_specs, DeliveryApp, DeliveryOptions, TrackingApp,
-    TrackingOptions,
+    delivery_specs, tracking_specs, DeliveryApp, DeliveryOptions, TrackingApp, TrackingOptions,
 };
+use muster_robots::sim::open_ports;
 use muster_shared::types::validate_registration;
 use muster_shared::Instance;
 use muster_sim_world::map::OccupancyMap;
@@ -78,25 +78,75 @@ fn world_of(a: &RobotSystemArgs) -> anyhow::Result<(Scenario, Arc<OccupancyMap>)
         None => Scenario::paper(),
     };
     let map = match (&a.map, &scenario.map) {
-        (Some(p), _) | (None, Some(p)) => {
-            OccupancyMap::load(p).with_context(|| format!("loading {}", p.display()))?
-        }
+        (Some(p), _) | (None, Some(p)) => load_map(p)?,
         (None, None) => OccupancyMap::office(),
     };
     Ok((scenario, Arc::new(map)))
 }
 
+fn load_map(p: &std::path::Path) -> anyhow::Result<OccupancyMap> {
+    OccupancyMap::load(p).with_context(|| format!("loading {}", p.display()))
+}
+
+/// The ports of `robots` (in ROS namespaces `namespaces`): ROS 2 topics with `--ros2`,
+/// else the simulator's shared memory.
+fn robot_ports(
+    inst: &Instance,
+    node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    a: &RobotSystemArgs,
+    system: &str,
+    robots: &[(String, String)],
+    camera: bool,
+) -> anyhow::Result<Vec<Box<dyn RobotPort>>> {
+    if a.ros2 {
+        let params = match &a.robot_params {
+            Some(p) => muster_ros2::port::RobotParams::load(p)?,
+            None => Default::default(),
+        };
+        if let Some(unknown) = params.keys().find(|k| !robots.iter().any(|(r, _)| r == *k)) {
+            anyhow::bail!("--robot-params: {unknown} is not one of this system's robots");
+        }
+        let map = a.map.as_deref().map(load_map).transpose()?.map(Arc::new);
+        return robots
+            .iter()
+            .map(|(r, ns)| {
+                let opts = muster_ros2::port::PortOptions {
+                    domain: ros2_domain(a),
+                    namespace: ns.clone(),
+                    node: format!("{system}_{r}"),
+                    robot: r.clone(),
+                    params: params.get(r).cloned().unwrap_or_default(),
+                    map: map.clone(),
+                    camera,
+                    wait: a.wait_sim,
+                };
+                Ok(Box::new(muster_ros2::port::Ros2Port::open(&opts)?) as Box<dyn RobotPort>)
+            })
+            .collect();
+    }
+    let (scenario, map) = world_of(a)?;
+    let names: Vec<String> = robots.iter().map(|(r, _)| r.clone()).collect();
+    Ok(
+        open_ports(node, inst.as_str(), &scenario, &map, &names, a.wait_sim)?
+            .into_iter()
+            .map(|l| Box::new(l) as Box<dyn RobotPort>)
+            .collect(),
+    )
+}
+
 fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
-    let (scenario, map) = world_of(&a.common)?;
-    let robots = if a.robots.is_empty() {
-        scenario
+    let robots = if !a.robots.is_empty() {
+        a.robots.clone()
+    } else if a.common.ros2 {
+        anyhow::bail!("--ros2: name the robots with --robots");
+    } else {
+        world_of(&a.common)?
+            .0
             .robots
             .iter()
             .filter(|r| r.camera.is_some())
             .map(|r| r.name.clone())
             .collect()
-    } else {
-        a.robots.clone()
     };
     anyhow::ensure!(
         !robots.is_empty(),
@@ -146,23 +196,16 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
     let specs = tracking_specs(&colours, &robots, a.quota);
     validate_registration(&a.name, &specs)?;
     let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
-    let links: Vec<Box<dyn RobotPort>> = if a.common.ros2 {
-        let domain = ros2_domain(&a.common);
-        robots
-            .iter()
-            .map(|r| {
-                let node_name = format!("{}_{r}", a.name);
-                let port = muster_ros2::port::Ros2Port::new(domain, &format!("/{r}"), &node_name)?;
-                Ok(Box::new(port) as Box<dyn RobotPort>)
-            })
-            .collect::<anyhow::Result<_>>()?
-    } else {
-        open_links(&node, inst.as_str(), &robots, a.common.wait_sim)?
-            .into_iter()
-            .map(|l| Box::new(l) as Box<dyn RobotPort>)
-            .collect()
-    };
-    let mut app = TrackingApp::new(&scenario, map, links, &opts)?;
+    let named: Vec<(String, String)> = robots
+        .iter()
+        .map(|r| (r.clone(), format!("/{r}")))
+        .collect();
+    let links = robot_ports(inst, &node, &a.common, &a.name, &named, true)?;
+    let described: serde_json::Map<String, serde_json::Value> = links
+        .iter()
+        .map(|l| (l.description().name.clone(), l.description().summary()))
+        .collect();
+    let mut app = TrackingApp::new(links, &opts)?;
     show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
     let core = SystemCore::new(&a.name, std::process::id(), specs);
     let run = muster_systems::RunOptions { udp: a.common.udp };
@@ -176,14 +219,13 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
         println!(
             "{}",
             serde_json::json!({"system": core.name(), "services": core.report(),
-                "localization": loc, "updates": app.published()})
+                "localization": loc, "updates": app.published(), "robots": described})
         );
     }
     Ok(ExitCode::SUCCESS)
 }
 
 fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
-    let (scenario, map) = world_of(&a.common)?;
     anyhow::ensure!(
         a.home_after.is_finite() && a.home_after > 0.0,
         "--home-after must be > 0"
@@ -203,26 +245,22 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
     let specs = delivery_specs(&opts);
     validate_registration(&a.name, &specs)?;
     let node = muster_shared::ipc::create_node(&format!("muster-robots-{}", a.name), false)?;
-    let link: Box<dyn RobotPort> = if a.common.ros2 {
-        let ns = a
-            .namespace
-            .clone()
-            .unwrap_or_else(|| format!("/{}", a.robot));
-        Box::new(muster_ros2::port::Ros2Port::new(
-            ros2_domain(&a.common),
-            &ns,
-            &a.name,
-        )?)
-    } else {
-        let mut links = open_links(
-            &node,
-            inst.as_str(),
-            std::slice::from_ref(&a.robot),
-            a.common.wait_sim,
-        )?;
-        Box::new(links.pop().context("no link")?)
-    };
-    let mut app = DeliveryApp::new(&scenario, map, link, &opts)?;
+    let ns = a
+        .namespace
+        .clone()
+        .unwrap_or_else(|| format!("/{}", a.robot));
+    let link = robot_ports(
+        inst,
+        &node,
+        &a.common,
+        &a.name,
+        &[(a.robot.clone(), ns)],
+        false,
+    )?
+    .pop()
+    .context("no port")?;
+    let described = serde_json::json!({a.robot.clone(): link.description().summary()});
+    let mut app = DeliveryApp::new(link, &opts)?;
     show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
     let core = SystemCore::new(&a.name, std::process::id(), specs);
     let run = muster_systems::RunOptions { udp: a.common.udp };
@@ -232,7 +270,7 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
             "{}",
             serde_json::json!({"system": core.name(), "services": core.report(),
                 "localization": {a.robot.clone(): app.localization().summary()},
-                "arrivals": app.arrivals(),
+                "arrivals": app.arrivals(), "robots": described,
                 "control_latency": app.latency_summary()})
         );
     }

@@ -27,6 +27,9 @@ pub enum Ros2Error {
     /// ROS domain ids run 0..=232 (the DDS port mapping's range); pick one there.
     #[error("ROS domain id {0} is out of range: use 0..=232")]
     Domain(u16),
+    /// A robot could not be described: a topic that did not come, a bad parameter file.
+    #[error("ROS 2: {0}")]
+    Robot(String),
 }
 
 impl Ros2Error {

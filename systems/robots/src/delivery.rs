@@ -8,7 +8,7 @@
 
 use crate::navigator::{NavParams, Navigator};
 use crate::planner::Planner;
-use muster_sim_world::kinematics::Pose;
+use muster_world_model::kinematics::Pose;
 use std::sync::Arc;
 
 /// How the delivery robot behaves.
@@ -299,8 +299,8 @@ impl DeliveryCore {
 mod tests {
     use super::*;
     use crate::planner::PlannerParams;
-    use muster_sim_world::kinematics::integrate;
-    use muster_sim_world::map::OccupancyMap;
+    use muster_world_model::kinematics::integrate;
+    use muster_world_model::map::OccupancyMap;
 
     fn core(home: Option<(f64, f64)>) -> DeliveryCore {
         let map = OccupancyMap::office();

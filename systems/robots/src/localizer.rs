@@ -6,7 +6,7 @@
 //! Pure: fed with odometry and scans, no clock of its own; its randomness is seeded.
 
 use crate::sensing::{LaserScan, LikelihoodField};
-use muster_sim_world::kinematics::{wrap, Pose};
+use muster_world_model::kinematics::{wrap, Pose};
 use nalgebra::{Matrix3, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_distr::{Distribution, Normal};

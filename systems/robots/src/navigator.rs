@@ -9,7 +9,7 @@
 //! Pure: fed with sim time, the pose estimate and obstacle points.
 
 use crate::planner::{path_length, PlanError, Planner};
-use muster_sim_world::kinematics::{wrap, Pose};
+use muster_world_model::kinematics::{wrap, Pose};
 use parry2d::math::{Pose2, Vec2};
 use parry2d::query::{cast_shapes, ShapeCastOptions};
 use parry2d::shape::{Ball, Polyline};
@@ -593,7 +593,7 @@ pub fn free_distance(radius: f64, pts: &[(f64, f64)], direction: f64) -> f64 {
 mod tests {
     use super::*;
     use crate::planner::PlannerParams;
-    use muster_sim_world::map::OccupancyMap;
+    use muster_world_model::map::OccupancyMap;
 
     #[test]
     fn free_distance_sees_walls_between_beams_and_single_echoes() {
@@ -636,7 +636,7 @@ mod tests {
             let Some((v, w)) = nav.give_way(t, pose, &[local]) else {
                 break;
             };
-            pose = muster_sim_world::kinematics::integrate(pose, v, w, 0.1);
+            pose = muster_world_model::kinematics::integrate(pose, v, w, 0.1);
             t += 0.1;
             moved_away |= v > 0.0;
         }
@@ -680,7 +680,7 @@ mod tests {
         let mut t = 4.0;
         for _ in 0..400 {
             let s = nav.step(t, pose, &[]);
-            pose = muster_sim_world::kinematics::integrate(pose, s.velocity.0, s.velocity.1, 0.1);
+            pose = muster_world_model::kinematics::integrate(pose, s.velocity.0, s.velocity.1, 0.1);
             t += 0.1;
             if s.remaining < 0.2 {
                 break;

@@ -8,7 +8,7 @@
 //! hundred thousand wall squares can beat. Bodies the laser sees (people, robots) are
 //! added as temporary obstacles when the robot replans round them.
 
-use muster_sim_world::map::OccupancyMap;
+use muster_world_model::map::OccupancyMap;
 use pathfinding::prelude::astar;
 
 /// How the planner is tuned.

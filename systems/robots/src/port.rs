@@ -1,19 +1,42 @@
 //! A robot, as a robot system sees it: a port it reads samples from and sends commands
-//! to. The simulator's shared memory ([`RobotLink`]) is one implementation; ROS 2 topics
-//! (`muster_ros2::port`) are another, so the paper's systems drive any robot that offers
-//! a laser scan, odometry and velocity commands.
+//! to, and a description of the robot (its sensors' geometry, size, speed, where it
+//! starts, the map it drives on). The simulator's shared memory ([`crate::sim::SimPort`])
+//! is one implementation; ROS 2 topics (`muster_ros2::port`) are another, so the paper's
+//! systems drive any robot that offers a laser scan, odometry and velocity commands.
 
-use crate::sensing::SensorSample;
-use muster_sim_world::shm::RobotLink;
+use crate::sensing::{SensorGeometry, SensorSample};
+use muster_world_model::{OccupancyMap, Pose};
 use std::os::fd::RawFd;
+use std::sync::Arc;
 
 /// Why a port could not read or command its robot.
 #[derive(Debug, thiserror::Error)]
 #[error("robot port: {0}")]
 pub struct PortError(pub String);
 
+/// What a robot system knows of a robot before it drives it.
+#[derive(Clone, Debug)]
+pub struct RobotDescription {
+    /// The robot's name.
+    pub name: String,
+    /// Where it starts on the map (the localizer's first belief).
+    pub start: Pose,
+    /// Its sensors.
+    pub sensors: SensorGeometry,
+    /// Body radius, m.
+    pub radius: f64,
+    /// Top speed, m/s.
+    pub max_speed: f64,
+    /// Where it goes when idle, if anywhere (x, y on the map).
+    pub home: Option<(f64, f64)>,
+    /// The map it drives on.
+    pub map: Arc<OccupancyMap>,
+}
+
 /// One robot's sensors and commands.
 pub trait RobotPort {
+    /// What the robot is.
+    fn description(&self) -> &RobotDescription;
     /// A descriptor readable when the robot has news (edge-triggered: call
     /// [`RobotPort::drain`] when it is).
     fn fd(&self) -> RawFd;
@@ -30,23 +53,29 @@ pub trait RobotPort {
     fn camera(&mut self, pan: f64, tilt: f64, zoom: f64) -> Result<(), PortError>;
 }
 
-impl RobotPort for RobotLink {
-    fn fd(&self) -> RawFd {
-        RobotLink::fd(self)
-    }
-    fn drain(&mut self) {
-        RobotLink::drain(self);
-    }
-    fn latest(&mut self, after: f64) -> Result<Option<SensorSample>, PortError> {
-        RobotLink::latest(self, after, SensorSample::from_shm).map_err(|e| PortError(e.to_string()))
-    }
-    fn newer_than(&mut self, after: f64) -> Option<f64> {
-        RobotLink::latest(self, after, |s| s.time).ok().flatten()
-    }
-    fn velocity(&mut self, v: f64, w: f64) -> Result<(), PortError> {
-        RobotLink::velocity(self, v, w).map_err(|e| PortError(e.to_string()))
-    }
-    fn camera(&mut self, pan: f64, tilt: f64, zoom: f64) -> Result<(), PortError> {
-        RobotLink::camera(self, pan, tilt, zoom).map_err(|e| PortError(e.to_string()))
+impl RobotDescription {
+    /// What the robot was taken to be, for reports (`--stats-json`): start pose, laser
+    /// beams and field of view, sonar transducers, camera, size, speed, map size.
+    pub fn summary(&self) -> serde_json::Value {
+        let laser = self.sensors.laser.map(|(first, step, range)| {
+            let beams = (-2.0 * first / step).round() as i64 + 1;
+            serde_json::json!({"first_deg": first.to_degrees(), "step_deg": step.to_degrees(),
+                "range_m": range, "beams_if_symmetric": beams})
+        });
+        let sonar = self.sensors.sonar.as_ref().map(|(b, range)| {
+            serde_json::json!({"transducers": b.len(), "range_m": range,
+                "bearings_deg": b.iter().map(|a| a.to_degrees()).collect::<Vec<_>>()})
+        });
+        let camera = self.sensors.camera.map(|(fov, range, pan)| {
+            serde_json::json!({"fov_deg": fov.to_degrees(), "range_m": range,
+                "pan_limit_deg": pan.to_degrees()})
+        });
+        let (w, h) = self.map.size();
+        serde_json::json!({
+            "start": [self.start.x, self.start.y, self.start.theta.to_degrees()],
+            "laser": laser, "sonar": sonar, "camera": camera,
+            "radius_m": self.radius, "max_speed": self.max_speed, "home": self.home,
+            "map_m": [w, h],
+        })
     }
 }

@@ -1,11 +1,10 @@
-//! What a robot system takes from its robot: one sensors sample, copied out of shared
-//! memory into plain values the cores read, and the map turned into the forms the cores
+//! What a robot system takes from its robot: one sensors sample in plain values the cores
+//! read (whatever port it came through), and the map turned into the forms the cores
 //! use (a likelihood field for localization).
 
-use muster_sim_world::kinematics::Pose;
-use muster_sim_world::map::OccupancyMap;
-use muster_sim_world::scenario::{Colour, RobotSpec};
-use muster_sim_world::shm::RobotSensors;
+use muster_world_model::kinematics::Pose;
+use muster_world_model::map::OccupancyMap;
+use muster_world_model::Colour;
 
 /// A laser scan: ranges at evenly spread bearings relative to the robot's heading.
 #[derive(Clone, Copy, Debug)]
@@ -65,73 +64,8 @@ pub struct SensorSample {
     pub bumped: bool,
 }
 
-impl SensorSample {
-    /// Copies what the systems use out of a sample read in place.
-    pub fn from_shm(s: &RobotSensors) -> Self {
-        let nb = (s.n_beams as usize).min(s.laser.len());
-        let ns = (s.n_sonar as usize).min(s.sonar.len());
-        let nd = (s.n_detections as usize).min(s.detections.len());
-        let pose = |p: &muster_sim_world::shm::PoseC| Pose {
-            x: p.x,
-            y: p.y,
-            theta: p.theta,
-        };
-        SensorSample {
-            time: s.time,
-            odom: pose(&s.odom),
-            truth: pose(&s.pose),
-            laser_time: s.laser_time,
-            laser: s.laser[..nb].to_vec(),
-            sonar_time: s.sonar_time,
-            sonar: s.sonar[..ns].to_vec(),
-            camera_time: s.camera_time,
-            pan: s.ptz[0],
-            sightings: s.detections[..nd]
-                .iter()
-                .filter_map(|d| {
-                    Some(Sighting {
-                        colour: Colour::from_code(d.colour)?,
-                        bearing: d.bearing,
-                        range: d.range,
-                    })
-                })
-                .collect(),
-            bumped: s.bumped != 0,
-        }
-    }
-}
-
-impl SensorSample {
-    /// The same sample taken straight from a robot of an in-process [`World`] (tests and
-    /// benchmarks run the cores on the simulator without processes).
-    ///
-    /// [`World`]: muster_sim_world::world::World
-    pub fn from_robot(r: &muster_sim_world::world::Robot, time: f64) -> Self {
-        SensorSample {
-            time,
-            odom: r.odom,
-            truth: r.pose,
-            laser_time: r.laser_time,
-            laser: r.laser.clone(),
-            sonar_time: r.sonar_time,
-            sonar: r.sonar.clone(),
-            camera_time: r.camera_time,
-            pan: r.ptz.pan,
-            sightings: r
-                .detections
-                .iter()
-                .map(|d| Sighting {
-                    colour: d.colour,
-                    bearing: d.bearing,
-                    range: d.range,
-                })
-                .collect(),
-            bumped: r.bumped,
-        }
-    }
-}
-
-/// The sensor geometry of one robot, from its scenario entry.
+/// The sensor geometry of one robot: where its laser beams and sonar transducers point,
+/// what its camera sees.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct SensorGeometry {
     /// Laser: first bearing, step, range (if fitted).
@@ -143,35 +77,6 @@ pub struct SensorGeometry {
 }
 
 impl SensorGeometry {
-    /// The geometry of `spec`'s sensors.
-    pub fn of(spec: &RobotSpec) -> Self {
-        SensorGeometry {
-            laser: spec.laser.as_ref().map(|l| {
-                let fov = l.fov_deg.to_radians();
-                let step = if l.beams > 1 {
-                    fov / (l.beams - 1) as f64
-                } else {
-                    0.0
-                };
-                let first = if l.beams > 1 { -fov / 2.0 } else { 0.0 };
-                (first, step, l.range)
-            }),
-            sonar: spec.sonar.as_ref().map(|s| {
-                (
-                    s.bearings_deg.iter().map(|b| b.to_radians()).collect(),
-                    s.range,
-                )
-            }),
-            camera: spec.camera.as_ref().map(|c| {
-                (
-                    c.fov_deg.to_radians(),
-                    c.range,
-                    c.pan_limit_deg.to_radians(),
-                )
-            }),
-        }
-    }
-
     /// The scan in `sample` with this geometry (`None` without a laser).
     pub fn scan<'a>(&self, sample: &'a SensorSample) -> Option<LaserScan<'a>> {
         let (first, step, max_range) = self.laser?;

@@ -9,6 +9,7 @@ use crate::delivery::{DeliveryCore, DeliveryEvent, DeliveryParams};
 use crate::localizer::{Localizer, LocalizerParams};
 use crate::navigator::NavParams;
 use crate::planner::{Planner, PlannerParams};
+use crate::port::PortError;
 use crate::port::RobotPort;
 use crate::sensing::{LikelihoodField, SensorGeometry};
 use crate::tracking::{TrackerRobot, TrackingCore, TrackingParams};
@@ -16,14 +17,11 @@ use muster_shared::ipc::VizWriter;
 use muster_shared::protocol::monotonic_ns;
 use muster_shared::types::{Payload, ServiceKind, ServiceSpec, TaskStatus};
 use muster_shared::viz::{PlanView, RobotEstimate, SystemView, TrackView};
-use muster_sim_world::kinematics::{wrap, Pose};
-use muster_sim_world::map::OccupancyMap;
-use muster_sim_world::scenario::{Colour, RobotSpec, Scenario};
-use muster_sim_world::shm::{RobotLink, ShmError};
 use muster_systems::{SystemApp, SystemCore, SystemEvent};
+use muster_world_model::{wrap, Colour, Pose};
 use std::os::fd::RawFd;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// Why a robot system could not start.
 #[derive(Debug, thiserror::Error)]
@@ -34,60 +32,15 @@ pub enum RobotSystemError {
     /// The robot lacks a sensor the system needs.
     #[error("robot {0} has no {1}")]
     MissingSensor(String, &'static str),
-    /// The simulator's shared memory could not be opened (is `muster sim` running on
-    /// this instance?).
-    #[error("{0} (is `muster sim` running on this instance?)")]
-    Sim(#[from] ShmError),
+    /// The robot's port could not be opened or described.
+    #[error(transparent)]
+    Port(#[from] PortError),
     /// iceoryx2 refused a node.
     #[error(transparent)]
     Transport(#[from] muster_shared::ipc::TransportError),
     /// A configuration value is unusable; the text says which.
     #[error("{0}")]
     Config(String),
-}
-
-/// Opens the links to `robots`, retrying until the simulator is up or `wait` passes.
-pub fn open_links(
-    node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
-    inst: &str,
-    robots: &[String],
-    wait: Duration,
-) -> Result<Vec<RobotLink>, RobotSystemError> {
-    let deadline = Instant::now() + wait;
-    let mut logged = false;
-    loop {
-        match robots
-            .iter()
-            .map(|r| RobotLink::open(node, inst, r))
-            .collect::<Result<Vec<_>, _>>()
-        {
-            Ok(links) => return Ok(links),
-            Err(e) if Instant::now() >= deadline => return Err(e.into()),
-            Err(e) => {
-                if !logged {
-                    tracing::info!("waiting for the simulator: {e}");
-                    logged = true;
-                }
-                std::thread::sleep(Duration::from_millis(100));
-            }
-        }
-    }
-}
-
-fn spec_of<'a>(scenario: &'a Scenario, name: &str) -> Result<&'a RobotSpec, RobotSystemError> {
-    scenario
-        .robots
-        .iter()
-        .find(|r| r.name == name)
-        .ok_or_else(|| RobotSystemError::NoRobot(name.to_string()))
-}
-
-fn start_pose(spec: &RobotSpec) -> Pose {
-    Pose {
-        x: spec.pose[0],
-        y: spec.pose[1],
-        theta: wrap(spec.pose[2].to_radians()),
-    }
 }
 
 /// Localization error against ground truth, sampled once per weighed scan (for the
@@ -214,32 +167,42 @@ impl Viz {
 }
 
 impl TrackingApp {
-    /// Builds the system for `opts` on `scenario`/`map`, with `links` opened to
-    /// `opts.robots` in that order.
+    /// Builds the system for `opts`, driving the robots behind `links` (opened to
+    /// `opts.robots` in that order, all on one map: the first's).
     pub fn new(
-        scenario: &Scenario,
-        map: Arc<OccupancyMap>,
         links: Vec<Box<dyn RobotPort>>,
         opts: &TrackingOptions,
     ) -> Result<Self, RobotSystemError> {
         let mut robots = Vec::new();
-        for name in &opts.robots {
-            let spec = spec_of(scenario, name)?;
-            if spec.camera.is_none() {
+        let Some(map) = links.first().map(|l| Arc::clone(&l.description().map)) else {
+            return Err(RobotSystemError::Config("no robots".into()));
+        };
+        if links.len() != opts.robots.len() {
+            return Err(RobotSystemError::Config(format!(
+                "{} robot ports for {} robots",
+                links.len(),
+                opts.robots.len()
+            )));
+        }
+        let mut radius: f64 = 0.0;
+        for (name, link) in opts.robots.iter().zip(&links) {
+            let d = link.description();
+            if d.sensors.camera.is_none() {
                 return Err(RobotSystemError::MissingSensor(name.clone(), "camera"));
             }
-            if spec.laser.is_none() && !opts.params.ground_truth {
+            if d.sensors.laser.is_none() && !opts.params.ground_truth {
                 return Err(RobotSystemError::MissingSensor(
                     name.clone(),
                     "laser (needed to localize; or run with --ground-truth)",
                 ));
             }
+            radius = radius.max(d.radius);
             robots.push(TrackerRobot {
                 name: name.clone(),
-                start: start_pose(spec),
+                start: d.start,
                 mobile: opts.mobile.contains(name),
-                geometry: SensorGeometry::of(spec),
-                max_speed: spec.drive.max_speed,
+                geometry: d.sensors.clone(),
+                max_speed: d.max_speed,
             });
         }
         if let Some(m) = opts.mobile.iter().find(|m| !opts.robots.contains(m)) {
@@ -248,11 +211,6 @@ impl TrackingApp {
             )));
         }
         let field = Arc::new(LikelihoodField::new(&map, 1.0));
-        let radius = robots
-            .iter()
-            .filter_map(|r| spec_of(scenario, &r.name).ok())
-            .map(|s| s.drive.radius)
-            .fold(0.0, f64::max);
         let planner = Arc::new(Planner::new(
             &map,
             PlannerParams {
@@ -504,30 +462,19 @@ pub struct DeliveryApp {
 }
 
 impl DeliveryApp {
-    /// Builds the system for `opts` on `scenario`/`map`, driving the robot behind `link`
-    /// (the simulator's shared memory, ROS 2 topics, ...).
-    pub fn new(
-        scenario: &Scenario,
-        map: Arc<OccupancyMap>,
-        link: Box<dyn RobotPort>,
-        opts: &DeliveryOptions,
-    ) -> Result<Self, RobotSystemError> {
-        let spec = spec_of(scenario, &opts.robot)?;
-        let geometry = SensorGeometry::of(spec);
+    /// Builds the system for `opts`, driving the robot behind `link` (the simulator's
+    /// shared memory, ROS 2 topics, ...).
+    pub fn new(link: Box<dyn RobotPort>, opts: &DeliveryOptions) -> Result<Self, RobotSystemError> {
+        let d = link.description().clone();
+        let geometry = d.sensors.clone();
         if geometry.laser.is_none() {
             return Err(RobotSystemError::MissingSensor(opts.robot.clone(), "laser"));
         }
         let mut params = opts.params.clone();
         if params.home.is_none() {
-            params.home = spec.home.as_ref().and_then(|h| {
-                scenario
-                    .places
-                    .iter()
-                    .find(|p| &p.name == h)
-                    .map(|p| (p.at[0], p.at[1]))
-            });
+            params.home = d.home;
         }
-        let start = start_pose(spec);
+        let (start, map) = (d.start, d.map);
         let localizer = (!opts.ground_truth).then(|| {
             Localizer::new(
                 Arc::new(LikelihoodField::new(&map, 1.0)),
@@ -539,13 +486,13 @@ impl DeliveryApp {
         let planner = Arc::new(Planner::new(
             &map,
             PlannerParams {
-                radius: spec.drive.radius,
+                radius: d.radius,
                 ..PlannerParams::default()
             },
         ));
         let nav = NavParams {
-            max_speed: spec.drive.max_speed.min(0.8),
-            footprint: spec.drive.radius + 0.03,
+            max_speed: d.max_speed.min(0.8),
+            footprint: d.radius + 0.03,
             ..NavParams::default()
         };
         Ok(DeliveryApp {

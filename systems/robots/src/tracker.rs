@@ -8,8 +8,8 @@
 
 use crate::sensing::Sighting;
 use muster_shared::types::{Track2d, MAX_TRACK_OBSERVERS};
-use muster_sim_world::kinematics::Pose;
-use muster_sim_world::scenario::Colour;
+use muster_world_model::kinematics::Pose;
+use muster_world_model::Colour;
 use nalgebra::{Matrix2, Matrix2x3, Matrix2x4, Matrix3, Matrix4, Vector2, Vector4};
 use std::collections::BTreeMap;
 

@@ -14,9 +14,9 @@ use crate::planner::Planner;
 use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
 use crate::tracker::{MultiTracker, TrackerParams};
 use muster_shared::types::Track2d;
-use muster_sim_world::kinematics::{wrap, Pose};
-use muster_sim_world::map::OccupancyMap;
-use muster_sim_world::scenario::Colour;
+use muster_world_model::kinematics::{wrap, Pose};
+use muster_world_model::map::OccupancyMap;
+use muster_world_model::Colour;
 use nalgebra::Matrix3;
 use std::sync::Arc;
 

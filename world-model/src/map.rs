@@ -539,7 +539,7 @@ impl Ray {
 /// the bounds, without `floor`, a library call on x86-64's baseline: for a coordinate
 /// not below zero truncation is the floor, and one too large to fit saturates.
 #[inline]
-pub(crate) fn grid_cell(u: f64, v: f64, w: usize, h: usize) -> Option<(usize, usize)> {
+pub fn grid_cell(u: f64, v: f64, w: usize, h: usize) -> Option<(usize, usize)> {
     if !(u >= 0.0 && v >= 0.0) {
         return None;
     }
@@ -651,16 +651,14 @@ fn distance_transform(w: usize, h: usize, occupied: &[bool]) -> Vec<u8> {
         .collect()
 }
 
-/// For tests: a `w` × `h` cell room with one-cell walls on its border and extra
-/// occupied cells `inside`.
-#[cfg(test)]
-pub(crate) fn walled_room(w: usize, h: usize, res: f64, inside: &[(usize, usize)]) -> OccupancyMap {
+/// A `w` × `h` cell room with one-cell walls on its border and extra occupied cells
+/// `inside` (tests build small worlds with it).
+pub fn walled_room(w: usize, h: usize, res: f64, inside: &[(usize, usize)]) -> OccupancyMap {
     OccupancyMap::from_grid(w, h, res, (0.0, 0.0), walled_cells(w, h, inside))
 }
 
-/// For tests: the occupied flags of [`walled_room`].
-#[cfg(test)]
-pub(crate) fn walled_cells(w: usize, h: usize, inside: &[(usize, usize)]) -> Vec<bool> {
+/// The occupied flags of [`walled_room`].
+pub fn walled_cells(w: usize, h: usize, inside: &[(usize, usize)]) -> Vec<bool> {
     let mut occ = vec![false; w * h];
     for i in 0..w {
         occ[i] = true;
