@@ -913,7 +913,11 @@ fn the_paper_delivery_robot_drives_a_robot_through_ros2() {
         (bearings[0] - 90.0).abs() < 1e-6 && (bearings[11] + 170.0).abs() < 1e-6,
         "{me}"
     );
-    assert_eq!(me["map_m"], serde_json::json!([40.0, 20.0]), "{me}");
+    let near = |v: &Value, want: f64| v.as_f64().is_some_and(|x| (x - want).abs() < 1e-4);
+    assert!(
+        near(&me["map_m"][0], 40.0) && near(&me["map_m"][1], 20.0),
+        "{me}"
+    );
     assert_eq!(me["camera"], Value::Null, "{me}");
     let loc = &stats["localization"]["D1"];
     assert!(f(loc, "samples") > 5.0, "{stats}");
@@ -996,7 +1000,11 @@ fn the_paper_delivery_robot_drives_an_rclpy_robot() {
     assert_eq!(me["max_speed"], 1.0, "{me}");
     assert_eq!(me["sonar"], Value::Null, "{me}");
     assert_eq!(me["laser"]["beams_if_symmetric"], 181, "{me}");
-    assert_eq!(me["map_m"], serde_json::json!([24.0, 8.0]), "{me}");
+    let near = |v: &Value, want: f64| v.as_f64().is_some_and(|x| (x - want).abs() < 1e-4);
+    assert!(
+        near(&me["map_m"][0], 24.0) && near(&me["map_m"][1], 8.0),
+        "{me}"
+    );
     // This robot's odometry is exact: the localizer's estimate against it.
     let loc = &stats["localization"]["R1"];
     assert!(f(loc, "position_p95_m") < 0.5, "{stats}");
@@ -1063,14 +1071,81 @@ fn the_paper_tracking_system_tracks_through_ros2() {
     for r in ["T1", "T2", "T3"] {
         // Each camera's geometry: the simulator's, by default, once the robot's camera
         // topics were heard.
-        assert_eq!(
-            stats["robots"][r]["camera"]["fov_deg"], 60.0,
-            "{r}: {stats}"
-        );
+        let fov = f(&stats["robots"][r]["camera"], "fov_deg");
+        assert!((fov - 60.0).abs() < 1e-9, "{r}: {stats}");
         let loc = &stats["localization"][r];
         assert!(f(loc, "samples") > 10.0, "{r}: {stats}");
         assert!(f(loc, "position_p95_m") < 0.5, "{r}: {stats}");
     }
     fed.shutdown();
     world.shutdown();
+}
+
+/// A robot system told to drive a ROS 2 robot that is not there, or given a parameter
+/// file it cannot use, stops with an error that says what is missing or wrong.
+#[test]
+fn a_ros2_robot_system_says_what_it_waited_for() {
+    let d = domain(6).to_string();
+    let fed = Fed::new("ros2ghost");
+    let (code, _, err) = fed.run_full(
+        &[
+            "system",
+            "delivery",
+            "--ros2",
+            "--domain",
+            &d,
+            "--robot",
+            "ghost",
+            "--wait-sim",
+            "2s",
+        ],
+        30 * SEC,
+    );
+    assert_ne!(code, 0, "{err}");
+    assert!(
+        err.contains(
+            "robot ghost: waited 2s for a scan on /ghost/scan, odometry on /ghost/odom, \
+             a map on /map (or give --map)"
+        ),
+        "{err}"
+    );
+    let dir = std::env::temp_dir().join(format!("muster-ros2-ghost-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let params = dir.join("p.toml");
+    for (text, says) in [
+        (
+            "[ghost]\nradius = -0.2\n",
+            "[ghost] radius must be a positive number",
+        ),
+        (
+            "[other]\nradius = 0.2\n",
+            "other is not one of this system's robots",
+        ),
+    ] {
+        std::fs::write(&params, text).unwrap();
+        let (code, _, err) = fed.run_full(
+            &[
+                "system",
+                "delivery",
+                "--ros2",
+                "--domain",
+                &d,
+                "--robot",
+                "ghost",
+                "--robot-params",
+                params.to_str().unwrap(),
+            ],
+            30 * SEC,
+        );
+        assert_ne!(code, 0, "{err}");
+        assert!(err.contains(says), "{text}: {err}");
+    }
+    // A scenario describes simulated robots only.
+    let (code, _, err) = fed.run_full(
+        &["system", "delivery", "--ros2", "--scenario", "x.toml"],
+        30 * SEC,
+    );
+    assert_ne!(code, 0);
+    assert!(err.contains("cannot be used with"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -159,6 +159,15 @@ impl Fed {
     /// Runs a command to completion (bounded); returns exit code and stdout. Its
     /// stderr goes into the test's own output (shown when the test fails).
     pub fn run(&self, args: &[&str], timeout: Duration) -> (i32, String) {
+        let (code, out, err) = self.run_full(args, timeout);
+        if !err.is_empty() {
+            eprint!("`muster {}` said on stderr:\n{err}", args.join(" "));
+        }
+        (code, out)
+    }
+
+    /// [`Fed::run`], returning exit code, stdout and stderr.
+    pub fn run_full(&self, args: &[&str], timeout: Duration) -> (i32, String, String) {
         let child = self
             .command(args)
             .stdin(Stdio::null())
@@ -174,13 +183,10 @@ impl Fed {
         match rx.recv_timeout(timeout) {
             Ok(out) => {
                 let out = out.expect("output");
-                let err = String::from_utf8_lossy(&out.stderr);
-                if !err.is_empty() {
-                    eprint!("`muster {}` said on stderr:\n{err}", args.join(" "));
-                }
                 (
                     out.status.code().unwrap_or(-1),
                     String::from_utf8_lossy(&out.stdout).into(),
+                    String::from_utf8_lossy(&out.stderr).into(),
                 )
             }
             Err(_) => {

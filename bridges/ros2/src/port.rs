@@ -369,6 +369,7 @@ impl Ros2Port {
         tf_static: Subscription<TfMessage>,
     ) -> Result<RobotDescription, Ros2Error> {
         let ns = opts.namespace.trim_matches('/');
+        let ns_topic = opts.namespace.trim_end_matches('/');
         let deadline = Instant::now() + opts.wait;
         let mut map = opts.map.clone();
         let mut bearings: BTreeMap<usize, f64> = BTreeMap::new();
@@ -404,13 +405,13 @@ impl Ros2Port {
                         .warn_limited(&format!("/tf_static: sample dropped: {e}")),
                 }
             }
-            let missing: Vec<&str> = [
-                (self.laser.is_none(), "a scan on scan"),
-                (!self.heard_odom, "odometry on odom"),
-                (map.is_none(), "a map on /map (or give --map)"),
+            let missing: Vec<String> = [
+                (self.laser.is_none(), format!("a scan on {ns_topic}/scan")),
+                (!self.heard_odom, format!("odometry on {ns_topic}/odom")),
+                (map.is_none(), "a map on /map (or give --map)".to_string()),
                 (
                     opts.camera && !self.heard_camera && opts.params.camera.is_none(),
-                    "the camera on beacons or ptz",
+                    format!("the camera on {ns_topic}/beacons or {ns_topic}/ptz"),
                 ),
             ]
             .into_iter()
@@ -428,11 +429,10 @@ impl Ros2Port {
                 }
             } else if now >= deadline {
                 return Err(Ros2Error::Robot(format!(
-                    "robot {} in {}: no {} within {:?}",
+                    "robot {}: waited {:?} for {}",
                     opts.robot,
-                    opts.namespace,
-                    missing.join(", no "),
-                    opts.wait
+                    opts.wait,
+                    missing.join(", ")
                 )));
             }
             std::thread::sleep(Duration::from_millis(20));
