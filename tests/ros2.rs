@@ -1087,65 +1087,36 @@ fn the_paper_tracking_system_tracks_through_ros2() {
 fn a_ros2_robot_system_says_what_it_waited_for() {
     let d = domain(6).to_string();
     let fed = Fed::new("ros2ghost");
-    let (code, _, err) = fed.run_full(
-        &[
-            "system",
-            "delivery",
-            "--ros2",
-            "--domain",
-            &d,
-            "--robot",
-            "ghost",
-            "--wait-sim",
-            "2s",
-        ],
-        30 * SEC,
-    );
-    assert_ne!(code, 0, "{err}");
-    assert!(
-        err.contains(
-            "robot ghost: waited 2s for a scan on /ghost/scan, odometry on /ghost/odom, \
-             a map on /map (or give --map)"
-        ),
-        "{err}"
+    // Runs `system delivery --ros2` for robot "ghost" with `extra`: fails, says `says`.
+    let refused = |extra: &[&str], says: &str| {
+        let mut args = vec![
+            "system", "delivery", "--ros2", "--domain", &d, "--robot", "ghost",
+        ];
+        args.extend_from_slice(extra);
+        let (code, _, err) = fed.run_full(&args, 30 * SEC);
+        assert_ne!(code, 0, "{err}");
+        assert!(err.contains(says), "{extra:?}: {err}");
+    };
+    refused(
+        &["--wait-sim", "2s"],
+        "robot ghost: waited 2s for a scan on /ghost/scan, odometry on /ghost/odom, \
+         a map on /map (or give --map)",
     );
     let dir = std::env::temp_dir().join(format!("muster-ros2-ghost-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let params = dir.join("p.toml");
-    for (text, says) in [
-        (
-            "[ghost]\nradius = -0.2\n",
-            "[ghost] radius must be a positive number",
-        ),
-        (
-            "[other]\nradius = 0.2\n",
-            "other is not one of this system's robots",
-        ),
-    ] {
-        std::fs::write(&params, text).unwrap();
-        let (code, _, err) = fed.run_full(
-            &[
-                "system",
-                "delivery",
-                "--ros2",
-                "--domain",
-                &d,
-                "--robot",
-                "ghost",
-                "--robot-params",
-                params.to_str().unwrap(),
-            ],
-            30 * SEC,
-        );
-        assert_ne!(code, 0, "{err}");
-        assert!(err.contains(says), "{text}: {err}");
-    }
-    // A scenario describes simulated robots only.
-    let (code, _, err) = fed.run_full(
-        &["system", "delivery", "--ros2", "--scenario", "x.toml"],
-        30 * SEC,
+    let p = params.to_str().unwrap();
+    std::fs::write(&params, "[ghost]\nradius = -0.2\n").unwrap();
+    refused(
+        &["--robot-params", p],
+        "[ghost] radius must be a positive number",
     );
-    assert_ne!(code, 0);
-    assert!(err.contains("cannot be used with"), "{err}");
+    std::fs::write(&params, "[other]\nradius = 0.2\n").unwrap();
+    refused(
+        &["--robot-params", p],
+        "other is not one of this system's robots",
+    );
+    // A scenario describes simulated robots only.
+    refused(&["--scenario", "x.toml"], "cannot be used with");
     let _ = std::fs::remove_dir_all(&dir);
 }
