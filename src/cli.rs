@@ -739,7 +739,8 @@ pub struct BrokerArgs {
     /// Connect to this Zenoh endpoint (e.g. `tcp/10.0.0.2:7447`); repeatable.
     #[arg(long, requires = "federate")]
     pub connect: Vec<String>,
-    /// Listen on this Zenoh endpoint (e.g. `tcp/0.0.0.0:7447`); repeatable.
+    /// Listen on this Zenoh endpoint (e.g. `tcp/0.0.0.0:7447`); repeatable. Default:
+    /// loopback only (`tcp/127.0.0.1:0`).
     #[arg(long, requires = "federate")]
     pub listen: Vec<String>,
     /// A host silent this long is gone, its services removed from the others' lists
@@ -757,9 +758,14 @@ pub struct BrokerArgs {
     pub tls: Option<std::path::PathBuf>,
     /// The federation's access file (TOML, the same on every host): `[hosts]` then
     /// `NAME = ["offer", "request"]` per host. Hosts not named, or acting beyond their
-    /// roles, are let do nothing. Needs --tls.
+    /// roles, are let do nothing. Needs --tls; default `acl.toml` in the --tls folder
+    /// (`muster certs` writes it).
     #[arg(long, requires = "tls")]
     pub acl: Option<std::path::PathBuf>,
+    /// Federate without TLS: no authentication, anyone reaching the endpoint can act as
+    /// any host. Refused without this flag; warned of at every start.
+    #[arg(long, requires = "federate", conflicts_with = "tls")]
+    pub insecure_no_tls: bool,
 }
 
 #[derive(Subcommand, Debug)]

@@ -101,6 +101,9 @@ impl Hosts {
                 }
             }
         }
+        if !self.extra[i].iter().any(|e| e == "--tls") {
+            a.push("--insecure-no-tls".into());
+        }
         a.extend(self.extra[i].iter().cloned());
         a
     }
@@ -136,13 +139,18 @@ fn request_json(h: &mut Hosts, i: usize, id: &str, duration: &str) -> (i32, Vec<
     (code, lines)
 }
 
-/// `muster broker ARGS` on a fresh instance must refuse to start.
-fn broker_refused(name: &str, args: &[&str]) {
+/// `muster broker ARGS` on a fresh instance must refuse to start, saying `says`.
+fn broker_refused(name: &str, args: &[&str], says: &str) {
     let mut f = Fed::new(name);
     let mut full = vec!["broker"];
     full.extend_from_slice(args);
-    let (code, _) = f.run(&full, 20 * SEC);
+    let (code, _, err) = f.run_full(&full, 20 * SEC);
     assert_ne!(code, 0, "`muster broker {}` started", args.join(" "));
+    assert!(
+        err.contains(says),
+        "`muster broker {}`: {err}",
+        args.join(" ")
+    );
     f.shutdown();
 }
 
@@ -791,7 +799,11 @@ fn a_host_without_the_federations_certificate_joins_nothing() {
     );
     // A broker whose --tls folder lacks its certificate does not start.
     let tls_dir = fed_dir.to_str().unwrap();
-    broker_refused("fc-miss", &["--federate", "--host", "zz", "--tls", tls_dir]);
+    broker_refused(
+        "fc-miss",
+        &["--federate", "--host", "zz", "--tls", tls_dir],
+        "zz.pem is missing",
+    );
     drop(h);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -846,6 +858,7 @@ fn the_access_file_decides_who_offers_and_who_requests() {
     broker_refused(
         "fa-bad",
         &["--federate", "--host", "q", "--acl", acl.to_str().unwrap()],
+        "--tls",
     );
     drop(h);
     let _ = std::fs::remove_dir_all(&dir);
@@ -1075,4 +1088,180 @@ fn a_cut_link_parts_two_hosts_from_each_other_only_and_mends() {
     assert_eq!(lines[0]["granted"], true, "{lines:?}");
     drop(h);
     net.shutdown();
+}
+
+#[test]
+fn a_federation_is_secure_by_default() {
+    let dir = std::env::temp_dir().join(format!("muster-test-secure-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    // No TLS, no say-so: refused, with the way out.
+    broker_refused(
+        "fd-plain",
+        &["--federate", "--host", "q"],
+        "--federate needs --tls DIR",
+    );
+    // `muster certs` writes the access file beside the certificates, every host in it;
+    // a host added later joins it, and what an operator narrowed stays narrowed.
+    let certs = dir.join("certs");
+    assert_eq!(make_certs(&certs, "a,b"), 0);
+    let acl = certs.join("acl.toml");
+    let text = std::fs::read_to_string(&acl).unwrap();
+    let parsed = muster_broker::federation::Acl::parse(&text).unwrap();
+    assert_eq!(parsed.hosts.len(), 2, "{text}");
+    assert!(
+        parsed.allows("a", muster_broker::federation::Role::Offer),
+        "{text}"
+    );
+    assert!(
+        parsed.allows("b", muster_broker::federation::Role::Request),
+        "{text}"
+    );
+    std::fs::write(
+        &acl,
+        "[hosts]\na = [\"request\"]\nb = [\"offer\", \"request\"]\n",
+    )
+    .unwrap();
+    assert_eq!(make_certs(&certs, "spy"), 0);
+    let parsed = muster_broker::federation::Acl::load(&acl).unwrap();
+    assert!(!parsed.allows("a", muster_broker::federation::Role::Offer));
+    assert!(parsed.allows("spy", muster_broker::federation::Role::Offer));
+    // TLS without an access file: refused (a host would be any host it names).
+    let bare = dir.join("bare");
+    assert_eq!(make_certs(&bare, "q"), 0);
+    std::fs::remove_file(bare.join("acl.toml")).unwrap();
+    broker_refused(
+        "fd-noacl",
+        &["--federate", "--host", "q", "--tls", bare.to_str().unwrap()],
+        "acl.toml is missing",
+    );
+    // Without --listen, on loopback only.
+    let mut f = Fed::new("fd-lo");
+    let b = f.broker(&["--federate", "--insecure-no-tls", "--host", "lo"]);
+    let pid = f.proc(b).pid();
+    let deadline = Instant::now() + 10 * SEC;
+    let mut listening = Vec::new();
+    while listening.is_empty() && Instant::now() < deadline {
+        listening = common::tcp_listening(pid);
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    assert!(!listening.is_empty(), "the broker listens somewhere");
+    assert!(
+        listening.iter().all(|a| a.ip().is_loopback()),
+        "{listening:?}"
+    );
+    f.shutdown();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_member_host_sees_only_its_own_frames_and_acts_only_as_itself() {
+    use muster_broker::federation::FedMsg;
+    use muster_shared::protocol::encode;
+    use muster_shared::types::{ServiceId, UserId};
+    use std::sync::{Arc, Mutex};
+    use zenoh::Wait;
+    // Hosts a and b, and a third member "spy" (its certificate from the federation's
+    // authority, in the access file with both roles: the defaults `muster certs`
+    // writes). The spy is a Zenoh client in this test that subscribes to everything and
+    // puts what it likes.
+    let dir = std::env::temp_dir().join(format!("muster-test-member-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let certs = dir.join("certs");
+    assert_eq!(make_certs(&certs, "a,b,spy"), 0);
+    let tls = |_: usize| vec!["--tls".to_string(), certs.display().to_string()];
+    let mut h = Hosts::with("fm", &["a", "b"], tls);
+    h.host(1).system("robo", &["--rate", "20", "--quota", "5"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    let mut conf = zenoh::Config::default();
+    let file = |n: &str| serde_json::to_string(&certs.join(n).display().to_string()).unwrap();
+    for (k, v) in [
+        // A peer, reaching each host directly, as a member host's broker does.
+        ("mode", "\"peer\"".to_string()),
+        ("listen/endpoints", "[]".into()),
+        ("scouting/multicast/enabled", "false".into()),
+        (
+            "connect/endpoints",
+            format!(
+                "[\"tls/127.0.0.1:{}\", \"tls/127.0.0.1:{}\"]",
+                h.hosts[0].2, h.hosts[1].2
+            ),
+        ),
+        ("transport/link/tls/root_ca_certificate", file("ca.pem")),
+        ("transport/link/tls/connect_certificate", file("spy.pem")),
+        ("transport/link/tls/connect_private_key", file("spy.key")),
+        ("transport/link/tls/enable_mtls", "true".into()),
+        ("transport/link/tls/verify_name_on_connect", "false".into()),
+    ] {
+        conf.insert_json5(k, &v).unwrap();
+    }
+    let z = zenoh::open(conf).wait().unwrap();
+    let fed = format!("muster/{}/", h.name);
+    let seen: Arc<Mutex<Vec<String>>> = Arc::default();
+    let sink = Arc::clone(&seen);
+    let p = fed.clone();
+    let _sub = z
+        .declare_subscriber(format!("{fed}**"))
+        // What the other hosts send it, not its own puts.
+        .allowed_origin(zenoh::sample::Locality::Remote)
+        .callback(move |s| {
+            let key = s.key_expr().as_str().trim_start_matches(&p).to_string();
+            sink.lock().unwrap().push(key);
+        })
+        .wait()
+        .unwrap();
+    // a's user streams from b while the spy listens.
+    let holder = h
+        .host(0)
+        .spawn(&["user", "request", "robo@b/s0", "--duration", "3s", "--json"]);
+    assert_eq!(
+        h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
+        true
+    );
+    // The spy asks b for the service under a's name (forged) and under its own.
+    let request = |user: &str| {
+        encode(&FedMsg::Request {
+            user: UserId(user.into()),
+            req: 1,
+            service: ServiceId::new("robo", "s0"),
+            remote: None,
+        })
+        .unwrap()
+    };
+    z.put(format!("{fed}b/req/a"), request("forged"))
+        .wait()
+        .unwrap();
+    z.put(format!("{fed}b/req/spy"), request("spyuser"))
+        .wait()
+        .unwrap();
+    // Its own request is served: b's grant comes back to it, on its own key.
+    let deadline = Instant::now() + 10 * SEC;
+    while !seen.lock().unwrap().iter().any(|k| k == "spy/in/b") && Instant::now() < deadline {
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let lines = h.host(0).proc(holder).all_json(20 * SEC);
+    assert!(seqs(&lines).len() >= 20, "{lines:?}");
+    let seen = seen.lock().unwrap().clone();
+    assert!(
+        seen.iter().any(|k| k == "spy/in/b"),
+        "the spy's own grant: {seen:?}"
+    );
+    assert!(seen.iter().any(|k| k == "b/list"), "the lists: {seen:?}");
+    // Of the frames, only its own: nothing of a's session with b, either way.
+    let others: Vec<&String> = seen
+        .iter()
+        .filter(|k| !k.ends_with("/list") && !k.starts_with("spy/"))
+        .collect();
+    assert!(
+        others.is_empty(),
+        "frames for other hosts reached the spy: {others:?}"
+    );
+    // The forged request was not taken: a's session ended, and b holds at most the
+    // spy's own (two if the forged one had been taken as a's user).
+    std::thread::sleep(SEC);
+    let l = h.host(1).list();
+    let in_use = find(&l, "robo/s0").unwrap()["in_use"].as_u64().unwrap();
+    assert!(in_use <= 1, "{l:?}");
+    z.close().wait().unwrap();
+    drop(h);
+    let _ = std::fs::remove_dir_all(&dir);
 }

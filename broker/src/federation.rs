@@ -12,10 +12,16 @@
 //! | `<host>/req/<from>` | a user's frames ([`FedMsg`]: request, cancel, input, end, gone) from host `from` to this host |
 //! | `<host>/in/<from>` | frames for a user ([`FedMsg::ToUser`]) from host `from`'s arbitration and systems |
 //!
-//! With `--acl FILE` (which needs `--tls`), each broker lets in from a peer only what
-//! the peer's role allows (Zenoh's access control, the peer known by its certificate's
-//! common name): hosts that offer publish their list, tokens and systems' frames; hosts
-//! that request send requests; anything else, or any host not named, is denied.
+//! **Security.** A federation runs on mutual TLS (`--tls DIR`, from `muster certs`);
+//! without it a broker refuses to start unless told `--insecure-no-tls`, and with no
+//! `--listen` it listens on loopback only. With TLS there are always access rules:
+//! `--acl FILE`, else `DIR/acl.toml` (which `muster certs` writes). Each broker lets in
+//! from a peer only what the peer's role allows (Zenoh's access control, the peer known
+//! by its certificate's common name): hosts that offer publish their list, tokens and
+//! systems' frames, under their own name only; hosts that request send requests under
+//! their own name only; anything else, or any host not named, is denied. And each
+//! broker sends a peer only the frames addressed to it (`<peer>/req/*`, `<peer>/in/*`)
+//! and the lists: a member never sees other hosts' sessions.
 //!
 //! Every broker merges the others' lists into its shared-memory list, each service under
 //! the id `system@host/name`, so a local user reads the global list as before.
@@ -132,9 +138,17 @@ pub struct FedConfig {
     /// Mutual TLS with the certificates in this folder (`muster certs`): `ca.pem`,
     /// `HOST.pem`, `HOST.key`. TCP endpoints are used as TLS ones.
     pub tls: Option<PathBuf>,
-    /// Who may do what: which hosts offer services, which request them (needs `tls`).
+    /// Who may do what: which hosts offer services, which request them (needs `tls`;
+    /// with `tls` and none given, `acl.toml` in the certificates' folder, which `muster
+    /// certs` writes).
     pub acl: Option<Acl>,
+    /// Federate without TLS: no authentication at all, anyone who reaches the endpoint
+    /// acts as any host (`--insecure-no-tls`; refused otherwise).
+    pub insecure: bool,
 }
+
+/// The access file `muster certs` writes beside the certificates.
+pub const ACL_FILE: &str = "acl.toml";
 
 /// A host's role in a federation's access control.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
@@ -208,11 +222,20 @@ impl Acl {
                 "messages": ["liveliness_token"], "key_exprs": [format!("{prefix}{host}/alive")]}),
             );
             mine.push(format!("h{i}-token"));
-            // What goes out to a member: everything of the federation.
+            // What goes out to a member: the federation's declarations, queries, replies
+            // and liveliness; of the frames, only those addressed to it (`HOST/req/*`,
+            // `HOST/in/*`) and every host's list. Other hosts' session frames (updates,
+            // remote users' keys and addresses) never reach it.
             rules.push(json!({"id": format!("h{i}-out"), "flows": ["egress"], "permission": "allow",
-                "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                "messages": ["declare_subscriber", "query", "reply", "declare_queryable",
                              "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
                 "key_exprs": [all]}));
+            rules.push(
+                json!({"id": format!("h{i}-out-frames"), "flows": ["egress"], "permission": "allow",
+                "messages": ["put", "delete"],
+                "key_exprs": [format!("{prefix}{host}/*/*"), format!("{prefix}*/list")]}),
+            );
+            mine.push(format!("h{i}-out-frames"));
             if roles.contains(&Role::Offer) {
                 rules.push(
                     json!({"id": format!("h{i}-offer"), "flows": ["ingress"], "permission": "allow",
@@ -295,6 +318,14 @@ impl FedConfig {
                 c
             }
         };
+        if self.tls.is_none() && !self.insecure {
+            return Err(FedError::Config(
+                "--federate needs --tls DIR: without it any program that reaches this host \
+                 can act as any host of the federation (make DIR with `muster certs --out \
+                 DIR --hosts a,b,...`; or say --insecure-no-tls, on a network you trust)"
+                    .into(),
+            ));
+        }
         let tls = |eps: &[String]| -> Vec<String> {
             eps.iter()
                 .map(|e| match (&self.tls, e.strip_prefix("tcp/")) {
@@ -305,16 +336,23 @@ impl FedConfig {
         };
         if !self.listen.is_empty() {
             set(&mut c, "listen/endpoints", &json_list(&tls(&self.listen)))?;
+        } else if self.zenoh_config.is_none() {
+            // Zenoh's own default is every interface: here, only this machine's.
+            set(
+                &mut c,
+                "listen/endpoints",
+                &json_list(&tls(&["tcp/127.0.0.1:0".to_string()])),
+            )?;
         }
         if !self.connect.is_empty() {
             set(&mut c, "connect/endpoints", &json_list(&tls(&self.connect)))?;
         }
-        if let Some(acl) = &self.acl {
-            if self.tls.is_none() {
-                return Err(FedError::Config(
-                    "--acl needs --tls: hosts are known by their certificates".into(),
-                ));
-            }
+        if self.acl.is_some() && self.tls.is_none() {
+            return Err(FedError::Config(
+                "--acl needs --tls: hosts are known by their certificates".into(),
+            ));
+        }
+        if let Some(acl) = self.effective_acl()? {
             let prefix = format!("muster/{}/", self.federation);
             set(
                 &mut c,
@@ -356,6 +394,31 @@ impl FedConfig {
             set(&mut c, "transport/link/tx/keep_alive", "4")?;
         }
         Ok(c)
+    }
+
+    /// The access rules in force: `--acl`, else with TLS the certificates' folder's
+    /// `acl.toml` (a TLS federation always has one: a host is its certificate's name,
+    /// and may publish only under it); none without TLS.
+    pub fn effective_acl(&self) -> Result<Option<Acl>, FedError> {
+        match (&self.acl, &self.tls) {
+            (Some(acl), _) => Ok(Some(acl.clone())),
+            (None, None) => Ok(None),
+            (None, Some(dir)) => {
+                let path = dir.join(ACL_FILE);
+                if !path.is_file() {
+                    return Err(FedError::Config(format!(
+                        "--tls {}: {} is missing: the access file says which host may offer \
+                         and request (`muster certs --out {} --hosts {}` writes it; or give \
+                         --acl FILE)",
+                        dir.display(),
+                        path.display(),
+                        dir.display(),
+                        self.host
+                    )));
+                }
+                Acl::load(&path).map(Some)
+            }
+        }
     }
 }
 
@@ -662,6 +725,13 @@ impl Federation {
         check_host_like("host name", &cfg.host)?;
         check_host_like("federation name", &cfg.federation)?;
         let zcfg = cfg.zenoh_config()?;
+        if cfg.insecure {
+            tracing::warn!(
+                host = %cfg.host,
+                "federating WITHOUT TLS (--insecure-no-tls): anyone who reaches this \
+                 host's endpoints can read every cross-host frame and act as any host"
+            );
+        }
         let session = zenoh::open(zcfg)
             .wait()
             .map_err(|e| FedError::Open(e.to_string()))?;
@@ -823,7 +893,7 @@ impl Federation {
             lingering: Vec::new(),
             list_asked: BTreeMap::new(),
             stats: FedStats::default(),
-            acl: cfg.acl.clone(),
+            acl: cfg.effective_acl()?,
         };
         if fed.acl.is_some() && !fed.may(&fed.host, Role::Offer) {
             tracing::info!("the access file does not let this host offer: its services stay local");

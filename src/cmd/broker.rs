@@ -55,6 +55,7 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         multicast: a.multicast,
         tls: a.tls.clone(),
         acl,
+        insecure: a.insecure_no_tls,
     });
     let keep_log = a.handling_log.is_some();
     // Cleanups after dead processes run as `muster cleanup`, outliving a killed broker.

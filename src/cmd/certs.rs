@@ -4,7 +4,8 @@
 //! first time and reused after, so a robot added later joins the same federation),
 //! and per host a key and a certificate whose common name is the host's name, valid
 //! for TLS servers and clients (each broker is both), for the host's name, localhost,
-//! 127.0.0.1 and any `--san`.
+//! 127.0.0.1 and any `--san`; and the access file `acl.toml`, every host named in it
+//! (offering and requesting unless the file, edited, says less).
 
 use crate::cli::CertsArgs;
 use anyhow::{bail, Context};
@@ -124,6 +125,41 @@ pub fn run(a: CertsArgs) -> anyhow::Result<ExitCode> {
         write_new(&a.out.join(format!("{host}.pem")), &cert.pem(), false)?;
         println!("{}", a.out.join(host).display());
     }
-    eprintln!("copy ca.pem, HOST.pem and HOST.key to each host; start its broker with --tls DIR");
+    let acl = write_acl(&a.out, &a.hosts)?;
+    eprintln!(
+        "wrote {} (every host offers and requests; edit it to narrow)",
+        acl.display()
+    );
+    eprintln!(
+        "copy ca.pem, acl.toml, HOST.pem and HOST.key to each host; start its broker with \
+         --tls DIR"
+    );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Adds `hosts` (offering and requesting) to `DIR/acl.toml`, made if missing; hosts
+/// already there keep their roles.
+fn write_acl(dir: &Path, hosts: &[String]) -> anyhow::Result<std::path::PathBuf> {
+    use muster_broker::federation::{Acl, Role, ACL_FILE};
+    let path = dir.join(ACL_FILE);
+    let mut acl = if path.exists() {
+        Acl::load(&path)?
+    } else {
+        Acl::default()
+    };
+    for h in hosts {
+        acl.hosts
+            .entry(h.clone())
+            .or_insert_with(|| [Role::Offer, Role::Request].into());
+    }
+    let text = format!(
+        "# Who may do what in this federation (the same file on every host): a host is\n\
+         # its certificate's common name; \"offer\" publishes services, \"request\" asks\n\
+         # for other hosts'. A host not named may connect but does nothing.\n{}",
+        toml::to_string(&acl)?
+    );
+    let tmp = dir.join(format!(".{ACL_FILE}.tmp"));
+    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, &path).with_context(|| format!("writing {}", path.display()))?;
+    Ok(path)
 }

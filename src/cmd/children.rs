@@ -249,11 +249,13 @@ impl LoopbackHosts {
     }
 
     /// `muster broker --federate --host HOST --federation NAME` for host `i`, without
-    /// where it listens and connects.
+    /// where it listens and connects. Without TLS (`--insecure-no-tls`): these hosts are
+    /// on this machine, on loopback or in network namespaces their command made.
     pub fn federated(&self, i: usize) -> Vec<String> {
         [
             "broker",
             "--federate",
+            "--insecure-no-tls",
             "--host",
             self.names[i],
             "--federation",

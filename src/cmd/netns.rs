@@ -261,7 +261,7 @@ pub fn run(inst: &Instance, a: NetnsArgs) -> anyhow::Result<ExitCode> {
         for (i, h) in t.hosts.iter().enumerate() {
             let flags: Vec<String> = t.broker_flags(i).into_iter().skip(2).collect();
             println!(
-                "  {}: {} (ip netns exec {} muster --instance {} broker --federate --host {} {})",
+                "  {}: {} (ip netns exec {} muster --instance {} broker --federate --insecure-no-tls --host {} {})",
                 h.host,
                 h.ip,
                 h.netns,

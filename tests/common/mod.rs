@@ -422,3 +422,50 @@ pub fn python_with(module: &str, package: &str) -> Option<String> {
     }
     Some(python)
 }
+
+/// The TCP addresses process `pid` listens on (its sockets in LISTEN state, from
+/// `/proc`).
+pub fn tcp_listening(pid: i32) -> Vec<std::net::SocketAddr> {
+    let inodes: std::collections::HashSet<String> = std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|e| std::fs::read_link(e.path()).ok())
+        .filter_map(|l| {
+            let l = l.to_string_lossy().to_string();
+            Some(l.strip_prefix("socket:[")?.strip_suffix(']')?.to_string())
+        })
+        .collect();
+    let mut out = Vec::new();
+    for table in ["tcp", "tcp6"] {
+        let text = std::fs::read_to_string(format!("/proc/{pid}/net/{table}")).unwrap_or_default();
+        for line in text.lines().skip(1) {
+            let f: Vec<&str> = line.split_whitespace().collect();
+            if f.len() < 10 || f[3] != "0A" || !inodes.contains(f[9]) {
+                continue;
+            }
+            let Some((ip, port)) = f[1].split_once(':') else {
+                continue;
+            };
+            let port = u16::from_str_radix(port, 16).unwrap_or(0);
+            // Each 32-bit word of the address is in host (little-endian) order.
+            let words: Vec<u32> = (0..ip.len() / 8)
+                .filter_map(|k| u32::from_str_radix(&ip[k * 8..k * 8 + 8], 16).ok())
+                .map(u32::swap_bytes)
+                .collect();
+            let ip: std::net::IpAddr = match words.as_slice() {
+                [a] => std::net::Ipv4Addr::from(*a).into(),
+                [a, b, c, d] => {
+                    let mut bytes = [0u8; 16];
+                    for (k, w) in [a, b, c, d].iter().enumerate() {
+                        bytes[k * 4..k * 4 + 4].copy_from_slice(&w.to_be_bytes());
+                    }
+                    std::net::Ipv6Addr::from(bytes).into()
+                }
+                _ => continue,
+            };
+            out.push(std::net::SocketAddr::new(ip, port));
+        }
+    }
+    out
+}
