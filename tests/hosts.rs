@@ -1265,3 +1265,109 @@ fn a_member_host_sees_only_its_own_frames_and_acts_only_as_itself() {
     drop(h);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_grant_is_taken_only_from_the_host_asked_and_for_the_service_asked() {
+    use muster_broker::federation::FedMsg;
+    use muster_shared::protocol::{decode, encode, ToUser};
+    use muster_shared::types::{ServiceId, ServiceKind, SessionId};
+    use std::sync::{Arc, Mutex};
+    use zenoh::Wait;
+    // a's user waits in b's queue. A third party answers its request first: as host c
+    // (not the host asked), and as b for another service. a's broker and the user take
+    // neither; the real grant comes when the service frees.
+    let mut h = Hosts::new("fg", &["a", "b"]);
+    h.host(1)
+        .system("robo", &["--rate", "20", "--quota", "1", "--queue"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    let mut conf = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\"".to_string()),
+        ("listen/endpoints", "[]".into()),
+        ("scouting/multicast/enabled", "false".into()),
+        (
+            "connect/endpoints",
+            format!(
+                "[\"tcp/127.0.0.1:{}\", \"tcp/127.0.0.1:{}\"]",
+                h.hosts[0].2, h.hosts[1].2
+            ),
+        ),
+    ] {
+        conf.insert_json5(k, &v).unwrap();
+    }
+    let z = zenoh::open(conf).wait().unwrap();
+    let fed = format!("muster/{}/", h.name);
+    let asked: Arc<Mutex<Vec<FedMsg>>> = Arc::default();
+    let sink = Arc::clone(&asked);
+    let _sub = z
+        .declare_subscriber(format!("{fed}b/req/a"))
+        .callback(move |s| {
+            if let Ok(m) = decode::<FedMsg>(&s.payload().to_bytes()) {
+                sink.lock().unwrap().push(m);
+            }
+        })
+        .wait()
+        .unwrap();
+    let holder = h
+        .host(0)
+        .spawn(&["user", "request", "robo@b/s0", "--duration", "3s", "--json"]);
+    assert_eq!(
+        h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
+        true
+    );
+    let waiter = h.host(0).spawn(&[
+        "user",
+        "request",
+        "robo@b/s0",
+        "--duration",
+        "500ms",
+        "--json",
+    ]);
+    // The waiter's request, as it crossed to b.
+    let deadline = Instant::now() + 10 * SEC;
+    let (user, req) = loop {
+        let found = asked.lock().unwrap().iter().rev().find_map(|m| match m {
+            FedMsg::Request { user, req, .. } => Some((user.clone(), *req)),
+            _ => None,
+        });
+        match found {
+            Some(f) if asked.lock().unwrap().len() >= 2 => break f,
+            _ if Instant::now() > deadline => panic!("no request seen: {:?}", asked.lock()),
+            _ => std::thread::sleep(std::time::Duration::from_millis(20)),
+        }
+    };
+    let forged = |service: &str| {
+        let (system, name) = service.split_once('/').unwrap();
+        encode(&FedMsg::ToUser {
+            user: user.clone(),
+            msg: ToUser::Granted {
+                req,
+                session: SessionId(999),
+                service: ServiceId::new(system, name),
+                kind: ServiceKind::Data,
+                payload: "text".into(),
+                schema: None,
+                system_pid: 1,
+                relayed: false,
+            },
+        })
+        .unwrap()
+    };
+    // As c, for the service asked; as b, for another.
+    z.put(format!("{fed}a/in/c"), forged("robo/s0"))
+        .wait()
+        .unwrap();
+    z.put(format!("{fed}a/in/b"), forged("evil/s0"))
+        .wait()
+        .unwrap();
+    let lines = h.host(0).proc(waiter).all_json(30 * SEC);
+    let grant = lines
+        .iter()
+        .find(|v| v.get("granted").is_some())
+        .unwrap_or_else(|| panic!("{lines:?}"));
+    assert_eq!(grant["granted"], true, "{lines:?}");
+    assert_eq!(grant["service"], "robo@b/s0", "{lines:?}");
+    assert_ne!(grant["session"], SessionId(999).to_string(), "{lines:?}");
+    assert!(seqs(&lines).len() >= 3, "{lines:?}");
+    z.close().wait().unwrap();
+}

@@ -631,6 +631,20 @@ enum Event {
 }
 
 /// A shared-memory inbox the broker keeps for a peer on another host.
+/// A local user's request out on another host: which host, for which service (as that
+/// host knows it). Only that host's answers, for that service, are taken.
+#[derive(Clone, Debug, PartialEq)]
+struct Asked {
+    host: String,
+    service: ServiceId,
+}
+
+impl Asked {
+    fn on(&self, host: &str) -> bool {
+        self.host == host
+    }
+}
+
 struct Proxy {
     endpoint: Endpoint,
     token: usize,
@@ -672,7 +686,7 @@ pub struct Federation {
     lists: BTreeMap<String, Vec<ServiceView>>,
     list_changed: bool,
     /// Requests of local users out on other hosts: (user, req) → host.
-    outstanding: BTreeMap<(UserId, u64), String>,
+    outstanding: BTreeMap<(UserId, u64), Asked>,
     /// Those of them with no answer yet, and when each is sent again.
     unanswered: Retries<(UserId, u64), FedMsg>,
     /// Sessions of local users on other hosts: (user, session) → host.
@@ -957,7 +971,7 @@ impl Federation {
         let outstanding = &self.outstanding;
         self.unanswered.retain(|k| outstanding.contains_key(k));
         for (key, msg) in self.unanswered.due(now) {
-            if let Some(host) = self.outstanding.get(&key).cloned() {
+            if let Some(host) = self.outstanding.get(&key).map(|a| a.host.clone()) {
                 self.stats.requests_resent += 1;
                 tracing::debug!(user = %key.0, req = key.1, host, "federation: a request with no answer, sent again");
                 self.send(&host, &msg);
@@ -1137,7 +1151,13 @@ impl Federation {
                     self.deliveries.push_back(Delivery::Msg(user.clone(), m));
                     return true;
                 }
-                self.outstanding.insert((user.clone(), *req), host.clone());
+                self.outstanding.insert(
+                    (user.clone(), *req),
+                    Asked {
+                        host: host.clone(),
+                        service: there.clone(),
+                    },
+                );
                 self.stats.requests_out += 1;
                 let remote = contact(user, *req);
                 let m = FedMsg::Request {
@@ -1152,7 +1172,8 @@ impl Federation {
                 true
             }
             ToBroker::Cancel { user, req } => {
-                let Some(host) = self.outstanding.remove(&(user.clone(), *req)) else {
+                let Some(Asked { host, .. }) = self.outstanding.remove(&(user.clone(), *req))
+                else {
                     return false;
                 };
                 self.send(
@@ -1332,9 +1353,9 @@ impl Federation {
     /// A local user died or left: the hosts holding its requests or sessions hear of it.
     pub fn local_user_gone(&mut self, user: &UserId) {
         let mut hosts = BTreeSet::new();
-        self.outstanding.retain(|(u, _), h| {
+        self.outstanding.retain(|(u, _), a| {
             if u == user {
-                hosts.insert(h.clone());
+                hosts.insert(a.host.clone());
             }
             u != user
         });
@@ -1552,14 +1573,14 @@ impl Federation {
         let suffix = format!("@{host}");
         self.drop_links_in(|u| u.0.ends_with(&suffix));
         // Local users' requests and sessions there.
-        for (user, req) in take_on_host(&mut self.outstanding, host) {
+        for (user, req) in take_on_host(&mut self.outstanding, host, |a| &a.host) {
             let m = ToUser::Refused {
                 req,
                 reason: Refusal::SystemGone,
             };
             self.deliveries.push_back(Delivery::Msg(user, m));
         }
-        for (user, session) in take_on_host(&mut self.far, host) {
+        for (user, session) in take_on_host(&mut self.far, host, String::as_str) {
             self.stats.sessions_lost += 1;
             let m = ToUser::Ended {
                 session,
@@ -1755,7 +1776,10 @@ impl Federation {
             FedMsg::Granted(mut g) => {
                 // Only for a request out on `from`, of a user still here.
                 let key = (g.user.clone(), g.req);
-                let ours = self.outstanding.get(&key).map(String::as_str) == Some(from);
+                let ours = self
+                    .outstanding
+                    .get(&key)
+                    .is_some_and(|a| a.on(from) && a.service == g.service);
                 let Some((system, name)) = g.service.split().filter(|_| ours) else {
                     self.stats.dropped += 1;
                     return;
@@ -1850,12 +1874,22 @@ impl Federation {
             ToUser::Welcome { .. } | ToUser::Operated { .. } => return,
             // Answers to a request out on `from` only.
             ToUser::Queued { req, .. } | ToUser::Refused { req, .. }
-                if self
+                if !self
                     .outstanding
                     .get(&(user.clone(), req))
-                    .map(String::as_str)
-                    != Some(from) =>
+                    .is_some_and(|a| a.on(from)) =>
             {
+                return;
+            }
+            // A grant from the host the request went to, for the service requested.
+            ToUser::Granted {
+                req, ref service, ..
+            } if !self
+                .outstanding
+                .get(&(user.clone(), req))
+                .is_some_and(|a| a.on(from) && a.service == *service) =>
+            {
+                self.stats.dropped += 1;
                 return;
             }
             ToUser::Queued { req, position } => {
@@ -2081,11 +2115,15 @@ impl Federation {
     }
 }
 
-/// Removes the entries of `map` held on `host`; returns their keys.
-fn take_on_host<K: Ord + Clone>(map: &mut BTreeMap<K, String>, host: &str) -> Vec<K> {
+/// Removes the entries of `map` held on `host` (`host_of` a value); returns their keys.
+fn take_on_host<K: Ord + Clone, V>(
+    map: &mut BTreeMap<K, V>,
+    host: &str,
+    host_of: impl Fn(&V) -> &str,
+) -> Vec<K> {
     let mut taken = Vec::new();
-    map.retain(|k, h| {
-        let on = h == host;
+    map.retain(|k, v| {
+        let on = host_of(v) == host;
         if on {
             taken.push(k.clone());
         }

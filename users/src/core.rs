@@ -764,6 +764,19 @@ impl UserCore {
             }
             return;
         }
+        if self.pending.get(&req).is_some_and(|p| p.service != service) {
+            // A grant under a pending request's number for another service than the one
+            // asked for (a forged or misrouted grant): not taken; the request waits on.
+            self.unwanted_grants += 1;
+            self.out.push_back(UserOutput::ToSystem(
+                system,
+                ToSystem::End {
+                    user: self.id.clone(),
+                    session,
+                },
+            ));
+            return;
+        }
         let Some(p) = self.pending.remove(&req) else {
             // Granted after we gave up (cancelled, refused on timeout), or a session we
             // held and ended granted again (a repeated offer that crossed our end on its
@@ -998,6 +1011,27 @@ mod tests {
         assert!(u.counters(SessionId(11)).is_some());
         update(&mut u, 11, 1);
         assert_eq!(u.stale_frames(), 0);
+    }
+
+    #[test]
+    fn a_grant_for_another_service_under_a_pending_number_is_not_taken() {
+        let mut u = user();
+        let req = u.request(ServiceId("t1/s0".into()));
+        outs(&mut u);
+        // Another service's grant under that number: ended at once, the request waits on.
+        u.handle(data_grant(req, 5, "evil/s0", 77, false));
+        assert!(u.counters(SessionId(5)).is_none());
+        assert!(u.is_pending(req));
+        assert_eq!(u.unwanted_grants(), 1);
+        let ended: Vec<_> = outs(&mut u)
+            .into_iter()
+            .filter(|o| matches!(o, UserOutput::ToSystem(s, ToSystem::End { .. }) if s == "evil"))
+            .collect();
+        assert_eq!(ended.len(), 1);
+        // The real grant then makes the session.
+        u.handle(data_grant(req, 6, "t1/s0", 50, false));
+        assert!(u.counters(SessionId(6)).is_some());
+        assert!(!u.is_pending(req));
     }
 
     /// A grant of a `pose2d` data session of `service`, sent by `system_pid` (the
