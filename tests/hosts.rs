@@ -1196,6 +1196,12 @@ fn a_member_host_sees_only_its_own_frames_and_acts_only_as_itself() {
     }
     let z = zenoh::open(conf).wait().unwrap();
     let fed = format!("muster/{}/", h.name);
+    // A member host's broker holds its token: hosts serve users of hosts that joined.
+    let _token = z
+        .liveliness()
+        .declare_token(format!("{fed}spy/alive"))
+        .wait()
+        .unwrap();
     let seen: Arc<Mutex<Vec<String>>> = Arc::default();
     let sink = Arc::clone(&seen);
     let p = fed.clone();
@@ -1370,4 +1376,90 @@ fn a_grant_is_taken_only_from_the_host_asked_and_for_the_service_asked() {
     assert_ne!(grant["session"], SessionId(999).to_string(), "{lines:?}");
     assert!(seqs(&lines).len() >= 3, "{lines:?}");
     z.close().wait().unwrap();
+}
+
+/// Resident memory of process `pid`, bytes.
+fn rss(pid: i32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next()?.parse::<u64>().ok())
+        .map_or(0, |kb| kb * 1024)
+}
+
+#[test]
+fn a_flooding_or_ghost_peer_costs_bounded_memory_and_holds_nothing() {
+    use muster_broker::federation::FedMsg;
+    use muster_shared::protocol::encode;
+    use muster_shared::types::{ServiceId, UserId};
+    use zenoh::Wait;
+    let mut h = Hosts::new("ff", &["a", "b"]);
+    h.host(1).system("robo", &["--rate", "20", "--quota", "5"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    let b_pid = {
+        let i = h.brokers[1].unwrap();
+        h.host(1).proc(i).pid()
+    };
+    let mut conf = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\"".to_string()),
+        ("listen/endpoints", "[]".into()),
+        ("scouting/multicast/enabled", "false".into()),
+        (
+            "connect/endpoints",
+            format!("[\"tcp/127.0.0.1:{}\"]", h.hosts[1].2),
+        ),
+    ] {
+        conf.insert_json5(k, &v).unwrap();
+    }
+    let z = zenoh::open(conf).wait().unwrap();
+    let fed = format!("muster/{}/", h.name);
+    // A host that never joined (no token) asks for the service: no user of it is made.
+    for k in 0..20u64 {
+        let m = FedMsg::Request {
+            user: UserId(format!("g{k}")),
+            req: 1,
+            service: ServiceId::new("robo", "s0"),
+            remote: None,
+        };
+        z.put(format!("{fed}b/req/ghost"), encode(&m).unwrap())
+            .wait()
+            .unwrap();
+    }
+    // Huge frames, then a flood of small ones.
+    let before = rss(b_pid);
+    for _ in 0..4 {
+        z.put(format!("{fed}b/req/a"), vec![0x5a_u8; 32 << 20])
+            .wait()
+            .unwrap();
+    }
+    let small = vec![0xa5_u8; 2048];
+    let until = Instant::now() + 5 * SEC;
+    let mut sent = 0u64;
+    while Instant::now() < until {
+        for _ in 0..1000 {
+            z.put(format!("{fed}b/req/a"), small.clone())
+                .wait()
+                .unwrap();
+        }
+        sent += 1000;
+    }
+    std::thread::sleep(SEC);
+    let after = rss(b_pid);
+    z.close().wait().unwrap();
+    // The budget for frames waiting is 32 MiB; the frames over 64 KiB are never held.
+    assert!(
+        after < before + (64 << 20),
+        "b grew from {} to {} MB after {sent} frames",
+        before >> 20,
+        after >> 20
+    );
+    // b still serves a, and holds no ghost's session.
+    let (code, lines) = request_json(&mut h, 0, "robo@b/s0", "500ms");
+    assert_eq!(code, 0, "{lines:?}");
+    assert_eq!(lines[0]["granted"], true, "{lines:?}");
+    let l = h.host(1).list();
+    let in_use = find(&l, "robo/s0").unwrap()["in_use"].as_u64().unwrap();
+    assert!(in_use <= 1, "ghost users hold sessions: {l:?}");
 }

@@ -58,7 +58,7 @@ use muster_shared::protocol::{
     decode, encode, LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser,
 };
 use muster_shared::reactor::Reactor;
-use muster_shared::snapshot::ServiceView;
+use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
 use muster_shared::types::{
     check_name, EndReason, Refusal, ServiceId, ServiceKind, SessionId, UserId, MAX_HOST_NAME,
     MAX_SERVICE_NAME, MAX_SYSTEM_NAME,
@@ -70,6 +70,7 @@ use std::net::{IpAddr, SocketAddr};
 use std::os::fd::AsRawFd;
 use std::os::unix::net::UnixStream;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -81,8 +82,16 @@ pub const FIRST_PROXY_TOKEN: usize = 1 << 32;
 pub const MAX_FOREIGN_USER: usize = 64;
 /// Most users of other hosts this broker serves at once.
 pub const MAX_FOREIGN_USERS: usize = 1024;
+/// Most users of any one other host this broker serves at once: one host cannot take
+/// every place.
+pub const MAX_FOREIGN_USERS_PER_HOST: usize = MAX_FOREIGN_USERS / 2;
 /// Most requests of other hosts' remote users waiting here for their offer at once.
 const MAX_CONTACTS: usize = 16 * 1024;
+/// The same, from any one host.
+const MAX_CONTACTS_PER_HOST: usize = MAX_CONTACTS / 2;
+/// Most services taken from one host's list (a broker lists at most this many of its
+/// own).
+pub const MAX_SERVICES_PER_HOST: usize = MAX_LISTED_SERVICES;
 /// Most links of other hosts' users over this host's services counted at once.
 const MAX_LINKS_IN: usize = 16 * 1024;
 /// How long a proxy whose peer is gone keeps its ports: frames just sent through them
@@ -387,6 +396,11 @@ impl FedConfig {
             // the federation's authority signed (mutual TLS), not the name dialled.
             set(&mut c, "transport/link/tls/verify_name_on_connect", "false")?;
         }
+        set(
+            &mut c,
+            "transport/link/rx/max_message_size",
+            &MAX_ZENOH_MESSAGE.to_string(),
+        )?;
         if let Some(lease) = self.lease {
             let ms = lease.as_millis().max(100);
             set(&mut c, "transport/link/tx/lease", &ms.to_string())?;
@@ -630,6 +644,67 @@ enum Event {
     Msg(String, bool, Vec<u8>),
 }
 
+impl Event {
+    fn bytes(&self) -> usize {
+        match self {
+            Event::Alive(..) => 0,
+            Event::List(_, _, b) | Event::Msg(_, _, b) => b.len(),
+        }
+    }
+}
+
+/// Largest frame taken from another host (a session update is under 4 KiB); bigger ones
+/// are dropped before they are copied.
+pub const MAX_FED_FRAME: usize = 64 << 10;
+/// Largest list taken from another host (a host lists at most 256 services).
+const MAX_FED_LIST: usize = 1 << 20;
+/// Zenoh's own limit on a message it reassembles from fragments: bigger ones are
+/// dropped by Zenoh before muster sees them.
+const MAX_ZENOH_MESSAGE: usize = 2 << 20;
+/// Most bytes of frames and lists waiting for the broker's loop; beyond it, what comes
+/// is dropped (and counted) rather than held: a flooding peer costs bounded memory.
+const MAX_QUEUED_BYTES: usize = 32 << 20;
+
+/// What Zenoh's threads hand the broker's loop: events on a channel, a wake-up on a
+/// socket, within a byte budget.
+struct Inflow {
+    tx: Mutex<mpsc::Sender<Event>>,
+    ring: Arc<UnixStream>,
+    /// Bytes on the channel.
+    queued: AtomicUsize,
+    /// Frames and lists dropped at the door (too big, or over the budget) since the
+    /// loop last looked.
+    refused: AtomicU64,
+}
+
+impl Inflow {
+    fn push(&self, ev: Event) {
+        let n = ev.bytes();
+        if self.queued.fetch_add(n, Ordering::Relaxed) + n > MAX_QUEUED_BYTES {
+            self.queued.fetch_sub(n, Ordering::Relaxed);
+            self.refused.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        if let Ok(tx) = self.tx.lock() {
+            if tx.send(ev).is_ok() {
+                // Full pipe: a wake-up is pending already.
+                let _ = (&*self.ring).write(&[1]);
+                return;
+            }
+        }
+        self.queued.fetch_sub(n, Ordering::Relaxed);
+    }
+
+    /// A sample's bytes, if at most `max` (counted as refused otherwise, not copied).
+    fn payload(&self, s: &zenoh::sample::Sample, max: usize) -> Option<Vec<u8>> {
+        if s.payload().len() > max {
+            self.refused.fetch_add(1, Ordering::Relaxed);
+            return None;
+        }
+        Some(s.payload().to_bytes().to_vec())
+    }
+}
+
 /// A shared-memory inbox the broker keeps for a peer on another host.
 /// A local user's request out on another host: which host, for which service (as that
 /// host knows it). Only that host's answers, for that service, are taken.
@@ -680,7 +755,7 @@ pub struct Federation {
     list_versions: HashMap<String, u64>,
     events: mpsc::Receiver<Event>,
     /// Hands an event to the broker's thread and wakes it (used on Zenoh's threads).
-    notify: Arc<dyn Fn(Event) + Send + Sync>,
+    notify: Arc<Inflow>,
     waker: UnixStream,
     alive: BTreeSet<String>,
     lists: BTreeMap<String, Vec<ServiceView>>,
@@ -777,18 +852,12 @@ impl Federation {
         ring.set_nonblocking(true)
             .map_err(|e| FedError::Open(e.to_string()))?;
         let ring = Arc::new(ring);
-        let notify = {
-            let tx = Mutex::new(tx);
-            move |ev: Event| {
-                if let Ok(tx) = tx.lock() {
-                    if tx.send(ev).is_ok() {
-                        // Full pipe: a wake-up is pending already.
-                        let _ = (&*ring).write(&[1]);
-                    }
-                }
-            }
-        };
-        let notify: Arc<dyn Fn(Event) + Send + Sync> = Arc::new(notify);
+        let notify = Arc::new(Inflow {
+            tx: Mutex::new(tx),
+            ring,
+            queued: AtomicUsize::new(0),
+            refused: AtomicU64::new(0),
+        });
         let zerr = |e: zenoh::Error| FedError::Open(e.to_string());
         let mut subscribers = Vec::new();
         {
@@ -804,7 +873,7 @@ impl Federation {
                         if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
                             if h != me {
                                 let up = s.kind() == zenoh::sample::SampleKind::Put;
-                                n(Event::Alive(h.to_string(), up));
+                                n.push(Event::Alive(h.to_string(), up));
                             }
                         }
                     })
@@ -821,12 +890,8 @@ impl Federation {
                     .declare_subscriber(format!("{prefix}*/list"))
                     .callback(move |s| {
                         if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
-                            if h != me {
-                                n(Event::List(
-                                    h.to_string(),
-                                    list_version(&s),
-                                    s.payload().to_bytes().to_vec(),
-                                ));
+                            if let Some(body) = n.payload(&s, MAX_FED_LIST).filter(|_| h != me) {
+                                n.push(Event::List(h.to_string(), list_version(&s), body));
                             }
                         }
                     })
@@ -842,8 +907,9 @@ impl Federation {
                     .declare_subscriber(format!("{inbox}*"))
                     .callback(move |s| {
                         if let Some(from) = s.key_expr().as_str().strip_prefix(&inbox) {
-                            let frame = s.payload().to_bytes().to_vec();
-                            n(Event::Msg(from.to_string(), users_side, frame));
+                            if let Some(frame) = n.payload(&s, MAX_FED_FRAME) {
+                                n.push(Event::Msg(from.to_string(), users_side, frame));
+                            }
                         }
                     })
                     .wait()
@@ -1065,6 +1131,24 @@ impl Federation {
             .iter()
             .filter(|(h, _)| self.alive.contains(*h))
             .flat_map(|(_, v)| v.iter())
+    }
+
+    /// This host's services (`local`) and the other hosts', in id order, at most `cap`:
+    /// this host's first, then the places left shared fairly among the other hosts
+    /// (each host gets as many as it lists, up to an even share of what is left, the
+    /// share of hosts listing fewer going to those listing more), each host's first
+    /// services by id. A host listing hundreds cannot push the others out.
+    pub fn merged_views<'a>(
+        &'a self,
+        local: &'a [ServiceView],
+        cap: usize,
+    ) -> Vec<&'a ServiceView> {
+        let hosts = self
+            .lists
+            .iter()
+            .filter(|(h, _)| self.alive.contains(*h))
+            .map(|(_, v)| v.as_slice());
+        merge_fairly(local, hosts, cap)
     }
 
     /// Whether the other hosts' services changed since the last call.
@@ -1410,7 +1494,9 @@ impl Federation {
     pub fn on_wake(&mut self, core: &mut Broker, reactor: &Reactor, now: Duration) {
         let mut buf = [0u8; 256];
         while matches!((&self.waker).read(&mut buf), Ok(n) if n > 0) {}
+        self.stats.dropped += self.notify.refused.swap(0, Ordering::Relaxed);
         while let Ok(ev) = self.events.try_recv() {
+            self.notify.queued.fetch_sub(ev.bytes(), Ordering::Relaxed);
             match ev {
                 Event::Alive(host, true) => {
                     if self.alive.insert(host.clone()) {
@@ -1509,12 +1595,9 @@ impl Federation {
             .get(&key)
             .target(zenoh::query::QueryTarget::All)
             .callback(move |reply| {
-                if let Ok(s) = reply.result() {
-                    n(Event::List(
-                        h.clone(),
-                        list_version(s),
-                        s.payload().to_bytes().to_vec(),
-                    ));
+                if let Some(body) = reply.result().ok().and_then(|s| n.payload(s, MAX_FED_LIST)) {
+                    let version = reply.result().map_or(0, list_version);
+                    n.push(Event::List(h.clone(), version, body));
                 }
             })
             .wait();
@@ -1539,8 +1622,18 @@ impl Federation {
                 return tracing::debug!(host, "federation: bad list: {e}");
             }
         };
+        if views.len() > MAX_SERVICES_PER_HOST {
+            self.stats.dropped += 1;
+            tracing::warn!(
+                host,
+                services = views.len(),
+                "federation: a host lists more services than a broker can hold: the first \
+                 {MAX_SERVICES_PER_HOST} are taken"
+            );
+        }
         let views: Vec<ServiceView> = views
             .into_iter()
+            .take(MAX_SERVICES_PER_HOST)
             .filter(|v| {
                 check_name("system", &v.system, MAX_SYSTEM_NAME).is_ok()
                     && check_name("service", &v.name, MAX_SERVICE_NAME).is_ok()
@@ -1636,6 +1729,12 @@ impl Federation {
             FedMsg::Request { .. } if !self.may(from, Role::Request) => {
                 self.stats.dropped += 1;
             }
+            // Users only of hosts that joined (their broker's token is up): no ghost
+            // users of a host that never did. A host's request that beat its token here
+            // is asked again (the requesting broker resends unanswered requests).
+            FedMsg::Request { .. } | FedMsg::Link { .. } if !self.alive.contains(from) => {
+                self.stats.dropped += 1;
+            }
             FedMsg::Request {
                 user,
                 req,
@@ -1654,7 +1753,15 @@ impl Federation {
                     Some(format!(
                         "{service} is on a system without a UDP endpoint: local users only"
                     ))
-                } else if udp && self.contacts.len() >= MAX_CONTACTS {
+                } else if udp
+                    && (self.contacts.len() >= MAX_CONTACTS
+                        || self
+                            .contacts
+                            .keys()
+                            .filter(|(u, _)| host_of_foreign(u) == Some(from))
+                            .count()
+                            >= MAX_CONTACTS_PER_HOST)
+                {
                     Some("too many remote users' requests from other hosts here".into())
                 } else {
                     None
@@ -1821,7 +1928,8 @@ impl Federation {
             }
         }
         if has_inbox.is_none() {
-            if self.foreign.len() >= MAX_FOREIGN_USERS {
+            let of_host = self.foreign.values().filter(|f| f.host == from).count();
+            if self.foreign.len() >= MAX_FOREIGN_USERS || of_host >= MAX_FOREIGN_USERS_PER_HOST {
                 return None;
             }
             let proxy = match udp {
@@ -2115,6 +2223,34 @@ impl Federation {
     }
 }
 
+/// [`Federation::merged_views`] of `local` and the other hosts' lists.
+fn merge_fairly<'a>(
+    local: &'a [ServiceView],
+    hosts: impl Iterator<Item = &'a [ServiceView]>,
+    cap: usize,
+) -> Vec<&'a ServiceView> {
+    let mut hosts: Vec<&[ServiceView]> = hosts.collect();
+    let mut all: Vec<&ServiceView> = local.iter().take(cap).collect();
+    let mut left = cap - all.len();
+    // Fewest first: what a small host leaves of its share goes to the larger ones.
+    hosts.sort_by_key(|v| v.len());
+    let mut n = hosts.len();
+    for v in hosts {
+        let share = (left / n.max(1)).max(usize::from(left > 0));
+        let take = v.len().min(share);
+        all.extend(v.iter().take(take));
+        left -= take;
+        n -= 1;
+    }
+    all.sort_by(|a, b| a.id.cmp(&b.id));
+    all
+}
+
+/// The host of a foreign user `user@host`.
+fn host_of_foreign(user: &UserId) -> Option<&str> {
+    user.0.rsplit_once('@').map(|(_, h)| h)
+}
+
 /// Removes the entries of `map` held on `host` (`host_of` a value); returns their keys.
 fn take_on_host<K: Ord + Clone, V>(
     map: &mut BTreeMap<K, V>,
@@ -2212,6 +2348,44 @@ mod tests {
         // The JSON is a valid Zenoh access_control section.
         let mut c = zenoh::Config::default();
         c.insert_json5("access_control", &z.to_string()).unwrap();
+    }
+
+    #[test]
+    fn a_host_listing_hundreds_cannot_push_the_others_out_of_the_merged_list() {
+        let views = |host: &str, n: usize| -> Vec<ServiceView> {
+            (0..n)
+                .map(|k| ServiceView {
+                    id: format!("s@{host}/{k:03}"),
+                    host: host.into(),
+                    remote: true,
+                    ..ServiceView::default()
+                })
+                .collect()
+        };
+        let local = views("me", 10);
+        let (a, flood, c) = (views("a", 30), views("aaa", 300), views("c", 100));
+        let count = |all: &[&ServiceView], h: &str| all.iter().filter(|v| v.host == h).count();
+        let all = merge_fairly(&local, [&a[..], &flood[..], &c[..]].into_iter(), 256);
+        assert_eq!(all.len(), 256);
+        // 10 local; 246 left: a lists 30 (under its share of 82), the rest shared
+        // evenly between the flood and c (108 each; c lists only 100, the flood gets
+        // its 8 more).
+        assert_eq!(count(&all, "me"), 10);
+        assert_eq!(count(&all, "a"), 30);
+        assert_eq!(count(&all, "c"), 100);
+        assert_eq!(count(&all, "aaa"), 116);
+        assert!(all.windows(2).all(|w| w[0].id < w[1].id), "in id order");
+        // Room for everyone: everyone whole.
+        let all = merge_fairly(&local, [&a[..], &c[..]].into_iter(), 256);
+        assert_eq!(all.len(), 140);
+        // No room left: local first, then one each while places last.
+        let all = merge_fairly(&flood, [&a[..], &c[..]].into_iter(), 256);
+        assert_eq!(
+            (count(&all, "aaa"), count(&all, "a"), count(&all, "c")),
+            (256, 0, 0)
+        );
+        let all = merge_fairly(&flood[..254], [&a[..], &c[..]].into_iter(), 256);
+        assert_eq!((count(&all, "a"), count(&all, "c")), (1, 1));
     }
 
     #[test]

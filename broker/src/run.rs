@@ -1549,20 +1549,24 @@ impl Shell {
             Some(_) => {}
         }
         self.snapshot.generation = generation;
-        // One list in id order: this host's services and every other host's.
-        let mut all: Vec<&muster_shared::snapshot::ServiceView> = self.local_views.iter().collect();
-        let host = self.fed.as_ref().map(|f| {
-            all.extend(f.remote_views());
-            all.sort_by(|a, b| a.id.cmp(&b.id));
-            muster_shared::snapshot::FixedStr::new(f.host())
-        });
-        let total = all.len();
-        if total > MAX_LISTED_SERVICES {
-            tracing::warn!(
-                total,
-                "the global list holds more services than the {MAX_LISTED_SERVICES} the shared list can: the rest are not listed"
-            );
-        }
+        // One list in id order: this host's services and the other hosts', shared
+        // fairly among them when there are more than the list holds.
+        let (all, host) = match self.fed.as_ref() {
+            Some(f) => {
+                let total = self.local_views.len() + f.remote_views().count();
+                if total > MAX_LISTED_SERVICES {
+                    tracing::warn!(
+                        total,
+                        "the global list holds more services than the {MAX_LISTED_SERVICES} the shared list can: each host gets a fair share"
+                    );
+                }
+                (
+                    f.merged_views(&self.local_views, MAX_LISTED_SERVICES),
+                    Some(muster_shared::snapshot::FixedStr::new(f.host())),
+                )
+            }
+            None => (self.local_views.iter().collect(), None),
+        };
         let mut n = 0;
         for (slot, v) in self.snapshot.entries.iter_mut().zip(all) {
             *slot = v.to_entry();
@@ -1582,9 +1586,11 @@ impl Shell {
             // Remote users see the global list too.
             match self.fed.as_ref() {
                 Some(f) => {
-                    let mut all = self.local_views.clone();
-                    all.extend(f.remote_views().cloned());
-                    all.sort_by(|a, b| a.id.cmp(&b.id));
+                    let all: Vec<muster_shared::snapshot::ServiceView> = f
+                        .merged_views(&self.local_views, MAX_LISTED_SERVICES)
+                        .into_iter()
+                        .cloned()
+                        .collect();
                     d.front.list_changed(self.snapshot.epoch, generation, &all);
                 }
                 None => d
