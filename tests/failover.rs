@@ -263,3 +263,73 @@ fn remote_users_resume_with_the_new_primary_and_their_sessions_never_pause() {
     assert_eq!(done["resets"], 1, "{done}");
     assert_eq!(done["unwanted_grants"], 0, "{done}");
 }
+
+#[test]
+fn only_the_primary_speaks_on_the_replication_stream() {
+    // Another process of the same account publishes on the standbys' stream: a notice
+    // that the primary is stepping down (under every sequence number near the
+    // standby's), heartbeats far ahead (each a gap: the whole state asked for again).
+    // The standby heeds none of it: no takeover of the healthy primary, which goes on
+    // serving; and a real kill is still taken over, sessions whole.
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let mut f = Fed::new("fo-forge");
+    let primary = f.broker(&[]);
+    let s = f.broker(&["--standby"]);
+    let seq = next_event(&mut f, s, "in_sync")["seq"].as_u64().unwrap();
+    f.system("t1", &["--quota", "2", "--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let inst = muster_shared::Instance::new(&f.inst).unwrap();
+    let node = muster_shared::ipc::create_node(
+        &format!("muster-test-forger-{}", std::process::id()),
+        false,
+    )
+    .unwrap();
+    let writer = muster_shared::ipc::ReplicaWriter::open(&node, &inst).unwrap();
+    for k in 0..300 {
+        let forger = muster_broker::replica::Leader::after(seq + k);
+        writer.publish(&forger.stepping_down()).unwrap();
+        if k % 10 == 0 {
+            writer.ring();
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    }
+    for k in 0..100 {
+        writer
+            .publish(&muster_broker::replica::Leader::after(1_000_000 + k).heartbeat())
+            .unwrap();
+    }
+    writer.ring();
+    // Time for a takeover to have happened, were it going to.
+    std::thread::sleep(SEC);
+    let (code, out) = f.run(
+        &["user", "request", "t1/s0", "--duration", "300ms", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let said: Vec<String> =
+        std::iter::from_fn(|| f.proc(s).line(Duration::from_millis(200))).collect();
+    assert!(
+        !said.iter().any(|l| l.contains("\"serving\"")),
+        "the standby took over: {said:?}"
+    );
+    assert!(
+        f.proc(s).wait(Duration::ZERO).is_none(),
+        "the standby still runs"
+    );
+    assert!(
+        f.proc(primary).wait(Duration::ZERO).is_none(),
+        "the primary still runs"
+    );
+    drop(writer);
+    drop(node);
+    // Still a standby with the state: killed, the primary is replaced, and a session
+    // across the kill runs on unbroken.
+    let user = f.spawn(&["user", "request", "t1/s0", "--duration", "3s", "--json"]);
+    assert_eq!(f.proc(user).json(10 * SEC).unwrap()["granted"], true);
+    std::thread::sleep(SEC);
+    f.proc(primary).signal(libc::SIGKILL);
+    let v = next_event(&mut f, s, "serving");
+    assert!(v["term"].is_u64(), "{v}");
+    let lines = f.proc(user).all_json(20 * SEC);
+    assert_unbroken(&lines, 40);
+}

@@ -817,7 +817,7 @@ fn follow(
         }
         let mut stepped_down = false;
         reader.drain_bell();
-        let got = reader.drain(|bytes| match follower.apply(bytes) {
+        let got = reader.drain(holder.pid, |bytes| match follower.apply(bytes) {
             Ok(Step::Gap) => {
                 tracing::warn!("replication records lost: asking for the whole state again");
                 asked = None;
@@ -976,6 +976,7 @@ fn serve(
             writer: replica,
             leader: Leader::after(seq),
             image_owed: false,
+            last_image: None,
             last_sent: Instant::now(),
         },
     };
@@ -1040,6 +1041,7 @@ fn serve(
             shell.endpoint.sweep(),
             housekeeping,
             shell.replica.heartbeat_due(),
+            shell.replica.image_due(),
             remote_return
                 .as_ref()
                 .map(|(t, _)| t.saturating_duration_since(Instant::now())),
@@ -1228,8 +1230,14 @@ struct Replication {
     leader: Leader,
     /// A standby asked for the whole state.
     image_owed: bool,
+    /// When the last image went: images go at most every [`IMAGE_EVERY`], however
+    /// often the standby bell rings (any process of the account can ring it).
+    last_image: Option<Instant>,
     last_sent: Instant,
 }
+
+/// Least time between two state images to the standbys.
+const IMAGE_EVERY: Duration = Duration::from_millis(100);
 
 impl Replication {
     /// Publishes the core's journal, then the image if one is owed; rings if anything went.
@@ -1241,8 +1249,9 @@ impl Replication {
             }
             sent = true;
         }
-        if self.image_owed {
+        if self.image_due() == Some(Duration::ZERO) {
             self.image_owed = false;
+            self.last_image = Some(Instant::now());
             let image = self.leader.image(core);
             match self.writer.publish(&image) {
                 Ok(()) => tracing::info!(
@@ -1259,6 +1268,14 @@ impl Replication {
             self.writer.ring();
             self.last_sent = Instant::now();
         }
+    }
+
+    /// When the owed image may go, if one is owed.
+    fn image_due(&self) -> Option<Duration> {
+        self.image_owed.then(|| {
+            self.last_image
+                .map_or(Duration::ZERO, |t| IMAGE_EVERY.saturating_sub(t.elapsed()))
+        })
     }
 
     /// When a heartbeat is due, if standbys follow.

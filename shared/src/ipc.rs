@@ -1513,13 +1513,22 @@ impl ReplicaWriter {
     }
 }
 
+/// Largest record a standby puts together from parts (a state image of a full broker
+/// is a few MiB); a record announcing more parts is dropped.
+pub const MAX_REPLICA_RECORD: usize = 64 << 20;
+
 /// A standby's end of the replication stream.
 pub struct ReplicaReader {
     subscriber: Subscriber<Ipc, [u8], ()>,
     listener: Listener<Ipc>,
+    stream: StreamFactory,
     /// A record arriving in parts, 16-byte aligned for rkyv.
     assembling: AlignedBytes,
     expect: u32,
+    /// Publishers of the stream and the pids behind them.
+    senders: HashMap<iceoryx2::identifiers::UniquePublisherId, Option<u32>>,
+    /// Parts dropped: not from the primary, or of a record too big.
+    refused: u64,
 }
 
 /// A growable byte buffer whose start is 16-byte aligned.
@@ -1572,9 +1581,33 @@ impl ReplicaReader {
         Ok(ReplicaReader {
             subscriber,
             listener,
+            stream,
             assembling: AlignedBytes::default(),
             expect: 0,
+            senders: HashMap::new(),
+            refused: 0,
         })
+    }
+
+    /// Parts dropped so far: from another process than the primary, or of a record
+    /// announcing more than [`MAX_REPLICA_RECORD`] bytes.
+    pub fn refused(&self) -> u64 {
+        self.refused
+    }
+
+    fn sender_pid(&mut self, publisher: iceoryx2::identifiers::UniquePublisherId) -> Option<u32> {
+        if let Some(pid) = self.senders.get(&publisher) {
+            return *pid;
+        }
+        if self.senders.len() > 64 {
+            self.senders.clear();
+        }
+        let senders = &mut self.senders;
+        self.stream.dynamic_config().list_publishers(|d| {
+            senders.insert(d.publisher_id, node_pid(&d.node_id));
+            iceoryx2::prelude::CallbackProgression::Continue
+        });
+        self.senders.get(&publisher).copied().flatten()
     }
 
     /// The bell's file descriptor, for the reactor.
@@ -1588,13 +1621,26 @@ impl ReplicaReader {
         drain_ids(&self.listener);
     }
 
-    /// Hands each waiting record to `f`: in place in shared memory if it came in one
-    /// part, else put together from its parts. Returns how many parts were read.
-    pub fn drain(&mut self, mut f: impl FnMut(&[u8])) -> usize {
+    /// Hands each waiting record of the primary (process `primary`) to `f`: in place in
+    /// shared memory if it came in one part, else put together from its parts. Parts
+    /// published by any other process are dropped (counted in
+    /// [`ReplicaReader::refused`]): only the primary speaks on the stream. Returns how
+    /// many of the primary's parts were read.
+    pub fn drain(&mut self, primary: u32, mut f: impl FnMut(&[u8])) -> usize {
         let mut n = 0;
         loop {
             match self.subscriber.receive() {
                 Ok(Some(sample)) => {
+                    if self.sender_pid(sample.header().publisher_id()) != Some(primary) {
+                        self.refused += 1;
+                        if self.refused.is_power_of_two() {
+                            tracing::warn!(
+                                refused = self.refused,
+                                "replication: a record not from the primary, dropped"
+                            );
+                        }
+                        continue;
+                    }
                     n += 1;
                     let p = sample.payload();
                     if p.len() < PART_HEADER {
@@ -1602,6 +1648,12 @@ impl ReplicaReader {
                     }
                     let count = u32::from_le_bytes([p[0], p[1], p[2], p[3]]);
                     let index = u32::from_le_bytes([p[4], p[5], p[6], p[7]]);
+                    if (count as usize).saturating_mul(REPLICA_PART) > MAX_REPLICA_RECORD {
+                        self.refused += 1;
+                        self.assembling.clear();
+                        self.expect = 0;
+                        continue;
+                    }
                     let body = &p[PART_HEADER..];
                     if count == 1 {
                         f(body);
