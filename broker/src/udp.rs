@@ -1040,10 +1040,14 @@ impl UdpFront {
     /// A record of the broker's event feed (its JSON): sent to every operator that has
     /// acted, if it fits a datagram.
     pub fn feed(&mut self, json: &str) {
+        // Operators now: one the access file no longer calls so (SIGHUP) gets no more.
+        let access = &self.access;
         let ids: Vec<u64> = self
             .conns
             .iter()
-            .filter(|(_, c)| c.follows && c.user.is_some())
+            .filter(|(_, c)| {
+                c.follows && c.user.is_some() && access.get(&c.name).is_some_and(|p| p.operator)
+            })
             .map(|(id, _)| *id)
             .collect();
         // Room for the variant's tag and the length prefix.

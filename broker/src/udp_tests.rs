@@ -410,4 +410,18 @@ fn an_operators_action_reaches_the_core_once_and_its_answer_comes_in_pieces() {
     r.front
         .feed(&format!("{{\"pad\":\"{}\"}}", "x".repeat(2000)));
     assert!(r.front.poll_transmit().is_none());
+    // Demoted (its `operator` line made a `user` line, SIGHUP): connected still, as a
+    // user, but the feed stops.
+    let line = access_line("alice", &r.user.public, &["*".to_string()], false);
+    r.front.reload(r.now, AccessFile::parse(&line).unwrap());
+    r.front.feed(json);
+    assert!(
+        r.front.poll_transmit().is_none(),
+        "a demoted operator is fed"
+    );
+    let got = r.say(conn, &mut chan, &operate(4, Operation::Status));
+    assert!(
+        matches!(&got[..], [Down::Msg(ToUser::Operated { id: 4, result: Err(e) })] if e.contains("not an operator")),
+        "{got:?}"
+    );
 }
