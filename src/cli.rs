@@ -445,6 +445,13 @@ pub struct ViewArgs {
     /// Where to serve (port 0: any free port; the address is printed as JSON).
     #[arg(long, default_value = "127.0.0.1:8765")]
     pub listen: std::net::SocketAddr,
+    /// Most viewers at once (one more is refused with 503).
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u16).range(1..=1024))]
+    pub max_clients: u16,
+    /// The operators' token for the event feed (`ws://ADDR/events?token=T`), the file's
+    /// first line (default: a new random one, printed at start).
+    #[arg(long)]
+    pub token_file: Option<std::path::PathBuf>,
     /// Stop by itself after this long (default: run until Ctrl-C).
     #[arg(long, value_parser = duration)]
     pub duration: Option<Duration>,

@@ -4,6 +4,7 @@
 
 mod common;
 use common::*;
+use serde_json::Value;
 use std::time::{Duration, Instant};
 
 const SEC: Duration = Duration::from_secs(1);
@@ -318,6 +319,28 @@ fn foxglove_report(client: &std::path::Path, addr: &str, seconds: u32) -> serde_
         .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stdout)))
 }
 
+/// tests/foxglove-client/events.mjs on `url` for `seconds`, running `meanwhile` once it
+/// started: its report.
+fn node_events(
+    client: &std::path::Path,
+    url: &str,
+    seconds: u32,
+    meanwhile: impl FnOnce(),
+) -> Value {
+    let child = std::process::Command::new("node")
+        .arg(client.with_file_name("events.mjs"))
+        .arg(url)
+        .arg(seconds.to_string())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    meanwhile();
+    let out = child.wait_with_output().unwrap();
+    serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stdout)))
+}
+
 fn schema_of<'a>(report: &'a serde_json::Value, topic: &str) -> &'a serde_json::Value {
     report["channels"]
         .as_array()
@@ -344,10 +367,9 @@ fn a_foxglove_client_sees_the_live_world_and_its_replay() {
         "--duration",
         "6s",
     ]);
-    let addr = f.proc(view).json(30 * SEC).expect("view's address")["listen"]
-        .as_str()
-        .unwrap()
-        .to_string();
+    let announced = f.proc(view).json(30 * SEC).expect("view's address");
+    let addr = announced["listen"].as_str().unwrap().to_string();
+    let events_url = announced["events"].as_str().unwrap().to_string();
     // Live: every topic advertised on its schema, and the world streaming.
     let live = foxglove_report(&client, &addr, 6);
     assert_eq!(live["server"], "muster", "{live}");
@@ -372,7 +394,8 @@ fn a_foxglove_client_sees_the_live_world_and_its_replay() {
         "foxglove.LaserScan",
         "{live}"
     );
-    assert_eq!(schema_of(&live, "/muster/events"), "muster.Event", "{live}");
+    // The broker's event feed is not for everyone.
+    assert_eq!(schema_of(&live, "/muster/events"), &Value::Null, "{live}");
     assert_eq!(
         schema_of(&live, "/tracks"),
         "foxglove.SceneUpdate",
@@ -384,6 +407,32 @@ fn a_foxglove_client_sees_the_live_world_and_its_replay() {
     assert!(counts["/map"].as_u64().unwrap_or(0) >= 1, "{live}");
     for topic in ["/tf", "/robots", "/people", "/T1/laser", "/D1/laser"] {
         assert!(counts[topic].as_u64().unwrap_or(0) >= 10, "{topic}: {live}");
+    }
+    // The event feed, for operators: with the token, records as they come (a user
+    // asks for a service meanwhile); without it, or with a wrong one, 403.
+    let events = node_events(&client, &events_url, 4, || {
+        let _ = f.run(
+            &["user", "request", "T1/s0", "--duration", "300ms"],
+            10 * SEC,
+        );
+    });
+    assert_eq!(events["opened"], true, "{events}");
+    let records = events["records"].as_array().unwrap();
+    assert!(!records.is_empty(), "{events}");
+    assert!(
+        records
+            .iter()
+            .all(|r| r["seq"].is_u64() && r["event"].is_string()),
+        "{events}"
+    );
+    let (base, _) = events_url.split_once('?').unwrap();
+    for url in [
+        base.to_string(),
+        format!("{base}?token=0123456789abcdef0123"),
+    ] {
+        let refused = node_events(&client, &url, 1, || {});
+        assert_eq!(refused["status"], 403, "{url}: {refused}");
+        assert_eq!(refused["opened"], false, "{url}: {refused}");
     }
     assert_eq!(
         f.proc(rec).wait(30 * SEC),
@@ -431,4 +480,161 @@ fn a_foxglove_client_sees_the_live_world_and_its_replay() {
         10 * SEC,
     );
     assert_eq!(code, 1);
+}
+
+/// A raw WebSocket client of `muster view` at `addr`: the upgrade request sent (for
+/// `path`), the response's status line read.
+fn ws_connect(addr: &str, path: &str) -> (std::net::TcpStream, String) {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(10 * SEC)).unwrap();
+    // A small receive window: a viewer that stops reading is full soon.
+    let small: libc::c_int = 4096;
+    // SAFETY: setsockopt on our socket, with a pointer to a live c_int and its size.
+    unsafe {
+        use std::os::fd::AsRawFd;
+        libc::setsockopt(
+            s.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            std::ptr::from_ref(&small).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        );
+    }
+    // (A refused connection may be closed before the request is written: read anyway.)
+    let _ = write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\
+         Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n"
+    );
+    let mut head = Vec::new();
+    let mut b = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") && s.read(&mut b).unwrap_or(0) == 1 {
+        head.push(b[0]);
+    }
+    let head = String::from_utf8_lossy(&head).to_string();
+    (s, head.lines().next().unwrap_or_default().to_string())
+}
+
+/// Reads WebSocket frames from `s` until a text frame holding `op`; its JSON.
+fn ws_text_with(s: &mut std::net::TcpStream, op: &str) -> Value {
+    use std::io::Read;
+    loop {
+        let mut h = [0u8; 2];
+        s.read_exact(&mut h).unwrap();
+        let len = match h[1] & 0x7f {
+            126 => {
+                let mut l = [0u8; 2];
+                s.read_exact(&mut l).unwrap();
+                u64::from(u16::from_be_bytes(l))
+            }
+            127 => {
+                let mut l = [0u8; 8];
+                s.read_exact(&mut l).unwrap();
+                u64::from_be_bytes(l)
+            }
+            n => u64::from(n),
+        };
+        let mut body = vec![0u8; len as usize];
+        s.read_exact(&mut body).unwrap();
+        if h[0] & 0x0f == 1 {
+            let v: Value = serde_json::from_slice(&body).unwrap();
+            if v["op"] == op {
+                return v;
+            }
+        }
+    }
+}
+
+/// Sends `text` as a masked WebSocket text frame (a client's).
+fn ws_send_text(s: &mut std::net::TcpStream, text: &str) {
+    use std::io::Write;
+    let mask = [0x12u8, 0x34, 0x56, 0x78];
+    let b = text.as_bytes();
+    let mut f = vec![0x81u8];
+    match b.len() {
+        n if n < 126 => f.push(0x80 | n as u8),
+        n if n < 65536 => {
+            f.push(0x80 | 126);
+            f.extend_from_slice(&(n as u16).to_be_bytes());
+        }
+        n => {
+            f.push(0x80 | 127);
+            f.extend_from_slice(&(n as u64).to_be_bytes());
+        }
+    }
+    f.extend_from_slice(&mask);
+    f.extend(b.iter().enumerate().map(|(i, x)| x ^ mask[i % 4]));
+    s.write_all(&f).unwrap();
+}
+
+#[test]
+fn the_view_limits_its_viewers_and_lets_slow_ones_go() {
+    use std::io::Read;
+    let Some(client) = foxglove_client() else {
+        return;
+    };
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let mut f = Fed::new("viewcap");
+    let up = f.spawn(&["up", "--no-udp", "--speed", "5", "--duration", "120s"]);
+    let view = f.spawn(&[
+        "view",
+        "--listen",
+        "127.0.0.1:0",
+        "--max-clients",
+        "4",
+        "--duration",
+        "100s",
+    ]);
+    let addr = f.proc(view).json(30 * SEC).expect("view's address")["listen"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    // Four viewers that subscribe to everything and then never read.
+    let mut slow = Vec::new();
+    for _ in 0..4 {
+        let (mut s, status) = ws_connect(&addr, "/");
+        assert!(status.contains(" 101 "), "{status}");
+        let adv = ws_text_with(&mut s, "advertise");
+        let subs: Vec<Value> = adv["channels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .enumerate()
+            .map(|(i, c)| serde_json::json!({"id": i, "channelId": c["id"]}))
+            .collect();
+        ws_send_text(
+            &mut s,
+            &serde_json::json!({"op": "subscribe", "subscriptions": subs}).to_string(),
+        );
+        slow.push(s);
+    }
+    // A fifth is refused while they hold their places.
+    let (_, status) = ws_connect(&addr, "/");
+    assert!(status.contains(" 503 "), "{status}");
+    // Not reading, each fills its buffers and then its backlog: the view lets it go.
+    // Read now: what was buffered, then the end (a viewer kept would stream for ever).
+    let deadline = Instant::now() + 90 * SEC;
+    std::thread::sleep(12 * SEC);
+    for (k, s) in slow.iter_mut().enumerate() {
+        s.set_read_timeout(Some(2 * SEC)).unwrap();
+        let mut buf = vec![0u8; 1 << 16];
+        loop {
+            match s.read(&mut buf) {
+                Ok(0) | Err(_) => break,
+                Ok(_) => assert!(Instant::now() < deadline, "slow viewer {k} never let go"),
+            }
+        }
+    }
+    // Their places are free again: a new viewer sees the world.
+    let live = foxglove_report(&client, &addr, 3);
+    assert!(
+        live["counts"]["/robots"].as_u64().unwrap_or(0) >= 3,
+        "{live}"
+    );
+    f.proc(view).signal(libc::SIGTERM);
+    assert_eq!(f.proc(view).wait(10 * SEC), Some(0));
+    f.proc(up).signal(libc::SIGTERM);
+    assert!(f.proc(up).wait(30 * SEC).is_some());
 }

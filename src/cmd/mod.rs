@@ -36,6 +36,7 @@ mod up_paper;
 mod user;
 mod user_tui;
 mod view;
+mod view_gate;
 
 use crate::cli::{Cli, Command};
 use anyhow::Context;

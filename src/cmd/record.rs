@@ -245,7 +245,12 @@ pub struct Scene {
     next_attach: Instant,
     /// Messages written, per topic.
     pub counts: BTreeMap<String, u64>,
+    /// Also given each event record's JSON (the view's operators).
+    event_hook: Option<EventHook>,
 }
+
+/// Where a scene also sends each event record's JSON.
+type EventHook = Box<dyn FnMut(&str)>;
 
 impl Scene {
     /// Channels on `ctx` for instance `inst`'s world (as `scenario` and `map` set it up)
@@ -284,7 +289,13 @@ impl Scene {
             next_list_read: Instant::now(),
             next_attach: Instant::now(),
             counts: BTreeMap::new(),
+            event_hook: None,
         })
+    }
+
+    /// Gives each of the broker's event records (JSON) to `f` too.
+    pub fn on_event(&mut self, f: impl FnMut(&str) + 'static) {
+        self.event_hook = Some(Box::new(f));
     }
 
     fn count(&mut self, topic: &str) {
@@ -443,9 +454,12 @@ impl Scene {
             }
         }
         for rec in events {
-            let bytes = serde_json::to_vec(&rec)?;
+            let json = serde_json::to_string(&rec)?;
+            if let Some(f) = self.event_hook.as_mut() {
+                f(&json);
+            }
             self.events
-                .log_with_meta(&bytes, PartialMetadata::with_log_time(rec.t_ns));
+                .log_with_meta(json.as_bytes(), PartialMetadata::with_log_time(rec.t_ns));
             self.count("/muster/events");
             any = true;
         }

@@ -37,24 +37,78 @@ impl ServerListener for Latch {
     }
 }
 
-/// Starts a Foxglove WebSocket server for `ctx` on `listen`; prints where it listens
-/// (one JSON line, then the URL for people).
+/// Messages a Foxglove server queues for one client before it drops the client (the
+/// crate's default is 1,024: with the world's larger messages, a few hundred clients
+/// that never read held a gigabyte).
+const BACKLOG: usize = 64;
+
+/// Starts a Foxglove WebSocket server for `ctx` on `listen` (never with the broker's
+/// event feed when `public`).
+fn start_server(
+    ctx: &Arc<Context>,
+    listen: SocketAddr,
+    latch: &Arc<Latch>,
+    public: bool,
+) -> anyhow::Result<foxglove::WebSocketServerHandle> {
+    let mut server = WebSocketServer::new()
+        .name("muster")
+        .context(ctx)
+        .listener(latch.clone())
+        .message_backlog_size(BACKLOG)
+        .bind(listen.ip().to_string(), listen.port());
+    if public {
+        server = server.channel_filter_fn(|c| c.topic() != EVENTS_TOPIC);
+    }
+    server
+        .start_blocking()
+        .with_context(|| format!("serving the Foxglove WebSocket protocol on {listen}"))
+}
+
+/// The event feed's topic: operators only.
+const EVENTS_TOPIC: &str = "/muster/events";
+
+/// Prints where a server listens (one JSON line, then the URL for people).
+fn announce(at: SocketAddr, events: Option<&str>) {
+    println!(
+        "{}",
+        serde_json::json!({"listen": at.to_string(), "events": events})
+    );
+    eprintln!("muster: Foxglove WebSocket server on ws://{at} (open it in Foxglove or Lichtblick: Open connection, Foxglove WebSocket)");
+}
+
+/// A replay's server, on `listen` itself.
 fn serve(
     ctx: &Arc<Context>,
     listen: SocketAddr,
     latch: &Arc<Latch>,
 ) -> anyhow::Result<foxglove::WebSocketServerHandle> {
-    let server = WebSocketServer::new()
-        .name("muster")
-        .context(ctx)
-        .listener(latch.clone())
-        .bind(listen.ip().to_string(), listen.port())
-        .start_blocking()
-        .with_context(|| format!("serving the Foxglove WebSocket protocol on {listen}"))?;
-    let at = SocketAddr::new(listen.ip(), server.port());
-    println!("{}", serde_json::json!({"listen": at.to_string()}));
-    eprintln!("muster: Foxglove WebSocket server on ws://{at} (open it in Foxglove or Lichtblick: Open connection, Foxglove WebSocket)");
+    let server = start_server(ctx, listen, latch, false)?;
+    announce(SocketAddr::new(listen.ip(), server.port()), None);
     Ok(server)
+}
+
+/// The operators' token: the file's first line, or a new random one.
+fn operator_token(file: Option<&std::path::Path>) -> anyhow::Result<String> {
+    match file {
+        Some(p) => {
+            let t = std::fs::read_to_string(p)
+                .with_context(|| format!("--token-file {}", p.display()))?;
+            let t = t.lines().next().unwrap_or_default().trim().to_string();
+            anyhow::ensure!(
+                t.len() >= 16
+                    && t.bytes()
+                        .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_'),
+                "--token-file {}: a token is 16 or more characters of [A-Za-z0-9_-]",
+                p.display()
+            );
+            Ok(t)
+        }
+        None => {
+            use rand::RngExt;
+            let bytes: [u8; 24] = rand::rng().random();
+            Ok(hex::encode(bytes))
+        }
+    }
 }
 
 /// `muster view`.
@@ -64,7 +118,25 @@ pub fn run(inst: &Instance, a: ViewArgs) -> anyhow::Result<ExitCode> {
     let ctx = Context::new();
     let latch = Arc::new(Latch::default());
     let mut scene = Scene::new(&ctx, inst, scenario, map)?;
-    let server = serve(&ctx, a.listen, &latch)?;
+    // The Foxglove server on a loopback port of its own, the world and infrastructure
+    // only; the gate on --listen in front of it, with the event feed for operators.
+    let server = start_server(&ctx, SocketAddr::from(([127, 0, 0, 1], 0)), &latch, true)?;
+    let token = operator_token(a.token_file.as_deref())?;
+    let feed = super::view_gate::Feed::default();
+    let gate = super::view_gate::Gate::start(
+        a.listen,
+        super::view_gate::Backends {
+            foxglove: SocketAddr::from(([127, 0, 0, 1], server.port())),
+            token: token.clone(),
+        },
+        feed.clone(),
+        usize::from(a.max_clients),
+    )
+    .with_context(|| format!("listening on {}", a.listen))?;
+    let events_url = format!("ws://{}/events?token={token}", gate.addr());
+    announce(gate.addr(), Some(&events_url));
+    eprintln!("muster: the broker's event feed, for operators: {events_url}");
+    scene.on_event(move |json| feed.send(json));
     let mut taps = super::taps::Taps::new(inst, &ctx, &a.scene.services);
     let end = a.duration.map(|d| Instant::now() + d);
     loop {
@@ -79,6 +151,7 @@ pub fn run(inst: &Instance, a: ViewArgs) -> anyhow::Result<ExitCode> {
             std::thread::sleep(Duration::from_millis(10));
         }
     }
+    drop(gate);
     server.stop().wait_blocking();
     Ok(ExitCode::SUCCESS)
 }
