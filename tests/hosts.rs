@@ -1463,3 +1463,82 @@ fn a_flooding_or_ghost_peer_costs_bounded_memory_and_holds_nothing() {
     let in_use = find(&l, "robo/s0").unwrap()["in_use"].as_u64().unwrap();
     assert!(in_use <= 1, "ghost users hold sessions: {l:?}");
 }
+
+#[test]
+fn a_peer_is_dialled_only_at_a_name_its_certificate_bears() {
+    // b dials a at 127.0.0.2, an address a's certificate does not bear: no link (TLS
+    // name verification). Certificates that bear it (`muster certs --san 127.0.0.2`):
+    // the two federate.
+    let dir = std::env::temp_dir().join(format!("muster-test-names-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let run = |certs: &std::path::Path, tag: &str| -> bool {
+        let fed = format!("fn{tag}{}", std::process::id());
+        let port = free_tcp_port();
+        let mut a = Fed::new(&format!("fn{tag}-a"));
+        let mut b = Fed::new(&format!("fn{tag}-b"));
+        let tls = certs.to_str().unwrap();
+        let listen = format!("tcp/127.0.0.2:{port}");
+        a.broker(&[
+            "--federate",
+            "--host",
+            "a",
+            "--federation",
+            &fed,
+            "--tls",
+            tls,
+            "--listen",
+            &listen,
+            "--lease",
+            "1s",
+        ]);
+        b.broker(&[
+            "--federate",
+            "--host",
+            "b",
+            "--federation",
+            &fed,
+            "--tls",
+            tls,
+            "--connect",
+            &listen,
+            "--lease",
+            "1s",
+        ]);
+        b.system("robo", &[]);
+        let deadline = Instant::now() + 6 * SEC;
+        let mut joined = false;
+        while !joined && Instant::now() < deadline {
+            joined = ids(&a.list()).iter().any(|i| i == "robo@b/s0");
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+        a.shutdown();
+        b.shutdown();
+        joined
+    };
+    let plain = dir.join("plain");
+    assert_eq!(make_certs(&plain, "a,b"), 0);
+    assert!(
+        !run(&plain, "x"),
+        "a link to an address the certificate does not bear"
+    );
+    let named = dir.join("named");
+    let tool = Fed::new("certs-tool");
+    let (code, _) = tool.run(
+        &[
+            "certs",
+            "--out",
+            named.to_str().unwrap(),
+            "--hosts",
+            "a,b",
+            "--san",
+            "127.0.0.2",
+        ],
+        20 * SEC,
+    );
+    assert_eq!(code, 0);
+    assert!(
+        run(&named, "y"),
+        "no link to an address the certificate bears"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

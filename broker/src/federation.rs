@@ -392,9 +392,11 @@ impl FedConfig {
             set(&mut c, "transport/link/tls/connect_certificate", &cert)?;
             set(&mut c, "transport/link/tls/connect_private_key", &key)?;
             set(&mut c, "transport/link/tls/enable_mtls", "true")?;
-            // Peers are reached by address; who they are is their certificate, which
-            // the federation's authority signed (mutual TLS), not the name dialled.
-            set(&mut c, "transport/link/tls/verify_name_on_connect", "false")?;
+            // The peer dialled must show a certificate for the name or address dialled
+            // (`muster certs` puts the host's name, localhost, 127.0.0.1 and every
+            // `--san` in it); who it is in the federation is its certificate's common
+            // name, which the access rules check.
+            set(&mut c, "transport/link/tls/verify_name_on_connect", "true")?;
         }
         set(
             &mut c,
