@@ -253,3 +253,63 @@ fn a_local_process_can_speak_only_as_itself() {
     drop(ep);
     common::cleanup_dead_nodes();
 }
+
+/// The pids of processes running on instance `inst` (`--instance INST` in their command
+/// line), but the cleanups a broker leaves to outlive it on purpose.
+fn on_instance(inst: &str) -> Vec<i32> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else {
+            continue;
+        };
+        let Ok(cmd) = std::fs::read(format!("/proc/{pid}/cmdline")) else {
+            continue;
+        };
+        let args: Vec<&[u8]> = cmd.split(|&b| b == 0).collect();
+        let ours = args
+            .windows(2)
+            .any(|w| w[0] == b"--instance" && w[1] == inst.as_bytes());
+        if ours && !args.iter().any(|a| *a == b"cleanup") {
+            out.push(pid);
+        }
+    }
+    out
+}
+
+#[test]
+fn a_killed_up_leaves_no_process_running() {
+    // `muster up` starts a broker, its standby, the simulator, the robot systems: when
+    // it is SIGKILLed, they stop too (each gets SIGTERM as its parent dies).
+    let mut f = Fed::new("orphans");
+    let up = f.spawn(&["up", "--no-udp", "--speed", "2", "--duration", "120s"]);
+    f.wait_list(60 * SEC, |l| l.len() >= 4);
+    let started = on_instance(&f.inst);
+    assert!(started.len() >= 4, "{started:?}");
+    f.proc(up).signal(libc::SIGKILL);
+    assert!(f.proc(up).wait(5 * SEC).is_some());
+    let deadline = std::time::Instant::now() + 20 * SEC;
+    let mut left = on_instance(&f.inst);
+    while !left.is_empty() && std::time::Instant::now() < deadline {
+        std::thread::sleep(std::time::Duration::from_millis(100));
+        left = on_instance(&f.inst);
+    }
+    let what: Vec<String> = left
+        .iter()
+        .map(|p| {
+            let c = std::fs::read(format!("/proc/{p}/cmdline")).unwrap_or_default();
+            format!("{p}: {}", String::from_utf8_lossy(&c).replace('\0', " "))
+        })
+        .collect();
+    // (Processes of this test's own instance, left by a failure: killed before failing.)
+    for pid in &left {
+        // SAFETY: kill(2) on processes of this test's unique instance.
+        unsafe { libc::kill(*pid, libc::SIGKILL) };
+    }
+    assert!(
+        left.is_empty(),
+        "still running after up was killed: {what:?}"
+    );
+    // And the instance's fence went with its last broker: nothing of it in /dev/shm.
+    let fence = format!("{}{}.broker-fence", muster_shared::ipc::iox2_root(), f.inst);
+    assert!(!std::path::Path::new(&fence).exists(), "{fence} left");
+}

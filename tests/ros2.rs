@@ -103,6 +103,7 @@ fn the_simulators_robots_appear_in_ros2() {
         ))
         .arg("R1")
         .env("ROS_DOMAIN_ID", &ds)
+        .env(FASTDDS_TRANSPORT.0, FASTDDS_TRANSPORT.1)
         .output()
         .expect("run rclpy");
     fed.shutdown();
@@ -265,13 +266,18 @@ fn the_simulators_robots_appear_in_ros2() {
     );
 }
 
+/// Fast DDS (rclpy's middleware) over UDP only: its shared-memory transport leaves
+/// segments in /dev/shm when a node is killed, and the tests leave nothing behind.
+const FASTDDS_TRANSPORT: (&str, &str) = ("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4");
+
 /// The rclpy robot (tests/ros2/robot.py) in `namespace`, starting at `start`.
 fn robot(python: &str, domain: u16, namespace: &str, start: &str, extra: &[&str]) -> Command {
     let mut c = Command::new(python);
     c.arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/ros2/robot.py"))
         .args([namespace, start])
         .args(extra)
-        .env("ROS_DOMAIN_ID", domain.to_string());
+        .env("ROS_DOMAIN_ID", domain.to_string())
+        .env(FASTDDS_TRANSPORT.0, FASTDDS_TRANSPORT.1);
     c
 }
 

@@ -474,6 +474,7 @@ pub fn run_with(
             standby_since: None,
             cleanup: Some(cleanup),
             presence: None,
+            signals: None,
         },
         udp,
         fed,
@@ -504,6 +505,8 @@ struct Primary {
     cleanup: Option<std::thread::JoinHandle<usize>>,
     /// The presence ringer, if a standby made it ready beforehand.
     presence: Option<Ringer>,
+    /// The standby's signal pipe: a SIGTERM that came while it took over is not lost.
+    signals: Option<SignalPipe>,
 }
 
 /// Runs a standby on `inst`: it follows the primary's state and takes over when the
@@ -532,6 +535,7 @@ pub fn run_standby(
         noticed_ns,
         follower,
         presence,
+        signals,
         me,
         old,
         why,
@@ -610,6 +614,7 @@ pub fn run_standby(
             standby_since: Some(t0),
             cleanup,
             presence: Some(presence),
+            signals: Some(signals),
         },
         udp,
         fed,
@@ -644,6 +649,8 @@ struct Followed {
     noticed_ns: u64,
     follower: Follower,
     presence: Ringer,
+    /// Its signal pipe, carried into serving.
+    signals: SignalPipe,
     me: Holder,
     old: Option<PidFd>,
     why: Why,
@@ -857,6 +864,7 @@ fn follow(
                     noticed_ns: muster_shared::protocol::monotonic_ns(),
                     follower,
                     presence,
+                    signals,
                     me,
                     old,
                     why,
@@ -903,6 +911,7 @@ fn serve(
         standby_since,
         cleanup,
         presence,
+        signals,
     } = p;
     let mut cleanups = Cleanups::new(inst, cleanup);
     let setup = Instant::now();
@@ -918,7 +927,10 @@ fn serve(
     let replica = ReplicaWriter::open(endpoint.node(), inst)?;
     step("replica");
     let epoch = core.epoch();
-    let mut signals = SignalPipe::install()?;
+    let mut signals = match signals {
+        Some(s) => s,
+        None => SignalPipe::install()?,
+    };
     let mut hangup = SignalPipe::hangup()?;
     let reactor = Reactor::new()?;
     reactor.add(endpoint.bell_fd(), TOKEN_BELL)?;
@@ -1094,6 +1106,21 @@ fn serve(
                                 standbys,
                                 "signal received: broker stepping down to a standby"
                             );
+                            // Stopped together with it (a whole run stopping, or its
+                            // parent gone): with no standby left to take over, the
+                            // instance ends here, as with a lone broker.
+                            let until = Instant::now() + HANDOVER_WAIT;
+                            while shell.fence.holds(me)
+                                && shell.replica.writer.standbys() > 0
+                                && Instant::now() < until
+                            {
+                                std::thread::sleep(Duration::from_millis(10));
+                            }
+                            if shell.fence.holds(me) && shell.replica.writer.standbys() == 0 {
+                                tracing::info!("no standby took over: instance stopped");
+                                presence.ring(bell::BROKER_DOWN);
+                                shell.fence.remove();
+                            }
                         } else {
                             tracing::info!("signal received: broker stopping");
                             presence.ring(bell::BROKER_DOWN);
@@ -1235,6 +1262,9 @@ struct Replication {
     last_image: Option<Instant>,
     last_sent: Instant,
 }
+
+/// How long a primary stepping down waits for a standby to take over or to leave.
+const HANDOVER_WAIT: Duration = Duration::from_secs(2);
 
 /// Least time between two state images to the standbys.
 const IMAGE_EVERY: Duration = Duration::from_millis(100);

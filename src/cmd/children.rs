@@ -6,6 +6,28 @@ use muster_users::{ConnectOptions, UserClient};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+/// Makes the process `cmd` starts get SIGTERM when this one dies, however it dies (a
+/// SIGKILLed `muster up` leaves no simulator, systems or standby running; they stop as
+/// on Ctrl-C). If this process is already gone when the child starts, the child stops
+/// at once.
+pub fn die_with_parent(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let parent = std::process::id();
+    // SAFETY: between fork and exec, only async-signal-safe calls: prctl, getppid and
+    // raise, and an io::Error made from the errno on failure.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            if u32::try_from(libc::getppid()).ok() != Some(parent) {
+                libc::raise(libc::SIGTERM);
+            }
+            Ok(())
+        });
+    }
+}
+
 /// The children we started; stopped (SIGTERM, then SIGKILL) on drop.
 #[derive(Default)]
 pub struct Children(Vec<(String, Child)>);
@@ -32,7 +54,9 @@ impl Children {
         stderr: Stdio,
     ) -> anyhow::Result<&mut Child> {
         let exe = std::env::current_exe().context("locating the muster binary")?;
-        let child = Command::new(exe)
+        let mut cmd = Command::new(exe);
+        die_with_parent(&mut cmd);
+        let child = cmd
             .arg("--instance")
             .arg(inst.as_str())
             .arg("--time-scale")
