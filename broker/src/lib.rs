@@ -7,5 +7,6 @@ pub mod federation;
 pub mod replica;
 pub mod run;
 pub mod udp;
+pub mod watchdog;
 
 pub use crate::core::{Broker, BrokerConfig, BrokerStats, Output};

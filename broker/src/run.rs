@@ -8,6 +8,7 @@ use crate::core::{Broker, BrokerConfig, Output};
 use crate::federation::{Delivery, FarGrant, FedConfig, FedError, Federation};
 use crate::replica::{Follower, Leader, Step};
 use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
+use crate::watchdog::Phase;
 use muster_shared::fence::{Fence, Holder};
 use muster_shared::ipc::{
     bell, create_node, BellRinger, Endpoint, EventWriter, ListWriter, Presence, ReplicaReader,
@@ -1039,7 +1040,17 @@ fn serve(
     // The first turn reads the inbox whatever woke it: frames written before this
     // broker's bell existed (a takeover, a restart) rang nobody.
     let mut inbox_rang = true;
+    // Logs what the loop was doing if it makes no progress for a second outside its wait.
+    let watchdog = crate::watchdog::Watchdog::start(STALL)
+        .map_err(|e| tracing::warn!("no loop watchdog: {e}"))
+        .ok();
+    let at = |phase| {
+        if let Some(w) = &watchdog {
+            w.at(phase);
+        }
+    };
     loop {
+        at(Phase::Waiting);
         let now = host_now();
         let timeout = core.poll_timeout().map(|t| t.saturating_sub(now));
         let housekeeping = shell
@@ -1067,6 +1078,7 @@ fn serve(
         .flatten()
         .min();
         let tokens = shell.reactor.wait(timeout)?;
+        at(Phase::Timers);
         // Taken over while we slept (stopped, or hung past the deadline)? Then another
         // broker serves the instance: act on nothing.
         if !shell.fence.holds(me) {
@@ -1092,6 +1104,7 @@ fn serve(
                     }
                 }
                 TOKEN_SIGNAL => {
+                    at(Phase::Signal);
                     if signals.drain() {
                         let standbys = shell.replica.writer.standbys();
                         if standbys > 0 {
@@ -1147,6 +1160,7 @@ fn serve(
                     }
                 }
                 TOKEN_UDP => {
+                    at(Phase::Udp);
                     if let Some(d) = shell.udp.as_mut() {
                         d.on_readable(&mut shell.handling, &mut core, &mut shell.fed, now);
                     }
@@ -1157,6 +1171,7 @@ fn serve(
                     }
                 }
                 TOKEN_FED => {
+                    at(Phase::Federation);
                     if let Some(f) = shell.fed.as_mut() {
                         f.on_wake(&mut core, &shell.reactor, now);
                     }
@@ -1185,10 +1200,12 @@ fn serve(
         // is answered before the rest are read: the read that finds the inbox empty
         // costs as much as one that finds a frame, and the first user need not wait
         // for it.
+        at(Phase::Inbox);
         if std::mem::take(&mut inbox_rang) && shell.drain_inbox(&mut core, now, Some(1))? {
             shell.flush(&mut core, host_now())?;
             shell.drain_inbox(&mut core, now, None)?;
         }
+        at(Phase::Timers);
         if let Some(f) = shell.fed.as_mut() {
             f.sweep();
         }
@@ -1217,13 +1234,16 @@ fn serve(
                 );
             }
         }
+        at(Phase::Flush);
         shell.flush(&mut core, host_now())?;
         if takeover_ring.is_some_and(|t| Instant::now() >= t) {
             takeover_ring = None;
             presence.ring(bell::TAKEOVER);
         }
         shell.ring_watchers(&core);
+        at(Phase::Replication);
         shell.replica.heartbeat();
+        at(Phase::Cleanup);
         if !died.is_empty() {
             // Nobody will read a dead peer's inbox: drop our ports to it now, then remove
             // the dead process's iceoryx2 resources (its node shows as dead at once) in
@@ -1262,6 +1282,10 @@ struct Replication {
     last_image: Option<Instant>,
     last_sent: Instant,
 }
+
+/// No progress of the loop for this long, outside its wait for work, is a stall the
+/// watchdog logs.
+const STALL: Duration = Duration::from_secs(1);
 
 /// How long a primary stepping down waits for a standby to take over or to leave.
 const HANDOVER_WAIT: Duration = Duration::from_secs(2);
