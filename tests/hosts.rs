@@ -164,6 +164,51 @@ fn make_certs(dir: &std::path::Path, hosts: &str) -> i32 {
     code
 }
 
+/// A Zenoh peer of this test's own (an attacker, a third party) connected to
+/// `endpoints`, over TLS with `certs`' certificate `name` if given.
+fn raw_peer(endpoints: &[String], tls: Option<(&std::path::Path, &str)>) -> zenoh::Session {
+    use zenoh::Wait;
+    let mut conf = zenoh::Config::default();
+    let mut set = vec![
+        ("mode", "\"peer\"".to_string()),
+        ("listen/endpoints", "[]".into()),
+        ("scouting/multicast/enabled", "false".into()),
+        (
+            "connect/endpoints",
+            serde_json::to_string(endpoints).unwrap(),
+        ),
+    ];
+    if let Some((certs, name)) = tls {
+        let file = |n: &str| serde_json::to_string(&certs.join(n).display().to_string()).unwrap();
+        set.extend([
+            ("transport/link/tls/root_ca_certificate", file("ca.pem")),
+            (
+                "transport/link/tls/connect_certificate",
+                file(&format!("{name}.pem")),
+            ),
+            (
+                "transport/link/tls/connect_private_key",
+                file(&format!("{name}.key")),
+            ),
+            ("transport/link/tls/enable_mtls", "true".into()),
+            ("transport/link/tls/verify_name_on_connect", "false".into()),
+        ]);
+    }
+    for (k, v) in set {
+        conf.insert_json5(k, &v).unwrap();
+    }
+    zenoh::open(conf).wait().unwrap()
+}
+
+/// A fresh folder for test `test`, and in it the certificates of `hosts` (`certs/`).
+fn cert_dir(test: &str, hosts: &str) -> (std::path::PathBuf, std::path::PathBuf) {
+    let dir = std::env::temp_dir().join(format!("muster-test-{test}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let certs = dir.join("certs");
+    assert_eq!(make_certs(&certs, hosts), 0);
+    (dir, certs)
+}
+
 fn seqs(lines: &[Value]) -> Vec<u64> {
     lines
         .iter()
@@ -813,10 +858,7 @@ fn the_access_file_decides_who_offers_and_who_requests() {
     // One authority for a, b and c; the access file lets a request, b offer, and
     // names no c. Zenoh's access control (by certificate common name) enforces it on
     // every broker's ingress, and each broker holds itself to its own role.
-    let dir = std::env::temp_dir().join(format!("muster-test-acl-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let certs = dir.join("certs");
-    assert_eq!(make_certs(&certs, "a,b,c"), 0);
+    let (dir, certs) = cert_dir("acl", "a,b,c");
     let acl = dir.join("acl.toml");
     std::fs::write(&acl, "[hosts]\na = [\"request\"]\nb = [\"offer\"]\n").unwrap();
     let args = |_: usize| -> Vec<String> {
@@ -1164,37 +1206,19 @@ fn a_member_host_sees_only_its_own_frames_and_acts_only_as_itself() {
     // authority, in the access file with both roles: the defaults `muster certs`
     // writes). The spy is a Zenoh client in this test that subscribes to everything and
     // puts what it likes.
-    let dir = std::env::temp_dir().join(format!("muster-test-member-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let certs = dir.join("certs");
-    assert_eq!(make_certs(&certs, "a,b,spy"), 0);
+    let (dir, certs) = cert_dir("member", "a,b,spy");
     let tls = |_: usize| vec!["--tls".to_string(), certs.display().to_string()];
     let mut h = Hosts::with("fm", &["a", "b"], tls);
     h.host(1).system("robo", &["--rate", "20", "--quota", "5"]);
     h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
-    let mut conf = zenoh::Config::default();
-    let file = |n: &str| serde_json::to_string(&certs.join(n).display().to_string()).unwrap();
-    for (k, v) in [
-        // A peer, reaching each host directly, as a member host's broker does.
-        ("mode", "\"peer\"".to_string()),
-        ("listen/endpoints", "[]".into()),
-        ("scouting/multicast/enabled", "false".into()),
-        (
-            "connect/endpoints",
-            format!(
-                "[\"tls/127.0.0.1:{}\", \"tls/127.0.0.1:{}\"]",
-                h.hosts[0].2, h.hosts[1].2
-            ),
-        ),
-        ("transport/link/tls/root_ca_certificate", file("ca.pem")),
-        ("transport/link/tls/connect_certificate", file("spy.pem")),
-        ("transport/link/tls/connect_private_key", file("spy.key")),
-        ("transport/link/tls/enable_mtls", "true".into()),
-        ("transport/link/tls/verify_name_on_connect", "false".into()),
-    ] {
-        conf.insert_json5(k, &v).unwrap();
-    }
-    let z = zenoh::open(conf).wait().unwrap();
+    // A peer, reaching each host directly, as a member host's broker does.
+    let z = raw_peer(
+        &[
+            format!("tls/127.0.0.1:{}", h.hosts[0].2),
+            format!("tls/127.0.0.1:{}", h.hosts[1].2),
+        ],
+        Some((&certs, "spy")),
+    );
     let fed = format!("muster/{}/", h.name);
     // A member host's broker holds its token: hosts serve users of hosts that joined.
     let _token = z
@@ -1286,22 +1310,13 @@ fn a_grant_is_taken_only_from_the_host_asked_and_for_the_service_asked() {
     h.host(1)
         .system("robo", &["--rate", "20", "--quota", "1", "--queue"]);
     h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
-    let mut conf = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_string()),
-        ("listen/endpoints", "[]".into()),
-        ("scouting/multicast/enabled", "false".into()),
-        (
-            "connect/endpoints",
-            format!(
-                "[\"tcp/127.0.0.1:{}\", \"tcp/127.0.0.1:{}\"]",
-                h.hosts[0].2, h.hosts[1].2
-            ),
-        ),
-    ] {
-        conf.insert_json5(k, &v).unwrap();
-    }
-    let z = zenoh::open(conf).wait().unwrap();
+    let z = raw_peer(
+        &[
+            format!("tcp/127.0.0.1:{}", h.hosts[0].2),
+            format!("tcp/127.0.0.1:{}", h.hosts[1].2),
+        ],
+        None,
+    );
     let fed = format!("muster/{}/", h.name);
     let asked: Arc<Mutex<Vec<FedMsg>>> = Arc::default();
     let sink = Arc::clone(&asked);
@@ -1401,19 +1416,7 @@ fn a_flooding_or_ghost_peer_costs_bounded_memory_and_holds_nothing() {
         let i = h.brokers[1].unwrap();
         h.host(1).proc(i).pid()
     };
-    let mut conf = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\"".to_string()),
-        ("listen/endpoints", "[]".into()),
-        ("scouting/multicast/enabled", "false".into()),
-        (
-            "connect/endpoints",
-            format!("[\"tcp/127.0.0.1:{}\"]", h.hosts[1].2),
-        ),
-    ] {
-        conf.insert_json5(k, &v).unwrap();
-    }
-    let z = zenoh::open(conf).wait().unwrap();
+    let z = raw_peer(&[format!("tcp/127.0.0.1:{}", h.hosts[1].2)], None);
     let fed = format!("muster/{}/", h.name);
     // A host that never joined (no token) asks for the service: no user of it is made.
     for k in 0..20u64 {

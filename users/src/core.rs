@@ -740,6 +740,17 @@ impl UserCore {
         }
     }
 
+    /// Ends a session granted that this user does not take.
+    fn end_at_once(&mut self, system: String, session: SessionId) {
+        self.out.push_back(UserOutput::ToSystem(
+            system,
+            ToSystem::End {
+                user: self.id.clone(),
+                session,
+            },
+        ));
+    }
+
     fn granted(
         &mut self,
         req: u64,
@@ -768,14 +779,7 @@ impl UserCore {
             // A grant under a pending request's number for another service than the one
             // asked for (a forged or misrouted grant): not taken; the request waits on.
             self.unwanted_grants += 1;
-            self.out.push_back(UserOutput::ToSystem(
-                system,
-                ToSystem::End {
-                    user: self.id.clone(),
-                    session,
-                },
-            ));
-            return;
+            return self.end_at_once(system, session);
         }
         let Some(p) = self.pending.remove(&req) else {
             // Granted after we gave up (cancelled, refused on timeout), or a session we
@@ -790,14 +794,7 @@ impl UserCore {
                 Some(_) => self.regrants += 1,
                 None => self.unwanted_grants += 1,
             }
-            self.out.push_back(UserOutput::ToSystem(
-                system,
-                ToSystem::End {
-                    user: self.id.clone(),
-                    session,
-                },
-            ));
-            return;
+            return self.end_at_once(system, session);
         };
         muster_shared::trace::stamp(muster_shared::trace::Stage::UserRecv, &self.id, req);
         self.out
