@@ -1085,6 +1085,7 @@ fn serve(
             return Err(fenced(&shell.fence));
         }
         if shell.deferred_at.is_some_and(|t| Instant::now() >= t) {
+            at(Phase::Flush);
             shell.deferred_at = None;
             shell.endpoint.ring_pending();
             shell.publish_events(&mut core);
@@ -1097,6 +1098,7 @@ fn serve(
         for token in tokens {
             match token {
                 TOKEN_BELL => {
+                    at(Phase::Inbox);
                     inbox_rang = true;
                     if shell.endpoint.drain_bell() & (1 << bell::STANDBY) != 0 {
                         core.keep_journal();
@@ -1182,6 +1184,7 @@ fn serve(
                     }
                 }
                 t => {
+                    at(Phase::Timers);
                     if let Some(w) = shell.watches.get(&t) {
                         if w.pidfd.exited() {
                             let who = w.who.clone();

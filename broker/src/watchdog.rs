@@ -202,8 +202,13 @@ fn watch(s: &Shared, loop_tid: i64, threshold: Duration) {
             let (on_cpu, waiting) = (cpu.saturating_sub(cpu0), wait.saturating_sub(wait0));
             let wchan = std::fs::read_to_string(format!("/proc/self/task/{loop_tid}/wchan"))
                 .unwrap_or_default();
+            // A thread waiting for a core has its wait counted only once it runs: one
+            // that is runnable and took little time on a core in the stall is starved.
+            let stalled = now.duration_since(since);
             let what = match state {
-                'R' if waiting > on_cpu => "runnable, waiting for a core (starved)",
+                'R' if waiting > on_cpu || Duration::from_nanos(on_cpu) < stalled / 2 => {
+                    "runnable, waiting for a core (starved)"
+                }
                 'R' => "running (busy)",
                 'D' => "in uninterruptible sleep (the kernel: I/O, a page fault)",
                 'S' => "asleep in the kernel (blocked)",
@@ -211,7 +216,7 @@ fn watch(s: &Shared, loop_tid: i64, threshold: Duration) {
             };
             tracing::warn!(
                 phase = ?phase,
-                stalled_ms = now.duration_since(since).as_millis() as u64,
+                stalled_ms = stalled.as_millis() as u64,
                 state = %state,
                 on_cpu_ms = on_cpu / 1_000_000,
                 waiting_for_cpu_ms = waiting / 1_000_000,
