@@ -3,7 +3,7 @@
 //! has made no progress for longer than the threshold outside its wait for work, logs
 //! what the loop was doing and what the kernel says of its thread: running (busy),
 //! runnable but waiting for a core (starved), or asleep in the kernel (blocked, with the
-//! kernel function it waits in). When the loop moves again, the stall's length is
+//! kernel function it waits in; the time it ran is its CPU clock, exact to the moment). When the loop moves again, the stall's length is
 //! logged too. A watchdog that was itself late (its own sleep overslept: the whole
 //! process starved) says so rather than blaming the loop.
 
@@ -88,19 +88,60 @@ fn tid() -> i64 {
     unsafe { libc::syscall(libc::SYS_gettid) }
 }
 
-/// Thread `tid`'s state letter and (ns on a core, ns waiting for one).
-fn thread_now(tid: i64) -> (char, u64, u64) {
-    let stat = std::fs::read_to_string(format!("/proc/self/task/{tid}/stat")).unwrap_or_default();
-    let state = stat
-        .rsplit_once(')')
-        .and_then(|(_, rest)| rest.trim_start().chars().next())
-        .unwrap_or('?');
-    let sched =
-        std::fs::read_to_string(format!("/proc/self/task/{tid}/schedstat")).unwrap_or_default();
-    let mut f = sched
-        .split_whitespace()
-        .map(|v| v.parse::<u64>().unwrap_or(0));
-    (state, f.next().unwrap_or(0), f.next().unwrap_or(0))
+/// The loop thread: its kernel id and its CPU-time clock.
+#[derive(Clone, Copy)]
+struct LoopThread {
+    tid: i64,
+    clock: Option<libc::clockid_t>,
+}
+
+impl LoopThread {
+    /// The calling thread.
+    fn me() -> Self {
+        let mut clock: libc::clockid_t = 0;
+        // SAFETY: pthread_self has no preconditions; pthread_getcpuclockid writes the
+        // clock id of a live thread (this one) into `clock`.
+        let ok = unsafe { libc::pthread_getcpuclockid(libc::pthread_self(), &mut clock) } == 0;
+        LoopThread {
+            tid: tid(),
+            clock: ok.then_some(clock),
+        }
+    }
+
+    /// Its state letter, ns it ran (its CPU clock, exact to now: the kernel counts the
+    /// slice it is in), and ns it waited for a core (`schedstat`: counted when it runs).
+    fn now(self) -> (char, u64, u64) {
+        let tid = self.tid;
+        let stat =
+            std::fs::read_to_string(format!("/proc/self/task/{tid}/stat")).unwrap_or_default();
+        let state = stat
+            .rsplit_once(')')
+            .and_then(|(_, rest)| rest.trim_start().chars().next())
+            .unwrap_or('?');
+        let sched =
+            std::fs::read_to_string(format!("/proc/self/task/{tid}/schedstat")).unwrap_or_default();
+        let mut f = sched
+            .split_whitespace()
+            .map(|v| v.parse::<u64>().unwrap_or(0));
+        let (ran, waited) = (f.next().unwrap_or(0), f.next().unwrap_or(0));
+        let ran = self.clock.map_or(ran, |c| {
+            let mut ts = libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            };
+            // SAFETY: clock_gettime on the loop thread's CPU clock (the thread outlives
+            // the watchdog, which it owns and drops), into a live timespec.
+            if unsafe { libc::clock_gettime(c, &mut ts) } == 0 {
+                u64::try_from(ts.tv_sec)
+                    .unwrap_or(0)
+                    .saturating_mul(1_000_000_000)
+                    + u64::try_from(ts.tv_nsec).unwrap_or(0)
+            } else {
+                ran
+            }
+        });
+        (state, ran, waited)
+    }
 }
 
 impl Watchdog {
@@ -112,11 +153,11 @@ impl Watchdog {
             stop: AtomicBool::new(false),
             stalls: Mutex::new(Vec::new()),
         });
-        let loop_tid = tid();
+        let me = LoopThread::me();
         let s = shared.clone();
         let thread = std::thread::Builder::new()
             .name("broker-watchdog".into())
-            .spawn(move || watch(&s, loop_tid, threshold))?;
+            .spawn(move || watch(&s, me, threshold))?;
         Ok(Watchdog {
             shared,
             thread: Some(thread),
@@ -148,12 +189,12 @@ impl Drop for Watchdog {
     }
 }
 
-fn watch(s: &Shared, loop_tid: i64, threshold: Duration) {
+fn watch(s: &Shared, lt: LoopThread, threshold: Duration) {
     let mut seen = s.progress.load(Ordering::Acquire);
     let mut since = Instant::now();
     // A stall noticed and not over: where, the thread's state, and its schedstat then.
     let mut open: Option<(Phase, char, u64, u64)> = None;
-    let (_, mut cpu0, mut wait0) = thread_now(loop_tid);
+    let (_, mut cpu0, mut wait0) = lt.now();
     let mut last_look = Instant::now();
     while !s.stop.load(Ordering::Acquire) {
         std::thread::sleep(LOOK_EVERY);
@@ -190,7 +231,7 @@ fn watch(s: &Shared, loop_tid: i64, threshold: Duration) {
             }
             seen = progress;
             since = now;
-            (_, cpu0, wait0) = thread_now(loop_tid);
+            (_, cpu0, wait0) = lt.now();
             continue;
         }
         let phase = PHASES
@@ -198,12 +239,12 @@ fn watch(s: &Shared, loop_tid: i64, threshold: Duration) {
             .copied()
             .unwrap_or(Phase::Waiting);
         if open.is_none() && phase != Phase::Waiting && now.duration_since(since) >= threshold {
-            let (state, cpu, wait) = thread_now(loop_tid);
+            let (state, cpu, wait) = lt.now();
             let (on_cpu, waiting) = (cpu.saturating_sub(cpu0), wait.saturating_sub(wait0));
-            let wchan = std::fs::read_to_string(format!("/proc/self/task/{loop_tid}/wchan"))
+            let wchan = std::fs::read_to_string(format!("/proc/self/task/{}/wchan", lt.tid))
                 .unwrap_or_default();
-            // A thread waiting for a core has its wait counted only once it runs: one
-            // that is runnable and took little time on a core in the stall is starved.
+            // A thread waiting for a core has its wait counted only once it runs; its CPU
+            // clock is exact: one that is runnable and ran little in the stall is starved.
             let stalled = now.duration_since(since);
             let what = match state {
                 'R' if waiting > on_cpu || Duration::from_nanos(on_cpu) < stalled / 2 => {
@@ -260,7 +301,8 @@ mod tests {
         assert_eq!(stalls[0].state, 'S');
         assert!(stalls[0].lasted >= Duration::from_millis(150), "{stalls:?}");
         assert_eq!(stalls[1].phase, Phase::Federation);
-        // Running or runnable (on a busy machine it may wait for a core).
+        // Running or runnable (on a busy machine it may wait for a core), and it ran.
         assert_eq!(stalls[1].state, 'R');
+        assert!(stalls[1].on_cpu_ms > 0, "{stalls:?}");
     }
 }
