@@ -3,9 +3,10 @@
 //! has made no progress for longer than the threshold outside its wait for work, logs
 //! what the loop was doing and what the kernel says of its thread: running (busy),
 //! runnable but waiting for a core (starved), or asleep in the kernel (blocked, with the
-//! kernel function it waits in; the time it ran is its CPU clock, exact to the moment). When the loop moves again, the stall's length is
-//! logged too. A watchdog that was itself late (its own sleep overslept: the whole
-//! process starved) says so rather than blaming the loop.
+//! kernel function it waits in). The time it ran is its CPU clock, exact to the moment.
+//! When the loop moves again, the stall's length is logged too. A watchdog that was
+//! itself late (its own sleep overslept: the whole process starved) says so rather than
+//! blaming the loop.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
