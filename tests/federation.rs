@@ -294,11 +294,23 @@ fn a_link_forwards_data_as_task_input_and_ends_when_its_data_goes() {
         ],
     );
     f.system("s1", &["--payload", "scalar"]);
-    f.wait_list(10 * SEC, |l| l.len() == 3);
+    // Two services that only name their payload alike (a label, no schema).
+    f.system("door", &["--payload", "door_state"]);
+    f.system("opener", &["--kind", "command", "--payload", "door_state"]);
+    f.wait_list(10 * SEC, |l| l.len() == 5);
     let (code, out) = f.run(&["user", "link", "s1/s0", "d1/s0", "--json"], 20 * SEC);
     assert_eq!(code, 3);
     assert!(
         out.contains("streams scalar but d1/s0 takes goal2d"),
+        "{out}"
+    );
+    let (code, out) = f.run(
+        &["user", "link", "door/s0", "opener/s0", "--json"],
+        20 * SEC,
+    );
+    assert_eq!(code, 3, "{out}");
+    assert!(
+        out.contains("both name their payload door_state, but it is no type muster carries"),
         "{out}"
     );
     let (code, out) = f.run(&["user", "link", "d1/s0", "t1/s0", "--json"], 20 * SEC);

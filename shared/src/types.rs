@@ -577,9 +577,15 @@ impl fmt::Display for Payload {
 }
 
 /// Whether data of payload type `data` can drive a command service taking `command`.
-pub fn link_compatible(data: &str, command: &str) -> bool {
-    data == command
-        || (matches!(data, "pose2d" | "track2d") && command == "goal2d")
+/// `data_open`: the data service's values really are of its declared type (a built-in
+/// one, or an open payload with its schema). A declared name that is neither (a label
+/// over values sent as text, say) is forwarded nowhere but to `text`: a link between
+/// two such services of one name would carry nothing.
+pub fn link_compatible(data: &str, data_open: bool, command: &str) -> bool {
+    if data == command {
+        return is_builtin_payload(data) || data_open;
+    }
+    (matches!(data, "pose2d" | "track2d") && command == "goal2d")
         || (data == "track2d" && command == "pose2d")
         || command == "text"
 }
@@ -780,8 +786,17 @@ mod tests {
         );
         assert_eq!(pose.convert_to("pose2d"), Some(pose.clone()));
         assert_eq!(Payload::Scalar(1.0).convert_to("goal2d"), None);
-        assert!(link_compatible("pose2d", "goal2d"));
-        assert!(!link_compatible("scalar", "goal2d"));
+        assert!(link_compatible("pose2d", false, "goal2d"));
+        assert!(!link_compatible("scalar", false, "goal2d"));
+        // A label over values of another type links into nothing of its name; an open
+        // payload (with its schema) does.
+        assert!(!link_compatible("door_state", false, "door_state"));
+        assert!(link_compatible("door_state", false, "text"));
+        assert!(link_compatible(
+            "sensor_msgs/msg/LaserScan",
+            true,
+            "sensor_msgs/msg/LaserScan"
+        ));
         let mut track = Track2d {
             x: 3.0,
             y: 4.0,
@@ -792,7 +807,7 @@ mod tests {
             seen_by: vec!["T1".into()],
             lost: false,
         };
-        assert!(link_compatible("track2d", "goal2d"));
+        assert!(link_compatible("track2d", false, "goal2d"));
         assert_eq!(
             Payload::Track2d(track.clone()).convert_to("goal2d"),
             Some(Payload::Goal2d { x: 3.0, y: 4.0 })

@@ -450,7 +450,13 @@ impl Run<'_> {
             .iter()
             .flat_map(|d| {
                 cmds.iter()
-                    .filter(|c| link_compatible(d.payload.as_str(), c.payload.as_str()))
+                    .filter(|c| {
+                        link_compatible(
+                            d.payload.as_str(),
+                            !d.encoding.as_str().is_empty(),
+                            c.payload.as_str(),
+                        )
+                    })
                     .map(move |c| (d.id(), c.id()))
             })
             .collect();

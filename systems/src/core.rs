@@ -90,6 +90,65 @@ pub enum BrokerState {
     },
 }
 
+/// Why an update or a status did not go to (some of) a service's users.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum SendError {
+    /// The frame is larger than its user's path takes: nothing of it was sent to that
+    /// user; its sequence number is spent, so the user counts a gap at the next frame.
+    #[error(
+        "a frame of {bytes} bytes is larger than the {limit} bytes a user's {path} takes: \
+         {refused} of {} users did not get it (send less at once)",
+        sent + refused
+    )]
+    TooLarge {
+        /// The frame's size on that path.
+        bytes: usize,
+        /// The path's limit.
+        limit: usize,
+        /// The path: `shared memory` or `UDP datagram`.
+        path: &'static str,
+        /// Users that got it.
+        sent: usize,
+        /// Users that did not.
+        refused: usize,
+    },
+}
+
+/// Whether `msg` fits a user's path (a remote user's UDP datagram, else shared memory);
+/// the size and limit if not. Only frames that can be large are measured.
+fn oversized(msg: &ToUser, remote: bool) -> Option<(usize, usize, &'static str)> {
+    let can_be_large = match msg {
+        ToUser::Update { payload, .. } => {
+            matches!(payload, Payload::Text(_) | Payload::Encoded { .. })
+        }
+        ToUser::Status { .. } => true,
+        _ => false,
+    };
+    if !can_be_large {
+        return None;
+    }
+    if remote {
+        let limit = muster_shared::udp::wire::MAX_PLAINTEXT;
+        let m = muster_shared::udp::msgs::SessionDown::Msg(msg.clone());
+        match muster_shared::udp::msgs::to_bytes(&m) {
+            Ok(b) if b.len() <= limit => None,
+            Ok(b) => Some((b.len(), limit, "UDP datagram")),
+            Err(_) => Some((limit + 1, limit, "UDP datagram")),
+        }
+    } else {
+        let limit = muster_shared::ipc::SMALL_FRAME;
+        match muster_shared::protocol::encode(msg) {
+            Ok(b) if b.len() <= limit => None,
+            Ok(b) => Some((b.len(), limit, "shared memory")),
+            Err(_) => Some((
+                muster_shared::protocol::MAX_FRAME + 1,
+                limit,
+                "shared memory",
+            )),
+        }
+    }
+}
+
 #[derive(Clone, Debug)]
 struct Session {
     user: UserId,
@@ -125,6 +184,8 @@ pub struct SystemCore {
     session_limit: Option<(usize, String)>,
     udp: Option<String>,
     report: BTreeMap<String, ServiceReport>,
+    /// Frames not sent: too large for their user's path.
+    too_large: u64,
     out: VecDeque<SystemOutput>,
     events: VecDeque<SystemEvent>,
 }
@@ -147,6 +208,7 @@ impl SystemCore {
             session_limit: None,
             udp: None,
             report: BTreeMap::new(),
+            too_large: 0,
             out: VecDeque::new(),
             events: VecDeque::new(),
         }
@@ -532,45 +594,92 @@ impl SystemCore {
         });
     }
 
-    /// Streams one data update to every session of `service`. Returns how many got it.
+    /// Streams one data update to every session of `service`. Returns how many got it;
+    /// an update too large for a user's path goes to none of those users, and says so
+    /// ([`SendError::TooLarge`], counted in [`SystemCore::too_large`]): it is never
+    /// dropped unseen.
     ///
     /// `sent_ns` stamps the updates (CLOCK_MONOTONIC ns, see
     /// [`muster_shared::protocol::monotonic_ns`]) so users can measure update latency.
-    pub fn publish(&mut self, service: &str, payload: &Payload, sent_ns: u64) -> usize {
-        let mut n = 0;
+    pub fn publish(
+        &mut self,
+        service: &str,
+        payload: &Payload,
+        sent_ns: u64,
+    ) -> Result<usize, SendError> {
+        let (mut sent, mut refused, mut why) = (0, 0, None);
         for (id, s) in self
             .sessions
             .iter_mut()
             .filter(|(_, s)| s.service == service)
         {
             s.seq += 1;
-            self.out.push_back(SystemOutput::ToUser(
-                s.user.clone(),
-                ToUser::Update {
-                    session: *id,
-                    seq: s.seq,
-                    sent_ns,
-                    payload: payload.clone(),
-                },
-            ));
-            n += 1;
+            let msg = ToUser::Update {
+                session: *id,
+                seq: s.seq,
+                sent_ns,
+                payload: payload.clone(),
+            };
+            if let Some(big) = oversized(&msg, s.user_pid == 0) {
+                refused += 1;
+                why = Some(big);
+                continue;
+            }
+            self.out
+                .push_back(SystemOutput::ToUser(s.user.clone(), msg));
+            sent += 1;
         }
-        n
+        self.too_large += refused as u64;
+        match why {
+            None => Ok(sent),
+            Some((bytes, limit, path)) => Err(SendError::TooLarge {
+                bytes,
+                limit,
+                path,
+                sent,
+                refused,
+            }),
+        }
     }
 
-    /// Sends task status on one session.
+    /// Sends task status on one session. A status too large for its user's path is not
+    /// sent: it is counted ([`SystemCore::too_large`]) and logged as a warning (see
+    /// [`SystemCore::try_status`] to get the error instead).
     pub fn status(&mut self, session: SessionId, status: TaskStatus) {
-        if let Some(s) = self.sessions.get_mut(&session) {
-            s.seq += 1;
-            self.out.push_back(SystemOutput::ToUser(
-                s.user.clone(),
-                ToUser::Status {
-                    session,
-                    seq: s.seq,
-                    status,
-                },
-            ));
+        if let Err(e) = self.try_status(session, status) {
+            tracing::warn!(system = %self.name, %session, "status not sent: {e}");
         }
+    }
+
+    /// [`SystemCore::status`], returning why a status was not sent.
+    pub fn try_status(&mut self, session: SessionId, status: TaskStatus) -> Result<(), SendError> {
+        let Some(s) = self.sessions.get_mut(&session) else {
+            return Ok(());
+        };
+        s.seq += 1;
+        let msg = ToUser::Status {
+            session,
+            seq: s.seq,
+            status,
+        };
+        if let Some((bytes, limit, path)) = oversized(&msg, s.user_pid == 0) {
+            self.too_large += 1;
+            return Err(SendError::TooLarge {
+                bytes,
+                limit,
+                path,
+                sent: 0,
+                refused: 1,
+            });
+        }
+        self.out
+            .push_back(SystemOutput::ToUser(s.user.clone(), msg));
+        Ok(())
+    }
+
+    /// Updates and statuses not sent because they were too large for their user's path.
+    pub fn too_large(&self) -> u64 {
+        self.too_large
     }
 
     /// Ends a session from the system's side; the user and the broker are told.
@@ -739,6 +848,75 @@ mod tests {
             SystemOutput::ToBroker(ToBroker::OfferAnswer { answer, .. }) => Some(answer.clone()),
             _ => None,
         })
+    }
+
+    #[test]
+    fn an_update_too_large_for_its_users_path_is_refused_said_and_seen_as_a_gap() {
+        let mut c = core();
+        let offer_as = |c: &mut SystemCore, ticket: u64, user: &str, pid: u32| {
+            c.handle(ToSystem::Offer {
+                ticket,
+                session: sid(user, ticket, "a"),
+                user: UserId(user.into()),
+                user_pid: pid,
+                req: ticket,
+                service: "a".into(),
+                remote: None,
+            });
+            outs(c);
+        };
+        offer_as(&mut c, 1, "local", 40);
+        let seqs = |out: Vec<SystemOutput>| -> Vec<u64> {
+            out.into_iter()
+                .filter_map(|o| match o {
+                    SystemOutput::ToUser(_, ToUser::Update { seq, .. }) => Some(seq),
+                    _ => None,
+                })
+                .collect()
+        };
+        let text = |n: usize| Payload::Text("x".repeat(n));
+        assert_eq!(c.publish("a", &text(3000), 0), Ok(1));
+        // Over the 4 KiB frame a local user reads: nobody gets it, the caller is told.
+        match c.publish("a", &text(5000), 0) {
+            Err(SendError::TooLarge {
+                path,
+                limit,
+                sent,
+                refused,
+                bytes,
+            }) => {
+                assert_eq!((path, limit, sent, refused), ("shared memory", 4096, 0, 1));
+                assert!(bytes > 5000, "{bytes}");
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(c.too_large(), 1);
+        assert_eq!(c.publish("a", &text(10), 0), Ok(1));
+        // The refused update's number is spent: the user counts it as lost.
+        assert_eq!(seqs(outs(&mut c)), [1, 3]);
+        // A remote user's path is one datagram: the same 3000 bytes do not fit it.
+        c.handle(ToSystem::End {
+            user: UserId("local".into()),
+            session: sid("local", 1, "a"),
+        });
+        offer_as(&mut c, 2, "far", 0);
+        let e = c.publish("a", &text(3000), 0).unwrap_err();
+        assert!(e.to_string().contains("UDP datagram"), "{e}");
+        // A status too large is not sent either; `status` logs it, `try_status` says it.
+        offer_as(&mut c, 3, "far2", 0);
+        c.handle(ToSystem::Offer {
+            ticket: 4,
+            session: sid("loc2", 4, "c"),
+            user: UserId("loc2".into()),
+            user_pid: 41,
+            req: 4,
+            service: "c".into(),
+            remote: None,
+        });
+        outs(&mut c);
+        let big = TaskStatus::Working("y".repeat(5000));
+        assert!(c.try_status(sid("loc2", 4, "c"), big).is_err());
+        assert!(c.try_status(sid("loc2", 4, "c"), TaskStatus::Idle).is_ok());
     }
 
     #[test]

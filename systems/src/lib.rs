@@ -8,5 +8,5 @@ pub mod remote;
 pub mod runtime;
 pub mod synthetic;
 
-pub use crate::core::{BrokerState, SystemCore, SystemEvent, SystemOutput};
+pub use crate::core::{BrokerState, SendError, SystemCore, SystemEvent, SystemOutput};
 pub use crate::runtime::{run_system, run_system_with, RunOptions, SystemApp, SystemError};

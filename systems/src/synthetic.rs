@@ -168,11 +168,13 @@ impl SystemApp for Synthetic {
                 let names: Vec<String> = core.specs().iter().map(|s| s.name.clone()).collect();
                 for (i, name) in names.iter().enumerate() {
                     if core.sessions_of(name) > 0 {
-                        core.publish(
+                        // A pose always fits every path.
+                        let sent = core.publish(
                             name,
                             &Self::pose_at(i, now),
                             muster_shared::protocol::monotonic_ns(),
                         );
+                        debug_assert!(sent.is_ok(), "{sent:?}");
                     }
                 }
             }

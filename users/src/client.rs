@@ -328,12 +328,18 @@ impl UserClient {
                 "{command} is not a command service"
             )));
         }
-        if !link_compatible(d.payload.as_str(), c.payload.as_str()) {
-            return Err(UserError::CannotLink(format!(
-                "{data} streams {} but {command} takes {}",
-                d.payload.as_str(),
-                c.payload.as_str()
-            )));
+        let open = !d.encoding.as_str().is_empty();
+        if !link_compatible(d.payload.as_str(), open, c.payload.as_str()) {
+            let (dp, cp) = (d.payload.as_str(), c.payload.as_str());
+            return Err(UserError::CannotLink(if dp == cp {
+                format!(
+                    "{data} and {command} both name their payload {dp}, but it is no type \
+                     muster carries (a built-in one, or an open payload with its schema): \
+                     the values could not be forwarded"
+                )
+            } else {
+                format!("{data} streams {dp} but {command} takes {cp}")
+            }));
         }
         let link = self.core.link(data.clone(), command.clone());
         self.flush();

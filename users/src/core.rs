@@ -153,6 +153,9 @@ struct SessionInfo {
     system: String,
     kind: ServiceKind,
     payload: String,
+    /// Its values are of its declared type for sure: a built-in one, an open payload
+    /// with its schema, or another host's (whose schema does not cross).
+    open: bool,
     last_seq: u64,
     gaps: u64,
     link: Option<u64>,
@@ -806,6 +809,7 @@ impl UserCore {
                 system,
                 kind,
                 payload: payload.clone(),
+                open: schema.is_some() || service.remote().is_some(),
                 last_seq: 0,
                 gaps: 0,
                 link: p.link,
@@ -833,13 +837,13 @@ impl UserCore {
             }
         }
         if let (Some(d), Some(_)) = (l.data, l.command) {
-            let data_payload = self
+            let (data_payload, data_open) = self
                 .sessions
                 .get(&d)
-                .map(|s| s.payload.clone())
+                .map(|s| (s.payload.clone(), s.open))
                 .unwrap_or_default();
             let cmd_payload = l.command_payload.clone().unwrap_or_default();
-            if !link_compatible(&data_payload, &cmd_payload) {
+            if !link_compatible(&data_payload, data_open, &cmd_payload) {
                 self.end_link(
                     link,
                     format!("cannot link {data_payload} into {cmd_payload}"),
@@ -893,6 +897,15 @@ impl UserCore {
             return;
         };
         let Some(input) = payload.convert_to(&target) else {
+            // A lost target gives no goal (the command keeps its last one); any other
+            // value that cannot be given ends the link, said, not dropped unseen.
+            if !matches!(payload, Payload::Track2d(_)) {
+                let why = format!(
+                    "an update of type {} cannot be given to {target}",
+                    payload.type_name()
+                );
+                self.end_link(link, why);
+            }
             return;
         };
         l.forwarded += 1;
@@ -1295,6 +1308,44 @@ mod tests {
             .any(|e| matches!(e, UserEvent::LinkEnded { .. })));
         assert_eq!(u.sessions().count(), 0);
         assert_eq!(u.links().count(), 0);
+    }
+
+    #[test]
+    fn a_link_that_could_forward_nothing_ends_with_the_reason_not_silently() {
+        let ended = |u: &mut UserCore, link: u64| -> Option<String> {
+            events(u).into_iter().find_map(|e| match e {
+                UserEvent::LinkEnded { link: l, reason } if l == link => Some(reason),
+                _ => None,
+            })
+        };
+        // Two services naming their payload `door_state`, a label, no schema: refused
+        // when both halves are granted.
+        let mut u = user();
+        let link = u.link(ServiceId::new("t", "a"), ServiceId::new("d", "go"));
+        grant(&mut u, 1, 10, "t/a", ServiceKind::Data, "door_state");
+        grant(&mut u, 2, 20, "d/go", ServiceKind::Command, "door_state");
+        let why = ended(&mut u, link).expect("the link ended");
+        assert!(
+            why.contains("cannot link door_state into door_state"),
+            "{why}"
+        );
+        // Compatible types, but a value of another type comes: the link ends, said.
+        let mut u = user();
+        let link = u.link(ServiceId::new("t", "a"), ServiceId::new("d", "go"));
+        grant(&mut u, 1, 10, "t/a", ServiceKind::Data, "pose2d");
+        grant(&mut u, 2, 20, "d/go", ServiceKind::Command, "goal2d");
+        events(&mut u);
+        u.handle(ToUser::Update {
+            session: SessionId(10),
+            seq: 1,
+            sent_ns: 0,
+            payload: Payload::Text("open".into()),
+        });
+        let why = ended(&mut u, link).expect("the link ended");
+        assert!(
+            why.contains("an update of type text cannot be given to goal2d"),
+            "{why}"
+        );
     }
 
     #[test]

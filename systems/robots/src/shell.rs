@@ -314,8 +314,10 @@ impl TrackingApp {
                 continue;
             }
             if let Some(t) = self.core.payload(c) {
-                self.published +=
-                    core.publish(c.name(), &Payload::Track2d(t), monotonic_ns()) as u64;
+                match core.publish(c.name(), &Payload::Track2d(t), monotonic_ns()) {
+                    Ok(n) => self.published += n as u64,
+                    Err(e) => tracing::warn!(colour = c.name(), "track not sent: {e}"),
+                }
             }
         }
     }

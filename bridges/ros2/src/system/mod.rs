@@ -315,7 +315,12 @@ impl Ros2System {
                     continue;
                 }
                 for p in &self.scratch {
-                    core.publish(service, p, muster_shared::protocol::monotonic_ns());
+                    if let Err(e) =
+                        core.publish(service, p, muster_shared::protocol::monotonic_ns())
+                    {
+                        self.node
+                            .warn_limited(&format!("{service}: sample not sent: {e}"));
+                    }
                 }
             }
         }
