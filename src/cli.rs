@@ -988,6 +988,12 @@ pub enum UserVerb {
         /// when it stops coming).
         #[arg(long, allow_hyphen_values = true)]
         twist: Option<String>,
+        /// For a command service: send this input once granted, as JSON: a string
+        /// (text), a number (scalar), `{"type": "goal2d", "x": 1, "y": 2}` (or pose2d,
+        /// twist, text, scalar), or an open type's `{"type": "pkg/msg/T", "value": {..}}`
+        /// written with the service's schema.
+        #[arg(long, allow_hyphen_values = true, conflicts_with_all = ["goal", "twist"])]
+        input: Option<String>,
         /// One JSON object a line.
         #[arg(long)]
         json: bool,

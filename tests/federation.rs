@@ -564,3 +564,106 @@ fn a_systems_rate_follows_the_time_scale() {
         "1 Hz at ten times real time for 2 s: {fast} updates"
     );
 }
+
+#[test]
+fn the_cli_sends_any_input_and_says_a_status_in_parts() {
+    let mut f = Fed::new("cli-input");
+    f.broker(&[]);
+    f.system("d1", &["--kind", "command", "--quota", "3", "--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let statuses = |out: &str| -> Vec<Value> {
+        out.lines()
+            .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+            .filter(|v| v["status"].is_string())
+            .collect()
+    };
+    // A goal as JSON: accepted, then done; each status in parts, its display beside.
+    let (code, out) = f.run(
+        &[
+            "user",
+            "request",
+            "d1/s0",
+            "--input",
+            r#"{"type": "goal2d", "x": 0.5, "y": 0}"#,
+            "--duration",
+            "3s",
+            "--json",
+        ],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let s = statuses(&out);
+    let working = s
+        .iter()
+        .find(|v| v["state"] == "working")
+        .unwrap_or_else(|| panic!("{out}"));
+    assert_eq!(working["detail"], "goal (0.50, 0.00) accepted", "{out}");
+    assert_eq!(
+        working["status"], "working: goal (0.50, 0.00) accepted",
+        "{out}"
+    );
+    let done = s
+        .iter()
+        .find(|v| v["state"] == "done")
+        .unwrap_or_else(|| panic!("{out}"));
+    assert!(
+        done["detail"]
+            .as_str()
+            .unwrap()
+            .starts_with("arrived within"),
+        "{out}"
+    );
+    assert!(
+        s.iter()
+            .any(|v| v["state"] == "idle" && v["detail"].is_null()),
+        "{out}"
+    );
+    // Text, to a service that takes goals: sent, and the system says why not.
+    let (code, out) = f.run(
+        &[
+            "user",
+            "request",
+            "d1/s0",
+            "--input",
+            r#""open""#,
+            "--duration",
+            "1s",
+            "--json",
+        ],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let s = statuses(&out);
+    let rejected = s
+        .iter()
+        .find(|v| v["state"] == "rejected")
+        .unwrap_or_else(|| panic!("{out}"));
+    assert_eq!(rejected["detail"], "cannot use text as a goal", "{out}");
+    // Input that cannot be made: refused with the reason, before anything is sent.
+    for (input, says) in [
+        (
+            r#"{"type": "my_pkg/msg/Door"}"#,
+            "no built-in type and the service gave no schema",
+        ),
+        ("{nope", "--input is not JSON"),
+        (
+            r#"{"type": "goal2d", "x": 1}"#,
+            "a finite number \"y\" expected",
+        ),
+    ] {
+        let (code, _, err) = f.run_full(
+            &[
+                "user",
+                "request",
+                "d1/s0",
+                "--input",
+                input,
+                "--duration",
+                "1s",
+            ],
+            20 * SEC,
+        );
+        assert_ne!(code, 0, "{input}");
+        assert!(err.contains(says), "{input}: {err}");
+    }
+}

@@ -379,6 +379,92 @@ impl Definitions {
         })
     }
 
+    /// Encodes a sample given as JSON in the form [`Definitions::decode`] gives it (an
+    /// object per message, arrays for arrays) as little-endian CDR: what a user was shown
+    /// can be sent back. A field left out is zero, false, empty or a default message; a
+    /// field the definition does not have, or a value of the wrong kind, is an error
+    /// that names it.
+    pub fn encode_json(&self, value: &Value) -> Result<Vec<u8>, Ros2MsgError> {
+        let ordered = self.in_field_order(&self.root, value, 0)?;
+        self.transcode(ordered)
+            .map_err(|e| Ros2MsgError::Sample(format!("{}: {e}", self.root)))
+    }
+
+    /// `v` (an object, or null for a default message of type `ty`) as the arrays in field
+    /// order that [`Definitions::transcode`] walks.
+    fn in_field_order(&self, ty: &str, v: &Value, depth: usize) -> Result<Value, Ros2MsgError> {
+        let bad = |s: String| Ros2MsgError::Sample(s);
+        if depth > MAX_DEPTH {
+            return Err(bad(format!("{ty}: nested deeper than {MAX_DEPTH}")));
+        }
+        let fields = self
+            .types
+            .get(ty)
+            .ok_or_else(|| bad(format!("no definition of {ty}")))?;
+        let empty = serde_json::Map::new();
+        let obj = match v {
+            Value::Object(m) => m,
+            Value::Null => &empty,
+            other => return Err(bad(format!("{ty}: an object expected, not {other}"))),
+        };
+        if let Some(k) = obj.keys().find(|k| !fields.iter().any(|f| &f.name == *k)) {
+            return Err(bad(format!("{ty} has no field {k:?}")));
+        }
+        let one = |base: &Base, v: &Value| -> Result<Value, Ros2MsgError> {
+            match (base, v) {
+                (Base::Msg(t), v) => self.in_field_order(t, v, depth + 1),
+                (Base::Prim(p), Value::Null) => Ok(match p {
+                    Prim::Bool => Value::Bool(false),
+                    Prim::Str => Value::String(String::new()),
+                    _ => Value::from(0),
+                }),
+                (Base::Prim(_), v) => Ok(v.clone()),
+            }
+        };
+        let mut out = Vec::with_capacity(fields.len());
+        for f in fields {
+            let fv = obj.get(&f.name).unwrap_or(&Value::Null);
+            let many = |fv: &Value, n: Option<usize>| -> Result<Value, Ros2MsgError> {
+                let items: &[Value] = match fv {
+                    Value::Array(a) => a,
+                    Value::Null => &[],
+                    other => {
+                        return Err(bad(format!(
+                            "{ty}.{}: an array expected, not {other}",
+                            f.name
+                        )))
+                    }
+                };
+                if items.len() > MAX_ELEMENTS {
+                    return Err(bad(format!("{ty}.{}: too many elements", f.name)));
+                }
+                let mut a = items
+                    .iter()
+                    .map(|x| one(&f.base, x))
+                    .collect::<Result<Vec<_>, _>>()?;
+                if let Some(n) = n {
+                    if a.len() > n {
+                        return Err(bad(format!(
+                            "{ty}.{}: {} elements for a fixed array of {n}",
+                            f.name,
+                            a.len()
+                        )));
+                    }
+                    while a.len() < n {
+                        a.push(one(&f.base, &Value::Null)?);
+                    }
+                }
+                Ok(Value::Array(a))
+            };
+            out.push(match f.arity {
+                Arity::One => one(&f.base, fv)?,
+                Arity::Fixed(n) => many(fv, Some(n))?,
+                Arity::Seq => many(fv, None)?,
+            });
+        }
+        Ok(Value::Array(out))
+    }
+
     /// Walks `d` (a CDR deserializer: the DDS reader's) in the definition's order and
     /// writes the sample as little-endian CDR with its encapsulation header, whatever the
     /// byte order it came in.
@@ -1026,6 +1112,36 @@ mod tests {
         assert!(d
             .reserialize(&s[..20], serde_json::value::Serializer)
             .is_err());
+    }
+
+    #[test]
+    fn a_sample_as_decode_shows_it_encodes_back_and_bad_ones_say_where() {
+        let d = Definitions::parse("my_pkg/Cloud", POINTS).unwrap();
+        let shown = json!({"name": "ab", "points": [{"x": 1.5, "y": -2.0, "z": 3.0}], "flags": [7, 9], "scale": 0.5});
+        let bytes = d.encode_json(&shown).unwrap();
+        assert_eq!(d.decode(&bytes).unwrap(), shown);
+        // Left out: zero, empty, a default message; a short fixed array is filled.
+        let bytes = d
+            .encode_json(&json!({"points": [{"x": 1.0}], "flags": [4]}))
+            .unwrap();
+        assert_eq!(
+            d.decode(&bytes).unwrap(),
+            json!({"name": "", "points": [{"x": 1.0, "y": 0.0, "z": 0.0}], "flags": [4, 0], "scale": 0.0})
+        );
+        for (bad, says) in [
+            (json!({"nmae": "x"}), "has no field \"nmae\""),
+            (json!({"points": 3}), "points: an array expected"),
+            (
+                json!({"flags": [1, 2, 3]}),
+                "3 elements for a fixed array of 2",
+            ),
+            (json!({"points": [7]}), "an object expected"),
+            (json!({"name": 5}), "my_pkg/msg/Cloud"),
+            (json!([1]), "an object expected"),
+        ] {
+            let e = d.encode_json(&bad).unwrap_err().to_string();
+            assert!(e.contains(says), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -181,6 +181,80 @@ impl Schema {
             }
         }
     }
+
+    /// Writes `value` (as [`Schema::decode`] gives it) as a sample of type `type_name`.
+    pub fn encode(&self, type_name: &str, value: &serde_json::Value) -> Result<Vec<u8>, String> {
+        match self.encoding {
+            SchemaEncoding::Ros2Msg => crate::ros2msg::Definitions::parse(type_name, &self.text)
+                .and_then(|d| d.encode_json(value))
+                .map_err(|e| e.to_string()),
+            SchemaEncoding::JsonSchema => serde_json::to_vec(value).map_err(|e| e.to_string()),
+        }
+    }
+}
+
+impl Payload {
+    /// Task input given as JSON, the way `muster user` shows payloads: a string is
+    /// `text`, a number `scalar`; an object names its `type` (`goal2d` with `x`, `y`;
+    /// `pose2d` with `x`, `y`, `theta`; `twist` with `v`, `w`; `text` with `text`;
+    /// `scalar` with `value`), or is an open type's `value`, written with `schema`.
+    pub fn from_json(v: &serde_json::Value, schema: Option<&Schema>) -> Result<Payload, String> {
+        use serde_json::Value;
+        let num = |o: &serde_json::Map<String, Value>, k: &str| -> Result<f64, String> {
+            o.get(k)
+                .and_then(Value::as_f64)
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| format!("a finite number {k:?} expected"))
+        };
+        match v {
+            Value::String(t) => Ok(Payload::Text(t.clone())),
+            Value::Number(n) => n
+                .as_f64()
+                .filter(|x| x.is_finite())
+                .map(Payload::Scalar)
+                .ok_or_else(|| "a finite number expected".into()),
+            Value::Object(o) => {
+                let ty = o
+                    .get("type")
+                    .and_then(Value::as_str)
+                    .ok_or("an object names its \"type\" (goal2d, pose2d, twist, text, scalar, or an open type)")?;
+                Ok(match ty {
+                    "goal2d" => Payload::Goal2d {
+                        x: num(o, "x")?,
+                        y: num(o, "y")?,
+                    },
+                    "pose2d" => Payload::Pose2d {
+                        x: num(o, "x")?,
+                        y: num(o, "y")?,
+                        theta: num(o, "theta")?,
+                    },
+                    "twist" => Payload::Twist {
+                        v: num(o, "v")?,
+                        w: num(o, "w")?,
+                    },
+                    "scalar" => Payload::Scalar(num(o, "value")?),
+                    "text" => Payload::Text(
+                        o.get("text")
+                            .and_then(Value::as_str)
+                            .ok_or("a string \"text\" expected")?
+                            .to_string(),
+                    ),
+                    "track2d" => return Err("track2d is data, not task input".into()),
+                    open => {
+                        let schema = schema.ok_or_else(|| {
+                            format!("{open} is no built-in type and the service gave no schema to write it with")
+                        })?;
+                        let value = o.get("value").unwrap_or(&Value::Null);
+                        Payload::Encoded {
+                            type_name: open.to_string(),
+                            data: schema.encode(open, value)?,
+                        }
+                    }
+                })
+            }
+            other => Err(format!("{other} is no task input")),
+        }
+    }
 }
 
 /// Why a [`ServiceSpec`] or a system name was rejected.
@@ -709,6 +783,49 @@ impl fmt::Display for TaskStatus {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn task_input_from_json_makes_each_type_and_an_open_one_with_its_schema() {
+        use serde_json::json;
+        let p = |v: serde_json::Value, s: Option<&Schema>| Payload::from_json(&v, s);
+        assert_eq!(p(json!("open"), None), Ok(Payload::Text("open".into())));
+        assert_eq!(p(json!(2.5), None), Ok(Payload::Scalar(2.5)));
+        assert_eq!(
+            p(json!({"type": "goal2d", "x": 1, "y": -2}), None),
+            Ok(Payload::Goal2d { x: 1.0, y: -2.0 })
+        );
+        assert_eq!(
+            p(json!({"type": "twist", "v": 0.5, "w": 0}), None),
+            Ok(Payload::Twist { v: 0.5, w: 0.0 })
+        );
+        let schema = Schema {
+            encoding: SchemaEncoding::Ros2Msg,
+            text: "float64 x\nstring name\n".into(),
+        };
+        let door = p(
+            json!({"type": "my_pkg/msg/Door", "value": {"x": 1.5, "name": "front"}}),
+            Some(&schema),
+        )
+        .unwrap();
+        let Payload::Encoded { type_name, data } = &door else {
+            panic!("{door:?}")
+        };
+        assert_eq!(type_name, "my_pkg/msg/Door");
+        assert_eq!(
+            schema.decode(type_name, data),
+            Ok(json!({"x": 1.5, "name": "front"}))
+        );
+        for (bad, says) in [
+            (json!({"type": "my_pkg/msg/Door"}), "no schema"),
+            (json!({"type": "goal2d", "x": 1}), "\"y\""),
+            (json!({"x": 1}), "names its \"type\""),
+            (json!({"type": "track2d"}), "not task input"),
+            (json!([1, 2]), "no task input"),
+        ] {
+            let e = p(bad.clone(), None).unwrap_err();
+            assert!(e.contains(says), "{bad}: {e}");
+        }
+    }
 
     #[test]
     fn a_requests_session_is_the_same_from_any_broker_and_differs_from_others() {

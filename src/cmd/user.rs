@@ -2,7 +2,7 @@
 
 use crate::cli::{UserArgs, UserVerb};
 use anyhow::Context;
-use muster_shared::types::{EndReason, Payload, Schema, ServiceId, ServiceKind};
+use muster_shared::types::{EndReason, Payload, Schema, ServiceId, ServiceKind, TaskStatus};
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
 use serde_json::{json, Value};
@@ -38,15 +38,19 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             duration,
             goal,
             twist,
+            input,
             json,
         }) => {
-            let input = match (goal, twist) {
-                (Some(g), _) => Some(Input::Once(parse_goal(&g)?)),
-                (None, Some(t)) => {
+            let input = match (goal, twist, input) {
+                (Some(g), _, _) => Some(Input::Once(parse_goal(&g)?)),
+                (None, Some(t), _) => {
                     let (v, w) = parse_point("--twist", &t)?;
                     Some(Input::Repeated(Payload::Twist { v, w }))
                 }
-                (None, None) => None,
+                (None, None, Some(j)) => Some(Input::Json(
+                    serde_json::from_str(&j).context("--input is not JSON")?,
+                )),
+                (None, None, None) => None,
             };
             request(client, &ServiceId(id), duration, input, json)
         }
@@ -104,6 +108,26 @@ enum Input {
     Once(Payload),
     /// Sent every [`REPEAT_INPUT`] while the session lasts (a velocity).
     Repeated(Payload),
+    /// Sent once, made from JSON once the grant says the service's schema.
+    Json(Value),
+}
+
+/// A status's state, for `--json`: `idle`, `working`, `done` or `rejected`.
+fn status_state(s: &TaskStatus) -> &'static str {
+    match s {
+        TaskStatus::Idle => "idle",
+        TaskStatus::Working(_) => "working",
+        TaskStatus::Done(_) => "done",
+        TaskStatus::Rejected(_) => "rejected",
+    }
+}
+
+/// A status's note, for `--json` (`null` when idle).
+fn status_detail(s: &TaskStatus) -> Option<&str> {
+    match s {
+        TaskStatus::Idle => None,
+        TaskStatus::Working(d) | TaskStatus::Done(d) | TaskStatus::Rejected(d) => Some(d),
+    }
 }
 
 /// How often repeated input goes out.
@@ -318,11 +342,19 @@ fn request(
     let (session, kind, schema) = session;
     let (first, repeated) = match input {
         Some(_) if kind != ServiceKind::Command => {
-            eprintln!("muster: --goal/--twist ignored: {id} is a data service");
+            eprintln!("muster: --goal/--twist/--input ignored: {id} is a data service");
             (None, None)
         }
         Some(Input::Once(p)) => (Some(p), None),
         Some(Input::Repeated(p)) => (Some(p.clone()), Some(p)),
+        Some(Input::Json(v)) => match Payload::from_json(&v, schema.as_ref()) {
+            Ok(p) => (Some(p), None),
+            Err(e) => {
+                client.end(session);
+                client.close();
+                anyhow::bail!("--input: {e}");
+            }
+        },
         None => (None, None),
     };
     if let Some(p) = first {
@@ -416,7 +448,9 @@ fn stream(
                 counters.last_seq = counters.last_seq.max(seq);
                 emit(
                     as_json,
-                    json!({"seq": seq, "status": status.to_string(), "payload": null}),
+                    json!({"seq": seq, "status": status.to_string(),
+                           "state": status_state(&status), "detail": status_detail(&status),
+                           "payload": null}),
                     format!("#{seq} status: {status}"),
                 )
             }
@@ -533,7 +567,8 @@ fn link(
                 ..
             })) if session == cs => emit(
                 as_json,
-                json!({"seq": seq, "status": status.to_string(), "from": command.0, "payload": null}),
+                json!({"seq": seq, "status": status.to_string(), "state": status_state(&status),
+                   "detail": status_detail(&status), "from": command.0, "payload": null}),
                 format!("#{seq} {command}: {status}"),
             ),
             Ok(Some(UserEvent::LinkEnded { link: l, reason })) if l == link => ended = Some(reason),
