@@ -486,10 +486,29 @@ fn the_interactive_menu_lists_requests_links_and_exits() {
     f.proc(m).send("e 1");
     until(&mut f, "session on t1/s0 ended: ended by the user");
     f.proc(m).send("l 2 1");
+    // The link's command session, by its number in the menu.
+    let granted = until(&mut f, "on d1/s0");
+    let n: String = granted
+        .trim_start_matches(|c: char| !c.is_ascii_digit())
+        .chars()
+        .take_while(char::is_ascii_digit)
+        .collect();
     until(&mut f, "link 1 up");
     until(&mut f, "d1/s0: working");
     f.proc(m).send("r");
     until(&mut f, "d1/s0");
+    // Any input as JSON on a session: text to a service taking goals, which says why
+    // not; an open type the service gave no schema for; and what is no JSON.
+    f.proc(m).send(&format!(r#"i {n} "open""#));
+    until(&mut f, "d1/s0: rejected: cannot use text as a goal");
+    f.proc(m)
+        .send(&format!(r#"i {n} {{"type": "my_pkg/msg/Door"}}"#));
+    until(
+        &mut f,
+        "cannot send that: my_pkg/msg/Door is no built-in type",
+    );
+    f.proc(m).send(&format!("i {n} {{nope"));
+    until(&mut f, "not JSON");
     f.proc(m).send("x");
     assert_eq!(f.proc(m).wait(10 * SEC), Some(0));
     f.wait_list(10 * SEC, |l| {

@@ -4,7 +4,7 @@
 use crate::client::{UserClient, UserError, Wake};
 use crate::core::UserEvent;
 use muster_shared::snapshot::ServiceView;
-use muster_shared::types::{Payload, ServiceId, SessionId};
+use muster_shared::types::{Payload, Schema, ServiceId, SessionId};
 use std::collections::HashMap;
 use std::io::{BufRead, Write};
 use std::os::fd::AsRawFd;
@@ -54,6 +54,8 @@ const HELP: &str = "\
   r            refresh the list
   l D C        link data service D into command service C
   g S X Y      send goal (X, Y) on session S
+  i S JSON     send any input on session S: \"text\", 2.5, {\"type\": \"goal2d\", \"x\": 1, \"y\": 2},
+               or an open type's {\"type\": \"pkg/msg/T\", \"value\": {..}}
   s            show open sessions
   e S          end session S
   x            exit";
@@ -78,7 +80,8 @@ pub fn run(mut client: UserClient) -> Result<(), UserError> {
     let mut views = client.list()?.views();
     println!("{}\n{HELP}", table(&views));
     prompt();
-    let mut sessions: Vec<SessionId> = Vec::new();
+    // Open sessions, in the order granted, with the schema of each's payload if any.
+    let mut sessions: Vec<(SessionId, Option<Schema>)> = Vec::new();
     let mut last_print: HashMap<SessionId, Instant> = HashMap::new();
     let mut stale = false;
     loop {
@@ -129,7 +132,7 @@ fn prompt() {
 
 fn show_event(
     e: &UserEvent,
-    sessions: &mut Vec<SessionId>,
+    sessions: &mut Vec<(SessionId, Option<Schema>)>,
     last_print: &mut HashMap<SessionId, Instant>,
     stale: &mut bool,
 ) {
@@ -144,9 +147,10 @@ fn show_event(
             session,
             service,
             kind,
+            schema,
             ..
         } => {
-            sessions.push(*session);
+            sessions.push((*session, schema.clone()));
             println!(
                 "\ngranted: session {} on {service} ({kind})",
                 sessions.len()
@@ -184,7 +188,7 @@ fn show_event(
             service,
             reason,
         } => {
-            sessions.retain(|s| s != session);
+            sessions.retain(|(s, _)| s != session);
             println!("\nsession on {service} ended: {reason}");
         }
         UserEvent::LinkUp { link } => println!("\nlink {link} up"),
@@ -210,9 +214,35 @@ fn command(
     client: &mut UserClient,
     line: &str,
     views: &mut Vec<ServiceView>,
-    sessions: &[SessionId],
+    sessions: &[(SessionId, Option<Schema>)],
     stale: &mut bool,
 ) -> Result<bool, UserError> {
+    let session = |n: &str| {
+        n.parse::<usize>()
+            .ok()
+            .and_then(|n| sessions.get(n.checked_sub(1)?))
+    };
+    // `i S JSON`: the JSON is the rest of the line, spaces and all.
+    if let Some(rest) = line.strip_prefix("i ") {
+        let mut parts = rest.trim_start().splitn(2, ' ');
+        let (n, json) = (
+            parts.next().unwrap_or_default(),
+            parts.next().unwrap_or_default(),
+        );
+        match (session(n), serde_json::from_str::<serde_json::Value>(json)) {
+            (Some((s, schema)), Ok(v)) => match Payload::from_json(&v, schema.as_ref()) {
+                Ok(p) => {
+                    if let Err(e) = client.input(*s, p) {
+                        println!("{e}");
+                    }
+                }
+                Err(e) => println!("cannot send that: {e}"),
+            },
+            (None, _) => println!("no session {n} (s lists them)"),
+            (_, Err(e)) => println!("not JSON: {e}"),
+        }
+        return Ok(true);
+    }
     let words: Vec<&str> = line.split_whitespace().collect();
     match words.as_slice() {
         [] => {}
@@ -223,7 +253,7 @@ fn command(
             println!("{}", table(views));
         }
         ["s"] => {
-            for (i, s) in sessions.iter().enumerate() {
+            for (i, (s, _)) in sessions.iter().enumerate() {
                 let svc = client
                     .core()
                     .sessions()
@@ -232,12 +262,8 @@ fn command(
                 println!("{}: {} {}", i + 1, s, svc.unwrap_or_default());
             }
         }
-        ["e", n] => match n
-            .parse::<usize>()
-            .ok()
-            .and_then(|n| sessions.get(n.checked_sub(1)?))
-        {
-            Some(s) => client.end(*s),
+        ["e", n] => match session(n) {
+            Some((s, _)) => client.end(*s),
             None => println!("no session {n} (s lists them)"),
         },
         ["l", d, c] => match (pick(views, d), pick(views, c)) {
@@ -247,20 +273,14 @@ fn command(
             },
             _ => println!("link takes two service numbers from the list"),
         },
-        ["g", n, x, y] => {
-            let s = n
-                .parse::<usize>()
-                .ok()
-                .and_then(|n| sessions.get(n.checked_sub(1)?));
-            match (s, x.parse::<f64>(), y.parse::<f64>()) {
-                (Some(s), Ok(x), Ok(y)) => {
-                    if let Err(e) = client.input(*s, Payload::Goal2d { x, y }) {
-                        println!("{e}");
-                    }
+        ["g", n, x, y] => match (session(n), x.parse::<f64>(), y.parse::<f64>()) {
+            (Some((s, _)), Ok(x), Ok(y)) => {
+                if let Err(e) = client.input(*s, Payload::Goal2d { x, y }) {
+                    println!("{e}");
                 }
-                _ => println!("usage: g SESSION X Y"),
             }
-        }
+            _ => println!("usage: g SESSION X Y"),
+        },
         [n] if n.parse::<usize>().is_ok() => match pick(views, n) {
             Some(id) => {
                 client.request(&id)?;
