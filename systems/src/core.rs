@@ -6,7 +6,8 @@ use muster_shared::protocol::{
     ActiveSession, SessionDigest, SessionLimit, ToBroker, ToSystem, ToUser,
 };
 use muster_shared::types::{
-    EndReason, Payload, ServiceId, ServiceKind, ServiceSpec, SessionId, TaskStatus, UserId,
+    EndReason, Payload, ServiceId, ServiceKind, ServiceSpec, SessionId, SpecError, TaskStatus,
+    UserId,
 };
 use std::collections::{BTreeMap, BTreeSet, HashSet, VecDeque};
 
@@ -191,7 +192,16 @@ pub struct SystemCore {
 }
 
 impl SystemCore {
-    /// A system named `name` in process `pid` offering `specs`.
+    /// A system named `name` in this process offering `specs`, checked now as the
+    /// broker will check them (names, sizes, quotas, payload types, schemas): a bad spec
+    /// is an error here, not a refusal later.
+    pub fn create(name: &str, specs: Vec<ServiceSpec>) -> Result<Self, SpecError> {
+        muster_shared::types::validate_registration(name, &specs)?;
+        Ok(Self::new(name, std::process::id(), specs))
+    }
+
+    /// A system named `name` in process `pid` offering `specs` (see
+    /// [`SystemCore::create`], which checks them and takes this process's pid).
     pub fn new(name: &str, pid: u32, specs: Vec<ServiceSpec>) -> Self {
         SystemCore {
             name: name.to_string(),

@@ -3,7 +3,9 @@
 //!
 //! A new robot system implements [`SystemApp`] and calls [`run_system`]. The runtime
 //! registers, answers pings, re-registers after delinquency or a broker restart, and
-//! sleeps on its bell, the broker's presence event and process-death descriptors.
+//! sleeps on its bell, the broker's presence event and process-death descriptors. It
+//! logs to standard error (`RUST_LOG`, default `info`) unless the program set up
+//! `tracing` itself.
 
 use crate::core::{SystemCore, SystemEvent, SystemOutput};
 use crate::remote::UdpSessions;
@@ -18,12 +20,22 @@ use std::os::fd::RawFd;
 use std::time::{Duration, Instant};
 
 /// A robot system's own logic.
+///
+/// Every call gets `now`: the time since the runtime started (a monotonic clock), the
+/// same clock [`SystemApp::next_tick`] answers on. The runtime calls from one thread,
+/// in this order on each wake-up: [`SystemApp::on_ready`] for the app's descriptors
+/// that are readable, then [`SystemApp::on_event`] for every protocol event (a
+/// session's `SessionStarted` before anything else of it, its `SessionEnded` last),
+/// then [`SystemApp::on_tick`] if its time has come (so a tick never sees a session
+/// whose start the app was not told of), then the events the tick led to.
 pub trait SystemApp {
     /// Called for every protocol event (session started, input, ended, ...).
     fn on_event(&mut self, core: &mut SystemCore, now: Duration, event: SystemEvent);
     /// Called when [`SystemApp::next_tick`] has passed.
     fn on_tick(&mut self, core: &mut SystemCore, now: Duration);
-    /// When to call [`SystemApp::on_tick`] next; `None` sleeps until an event.
+    /// When to call [`SystemApp::on_tick`] next, as an absolute time on the clock of
+    /// `now` (e.g. `Some(last_tick + period)`), not a delay; `None` sleeps until an
+    /// event or a descriptor.
     fn next_tick(&self, core: &SystemCore) -> Option<Duration>;
     /// The system's own descriptors to sleep on beside the protocol (its robot's sensor
     /// events, a socket), asked once when the runtime starts. They must stay open while
@@ -185,6 +197,7 @@ pub fn run_system_with<A: SystemApp>(
     mut app: A,
     opts: &RunOptions,
 ) -> Result<SystemCore, SystemError> {
+    default_logging();
     // No dead-node cleanup when opening services: after a broker crash every system
     // would race to clean the dead broker's hundreds of ports before it could
     // re-register (measured: 180 ms with 20 systems). The broker cleans up; a system
@@ -353,25 +366,54 @@ pub fn run_system_with<A: SystemApp>(
             r.logic.handle_timeout(Instant::now(), &mut core);
             r.transmit();
         }
+        // Events first: a session's `SessionStarted` always comes before a tick that
+        // could stream to it.
+        deliver(&mut app, &mut core, &mut shell, now)?;
         if app.next_tick(&core).is_some_and(|t| t <= now) {
             app.on_tick(&mut core, now);
+            deliver(&mut app, &mut core, &mut shell, now)?;
         }
-        loop {
-            shell.flush(&mut core);
-            let Some(ev) = core.poll_event() else { break };
-            match &ev {
-                SystemEvent::RegistrationRefused(r) => return Err(SystemError::Refused(r.clone())),
-                SystemEvent::Registered => {
-                    shell.waiting_logged = false;
-                    tracing::info!(system = core.name(), "registered with the broker");
-                }
-                SystemEvent::Delinquent => {
-                    tracing::warn!("broker declared us delinquent; re-registering")
-                }
-                _ => {}
+    }
+}
+
+/// Logs to standard error, filtered by `RUST_LOG` (default `info`), unless the program
+/// installed a `tracing` subscriber of its own: a new system says what it does without
+/// a line of set-up.
+fn default_logging() {
+    if !tracing::dispatcher::has_been_set() {
+        let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+            .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+        let _ = tracing_subscriber::fmt()
+            .with_env_filter(filter)
+            .with_writer(std::io::stderr)
+            .try_init();
+    }
+}
+
+/// Hands the core's events to the app, flushing what each leads to.
+fn deliver<A: SystemApp>(
+    app: &mut A,
+    core: &mut SystemCore,
+    shell: &mut Shell,
+    now: Duration,
+) -> Result<(), SystemError> {
+    loop {
+        shell.flush(core);
+        let Some(ev) = core.poll_event() else {
+            return Ok(());
+        };
+        match &ev {
+            SystemEvent::RegistrationRefused(r) => return Err(SystemError::Refused(r.clone())),
+            SystemEvent::Registered => {
+                shell.waiting_logged = false;
+                tracing::info!(system = core.name(), "registered with the broker");
             }
-            app.on_event(&mut core, now, ev);
+            SystemEvent::Delinquent => {
+                tracing::warn!("broker declared us delinquent; re-registering")
+            }
+            _ => {}
         }
+        app.on_event(core, now, ev);
     }
 }
 
