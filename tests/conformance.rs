@@ -447,7 +447,7 @@ impl Tmux {
                 std::env::var_os("MUSTER_REQUIRE_TMUX").is_none(),
                 "tmux could not start {cmd}"
             );
-            eprintln!("skipped: no tmux");
+            common::skip("no tmux (the console tests)");
             return None;
         }
         Some(Tmux(name.to_string()))

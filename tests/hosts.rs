@@ -729,7 +729,7 @@ fn netns_allowed(test: &str) -> bool {
     // SAFETY: geteuid has no preconditions.
     let root = unsafe { libc::geteuid() } == 0;
     if !root {
-        eprintln!("{test}: skipped (network namespaces need root)");
+        common::skip(&format!("{test} (network namespaces need root)"));
     }
     root
 }

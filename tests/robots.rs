@@ -294,9 +294,7 @@ fn foxglove_client() -> Option<std::path::PathBuf> {
             "no node or no @foxglove/ws-protocol in {}: run .ci/run's setup",
             dir.display()
         );
-        eprintln!(
-            "skipped: no node or no @foxglove/ws-protocol (npm ci --prefix tests/foxglove-client)"
-        );
+        skip("no node or no @foxglove/ws-protocol (npm ci --prefix tests/foxglove-client)");
         return None;
     }
     Some(dir.join("client.mjs"))

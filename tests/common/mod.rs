@@ -417,7 +417,9 @@ pub fn python_with(module: &str, package: &str) -> Option<String> {
             std::env::var_os("MUSTER_REQUIRE_PYTHON").is_none(),
             "{python} has no {module} module ({package}): run .ci/run's setup"
         );
-        eprintln!("skipped: {python} has no {module} module (pip install {package})");
+        skip(&format!(
+            "{python} has no {module} module (pip install {package})"
+        ));
         return None;
     }
     Some(python)
@@ -468,4 +470,12 @@ pub fn tcp_listening(pid: i32) -> Vec<std::net::SocketAddr> {
         }
     }
     out
+}
+
+/// Says a test is skipped (an outside client is not set up), on the test run's own
+/// output: straight to stderr, not through the test harness's capture, so that the
+/// run shows it even when the test passes. `bash scripts/test` sets everything up.
+pub fn skip(why: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr().lock(), "SKIPPED: {why}");
 }
