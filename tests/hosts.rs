@@ -209,6 +209,18 @@ fn cert_dir(test: &str, hosts: &str) -> (std::path::PathBuf, std::path::PathBuf)
     (dir, certs)
 }
 
+/// A user of host a holding `robo@b/s0` for 3 s (granted); its process index on a.
+fn holds_robo_on_b(h: &mut Hosts) -> usize {
+    let holder = h
+        .host(0)
+        .spawn(&["user", "request", "robo@b/s0", "--duration", "3s", "--json"]);
+    assert_eq!(
+        h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
+        true
+    );
+    holder
+}
+
 fn seqs(lines: &[Value]) -> Vec<u64> {
     lines
         .iter()
@@ -562,13 +574,7 @@ fn hostile_frames_from_another_host_are_dropped() {
     let mut h = Hosts::new("fh", &["a", "b"]);
     h.host(1).system("robo", &["--rate", "20"]);
     h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
-    let holder = h
-        .host(0)
-        .spawn(&["user", "request", "robo@b/s0", "--duration", "3s", "--json"]);
-    assert_eq!(
-        h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
-        true
-    );
+    let holder = holds_robo_on_b(&mut h);
     let mut conf = zenoh::Config::default();
     conf.insert_json5("mode", "\"client\"").unwrap();
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -1240,13 +1246,7 @@ fn a_member_host_sees_only_its_own_frames_and_acts_only_as_itself() {
         .wait()
         .unwrap();
     // a's user streams from b while the spy listens.
-    let holder = h
-        .host(0)
-        .spawn(&["user", "request", "robo@b/s0", "--duration", "3s", "--json"]);
-    assert_eq!(
-        h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
-        true
-    );
+    let holder = holds_robo_on_b(&mut h);
     // The spy asks b for the service under a's name (forged) and under its own.
     let request = |user: &str| {
         encode(&FedMsg::Request {
@@ -1329,13 +1329,7 @@ fn a_grant_is_taken_only_from_the_host_asked_and_for_the_service_asked() {
         })
         .wait()
         .unwrap();
-    let holder = h
-        .host(0)
-        .spawn(&["user", "request", "robo@b/s0", "--duration", "3s", "--json"]);
-    assert_eq!(
-        h.host(0).proc(holder).json(20 * SEC).unwrap()["granted"],
-        true
-    );
+    holds_robo_on_b(&mut h);
     let waiter = h.host(0).spawn(&[
         "user",
         "request",

@@ -840,6 +840,21 @@ mod tests {
         SessionId::for_request(&ServiceId::new("t1", service), &UserId(user.into()), req)
     }
 
+    /// Offers `service` to `user` (process `pid`; 0 a remote user) for its request
+    /// `ticket`.
+    fn offer_of(c: &mut SystemCore, ticket: u64, user: &str, pid: u32, service: &str) {
+        c.handle(ToSystem::Offer {
+            ticket,
+            session: sid(user, ticket, service),
+            user: UserId(user.into()),
+            user_pid: pid,
+            req: ticket,
+            service: service.into(),
+            remote: None,
+        });
+        outs(c);
+    }
+
     fn offer(c: &mut SystemCore, ticket: u64, user: &str, service: &str) -> Vec<SystemOutput> {
         c.handle(ToSystem::Offer {
             ticket,
@@ -864,16 +879,7 @@ mod tests {
     fn an_update_too_large_for_its_users_path_is_refused_said_and_seen_as_a_gap() {
         let mut c = core();
         let offer_as = |c: &mut SystemCore, ticket: u64, user: &str, pid: u32| {
-            c.handle(ToSystem::Offer {
-                ticket,
-                session: sid(user, ticket, "a"),
-                user: UserId(user.into()),
-                user_pid: pid,
-                req: ticket,
-                service: "a".into(),
-                remote: None,
-            });
-            outs(c);
+            offer_of(c, ticket, user, pid, "a");
         };
         offer_as(&mut c, 1, "local", 40);
         let seqs = |out: Vec<SystemOutput>| -> Vec<u64> {
@@ -914,16 +920,7 @@ mod tests {
         assert!(e.to_string().contains("UDP datagram"), "{e}");
         // A status too large is not sent either; `status` logs it, `try_status` says it.
         offer_as(&mut c, 3, "far2", 0);
-        c.handle(ToSystem::Offer {
-            ticket: 4,
-            session: sid("loc2", 4, "c"),
-            user: UserId("loc2".into()),
-            user_pid: 41,
-            req: 4,
-            service: "c".into(),
-            remote: None,
-        });
-        outs(&mut c);
+        offer_of(&mut c, 4, "loc2", 41, "c");
         let big = TaskStatus::Working("y".repeat(5000));
         assert!(c.try_status(sid("loc2", 4, "c"), big).is_err());
         assert!(c.try_status(sid("loc2", 4, "c"), TaskStatus::Idle).is_ok());
