@@ -80,7 +80,7 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         }
     }
     if a.stats_json {
-        println!("{}", report.to_json());
+        out!("{}", report.to_json());
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -38,7 +38,7 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
             let run = muster_systems::RunOptions { udp: a.udp };
             let core = muster_systems::run_system_with(inst, core, Synthetic::new(&opts), &run)?;
             if a.stats_json {
-                println!(
+                out!(
                     "{}",
                     serde_json::json!({"system": core.name(), "services": core.report()})
                 );
@@ -216,7 +216,7 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
             .into_iter()
             .map(|(r, s)| (r, s.summary()))
             .collect();
-        println!(
+        out!(
             "{}",
             serde_json::json!({"system": core.name(), "services": core.report(),
                 "localization": loc, "updates": app.published(), "robots": described})
@@ -266,7 +266,7 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
     let run = muster_systems::RunOptions { udp: a.common.udp };
     let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
     if a.common.stats_json {
-        println!(
+        out!(
             "{}",
             serde_json::json!({"system": core.name(), "services": core.report(),
                 "localization": {a.robot.clone(): app.localization().summary()},
