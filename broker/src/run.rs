@@ -1642,7 +1642,7 @@ impl Shell {
             None => (self.local_views.iter().collect(), None),
         };
         let mut n = 0;
-        for (slot, v) in self.snapshot.entries.iter_mut().zip(all) {
+        for (slot, v) in self.snapshot.entries.iter_mut().zip(&all) {
             *slot = v.to_entry();
             if let Some(h) = host.filter(|_| !v.remote) {
                 slot.host = h;
@@ -1657,14 +1657,11 @@ impl Shell {
             Err(e) => tracing::warn!("the service list could not be written: {e}"),
         }
         if let Some(d) = self.udp.as_mut() {
-            // Remote users see the global list too.
-            match self.fed.as_ref() {
-                Some(f) => {
-                    let all: Vec<muster_shared::snapshot::ServiceView> = f
-                        .merged_views(&self.local_views, MAX_LISTED_SERVICES)
-                        .into_iter()
-                        .cloned()
-                        .collect();
+            // Remote users see the same list (merged once, above).
+            match host {
+                Some(_) => {
+                    let all: Vec<muster_shared::snapshot::ServiceView> =
+                        all.into_iter().cloned().collect();
                     d.front.list_changed(self.snapshot.epoch, generation, &all);
                 }
                 None => d
