@@ -115,17 +115,31 @@ pub enum SendError {
     },
 }
 
+/// More than the bytes a frame adds around its variable-length text or data: header,
+/// tags, ids, sequence number, stamp and length prefixes.
+const FRAME_SLACK: usize = 128;
+
 /// Whether `msg` fits a user's path (a remote user's UDP datagram, else shared memory);
-/// the size and limit if not. Only frames that can be large are measured.
+/// the size and limit if not. Only a frame whose text or data comes near the limit is
+/// encoded to be measured: the usual update costs a length, not an encoding.
 fn oversized(msg: &ToUser, remote: bool) -> Option<(usize, usize, &'static str)> {
-    let can_be_large = match msg {
-        ToUser::Update { payload, .. } => {
-            matches!(payload, Payload::Text(_) | Payload::Encoded { .. })
-        }
-        ToUser::Status { .. } => true,
-        _ => false,
+    let variable = match msg {
+        ToUser::Update { payload, .. } => match payload {
+            Payload::Text(t) => t.len(),
+            Payload::Encoded { type_name, data } => type_name.len() + data.len(),
+            _ => return None,
+        },
+        ToUser::Status { status, .. } => status.to_string().len(),
+        _ => return None,
     };
-    if !can_be_large {
+    let limit_of = |remote| {
+        if remote {
+            muster_shared::udp::wire::MAX_PLAINTEXT
+        } else {
+            muster_shared::ipc::SMALL_FRAME
+        }
+    };
+    if variable + FRAME_SLACK <= limit_of(remote) {
         return None;
     }
     if remote {
