@@ -437,6 +437,10 @@ impl Ros2Port {
             }
             std::thread::sleep(Duration::from_millis(20));
         }
+        // (The loop ends with a map: its absence keeps it waiting, or is the error.)
+        let Some(map) = map else {
+            return Err(Ros2Error::Robot(format!("robot {}: no map", opts.robot)));
+        };
         let p = &opts.params;
         let sonar = (!bearings.is_empty()).then(|| {
             let range = bearings
@@ -474,7 +478,7 @@ impl Ros2Port {
             radius: p.radius.unwrap_or(DEFAULT_RADIUS),
             max_speed: p.max_speed.unwrap_or(DEFAULT_MAX_SPEED),
             home: p.home.map(|[x, y]| (x, y)),
-            map: map.unwrap_or_else(|| Arc::clone(&self.description.map)),
+            map,
         })
     }
 
