@@ -487,6 +487,46 @@ impl Tmux {
             .success());
     }
 
+    /// What a stuck view is doing: its screen, and the state and kernel wait channel
+    /// of each of its process's threads.
+    fn diagnose(&self) -> String {
+        let pane = std::process::Command::new("tmux")
+            .args(["list-panes", "-t", &self.0, "-F", "#{pane_dead} #{pane_pid}"])
+            .output()
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+            .unwrap_or_default();
+        let mut threads = String::new();
+        if let Some(pid) = pane.split_whitespace().nth(1) {
+            if let Ok(dir) = std::fs::read_dir(format!("/proc/{pid}/task")) {
+                for t in dir.flatten() {
+                    let p = t.path();
+                    let stat = std::fs::read_to_string(p.join("stat")).unwrap_or_default();
+                    let wchan = std::fs::read_to_string(p.join("wchan")).unwrap_or_default();
+                    let state = stat.rsplit(") ").next().unwrap_or("").chars().next();
+                    threads += &format!(" [{:?} {state:?} {wchan}]", t.file_name());
+                }
+            }
+        }
+        format!(
+            "pane (dead, pid): {pane}; threads:{threads}\nscreen:\n{}",
+            self.screen()
+        )
+    }
+
+    /// `q`, then waits (bounded) for the program to end and its session to close.
+    fn quit(&self) {
+        self.keys(&["q"]);
+        let deadline = std::time::Instant::now() + 20 * SEC;
+        while self.alive() {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "the view did not quit; {}",
+                self.diagnose()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
     fn alive(&self) -> bool {
         std::process::Command::new("tmux")
             .args(["has-session", "-t", &self.0])
@@ -551,15 +591,7 @@ fn the_console_shows_grants_ends_and_withdrawals_and_acts_on_keys() {
     });
     assert_eq!(c.list()[0]["withdrawn"], true);
     // `q` quits and gives the terminal back.
-    t.keys(&["q"]);
-    let deadline = std::time::Instant::now() + 10 * SEC;
-    while t.alive() {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "the console did not quit"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    t.quit();
 }
 
 fn the_user_view_requests_links_ends_and_shows_withdrawals(via: Via) {
@@ -638,15 +670,7 @@ fn the_user_view_requests_links_ends_and_shows_withdrawals(via: Via) {
     t.wait("the link's end", |s| s.contains("link 1 ended"));
     c.wait_list(|l| l[d1]["links"] == 0 && l[d1]["in_use"] == 0 && l[t1]["in_use"] == 0);
     // `q` quits and gives the terminal back.
-    t.keys(&["q"]);
-    let deadline = std::time::Instant::now() + 10 * SEC;
-    while t.alive() {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "the user view did not quit"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    t.quit();
 }
 both!(the_user_view_requests_links_ends_and_shows_withdrawals);
 
