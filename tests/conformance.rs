@@ -491,7 +491,13 @@ impl Tmux {
     /// of each of its process's threads.
     fn diagnose(&self) -> String {
         let pane = std::process::Command::new("tmux")
-            .args(["list-panes", "-t", &self.0, "-F", "#{pane_dead} #{pane_pid}"])
+            .args([
+                "list-panes",
+                "-t",
+                &self.0,
+                "-F",
+                "#{pane_dead} #{pane_pid}",
+            ])
             .output()
             .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
             .unwrap_or_default();

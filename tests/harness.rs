@@ -1452,3 +1452,43 @@ fn a_replayed_datagram_from_elsewhere_draws_one_challenge_and_a_real_move_is_fol
     assert_eq!(net.front.as_ref().unwrap().stats().migrations, 1);
     assert_eq!(net.systems["t1"].remote.stats().migrations, 1);
 }
+
+#[test]
+fn a_last_update_too_large_for_its_path_is_counted_lost_at_the_end() {
+    // A local user (4 KiB frames) and a remote one (one datagram each) hold t1/s0. The
+    // system's last update is too large for both paths and is refused; then the system
+    // ends both sessions. No frame comes after it to show the gap: the end says the last
+    // number spent, and each user counts the refused update as lost.
+    let mut net = Net::new();
+    let far = connected_remote_user(&mut net);
+    let near = net.add_user(2);
+    let mut sessions = Vec::new();
+    for u in [&near, &far] {
+        let got = request_until_updates(&mut net, u, 2);
+        sessions.push(granted(&got)[0]);
+    }
+    let sys = net.systems.get_mut("t1").unwrap();
+    let e = sys
+        .core
+        .publish("s0", &Payload::Text("x".repeat(5000)), 0)
+        .unwrap_err();
+    assert!(e.to_string().contains("2 of 2 users did not get it"), "{e}");
+    for s in &sessions {
+        sys.core
+            .end_session(*s, EndReason::BySystem("shutting down".into()));
+    }
+    net.settle();
+    net.run_until(net.now + secs(2.0));
+    for (u, s) in [&near, &far].into_iter().zip(&sessions) {
+        let got = net.take_events(u);
+        let lost = got.iter().find_map(|e| match e {
+            UserEvent::Ended {
+                session,
+                lost_at_end,
+                ..
+            } if session == s => Some(*lost_at_end),
+            _ => None,
+        });
+        assert_eq!(lost, Some(1), "{u:?}: {got:?}");
+    }
+}

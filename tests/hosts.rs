@@ -676,6 +676,7 @@ fn hostile_frames_from_another_host_are_dropped() {
                 msg: ToUser::Ended {
                     session: SessionId(7),
                     reason: EndReason::ByUser,
+                    last_seq: 0,
                 },
             })
             .unwrap(),

@@ -1166,6 +1166,7 @@ impl Broker {
             ToUser::Ended {
                 session: o.session,
                 reason,
+                last_seq: 0,
             },
         ));
     }

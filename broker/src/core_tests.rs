@@ -92,9 +92,12 @@ fn granted(out: &[Output], u: u32, req: u64) -> Option<SessionId> {
 fn ended(out: &[Output], u: u32) -> Vec<(SessionId, EndReason)> {
     out.iter()
         .filter_map(|o| match o {
-            Output::ToUser(who, ToUser::Ended { session, reason }) if *who == user(u) => {
-                Some((*session, reason.clone()))
-            }
+            Output::ToUser(
+                who,
+                ToUser::Ended {
+                    session, reason, ..
+                },
+            ) if *who == user(u) => Some((*session, reason.clone())),
             _ => None,
         })
         .collect()

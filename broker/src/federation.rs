@@ -1486,6 +1486,7 @@ impl Federation {
                     msg: ToUser::Ended {
                         session,
                         reason: EndReason::PeerGone,
+                        last_seq: 0,
                     },
                 },
             );
@@ -1680,6 +1681,7 @@ impl Federation {
             let m = ToUser::Ended {
                 session,
                 reason: EndReason::PeerGone,
+                last_seq: 0,
             };
             self.deliveries.push_back(Delivery::Msg(user, m));
         }
@@ -2084,9 +2086,9 @@ impl Federation {
                 return;
             }
             m @ (ToUser::Update { .. } | ToUser::Status { .. }) => m,
-            ToUser::Ended { session, reason } => {
+            m @ ToUser::Ended { session, .. } => {
                 self.far.remove(&(user.clone(), session));
-                ToUser::Ended { session, reason }
+                m
             }
         };
         if known {

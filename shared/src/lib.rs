@@ -3,6 +3,7 @@
 
 pub mod clock;
 pub mod fence;
+pub mod fits;
 pub mod ipc;
 pub mod names;
 pub mod protocol;

@@ -748,6 +748,10 @@ pub enum ToUser {
         session: SessionId,
         /// Why.
         reason: EndReason,
+        /// The sequence number of the last update or status the system sent on the
+        /// session (0: none; the broker, which sends none, says 0). A user that saw less
+        /// counts the rest as lost: a refused or dropped last frame is a gap, not silence.
+        last_seq: u64,
     },
     /// The broker's answer to an operator's action ([`ToBroker::Operate`]): done (with
     /// the status, for [`Operation::Status`]), or why not.

@@ -455,8 +455,14 @@ fn stream(
                 )
             }
             Ok(Some(UserEvent::Ended {
-                session: s, reason, ..
-            })) if s == session => return Ok(Some(reason)),
+                session: s,
+                reason,
+                lost_at_end,
+                ..
+            })) if s == session => {
+                counters.gaps += lost_at_end;
+                return Ok(Some(reason));
+            }
             Ok(Some(UserEvent::BrokerLost)) => {
                 if !as_json {
                     eprintln!("(broker lost; the session goes on)");

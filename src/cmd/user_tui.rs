@@ -201,8 +201,15 @@ impl View {
                 session,
                 service,
                 reason,
+                lost_at_end,
             } => {
-                self.note(format!("session {session} on {service} ended: {reason}"));
+                let lost = match lost_at_end {
+                    0 => String::new(),
+                    n => format!(" (its last {n} never came)"),
+                };
+                self.note(format!(
+                    "session {session} on {service} ended: {reason}{lost}"
+                ));
                 self.held
                     .retain(|h| !matches!(h, Held::Session { id, .. } if *id == session));
             }

@@ -115,53 +115,12 @@ pub enum SendError {
     },
 }
 
-/// More than the bytes a frame adds around its variable-length text or data: header,
-/// tags, ids, sequence number, stamp and length prefixes.
-const FRAME_SLACK: usize = 128;
-
-/// Whether `msg` fits a user's path (a remote user's UDP datagram, else shared memory);
-/// the size and limit if not. Only a frame whose text or data comes near the limit is
-/// encoded to be measured: the usual update costs a length, not an encoding.
+/// Whether `msg` fits its user's path (a remote user's UDP datagram, else shared
+/// memory); the size, limit and path if not.
 fn oversized(msg: &ToUser, remote: bool) -> Option<(usize, usize, &'static str)> {
-    let variable = match msg {
-        ToUser::Update { payload, .. } => match payload {
-            Payload::Text(t) => t.len(),
-            Payload::Encoded { type_name, data } => type_name.len() + data.len(),
-            _ => return None,
-        },
-        ToUser::Status { status, .. } => status.to_string().len(),
-        _ => return None,
-    };
-    let limit_of = |remote| {
-        if remote {
-            muster_shared::udp::wire::MAX_PLAINTEXT
-        } else {
-            muster_shared::ipc::SMALL_FRAME
-        }
-    };
-    if variable + FRAME_SLACK <= limit_of(remote) {
-        return None;
-    }
-    if remote {
-        let limit = muster_shared::udp::wire::MAX_PLAINTEXT;
-        let m = muster_shared::udp::msgs::SessionDown::Msg(msg.clone());
-        match muster_shared::udp::msgs::to_bytes(&m) {
-            Ok(b) if b.len() <= limit => None,
-            Ok(b) => Some((b.len(), limit, "UDP datagram")),
-            Err(_) => Some((limit + 1, limit, "UDP datagram")),
-        }
-    } else {
-        let limit = muster_shared::ipc::SMALL_FRAME;
-        match muster_shared::protocol::encode(msg) {
-            Ok(b) if b.len() <= limit => None,
-            Ok(b) => Some((b.len(), limit, "shared memory")),
-            Err(_) => Some((
-                muster_shared::protocol::MAX_FRAME + 1,
-                limit,
-                "shared memory",
-            )),
-        }
-    }
+    muster_shared::fits::to_user(msg, remote)
+        .err()
+        .map(|t| (t.bytes, t.limit, t.path))
 }
 
 #[derive(Clone, Debug)]
@@ -733,6 +692,7 @@ impl SystemCore {
                 ToUser::Ended {
                     session,
                     reason: reason.clone(),
+                    last_seq: s.seq,
                 },
             ));
         }
@@ -938,6 +898,20 @@ mod tests {
         let big = TaskStatus::Working("y".repeat(5000));
         assert!(c.try_status(sid("loc2", 4, "c"), big).is_err());
         assert!(c.try_status(sid("loc2", 4, "c"), TaskStatus::Idle).is_ok());
+        // The system's end names the last number it spent, refused or not: a last frame
+        // that never went is still counted as lost by the user.
+        assert!(c.try_status(sid("loc2", 4, "c"), big_again()).is_err());
+        outs(&mut c);
+        c.end_session(sid("loc2", 4, "c"), EndReason::BySystem("shut".into()));
+        let last = outs(&mut c).into_iter().find_map(|o| match o {
+            SystemOutput::ToUser(_, ToUser::Ended { last_seq, .. }) => Some(last_seq),
+            _ => None,
+        });
+        assert_eq!(last, Some(3));
+    }
+
+    fn big_again() -> TaskStatus {
+        TaskStatus::Working("z".repeat(5000))
     }
 
     #[test]
@@ -1151,7 +1125,8 @@ mod tests {
                 UserId("u1".into()),
                 ToUser::Ended {
                     session: s,
-                    reason: EndReason::ByUser
+                    reason: EndReason::ByUser,
+                    last_seq: 0,
                 }
             )),
             "the end is confirmed to the user: {out:?}"

@@ -43,7 +43,7 @@ struct Remote {
     probe: PathProbe,
     cipher: SessionCipher,
     last_heard: Instant,
-    ended: Option<(Instant, EndReason)>,
+    ended: Option<(Instant, EndReason, u64)>,
 }
 
 /// Counters of the endpoint.
@@ -158,9 +158,12 @@ impl RemoteSessions {
                 if !self.sessions.contains_key(&session.0) {
                     return Some(SystemOutput::ToUser(user, msg));
                 }
-                if let ToUser::Ended { reason, .. } = &msg {
+                if let ToUser::Ended {
+                    reason, last_seq, ..
+                } = &msg
+                {
                     if let Some(r) = self.sessions.get_mut(&session.0) {
-                        r.ended = Some((now, reason.clone()));
+                        r.ended = Some((now, reason.clone(), *last_seq));
                     }
                 }
                 self.send(session.0, &SessionDown::Msg(msg));
@@ -224,11 +227,12 @@ impl RemoteSessions {
         let id = SessionId(session);
         match (msg, ended) {
             (SessionUp::Keepalive, None) => self.send(session, &SessionDown::Alive),
-            (SessionUp::Keepalive, Some((_, reason))) => self.send(
+            (SessionUp::Keepalive, Some((_, reason, last_seq))) => self.send(
                 session,
                 &SessionDown::Msg(ToUser::Ended {
                     session: id,
                     reason,
+                    last_seq,
                 }),
             ),
             (SessionUp::Msg(ToSystem::Input { payload, .. }), None) => {
@@ -244,11 +248,12 @@ impl RemoteSessions {
                 core.handle(ToSystem::End { user, session: id })
             }
             // Already ended: say so again (the user retries `End` until it hears).
-            (SessionUp::Msg(ToSystem::End { .. }), Some((_, reason))) => self.send(
+            (SessionUp::Msg(ToSystem::End { .. }), Some((_, reason, last_seq))) => self.send(
                 session,
                 &SessionDown::Msg(ToUser::Ended {
                     session: id,
                     reason,
+                    last_seq,
                 }),
             ),
             (SessionUp::Msg(ToSystem::Input { .. }), Some(_)) => {}
@@ -287,13 +292,13 @@ impl RemoteSessions {
             core.end_session(SessionId(id), EndReason::PeerGone);
             // A session the core no longer knows still needs its linger mark.
             if let Some(r) = self.sessions.get_mut(&id) {
-                r.ended.get_or_insert((now, EndReason::PeerGone));
+                r.ended.get_or_insert((now, EndReason::PeerGone, 0));
             }
         }
         self.sessions.retain(|_, r| {
             r.ended
                 .as_ref()
-                .is_none_or(|(t, _)| now.duration_since(*t) < LINGER)
+                .is_none_or(|(t, ..)| now.duration_since(*t) < LINGER)
         });
     }
 

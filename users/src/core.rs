@@ -116,6 +116,9 @@ pub enum UserEvent {
         service: ServiceId,
         /// Why.
         reason: EndReason,
+        /// Frames the system sent last that never came (it said its last sequence
+        /// number with the end): a gap at the end, which no later frame can show.
+        lost_at_end: u64,
     },
     /// Both ends of a link are granted; data now flows into the command service.
     LinkUp {
@@ -158,6 +161,8 @@ struct SessionInfo {
     open: bool,
     last_seq: u64,
     gaps: u64,
+    /// Of `gaps`, those the system's `Ended` showed (its last frames never came).
+    lost_at_end: u64,
     link: Option<u64>,
     /// The process that granted it: the only one whose frames about it are believed.
     system_pid: u32,
@@ -520,6 +525,7 @@ impl UserCore {
             session,
             service: s.service,
             reason: reason.clone(),
+            lost_at_end: s.lost_at_end,
         });
         if let Some(link) = s.link {
             self.end_link(link, format!("a linked session ended: {reason}"));
@@ -538,15 +544,22 @@ impl UserCore {
             ));
         }
         let system = s.system.clone();
-        self.out.push_back(UserOutput::ToSystem(
-            system,
-            ToSystem::Input {
-                user: self.id.clone(),
-                session,
-                payload,
-            },
-        ));
+        let msg = ToSystem::Input {
+            user: self.id.clone(),
+            session,
+            payload,
+        };
+        // Too large for the path to the system: refused here, said, not dropped unseen.
+        muster_shared::fits::to_system(&msg, self.remote())
+            .map_err(|e| format!("input not sent on session {session}: {e}"))?;
+        self.out.push_back(UserOutput::ToSystem(system, msg));
         Ok(())
+    }
+
+    /// Whether this user is remote (its frames go as UDP datagrams): a remote user's
+    /// core is made with pid 0.
+    fn remote(&self) -> bool {
+        self.pid == 0
     }
 
     /// Links data service `data` into command service `command`: requests both, then
@@ -733,10 +746,18 @@ impl UserCore {
                     status,
                 });
             }
-            ToUser::Ended { session, reason } => {
+            ToUser::Ended {
+                session,
+                reason,
+                last_seq,
+            } => {
                 if self.ending.remove(&session) {
                     self.events.push_back(UserEvent::EndConfirmed { session });
                 } else {
+                    if let Some(s) = self.sessions.get_mut(&session) {
+                        s.lost_at_end = last_seq.saturating_sub(s.last_seq);
+                        s.gaps += s.lost_at_end;
+                    }
                     self.close(session, reason, false);
                 }
             }
@@ -812,6 +833,7 @@ impl UserCore {
                 open: schema.is_some() || service.remote().is_some(),
                 last_seq: 0,
                 gaps: 0,
+                lost_at_end: 0,
                 link: p.link,
                 system_pid,
                 copies: copy,
@@ -908,18 +930,19 @@ impl UserCore {
             }
             return;
         };
-        l.forwarded += 1;
         let Some(system) = self.sessions.get(&cmd).map(|c| c.system.clone()) else {
             return;
         };
-        self.out.push_back(UserOutput::ToSystem(
-            system,
-            ToSystem::Input {
-                user: self.id.clone(),
-                session: cmd,
-                payload: input.clone(),
-            },
-        ));
+        let msg = ToSystem::Input {
+            user: self.id.clone(),
+            session: cmd,
+            payload: input.clone(),
+        };
+        if let Err(e) = muster_shared::fits::to_system(&msg, self.pid == 0) {
+            return self.end_link(link, format!("an update cannot be forwarded: {e}"));
+        }
+        l.forwarded += 1;
+        self.out.push_back(UserOutput::ToSystem(system, msg));
         self.events
             .push_back(UserEvent::LinkForwarded { link, input });
     }
@@ -1146,6 +1169,7 @@ mod tests {
         let ended = ToUser::Ended {
             session: SessionId(7),
             reason: EndReason::BySystem("done".into()),
+            last_seq: 0,
         };
         assert!(!u.sender_allowed(Some(66), &ended, owner));
         assert!(
@@ -1215,6 +1239,7 @@ mod tests {
             u.handle(ToUser::Ended {
                 session: SessionId(s),
                 reason,
+                last_seq: 0,
             });
         };
         ended(&mut u, 9, EndReason::ByUser);
@@ -1243,6 +1268,47 @@ mod tests {
             }
         ));
         assert_eq!(got.len(), 3, "{got:?}");
+    }
+
+    #[test]
+    fn frames_the_system_sent_last_that_never_came_are_counted_at_its_end() {
+        let mut u = user();
+        let req = u.request(ServiceId("t1/s0".into()));
+        grant(&mut u, req, 7, "t1/s0", ServiceKind::Data, "pose2d");
+        let update = |session, seq| ToUser::Update {
+            session: SessionId(session),
+            seq,
+            sent_ns: 0,
+            payload: Payload::Scalar(1.0),
+        };
+        u.handle(update(7, 1));
+        u.handle(update(7, 3));
+        events(&mut u);
+        // The system sent up to 6: 4, 5 and 6 never came (one gap before, three at the end).
+        u.handle(ToUser::Ended {
+            session: SessionId(7),
+            reason: EndReason::BySystem("done".into()),
+            last_seq: 6,
+        });
+        let got = events(&mut u);
+        assert!(
+            matches!(got[..], [UserEvent::Ended { lost_at_end: 3, .. }]),
+            "{got:?}"
+        );
+        // An end that says no more than was seen (or the broker's, which says 0) adds none.
+        let req = u.request(ServiceId("t1/s1".into()));
+        grant(&mut u, req, 8, "t1/s1", ServiceKind::Data, "pose2d");
+        u.handle(update(8, 2));
+        events(&mut u);
+        u.handle(ToUser::Ended {
+            session: SessionId(8),
+            reason: EndReason::PeerGone,
+            last_seq: 0,
+        });
+        assert!(matches!(
+            events(&mut u)[..],
+            [UserEvent::Ended { lost_at_end: 0, .. }]
+        ));
     }
 
     #[test]
@@ -1290,6 +1356,7 @@ mod tests {
         u.handle(ToUser::Ended {
             session: SessionId(20),
             reason: EndReason::BySystem("done".into()),
+            last_seq: 0,
         });
         let out = outs(&mut u);
         assert!(out.contains(&UserOutput::ToSystem(
@@ -1346,6 +1413,49 @@ mod tests {
             why.contains("an update of type text cannot be given to goal2d"),
             "{why}"
         );
+        // Text into text, but one value too large for the path to the command's system:
+        // the link ends, said, where the transport would have dropped it.
+        let mut u = user();
+        let link = u.link(ServiceId::new("t", "a"), ServiceId::new("d", "go"));
+        grant(&mut u, 1, 10, "t/a", ServiceKind::Data, "text");
+        grant(&mut u, 2, 20, "d/go", ServiceKind::Command, "text");
+        events(&mut u);
+        u.handle(ToUser::Update {
+            session: SessionId(10),
+            seq: 1,
+            sent_ns: 0,
+            payload: Payload::Text("x".repeat(5000)),
+        });
+        let why = ended(&mut u, link).expect("the link ended");
+        assert!(why.contains("cannot be forwarded"), "{why}");
+        assert!(why.contains("shared memory"), "{why}");
+    }
+
+    #[test]
+    fn an_input_too_large_for_its_path_is_refused_and_said() {
+        let text = |n: usize| Payload::Text("x".repeat(n));
+        // A local user: 3,000 bytes go, 5,000 do not fit the 4 KiB frame.
+        let mut u = user();
+        let req = u.request(ServiceId("d/go".into()));
+        grant(&mut u, req, 20, "d/go", ServiceKind::Command, "text");
+        outs(&mut u);
+        assert_eq!(u.input(SessionId(20), text(3000)), Ok(()));
+        assert_eq!(outs(&mut u).len(), 1);
+        let e = u.input(SessionId(20), text(5000)).unwrap_err();
+        assert!(
+            e.contains("larger than the 4096 bytes a shared memory"),
+            "{e}"
+        );
+        assert!(outs(&mut u).is_empty(), "nothing goes");
+        // A remote user (pid 0): one datagram, so the same 3,000 bytes are refused.
+        let mut u = UserCore::new(UserId("far".into()), 0, false);
+        let req = u.request(ServiceId("d/go".into()));
+        grant(&mut u, req, 20, "d/go", ServiceKind::Command, "text");
+        outs(&mut u);
+        let e = u.input(SessionId(20), text(3000)).unwrap_err();
+        assert!(e.contains("UDP datagram"), "{e}");
+        assert!(outs(&mut u).is_empty(), "nothing goes");
+        assert_eq!(u.input(SessionId(20), text(100)), Ok(()));
     }
 
     #[test]

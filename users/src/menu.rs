@@ -187,9 +187,14 @@ fn show_event(
             session,
             service,
             reason,
+            lost_at_end,
         } => {
             sessions.retain(|(s, _)| s != session);
-            println!("\nsession on {service} ended: {reason}");
+            let lost = match lost_at_end {
+                0 => String::new(),
+                n => format!(" (its last {n} never came)"),
+            };
+            println!("\nsession on {service} ended: {reason}{lost}");
         }
         UserEvent::LinkUp { link } => println!("\nlink {link} up"),
         UserEvent::LinkEnded { link, reason } => println!("\nlink {link} ended: {reason}"),
