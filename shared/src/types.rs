@@ -194,6 +194,45 @@ impl Schema {
 }
 
 impl Payload {
+    /// The payload as JSON, the form `muster user --json` prints and `--input` (with
+    /// [`Payload::from_json`]) reads: `{"type": "pose2d", "x": .., "y": .., "theta": ..}`;
+    /// an open type's sample as its size and bytes in hex (see [`Payload::to_json_with`]).
+    pub fn to_json(&self) -> serde_json::Value {
+        use serde_json::json;
+        match self {
+            Payload::Encoded { type_name, data } => {
+                json!({"type": type_name, "bytes": data.len(), "hex": hex::encode(data)})
+            }
+            Payload::Pose2d { x, y, theta } => {
+                json!({"type": "pose2d", "x": x, "y": y, "theta": theta})
+            }
+            Payload::Goal2d { x, y } => json!({"type": "goal2d", "x": x, "y": y}),
+            Payload::Twist { v, w } => json!({"type": "twist", "v": v, "w": w}),
+            Payload::Scalar(v) => json!({"type": "scalar", "value": v}),
+            Payload::Text(t) => json!({"type": "text", "text": t}),
+            Payload::Track2d(t) => json!({"type": "track2d", "x": t.x, "y": t.y, "vx": t.vx,
+                "vy": t.vy, "sigma": t.sigma, "age": t.age, "seen_by": t.seen_by,
+                "lost": t.lost}),
+        }
+    }
+
+    /// [`Payload::to_json`], an open type's sample decoded by its schema:
+    /// `{"type": "sensor_msgs/msg/LaserScan", "encoding": "cdr", "value": {..}}`; without
+    /// its schema, or if it does not decode, its size and bytes in hex (and why).
+    pub fn to_json_with(&self, schema: Option<&Schema>) -> serde_json::Value {
+        use serde_json::json;
+        let Payload::Encoded { type_name, data } = self else {
+            return self.to_json();
+        };
+        match schema.map(|s| (s, s.decode(type_name, data))) {
+            Some((s, Ok(value))) => json!({"type": type_name,
+                "encoding": s.encoding.message_encoding(), "value": value}),
+            Some((_, Err(e))) => json!({"type": type_name, "bytes": data.len(),
+                "hex": hex::encode(data), "error": e}),
+            None => self.to_json(),
+        }
+    }
+
     /// Task input given as JSON, the way `muster user` shows payloads: a string is
     /// `text`, a number `scalar`; an object names its `type` (`goal2d` with `x`, `y`;
     /// `pose2d` with `x`, `y`, `theta`; `twist` with `v`, `w`; `text` with `text`;

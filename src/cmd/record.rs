@@ -969,7 +969,7 @@ mod tests {
             let t = p.type_name().to_string();
             let schema = super::super::taps::builtin_schema(&t);
             assert_eq!(parsable(&schema, &t), Ok(()));
-            let msg = super::super::user::payload_json(&p);
+            let msg = p.to_json();
             assert_eq!(conforms(&schema, &msg, &t), Ok(()));
             for field in msg.as_object().unwrap().keys() {
                 assert!(

@@ -4,7 +4,6 @@
 //! 2 message: `ros2msg` schema, `cdr` messages, which Foxglove and the Python `mcap`
 //! readers decode natively), a JSON Schema for the built-in types.
 
-use super::user::payload_json;
 use foxglove::{ChannelBuilder, Context, RawChannel, Schema};
 use muster_shared::types::{Payload, SchemaEncoding, ServiceId, SessionId};
 use muster_shared::Instance;
@@ -17,7 +16,7 @@ use std::time::{Duration, Instant};
 /// A refused or ended tap is asked for again after this long.
 const RETRY: Duration = Duration::from_secs(1);
 
-/// The JSON Schema of a built-in payload type's JSON form (`payload_json`).
+/// The JSON Schema of a built-in payload type's JSON form (`Payload::to_json`).
 pub fn builtin_schema(payload: &str) -> Value {
     let num = json!({"type": "number"});
     let props = match payload {
@@ -200,7 +199,7 @@ impl Taps {
                     let Some(c) = &t.channel else { continue };
                     match &payload {
                         Payload::Encoded { data, .. } => c.log(data),
-                        p => c.log(payload_json(p).to_string().as_bytes()),
+                        p => c.log(p.to_json().to_string().as_bytes()),
                     }
                     *self.counts.entry(c.topic().to_string()).or_default() += 1;
                     wrote = true;

@@ -149,49 +149,14 @@ pub fn parse_point(flag: &str, s: &str) -> anyhow::Result<(f64, f64)> {
     Ok((x, y))
 }
 
-/// A payload as JSON, an open type's sample decoded by its schema:
-/// `{"type": "sensor_msgs/msg/LaserScan", "encoding": "cdr", "value": {..}}`; without its
-/// schema, or if it does not decode, its size and bytes in hex (and why).
-pub fn payload_json_with(p: &Payload, schema: Option<&Schema>) -> Value {
-    let Payload::Encoded { type_name, data } = p else {
-        return payload_json(p);
-    };
-    match schema.map(|s| (s, s.decode(type_name, data))) {
-        Some((s, Ok(value))) => json!({"type": type_name,
-            "encoding": s.encoding.message_encoding(), "value": value}),
-        Some((_, Err(e))) => {
-            json!({"type": type_name, "bytes": data.len(), "hex": hex::encode(data), "error": e})
-        }
-        None => payload_json(p),
-    }
-}
-
 /// A payload as one line of text, an open type's sample decoded by its schema.
 pub fn payload_text(p: &Payload, schema: Option<&Schema>) -> String {
     match p {
-        Payload::Encoded { type_name, .. } => match payload_json_with(p, schema).get("value") {
+        Payload::Encoded { type_name, .. } => match p.to_json_with(schema).get("value") {
             Some(v) => format!("{type_name} {v}"),
             None => p.to_string(),
         },
         other => other.to_string(),
-    }
-}
-
-/// A payload as JSON: `{"type": "pose2d", "x": ..}`.
-pub fn payload_json(p: &Payload) -> Value {
-    match p {
-        Payload::Encoded { type_name, data } => {
-            json!({"type": type_name, "bytes": data.len(), "hex": hex::encode(data)})
-        }
-        Payload::Pose2d { x, y, theta } => {
-            json!({"type": "pose2d", "x": x, "y": y, "theta": theta})
-        }
-        Payload::Goal2d { x, y } => json!({"type": "goal2d", "x": x, "y": y}),
-        Payload::Twist { v, w } => json!({"type": "twist", "v": v, "w": w}),
-        Payload::Scalar(v) => json!({"type": "scalar", "value": v}),
-        Payload::Text(t) => json!({"type": "text", "text": t}),
-        Payload::Track2d(t) => json!({"type": "track2d", "x": t.x, "y": t.y, "vx": t.vx,
-            "vy": t.vy, "sigma": t.sigma, "age": t.age, "seen_by": t.seen_by, "lost": t.lost}),
     }
 }
 
@@ -427,7 +392,7 @@ fn stream(
                 counters.gaps += gap;
                 emit(
                     as_json,
-                    json!({"seq": seq, "gap": gap, "payload": payload_json_with(&payload, schema)}),
+                    json!({"seq": seq, "gap": gap, "payload": &payload.to_json_with(schema)}),
                     format!(
                         "#{seq} {}{}",
                         payload_text(&payload, schema),
@@ -558,12 +523,12 @@ fn link(
                 ..
             })) if session == ds => emit(
                 as_json,
-                json!({"seq": seq, "gap": gap, "payload": payload_json(&payload), "from": data.0}),
+                json!({"seq": seq, "gap": gap, "payload": payload.to_json(), "from": data.0}),
                 format!("#{seq} {data}: {payload}"),
             ),
             Ok(Some(UserEvent::LinkForwarded { input, .. })) => emit(
                 as_json,
-                json!({"forwarded": payload_json(&input), "to": command.0}),
+                json!({"forwarded": input.to_json(), "to": command.0}),
                 format!("  -> {command}: {input}"),
             ),
             Ok(Some(UserEvent::Status {
