@@ -807,6 +807,26 @@ pub enum TaskStatus {
     Rejected(String),
 }
 
+impl TaskStatus {
+    /// The state alone: `idle`, `working`, `done` or `rejected`.
+    pub fn state(&self) -> &'static str {
+        match self {
+            TaskStatus::Idle => "idle",
+            TaskStatus::Working(_) => "working",
+            TaskStatus::Done(_) => "done",
+            TaskStatus::Rejected(_) => "rejected",
+        }
+    }
+
+    /// The note beside the state (`None` when idle).
+    pub fn detail(&self) -> Option<&str> {
+        match self {
+            TaskStatus::Idle => None,
+            TaskStatus::Working(d) | TaskStatus::Done(d) | TaskStatus::Rejected(d) => Some(d),
+        }
+    }
+}
+
 impl fmt::Display for TaskStatus {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {

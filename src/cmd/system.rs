@@ -35,7 +35,10 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
             let specs = opts.specs();
             validate_registration(&opts.name, &specs)?;
             let core = SystemCore::new(&opts.name, std::process::id(), specs);
-            let run = muster_systems::RunOptions { udp: a.udp };
+            let run = muster_systems::RunOptions {
+                udp: a.udp,
+                ..Default::default()
+            };
             let core = muster_systems::run_system_with(inst, core, Synthetic::new(&opts), &run)?;
             if a.stats_json {
                 out!(
@@ -66,7 +69,10 @@ fn ros2(inst: &Instance, a: Ros2SystemArgs) -> anyhow::Result<ExitCode> {
     };
     let app = Ros2System::new(&cfg, &opts)?;
     let core = SystemCore::new(&cfg.system, std::process::id(), cfg.specs());
-    let run = muster_systems::RunOptions { udp: a.udp };
+    let run = muster_systems::RunOptions {
+                udp: a.udp,
+                ..Default::default()
+            };
     muster_systems::run_system_with(inst, core, app, &run)?;
     Ok(ExitCode::SUCCESS)
 }
@@ -208,7 +214,10 @@ fn tracking(inst: &Instance, a: TrackingArgs) -> anyhow::Result<ExitCode> {
     let mut app = TrackingApp::new(links, &opts)?;
     show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
     let core = SystemCore::new(&a.name, std::process::id(), specs);
-    let run = muster_systems::RunOptions { udp: a.common.udp };
+    let run = muster_systems::RunOptions {
+        udp: a.common.udp,
+        ..Default::default()
+    };
     let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
     if a.common.stats_json {
         let loc: serde_json::Map<String, serde_json::Value> = app
@@ -263,7 +272,10 @@ fn delivery(inst: &Instance, a: DeliveryArgs) -> anyhow::Result<ExitCode> {
     let mut app = DeliveryApp::new(link, &opts)?;
     show_view(&node, inst, &a.name, |w| app.show_on(w, &a.name));
     let core = SystemCore::new(&a.name, std::process::id(), specs);
-    let run = muster_systems::RunOptions { udp: a.common.udp };
+    let run = muster_systems::RunOptions {
+        udp: a.common.udp,
+        ..Default::default()
+    };
     let core = muster_systems::run_system_with(inst, core, &mut app, &run)?;
     if a.common.stats_json {
         out!(

@@ -112,24 +112,6 @@ enum Input {
     Json(Value),
 }
 
-/// A status's state, for `--json`: `idle`, `working`, `done` or `rejected`.
-fn status_state(s: &TaskStatus) -> &'static str {
-    match s {
-        TaskStatus::Idle => "idle",
-        TaskStatus::Working(_) => "working",
-        TaskStatus::Done(_) => "done",
-        TaskStatus::Rejected(_) => "rejected",
-    }
-}
-
-/// A status's note, for `--json` (`null` when idle).
-fn status_detail(s: &TaskStatus) -> Option<&str> {
-    match s {
-        TaskStatus::Idle => None,
-        TaskStatus::Working(d) | TaskStatus::Done(d) | TaskStatus::Rejected(d) => Some(d),
-    }
-}
-
 /// How often repeated input goes out.
 const REPEAT_INPUT: Duration = Duration::from_millis(100);
 
@@ -414,7 +396,7 @@ fn stream(
                 emit(
                     as_json,
                     json!({"seq": seq, "status": status.to_string(),
-                           "state": status_state(&status), "detail": status_detail(&status),
+                           "state": status.state(), "detail": status.detail(),
                            "payload": null}),
                     format!("#{seq} status: {status}"),
                 )
@@ -538,8 +520,8 @@ fn link(
                 ..
             })) if session == cs => emit(
                 as_json,
-                json!({"seq": seq, "status": status.to_string(), "state": status_state(&status),
-                   "detail": status_detail(&status), "from": command.0, "payload": null}),
+                json!({"seq": seq, "status": status.to_string(), "state": status.state(),
+                   "detail": status.detail(), "from": command.0, "payload": null}),
                 format!("#{seq} {command}: {status}"),
             ),
             Ok(Some(UserEvent::LinkEnded { link: l, reason })) if l == link => ended = Some(reason),

@@ -48,6 +48,12 @@ pub trait SystemApp {
     fn on_ready(&mut self, core: &mut SystemCore, now: Duration, index: usize) {
         let _ = (core, now, index);
     }
+    /// Whether the system should stop now (asked after every round of callbacks): the
+    /// runtime then ends its sessions, unregisters and returns, as on SIGTERM. Wake the
+    /// runtime through one of [`SystemApp::descriptors`] to have it asked at once.
+    fn stop_requested(&self) -> bool {
+        false
+    }
 }
 
 /// A borrowed app runs too, so a caller keeps it (and what it measured) after the run.
@@ -66,6 +72,9 @@ impl<A: SystemApp + ?Sized> SystemApp for &mut A {
     }
     fn on_ready(&mut self, core: &mut SystemCore, now: Duration, index: usize) {
         (**self).on_ready(core, now, index)
+    }
+    fn stop_requested(&self) -> bool {
+        (**self).stop_requested()
     }
 }
 
@@ -174,10 +183,22 @@ struct Shell {
 }
 
 /// How a system runs, beyond its core and app.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub struct RunOptions {
     /// Listen here for remote users' sessions (e.g. `127.0.0.1:0`); `None`: local users only.
     pub udp: Option<std::net::SocketAddr>,
+    /// Read operator lines ([`CONTROL_HELP`]) from standard input (default); off for a
+    /// host program that owns its standard input (the Python package).
+    pub stdin_control: bool,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        RunOptions {
+            udp: None,
+            stdin_control: true,
+        }
+    }
 }
 
 /// Runs `app` as system `core` on instance `inst` until SIGINT/SIGTERM (or a `quit`
@@ -212,11 +233,13 @@ pub fn run_system_with<A: SystemApp>(
         reactor.add(fd, TOKEN_PRESENCE)?;
     }
     reactor.add(signals.raw(), TOKEN_SIGNAL)?;
-    let mut control = Control::spawn()?;
-    reactor.add(
-        std::os::fd::AsRawFd::as_raw_fd(&control.wake),
-        TOKEN_CONTROL,
-    )?;
+    let mut control = match opts.stdin_control {
+        true => Some(Control::spawn()?),
+        false => None,
+    };
+    if let Some(c) = &control {
+        reactor.add(std::os::fd::AsRawFd::as_raw_fd(&c.wake), TOKEN_CONTROL)?;
+    }
     let remote = match opts.udp {
         Some(addr) => {
             let r = UdpSessions::bind(addr)?;
@@ -298,7 +321,7 @@ pub fn run_system_with<A: SystemApp>(
                 // Read after the inbox, below.
                 TOKEN_UDP => udp_readable = true,
                 // Applied after the inbox, below.
-                TOKEN_CONTROL => control_lines.extend(control.take()),
+                TOKEN_CONTROL => control_lines.extend(control.as_mut().map(Control::take).unwrap_or_default()),
                 TOKEN_BROKER => {
                     if shell.broker.as_ref().is_some_and(PidFd::exited) {
                         tracing::warn!("broker died; sessions go on, waiting for a new broker");
@@ -372,6 +395,12 @@ pub fn run_system_with<A: SystemApp>(
         if app.next_tick(&core).is_some_and(|t| t <= now) {
             app.on_tick(&mut core, now);
             deliver(&mut app, &mut core, &mut shell, now)?;
+        }
+        if app.stop_requested() {
+            tracing::info!(system = core.name(), "stopping: the program asked");
+            core.shutdown();
+            shell.flush(&mut core);
+            return Ok(core);
         }
     }
 }
