@@ -53,8 +53,9 @@ pub struct NativeUser {
     /// Rung (a byte) when events come, once Python asked for the descriptor (asyncio).
     notify_r: UnixStream,
     notify_on: std::sync::Arc<AtomicBool>,
-    /// Each held session's schema, from its grant: an open type's samples decode by it.
-    schemas: Mutex<HashMap<u64, Option<Schema>>>,
+    /// Each held session's payload type and schema, from its grant: input is checked
+    /// against the type, and an open type's samples decode by the schema.
+    schemas: Mutex<HashMap<u64, (String, Option<Schema>)>>,
     closed: AtomicBool,
 }
 
@@ -221,14 +222,20 @@ impl NativeUser {
     /// Sends task input `value` (a payload's JSON form) on command session `session`.
     fn input(&self, py: Python<'_>, session: u64, value: &Bound<'_, PyAny>) -> PyResult<()> {
         guarded(|| {
-            let schema = self
+            let (declared, schema) = self
                 .schemas
                 .lock()
                 .map_err(|_| MusterError::new_err("poisoned"))?
                 .get(&session)
                 .cloned()
-                .flatten();
+                .ok_or_else(|| Closed::new_err(format!("no session {session}")))?;
             let payload = payload_from_py(value, schema.as_ref())?;
+            if payload.type_name() != declared {
+                return Err(PayloadError::new_err(format!(
+                    "the service takes {declared}, not {}",
+                    payload.type_name()
+                )));
+            }
             self.ask(py, |tx| Cmd::Input(SessionId(session), payload, tx))?
                 .map_err(PayloadError::new_err)
         })
@@ -382,7 +389,8 @@ impl NativeUser {
                 d.set_item("session", session.0)?;
                 d.set_item("service", service.0)?;
                 d.set_item("kind", kind.to_string())?;
-                d.set_item("payload", payload)?;
+                d.set_item("payload", &payload)?;
+                let payload_name = payload;
                 match &schema {
                     Some(s) => {
                         d.set_item("encoding", s.encoding.message_encoding())?;
@@ -393,7 +401,7 @@ impl NativeUser {
                         d.set_item("schema", py.None())?;
                     }
                 }
-                schemas.insert(session.0, schema);
+                schemas.insert(session.0, (payload_name, schema));
             }
             UserEvent::EndConfirmed { session } => {
                 d.set_item("event", "end_confirmed")?;
@@ -430,7 +438,7 @@ impl NativeUser {
                 d.set_item("seq", seq)?;
                 d.set_item("gap", gap)?;
                 d.set_item("sent_ns", sent_ns)?;
-                let schema = schemas.get(&session.0).and_then(Option::as_ref);
+                let schema = schemas.get(&session.0).and_then(|(_, s)| s.as_ref());
                 d.set_item("value", payload_to_py(py, &payload, schema)?)?;
             }
             UserEvent::Status {

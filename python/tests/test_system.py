@@ -1,0 +1,163 @@
+"""A Python system, served to muster's own (Rust) users and to Python users."""
+
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+
+import muster
+import pytest
+from conftest import EXAMPLES, services, wait_until
+
+
+def test_the_door_example_serves_a_rust_user(fed):
+    fed.broker()
+    door = fed.python(str(EXAMPLES / "door_system.py"), fed.inst)
+    wait_until(lambda: len(json.loads(fed.run("user", "list", "--json").stdout or "[]")) == 2,
+               what="the door's services")
+    r = fed.run("user", "request", "door/open", "--input", '"open"', "--duration", "4s", "--json")
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(l) for l in r.stdout.splitlines()]
+    states = [(l["state"], l["detail"]) for l in lines if l.get("state")]
+    assert states == [("working", "opening"), ("done", "open")], lines
+    r = fed.run("user", "request", "door/state", "--duration", "1s", "--json")
+    values = [l["payload"] for l in map(json.loads, r.stdout.splitlines()) if "seq" in l]
+    assert len(values) >= 3 and all(v == {"type": "text", "text": "open"} for v in values), values
+    assert door.poll() is None, "the system runs on"
+
+
+def test_the_door_examples_together(fed):
+    fed.broker()
+    fed.python(str(EXAMPLES / "door_system.py"), fed.inst)
+    with muster.User(fed.inst) as me:
+        services(me, 2)
+    user = fed.python(str(EXAMPLES / "door_user.py"), fed.inst)
+    out, err = user.communicate(timeout=60)
+    assert user.returncode == 0, err
+    lines = out.splitlines()
+    assert lines[0] == "['door/open', 'door/state']"
+    assert lines[1] == "open"
+    assert lines[2:] == [f"{i} open" for i in range(1, 6)], lines
+
+
+SYSTEM = textwrap.dedent('''
+    import sys, muster
+    s = muster.System("py1", instance=sys.argv[1])
+
+    @s.command_service("echo", payload="text", quota=2)
+    def echo(session, value):
+        if value == "boom":
+            raise RuntimeError("boom asked")
+        session.done(value.upper())
+
+    @echo.on_start
+    def started(session):
+        print("start", session.user == "" or session.service, flush=True)
+
+    @echo.on_end
+    def ended(session, reason):
+        print("end", reason, flush=True)
+
+    @s.data_service("n", payload="scalar", rate=50)
+    def n():
+        return 42.5
+
+    @s.data_service("big", payload="text")
+    def big():
+        pass
+
+    @s.command_service("ctl", payload="text")
+    def ctl(session, value):
+        if value == "withdraw":
+            s.withdraw("n")
+        elif value == "restore":
+            s.restore("n")
+        elif value == "big":
+            try:
+                big.publish("x" * 5000)
+            except muster.PayloadError as e:
+                session.done("refused: " + str(e))
+                return
+            session.done("sent")
+        elif value == "stop":
+            session.done("stopping")
+            s.stop()
+
+    print(s.run(), flush=True)
+''')
+
+
+def listed(me, sid):
+    return next(s for s in me.list() if s.id == sid)
+
+
+def test_callbacks_errors_withdrawal_and_stop(fed, tmp_path):
+    fed.broker()
+    script = tmp_path / "sys.py"
+    script.write_text(SYSTEM)
+    proc = fed.python(str(script), fed.inst)
+    with muster.User(fed.inst) as me:
+        services(me, 4)
+        # Input, status, the start and end callbacks.
+        with me.request("py1/echo") as s:
+            s.send("hi")
+            assert s.wait_status("done", timeout=10).detail == "HI"
+        # A callback that raises ends its session only, with the reason.
+        s = me.request("py1/echo")
+        s.send("boom")
+        with pytest.raises(muster.SessionEnded) as e:
+            while True:
+                s.next(timeout=10)
+        assert "raised" in e.value.reason and "boom asked" in e.value.reason, e.value
+        with me.request("py1/echo") as s:
+            s.send("again")
+            assert s.wait_status("done", timeout=10).detail == "AGAIN"
+        # A data service at 50 Hz: scalars.
+        with me.request("py1/n") as n:
+            vals = [u.value for u, _ in zip(n.updates(timeout=5), range(5))]
+            assert vals == [42.5] * 5
+        # Withdraw and restore from a callback.
+        ctl = me.request("py1/ctl")
+        n = me.request("py1/n")
+        ctl.send("withdraw")
+        with pytest.raises(muster.SessionEnded) as e:
+            while True:
+                n.next(timeout=10)
+        assert e.value.code == "withdrawn"
+        wait_until(lambda: listed(me, "py1/n").withdrawn, what="withdrawn in the list")
+        with pytest.raises(muster.Refused) as e:
+            me.request("py1/n")
+        assert e.value.code == "withdrawn"
+        ctl.send("restore")
+        wait_until(lambda: not listed(me, "py1/n").withdrawn, what="restored")
+        # An update too large for a user's path raises in the system, and is said.
+        with me.request("py1/big") as big:
+            ctl.send("big")
+            st = ctl.wait_status("done", timeout=10)
+            assert "refused" in st.detail and "4096" in st.detail, st
+        # stop() from a callback: run() returns its report.
+        ctl.send("stop")
+        out, err = proc.communicate(timeout=20)
+        assert proc.returncode == 0, err
+        report = out.strip().splitlines()[-1]
+        assert "'echo': {'quota': 2" in report and "'grants': 3" in report, out
+        assert "start echo" in out and "end ended by the user" in out, out
+        assert "RuntimeError: boom asked" in err, err
+
+
+def test_bad_declarations_are_refused_with_the_reason():
+    s = muster.System("okname", instance="nobroker-here")
+    with pytest.raises(muster.MusterError, match="kind"):
+        s._native.add_service("x", "both", "pose2d", 1, False, "", None, None)
+    with pytest.raises(muster.MusterError, match="name"):
+        s.data_service("bad name!")(lambda: None)
+    with pytest.raises(muster.MusterError, match="twice"):
+        s.data_service("a")(lambda: None)
+        s.data_service("a")(lambda: None)
+    with pytest.raises(muster.MusterError, match="name"):
+        muster.System("no/slash")
+    with pytest.raises(muster.MusterError, match="rate"):
+        s.data_service("b", rate=0)(lambda: None)
+    with pytest.raises(muster.MusterError, match="not running"):
+        s.publish("a", muster.Pose2d(0, 0, 0))
