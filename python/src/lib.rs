@@ -140,5 +140,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<user::NativeUser>()?;
     m.add_class::<system::NativeSystem>()?;
     m.add_class::<system::Core>()?;
+    m.add_function(wrap_pyfunction!(user::rust_request_latencies, m)?)?;
     Ok(())
 }

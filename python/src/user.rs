@@ -624,3 +624,50 @@ fn apply(client: &mut UserClient, cmd: Cmd) {
         Cmd::Close(_) => {}
     }
 }
+
+/// The benchmark's floor: `n` requests of `service` on instance `instance` from the Rust
+/// client itself (no Python in the loop), each ended once granted; the request → grant
+/// times in microseconds, for comparison with the same loop through this package.
+#[pyfunction]
+#[pyo3(signature = (instance, service, n))]
+pub fn rust_request_latencies(
+    py: Python<'_>,
+    instance: &str,
+    service: &str,
+    n: usize,
+) -> PyResult<Vec<f64>> {
+    guarded(|| {
+        let inst = Instance::new(instance).map_err(|e| MusterError::new_err(e.to_string()))?;
+        let id = ServiceId(service.to_string());
+        py.detach(move || -> Result<Vec<f64>, String> {
+            let opts = ConnectOptions {
+                handle_signals: false,
+                ..ConnectOptions::default()
+            };
+            let mut c = UserClient::connect(&inst, &opts).map_err(|e| e.to_string())?;
+            let mut out = Vec::with_capacity(n);
+            for _ in 0..n {
+                let t0 = Instant::now();
+                let req = c.request(&id).map_err(|e| e.to_string())?;
+                let deadline = t0 + Duration::from_secs(10);
+                loop {
+                    match c.next_event(deadline).map_err(|e| e.to_string())? {
+                        Some(UserEvent::Granted { req: r, session, .. }) if r == req => {
+                            out.push(t0.elapsed().as_secs_f64() * 1e6);
+                            c.end(session);
+                            break;
+                        }
+                        Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
+                            return Err(format!("refused: {reason}"))
+                        }
+                        Some(_) => {}
+                        None => return Err("no grant within 10 s".into()),
+                    }
+                }
+            }
+            c.close();
+            Ok(out)
+        })
+        .map_err(MusterError::new_err)
+    })
+}

@@ -63,6 +63,11 @@ SYSTEM = textwrap.dedent('''
     def n():
         return 42.5
 
+    @s.data_service("battery", payload="battery", encoding="jsonschema", rate=20,
+                    schema='{"type": "object", "properties": {"pct": {"type": "number"}}}')
+    def battery():
+        return muster.Open("battery", {"pct": 80.5})
+
     @s.data_service("big", payload="text")
     def big():
         pass
@@ -98,7 +103,14 @@ def test_callbacks_errors_withdrawal_and_stop(fed, tmp_path):
     script.write_text(SYSTEM)
     proc = fed.python(str(script), fed.inst)
     with muster.User(fed.inst) as me:
-        services(me, 4)
+        services(me, 5)
+        # An open payload type with its JSON schema: listed with its encoding, decoded.
+        assert listed(me, "py1/battery").payload == "battery"
+        assert listed(me, "py1/battery").encoding == "json"
+        with me.request("py1/battery") as b:
+            assert b.encoding == "json" and '"pct"' in b.schema
+            u = next(b.updates(timeout=5))
+            assert u.value == muster.Open("battery", {"pct": 80.5}, encoding="json"), u
         # Input, status, the start and end callbacks.
         with me.request("py1/echo") as s:
             s.send("hi")
