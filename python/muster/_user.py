@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Deque, Dict, Iterator, List, Optional, Union
@@ -234,13 +233,15 @@ class Link:
 
 class User:
     """A user: `User(instance="default")` on this host, or
-    `User(remote="HOST:PORT", key="alice.key")` over UDP (a key from `muster keygen`)."""
+    `User(remote="HOST:PORT", key="alice.key")` over UDP (a key from `muster keygen`).
+
+    A User belongs to the thread that made it (its client's shared-memory ports do);
+    make one per thread. It waits in the kernel with the GIL released."""
 
     def __init__(self, instance: str = "default", *, remote: Optional[str] = None,
                  key: Optional[str] = None, broker_key: Optional[str] = None,
                  wait: float = 5.0):
         self._native = _native.NativeUser(instance, remote, key, broker_key, wait)
-        self._lock = threading.RLock()
         self._sessions: Dict[int, Session] = {}
         self._answers: Dict[int, List[dict]] = {}
         self._links: Dict[int, Link] = {}
@@ -288,20 +289,22 @@ class User:
 
     def _pump(self, timeout: Optional[float]) -> bool:
         """Takes one event (waiting up to `timeout`); whether one came."""
-        with self._lock:
-            ev = self._native.next_event(timeout)
+        ev = self._native.next_event(timeout)
+        if ev is None:
+            return False
+        self._route(ev)
+        # Whatever else is here already, without waiting.
+        for _ in range(1024):
+            ev = self._native.next_event(0)
             if ev is None:
-                return False
+                break
             self._route(ev)
-            # Whatever else is here already, without waiting.
-            for _ in range(1024):
-                ev = self._native.next_event(0)
-                if ev is None:
-                    break
-                self._route(ev)
-            return True
+        return True
 
     async def _apump(self, timeout: Optional[float]) -> bool:
+        """Takes what is here; else waits (without blocking the loop) until the
+        client's descriptor has news, `timeout` passes, or a remote user's timers are
+        due, and takes what came."""
         if self._pump(0):
             return True
         loop = asyncio.get_running_loop()
@@ -309,15 +312,19 @@ class User:
         fd = self._native.fileno()
         loop.add_reader(fd, lambda: fut.done() or fut.set_result(None))
         try:
-            # An event may have come between the look above and the reader.
+            # News may have come between the look above and the reader.
             if self._pump(0):
                 return True
-            await asyncio.wait_for(fut, timeout)
-        except asyncio.TimeoutError:
-            return False
+            wait = timeout
+            timers = self._native.next_deadline()
+            if timers is not None:
+                wait = timers if wait is None else min(wait, timers)
+            try:
+                await asyncio.wait_for(fut, wait)
+            except asyncio.TimeoutError:
+                pass
         finally:
             loop.remove_reader(fd)
-            self._native.drain_notify()
         return self._pump(0)
 
     # The list.

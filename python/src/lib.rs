@@ -93,41 +93,6 @@ pub(crate) fn payload_from_py(v: &Bound<'_, PyAny>, schema: Option<&Schema>) -> 
     Payload::from_json(&json, schema).map_err(PayloadError::new_err)
 }
 
-/// Waits on `rx` with the GIL released, a tenth of a second at a time so that Ctrl-C
-/// (a pending Python signal) interrupts the wait; `None` if `timeout` passed first.
-pub(crate) fn recv_interruptibly<T: Send>(
-    py: Python<'_>,
-    rx: &std::sync::Mutex<std::sync::mpsc::Receiver<T>>,
-    timeout: Option<std::time::Duration>,
-) -> PyResult<Option<T>> {
-    use std::sync::mpsc::RecvTimeoutError;
-    use std::time::{Duration, Instant};
-    let deadline = timeout.map(|t| Instant::now() + t);
-    loop {
-        let slice = match deadline {
-            Some(d) => d
-                .saturating_duration_since(Instant::now())
-                .min(Duration::from_millis(100)),
-            None => Duration::from_millis(100),
-        };
-        let got = py.detach(|| match rx.lock() {
-            Ok(rx) => rx.recv_timeout(slice),
-            Err(_) => Err(RecvTimeoutError::Disconnected),
-        });
-        match got {
-            Ok(v) => return Ok(Some(v)),
-            Err(RecvTimeoutError::Disconnected) => {
-                return Err(Closed::new_err("muster's thread stopped"))
-            }
-            Err(RecvTimeoutError::Timeout) => {}
-        }
-        py.check_signals()?;
-        if deadline.is_some_and(|d| Instant::now() >= d) {
-            return Ok(None);
-        }
-    }
-}
-
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();

@@ -1,83 +1,56 @@
-//! A user: a [`UserClient`] on a thread of its own, driven through channels.
+//! A user: a [`UserClient`] driven on the thread that made it (the pyclass is
+//! `unsendable`), its waits in the kernel with the GIL released. No thread of its own,
+//! no handoff: a request costs what the Rust client's costs, plus the call.
 
-use crate::{guarded, payload_from_py, payload_to_py, recv_interruptibly};
+use crate::{guarded, payload_from_py, payload_to_py};
 use crate::{Closed, MusterError, NoBroker, PayloadError, UnknownService};
-use muster_shared::snapshot::ServiceView;
 use muster_shared::types::{EndReason, Refusal, Schema, ServiceId, SessionId};
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, RemoteOptions, UserClient, UserError, UserEvent, Wake};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 use std::collections::HashMap;
-use std::io::{Read, Write};
-use std::os::fd::AsRawFd;
-use std::os::unix::net::UnixStream;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::mpsc::{channel, Receiver, Sender};
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-/// What Python asks of the client's thread.
-enum Cmd {
-    List(Sender<Result<Vec<ServiceView>, String>>),
-    Request(ServiceId, Sender<u64>),
-    Cancel(u64),
-    Input(SessionId, muster_shared::types::Payload, Sender<Result<(), String>>),
-    End(SessionId),
-    Link(ServiceId, ServiceId, Sender<Result<u64, String>>),
-    Unlink(u64),
-    Close(Sender<()>),
-}
+/// The client, lent to a wait with the GIL released. The wait runs on this same thread
+/// (`Python::detach` runs its closure in place), so the client never changes threads.
+struct Lent<'a>(&'a mut UserClient);
+// SAFETY: see above: `detach` calls the closure on the current thread and returns; the
+// client is only ever touched from the thread that made it (the pyclass is unsendable).
+unsafe impl Send for Lent<'_> {}
 
-/// What the client's thread hands Python.
-enum Out {
-    Event(Box<UserEvent>),
-    /// The client stopped (its error).
-    Failed(String),
-}
+/// A client made with the GIL released, handed back on this same thread.
+struct Made(Result<UserClient, UserError>);
+// SAFETY: as `Lent`: made inside `detach`, which runs in place on this thread.
+unsafe impl Send for Made {}
 
-/// How to connect, carried to the client's thread.
-enum Target {
-    Local(Instance),
-    Remote(RemoteOptions),
-}
+/// How long one wait lasts at most before Python's signals are checked (Ctrl-C).
+const SIGNAL_SLICE: Duration = Duration::from_millis(100);
 
 /// A user of the federation: local (shared memory) or remote (UDP with a key).
-#[pyclass(module = "muster._native")]
+#[pyclass(module = "muster._native", unsendable)]
 pub struct NativeUser {
-    id: String,
+    client: Option<UserClient>,
     remote: bool,
-    cmds: Sender<Cmd>,
-    bell: UnixStream,
-    events: Mutex<Receiver<Out>>,
-    /// Rung (a byte) when events come, once Python asked for the descriptor (asyncio).
-    notify_r: UnixStream,
-    notify_on: std::sync::Arc<AtomicBool>,
     /// Each held session's payload type and schema, from its grant: input is checked
     /// against the type, and an open type's samples decode by the schema.
-    schemas: Mutex<HashMap<u64, (String, Option<Schema>)>>,
-    closed: AtomicBool,
+    schemas: HashMap<u64, (String, Option<Schema>)>,
 }
 
 impl NativeUser {
-    /// Sends a command and wakes the client's thread.
-    fn send(&self, cmd: Cmd) -> PyResult<()> {
-        if self.closed.load(Ordering::Relaxed) {
-            return Err(Closed::new_err("this user is closed"));
-        }
-        self.cmds
-            .send(cmd)
-            .map_err(|_| Closed::new_err("the user's client stopped"))?;
-        let _ = (&self.bell).write(&[1]);
-        Ok(())
+    fn client(&mut self) -> PyResult<&mut UserClient> {
+        self.client
+            .as_mut()
+            .ok_or_else(|| Closed::new_err("this user is closed"))
     }
+}
 
-    /// Sends a command and waits for its answer.
-    fn ask<T: Send>(&self, py: Python<'_>, make: impl FnOnce(Sender<T>) -> Cmd) -> PyResult<T> {
-        let (tx, rx) = channel();
-        self.send(make(tx))?;
-        recv_interruptibly(py, &Mutex::new(rx), None)?
-            .ok_or_else(|| Closed::new_err("the user's client stopped"))
+fn connect_error(e: UserError) -> PyErr {
+    match e {
+        e @ (UserError::NoBroker(_) | UserError::NoRemoteBroker { .. }) => {
+            NoBroker::new_err(e.to_string())
+        }
+        e => MusterError::new_err(e.to_string()),
     }
 }
 
@@ -96,10 +69,20 @@ impl NativeUser {
         wait: f64,
     ) -> PyResult<Self> {
         guarded(|| {
-            let target = match (remote, key) {
-                (None, None) => Target::Local(
-                    Instance::new(instance).map_err(|e| MusterError::new_err(e.to_string()))?,
-                ),
+            if !(wait.is_finite() && wait >= 0.0) {
+                return Err(MusterError::new_err("wait must be a number of seconds ≥ 0"));
+            }
+            let opts = ConnectOptions {
+                wait_for_broker: Duration::from_secs_f64(wait),
+                handle_signals: false,
+                watch_list: true,
+            };
+            let client = match (remote, key) {
+                (None, None) => {
+                    let inst = Instance::new(instance)
+                        .map_err(|e| MusterError::new_err(e.to_string()))?;
+                    py.detach(|| Made(UserClient::connect(&inst, &opts))).0
+                }
                 (None, Some(_)) => {
                     return Err(MusterError::new_err(
                         "key is for remote users: give remote=\"HOST:PORT\" too",
@@ -121,68 +104,29 @@ impl NativeUser {
                         .map(muster_shared::udp::crypto::parse_key)
                         .transpose()
                         .map_err(|e| MusterError::new_err(format!("broker_key: {e}")))?;
-                    Target::Remote(RemoteOptions {
+                    let r = RemoteOptions {
                         broker,
                         name,
                         key,
                         broker_key,
                         faults: None,
-                    })
+                    };
+                    py.detach(|| Made(UserClient::connect_remote(r, &opts))).0
                 }
-            };
-            let is_remote = matches!(target, Target::Remote(_));
-            if !(wait.is_finite() && wait >= 0.0) {
-                return Err(MusterError::new_err("wait must be a number of seconds ≥ 0"));
             }
-            let opts = ConnectOptions {
-                wait_for_broker: Duration::from_secs_f64(wait),
-                handle_signals: false,
-                watch_list: true,
-            };
-            let (bell_r, bell) = UnixStream::pair()?;
-            bell_r.set_nonblocking(true)?;
-            bell.set_nonblocking(true)?;
-            let (notify_r, notify_w) = UnixStream::pair()?;
-            notify_r.set_nonblocking(true)?;
-            notify_w.set_nonblocking(true)?;
-            let notify_on = std::sync::Arc::new(AtomicBool::new(false));
-            let (cmds, cmd_rx) = channel();
-            let (ev_tx, events) = channel();
-            let (ready_tx, ready) = channel();
-            let on = notify_on.clone();
-            std::thread::Builder::new()
-                .name("muster-user".into())
-                .spawn(move || {
-                    let run = std::panic::AssertUnwindSafe(|| {
-                        drive(target, opts, ready_tx, cmd_rx, bell_r, &ev_tx, notify_w, on)
-                    });
-                    if let Err(p) = std::panic::catch_unwind(run) {
-                        let _ = ev_tx.send(Out::Failed(format!(
-                            "muster panicked: {}",
-                            crate::panic_text(p.as_ref())
-                        )));
-                    }
-                })?;
-            let id = recv_interruptibly(py, &Mutex::new(ready), None)?
-                .ok_or_else(|| Closed::new_err("the user's client did not start"))??;
+            .map_err(connect_error)?;
             Ok(NativeUser {
-                id,
-                remote: is_remote,
-                cmds,
-                bell,
-                events: Mutex::new(events),
-                notify_r,
-                notify_on,
-                schemas: Mutex::new(HashMap::new()),
-                closed: AtomicBool::new(false),
+                remote: client.is_remote(),
+                client: Some(client),
+                schemas: HashMap::new(),
             })
         })
     }
 
     /// This user's id, as the broker knows it.
     #[getter]
-    fn id(&self) -> String {
-        self.id.clone()
+    fn id(&mut self) -> PyResult<String> {
+        Ok(self.client()?.id().0.clone())
     }
 
     /// Whether this user is remote (UDP).
@@ -192,11 +136,15 @@ impl NativeUser {
     }
 
     /// The service list, as dicts.
-    fn list<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
+    fn list<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
         guarded(|| {
-            let views = self
-                .ask(py, Cmd::List)?
-                .map_err(MusterError::new_err)?;
+            let c = Lent(self.client()?);
+            let views = py
+                .detach(move || {
+                    let c = c;
+                    c.0.list().map(|l| l.views())
+                })
+                .map_err(|e| MusterError::new_err(e.to_string()))?;
             let out = PyList::empty(py);
             for v in &views {
                 out.append(
@@ -210,22 +158,27 @@ impl NativeUser {
 
     /// Asks for service `id`; returns the request's number (its answer comes as an
     /// event: `queued`, `granted` or `refused`).
-    fn request(&self, py: Python<'_>, id: &str) -> PyResult<u64> {
-        guarded(|| self.ask(py, |tx| Cmd::Request(ServiceId(id.to_string()), tx)))
+    fn request(&mut self, id: &str) -> PyResult<u64> {
+        guarded(|| {
+            self.client()?
+                .request(&ServiceId(id.to_string()))
+                .map_err(|e| MusterError::new_err(e.to_string()))
+        })
     }
 
     /// Gives up request `req` (waiting in a queue, or not answered yet).
-    fn cancel(&self, req: u64) -> PyResult<()> {
-        guarded(|| self.send(Cmd::Cancel(req)))
+    fn cancel(&mut self, req: u64) -> PyResult<()> {
+        guarded(|| {
+            self.client()?.cancel(req);
+            Ok(())
+        })
     }
 
     /// Sends task input `value` (a payload's JSON form) on command session `session`.
-    fn input(&self, py: Python<'_>, session: u64, value: &Bound<'_, PyAny>) -> PyResult<()> {
+    fn input(&mut self, session: u64, value: &Bound<'_, PyAny>) -> PyResult<()> {
         guarded(|| {
             let (declared, schema) = self
                 .schemas
-                .lock()
-                .map_err(|_| MusterError::new_err("poisoned"))?
                 .get(&session)
                 .cloned()
                 .ok_or_else(|| Closed::new_err(format!("no session {session}")))?;
@@ -236,129 +189,135 @@ impl NativeUser {
                     payload.type_name()
                 )));
             }
-            self.ask(py, |tx| Cmd::Input(SessionId(session), payload, tx))?
+            self.client()?
+                .input(SessionId(session), payload)
                 .map_err(PayloadError::new_err)
         })
     }
 
     /// Ends session `session`.
-    fn end(&self, session: u64) -> PyResult<()> {
-        guarded(|| self.send(Cmd::End(SessionId(session))))
+    fn end(&mut self, session: u64) -> PyResult<()> {
+        guarded(|| {
+            self.client()?.end(SessionId(session));
+            Ok(())
+        })
     }
 
     /// Links data service `data` into command service `command`; returns the link's
     /// number. Refused at once (with the reason) if they cannot be linked.
-    fn link(&self, py: Python<'_>, data: &str, command: &str) -> PyResult<u64> {
+    fn link(&mut self, py: Python<'_>, data: &str, command: &str) -> PyResult<u64> {
         guarded(|| {
             let (d, c) = (ServiceId(data.to_string()), ServiceId(command.to_string()));
-            self.ask(py, |tx| Cmd::Link(d, c, tx))?.map_err(|e| {
-                if e.starts_with("unknown service") {
-                    UnknownService::new_err(e)
-                } else {
-                    MusterError::new_err(e)
+            let client = Lent(self.client()?);
+            py.detach(move || {
+                let client = client;
+                client.0.link(&d, &c)
+            })
+            .map_err(|e| match e {
+                UserError::UnknownService(s) => {
+                    UnknownService::new_err(format!("unknown service {s:?}"))
                 }
+                UserError::CannotLink(why) => MusterError::new_err(why),
+                e => MusterError::new_err(e.to_string()),
             })
         })
     }
 
     /// Ends link `link` and its sessions.
-    fn unlink(&self, link: u64) -> PyResult<()> {
-        guarded(|| self.send(Cmd::Unlink(link)))
+    fn unlink(&mut self, link: u64) -> PyResult<()> {
+        guarded(|| {
+            self.client()?.unlink(link);
+            Ok(())
+        })
     }
 
     /// The next event as a dict, waiting up to `timeout` seconds (`None`: as long as it
     /// takes); `None` if none came.
     #[pyo3(signature = (timeout=None))]
     fn next_event<'py>(
-        &self,
+        &mut self,
         py: Python<'py>,
         timeout: Option<f64>,
     ) -> PyResult<Option<Bound<'py, PyDict>>> {
         guarded(|| {
-            let timeout = timeout
-                .map(|t| {
-                    if t.is_finite() && t >= 0.0 {
-                        Ok(Duration::from_secs_f64(t))
-                    } else {
-                        Err(MusterError::new_err("timeout must be seconds ≥ 0"))
-                    }
-                })
-                .transpose()?;
-            // Without releasing the GIL first: an event already here is taken at once.
-            let now = self
-                .events
-                .lock()
-                .map_err(|_| MusterError::new_err("poisoned"))?
-                .try_recv();
-            let got = match now {
-                Ok(o) => Some(o),
-                Err(std::sync::mpsc::TryRecvError::Empty) if timeout == Some(Duration::ZERO) => {
-                    None
+            let deadline = match timeout {
+                None => None,
+                Some(t) if t.is_finite() && t >= 0.0 => {
+                    Some(Instant::now() + Duration::from_secs_f64(t))
                 }
-                Err(std::sync::mpsc::TryRecvError::Empty) => {
-                    recv_interruptibly(py, &self.events, timeout)?
-                }
-                Err(std::sync::mpsc::TryRecvError::Disconnected) => {
-                    return Err(Closed::new_err("the user's client stopped"))
-                }
+                Some(_) => return Err(MusterError::new_err("timeout must be seconds ≥ 0")),
             };
-            match got {
-                None => Ok(None),
-                Some(Out::Failed(e)) => Err(Closed::new_err(e)),
-                Some(Out::Event(e)) => self.event_dict(py, *e).map(Some),
+            loop {
+                let slice = Instant::now() + SIGNAL_SLICE;
+                let until = deadline.map_or(slice, |d| d.min(slice));
+                let client = self.client()?;
+                // An event already here is taken without releasing the GIL.
+                let woke = if let Some(e) = client.try_event().map_err(closed)? {
+                    Wake::Event(e)
+                } else if until <= Instant::now() {
+                    Wake::Timeout
+                } else {
+                    let c = Lent(client);
+                    py.detach(move || {
+                        let c = c;
+                        c.0.wait(until)
+                    })
+                    .map_err(closed)?
+                };
+                match woke {
+                    Wake::Event(e) => return self.event_dict(py, e).map(Some),
+                    Wake::Extra | Wake::Timeout => {}
+                }
+                py.check_signals()?;
+                if deadline.is_some_and(|d| Instant::now() >= d) {
+                    return Ok(None);
+                }
             }
         })
     }
 
-    /// A descriptor that becomes readable when events wait (for an asyncio loop's
-    /// `add_reader`); read it empty with `drain_notify`, then take events with
-    /// `next_event(0)`.
-    fn fileno(&self) -> i32 {
-        self.notify_on.store(true, Ordering::Relaxed);
-        self.notify_r.as_raw_fd()
+    /// A descriptor that becomes readable when events may wait (for an asyncio loop's
+    /// `add_reader`); then take them with `next_event(0)`. A remote user's timers also
+    /// want a `next_event(0)` by `next_deadline()`.
+    fn fileno(&mut self) -> PyResult<i32> {
+        Ok(self.client()?.fd())
     }
 
-    /// Empties the descriptor of `fileno`.
-    fn drain_notify(&self) {
-        let mut buf = [0u8; 256];
-        while (&self.notify_r).read(&mut buf).is_ok_and(|n| n > 0) {}
+    /// Seconds until a remote user's timers want a turn (`None`: a local user has none).
+    fn next_deadline(&mut self) -> PyResult<Option<f64>> {
+        Ok(self
+            .client()?
+            .next_deadline()
+            .map(|d| d.saturating_duration_since(Instant::now()).as_secs_f64()))
     }
 
     /// Ends every session and link and says goodbye to the broker. Idempotent.
-    fn close(&self, py: Python<'_>) -> PyResult<()> {
+    fn close(&mut self, py: Python<'_>) -> PyResult<()> {
         guarded(|| {
-            if self.closed.swap(true, Ordering::Relaxed) {
-                return Ok(());
-            }
-            let (tx, rx) = channel();
-            if self.cmds.send(Cmd::Close(tx)).is_ok() {
-                let _ = (&self.bell).write(&[1]);
-                // The client waits up to half a second for remote systems' confirmations.
-                let _ = recv_interruptibly(py, &Mutex::new(rx), Some(Duration::from_secs(5)));
+            if let Some(c) = self.client.take() {
+                // A remote client waits up to half a second for systems' confirmations.
+                struct Owned(UserClient);
+                // SAFETY: as `Lent`: run in place, on this thread.
+                unsafe impl Send for Owned {}
+                let c = Owned(c);
+                py.detach(move || {
+                    let c = c;
+                    c.0.close()
+                });
             }
             Ok(())
         })
     }
 }
 
-impl Drop for NativeUser {
-    fn drop(&mut self) {
-        if !self.closed.swap(true, Ordering::Relaxed) {
-            let (tx, _rx) = channel();
-            if self.cmds.send(Cmd::Close(tx)).is_ok() {
-                let _ = (&self.bell).write(&[1]);
-            }
-        }
-    }
+fn closed(e: UserError) -> PyErr {
+    Closed::new_err(e.to_string())
 }
 
 impl NativeUser {
-    fn event_dict<'py>(&self, py: Python<'py>, e: UserEvent) -> PyResult<Bound<'py, PyDict>> {
+    fn event_dict<'py>(&mut self, py: Python<'py>, e: UserEvent) -> PyResult<Bound<'py, PyDict>> {
         let d = PyDict::new(py);
-        let mut schemas = self
-            .schemas
-            .lock()
-            .map_err(|_| MusterError::new_err("poisoned"))?;
+        let schemas = &mut self.schemas;
         match e {
             UserEvent::Connected { epoch } => {
                 d.set_item("event", "connected")?;
@@ -512,116 +471,6 @@ fn end_code(r: &EndReason) -> &'static str {
         EndReason::Withdrawn => "withdrawn",
         EndReason::PeerGone => "peer_gone",
         EndReason::DurationOver => "duration_over",
-    }
-}
-
-/// The client's thread: connects, then carries out commands and hands over events
-/// until closed (or Python drops the user).
-#[allow(clippy::too_many_arguments)]
-fn drive(
-    target: Target,
-    opts: ConnectOptions,
-    ready: Sender<PyResult<String>>,
-    cmds: Receiver<Cmd>,
-    bell: UnixStream,
-    events: &Sender<Out>,
-    notify: UnixStream,
-    notify_on: std::sync::Arc<AtomicBool>,
-) {
-    let connected = match target {
-        Target::Local(inst) => UserClient::connect(&inst, &opts),
-        Target::Remote(r) => UserClient::connect_remote(r, &opts),
-    };
-    let mut client = match connected {
-        Ok(c) => c,
-        Err(e @ (UserError::NoBroker(_) | UserError::NoRemoteBroker { .. })) => {
-            let _ = ready.send(Err(NoBroker::new_err(e.to_string())));
-            return;
-        }
-        Err(e) => {
-            let _ = ready.send(Err(MusterError::new_err(e.to_string())));
-            return;
-        }
-    };
-    if let Err(e) = client.watch_extra(bell.as_raw_fd()) {
-        let _ = ready.send(Err(MusterError::new_err(e.to_string())));
-        return;
-    }
-    if ready.send(Ok(client.id().0.clone())).is_err() {
-        return client.close();
-    }
-    let ring = || {
-        if notify_on.load(Ordering::Relaxed) {
-            let _ = (&notify).write(&[1]);
-        }
-    };
-    loop {
-        match client.wait(Instant::now() + Duration::from_secs(3600)) {
-            Ok(Wake::Event(e)) => {
-                if events.send(Out::Event(Box::new(e))).is_err() {
-                    return client.close();
-                }
-                ring();
-            }
-            Ok(Wake::Extra) => {
-                let mut buf = [0u8; 256];
-                while (&bell).read(&mut buf).is_ok_and(|n| n > 0) {}
-                loop {
-                    match cmds.try_recv() {
-                        Ok(Cmd::Close(done)) => {
-                            client.close();
-                            let _ = done.send(());
-                            return;
-                        }
-                        Ok(cmd) => apply(&mut client, cmd),
-                        Err(std::sync::mpsc::TryRecvError::Empty) => break,
-                        Err(std::sync::mpsc::TryRecvError::Disconnected) => {
-                            return client.close()
-                        }
-                    }
-                }
-            }
-            Ok(Wake::Timeout) => {}
-            Err(e) => {
-                let _ = events.send(Out::Failed(e.to_string()));
-                ring();
-                return;
-            }
-        }
-    }
-}
-
-fn apply(client: &mut UserClient, cmd: Cmd) {
-    match cmd {
-        Cmd::List(tx) => {
-            let _ = tx.send(client.list().map(|l| l.views()).map_err(|e| e.to_string()));
-        }
-        Cmd::Request(id, tx) => {
-            // The client checks the id against the list: an unknown one is refused by
-            // the broker as `unknown`, an event like any refusal.
-            let req = match client.request(&id) {
-                Ok(r) => r,
-                Err(e) => {
-                    tracing::warn!("request {id}: {e}");
-                    0
-                }
-            };
-            let _ = tx.send(req);
-        }
-        Cmd::Cancel(req) => client.cancel(req),
-        Cmd::Input(s, p, tx) => {
-            let _ = tx.send(client.input(s, p));
-        }
-        Cmd::End(s) => client.end(s),
-        Cmd::Link(d, c, tx) => {
-            let _ = tx.send(client.link(&d, &c).map_err(|e| match e {
-                UserError::UnknownService(s) => format!("unknown service {s:?}"),
-                UserError::CannotLink(why) => why,
-                e => e.to_string(),
-            }));
-        }
-        Cmd::Unlink(l) => client.unlink(l),
-        Cmd::Close(_) => {}
     }
 }
 

@@ -173,3 +173,25 @@ def test_bad_declarations_are_refused_with_the_reason():
         s.data_service("b", rate=0)(lambda: None)
     with pytest.raises(muster.MusterError, match="not running"):
         s.publish("a", muster.Pose2d(0, 0, 0))
+
+
+def test_a_python_system_keeps_its_sessions_across_a_broker_restart(fed):
+    import signal
+    b = fed.broker()
+    fed.python(str(EXAMPLES / "door_system.py"), fed.inst)
+    with muster.User(fed.inst) as me:
+        services(me, 2)
+        state = me.request("door/state")
+        before = state.next(timeout=5).seq
+        fed.stop(b, signal.SIGKILL)
+        fed.broker()
+        # The system registers again by itself: listed, and the session streams on.
+        wait_until(lambda: (me.poll(0.1), me.broker_connected and len(me.list()) == 2)[1],
+                   what="the door listed by the new broker")
+        seqs = [u.seq for u, _ in zip(state.updates(timeout=5), range(10))]
+        assert len(seqs) == 10 and seqs[0] > before, seqs
+        assert state.ended is None and state.lost == 0
+        # And it serves new requests.
+        with me.request("door/open", timeout=10) as d:
+            d.send("open")
+            assert d.wait_status("done", timeout=10).detail == "open"

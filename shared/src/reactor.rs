@@ -31,6 +31,13 @@ impl Reactor {
             .register(&mut SourceFd(&fd), Token(token), Interest::READABLE)
     }
 
+    /// The epoll descriptor itself: readable while a watched fd has news (for a host
+    /// event loop that watches the whole set through one descriptor).
+    pub fn raw(&self) -> RawFd {
+        use std::os::fd::AsRawFd;
+        self.poll.as_raw_fd()
+    }
+
     /// Stops watching `fd`.
     pub fn remove(&self, fd: RawFd) {
         let _ = self.poll.registry().deregister(&mut SourceFd(&fd));

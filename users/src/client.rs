@@ -352,6 +352,23 @@ impl UserClient {
         self.flush();
     }
 
+    /// The descriptor of the client's epoll set: readable when something waits for
+    /// [`UserClient::wait`] (for a host event loop, such as Python's asyncio, that
+    /// watches it and calls `wait` with a deadline of now). A remote client also has
+    /// timers: call `wait` by [`UserClient::next_deadline`] even if it stays quiet.
+    pub fn fd(&self) -> RawFd {
+        self.reactor.raw()
+    }
+
+    /// When a remote client's timers (retransmissions, keepalives) next need a turn;
+    /// `None` for a local client, which has none.
+    pub fn next_deadline(&self) -> Option<Instant> {
+        match &self.transport {
+            Transport::Remote(r) => Some(r.next_deadline()),
+            Transport::Local(_) => None,
+        }
+    }
+
     /// Also wake [`UserClient::wait`] when `fd` is readable (e.g. a terminal's input).
     pub fn watch_extra(&mut self, fd: RawFd) -> Result<(), UserError> {
         if let Some(old) = self.extra.take() {
