@@ -111,6 +111,10 @@ impl Synthetic {
     }
 }
 
+/// How far behind its rate a data system still catches up (sending the missed updates
+/// at once); further behind, it starts again from now.
+const MAX_CATCH_UP: Duration = Duration::from_millis(100);
+
 impl SystemApp for Synthetic {
     fn on_event(&mut self, core: &mut SystemCore, now: Duration, event: SystemEvent) {
         match event {
@@ -162,19 +166,35 @@ impl SystemApp for Synthetic {
     fn on_tick(&mut self, core: &mut SystemCore, now: Duration) {
         let dt = now.saturating_sub(self.last).as_secs_f64();
         self.last = now;
-        self.next = now + self.period;
+        // The updates due since the last tick, on the grid of the rate: a rate above
+        // what one wake-up per period gives (the reactor sleeps in whole milliseconds)
+        // is kept by sending the due ones together. A system far behind (stopped, or a
+        // session just started) starts again from now.
+        let due = if now.saturating_sub(self.next) > MAX_CATCH_UP {
+            self.next = now + self.period;
+            1
+        } else {
+            let mut n = 0u32;
+            while self.next <= now {
+                self.next += self.period;
+                n += 1;
+            }
+            n.max(1)
+        };
         match self.kind {
             ServiceKind::Data => {
                 let names: Vec<String> = core.specs().iter().map(|s| s.name.clone()).collect();
                 for (i, name) in names.iter().enumerate() {
                     if core.sessions_of(name) > 0 {
-                        // A pose always fits every path.
-                        let sent = core.publish(
-                            name,
-                            &Self::pose_at(i, now),
-                            muster_shared::protocol::monotonic_ns(),
-                        );
-                        debug_assert!(sent.is_ok(), "{sent:?}");
+                        for _ in 0..due {
+                            // A pose always fits every path.
+                            let sent = core.publish(
+                                name,
+                                &Self::pose_at(i, now),
+                                muster_shared::protocol::monotonic_ns(),
+                            );
+                            debug_assert!(sent.is_ok(), "{sent:?}");
+                        }
                     }
                 }
             }
