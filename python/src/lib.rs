@@ -18,12 +18,7 @@ use pyo3::prelude::*;
 mod system;
 mod user;
 
-create_exception!(
-    muster,
-    MusterError,
-    PyException,
-    "Base of muster's errors."
-);
+create_exception!(muster, MusterError, PyException, "Base of muster's errors.");
 create_exception!(
     muster,
     NoBroker,

@@ -14,7 +14,9 @@ use muster_shared::Instance;
 use muster_systems::{SystemApp, SystemCore, SystemEvent};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
+use std::cell::Cell;
 use std::collections::VecDeque;
+use std::rc::Rc;
 use std::io::{Read, Write};
 use std::os::fd::{AsRawFd, RawFd};
 use std::os::unix::net::UnixStream;
@@ -115,11 +117,7 @@ impl NativeSystem {
             let kind = match kind {
                 "data" => ServiceKind::Data,
                 "command" => ServiceKind::Command,
-                k => {
-                    return Err(MusterError::new_err(format!(
-                        "kind {k:?}: data or command"
-                    )))
-                }
+                k => return Err(MusterError::new_err(format!("kind {k:?}: data or command"))),
             };
             let schema = match (encoding, schema) {
                 (None, None) => None,
@@ -279,7 +277,7 @@ impl PyApp {
         arg: impl for<'py> FnOnce(Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>>,
     ) -> Option<String> {
         Python::attach(|py| {
-            let slot = Arc::new(Mutex::new(core as *mut SystemCore));
+            let slot = Rc::new(Cell::new(core as *mut SystemCore));
             let c = match Py::new(
                 py,
                 Core {
@@ -298,9 +296,7 @@ impl PyApp {
                 }
             });
             // The core is valid for this call only.
-            if let Ok(mut p) = slot.lock() {
-                *p = std::ptr::null_mut();
-            }
+            slot.set(std::ptr::null_mut());
             let err = match result {
                 Ok(_) => None,
                 Err(e) => {
@@ -345,7 +341,10 @@ impl SystemApp for PyApp {
         });
         // A callback that raised ends its session only, never the system.
         if let (Some(e), Some(s)) = (err, session) {
-            core.end_session(s, EndReason::BySystem(format!("the system's callback raised: {e}")));
+            core.end_session(
+                s,
+                EndReason::BySystem(format!("the system's callback raised: {e}")),
+            );
         }
     }
 
@@ -438,16 +437,13 @@ fn event_dict<'py>(
 /// The system's protocol state, for the length of one callback.
 #[pyclass(module = "muster._native", unsendable)]
 pub struct Core {
-    slot: Arc<Mutex<*mut SystemCore>>,
+    slot: Rc<Cell<*mut SystemCore>>,
     now: Duration,
 }
 
 impl Core {
     fn with<T>(&self, f: impl FnOnce(&mut SystemCore) -> PyResult<T>) -> PyResult<T> {
-        let p = *self
-            .slot
-            .lock()
-            .map_err(|_| MusterError::new_err("poisoned"))?;
+        let p = self.slot.get();
         if p.is_null() {
             return Err(Closed::new_err(
                 "this core was lent for one callback; from elsewhere use System.call_soon",

@@ -79,8 +79,8 @@ impl NativeUser {
             };
             let client = match (remote, key) {
                 (None, None) => {
-                    let inst = Instance::new(instance)
-                        .map_err(|e| MusterError::new_err(e.to_string()))?;
+                    let inst =
+                        Instance::new(instance).map_err(|e| MusterError::new_err(e.to_string()))?;
                     py.detach(|| Made(UserClient::connect(&inst, &opts))).0
                 }
                 (None, Some(_)) => {
@@ -148,8 +148,7 @@ impl NativeUser {
             let out = PyList::empty(py);
             for v in &views {
                 out.append(
-                    pythonize::pythonize(py, v)
-                        .map_err(|e| MusterError::new_err(e.to_string()))?,
+                    pythonize::pythonize(py, v).map_err(|e| MusterError::new_err(e.to_string()))?,
                 )?;
             }
             Ok(out)
@@ -501,7 +500,9 @@ pub fn rust_request_latencies(
                 let deadline = t0 + Duration::from_secs(10);
                 loop {
                     match c.next_event(deadline).map_err(|e| e.to_string())? {
-                        Some(UserEvent::Granted { req: r, session, .. }) if r == req => {
+                        Some(UserEvent::Granted {
+                            req: r, session, ..
+                        }) if r == req => {
                             out.push(t0.elapsed().as_secs_f64() * 1e6);
                             c.end(session);
                             break;

@@ -70,9 +70,9 @@ fn ros2(inst: &Instance, a: Ros2SystemArgs) -> anyhow::Result<ExitCode> {
     let app = Ros2System::new(&cfg, &opts)?;
     let core = SystemCore::new(&cfg.system, std::process::id(), cfg.specs());
     let run = muster_systems::RunOptions {
-                udp: a.udp,
-                ..Default::default()
-            };
+        udp: a.udp,
+        ..Default::default()
+    };
     muster_systems::run_system_with(inst, core, app, &run)?;
     Ok(ExitCode::SUCCESS)
 }

@@ -2,7 +2,7 @@
 
 use crate::cli::{UserArgs, UserVerb};
 use anyhow::Context;
-use muster_shared::types::{EndReason, Payload, Schema, ServiceId, ServiceKind, TaskStatus};
+use muster_shared::types::{EndReason, Payload, Schema, ServiceId, ServiceKind};
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
 use serde_json::{json, Value};

@@ -321,7 +321,9 @@ pub fn run_system_with<A: SystemApp>(
                 // Read after the inbox, below.
                 TOKEN_UDP => udp_readable = true,
                 // Applied after the inbox, below.
-                TOKEN_CONTROL => control_lines.extend(control.as_mut().map(Control::take).unwrap_or_default()),
+                TOKEN_CONTROL => {
+                    control_lines.extend(control.as_mut().map(Control::take).unwrap_or_default())
+                }
                 TOKEN_BROKER => {
                     if shell.broker.as_ref().is_some_and(PidFd::exited) {
                         tracing::warn!("broker died; sessions go on, waiting for a new broker");
