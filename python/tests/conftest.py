@@ -47,14 +47,14 @@ class Fed:
         self.procs: List[subprocess.Popen] = []
         self.dir = Path(tempfile.mkdtemp(prefix=f"muster-py-{self.inst}-"))
 
-    def spawn(self, args: List[str], **kw) -> subprocess.Popen:
+    def spawn(self, args: List[str], stdin=subprocess.DEVNULL, **kw) -> subprocess.Popen:
         p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             stdin=subprocess.DEVNULL, text=True, **kw)
+                             stdin=stdin, text=True, **kw)
         self.procs.append(p)
         return p
 
-    def muster(self, *args: str) -> subprocess.Popen:
-        return self.spawn([BIN, *args, "--instance", self.inst])
+    def muster(self, *args: str, stdin=subprocess.DEVNULL) -> subprocess.Popen:
+        return self.spawn([BIN, *args, "--instance", self.inst], stdin=stdin)
 
     def run(self, *args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
         return subprocess.run([BIN, *args, "--instance", self.inst], capture_output=True,
