@@ -88,6 +88,14 @@ pub(crate) fn payload_from_py(v: &Bound<'_, PyAny>, schema: Option<&Schema>) -> 
     Payload::from_json(&json, schema).map_err(PayloadError::new_err)
 }
 
+/// Panics inside the guard every call into muster goes through: the self-check that a
+/// fault in muster's Rust code reaches Python as `muster.InternalError`, not as a
+/// `PanicException` or a dead process (the tests call it).
+#[pyfunction]
+fn _check_panic_guard() -> PyResult<()> {
+    guarded(|| -> PyResult<()> { panic!("the panic guard's self-check") })
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
@@ -101,5 +109,6 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<system::NativeSystem>()?;
     m.add_class::<system::Core>()?;
     m.add_function(wrap_pyfunction!(user::rust_request_latencies, m)?)?;
+    m.add_function(wrap_pyfunction!(_check_panic_guard, m)?)?;
     Ok(())
 }

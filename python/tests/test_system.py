@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 import textwrap
+import time
 
 import muster
 import pytest
@@ -195,3 +196,35 @@ def test_a_python_system_keeps_its_sessions_across_a_broker_restart(fed):
         with me.request("door/open", timeout=10) as d:
             d.send("open")
             assert d.wait_status("done", timeout=10).detail == "open"
+
+
+def test_a_system_served_from_asyncio_beside_an_asyncio_user(fed):
+    import asyncio
+    fed.broker()
+    s = muster.System("aio", instance=fed.inst)
+
+    @s.command_service("double", payload="scalar", quota=1)
+    def double(session, value):
+        session.done(str(value * 2))
+
+    async def main():
+        serving = asyncio.ensure_future(s.serve())
+        async with muster.User(fed.inst) as me:
+            deadline = time.monotonic() + 15
+            while not me.list():
+                assert time.monotonic() < deadline, "the system was never listed"
+                await asyncio.sleep(0.05)
+            session = await me.arequest("aio/double")
+            session.send(21.0)
+            status = None
+            while status is None or status.state != "done":
+                status = await session.anext(timeout=10)
+                assert status is not None, "no status"
+            assert status.detail == "42.0"
+            session.end()
+        s.stop()
+        return await asyncio.wait_for(serving, 15)
+
+    report = asyncio.run(main())
+    assert report["double"]["grants"] == 1, report
+    assert not s._native.running

@@ -205,3 +205,11 @@ def test_a_remote_user_over_udp_with_a_key(fed):
 def test_no_broker_is_a_clear_error(fed):
     with pytest.raises(muster.NoBroker, match=fed.inst):
         muster.User(fed.inst, wait=0.3)
+
+
+def test_a_panic_in_musters_rust_code_is_an_internal_error_and_the_process_lives():
+    from muster import _native
+    for _ in range(2):
+        with pytest.raises(muster.InternalError, match="the panic guard's self-check"):
+            _native._check_panic_guard()
+    assert issubclass(muster.InternalError, muster.MusterError)
