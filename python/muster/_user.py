@@ -231,6 +231,31 @@ class Link:
         self.end()
 
 
+class _Pending:
+    """A request waiting for its answer (the part `request` and `arequest` share)."""
+
+    def __init__(self, user: "User", service: str, timeout: Optional[float],
+                 on_queued: Optional[Callable[[int], None]]):
+        self.user, self.service, self.timeout, self.on_queued = user, service, timeout, on_queued
+        self.req = user._native.request(service)
+        self.deadline = None if timeout is None else time.monotonic() + timeout
+        self.queued: List[int] = []
+
+    def step(self) -> "tuple[Optional[Session], Optional[float]]":
+        """The session if granted (raises Refused or TimeoutError), else how long to
+        wait for more."""
+        for ev in self.user._answers.pop(self.req, []):
+            s = self.user._answer(ev, self.queued, self.on_queued)
+            if s is not None:
+                return s, None
+        left = None if self.deadline is None else self.deadline - time.monotonic()
+        if left is not None and left <= 0:
+            self.user._native.cancel(self.req)
+            where = f" (queued at {self.queued[-1]})" if self.queued else ""
+            raise TimeoutError(f"{self.service} was not granted within {self.timeout} s{where}")
+        return None, left
+
+
 class User:
     """A user: `User(instance="default")` on this host, or
     `User(remote="HOST:PORT", key="alice.key")` over UDP (a key from `muster keygen`).
@@ -353,36 +378,21 @@ class User:
         """Asks for `service`; returns the Session once granted. Raises Refused (with
         the broker's reason and code), or TimeoutError after `timeout` seconds (the
         request is then cancelled). `on_queued(position)` hears each queue position."""
-        req = self._native.request(service)
-        deadline = None if timeout is None else time.monotonic() + timeout
-        queued: List[int] = []
+        pending = _Pending(self, service, timeout, on_queued)
         while True:
-            for ev in self._answers.pop(req, []):
-                s = self._answer(ev, queued, on_queued)
-                if s is not None:
-                    return s
-            left = None if deadline is None else deadline - time.monotonic()
-            if left is not None and left <= 0:
-                self._native.cancel(req)
-                raise TimeoutError(f"{service} was not granted within {timeout} s"
-                                   + (f" (queued at {queued[-1]})" if queued else ""))
+            s, left = pending.step()
+            if s is not None:
+                return s
             self._pump(left)
 
     async def arequest(self, service: str, timeout: Optional[float] = 10.0,
                        on_queued: Optional[Callable[[int], None]] = None) -> Session:
         """`request` for asyncio."""
-        req = self._native.request(service)
-        deadline = None if timeout is None else time.monotonic() + timeout
-        queued: List[int] = []
+        pending = _Pending(self, service, timeout, on_queued)
         while True:
-            for ev in self._answers.pop(req, []):
-                s = self._answer(ev, queued, on_queued)
-                if s is not None:
-                    return s
-            left = None if deadline is None else deadline - time.monotonic()
-            if left is not None and left <= 0:
-                self._native.cancel(req)
-                raise TimeoutError(f"{service} was not granted within {timeout} s")
+            s, left = pending.step()
+            if s is not None:
+                return s
             await self._apump(left)
 
     def _answer(self, ev: dict, queued: List[int],

@@ -4,7 +4,7 @@
 
 use crate::{guarded, payload_from_py, payload_to_py};
 use crate::{Closed, MusterError, NoBroker, PayloadError, UnknownService};
-use muster_shared::types::{EndReason, Refusal, Schema, ServiceId, SessionId};
+use muster_shared::types::{Schema, ServiceId, SessionId};
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, RemoteOptions, UserClient, UserError, UserEvent, Wake};
 use pyo3::prelude::*;
@@ -374,7 +374,7 @@ impl NativeUser {
                 d.set_item("event", "refused")?;
                 d.set_item("req", req)?;
                 d.set_item("service", service.0)?;
-                d.set_item("code", refusal_code(&reason))?;
+                d.set_item("code", reason.code())?;
                 d.set_item("reason", reason.to_string())?;
             }
             UserEvent::Operated { id, result } => {
@@ -422,7 +422,7 @@ impl NativeUser {
                 d.set_item("event", "ended")?;
                 d.set_item("session", session.0)?;
                 d.set_item("service", service.0)?;
-                d.set_item("code", end_code(&reason))?;
+                d.set_item("code", reason.code())?;
                 d.set_item("reason", reason.to_string())?;
                 d.set_item("lost_at_end", lost_at_end)?;
                 schemas.remove(&session.0);
@@ -444,32 +444,6 @@ impl NativeUser {
             }
         }
         Ok(d)
-    }
-}
-
-/// A refusal's code, stable for programs: `unknown`, `withdrawn`, `quota_full`, ...
-fn refusal_code(r: &Refusal) -> &'static str {
-    match r {
-        Refusal::Unknown => "unknown",
-        Refusal::Withdrawn => "withdrawn",
-        Refusal::QuotaFull { .. } => "quota_full",
-        Refusal::QueueFull { .. } => "queue_full",
-        Refusal::SystemGone => "system_gone",
-        Refusal::SystemRefused(_) => "system_refused",
-        Refusal::AlreadyPending => "already_pending",
-        Refusal::BadRequest(_) => "bad_request",
-        Refusal::ByOperator => "by_operator",
-    }
-}
-
-/// An end's code: `by_user`, `by_system`, `withdrawn`, `peer_gone`, `duration_over`.
-fn end_code(r: &EndReason) -> &'static str {
-    match r {
-        EndReason::ByUser => "by_user",
-        EndReason::BySystem(_) => "by_system",
-        EndReason::Withdrawn => "withdrawn",
-        EndReason::PeerGone => "peer_gone",
-        EndReason::DurationOver => "duration_over",
     }
 }
 

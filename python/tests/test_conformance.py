@@ -37,6 +37,16 @@ def conf(fed, request):
     return Conf(fed, request.param)
 
 
+def take(session, seconds, into):
+    """The updates (or statuses) that come in `seconds`, appended to `into`."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        item = session.next(timeout=0.2)
+        if item is not None:
+            into.append(item)
+    return into
+
+
 def by_id(me, sid):
     return next(s for s in me.list() if s.id == sid)
 
@@ -70,12 +80,7 @@ def test_a_data_session_streams_in_order_and_frees_its_quota(conf):
     with conf.user() as me:
         services(me, 1)
         s = me.request("t1/s0")
-        seqs = []
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 2.0:
-            u = s.next(timeout=0.5)
-            if u is not None:
-                seqs.append(u.seq)
+        seqs = [u.seq for u in take(s, 2.0, [])]
         s.end()
         assert seqs[0] == 1, "the first update is not lost"
         assert len(seqs) >= 20, seqs
@@ -107,12 +112,7 @@ def test_a_command_session_takes_a_goal_and_reports_arrival(conf):
         services(me, 1)
         with me.request("d1/s0") as d:
             d.send(muster.Goal2d(1.5, -1.5))
-            texts = []
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < 3.0:
-                st = d.next(timeout=0.5)
-                if isinstance(st, muster.Status):
-                    texts.append(st.text)
+            texts = [st.text for st in take(d, 3.0, []) if isinstance(st, muster.Status)]
         assert texts[0] == "idle", texts
         assert any("goal (1.50, -1.50) accepted" in t for t in texts), texts
         assert sum(t.startswith("done: arrived within 1 m") for t in texts) == 1, texts
@@ -142,22 +142,15 @@ def test_sessions_survive_a_broker_crash(conf):
     with conf.user() as me:
         services(me, 1)
         s = me.request("t1/s0")
-        seqs = []
-
-        def take(seconds):
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < seconds:
-                u = s.next(timeout=0.2)
-                if u is not None:
-                    seqs.append(u.seq)
-        take(1.5)
+        got = take(s, 1.5, [])
         conf.fed.stop(conf.broker, signal.SIGKILL)
-        take(1.0)
+        take(s, 1.0, got)
         conf.broker = conf.start_broker()
         # The restarted broker learns the old session from the system.
         wait_until(lambda: by_id(me, "t1/s0").in_use == 1, what="the session relearned")
-        take(2.0)
+        take(s, 2.0, got)
         s.end()
+        seqs = [u.seq for u in got]
         assert len(seqs) >= 60, len(seqs)
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "no gap"
         assert s.lost == 0

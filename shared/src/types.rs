@@ -782,6 +782,20 @@ pub enum EndReason {
     DurationOver,
 }
 
+impl EndReason {
+    /// A short machine-readable code: `by_user`, `by_system`, `withdrawn`, `peer_gone`
+    /// or `duration_over`.
+    pub fn code(&self) -> &'static str {
+        match self {
+            EndReason::ByUser => "by_user",
+            EndReason::BySystem(_) => "by_system",
+            EndReason::Withdrawn => "withdrawn",
+            EndReason::PeerGone => "peer_gone",
+            EndReason::DurationOver => "duration_over",
+        }
+    }
+}
+
 impl fmt::Display for EndReason {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
