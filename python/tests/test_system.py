@@ -228,3 +228,37 @@ def test_a_system_served_from_asyncio_beside_an_asyncio_user(fed):
     report = asyncio.run(main())
     assert report["double"]["grants"] == 1, report
     assert not s._native.running
+
+
+def test_a_python_system_serves_a_remote_python_user_over_udp(fed):
+    from conftest import free_udp_port
+    access = fed.keys("alice")
+    addr = f"127.0.0.1:{free_udp_port()}"
+    fed.broker("--udp", addr, "--access", str(access))
+    script = textwrap.dedent('''
+        import sys, muster
+        s = muster.System("far", instance=sys.argv[1], udp="127.0.0.1:0")
+
+        @s.command_service("shout", payload="text")
+        def shout(session, value):
+            session.done(value.upper())
+
+        @s.data_service("count", payload="scalar", rate=20)
+        def count():
+            return 7.0
+
+        s.run()
+    ''')
+    path = fed.dir / "far.py"
+    path.write_text(script)
+    fed.python(str(path), fed.inst)
+    with muster.User(remote=addr, key=str(fed.dir / "alice.key")) as me:
+        assert me._native.remote
+        services(me, 2)
+        with me.request("far/shout") as s:
+            s.send("hello")
+            assert s.wait_status("done", timeout=10).detail == "HELLO"
+        with me.request("far/count") as c:
+            got = [u for u, _ in zip(c.updates(timeout=5), range(10))]
+            assert [u.value for u in got] == [7.0] * 10
+            assert [u.seq for u in got] == list(range(got[0].seq, got[0].seq + 10))
