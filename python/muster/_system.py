@@ -113,6 +113,9 @@ class System:
         self._streaming = False
         #: Set while registered with a broker.
         self.registered = False
+        #: Updates published but lost on the way to a user whose inbox was full (or
+        #: who was gone); the user sees the gap.
+        self.undelivered = 0
 
     @property
     def name(self) -> str:
@@ -280,6 +283,8 @@ class _Handler:
             s.registered = True
         elif e in ("broker_lost", "delinquent"):
             s.registered = False
+        elif e == "undelivered":
+            s.undelivered += 1
         elif e == "session_started":
             sess = SystemSession(s, ev["session"], ev["user"], ev["service"])
             s._sessions[sess.id] = sess

@@ -420,6 +420,18 @@ fn event_dict<'py>(
             d.set_item("service", service)?;
             d.set_item("value", payload_to_py(py, payload, schema)?)?;
         }
+        SystemEvent::Undelivered {
+            session,
+            service,
+            seq,
+            reason,
+        } => {
+            d.set_item("event", "undelivered")?;
+            d.set_item("session", session.0)?;
+            d.set_item("service", service)?;
+            d.set_item("seq", seq)?;
+            d.set_item("reason", reason)?;
+        }
         SystemEvent::SessionEnded {
             session,
             service,

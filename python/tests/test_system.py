@@ -262,3 +262,55 @@ def test_a_python_system_serves_a_remote_python_user_over_udp(fed):
             got = [u for u, _ in zip(c.updates(timeout=5), range(10))]
             assert [u.value for u in got] == [7.0] * 10
             assert [u.seq for u in got] == list(range(got[0].seq, got[0].seq + 10))
+
+
+def test_updates_a_full_inbox_refuses_are_counted_by_the_system_and_seen_as_gaps(fed):
+    fed.broker()
+    script = textwrap.dedent('''
+        import sys, muster
+        s = muster.System("burst", instance=sys.argv[1])
+
+        @s.data_service("flood", payload="scalar")
+        def flood():
+            pass
+
+        @s.command_service("ctl", payload="text")
+        def ctl(session, value):
+            if value == "burst":
+                for i in range(3000):
+                    flood.publish(float(i))
+                session.done("sent")
+            elif value == "one":
+                flood.publish(-1.0)
+                session.done("sent")
+            else:
+                session.done(str(s.undelivered))
+
+        s.run()
+    ''')
+    path = fed.dir / "burst.py"
+    path.write_text(script)
+    fed.python(str(path), fed.inst)
+    with muster.User(fed.inst) as me:
+        services(me, 2)
+        flood = me.request("burst/flood")
+        ctl = me.request("burst/ctl")
+
+        def ask(what):
+            ctl.send(what)
+            return ctl.wait_status("done", timeout=20).detail
+        # 3,000 at once into an inbox nobody reads meanwhile: some do not fit.
+        assert ask("burst") == "sent"
+        lost_by_system = int(ask("count"))
+        assert lost_by_system > 0, "the burst fit the inbox: make it larger"
+        # One more update after the burst shows the tail's gap to the user.
+        assert ask("one") == "sent"
+        got = []
+        while True:
+            u = flood.next(timeout=2)
+            if u is None:
+                break
+            got.append(u)
+        assert got[-1].value == -1.0 and got[-1].seq == 3001, got[-1]
+        assert len(got) + flood.lost == 3001
+        assert flood.lost == lost_by_system, (flood.lost, lost_by_system)

@@ -64,6 +64,20 @@ pub enum SystemEvent {
         /// Why.
         reason: EndReason,
     },
+    /// An update [`SystemCore::publish`] accepted could not be handed to its user after
+    /// all (the user's inbox was full, or the user is gone): it is lost, counted
+    /// ([`SystemCore::undelivered`]), and the user sees a gap in the sequence numbers.
+    /// A system that streams faster than a user reads hears it here.
+    Undelivered {
+        /// The session.
+        session: SessionId,
+        /// Service name.
+        service: String,
+        /// The update's sequence number.
+        seq: u64,
+        /// Why (the transport's words).
+        reason: String,
+    },
 }
 
 /// What a system saw of one service during its run.
@@ -160,6 +174,7 @@ pub struct SystemCore {
     report: BTreeMap<String, ServiceReport>,
     /// Frames not sent: too large for their user's path.
     too_large: u64,
+    undelivered: u64,
     out: VecDeque<SystemOutput>,
     events: VecDeque<SystemEvent>,
 }
@@ -192,6 +207,7 @@ impl SystemCore {
             udp: None,
             report: BTreeMap::new(),
             too_large: 0,
+            undelivered: 0,
             out: VecDeque::new(),
             events: VecDeque::new(),
         }
@@ -663,6 +679,29 @@ impl SystemCore {
     /// Updates and statuses not sent because they were too large for their user's path.
     pub fn too_large(&self) -> u64 {
         self.too_large
+    }
+
+    /// Updates the runtime could not hand to their users after `publish` accepted them
+    /// (see [`SystemEvent::Undelivered`]).
+    pub fn undelivered(&self) -> u64 {
+        self.undelivered
+    }
+
+    /// The runtime could not hand update `seq` of `session` to its user: counted, and
+    /// said to the app as [`SystemEvent::Undelivered`].
+    pub fn note_undelivered(&mut self, session: SessionId, seq: u64, reason: String) {
+        self.undelivered += 1;
+        let service = self
+            .sessions
+            .get(&session)
+            .map(|s| s.service.clone())
+            .unwrap_or_default();
+        self.events.push_back(SystemEvent::Undelivered {
+            session,
+            service,
+            seq,
+            reason,
+        });
     }
 
     /// Ends a session from the system's side; the user and the broker are told.

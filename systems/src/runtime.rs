@@ -499,8 +499,12 @@ impl Shell {
                 SystemOutput::ToUser(user, msg) => {
                     // Updates are a stream (a full inbox drops one, counted as a gap);
                     // everything else is control and is held back, never dropped.
-                    if matches!(msg, muster_shared::protocol::ToUser::Update { .. }) {
-                        self.endpoint.send_or_log(&Address::User(user), &msg)
+                    if let muster_shared::protocol::ToUser::Update { session, seq, .. } = &msg {
+                        match self.endpoint.send_msg(&Address::User(user), &msg) {
+                            Ok(()) => {}
+                            Err(e @ TransportError::Encode { .. }) => tracing::error!("{e}"),
+                            Err(e) => core.note_undelivered(*session, *seq, e.to_string()),
+                        }
                     } else {
                         self.endpoint.send_control(&Address::User(user), &msg);
                     }
