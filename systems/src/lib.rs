@@ -15,10 +15,12 @@
 //!    at the absolute times [`SystemApp::next_tick`] asks for; a system that waits on a
 //!    device of its own lends its descriptors ([`SystemApp::descriptors`]) and is
 //!    called in [`SystemApp::on_ready`]. It streams with [`SystemCore::publish`] (an
-//!    update too large for a user's path is an error, never a silent drop) and reports
-//!    with [`SystemCore::status`].
+//!    update too large for a user's path is an error, never a silent drop; one that a
+//!    user's full inbox cannot take comes back as `SystemEvent::Undelivered`) and
+//!    reports with [`SystemCore::status`].
 //! 4. Run it: [`run_system`] registers, answers the broker, re-registers after a broker
-//!    restart, and returns on SIGINT or SIGTERM. It logs to standard error (`RUST_LOG`,
+//!    restart, and returns on SIGINT or SIGTERM, or when [`SystemApp::stop_requested`]
+//!    says so. It logs to standard error (`RUST_LOG`,
 //!    default `info`) unless the program set up `tracing` itself.
 //!
 //! The repository's `examples/` hold a complete door (`door_system.rs`, with a user
