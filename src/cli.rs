@@ -677,6 +677,16 @@ pub struct ScaleArgs {
     pub json: bool,
 }
 
+fn fault(s: &str) -> Result<muster_broker::run::Fault, String> {
+    match s.split_once(':') {
+        Some(("hang-after", n)) => n
+            .parse()
+            .map(muster_broker::run::Fault::HangAfter)
+            .map_err(|e| format!("hang-after:N takes a number of passes ({e})")),
+        _ => Err(format!("unknown fault {s:?} (hang-after:N)")),
+    }
+}
+
 fn duration(s: &str) -> Result<Duration, String> {
     humantime::parse_duration(s).map_err(|e| format!("{e} (examples: 500ms, 5s, 2m)"))
 }
@@ -725,10 +735,15 @@ pub struct BrokerArgs {
     /// hangs past --takeover-deadline or steps down. Any number may run.
     #[arg(long)]
     pub standby: bool,
-    /// How long a standby waits without a word from the primary before it takes the
-    /// primary for hung and takes over (wall time).
+    /// How long a standby waits without a word from the primary before it judges it:
+    /// taken over if stopped, or if its loop made no progress while it could have run;
+    /// left alone if it is only starved of a core (wall time).
     #[arg(long, default_value = "100ms", value_parser = duration, requires = "standby")]
     pub takeover_deadline: Duration,
+    /// A deliberate fault, for tests and benches: `hang-after:N` stops the primary's
+    /// loop after N passes while its process lives on (as a deadlock would).
+    #[arg(long, hide = true, value_parser = fault)]
+    pub fault: Option<muster_broker::run::Fault>,
     /// Join a federation of hosts over Zenoh: publish this host's services, see every
     /// host's, and serve requests across hosts.
     #[arg(long)]

@@ -124,7 +124,8 @@ fn a_stopped_primary_is_taken_over_and_never_acts_again() {
 
     f.proc(primary).signal(libc::SIGSTOP);
     let took = next_event(&mut f, s, "took_over");
-    assert_eq!(took["why"], "hung");
+    // The kernel says it is stopped (`/proc/PID/stat`): taken over as such.
+    assert_eq!(took["why"], "stopped");
     next_event(&mut f, s, "serving");
     f.proc(primary).signal(libc::SIGCONT);
     // The old primary is gone: it does not come back to serve the instance.
@@ -137,6 +138,32 @@ fn a_stopped_primary_is_taken_over_and_never_acts_again() {
     let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
     assert_eq!(code, 0, "{out}");
     assert_unbroken(&f.proc(data).all_json(20 * SEC), 140);
+}
+
+#[test]
+fn a_primary_whose_loop_hangs_while_its_process_lives_is_taken_over() {
+    // The fault hook stops the primary's loop for good after 250 passes (about 5 s of
+    // heartbeats with a standby following): not dead, not stopped, sleeping: only the
+    // loop's progress word tells the standby it hangs.
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let mut f = Fed::new("fo-hang");
+    let primary = f.broker(&["--fault", "hang-after:250"]);
+    let s = standby(&mut f);
+    f.system("t1", &["--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let data = f.spawn(&["user", "request", "t1/s0", "--duration", "12s", "--json"]);
+    assert_eq!(f.proc(data).json(10 * SEC).unwrap()["granted"], true);
+    let took = next_event(&mut f, s, "took_over");
+    assert_eq!(took["why"], "hung", "{took}");
+    next_event(&mut f, s, "serving");
+    // The standby ends the hung primary (it must never wake to act again).
+    assert!(
+        f.proc(primary).wait(5 * SEC).is_some(),
+        "the hung primary still runs"
+    );
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 0, "the new primary grants: {out}");
+    assert_unbroken(&f.proc(data).all_json(30 * SEC), 200);
 }
 
 #[test]

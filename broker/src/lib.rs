@@ -6,6 +6,7 @@ pub mod core;
 pub mod federation;
 pub mod replica;
 pub mod run;
+pub mod takeover;
 pub mod udp;
 pub mod watchdog;
 

@@ -7,6 +7,7 @@
 use crate::core::{Broker, BrokerConfig, Output};
 use crate::federation::{Delivery, FarGrant, FedConfig, FedError, Federation};
 use crate::replica::{Follower, Leader, Step};
+use crate::takeover::{self, Verdict};
 use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
 use crate::watchdog::Phase;
 use muster_shared::fence::{Fence, Holder};
@@ -282,6 +283,21 @@ pub fn run(inst: &Instance, cfg: BrokerConfig) -> Result<BrokerReport, BrokerErr
 /// The program whose `cleanup` subcommand cleans up after dead processes (see
 /// [`set_cleanup_program`]).
 static CLEANUP_PROGRAM: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+
+/// A deliberate fault, for tests and benches (`muster broker --fault`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fault {
+    /// After this many passes, the primary's loop stops for good while its process
+    /// lives on: a deadlock, as a standby sees it.
+    HangAfter(u64),
+}
+
+static FAULT: std::sync::OnceLock<Fault> = std::sync::OnceLock::new();
+
+/// Arms `fault` in this process's primary loop.
+pub fn set_fault(fault: Fault) {
+    let _ = FAULT.set(fault);
+}
 
 /// Names the program (the muster binary) whose `--instance I cleanup [--pid P] --after
 /// D` a broker runs to clean up after dead processes. Without it (a broker embedded in
@@ -637,8 +653,11 @@ fn event(v: serde_json::Value) {
 pub enum Why {
     /// The primary's process ended (its pidfd).
     Died,
-    /// No record from the primary within the deadline.
+    /// No record from the primary within the deadline, and its loop made no progress
+    /// while it could have run ([`crate::takeover::judge`]).
     Hung,
+    /// No record within the deadline, and the primary is stopped (SIGSTOP).
+    Stopped,
     /// The primary stepped down (stopped on purpose with a standby running).
     SteppedDown,
     /// There was no primary.
@@ -760,6 +779,11 @@ fn follow(
     let mut heard = Instant::now();
     let mut asked: Option<Instant> = None;
     let mut logged_sync = false;
+    // What the takeover judgment needs beside the silence (see `takeover`).
+    let mut own_lateness = Duration::ZERO;
+    let mut queued_at_heard: Option<Duration> = None;
+    let mut queued_read: Option<Instant> = None;
+    let mut starved_logged = false;
     tracing::info!(instance = %inst, deadline_ms = deadline.as_millis() as u64, "standby following");
     loop {
         // The primary of record: a new one (a cold start, or another standby's
@@ -776,6 +800,10 @@ fn follow(
                 reactor.add(p.raw(), STANDBY_PRIMARY)?;
             }
             tracing::info!(pid = holder.pid, term = holder.term, "following primary");
+            queued_at_heard = pidfd
+                .as_ref()
+                .and_then(|p| takeover::run_queue_wait(p.pid()));
+            queued_read = Some(Instant::now());
             watched = Some((holder, pidfd));
             follower = Follower::new();
             heard = Instant::now();
@@ -815,7 +843,38 @@ fn follow(
                 heard = Instant::now();
                 asked = None;
             }
-            Some(_) if heard.elapsed() >= patience => why = Some(Why::Hung),
+            Some(p) if heard.elapsed() >= patience => {
+                let beat = fence.last_beat();
+                let now_ns = muster_shared::protocol::monotonic_ns();
+                let seen = takeover::Seen {
+                    silent: heard.elapsed(),
+                    since_beat: (beat != 0)
+                        .then(|| Duration::from_nanos(now_ns.saturating_sub(beat))),
+                    state: takeover::proc_state(p.pid()),
+                    waited_for_cpu: takeover::run_queue_wait(p.pid())
+                        .zip(queued_at_heard)
+                        .map(|(now, then)| now.saturating_sub(then)),
+                    own_lateness,
+                };
+                match takeover::judge(&seen, patience) {
+                    Verdict::Follow => {}
+                    Verdict::Stopped => why = Some(Why::Stopped),
+                    Verdict::Hung => why = Some(Why::Hung),
+                    Verdict::Starved => {
+                        if !starved_logged {
+                            starved_logged = true;
+                            tracing::warn!(
+                                pid = p.pid(),
+                                silent_ms = seen.silent.as_millis() as u64,
+                                waited_for_cpu_ms =
+                                    seen.waited_for_cpu.map(|w| w.as_millis() as u64),
+                                own_lateness_ms = own_lateness.as_millis() as u64,
+                                "the primary is silent but starved, not hung: not taking over"
+                            );
+                        }
+                    }
+                }
+            }
             Some(_) => {}
         }
         if why.is_none() && !follower.synced() && asked.is_none_or(|t| t.elapsed() >= ASK_EVERY) {
@@ -837,6 +896,15 @@ fn follow(
         // Any record (a heartbeat at least) means the primary is not hung.
         if got > 0 {
             heard = Instant::now();
+            starved_logged = false;
+            // The run-queue figure at the start of a silence, read at most every
+            // quarter deadline (every record would be a /proc read per heartbeat).
+            if queued_read.is_none_or(|t| t.elapsed() >= deadline / 4) {
+                queued_at_heard = pidfd
+                    .as_ref()
+                    .and_then(|p| takeover::run_queue_wait(p.pid()));
+                queued_read = Some(Instant::now());
+            }
         }
         if follower.synced() && prepared.is_none_or(|t| t.elapsed() >= PREPARE_EVERY) {
             presence.prepare();
@@ -882,7 +950,14 @@ fn follow(
                 ASK_EVERY
             })
             .max(Duration::from_millis(1));
-        for token in reactor.wait(Some(wait))? {
+        let asked_at = Instant::now();
+        let tokens = reactor.wait(Some(wait))?;
+        // Woken by the timeout, later than asked: this standby was kept from running.
+        own_lateness = match tokens.is_empty() {
+            true => asked_at.elapsed().saturating_sub(wait),
+            false => Duration::ZERO,
+        };
+        for token in tokens {
             match token {
                 STANDBY_SIGNAL if signals.drain() => {
                     tracing::info!("signal received: standby stopping");
@@ -1040,6 +1115,7 @@ fn serve(
     // The first turn reads the inbox whatever woke it: frames written before this
     // broker's bell existed (a takeover, a restart) rang nobody.
     let mut inbox_rang = true;
+    let mut passes = 0u64;
     // Logs what the loop was doing if it makes no progress for a second outside its wait.
     let watchdog = crate::watchdog::Watchdog::start(STALL)
         .map_err(|e| tracing::warn!("no loop watchdog: {e}"))
@@ -1083,6 +1159,17 @@ fn serve(
         // broker serves the instance: act on nothing.
         if !shell.fence.holds(me) {
             return Err(fenced(&shell.fence));
+        }
+        // The loop goes on: what a standby reads before it takes silence for a hang.
+        shell.fence.beat();
+        passes += 1;
+        if let Some(Fault::HangAfter(n)) = FAULT.get() {
+            if passes >= *n {
+                tracing::warn!(passes, "fault: the loop stops here for good (as asked)");
+                loop {
+                    std::thread::sleep(Duration::from_secs(3600));
+                }
+            }
         }
         if shell.deferred_at.is_some_and(|t| Instant::now() >= t) {
             at(Phase::Flush);

@@ -5,7 +5,9 @@
 //! it saw for the next term and its own pid (compare-and-swap: of two standbys racing
 //! for a dead primary, one wins). The primary checks the word before it acts each time
 //! it wakes: once another broker holds a newer term, it has been taken over (it was
-//! stopped or hung past its deadline) and stops without writing anything.
+//! stopped or hung past its deadline) and stops without writing anything. A third word
+//! is the primary loop's heartbeat ([`Fence::beat`]): the progress a standby reads
+//! before it takes a silent primary for hung.
 
 use std::os::fd::AsRawFd;
 use std::path::PathBuf;
@@ -90,6 +92,24 @@ impl Fence {
     fn list_word(&self) -> &AtomicU64 {
         // SAFETY: the second word of the same page-sized mapping.
         unsafe { &*self.word.add(1) }
+    }
+
+    fn beat_word(&self) -> &AtomicU64 {
+        // SAFETY: the third word of the same page-sized mapping.
+        unsafe { &*self.word.add(2) }
+    }
+
+    /// The primary's loop passed now (`CLOCK_MONOTONIC` nanoseconds, the same clock in
+    /// every process): the progress a standby reads before taking a silent primary for
+    /// hung. One relaxed store per pass.
+    pub fn beat(&self) {
+        self.beat_word()
+            .store(crate::protocol::monotonic_ns(), Ordering::Release);
+    }
+
+    /// When the primary's loop last passed (`CLOCK_MONOTONIC` ns; 0: never).
+    pub fn last_beat(&self) -> u64 {
+        self.beat_word().load(Ordering::Acquire)
     }
 
     /// The epoch of the broker run whose service list readers should read (0: none).

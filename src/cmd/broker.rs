@@ -62,6 +62,9 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
     if let Ok(exe) = std::env::current_exe() {
         muster_broker::run::set_cleanup_program(exe);
     }
+    if let Some(f) = a.fault {
+        muster_broker::run::set_fault(f);
+    }
     let report = if a.standby {
         muster_broker::run::run_standby(inst, cfg, udp, fed, keep_log, a.takeover_deadline)?
     } else {

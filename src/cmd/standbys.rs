@@ -85,6 +85,7 @@ fn keep(inst: &Instance, broker_args: &[String], stop: &AtomicBool) {
                 match v["why"].as_str() {
                     Some("died") => "died",
                     Some("hung") => "stopped answering",
+                    Some("stopped") => "was stopped",
                     Some("steppeddown") => "stepped down",
                     _ => "was gone",
                 },
