@@ -162,7 +162,11 @@ impl Fence {
     }
 
     fn path(inst: &crate::Instance) -> PathBuf {
-        PathBuf::from(format!("{}{}.broker-fence", crate::ipc::iox2_root(), inst))
+        PathBuf::from(format!(
+            "{}{}.broker-fence",
+            crate::names::iox2_root(),
+            inst
+        ))
     }
 
     /// Removes the file (the last broker of the instance stopping on purpose). Those

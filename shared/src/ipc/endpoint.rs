@@ -1,0 +1,611 @@
+//! A process's inbox and bell, and its cached ports to peers' inboxes: sending,
+//! receiving, backlogs for full inboxes, lingering ports.
+
+#[allow(unused_imports)]
+use super::*;
+
+/// Empties a listener; returns the event ids rung as bits (bit i = id i).
+pub(super) fn drain_ids(listener: &Listener<Ipc>) -> u64 {
+    let mut rung = 0u64;
+    let _ = listener.try_wait(|a| {
+        let id = a.id.as_value();
+        if id < 64 {
+            rung |= 1 << id;
+        }
+    });
+    rung
+}
+
+struct Peer {
+    publisher: Publisher<Ipc, [u8], ()>,
+    notifier: Notifier<Ipc>,
+    inbox: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+}
+
+/// One process's inbox and bell, plus cached ports to its peers.
+pub struct Endpoint {
+    inst: Instance,
+    me: Address,
+    node: Node<Ipc>,
+    inbox: Subscriber<Ipc, [u8], ()>,
+    bell: Listener<Ipc>,
+    peers: HashMap<Address, Peer>,
+    lingering: HashMap<Address, Instant>,
+    dropped_sends: u64,
+    recv_errors: u64,
+    /// Control frames a full inbox could not take yet, per peer, in order: retried by
+    /// [`Endpoint::sweep`], so no control message is lost to a burst.
+    backlog: HashMap<Address, VecDeque<Vec<u8>>>,
+    /// This endpoint's own inbox service, to look up who is behind a publisher.
+    inbox_svc: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+    /// The process behind each publisher writing to this inbox (iceoryx2 records the
+    /// node, and the node id the pid of the process that created it).
+    senders: HashMap<iceoryx2::identifiers::UniquePublisherId, Option<u32>>,
+    /// Peers sent frames by [`Endpoint::send_control_quiet`] whose bells
+    /// [`Endpoint::ring_pending`] rings.
+    pending_bells: Vec<Address>,
+}
+
+/// Most control frames held back for one peer whose inbox is full; beyond it the peer
+/// is taken as hung and the oldest are dropped, loudly.
+pub const MAX_BACKLOG: usize = 4096;
+/// How soon a held-back control frame is tried again.
+const BACKLOG_RETRY: Duration = Duration::from_millis(2);
+
+impl Endpoint {
+    /// Creates (or takes over, after a crash) the inbox and bell of `me`.
+    pub fn open(inst: &Instance, me: Address, node: Node<Ipc>) -> Result<Self, TransportError> {
+        let limits = InboxLimits::for_addr(&me);
+        let inbox_name = inst.inbox(&me);
+        let svc = node
+            .service_builder(&service_name(&inbox_name)?)
+            .publish_subscribe::<[u8]>()
+            .max_publishers(limits.max_publishers)
+            .max_subscribers(limits.readers)
+            .max_nodes(limits.max_publishers + 2)
+            .subscriber_max_buffer_size(limits.buffer)
+            .subscriber_max_borrowed_samples(1)
+            .history_size(0)
+            .enable_safe_overflow(false)
+            .open_or_create()
+            .map_err(|e| svc_err(&inbox_name, e))?;
+        let inbox = match svc.subscriber_builder().buffer_size(limits.buffer).create() {
+            Ok(s) => s,
+            Err(_) => {
+                // A dead process of the same name may still hold the reader slots: clean
+                // up after those readers first (a dead broker has hundreds of ports, and
+                // the other dead nodes can wait), then after every dead node.
+                let mut dead = Vec::new();
+                svc.dynamic_config().list_subscribers(|d| {
+                    dead.extend(node_pid(&d.node_id));
+                    CallbackProgression::Continue
+                });
+                tracing::info!(inbox = %inbox_name, readers = ?dead, "the inbox's reader slots are held: cleaning up after dead readers");
+                remove_stillborn_segments();
+                let mut made = None;
+                for pid in dead
+                    .into_iter()
+                    .filter(|p| !crate::reactor::process_alive(*p))
+                {
+                    // A cleanup process may be at it already: wait for it.
+                    cleanup_dead_nodes_of_waiting(pid, Duration::from_secs(3));
+                    if let Ok(s) = svc.subscriber_builder().buffer_size(limits.buffer).create() {
+                        made = Some(s);
+                        break;
+                    }
+                }
+                if let Some(s) = made {
+                    s
+                } else {
+                    node.try_cleanup_dead_nodes();
+                    svc.subscriber_builder()
+                        .buffer_size(limits.buffer)
+                        .create()
+                        .map_err(|e| {
+                            if format!("{e:?}").contains("ExceedsMax") {
+                                TransportError::InUse(me.clone())
+                            } else {
+                                svc_err(&inbox_name, e)
+                            }
+                        })?
+                }
+            }
+        };
+        let bell_name = inst.bell(&me);
+        let bell_svc = node
+            .service_builder(&service_name(&bell_name)?)
+            .event()
+            .max_notifiers(limits.max_publishers)
+            .max_listeners(limits.readers)
+            .max_nodes(limits.max_publishers + 2)
+            .event_id_max_value(bell::MAX)
+            .open_or_create()
+            .map_err(|e| svc_err(&bell_name, e))?;
+        let bell = match bell_svc.listener_builder().create() {
+            Ok(l) => l,
+            Err(_) => {
+                node.try_cleanup_dead_nodes();
+                bell_svc
+                    .listener_builder()
+                    .create()
+                    .map_err(|e| svc_err(&bell_name, e))?
+            }
+        };
+        Ok(Endpoint {
+            inst: inst.clone(),
+            me,
+            node,
+            inbox,
+            bell,
+            peers: HashMap::new(),
+            lingering: HashMap::new(),
+            dropped_sends: 0,
+            recv_errors: 0,
+            backlog: HashMap::new(),
+            inbox_svc: svc,
+            senders: HashMap::new(),
+            pending_bells: Vec::new(),
+        })
+    }
+
+    /// This endpoint's address.
+    pub fn me(&self) -> &Address {
+        &self.me
+    }
+
+    /// The iceoryx2 node.
+    pub fn node(&self) -> &Node<Ipc> {
+        &self.node
+    }
+
+    /// The bell's file descriptor, for the reactor.
+    pub fn bell_fd(&self) -> RawFd {
+        // SAFETY: the descriptor stays owned by the listener; we only read its number.
+        unsafe { self.bell.file_descriptor().native_handle() }
+    }
+
+    /// Empties the bell; returns the set of event ids rung (bit i = id i).
+    pub fn drain_bell(&self) -> u64 {
+        drain_ids(&self.bell)
+    }
+
+    /// Takes the next frame from the inbox, copied out (it is decoded right away).
+    ///
+    /// A receive error (e.g. a peer's connection broken when it died mid-write) ends
+    /// this drain and is counted and logged (1st, 2nd, 4th, ... time); it never stops
+    /// the process: one bad peer must not take a long-running broker or system down.
+    pub fn recv(&mut self) -> Option<Vec<u8>> {
+        self.recv_from().map(|(f, _)| f)
+    }
+
+    /// [`Endpoint::recv`], with the pid of the process that wrote the frame (from the
+    /// iceoryx2 publisher and node behind it; `None` if it cannot be told), so that a
+    /// process can be held to speak only as itself.
+    pub fn recv_from(&mut self) -> Option<(Vec<u8>, Option<u32>)> {
+        match self.inbox.receive() {
+            Ok(Some(sample)) => {
+                let publisher = sample.header().publisher_id();
+                let frame = sample.payload().to_vec();
+                drop(sample);
+                Some((frame, self.sender_pid(publisher)))
+            }
+            Ok(None) => None,
+            Err(e) => {
+                self.recv_errors += 1;
+                if self.recv_errors.is_power_of_two() {
+                    let e = svc_err(&self.inst.inbox(&self.me), e);
+                    tracing::warn!(errors = self.recv_errors, "inbox receive failed: {e}");
+                }
+                None
+            }
+        }
+    }
+
+    fn sender_pid(&mut self, publisher: iceoryx2::identifiers::UniquePublisherId) -> Option<u32> {
+        if let Some(pid) = self.senders.get(&publisher) {
+            return *pid;
+        }
+        if self.senders.len() > 4096 {
+            self.senders.clear(); // publishers come and go; rebuild from the live ones
+        }
+        let senders = &mut self.senders;
+        self.inbox_svc.dynamic_config().list_publishers(|d| {
+            senders.insert(d.publisher_id, node_pid(&d.node_id));
+            iceoryx2::prelude::CallbackProgression::Continue
+        });
+        self.senders.get(&publisher).copied().flatten()
+    }
+
+    /// The pid of the process that owns `of`'s inbox (its one subscriber), or `None` if
+    /// nobody does or it cannot be told. A process that claims to be `of` (a broker
+    /// announcing itself, a system granting a session) is believed only if it is this
+    /// process: an inbox has one reader, so a running broker or system cannot be posed as.
+    /// The broker's inbox may have more readers for a while (a new broker took over
+    /// before old ones' ports were cleaned up): its owner is the one that holds the
+    /// instance's fence.
+    pub fn owner_pid(&mut self, of: &Address) -> Option<u32> {
+        let readers = self.reader_pids(of);
+        match readers.as_slice() {
+            [] => None,
+            [one] => Some(*one),
+            many => {
+                let holder = crate::fence::Fence::open_existing(&self.inst)
+                    .ok()?
+                    .holder()
+                    .pid;
+                many.contains(&holder).then_some(holder)
+            }
+        }
+    }
+
+    /// The pids of the processes reading `of`'s inbox.
+    pub fn reader_pids(&mut self, of: &Address) -> Vec<u32> {
+        fn pids(
+            svc: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+        ) -> Vec<u32> {
+            let mut out = Vec::new();
+            svc.dynamic_config().list_subscribers(|d| {
+                out.extend(node_pid(&d.node_id));
+                iceoryx2::prelude::CallbackProgression::Continue
+            });
+            out
+        }
+        if let Some(peer) = self.peers.get(of) {
+            return pids(&peer.inbox);
+        }
+        if *of == self.me {
+            return pids(&self.inbox_svc);
+        }
+        let Some(svc) = service_name(&self.inst.inbox(of)).ok().and_then(|name| {
+            self.node
+                .service_builder(&name)
+                .publish_subscribe::<[u8]>()
+                .open()
+                .ok()
+        }) else {
+            return Vec::new();
+        };
+        pids(&svc)
+    }
+
+    /// Receive errors so far (see [`Endpoint::recv`]).
+    pub fn recv_errors(&self) -> u64 {
+        self.recv_errors
+    }
+
+    fn peer(&mut self, to: &Address) -> Result<&mut Peer, TransportError> {
+        if !self.peers.contains_key(to) {
+            let started = Instant::now();
+            let opened = self.open_peer(to);
+            let took = started.elapsed();
+            if took > Duration::from_millis(50) {
+                tracing::debug!(peer = %to, ?took, ok = opened.is_ok(), "opening a peer's ports was slow");
+            }
+            opened?;
+        }
+        Ok(self.peers.get_mut(to).expect("inserted above"))
+    }
+
+    fn open_peer(&mut self, to: &Address) -> Result<(), TransportError> {
+        {
+            let inbox_name = self.inst.inbox(to);
+            let svc = self
+                .node
+                .service_builder(&service_name(&inbox_name)?)
+                .publish_subscribe::<[u8]>()
+                .open()
+                .map_err(|_| TransportError::Unreachable(to.clone()))?;
+            let (len, strategy) = match (&self.me, to) {
+                (Address::System(_), Address::Broker) => {
+                    (INITIAL_LARGE_FRAME, AllocationStrategy::PowerOfTwo)
+                }
+                _ => (SMALL_FRAME, AllocationStrategy::Static),
+            };
+            let publisher = svc
+                .publisher_builder()
+                .initial_max_slice_len(len)
+                .allocation_strategy(strategy)
+                .max_loaned_samples(1)
+                .backpressure_strategy(BackpressureStrategy::DiscardData)
+                .create()
+                .map_err(|e| svc_err(&inbox_name, e))?;
+            let bell_name = self.inst.bell(to);
+            let notifier = self
+                .node
+                .service_builder(&service_name(&bell_name)?)
+                .event()
+                .open()
+                .map_err(|_| TransportError::Unreachable(to.clone()))?
+                .notifier_builder()
+                .create()
+                .map_err(|e| svc_err(&bell_name, e))?;
+            self.peers.insert(
+                to.clone(),
+                Peer {
+                    publisher,
+                    notifier,
+                    inbox: svc,
+                },
+            );
+        }
+        Ok(())
+    }
+
+    /// Encodes `msg` and sends it to `to` (see [`Endpoint::send`]).
+    pub fn send_msg<T: serde::Serialize>(
+        &mut self,
+        to: &Address,
+        msg: &T,
+    ) -> Result<(), TransportError> {
+        let frame = crate::protocol::encode(msg).map_err(|source| TransportError::Encode {
+            peer: to.clone(),
+            source,
+        })?;
+        self.send(to, &frame)
+    }
+
+    /// Encodes and sends `msg`; a failure is logged (an encoding error loudly, a gone or
+    /// busy peer quietly: process death and gaps are handled elsewhere).
+    pub fn send_or_log<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        match self.send_msg(to, msg) {
+            Ok(()) => {}
+            Err(e @ TransportError::Encode { .. }) => tracing::error!("{e}"),
+            Err(e) => tracing::debug!("{e}"),
+        }
+    }
+
+    /// Encodes and sends a control message (anything but a data update): if `to`'s
+    /// inbox is full it is held back and retried in order by [`Endpoint::sweep`], never
+    /// dropped (up to [`MAX_BACKLOG`] frames per peer). Errors other than a full inbox
+    /// are logged as in [`Endpoint::send_or_log`].
+    pub fn send_control<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        self.control(to, msg, true)
+    }
+
+    /// [`Endpoint::send_control`], ringing `to`'s bell now if `ring`, else leaving it
+    /// for [`Endpoint::ring_pending`].
+    fn control<T: serde::Serialize>(&mut self, to: &Address, msg: &T, ring: bool) {
+        let frame = match crate::protocol::encode(msg) {
+            Ok(f) => f,
+            Err(source) => {
+                let e = TransportError::Encode {
+                    peer: to.clone(),
+                    source,
+                };
+                return tracing::error!("{e}");
+            }
+        };
+        if let Some(q) = self.backlog.get_mut(to) {
+            // Behind earlier frames: keep the order.
+            return Self::hold(q, to, frame, &mut self.dropped_sends);
+        }
+        match self.send_ringing(to, &frame, ring) {
+            Ok(()) => {}
+            Err(TransportError::Full(_)) => {
+                self.dropped_sends -= 1; // not dropped: held back
+                let q = self.backlog.entry(to.clone()).or_default();
+                Self::hold(q, to, frame, &mut self.dropped_sends);
+            }
+            Err(e) => tracing::debug!("{e}"),
+        }
+    }
+
+    /// [`Endpoint::send_control`], but the frame is only written: `to`'s bell rings at
+    /// the next [`Endpoint::ring_pending`]. A frame written before another peer's frame
+    /// is visible before it, so a process that reads `to`'s inbox after hearing from
+    /// that peer finds it, bell or not; and the other peer's bell rings first, so its
+    /// wake-up does not wait behind `to`'s.
+    pub fn send_control_quiet<T: serde::Serialize>(&mut self, to: &Address, msg: &T) {
+        self.control(to, msg, false)
+    }
+
+    /// Whether [`Endpoint::send_control_quiet`] left bells to ring.
+    pub fn bells_pending(&self) -> bool {
+        !self.pending_bells.is_empty()
+    }
+
+    /// Rings the bells [`Endpoint::send_control_quiet`] left, once per peer.
+    pub fn ring_pending(&mut self) {
+        for to in std::mem::take(&mut self.pending_bells) {
+            if let Err(e) = self.ring(&to, bell::MESSAGE) {
+                tracing::debug!("{e}");
+            }
+        }
+    }
+
+    fn hold(q: &mut VecDeque<Vec<u8>>, to: &Address, frame: Vec<u8>, dropped: &mut u64) {
+        if q.len() >= MAX_BACKLOG {
+            q.pop_front();
+            *dropped += 1;
+            if dropped.is_power_of_two() {
+                tracing::warn!(peer = %to, "{to}'s inbox stays full: dropped a held-back control frame");
+            }
+        }
+        q.push_back(frame);
+    }
+
+    /// Tries the held-back control frames again, in order.
+    fn flush_backlog(&mut self) {
+        let peers: Vec<Address> = self.backlog.keys().cloned().collect();
+        for to in peers {
+            let Some(mut q) = self.backlog.remove(&to) else {
+                continue;
+            };
+            while let Some(frame) = q.front() {
+                match self.try_send(&to, frame, true) {
+                    Ok(()) => {
+                        q.pop_front();
+                    }
+                    Err(TransportError::Full(_)) => break,
+                    Err(e) => {
+                        // Gone: whatever it restarts as re-registers or says hello.
+                        tracing::debug!("{e}; dropping {} held-back frames", q.len());
+                        self.dropped_sends += q.len() as u64;
+                        self.peers.remove(&to);
+                        q.clear();
+                    }
+                }
+            }
+            if !q.is_empty() {
+                self.backlog.insert(to, q);
+            }
+        }
+    }
+
+    /// Control frames held back for full inboxes.
+    pub fn backlog(&self) -> usize {
+        self.backlog.values().map(VecDeque::len).sum()
+    }
+
+    /// Writes a frame into `to`'s inbox and rings its bell.
+    /// Behind held-back control frames, it is not sent (a data update overtaking them
+    /// would break their order) and counts as full.
+    pub fn send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
+        self.send_ringing(to, frame, true)
+    }
+
+    /// [`Endpoint::send`]; the bell is left for [`Endpoint::ring_pending`] unless `ring`.
+    fn send_ringing(
+        &mut self,
+        to: &Address,
+        frame: &[u8],
+        ring: bool,
+    ) -> Result<(), TransportError> {
+        self.lingering.remove(to);
+        if self.backlog.contains_key(to) {
+            self.dropped_sends += 1;
+            return Err(TransportError::Full(to.clone()));
+        }
+        let result = self.try_send(to, frame, ring);
+        match &result {
+            Ok(()) => {}
+            Err(TransportError::Full(_)) => self.dropped_sends += 1,
+            Err(_) => {
+                // Forget the ports: the peer may come back as a new process.
+                self.peers.remove(to);
+                self.dropped_sends += 1;
+            }
+        }
+        result
+    }
+
+    fn try_send(&mut self, to: &Address, frame: &[u8], ring: bool) -> Result<(), TransportError> {
+        let large = matches!((&self.me, to), (Address::System(_), Address::Broker));
+        if !large && frame.len() > SMALL_FRAME {
+            return Err(TransportError::Send {
+                peer: to.clone(),
+                detail: format!(
+                    "frame of {} bytes exceeds the {SMALL_FRAME}-byte limit of this path",
+                    frame.len()
+                ),
+            });
+        }
+        let peer = self.peer(to)?;
+        let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
+            peer: to.clone(),
+            detail: format!("{e:?}"),
+        };
+        let sample = peer
+            .publisher
+            .loan_slice_uninit(frame.len())
+            .map_err(|e| send_err(&e))?;
+        let delivered = sample
+            .write_from_slice(frame)
+            .send()
+            .map_err(|e| send_err(&e))?;
+        if delivered == 0 {
+            // Nobody read it: either nobody is there, or the reader's queue is full.
+            return Err(
+                if peer.inbox.dynamic_config().number_of_subscribers() == 0 {
+                    TransportError::Unreachable(to.clone())
+                } else {
+                    TransportError::Full(to.clone())
+                },
+            );
+        }
+        if ring {
+            peer.notifier
+                .notify_with_custom_event_id(EventId::new(bell::MESSAGE))
+                .map_err(|e| send_err(&e))?;
+        } else if !self.pending_bells.contains(to) {
+            self.pending_bells.push(to.clone());
+        }
+        Ok(())
+    }
+
+    /// Rings `to`'s bell with `id` without sending a frame.
+    pub fn ring(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
+        let result = self.peer(to).and_then(|p| {
+            p.notifier
+                .notify_with_custom_event_id(EventId::new(id))
+                .map(|_| ())
+                .map_err(|e| TransportError::Send {
+                    peer: to.clone(),
+                    detail: format!("{e:?}"),
+                })
+        });
+        if result.is_err() {
+            self.peers.remove(to);
+        }
+        result
+    }
+
+    /// Forgets the cached ports to `to` at once (it died), releasing their shared memory.
+    pub fn forget(&mut self, to: &Address) {
+        self.peers.remove(to);
+        self.lingering.remove(to);
+    }
+
+    /// Forgets the ports to `to` after [`LINGER`], so frames just sent still arrive.
+    /// Sending to `to` again in the meantime keeps them.
+    pub fn release(&mut self, to: &Address) {
+        if self.peers.contains_key(to) {
+            self.lingering.insert(to.clone(), Instant::now() + LINGER);
+        }
+    }
+
+    /// Retries held-back control frames and drops lingering ports whose time is up;
+    /// returns how long until either is due again.
+    pub fn sweep(&mut self) -> Option<Duration> {
+        self.flush_backlog();
+        let now = Instant::now();
+        let due: Vec<Address> = self
+            .lingering
+            .iter()
+            .filter(|(_, t)| **t <= now)
+            .map(|(a, _)| a.clone())
+            .collect();
+        for a in due {
+            self.lingering.remove(&a);
+            self.peers.remove(&a);
+        }
+        let linger = self
+            .lingering
+            .values()
+            .min()
+            .map(|t| t.saturating_duration_since(now));
+        let retry = (!self.backlog.is_empty()).then_some(BACKLOG_RETRY);
+        [linger, retry].into_iter().flatten().min()
+    }
+
+    /// Opens the ports to `to` now, if they are not open, so a later send to it costs no
+    /// first contact.
+    pub fn open_ports(&mut self, to: &Address) -> Result<(), TransportError> {
+        self.peer(to).map(|_| ())
+    }
+
+    /// Whether the ports to `to` are open (a send to it costs no first contact).
+    pub fn has_ports(&self, to: &Address) -> bool {
+        self.peers.contains_key(to)
+    }
+
+    /// Peers with open ports (including lingering ones).
+    pub fn open_peers(&self) -> usize {
+        self.peers.len()
+    }
+
+    /// Frames that could not be delivered so far.
+    pub fn dropped_sends(&self) -> u64 {
+        self.dropped_sends
+    }
+}

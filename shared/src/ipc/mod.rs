@@ -1,0 +1,449 @@
+//! The iceoryx2 transport every process shares.
+//!
+//! Each process (broker, system, user) owns one **inbox** — a publish-subscribe service
+//! of byte frames with many publishers and one subscriber — and one **bell** — an event
+//! service it waits on. Sending to a peer means writing a frame into the peer's inbox
+//! (zero-copy: the peer reads it from shared memory) and ringing its bell. Peers' ports
+//! are opened lazily and cached. Nothing here polls: the bell's file descriptor goes
+//! into the process's [`crate::reactor::Reactor`].
+
+use crate::names::{Address, Instance};
+use crate::snapshot::{
+    ListChunk, ListHeader, ServiceListSnapshot, CHUNK_ENTRIES, LIST_CHUNKS, MAX_LISTED_SERVICES,
+};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::reader::{EntryHandle, Reader};
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::writer::{EntryHandleMut, Writer};
+use iceoryx2::prelude::*;
+use std::collections::{HashMap, VecDeque};
+use std::os::fd::RawFd;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// How long a released peer's ports stay open. iceoryx2 loses a frame whose publisher
+/// is dropped before the reader has connected to it, so ports to a peer we are done
+/// with (e.g. after sending the `End` of our last session with it) linger, like TCP's.
+pub const LINGER: Duration = Duration::from_secs(2);
+
+/// The iceoryx2 service type muster uses between processes.
+pub type Ipc = ipc::Service;
+
+/// Most processes (users + systems + broker) one instance supports at once.
+pub const MAX_PARTICIPANTS: usize = 2048;
+/// Most peers that may write to one user's inbox (the broker and the systems it has
+/// sessions with). iceoryx2 preallocates ~11 KiB per possible writer in each reader,
+/// so these limits are what a process's memory is made of.
+pub const MAX_USER_PEERS: usize = 16;
+/// Most peers that may write to one system's inbox (the broker and its users at once).
+pub const MAX_SYSTEM_PEERS: usize = 256;
+/// Largest frame on every path but system → broker. These publishers use static
+/// segments: a growable (dynamic) segment makes every reader preallocate ~290 KiB of
+/// bookkeeping per writer, which at 900 users is most of the broker's memory.
+pub const SMALL_FRAME: usize = 4096;
+/// Initial frame size of the system → broker path, which grows (power of two) up to
+/// [`crate::protocol::MAX_FRAME`] for large registrations.
+const INITIAL_LARGE_FRAME: usize = 4096;
+
+/// Event ids rung on a bell.
+pub mod bell {
+    /// Frames wait in the inbox.
+    pub const MESSAGE: usize = 0;
+    /// The service list changed (users only).
+    pub const LIST_CHANGED: usize = 1;
+    /// A broker started (presence event only).
+    pub const BROKER_UP: usize = 2;
+    /// The broker stopped on purpose (presence event only).
+    pub const BROKER_DOWN: usize = 3;
+    /// A standby asks the primary for its whole state (the broker's bell only).
+    pub const STANDBY: usize = 4;
+    /// A standby took over the running broker's state (presence event only): systems
+    /// register again, users adopt it and repeat their pending requests.
+    pub const TAKEOVER: usize = 5;
+    /// Highest id in use.
+    pub const MAX: usize = 7;
+}
+
+/// Why the transport failed. Setup errors name the service; send errors the peer.
+#[derive(Debug, thiserror::Error)]
+pub enum TransportError {
+    /// iceoryx2 could not create the node; check /dev/shm space and permissions.
+    #[error("cannot create iceoryx2 node: {0}")]
+    Node(String),
+    /// A service could not be created or opened (limits exceeded, incompatible settings).
+    #[error("iceoryx2 service {name}: {detail}")]
+    Service {
+        /// The service name.
+        name: String,
+        /// What iceoryx2 said.
+        detail: String,
+    },
+    /// Another live process already owns this address (e.g. a system of the same name).
+    #[error("{0} is already running on this instance")]
+    InUse(Address),
+    /// The message could not be encoded (too large for a frame); nothing was sent.
+    #[error("cannot encode a message for {peer}: {source}")]
+    Encode {
+        /// The peer.
+        peer: Address,
+        /// Why.
+        source: crate::protocol::EncodeError,
+    },
+    /// The peer's inbox is full (it reads slower than we write): this frame was dropped.
+    /// The peer is still there; session updates show the loss as a sequence gap.
+    #[error("{0}'s inbox is full: frame dropped")]
+    Full(Address),
+    /// The peer's inbox does not exist or nobody reads it: the peer is gone.
+    #[error("{0} is unreachable (not running?)")]
+    Unreachable(Address),
+    /// A frame could not be written to the peer's inbox.
+    #[error("sending to {peer}: {detail}")]
+    Send {
+        /// The peer.
+        peer: Address,
+        /// What iceoryx2 said.
+        detail: String,
+    },
+}
+
+fn svc_err(name: &str, e: impl std::fmt::Debug) -> TransportError {
+    TransportError::Service {
+        name: name.to_string(),
+        detail: format!("{e:?}"),
+    }
+}
+
+fn service_name(name: &str) -> Result<ServiceName, TransportError> {
+    ServiceName::new(name).map_err(|e| svc_err(name, e))
+}
+
+/// Limits of one process's inbox.
+#[derive(Clone, Copy, Debug)]
+pub struct InboxLimits {
+    /// How many peers may write to it.
+    pub max_publishers: usize,
+    /// How many processes may read it at once: one, but four for the broker's, so that a
+    /// new broker can take over before old ones' ports are cleaned up (a cleanup under
+    /// load takes hundreds of ms, and a broker killed in the middle of one can leave a
+    /// dead reader behind for good); the fence says which reader is the broker.
+    pub readers: usize,
+    /// Frames queued per writing peer before further frames are dropped.
+    pub buffer: usize,
+}
+
+impl InboxLimits {
+    /// The limits for an address's role.
+    pub fn for_addr(addr: &Address) -> Self {
+        match addr {
+            Address::Broker => InboxLimits {
+                max_publishers: MAX_PARTICIPANTS,
+                readers: 4,
+                buffer: 32,
+            },
+            Address::System(_) => InboxLimits {
+                max_publishers: MAX_PARTICIPANTS,
+                readers: 1,
+                buffer: 32,
+            },
+            Address::User(_) => InboxLimits {
+                max_publishers: MAX_USER_PEERS,
+                readers: 1,
+                buffer: 128,
+            },
+        }
+    }
+}
+
+pub use crate::names::{iox2_root, DEFAULT_IOX2_ROOT};
+
+/// The iceoryx2 config for a process. Users skip dead-node cleanup on node creation, which
+/// costs O(nodes) each time; the broker cleans instead (measured: 83 ms per client at 900).
+pub fn config(cleanup_dead_nodes: bool) -> Config {
+    let mut c = Config::global_config().clone();
+    let root = iox2_root();
+    match iceoryx2::prelude::Path::new(root.as_bytes()) {
+        Ok(p) => c.global.set_root_path(&p),
+        Err(e) => tracing::warn!(
+            "MUSTER_IOX2_ROOT {root:?} is not a valid path ({e:?}); using iceoryx2's default"
+        ),
+    }
+    c.global.node.cleanup_dead_nodes_on_creation = cleanup_dead_nodes;
+    c.global.node.cleanup_dead_nodes_on_destruction = cleanup_dead_nodes;
+    c.global.service.cleanup_dead_nodes_on_open = cleanup_dead_nodes;
+    c
+}
+
+/// Creates this process's iceoryx2 node, with signal handling left to muster.
+pub fn create_node(name: &str, cleanup_dead_nodes: bool) -> Result<Node<Ipc>, TransportError> {
+    let node_name = NodeName::new(name).map_err(|e| TransportError::Node(format!("{e:?}")))?;
+    NodeBuilder::new()
+        .name(&node_name)
+        .config(&config(cleanup_dead_nodes))
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<Ipc>()
+        .map_err(|e| TransportError::Node(format!("{e:?}")))
+}
+
+mod cleanup;
+mod endpoint;
+mod events;
+mod list;
+mod presence;
+mod replica;
+mod viz;
+
+pub use self::cleanup::*;
+pub use self::endpoint::*;
+pub use self::events::*;
+pub use self::list::*;
+pub use self::presence::*;
+pub use self::replica::*;
+pub use self::viz::*;
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_systems_view_reaches_readers_old_and_new_and_a_huge_one_is_cut() {
+        use crate::viz::{PlanView, SystemView, TrackView};
+        let inst = Instance::new(&format!("viz-test-{}", std::process::id())).unwrap();
+        let node = create_node("viz-test", false).unwrap();
+        let mut early = VizReader::open(&node, &inst, "d1").unwrap();
+        let mut w = VizWriter::open(&node, &inst, "d1").unwrap();
+        let view = SystemView {
+            system: "d1".into(),
+            t: 1.5,
+            tracks: vec![TrackView {
+                colour: "red".into(),
+                x: 1.0,
+                ..TrackView::default()
+            }],
+            plans: vec![PlanView {
+                robot: "D1".into(),
+                goal: (3.0, 4.0),
+                path: vec![(1.0, 1.0), (3.0, 4.0)],
+            }],
+            ..SystemView::default()
+        };
+        w.publish(&view).unwrap();
+        assert_eq!(early.latest(), Some(view.clone()));
+        assert_eq!(early.latest(), None, "each view once");
+        let mut late = VizReader::open(&node, &inst, "d1").unwrap();
+        let mut next = view.clone();
+        next.t = 2.0;
+        w.publish(&next).unwrap();
+        w.publish(&view).unwrap();
+        assert_eq!(late.latest(), Some(view.clone()), "the newest of two");
+        assert_eq!(early.latest(), Some(view.clone()));
+        let mut huge = view.clone();
+        huge.plans[0].path = vec![(1.25, 2.5); 5000];
+        w.publish(&huge).unwrap();
+        let got = late.latest().unwrap();
+        assert_eq!(got.plans[0].path.len(), 64);
+        assert_eq!(got.tracks, view.tracks);
+    }
+
+    /// Whether `fd` is readable now.
+    fn readable(fd: RawFd) -> bool {
+        let mut p = libc::pollfd {
+            fd,
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        // SAFETY: one valid pollfd, no wait.
+        unsafe { libc::poll(&mut p, 1, 0) == 1 }
+    }
+
+    #[test]
+    fn the_feed_rings_its_readers_not_the_broker_and_a_reader_rings_the_broker() {
+        use crate::protocol::BrokerEvent;
+        use crate::types::UserId;
+        let inst = Instance::new(&format!("feed-test-{}", std::process::id())).unwrap();
+        let node = create_node("feed-test", false).unwrap();
+        let mut w = EventWriter::open(&node, &inst, 0xab).unwrap();
+        assert!(!readable(w.fd()));
+        // A reader that opens says so: the broker's bell rings, and the history is
+        // handed over.
+        let mut r = EventReader::open(&node, &inst).unwrap();
+        assert!(readable(w.fd()), "a reader's hello rings the broker");
+        w.on_bell();
+        assert!(!readable(w.fd()), "drained");
+        for n in 1..=3 {
+            let json = w
+                .publish(BrokerEvent::UserJoined {
+                    user: UserId(format!("u{n}")),
+                })
+                .unwrap()
+                .unwrap();
+            assert!(json.contains(&format!("\"seq\":{n}")), "{json}");
+        }
+        w.ring();
+        // The news wakes the reader; the broker's own bell stays quiet (it used to
+        // share the bell, and each publish woke the broker itself for nothing).
+        assert!(readable(r.fd()), "the reader is rung");
+        assert!(!readable(w.fd()), "the broker is not rung by its own news");
+        let seqs: Vec<u64> = std::iter::from_fn(|| r.next_event())
+            .map(|e| e.seq)
+            .collect();
+        assert_eq!(seqs, [1, 2, 3]);
+        assert_eq!(r.next_event(), None);
+    }
+
+    #[test]
+    fn only_old_empty_segments_are_taken_for_stillborn() {
+        let name = |what: &str| format!("/dev/shm/iox2_muster_test_{}_{what}", std::process::id());
+        let long_ago = std::time::SystemTime::now() - Duration::from_secs(5);
+        let make = |path: &str, bytes: &[u8], modified: Option<std::time::SystemTime>| {
+            let f = std::fs::File::create(path).unwrap();
+            std::io::Write::write_all(&mut &f, bytes).unwrap();
+            if let Some(t) = modified {
+                f.set_modified(t).unwrap();
+            }
+        };
+        let (stillborn, fresh, sized) = (name("stillborn"), name("fresh"), name("sized"));
+        make(&stillborn, b"", Some(long_ago));
+        make(&fresh, b"", None);
+        make(&sized, b"data", Some(long_ago));
+        assert!(remove_stillborn_segments() >= 1);
+        let exists = |p: &str| std::path::Path::new(p).exists();
+        assert!(!exists(&stillborn), "an empty segment left for 5 s goes");
+        assert!(exists(&fresh), "one being made now stays");
+        assert!(exists(&sized), "a sized one stays");
+        std::fs::remove_file(&fresh).unwrap();
+        std::fs::remove_file(&sized).unwrap();
+    }
+
+    #[test]
+    fn monitor_files_left_without_their_state_file_are_removed_once_old() {
+        let dir = std::env::temp_dir().join(format!("muster-monitors-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let long_ago = std::time::SystemTime::now() - Duration::from_secs(5);
+        let make = |name: &str, old: bool| {
+            let f = std::fs::File::create(dir.join(name)).unwrap();
+            if old {
+                f.set_modified(long_ago).unwrap();
+            }
+        };
+        // Killed while dropped: state file gone, owner lock and context left, long ago.
+        make("iox2_11.node_monitor_owner_lock", true);
+        make("iox2_11.node_monitor_context", true);
+        // Killed with only the context left.
+        make("iox2_12.node_monitor_context", true);
+        // Alive: all three files.
+        for tail in ["", "_owner_lock", "_context"] {
+            make(&format!("iox2_13.node_monitor{tail}"), true);
+        }
+        // Being made right now: no state file yet, but young.
+        make("iox2_14.node_monitor_context", false);
+        // Something else entirely.
+        make("iox2_15.details", true);
+        assert_eq!(remove_half_removed_monitors(&dir), 2);
+        let mut left: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        assert_eq!(
+            left,
+            [
+                "iox2_13.node_monitor",
+                "iox2_13.node_monitor_context",
+                "iox2_13.node_monitor_owner_lock",
+                "iox2_14.node_monitor_context",
+                "iox2_15.details",
+            ]
+        );
+        assert_eq!(
+            remove_half_removed_monitors(&dir),
+            0,
+            "nothing more to take"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A snapshot of `count` entries that all say which write they are (`quota`).
+    fn stamped_list(generation: u64, count: usize) -> Box<ServiceListSnapshot> {
+        let mut s = Box::new(ServiceListSnapshot::empty());
+        s.generation = generation;
+        s.epoch = 1;
+        s.count = count as u32;
+        for (i, e) in s.entries.iter_mut().take(count).enumerate() {
+            e.name = crate::snapshot::FixedStr::new(&format!("s{i}"));
+            e.quota = (generation % 60_000) as u16;
+        }
+        s
+    }
+
+    #[test]
+    fn a_list_read_is_one_whole_write_and_copied_only_when_it_changed() {
+        let inst = Instance::new(&format!("list-test-{}", std::process::id())).unwrap();
+        let node = create_node("list-test", false).unwrap();
+        let fence = crate::fence::Fence::open(&inst).unwrap();
+        let mut w = ListWriter::open(&node, &inst, 1).unwrap();
+        w.publish(&stamped_list(1, 40), &fence).unwrap();
+        let mut r = ListReader::open(&node, &inst).unwrap();
+        let a = r.read().unwrap();
+        assert_eq!((a.generation, a.count, a.entries[39].quota), (1, 40, 1));
+        assert_eq!(a.entries[39].name.as_str(), "s39");
+        let b = r.read().unwrap();
+        assert!(Arc::ptr_eq(&a, &b), "unchanged: the same copy");
+        // Fewer entries, then more: the chunks left over from before are not read.
+        w.publish(&stamped_list(2, 3), &fence).unwrap();
+        let c = r.read().unwrap();
+        assert_eq!((c.generation, c.count, c.entries().len()), (2, 3, 3));
+        assert!(c.entries().iter().all(|e| e.quota == 2));
+        w.publish(&stamped_list(3, 250), &fence).unwrap();
+        let d = r.read().unwrap();
+        assert_eq!(d.count, 250);
+        assert!(d.entries().iter().all(|e| e.quota == 3));
+        assert_eq!(d.entries[249].name.as_str(), "s249");
+        drop((a, b, c, d));
+
+        // A writer changing the list every 200 µs, and a reader in another thread:
+        // every read is one write whole (every entry stamped alike, the count the one
+        // that write had), and the reads never go back.
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let reader = {
+            let (inst, stop) = (inst.clone(), Arc::clone(&stop));
+            std::thread::spawn(move || {
+                let node = create_node("list-test-reader", false).unwrap();
+                let mut r = ListReader::open(&node, &inst).unwrap();
+                let (mut reads, mut last) = (0u64, 0u64);
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) && reads < 2_000_000 {
+                    let s = r.read().unwrap();
+                    let g = s.generation;
+                    assert!(g >= last, "went back from {last} to {g}");
+                    // (Write 3, of 250 entries, above, if this thread read before the
+                    // first write below.)
+                    let count = if g == 3 { 250 } else { 1 + g % 200 };
+                    assert_eq!(s.count as u64, count, "count of write {g}");
+                    let stamp = (g % 60_000) as u16;
+                    assert!(
+                        s.entries().iter().all(|e| e.quota == stamp),
+                        "write {g} torn: {:?}",
+                        s.entries().iter().map(|e| e.quota).collect::<Vec<_>>()
+                    );
+                    last = g;
+                    reads += 1;
+                }
+                reads
+            })
+        };
+        // (Paced: the broker writes on a change, a few hundred times a second at most;
+        // a writer that never pauses would starve a reader of whole reads.)
+        for g in 4..4_000u64 {
+            w.publish(&stamped_list(g, 1 + (g % 200) as usize), &fence)
+                .unwrap();
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        assert!(reader.join().unwrap() > 0);
+        drop(r);
+        drop(w);
+        fence.remove();
+    }
+}
