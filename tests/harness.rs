@@ -472,7 +472,7 @@ impl Net {
     }
 }
 
-/// Hands the front's messages to the broker core, as `run.rs` does.
+/// Hands the front's messages to the broker core, as the broker shell (`run/`) does.
 fn front_events(f: &mut UdpFront, b: &mut Broker, now: Duration) {
     while let Some(ev) = f.poll_event() {
         match ev {

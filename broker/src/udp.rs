@@ -17,7 +17,7 @@
 //! datagrams ([`UdpFront::handle`]) and the time ([`UdpFront::handle_timeout`]) and
 //! gives back datagrams to send ([`UdpFront::poll_transmit`]) and messages for the core
 //! ([`UdpFront::poll_event`]); randomness comes from a seed. It never calls the core:
-//! `run.rs` owns the socket and is the only caller of the core, and the in-memory
+//! `run/udp_driver.rs` owns the socket and is the only caller of the core, and the in-memory
 //! harness drives the same front over a simulated network on a virtual clock.
 
 use crate::core::{Broker, Output};
@@ -197,7 +197,7 @@ struct Conn {
     follows: bool,
 }
 
-/// What the front hands the core (through `run.rs`).
+/// What the front hands the core (through the broker shell, `run/`).
 #[derive(Clone, Debug, PartialEq)]
 pub enum FrontEvent {
     /// A message from an authenticated remote user, with the id the front gave it.
