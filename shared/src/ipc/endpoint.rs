@@ -61,7 +61,7 @@ impl Endpoint {
             .service_builder(&service_name(&inbox_name)?)
             .publish_subscribe::<[u8]>()
             .max_publishers(limits.max_publishers)
-            .max_subscribers(limits.readers)
+            .max_subscribers(limits.inbox_readers)
             .max_nodes(limits.max_publishers + 2)
             .subscriber_max_buffer_size(limits.buffer)
             .subscriber_max_borrowed_samples(1)

@@ -129,6 +129,13 @@ pub struct InboxLimits {
     /// load takes hundreds of ms, and a broker killed in the middle of one can leave a
     /// dead reader behind for good); the fence says which reader is the broker.
     pub readers: usize,
+    /// Reader slots of the inbox itself (the bell keeps `readers` listeners). The
+    /// broker's has room for dead primaries' readers until their cleanup (a `muster
+    /// cleanup` process, one at a time, slow for a broker's hundreds of ports) frees
+    /// them: with 4, a takeover that came while 3 dead brokers waited for cleanup
+    /// waited for one (2.2 s, one SIGKILL takeover in 100). An unused slot costs a
+    /// little dynamic config.
+    pub inbox_readers: usize,
     /// Frames queued per writing peer before further frames are dropped.
     pub buffer: usize,
 }
@@ -140,16 +147,19 @@ impl InboxLimits {
             Address::Broker => InboxLimits {
                 max_publishers: MAX_PARTICIPANTS,
                 readers: 4,
+                inbox_readers: 8,
                 buffer: 32,
             },
             Address::System(_) => InboxLimits {
                 max_publishers: MAX_PARTICIPANTS,
                 readers: 1,
+                inbox_readers: 1,
                 buffer: 32,
             },
             Address::User(_) => InboxLimits {
                 max_publishers: MAX_USER_PEERS,
                 readers: 1,
+                inbox_readers: 1,
                 buffer: 128,
             },
         }
