@@ -7,6 +7,7 @@ mod common;
 use common::{find, Fed, RemoteSetup, SEC};
 use muster_shared::udp::wire::{Datagram, MIN_INITIAL};
 use serde_json::Value;
+use std::io::Read;
 use std::net::UdpSocket;
 use std::time::Duration;
 
@@ -413,4 +414,56 @@ fn slow_links_connect_list_and_request_at_300ms_and_1s_round_trips_with_loss() {
         );
     }
     assert_eq!(r["duplicate_grants"], 0);
+}
+
+#[test]
+fn the_extra_descriptor_seen_during_a_remote_list_is_still_reported_by_wait() {
+    // A view watches its keys' descriptor through `watch_extra`. Readiness is
+    // edge-triggered: a key that came while a remote `list()` was turning the reactor
+    // must still wake the view's next `wait` (it once waited for the next key: `q` did
+    // not quit the remote user view).
+    use muster_users::{ConnectOptions, RemoteOptions, UserClient, Wake};
+    use std::io::Write;
+    use std::os::fd::AsRawFd;
+    let mut f = Fed::new("rextra");
+    let r = f.remote_setup(&[("alice", &["*"])]);
+    f.remote_broker(&r);
+    f.system("t1", &["--udp", "127.0.0.1:0"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    let (name, key) =
+        muster_shared::udp::crypto::KeyPair::read(std::path::Path::new(&r.key("alice"))).unwrap();
+    let opts = ConnectOptions {
+        handle_signals: false,
+        ..ConnectOptions::default()
+    };
+    let remote = RemoteOptions {
+        broker: r.addr.parse().unwrap(),
+        name,
+        key,
+        broker_key: None,
+        faults: None,
+    };
+    let mut c = UserClient::connect_remote(remote, &opts).unwrap();
+    let (rx, mut tx) = std::os::unix::net::UnixStream::pair().unwrap();
+    rx.set_nonblocking(true).unwrap();
+    c.watch_extra(rx.as_raw_fd()).unwrap();
+    for _ in 0..3 {
+        tx.write_all(&[1]).unwrap();
+        // A list over UDP turns the reactor until the chunks came: it sees the byte.
+        assert_eq!(c.list().unwrap().views().len(), 1);
+        let deadline = std::time::Instant::now() + Duration::from_millis(500);
+        let woke = loop {
+            match c.wait(deadline).unwrap() {
+                Wake::Event(_) => continue,
+                w => break w,
+            }
+        };
+        assert!(
+            matches!(woke, Wake::Extra),
+            "the key's wake-up was lost: {woke:?}"
+        );
+        let mut buf = [0u8; 8];
+        while (&rx).read(&mut buf).is_ok_and(|n| n > 0) {}
+    }
+    c.close();
 }

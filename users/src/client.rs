@@ -107,6 +107,8 @@ pub struct UserClient {
     signals: Option<SignalPipe>,
     events: VecDeque<UserEvent>,
     extra: Option<RawFd>,
+    /// The extra fd was seen readable by a turn and not yet reported by `wait`.
+    extra_seen: bool,
     closed: bool,
 }
 
@@ -169,6 +171,7 @@ impl UserClient {
             signals,
             events: VecDeque::new(),
             extra: None,
+            extra_seen: false,
             closed: false,
         };
         client.greet(opts, || UserError::NoBroker(inst.to_string()))
@@ -190,6 +193,7 @@ impl UserClient {
             signals,
             events: VecDeque::new(),
             extra: None,
+            extra_seen: false,
             closed: false,
         };
         client.greet(opts, || UserError::NoRemoteBroker {
@@ -406,6 +410,12 @@ impl UserClient {
             if let Some(e) = self.events.pop_front() {
                 return Ok(Wake::Event(e));
             }
+            // The extra fd's readiness, seen by a turn made for something else (a
+            // remote list, a request): readiness is edge-triggered, so it is kept for
+            // the caller here, not lost (a view's key would wait for the next one).
+            if std::mem::take(&mut self.extra_seen) {
+                return Ok(Wake::Extra);
+            }
             if Instant::now() >= deadline {
                 return Ok(Wake::Timeout);
             }
@@ -418,9 +428,7 @@ impl UserClient {
                     }
                 }
             }
-            if self.turn(deadline)? {
-                return Ok(Wake::Extra);
-            }
+            self.turn(deadline)?;
         }
     }
 
@@ -485,6 +493,7 @@ impl UserClient {
             }
             TOKEN_EXTRA => {
                 *extra = true;
+                self.extra_seen = true;
                 return Ok(());
             }
             _ => {}
