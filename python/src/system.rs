@@ -210,6 +210,10 @@ impl NativeSystem {
                         muster_systems::run_system_with(&inst, core, &mut app, &opts)
                     }))
                 });
+                // The Ctrl-C that stopped the runtime also tripped Python's own handler
+                // (the runtime's chains to it): it asked for this stop, so it is taken
+                // here, not raised as a KeyboardInterrupt after `run` returned.
+                let _ = py.check_signals();
                 if let Some(e) = app.failed.take() {
                     return Err(e);
                 }

@@ -314,3 +314,32 @@ def test_updates_a_full_inbox_refuses_are_counted_by_the_system_and_seen_as_gaps
         assert got[-1].value == -1.0 and got[-1].seq == 3001, got[-1]
         assert len(got) + flood.lost == 3001
         assert flood.lost == lost_by_system, (flood.lost, lost_by_system)
+
+
+def test_ctrl_c_stops_a_running_system_and_run_returns_its_report(fed):
+    import signal as sig
+    fed.broker()
+    script = textwrap.dedent('''
+        import signal, sys, muster
+        # As in a terminal (a background job starts with SIGINT ignored).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        s = muster.System("cc", instance=sys.argv[1])
+
+        @s.data_service("n", payload="scalar", rate=10)
+        def n():
+            return 1.0
+
+        print("running", flush=True)
+        print("report", s.run(), flush=True)
+        print("after", flush=True)
+    ''')
+    path = fed.dir / "cc.py"
+    path.write_text(script)
+    p = fed.python(str(path), fed.inst)
+    with muster.User(fed.inst) as me:
+        services(me, 1)
+    p.send_signal(sig.SIGINT)
+    out, err = p.communicate(timeout=20)
+    assert p.returncode == 0, err
+    assert "report {'n': {'quota': 10" in out and out.rstrip().endswith("after"), out
+    assert "KeyboardInterrupt" not in err, err
