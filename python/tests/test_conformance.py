@@ -47,8 +47,10 @@ def take(session, seconds, into):
     return into
 
 
-def by_id(me, sid):
-    return next(s for s in me.list() if s.id == sid)
+def in_use(me, sid):
+    """How many sessions the list counts on `sid`; None while it is not listed (a
+    restarted broker lists a system once it has registered again)."""
+    return next((s.in_use for s in me.list() if s.id == sid), None)
 
 
 def test_lists_every_service_with_its_fields(conf):
@@ -87,7 +89,7 @@ def test_a_data_session_streams_in_order_and_frees_its_quota(conf):
         assert seqs == list(range(1, len(seqs) + 1)), "in order, no gaps"
         assert s.lost == 0
         # The quota is free again: a second user gets the service.
-        wait_until(lambda: by_id(me, "t1/s0").in_use == 0, what="the quota free")
+        wait_until(lambda: in_use(me, "t1/s0") == 0, what="the quota free")
         with conf.user() as second:
             second.request("t1/s0").end()
 
@@ -147,7 +149,7 @@ def test_sessions_survive_a_broker_crash(conf):
         take(s, 1.0, got)
         conf.broker = conf.start_broker()
         # The restarted broker learns the old session from the system.
-        wait_until(lambda: by_id(me, "t1/s0").in_use == 1, what="the session relearned")
+        wait_until(lambda: in_use(me, "t1/s0") == 1, what="the session relearned")
         take(s, 2.0, got)
         s.end()
         seqs = [u.seq for u in got]
