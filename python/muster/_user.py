@@ -6,7 +6,7 @@ import asyncio
 import collections
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Deque, Dict, Iterator, List, Optional, Union
+from typing import Any, Callable, Deque, Dict, Iterator, List, Optional, Union, cast
 
 from . import _native
 from ._errors import MusterError, Refused, SessionEnded
@@ -106,16 +106,27 @@ class Session:
         elif e == "end_confirmed":
             self.ended, self.end_code = "ended by the user", "by_user"
 
+    def _ended(self) -> SessionEnded:
+        return SessionEnded(self.service, self.end_code or "", self.ended or "")
+
+    def _ready(self) -> Optional[Union[Update, Status]]:
+        """What came and was not taken yet; raises SessionEnded once it ended and
+        everything it sent was taken."""
+        if self._items:
+            return self._items.popleft()
+        if self.ended is not None:
+            raise self._ended()
+        return None
+
     def next(self, timeout: Optional[float] = None) -> Optional[Union[Update, Status]]:
         """The next update or status, waiting up to `timeout` seconds (None: until one
         comes). None if the timeout passed; raises SessionEnded once the session ended
         and everything it sent was taken."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            if self._items:
-                return self._items.popleft()
-            if self.ended is not None:
-                raise SessionEnded(self.service, self.end_code or "", self.ended)
+            item = self._ready()
+            if item is not None:
+                return item
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
             if not self._user._pump(left) and deadline is not None \
                     and time.monotonic() >= deadline:
@@ -146,7 +157,7 @@ class Session:
         """Sends task input (a command session). Raises PayloadError for a value the
         service does not take or one too large for the path."""
         if self.ended is not None:
-            raise SessionEnded(self.service, self.end_code or "", self.ended)
+            raise self._ended()
         if self.kind != "command":
             raise MusterError(f"{self.service} is a data service: it takes no input")
         self._user._native.input(self.id, to_wire(value))
@@ -180,21 +191,19 @@ class Session:
         return self
 
     async def __anext__(self) -> Union[Update, Status]:
-        while True:
-            if self._items:
-                return self._items.popleft()
-            if self.ended is not None:
-                raise StopAsyncIteration
-            await self._user._apump(None)
+        try:
+            # Without a timeout, anext returns an item or raises.
+            return cast(Union[Update, Status], await self.anext())
+        except SessionEnded:
+            raise StopAsyncIteration from None
 
     async def anext(self, timeout: Optional[float] = None) -> Optional[Union[Update, Status]]:
         """`next` for asyncio."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            if self._items:
-                return self._items.popleft()
-            if self.ended is not None:
-                raise SessionEnded(self.service, self.end_code or "", self.ended)
+            item = self._ready()
+            if item is not None:
+                return item
             left = None if deadline is None else deadline - time.monotonic()
             if left is not None and left <= 0:
                 return None

@@ -198,13 +198,11 @@ impl NativeSystem {
                     udp: self.udp,
                     stdin_control: false,
                 };
-                let app = PyApp {
+                let mut app = PyApp {
                     handler,
                     inbox: self.inbox.clone(),
                     next: None,
-                    failed: None,
                 };
-                let mut app = app;
                 let ran = py.detach(|| {
                     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                         muster_systems::run_system_with(&inst, core, &mut app, &opts)
@@ -214,9 +212,6 @@ impl NativeSystem {
                 // (the runtime's chains to it): it asked for this stop, so it is taken
                 // here, not raised as a KeyboardInterrupt after `run` returned.
                 let _ = py.check_signals();
-                if let Some(e) = app.failed.take() {
-                    return Err(e);
-                }
                 match ran {
                     Ok(Ok(core)) => pythonize::pythonize(py, &core.report())
                         .map_err(|e| InternalError::new_err(e.to_string())),
@@ -266,8 +261,6 @@ struct PyApp {
     inbox: Arc<Inbox>,
     /// The handler's next tick, asked after every callback (`next_tick` has no GIL).
     next: Option<Duration>,
-    /// A failure that stops the run (a handler without the methods it needs).
-    failed: Option<PyErr>,
 }
 
 impl PyApp {

@@ -12,17 +12,13 @@ use pyo3::types::{PyDict, PyList};
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
-/// The client, lent to a wait with the GIL released. The wait runs on this same thread
-/// (`Python::detach` runs its closure in place), so the client never changes threads.
-struct Lent<'a>(&'a mut UserClient);
+/// The client (lent, made or closed) crossing a wait with the GIL released. The wait
+/// runs on this same thread (`Python::detach` runs its closure in place), so the client
+/// never changes threads.
+struct InPlace<T>(T);
 // SAFETY: see above: `detach` calls the closure on the current thread and returns; the
 // client is only ever touched from the thread that made it (the pyclass is unsendable).
-unsafe impl Send for Lent<'_> {}
-
-/// A client made with the GIL released, handed back on this same thread.
-struct Made(Result<UserClient, UserError>);
-// SAFETY: as `Lent`: made inside `detach`, which runs in place on this thread.
-unsafe impl Send for Made {}
+unsafe impl<T> Send for InPlace<T> {}
 
 /// How long one wait lasts at most before Python's signals are checked (Ctrl-C).
 const SIGNAL_SLICE: Duration = Duration::from_millis(100);
@@ -81,7 +77,7 @@ impl NativeUser {
                 (None, None) => {
                     let inst =
                         Instance::new(instance).map_err(|e| MusterError::new_err(e.to_string()))?;
-                    py.detach(|| Made(UserClient::connect(&inst, &opts))).0
+                    py.detach(|| InPlace(UserClient::connect(&inst, &opts))).0
                 }
                 (None, Some(_)) => {
                     return Err(MusterError::new_err(
@@ -111,7 +107,8 @@ impl NativeUser {
                         broker_key,
                         faults: None,
                     };
-                    py.detach(|| Made(UserClient::connect_remote(r, &opts))).0
+                    py.detach(|| InPlace(UserClient::connect_remote(r, &opts)))
+                        .0
                 }
             }
             .map_err(connect_error)?;
@@ -138,7 +135,7 @@ impl NativeUser {
     /// The service list, as dicts.
     fn list<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
         guarded(|| {
-            let c = Lent(self.client()?);
+            let c = InPlace(self.client()?);
             let views = py
                 .detach(move || {
                     let c = c;
@@ -207,7 +204,7 @@ impl NativeUser {
     fn link(&mut self, py: Python<'_>, data: &str, command: &str) -> PyResult<u64> {
         guarded(|| {
             let (d, c) = (ServiceId(data.to_string()), ServiceId(command.to_string()));
-            let client = Lent(self.client()?);
+            let client = InPlace(self.client()?);
             py.detach(move || {
                 let client = client;
                 client.0.link(&d, &c)
@@ -256,7 +253,7 @@ impl NativeUser {
                 } else if until <= Instant::now() {
                     Wake::Timeout
                 } else {
-                    let c = Lent(client);
+                    let c = InPlace(client);
                     py.detach(move || {
                         let c = c;
                         c.0.wait(until)
@@ -295,10 +292,7 @@ impl NativeUser {
         guarded(|| {
             if let Some(c) = self.client.take() {
                 // A remote client waits up to half a second for systems' confirmations.
-                struct Owned(UserClient);
-                // SAFETY: as `Lent`: run in place, on this thread.
-                unsafe impl Send for Owned {}
-                let c = Owned(c);
+                let c = InPlace(c);
                 py.detach(move || {
                     let c = c;
                     c.0.close()

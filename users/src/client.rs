@@ -433,8 +433,9 @@ impl UserClient {
     }
 
     /// One wait on the reactor (bounded by `deadline` and the transport's own timers)
-    /// and the handling of what woke it. Returns whether the extra fd is readable.
-    fn turn(&mut self, deadline: Instant) -> Result<bool, UserError> {
+    /// and the handling of what woke it. The extra fd's readiness is kept for `wait`
+    /// (`extra_seen`), whoever made the turn.
+    fn turn(&mut self, deadline: Instant) -> Result<(), UserError> {
         // A remote connection's timers, and what it owes since the last turn (see
         // below), before waiting.
         let news = self.events.len();
@@ -462,9 +463,8 @@ impl UserClient {
             }
         }
         let tokens = self.reactor.wait(Some(wait))?;
-        let mut extra = false;
         for t in tokens {
-            self.on_token(t, &mut extra)?;
+            self.on_token(t)?;
         }
         if let Transport::Local(l) = &mut self.transport {
             l.look_for_successor(&mut self.core, &self.reactor);
@@ -480,10 +480,10 @@ impl UserClient {
                 self.pump()?;
             }
         }
-        Ok(extra)
+        Ok(())
     }
 
-    fn on_token(&mut self, token: usize, extra: &mut bool) -> Result<(), UserError> {
+    fn on_token(&mut self, token: usize) -> Result<(), UserError> {
         match token {
             TOKEN_SIGNAL => {
                 if self.signals.as_mut().is_some_and(SignalPipe::drain) {
@@ -492,7 +492,6 @@ impl UserClient {
                 return Ok(());
             }
             TOKEN_EXTRA => {
-                *extra = true;
                 self.extra_seen = true;
                 return Ok(());
             }
