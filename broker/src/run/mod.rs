@@ -632,7 +632,7 @@ fn serve(
                 }
                 t if t >= crate::federation::FIRST_PROXY_TOKEN => {
                     if let Some(f) = shell.fed.as_mut() {
-                        f.on_proxy(t, &core);
+                        f.on_proxy(t, &core, &shell.reactor);
                     }
                 }
                 t => {
@@ -986,16 +986,8 @@ impl Shell {
             None => {}
             Some(f) if local.is_some() || links => {
                 // Other hosts' users' links over this host's services count here too.
-                let mut views = self.core_views.clone();
-                let n = f.links_in();
-                for v in views.iter_mut() {
-                    if let Some(c) = n.get(v.id.as_str()) {
-                        v.links = v.links.saturating_add(*c);
-                    }
-                }
                 let systems: Vec<&str> = core.systems().collect();
-                f.publish_list(&views, &systems);
-                self.local_views = views;
+                self.local_views = f.publish_list(&self.core_views, &systems);
             }
             Some(_) => {}
         }
@@ -1003,19 +995,10 @@ impl Shell {
         // One list in id order: this host's services and the other hosts', shared
         // fairly among them when there are more than the list holds.
         let (all, host) = match self.fed.as_ref() {
-            Some(f) => {
-                let total = self.local_views.len() + f.remote_views().count();
-                if total > MAX_LISTED_SERVICES {
-                    tracing::warn!(
-                        total,
-                        "the global list holds more services than the {MAX_LISTED_SERVICES} the shared list can: each host gets a fair share"
-                    );
-                }
-                (
-                    f.merged_views(&self.local_views, MAX_LISTED_SERVICES),
-                    Some(muster_shared::snapshot::FixedStr::new(f.host())),
-                )
-            }
+            Some(f) => (
+                f.merged_views(&self.local_views, MAX_LISTED_SERVICES),
+                Some(muster_shared::snapshot::FixedStr::new(f.host())),
+            ),
             None => (self.local_views.iter().collect(), None),
         };
         let mut n = 0;

@@ -1,0 +1,604 @@
+//! The federation's driver: [`FedCore`] on Zenoh and shared memory.
+//!
+//! Zenoh's threads hand what comes (tokens, lists, frames) to the broker's loop through
+//! a channel and a wake-up socket, within a byte budget; the loop feeds it to the core
+//! and carries out the core's outputs (puts, queries, tokens) and inboxes (shared-memory
+//! endpoints the broker owns for peers on other hosts). Nothing here decides anything.
+
+use super::core::{FedCore, FedInput, FedOutput, Inboxes};
+use super::{Delivery, FedConfig, FedError, FedMsg, FedStats, Role, MAX_FED_FRAME};
+use crate::core::{Broker, Output};
+use muster_shared::ipc::{create_node, Endpoint};
+use muster_shared::names::{Address, Instance};
+use muster_shared::protocol::{encode, monotonic_ns, RemoteContact, ToBroker, ToSystem};
+use muster_shared::reactor::Reactor;
+use muster_shared::snapshot::ServiceView;
+use muster_shared::types::UserId;
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::io::{Read, Write};
+use std::os::fd::AsRawFd;
+use std::os::unix::net::UnixStream;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+
+/// The first reactor token of proxy inboxes; the shell's own tokens stay below it.
+pub const FIRST_PROXY_TOKEN: usize = 1 << 32;
+/// How long a proxy whose peer is gone keeps its ports: frames just sent through them
+/// (an end, a revocation) must be read before the ports close.
+const PROXY_LINGER: Duration = Duration::from_secs(2);
+/// How long a starting broker looks for another broker already using its host name.
+const HOST_CHECK: Duration = Duration::from_millis(400);
+/// Largest list taken from another host (a host lists at most 256 services).
+const MAX_FED_LIST: usize = 1 << 20;
+/// Most bytes of frames and lists waiting for the broker's loop; beyond it, what comes
+/// is dropped (and counted) rather than held: a flooding peer costs bounded memory.
+const MAX_QUEUED_BYTES: usize = 32 << 20;
+
+/// The broker's clock (the core's `now`).
+fn now() -> Duration {
+    Duration::from_nanos(monotonic_ns())
+}
+
+/// A list's version, sent as the Zenoh attachment of its publication and of the
+/// queryable's reply: Unix ns of the change, kept rising. A peer takes a list only if
+/// it is newer than the one it has, so a late reply to an old query does not undo a
+/// newer publication. (A list without one, version 0, is always taken.)
+fn list_version(sample: &zenoh::sample::Sample) -> u64 {
+    sample
+        .attachment()
+        .and_then(|a| <[u8; 8]>::try_from(a.to_bytes().as_ref()).ok())
+        .map_or(0, u64::from_le_bytes)
+}
+
+fn input_bytes(ev: &FedInput) -> usize {
+    match ev {
+        FedInput::Alive(..) => 0,
+        FedInput::List { body, .. } => body.len(),
+        FedInput::Frame { bytes, .. } => bytes.len(),
+    }
+}
+
+/// What Zenoh's threads hand the broker's loop: inputs on a channel, a wake-up on a
+/// socket, within a byte budget.
+struct Inflow {
+    tx: Mutex<mpsc::Sender<FedInput>>,
+    ring: Arc<UnixStream>,
+    /// Bytes on the channel.
+    queued: AtomicUsize,
+    /// Frames and lists dropped at the door (too big, or over the budget) since the
+    /// loop last looked.
+    refused: AtomicU64,
+}
+
+impl Inflow {
+    fn push(&self, ev: FedInput) {
+        let n = input_bytes(&ev);
+        if self.queued.fetch_add(n, Ordering::Relaxed) + n > MAX_QUEUED_BYTES {
+            self.queued.fetch_sub(n, Ordering::Relaxed);
+            self.refused.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        if let Ok(tx) = self.tx.lock() {
+            if tx.send(ev).is_ok() {
+                // Full pipe: a wake-up is pending already.
+                let _ = (&*self.ring).write(&[1]);
+                return;
+            }
+        }
+        self.queued.fetch_sub(n, Ordering::Relaxed);
+    }
+
+    /// A sample's bytes, if at most `max` (counted as refused otherwise, not copied).
+    fn payload(&self, s: &zenoh::sample::Sample, max: usize) -> Option<Vec<u8>> {
+        if s.payload().len() > max {
+            self.refused.fetch_add(1, Ordering::Relaxed);
+            return None;
+        }
+        Some(s.payload().to_bytes().to_vec())
+    }
+}
+
+/// A shared-memory inbox the broker keeps for a peer on another host.
+struct Proxy {
+    endpoint: Endpoint,
+    token: usize,
+}
+
+/// The inboxes of peers on other hosts, each an endpoint in the reactor.
+struct ShmInboxes {
+    inst: Instance,
+    open: HashMap<Address, Proxy>,
+    by_token: HashMap<usize, Address>,
+    next_token: usize,
+    /// Closed ones, kept until their frames are read.
+    lingering: Vec<(Instant, Address, Proxy)>,
+}
+
+/// [`ShmInboxes`] with the reactor they are watched in, as the core uses them.
+struct ShmIo<'a> {
+    shm: &'a mut ShmInboxes,
+    reactor: &'a Reactor,
+}
+
+impl Inboxes for ShmIo<'_> {
+    fn open(&mut self, peer: &Address) -> Result<(), String> {
+        let shm = &mut *self.shm;
+        if shm.open.contains_key(peer) {
+            return Ok(());
+        }
+        // One closed a moment ago (its peer's host left and came back): taken again.
+        let proxy = match shm.lingering.iter().position(|(_, a, _)| a == peer) {
+            Some(i) => shm.lingering.swap_remove(i).2,
+            None => {
+                let name = match peer {
+                    Address::System(s) => format!("muster-fed-system-{s}"),
+                    Address::User(u) => format!("muster-fed-user-{u}"),
+                    Address::Broker => "muster-fed".to_string(),
+                };
+                let node = create_node(&name, false).map_err(|e| e.to_string())?;
+                let endpoint =
+                    Endpoint::open(&shm.inst, peer.clone(), node).map_err(|e| e.to_string())?;
+                let token = shm.next_token;
+                shm.next_token += 1;
+                Proxy { endpoint, token }
+            }
+        };
+        self.reactor
+            .add(proxy.endpoint.bell_fd(), proxy.token)
+            .map_err(|e| e.to_string())?;
+        shm.by_token.insert(proxy.token, peer.clone());
+        shm.open.insert(peer.clone(), proxy);
+        Ok(())
+    }
+
+    fn close(&mut self, peer: &Address) {
+        if let Some(p) = self.shm.open.remove(peer) {
+            self.reactor.remove(p.endpoint.bell_fd());
+            self.shm.by_token.remove(&p.token);
+            self.shm
+                .lingering
+                .push((Instant::now() + PROXY_LINGER, peer.clone(), p));
+        }
+    }
+
+    fn send(&mut self, peer: &Address, to: &Address, msg: &ToSystem) {
+        if let Some(p) = self.shm.open.get_mut(peer) {
+            p.endpoint.send_control(to, msg);
+        }
+    }
+
+    fn owner_pid(&mut self, peer: &Address, of: &Address) -> Option<u32> {
+        self.shm.open.get_mut(peer)?.endpoint.owner_pid(of)
+    }
+}
+
+fn key_part<'a>(key: &'a str, prefix: &str) -> Option<(&'a str, &'a str)> {
+    key.strip_prefix(prefix)?.split_once('/')
+}
+
+/// One broker's membership in a federation: its [`FedCore`] on a Zenoh session.
+pub struct Federation {
+    core: FedCore,
+    prefix: String,
+    session: zenoh::Session,
+    _token: zenoh::liveliness::LivelinessToken,
+    system_tokens: BTreeMap<String, zenoh::liveliness::LivelinessToken>,
+    _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
+    _queryable: zenoh::query::Queryable<()>,
+    /// This host's list as last published, for the queryable (on Zenoh's threads).
+    my_list: Arc<Mutex<(u64, Vec<u8>)>>,
+    events: mpsc::Receiver<FedInput>,
+    /// Hands an input to the broker's thread and wakes it (used on Zenoh's threads).
+    notify: Arc<Inflow>,
+    waker: UnixStream,
+    shm: ShmInboxes,
+    /// Frames for local users, for the shell to deliver.
+    deliveries: VecDeque<Delivery>,
+}
+
+impl Federation {
+    /// Joins the federation as `cfg.host`: opens the Zenoh session, declares the host's
+    /// token, and subscribes to the others' tokens, lists and frames.
+    /// `check_host`: look for another broker under this host name first (a cold start;
+    /// a standby taking over its host's name does not).
+    pub fn join(
+        inst: &Instance,
+        cfg: &FedConfig,
+        pid: u32,
+        check_host: bool,
+    ) -> Result<Self, FedError> {
+        super::check_host_like("host name", &cfg.host)?;
+        super::check_host_like("federation name", &cfg.federation)?;
+        let zcfg = cfg.zenoh_config()?;
+        if cfg.insecure {
+            tracing::warn!(
+                host = %cfg.host,
+                "federating WITHOUT TLS (--insecure-no-tls): anyone who reaches this \
+                 host's endpoints can read every cross-host frame and act as any host"
+            );
+        }
+        let session = zenoh::open(zcfg)
+            .wait()
+            .map_err(|e| FedError::Open(e.to_string()))?;
+        let prefix = format!("muster/{}/", cfg.federation);
+        let host = cfg.host.clone();
+        let alive_key = format!("{prefix}{host}/alive");
+        // Another broker under this name? (Best effort: peers not yet found are missed.)
+        // Asked a few times: peers found by gossip after the first connection answer
+        // only once connected.
+        if check_host {
+            let until = Instant::now() + HOST_CHECK;
+            while Instant::now() < until {
+                let taken = session
+                    .liveliness()
+                    .get(&alive_key)
+                    .timeout(HOST_CHECK / 8)
+                    .wait()
+                    .is_ok_and(|replies| replies.recv().is_ok_and(|r| r.result().is_ok()));
+                if taken {
+                    return Err(FedError::HostTaken(host));
+                }
+            }
+        }
+        let (tx, events) = mpsc::channel::<FedInput>();
+        let (waker, ring) = UnixStream::pair().map_err(|e| FedError::Open(e.to_string()))?;
+        waker
+            .set_nonblocking(true)
+            .map_err(|e| FedError::Open(e.to_string()))?;
+        ring.set_nonblocking(true)
+            .map_err(|e| FedError::Open(e.to_string()))?;
+        let ring = Arc::new(ring);
+        let notify = Arc::new(Inflow {
+            tx: Mutex::new(tx),
+            ring,
+            queued: AtomicUsize::new(0),
+            refused: AtomicU64::new(0),
+        });
+        let zerr = |e: zenoh::Error| FedError::Open(e.to_string());
+        let mut subscribers = Vec::new();
+        {
+            let n = notify.clone();
+            let p = prefix.clone();
+            let me = host.clone();
+            subscribers.push(
+                session
+                    .liveliness()
+                    .declare_subscriber(format!("{prefix}*/alive"))
+                    .history(true)
+                    .callback(move |s| {
+                        if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
+                            if h != me {
+                                let up = s.kind() == zenoh::sample::SampleKind::Put;
+                                n.push(FedInput::Alive(h.to_string(), up));
+                            }
+                        }
+                    })
+                    .wait()
+                    .map_err(zerr)?,
+            );
+        }
+        {
+            let n = notify.clone();
+            let p = prefix.clone();
+            let me = host.clone();
+            subscribers.push(
+                session
+                    .declare_subscriber(format!("{prefix}*/list"))
+                    .callback(move |s| {
+                        if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
+                            if let Some(body) = n.payload(&s, MAX_FED_LIST).filter(|_| h != me) {
+                                let (host, version) = (h.to_string(), list_version(&s));
+                                n.push(FedInput::List {
+                                    host,
+                                    version,
+                                    body,
+                                });
+                            }
+                        }
+                    })
+                    .wait()
+                    .map_err(zerr)?,
+            );
+        }
+        for (part, users_side) in [("req", true), ("in", false)] {
+            let n = notify.clone();
+            let inbox = format!("{prefix}{host}/{part}/");
+            subscribers.push(
+                session
+                    .declare_subscriber(format!("{inbox}*"))
+                    .callback(move |s| {
+                        if let Some(from) = s.key_expr().as_str().strip_prefix(&inbox) {
+                            if let Some(bytes) = n.payload(&s, MAX_FED_FRAME) {
+                                n.push(FedInput::Frame {
+                                    from: from.to_string(),
+                                    users_side,
+                                    bytes,
+                                });
+                            }
+                        }
+                    })
+                    .wait()
+                    .map_err(zerr)?,
+            );
+        }
+        let my_list = Arc::new(Mutex::new((0u64, b"[]".to_vec())));
+        let queryable = {
+            let list = my_list.clone();
+            let key = format!("{prefix}{host}/list");
+            session
+                .declare_queryable(key.clone())
+                .callback(move |q| {
+                    let (version, body) = list.lock().map(|l| l.clone()).unwrap_or_default();
+                    // Under its own key (the query's may be a wildcard over hosts).
+                    let _ = q
+                        .reply(&key, body)
+                        .attachment(version.to_le_bytes().to_vec())
+                        .wait();
+                })
+                .wait()
+                .map_err(zerr)?
+        };
+        let token = session
+            .liveliness()
+            .declare_token(&alive_key)
+            .wait()
+            .map_err(zerr)?;
+        let advertise = cfg.listen.iter().find_map(|e| super::listen_ip(e));
+        let core = FedCore::new(&host, pid, cfg.effective_acl()?, advertise, now());
+        if !core.may(&host, Role::Offer) {
+            tracing::info!("the access file does not let this host offer: its services stay local");
+        }
+        tracing::info!(host = %host, federation = %cfg.federation, "joined the federation");
+        Ok(Federation {
+            core,
+            notify,
+            prefix,
+            session,
+            _token: token,
+            system_tokens: BTreeMap::new(),
+            _subscribers: subscribers,
+            _queryable: queryable,
+            my_list,
+            events,
+            waker,
+            shm: ShmInboxes {
+                inst: inst.clone(),
+                open: HashMap::new(),
+                by_token: HashMap::new(),
+                next_token: FIRST_PROXY_TOKEN,
+                lingering: Vec::new(),
+            },
+            deliveries: VecDeque::new(),
+        })
+    }
+
+    /// This host's name.
+    pub fn host(&self) -> &str {
+        self.core.host()
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &FedStats {
+        self.core.stats()
+    }
+
+    /// The descriptor that is readable when Zenoh has handed something over.
+    pub fn wake_fd(&self) -> std::os::fd::RawFd {
+        self.waker.as_raw_fd()
+    }
+
+    /// Whether `user` is another host's user served here (`user@host`).
+    pub fn is_foreign(user: &UserId) -> bool {
+        FedCore::is_foreign(user)
+    }
+
+    /// When [`Federation::sweep`] is next due.
+    pub fn next_due(&self) -> Option<Duration> {
+        let (t, i) = (now(), Instant::now());
+        self.shm
+            .lingering
+            .iter()
+            .map(|(at, _, _)| at.saturating_duration_since(i))
+            .chain(self.core.poll_timeout().map(|at| at.saturating_sub(t)))
+            .min()
+    }
+
+    /// Closes proxies that have lingered long enough, and runs the core's timers.
+    pub fn sweep(&mut self) {
+        let i = Instant::now();
+        self.shm.lingering.retain(|(at, _, _)| *at > i);
+        let t = now();
+        if self.core.poll_timeout().is_some_and(|at| at <= t) {
+            self.core.handle_timeout(t);
+        }
+        self.carry_out();
+    }
+
+    /// Forgets the users of other hosts a previous broker run served (see
+    /// [`FedCore::forget_previous`]).
+    pub fn forget_previous(&mut self, core: &mut Broker, now: Duration) {
+        self.core.forget_previous(core, now);
+    }
+
+    /// This host's services with other hosts' links counted, published (see
+    /// [`FedCore::publish_list`]).
+    pub fn publish_list(&mut self, views: &[ServiceView], systems: &[&str]) -> Vec<ServiceView> {
+        let unix_ns = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
+        let mine = self.core.publish_list(now(), unix_ns, views, systems);
+        self.carry_out();
+        mine
+    }
+
+    /// This host's services and the other hosts' (see [`FedCore::merged_views`]).
+    pub fn merged_views<'a>(
+        &'a self,
+        local: &'a [ServiceView],
+        cap: usize,
+    ) -> Vec<&'a ServiceView> {
+        self.core.merged_views(local, cap)
+    }
+
+    /// Whether the other hosts' services changed since the last call.
+    pub fn take_list_change(&mut self) -> bool {
+        self.core.take_list_change()
+    }
+
+    /// Whether other hosts' links here changed since the last call.
+    pub fn take_links_change(&mut self) -> bool {
+        self.core.take_links_change()
+    }
+
+    /// See [`FedCore::intercept`].
+    pub fn intercept(
+        &mut self,
+        msg: &ToBroker,
+        contact: impl FnOnce(&UserId, u64) -> Option<RemoteContact>,
+    ) -> bool {
+        let passed = self.core.intercept(now(), msg, contact);
+        self.carry_out();
+        passed
+    }
+
+    /// See [`FedCore::route`].
+    pub fn route(&mut self, core: &Broker, out: Output) -> Option<Output> {
+        let out = self.core.route(core, out);
+        self.carry_out();
+        out
+    }
+
+    /// The next frame for a local user.
+    pub fn poll_delivery(&mut self) -> Option<Delivery> {
+        self.deliveries.pop_front()
+    }
+
+    /// A local user died or left: the hosts holding its requests or sessions hear of it.
+    pub fn local_user_gone(&mut self, user: &UserId) {
+        self.core.local_user_gone(user);
+        self.carry_out();
+    }
+
+    /// A local system died: the other hosts' users of its sessions are told.
+    pub fn local_system_gone(&mut self, system: &str) {
+        self.core.local_system_gone(system);
+        self.carry_out();
+    }
+
+    /// Hands what Zenoh handed over to the core: hosts coming and going, lists, frames.
+    pub fn on_wake(&mut self, core: &mut Broker, reactor: &Reactor, now: Duration) {
+        let mut buf = [0u8; 256];
+        while matches!((&self.waker).read(&mut buf), Ok(n) if n > 0) {}
+        self.core
+            .count_dropped(self.notify.refused.swap(0, Ordering::Relaxed));
+        while let Ok(ev) = self.events.try_recv() {
+            self.notify
+                .queued
+                .fetch_sub(input_bytes(&ev), Ordering::Relaxed);
+            let mut io = ShmIo {
+                shm: &mut self.shm,
+                reactor,
+            };
+            self.core.handle(now, ev, core, &mut io);
+            self.carry_out();
+        }
+    }
+
+    /// Frames in a proxy inbox: a system's for a user of another host, or a local
+    /// user's for a system of another host. Handed to the core, which relays them.
+    pub fn on_proxy(&mut self, token: usize, core: &Broker, reactor: &Reactor) {
+        let Some(peer) = self.shm.by_token.get(&token).cloned() else {
+            return;
+        };
+        let mut frames = Vec::new();
+        if let Some(p) = self.shm.open.get_mut(&peer) {
+            p.endpoint.drain_bell();
+            while let Some(f) = p.endpoint.recv_from() {
+                frames.push(f);
+            }
+        }
+        let mut io = ShmIo {
+            shm: &mut self.shm,
+            reactor,
+        };
+        for (frame, sender) in frames {
+            self.core.inbox_frame(&peer, &frame, sender, core, &mut io);
+        }
+        self.carry_out();
+    }
+
+    /// Carries out the core's outputs.
+    fn carry_out(&mut self) {
+        while let Some(o) = self.core.poll_output() {
+            match o {
+                FedOutput::Send { to, msg } => self.put_frame(&to, &msg),
+                FedOutput::PutList { version, body } => {
+                    if let Ok(mut l) = self.my_list.lock() {
+                        *l = (version, body.clone());
+                    }
+                    let key = format!("{}{}/list", self.prefix, self.core.host());
+                    let put = self
+                        .session
+                        .put(&key, body)
+                        .attachment(version.to_le_bytes().to_vec());
+                    if let Err(e) = put.wait() {
+                        tracing::warn!("federation: cannot publish the list: {e}");
+                    }
+                }
+                FedOutput::QueryList(host) => self.query_list(&host),
+                FedOutput::SystemUp(s) => {
+                    let key = format!("{}{}/system/{s}", self.prefix, self.core.host());
+                    match self.session.liveliness().declare_token(&key).wait() {
+                        Ok(t) => {
+                            self.system_tokens.insert(s, t);
+                        }
+                        Err(e) => tracing::warn!("federation: token for system {s}: {e}"),
+                    }
+                }
+                FedOutput::SystemDown(s) => {
+                    self.system_tokens.remove(&s);
+                }
+                FedOutput::Deliver(d) => self.deliveries.push_back(d),
+            }
+        }
+    }
+
+    fn put_frame(&self, to: &str, msg: &FedMsg) {
+        let frame = match encode(msg) {
+            Ok(f) => f,
+            Err(e) => return tracing::warn!("federation: cannot encode a frame for {to}: {e}"),
+        };
+        let part = if msg.on_users_key() { "req" } else { "in" };
+        let key = format!("{}{to}/{part}/{}", self.prefix, self.core.host());
+        if let Err(e) = self.session.put(&key, frame).wait() {
+            tracing::warn!("federation: cannot send to {to}: {e}");
+        }
+    }
+
+    fn query_list(&self, host: &str) {
+        let key = format!("{}{host}/list", self.prefix);
+        let h = host.to_string();
+        let n = self.notify.clone();
+        let r = self
+            .session
+            .get(&key)
+            .target(zenoh::query::QueryTarget::All)
+            .callback(move |reply| {
+                if let Some(body) = reply.result().ok().and_then(|s| n.payload(s, MAX_FED_LIST)) {
+                    let version = reply.result().map_or(0, list_version);
+                    n.push(FedInput::List {
+                        host: h.clone(),
+                        version,
+                        body,
+                    });
+                }
+            })
+            .wait();
+        if let Err(e) = r {
+            tracing::warn!("federation: cannot ask {host} for its list: {e}");
+        }
+    }
+}
