@@ -5,9 +5,14 @@
 //! Remote users ride the sans-IO UDP path (the broker's front, the user's connection,
 //! the systems' session endpoints) over a seeded network with delay, loss, duplication
 //! and reordering, where an attacker can forge and replay datagrams.
+//!
+//! Several hosts (`fedsim`): each host's broker with its federation core, systems and
+//! users, over a seeded model of Zenoh (latency, tokens and leases, cut links, duplicated
+//! and reordered frames), through host loss, partitions and heals, and relay failovers.
 
 #![allow(clippy::unwrap_used)]
 
+mod fedsim;
 mod udpnet;
 
 use muster_broker::core::{Broker, BrokerConfig, Output};

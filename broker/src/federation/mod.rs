@@ -488,7 +488,7 @@ impl FarGrant {
 impl FedMsg {
     /// Whether the frame travels on the users' key (`req/`) rather than on the
     /// systems' (`in/`): access control tells the two apart.
-    fn on_users_key(&self) -> bool {
+    pub fn on_users_key(&self) -> bool {
         !matches!(self, FedMsg::ToUser { .. } | FedMsg::Granted(_))
     }
 }
