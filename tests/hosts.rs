@@ -942,6 +942,90 @@ fn a_standby_takes_its_hosts_place_in_the_federation() {
     assert!(seqs(&lines).len() >= 10, "{lines:?}");
 }
 
+/// A user on host a streams from robo on host b while host `relay`'s broker is killed
+/// and its standby takes over: the session goes on (no end, updates in order, every
+/// update either came or is counted in a gap). Prints the interruption.
+fn a_cross_host_session_survives_a_relays_failover(test: &str, relay: usize) {
+    let mut h = Hosts::new(test, &["a", "b"]);
+    h.host(1).system("robo", &["--rate", "20"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    let args = h.args(relay);
+    let mut args: Vec<&str> = args.iter().map(String::as_str).collect();
+    // Its own port: the killed broker's may not be free at once.
+    let port = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let at = args.iter().position(|a| *a == "--listen").unwrap();
+    args[at + 1] = &port;
+    let mut full = vec!["broker", "--standby"];
+    full.extend(args);
+    let standby = h.host(relay).spawn(&full);
+    let synced = h.host(relay).proc(standby).json(20 * SEC).unwrap();
+    assert_eq!(synced["event"], "in_sync", "{synced}");
+    let user = h.host(0).spawn(&[
+        "user",
+        "request",
+        "robo@b/s0",
+        "--duration",
+        "12s",
+        "--json",
+    ]);
+    let first = h.host(0).proc(user).json(20 * SEC).unwrap();
+    assert_eq!(first["granted"], true, "{first}");
+    // Updates flowing, then the relay dies.
+    let mut lines: Vec<(Instant, Value)> = Vec::new();
+    let until = Instant::now() + 3 * SEC;
+    while Instant::now() < until {
+        if let Some(v) = h.host(0).proc(user).json(2 * SEC) {
+            lines.push((Instant::now(), v));
+        }
+    }
+    let killed = Instant::now();
+    h.kill_broker(relay);
+    let took = h.host(relay).proc(standby).json(20 * SEC).unwrap();
+    assert_eq!(took["event"], "took_over", "{took}");
+    while let Some(v) = h.host(0).proc(user).json(20 * SEC) {
+        lines.push((Instant::now(), v));
+    }
+    assert_eq!(h.host(0).proc(user).wait(10 * SEC), Some(0), "{lines:?}");
+    let values: Vec<Value> = lines.iter().map(|(_, v)| v.clone()).collect();
+    let s = seqs(&values);
+    assert!(s.windows(2).all(|p| p[1] > p[0]), "in order: {s:?}");
+    let gaps: u64 = values.iter().filter_map(|v| v["gap"].as_u64()).sum();
+    let (lo, hi) = (s[0], *s.last().unwrap());
+    assert_eq!(
+        s.len() as u64 + gaps,
+        hi - lo + 1,
+        "every update came or is counted"
+    );
+    // It ran to its end: 12 s at 20 Hz, less what the takeover cost.
+    assert!(hi >= 150, "{hi}");
+    assert!(
+        !values
+            .iter()
+            .any(|v| v["ended"].is_string() && v["ended"] != "by_user"),
+        "{values:?}"
+    );
+    let after: Vec<Instant> = lines
+        .iter()
+        .filter(|(t, v)| *t > killed && v["seq"].is_u64())
+        .map(|(t, _)| *t)
+        .collect();
+    let resumed = after.first().map(|t| t.duration_since(killed));
+    eprintln!(
+        "FIGURE relay {relay} failover: updates lost {gaps} ({} ms at 20 Hz), first update after the kill in {resumed:?}",
+        gaps * 50
+    );
+}
+
+#[test]
+fn a_cross_host_session_survives_its_users_hosts_relay_failing_over() {
+    a_cross_host_session_survives_a_relays_failover("fra", 0);
+}
+
+#[test]
+fn a_cross_host_session_survives_its_systems_hosts_relay_failing_over() {
+    a_cross_host_session_survives_a_relays_failover("frb", 1);
+}
+
 /// `muster user ARGS --json` as remote user alice over host a's UDP front.
 fn remote_json(h: &Hosts, r: &common::RemoteSetup, args: &[&str]) -> (i32, Vec<Value>) {
     let mut a: Vec<&str> = vec!["user"];

@@ -470,6 +470,19 @@ impl Broker {
         self.users.get(user).map(|u| u.pid)
     }
 
+    /// The sessions `user` holds: each with its system and that system's pid.
+    pub fn user_sessions(&self, user: &UserId) -> Vec<(SessionId, String, u32)> {
+        self.systems
+            .iter()
+            .flat_map(|(name, s)| {
+                s.sessions
+                    .iter()
+                    .filter(|(_, (_, u))| u == user)
+                    .map(move |(id, _)| (*id, name.clone(), s.pid))
+            })
+            .collect()
+    }
+
     /// Remote users (over UDP: no pid here; their front tracks their liveness).
     pub fn remote_users(&self) -> Vec<UserId> {
         self.users
@@ -1005,6 +1018,7 @@ impl Broker {
                 }
             }
         }
+        let (sessions, orphans) = self.split_unrelayable(sessions);
         for a in sessions {
             let id = ServiceId::new(&system, &a.service);
             if let Some(s) = self.services.get_mut(&id) {
@@ -1025,12 +1039,14 @@ impl Broker {
             pid,
         });
         self.out.push_back(Output::ToSystem(
-            system,
+            system.clone(),
             ToSystem::Registered {
                 epoch: self.epoch,
                 broker_pid: self.pid,
             },
         ));
+        // Told once it is registered.
+        self.end_unrelayable(&system, orphans);
     }
 
     fn refuse_registration(&mut self, system: &str, reason: String) {
@@ -1247,6 +1263,8 @@ impl Broker {
                 "sessions reconciled with the system's own set"
             );
         }
+        let (missed, orphans) = self.split_unrelayable(missed);
+        self.end_unrelayable(system, orphans);
         for a in missed {
             let id = ServiceId::new(system, &a.service);
             let Some(svc) = self.services.get_mut(&id) else {
@@ -1260,6 +1278,29 @@ impl Broker {
         }
         for session in gone {
             self.session_ended(now, system, session);
+        }
+    }
+
+    /// `sessions` split: those this broker can count, and those of other hosts' users it
+    /// does not serve (it started cold, without its predecessor's state), which cannot
+    /// be relayed ([`Broker::end_unrelayable`]).
+    fn split_unrelayable(
+        &self,
+        sessions: Vec<ActiveSession>,
+    ) -> (Vec<ActiveSession>, Vec<ActiveSession>) {
+        sessions
+            .into_iter()
+            .partition(|a| !a.relayed || self.users.contains_key(&a.user))
+    }
+
+    /// Tells `system` to end the sessions of users it cannot be relayed to.
+    fn end_unrelayable(&mut self, system: &str, orphans: Vec<ActiveSession>) {
+        let users: BTreeSet<UserId> = orphans.into_iter().map(|a| a.user).collect();
+        for user in users {
+            self.out.push_back(Output::ToSystem(
+                system.to_string(),
+                ToSystem::Revoked { user },
+            ));
         }
     }
 

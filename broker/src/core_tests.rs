@@ -672,11 +672,13 @@ fn sessions_reported_at_registration_count_against_the_quota() {
                     session: SessionId(1),
                     service: "a".into(),
                     user: user(1),
+                    relayed: false,
                 },
                 ActiveSession {
                     session: SessionId(2),
                     service: "a".into(),
                     user: user(2),
+                    relayed: false,
                 },
             ],
         },

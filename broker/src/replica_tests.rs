@@ -139,6 +139,7 @@ impl World {
                 session: *id,
                 service: h.service.clone(),
                 user: h.user.clone(),
+                relayed: false,
             })
             .collect()
     }

@@ -189,6 +189,11 @@ pub struct ActiveSession {
     pub service: String,
     /// The user holding it.
     pub user: UserId,
+    /// Whether the user is another host's, relayed by this host's broker (not a remote
+    /// user over UDP): a broker that did not take over its predecessor's state cannot
+    /// relay such a session, and has the system end it.
+    #[serde(default)]
+    pub relayed: bool,
 }
 
 /// How a system reaches a remote user: the address the broker authenticated it at and

@@ -148,6 +148,11 @@ struct Session {
     user_pid: u32,
 }
 
+/// Whether `user` is another host's user, relayed by this host's broker (`user@host`).
+fn relayed(user: &UserId) -> bool {
+    user.0.contains('@')
+}
+
 /// How many ended requests a system remembers, to refuse a repeated offer for one.
 pub const SERVED_MEMORY: usize = 4096;
 
@@ -315,6 +320,7 @@ impl SystemCore {
                 session: *id,
                 service: s.service.clone(),
                 user: s.user.clone(),
+                relayed: relayed(&s.user) && s.user_pid != 0,
             })
             .collect()
     }
@@ -350,8 +356,12 @@ impl SystemCore {
             ToSystem::Registered { broker_pid, .. } => {
                 *broker_pid == pid && owner(&Address::Broker) == Some(pid)
             }
+            // Another host's user's frames come from this host's broker (its relay),
+            // whichever process that is now.
             ToSystem::Input { session, .. } | ToSystem::End { session, .. } => {
-                self.sessions.get(session).is_none_or(|s| s.user_pid == pid)
+                self.sessions.get(session).is_none_or(|s| {
+                    s.user_pid == pid || (relayed(&s.user) && self.broker_pid == Some(pid))
+                })
             }
             _ => self.broker_pid.is_none_or(|b| b == pid),
         };
@@ -577,7 +587,10 @@ impl SystemCore {
         r.max_in_use = r.max_in_use.max(in_use);
         muster_shared::trace::stamp(muster_shared::trace::Stage::SystemSend, &user, req);
         answer(self, Ok(session));
-        if user_pid != 0 {
+        // Another host's user is reached through this host's broker, whose process
+        // may change (a standby takes over) without the user going: the federation
+        // says when it goes.
+        if user_pid != 0 && !relayed(&user) {
             self.out
                 .push_back(SystemOutput::WatchUser(user.clone(), user_pid));
         }
@@ -1189,7 +1202,8 @@ mod tests {
             &vec![ActiveSession {
                 session: s,
                 service: "c".into(),
-                user: UserId("u1".into())
+                user: UserId("u1".into()),
+                relayed: false,
             }]
         );
         c.handle(ToSystem::Registered {

@@ -231,31 +231,46 @@ impl World {
         host.runs += 1;
         host.broker_pid = pid;
         let mut fed = FedCore::new(&host.name, pid, None, None, now);
-        let broker = match state {
+        let takeover = state.is_some();
+        let mut broker = match state {
             Some(mut b) => {
                 b.take_over(now, host.epoch, pid);
-                fed.forget_previous(&mut b, now);
                 b
             }
             None => Broker::new(BrokerConfig::default(), host.epoch, pid),
         };
-        host.broker = Some(broker);
-        host.fed = Some(fed);
         host.core_views.clear();
         host.local_views.clear();
         host.broker_watches.clear();
+        if takeover {
+            let mut io = HostInboxes {
+                open: &mut host.inboxes,
+                wire: &mut host.wire,
+                systems: &host.systems,
+                pid,
+            };
+            fed.take_over(now, &mut broker, &mut io);
+        }
+        host.broker = Some(broker);
+        host.fed = Some(fed);
         // Nobody's token is seen by a new session yet; its subscription's history
         // brings every live one.
         self.seen.retain(|(x, _)| *x != h);
-        // The presence event: everyone re-registers or says hello.
+        // The presence event: systems register again; users say hello to a new broker,
+        // or adopt a standby that took over with their state.
         let host = &mut self.hosts[h];
+        let epoch = host.epoch;
         for s in host.systems.values_mut() {
             s.core.broker_lost();
             s.core.register();
         }
         for u in host.users.values_mut() {
             u.core.broker_lost();
-            u.core.hello();
+            if takeover {
+                u.core.adopt(epoch, pid);
+            } else {
+                u.core.hello();
+            }
         }
         self.reconcile_tokens();
     }
@@ -876,9 +891,24 @@ impl World {
                                 b.handle_timeout(now);
                             }
                         }
-                        if let Some(f) = host.fed.as_mut() {
+                        let Host {
+                            broker,
+                            fed,
+                            inboxes,
+                            wire,
+                            systems,
+                            broker_pid,
+                            ..
+                        } = host;
+                        if let (Some(b), Some(f)) = (broker.as_mut(), fed.as_mut()) {
                             if f.poll_timeout().is_some_and(|ft| ft <= now) {
-                                f.handle_timeout(now);
+                                let mut io = HostInboxes {
+                                    open: inboxes,
+                                    wire,
+                                    systems,
+                                    pid: *broker_pid,
+                                };
+                                f.handle_timeout(now, b, &mut io);
                             }
                         }
                         for s in host.systems.values_mut() {

@@ -344,10 +344,13 @@ impl UserCore {
                     .unwrap_or_default();
                 *system_pid == pid && owner(&Address::System(system)) == Some(pid)
             }
-            ToUser::Update { session, .. } | ToUser::Status { session, .. } => self
-                .sessions
-                .get(session)
-                .is_none_or(|s| s.system_pid == pid),
+            // Another host's system's frames come from this host's broker (its relay),
+            // whichever process that is now.
+            ToUser::Update { session, .. } | ToUser::Status { session, .. } => {
+                self.sessions.get(session).is_none_or(|s| {
+                    s.system_pid == pid || (s.service.remote().is_some() && from_broker(&mut owner))
+                })
+            }
             // The broker ends a grant its system could not take.
             ToUser::Ended { session, .. } => {
                 self.sessions
@@ -385,7 +388,20 @@ impl UserCore {
     }
 
     /// Says hello (again, after a broker restart), re-sending requests still pending.
+    /// A new broker that did not take over the last one's state relays none of the
+    /// sessions on other hosts that went through it: they end here.
     pub fn hello(&mut self) {
+        if self.pid != 0 {
+            let far: Vec<SessionId> = self
+                .sessions
+                .iter()
+                .filter(|(_, s)| s.service.remote().is_some())
+                .map(|(id, _)| *id)
+                .collect();
+            for id in far {
+                self.close(id, EndReason::PeerGone, false);
+            }
+        }
         let links = self.links.values().map(|l| l.info.clone()).collect();
         self.send_broker(ToBroker::Hello {
             user: self.id.clone(),
@@ -821,8 +837,13 @@ impl UserCore {
             return self.end_at_once(system, session);
         };
         muster_shared::trace::stamp(muster_shared::trace::Stage::UserRecv, &self.id, req);
-        self.out
-            .push_back(UserOutput::WatchSystem(system.clone(), system_pid));
+        // Another host's system is reached through this host's broker, whose process
+        // may change (a standby takes over) while the system serves on: the federation
+        // says when it goes.
+        if service.remote().is_none() {
+            self.out
+                .push_back(UserOutput::WatchSystem(system.clone(), system_pid));
+        }
         self.sessions.insert(
             session,
             SessionInfo {

@@ -10,7 +10,7 @@
 //! caller's clock, so the same core runs under Zenoh (`driver.rs`) and on the virtual
 //! clock of `tests/harness.rs`.
 
-use super::{valid_host_name, Acl, Delivery, FarGrant, FedMsg, FedStats, Role};
+use super::{valid_host_name, Acl, Delivery, FarGrant, FedMsg, FedStats, HeldSession, Role};
 use crate::core::{Broker, Output};
 use muster_shared::names::Address;
 use muster_shared::protocol::{decode, LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser};
@@ -53,6 +53,15 @@ pub const LIST_REFRESH: Duration = Duration::from_secs(2);
 /// broker answers a pending one once, its system a granted one with the same session).
 const REQUEST_RETRY_FIRST: Duration = Duration::from_secs(1);
 const REQUEST_RETRY_MAX: Duration = Duration::from_secs(4);
+/// How long a host whose token went is waited for before its services, requests and
+/// sessions end here: a broker that dies and is taken over by its standby comes back
+/// within it (its token goes and comes), and the sessions it relayed go on.
+pub const HOST_GRACE: Duration = Duration::from_secs(5);
+/// How long after taking over a broker resumes, from other hosts' [`FedMsg::Held`], the
+/// sessions of its users there that it does not know yet (its predecessor relayed them).
+const RESUME_WINDOW: Duration = Duration::from_secs(10);
+/// Most sessions in one [`FedMsg::Held`] part.
+const HELD_PART: usize = 256;
 
 /// What comes from the other hosts.
 #[derive(Clone, Debug, PartialEq)]
@@ -243,6 +252,16 @@ pub struct FedCore {
     list_asked: BTreeMap<String, (Duration, Duration)>,
     /// Systems whose token is declared.
     system_tokens: BTreeSet<String>,
+    /// Hosts whose token went, and until when they are waited for ([`HOST_GRACE`]).
+    away: BTreeMap<String, Duration>,
+    /// Hosts asked which sessions of this host's users they hold ([`FedMsg::Resync`]),
+    /// until their last [`FedMsg::Held`] part comes.
+    resync: Retries<String, FedMsg>,
+    /// The sessions a host has said it holds so far in its answer.
+    held_seen: BTreeMap<String, BTreeSet<(UserId, SessionId)>>,
+    /// Until when sessions others hold for this host's users are resumed though not
+    /// known here (this broker took over: [`FedCore::take_over`]).
+    resume_until: Option<Duration>,
     stats: FedStats,
     /// The federation's access file, if it has one.
     acl: Option<Acl>,
@@ -281,6 +300,10 @@ impl FedCore {
             advertise,
             list_asked: BTreeMap::new(),
             system_tokens: BTreeSet::new(),
+            away: BTreeMap::new(),
+            resync: Retries::new(REQUEST_RETRY_FIRST, REQUEST_RETRY_MAX),
+            held_seen: BTreeMap::new(),
+            resume_until: None,
             stats: FedStats::default(),
             acl,
             out: VecDeque::new(),
@@ -333,14 +356,32 @@ impl FedCore {
         self.list_asked
             .values()
             .map(|(t, _)| *t)
+            .chain(self.away.values().copied())
+            .chain(self.resync.next_due())
             .chain(self.unanswered.next_due())
             .chain(std::iter::once(self.next_refresh))
             .min()
     }
 
     /// Asks again for lists that have not come, sends again requests with no answer,
-    /// and publishes this host's list again when it is time.
-    pub fn handle_timeout(&mut self, now: Duration) {
+    /// publishes this host's list again when it is time, and gives up on hosts gone
+    /// longer than [`HOST_GRACE`].
+    pub fn handle_timeout(&mut self, now: Duration, core: &mut Broker, inboxes: &mut dyn Inboxes) {
+        let gone: Vec<String> = self
+            .away
+            .iter()
+            .filter(|(_, t)| **t <= now)
+            .map(|(h, _)| h.clone())
+            .collect();
+        for host in gone {
+            self.away.remove(&host);
+            self.host_lost(&host, core, inboxes, now);
+        }
+        let alive = &self.alive;
+        self.resync.retain(|h| alive.contains(h));
+        for (host, msg) in self.resync.due(now) {
+            self.send(&host, msg);
+        }
         if now >= self.next_refresh {
             self.next_refresh = now + LIST_REFRESH;
             if self.my_list.0 > 0 && self.may(&self.host, Role::Offer) {
@@ -375,16 +416,42 @@ impl FedCore {
         }
     }
 
-    /// Forgets the users of other hosts a previous broker run served: after a takeover
-    /// their hosts see this host's token go and come back, and end their sessions here.
-    pub fn forget_previous(&mut self, core: &mut Broker, now: Duration) {
-        let old: Vec<UserId> = core
+    /// This broker took over its host from a broker that died (a standby, with the
+    /// core's state): the users of other hosts that one served are served on, their
+    /// sessions relayed again (their inboxes opened anew), and their hosts waited for
+    /// ([`HOST_GRACE`]); sessions of this host's users on other hosts are resumed as
+    /// those hosts say they hold them ([`FedMsg::Held`]).
+    pub fn take_over(&mut self, now: Duration, core: &mut Broker, inboxes: &mut dyn Inboxes) {
+        self.resume_until = Some(now + RESUME_WINDOW);
+        let theirs: Vec<UserId> = core
             .users()
             .filter(|u| Self::is_foreign(u))
             .cloned()
             .collect();
-        for u in old {
-            core.revoke(now, &u);
+        for u in theirs {
+            let host = host_of_foreign(&u)
+                .filter(|h| valid_host_name(h) && *h != self.host)
+                .map(str::to_string);
+            let inbox = core.user_pid(&u).is_some_and(|p| p != 0);
+            let opened = !inbox || open_inbox(inboxes, &Address::User(u.clone())).is_some();
+            let (Some(host), true) = (host, opened) else {
+                core.revoke(now, &u);
+                continue;
+            };
+            let sessions = core
+                .user_sessions(&u)
+                .into_iter()
+                .map(|(s, system, pid)| (s, (system, pid)))
+                .collect();
+            self.away.entry(host.clone()).or_insert(now + HOST_GRACE);
+            self.foreign.insert(
+                u,
+                Foreign {
+                    inbox,
+                    host,
+                    sessions,
+                },
+            );
         }
     }
 
@@ -447,7 +514,7 @@ impl FedCore {
     pub fn remote_views(&self) -> impl Iterator<Item = &ServiceView> {
         self.lists
             .iter()
-            .filter(|(h, _)| self.alive.contains(*h))
+            .filter(|(h, _)| self.listed(h))
             .flat_map(|(_, v)| v.iter())
     }
 
@@ -471,9 +538,15 @@ impl FedCore {
         let hosts = self
             .lists
             .iter()
-            .filter(|(h, _)| self.alive.contains(*h))
+            .filter(|(h, _)| self.listed(h))
             .map(|(_, v)| v.as_slice());
         merge_fairly(local, hosts, cap)
+    }
+
+    /// Whether `host`'s services are listed: its broker is up, or was until less than
+    /// [`HOST_GRACE`] ago.
+    fn listed(&self, host: &str) -> bool {
+        self.alive.contains(host) || self.away.contains_key(host)
     }
 
     /// Whether the other hosts' services changed since the last call.
@@ -515,7 +588,7 @@ impl FedCore {
                         "host {} may not request other hosts' services (the federation's access file)",
                         self.host
                     )))
-                } else if !self.alive.contains(&host) {
+                } else if !self.listed(&host) {
                     Some(Refusal::Unknown)
                 } else {
                     None
@@ -777,17 +850,27 @@ impl FedCore {
             FedInput::Alive(host, _) if host == self.host || !valid_host_name(&host) => {}
             FedInput::Alive(host, true) => {
                 if self.alive.insert(host.clone()) {
-                    tracing::info!(host = %host, "federation: host joined");
-                    self.list_changed = true;
+                    if self.away.remove(&host).is_some() {
+                        tracing::info!(host = %host, "federation: host back");
+                    } else {
+                        tracing::info!(host = %host, "federation: host joined");
+                        self.list_changed = true;
+                    }
                     self.out.push_back(FedOutput::QueryList(host.clone()));
                     self.list_asked
                         .insert(host.clone(), (now + LIST_RETRY_FIRST, LIST_RETRY_FIRST));
                     self.restate_links(&host);
+                    // Which sessions of this host's users does it hold (its broker may
+                    // be new, or this one)?
+                    self.held_seen.remove(&host);
+                    self.send(&host, FedMsg::Resync);
+                    self.resync.sent(host, FedMsg::Resync, now);
                 }
             }
             FedInput::Alive(host, false) => {
                 if self.alive.remove(&host) {
-                    self.host_lost(&host, core, inboxes, now);
+                    tracing::info!(host = %host, "federation: host's token went; waiting for it");
+                    self.away.insert(host, now + HOST_GRACE);
                 }
             }
             FedInput::List {
@@ -931,6 +1014,9 @@ impl FedCore {
         );
         self.list_versions.remove(host);
         self.list_asked.remove(host);
+        self.away.remove(host);
+        self.held_seen.remove(host);
+        self.resync.answered(&host.to_string());
         if self.lists.remove(host).is_some() {
             self.list_changed = true;
         }
@@ -1010,8 +1096,17 @@ impl FedCore {
             // Users only of hosts that joined (their broker's token is up): no ghost
             // users of a host that never did. A host's request that beat its token here
             // is asked again (the requesting broker resends unanswered requests).
-            FedMsg::Request { .. } | FedMsg::Link { .. } if !self.alive.contains(from) => {
+            FedMsg::Request { .. } | FedMsg::Link { .. } | FedMsg::Resync
+                if !self.alive.contains(from) =>
+            {
                 self.stats.dropped += 1;
+            }
+            FedMsg::Held { .. } if !self.may(from, Role::Offer) || !self.alive.contains(from) => {
+                self.stats.dropped += 1;
+            }
+            FedMsg::Resync => self.send_held(from),
+            FedMsg::Held { sessions, done } => {
+                self.on_held(from, sessions, done, core, inboxes, now)
             }
             FedMsg::Request {
                 user,
@@ -1174,6 +1269,110 @@ impl FedCore {
                     .insert((g.user.clone(), g.session), from.to_string());
                 self.out.push_back(FedOutput::Deliver(Delivery::Grant(g)));
             }
+        }
+    }
+
+    /// Tells host `to` which sessions of its users (those with an inbox here) this host
+    /// holds, in parts.
+    fn send_held(&mut self, to: &str) {
+        let held: Vec<HeldSession> = self
+            .foreign
+            .iter()
+            .filter(|(_, f)| f.inbox && f.host == to)
+            .flat_map(|(u, f)| {
+                f.sessions.iter().map(move |(s, (system, _))| HeldSession {
+                    user: local_part(u),
+                    session: *s,
+                    system: system.clone(),
+                })
+            })
+            .collect();
+        let mut parts: Vec<Vec<HeldSession>> = held.chunks(HELD_PART).map(<[_]>::to_vec).collect();
+        if parts.is_empty() {
+            parts.push(Vec::new());
+        }
+        let n = parts.len();
+        for (i, sessions) in parts.into_iter().enumerate() {
+            let done = i + 1 == n;
+            self.send(to, FedMsg::Held { sessions, done });
+        }
+    }
+
+    /// Host `from` holds `sessions` of this host's users: those relayed here go on;
+    /// those this broker does not know are resumed if it just took over (and their
+    /// user is still here), else ended there (and here, for a user that has one);
+    /// with the last part, this host's users' sessions there that it did not list end.
+    fn on_held(
+        &mut self,
+        from: &str,
+        sessions: Vec<HeldSession>,
+        done: bool,
+        core: &Broker,
+        inboxes: &mut dyn Inboxes,
+        now: Duration,
+    ) {
+        let resuming = self.resume_until.is_some_and(|t| now <= t);
+        let mut seen = self.held_seen.remove(from).unwrap_or_default();
+        for h in sessions {
+            if !valid_foreign_name(&h.user)
+                || check_name("system", &h.system, MAX_SYSTEM_NAME).is_err()
+            {
+                self.stats.dropped += 1;
+                continue;
+            }
+            let key = (h.user.clone(), h.session);
+            let local = core.user_pid(&h.user).is_some_and(|p| p != 0);
+            if self.far.get(&key).map(String::as_str) == Some(from) {
+                seen.insert(key);
+                continue;
+            }
+            let far_system = format!("{}@{from}", h.system);
+            let resumed = resuming
+                && local
+                && !self.far.contains_key(&key)
+                && (self.systems.contains(&far_system)
+                    || open_inbox(inboxes, &Address::System(far_system.clone())).is_some_and(
+                        |()| {
+                            self.systems.insert(far_system.clone());
+                            true
+                        },
+                    ));
+            if resumed {
+                tracing::info!(user = %h.user, host = from, "federation: a session on another host resumed");
+                self.far.insert(key.clone(), from.to_string());
+                seen.insert(key);
+                continue;
+            }
+            let end = FedMsg::ToSystem {
+                system: h.system,
+                msg: ToSystem::End {
+                    user: h.user.clone(),
+                    session: h.session,
+                },
+            };
+            self.send(from, end);
+        }
+        if !done {
+            self.held_seen.insert(from.to_string(), seen);
+            return;
+        }
+        self.resync.answered(&from.to_string());
+        let stale: Vec<(UserId, SessionId)> = self
+            .far
+            .iter()
+            .filter(|(k, h)| h.as_str() == from && !seen.contains(*k))
+            .filter(|((u, _), _)| core.user_pid(u).is_some_and(|p| p != 0))
+            .map(|(k, _)| k.clone())
+            .collect();
+        for (user, session) in stale {
+            self.far.remove(&(user.clone(), session));
+            self.stats.sessions_lost += 1;
+            let m = ToUser::Ended {
+                session,
+                reason: EndReason::PeerGone,
+                last_seq: 0,
+            };
+            self.deliver_msg(user, m);
         }
     }
 

@@ -407,20 +407,27 @@ impl Federation {
     }
 
     /// Closes proxies that have lingered long enough, and runs the core's timers.
-    pub fn sweep(&mut self) {
+    pub fn sweep(&mut self, core: &mut Broker, reactor: &Reactor, now: Duration) {
         let i = Instant::now();
         self.shm.lingering.retain(|(at, _, _)| *at > i);
-        let t = now();
-        if self.core.poll_timeout().is_some_and(|at| at <= t) {
-            self.core.handle_timeout(t);
+        if self.core.poll_timeout().is_some_and(|at| at <= now) {
+            let mut io = ShmIo {
+                shm: &mut self.shm,
+                reactor,
+            };
+            self.core.handle_timeout(now, core, &mut io);
         }
         self.carry_out();
     }
 
-    /// Forgets the users of other hosts a previous broker run served (see
-    /// [`FedCore::forget_previous`]).
-    pub fn forget_previous(&mut self, core: &mut Broker, now: Duration) {
-        self.core.forget_previous(core, now);
+    /// This broker took over its host (see [`FedCore::take_over`]).
+    pub fn take_over(&mut self, core: &mut Broker, reactor: &Reactor, now: Duration) {
+        let mut io = ShmIo {
+            shm: &mut self.shm,
+            reactor,
+        };
+        self.core.take_over(now, core, &mut io);
+        self.carry_out();
     }
 
     /// This host's services with other hosts' links counted, published (see

@@ -8,7 +8,7 @@
 //! |---|---|
 //! | `<host>/alive` | liveliness token of the host's broker |
 //! | `<host>/system/<name>` | liveliness token of each system registered there |
-//! | `<host>/list` | the host's services (JSON array of [`ServiceView`]), put on every change; also a queryable |
+//! | `<host>/list` | the host's services (JSON array of [`ServiceView`](muster_shared::snapshot::ServiceView)), put on every change; also a queryable |
 //! | `<host>/req/<from>` | a user's frames ([`FedMsg`]: request, cancel, input, end, gone) from host `from` to this host |
 //! | `<host>/in/<from>` | frames for a user ([`FedMsg::ToUser`]) from host `from`'s arbitration and systems |
 //!
@@ -44,19 +44,30 @@
 //! ([`FedMsg::Granted`]). The session then runs straight between the user and the
 //! system, as on one host; the system's host keeps no inbox for such a user.
 //!
-//! **Liveness.** A host whose token goes (process killed, link cut past the lease) has
-//! its services removed; its users' requests and sessions here end (the systems are
-//! told, as when a user is revoked), and the sessions local users held there end with
-//! `peer gone`. A user or system that dies is reported to the other side likewise. A
-//! cross-host session runs through the two brokers: if either dies, the session ends
-//! (its peer's pid, as the user or system sees it, is that broker's).
+//! **Liveness.** A host whose token goes (process killed, link cut past the lease) is
+//! waited for [`HOST_GRACE`]; if it is not back by then, its services are removed, its
+//! users' requests and sessions here end (the systems are told, as when a user is
+//! revoked), and the sessions local users held there end with `peer gone`. A user or
+//! system that dies is reported to the other side likewise.
+//!
+//! **Relays fail over.** A cross-host session runs through the two hosts' brokers, and
+//! survives either one's failover to its standby: users and systems do not watch a
+//! relay's process (they take its frames from whichever process is the broker now), the
+//! standby serves the other hosts' users its core holds and opens their inboxes again
+//! ([`FedCore::take_over`]), and whenever a host sees another (re)join it asks which
+//! sessions of its users that one holds ([`FedMsg::Resync`], answered by
+//! [`FedMsg::Held`]): those it relays go on, those its predecessor relayed are resumed,
+//! and the rest end on both sides. Frames sent while a relay was down are lost and
+//! counted as a gap. A broker that starts cold relays nothing of its predecessor's: its
+//! users end their sessions on other hosts when they say hello to it, and its systems
+//! end those of other hosts' users when they register with it.
 
 mod core;
 mod driver;
 
 pub use self::core::{
-    FedCore, FedInput, FedOutput, Inboxes, LIST_REFRESH, MAX_FOREIGN_USER, MAX_FOREIGN_USERS,
-    MAX_FOREIGN_USERS_PER_HOST, MAX_SERVICES_PER_HOST,
+    FedCore, FedInput, FedOutput, Inboxes, HOST_GRACE, LIST_REFRESH, MAX_FOREIGN_USER,
+    MAX_FOREIGN_USERS, MAX_FOREIGN_USERS_PER_HOST, MAX_SERVICES_PER_HOST,
 };
 pub use driver::{Federation, FIRST_PROXY_TOKEN};
 
@@ -448,6 +459,31 @@ pub enum FedMsg {
     /// A grant for a remote (UDP) user's request ([`FedMsg::Request`] with `remote`):
     /// the session runs between the user and the system's UDP endpoint.
     Granted(FarGrant),
+    /// The sending host saw the receiving host's broker (re)join, or (re)joined itself:
+    /// which sessions of its users does the receiving host hold? Answered with
+    /// [`FedMsg::Held`]; sent again until answered.
+    Resync,
+    /// The sessions the sending host holds for the receiving host's users (those with
+    /// an inbox there), in parts: the receiving host resumes relaying those it knows
+    /// (or, having just taken over, those of its users still here), ends the others,
+    /// and, with the last part (`done`), ends its users' sessions there not listed.
+    Held {
+        /// The sessions.
+        sessions: Vec<HeldSession>,
+        /// Whether this is the last part.
+        done: bool,
+    },
+}
+
+/// A session one host holds for another host's user ([`FedMsg::Held`]).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HeldSession {
+    /// The user, as its own host knows it.
+    pub user: UserId,
+    /// The session.
+    pub session: SessionId,
+    /// The system serving it, as the sending host knows it.
+    pub system: String,
 }
 
 /// A grant on another host for a remote (UDP) user: what its host's front tells it.
@@ -489,7 +525,10 @@ impl FedMsg {
     /// Whether the frame travels on the users' key (`req/`) rather than on the
     /// systems' (`in/`): access control tells the two apart.
     pub fn on_users_key(&self) -> bool {
-        !matches!(self, FedMsg::ToUser { .. } | FedMsg::Granted(_))
+        !matches!(
+            self,
+            FedMsg::ToUser { .. } | FedMsg::Granted(_) | FedMsg::Held { .. }
+        )
     }
 }
 

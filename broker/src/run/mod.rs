@@ -401,7 +401,7 @@ fn serve(
             };
             reactor.add(f.wake_fd(), TOKEN_FED)?;
             if how == Start::Takeover {
-                f.forget_previous(&mut core, host_now());
+                f.take_over(&mut core, &reactor, host_now());
             }
             Some(f)
         }
@@ -662,7 +662,7 @@ fn serve(
         }
         at(Phase::Timers);
         if let Some(f) = shell.fed.as_mut() {
-            f.sweep();
+            f.sweep(&mut core, &shell.reactor, now);
         }
         if let Some(d) = shell.udp.as_mut() {
             d.housekeeping(&mut shell.handling, &mut core, &mut shell.fed, now);
