@@ -5,7 +5,7 @@
 //! the merged list never holds more than it may.
 #![no_main]
 use libfuzzer_sys::fuzz_target;
-use muster_broker::federation::{FedCore, FedInput, FedMsg, FedOutput, Inboxes};
+use muster_broker::federation::{FedCore, FedInput, FedMsg, FedOutput, HeldSession, Inboxes};
 use muster_broker::{Broker, BrokerConfig, Output};
 use muster_shared::names::Address;
 use muster_shared::protocol::{encode, ToBroker, ToSystem, ToUser};
@@ -123,7 +123,16 @@ fn fed_msg(b: &mut Bytes) -> FedMsg {
         b.u8().unwrap_or(0),
         b.u8().unwrap_or(0),
     );
-    match k % 7 {
+    match k % 9 {
+        7 => FedMsg::Resync,
+        8 => FedMsg::Held {
+            sessions: vec![HeldSession {
+                user: user(u),
+                session: session(x),
+                system: if x % 2 == 0 { "t".into() } else { "t/x".into() },
+            }],
+            done: u % 2 == 0,
+        },
         0 => FedMsg::Request {
             user: user(u),
             req: u64::from(x % 4),
@@ -285,7 +294,12 @@ fuzz_target!(|data: &[u8]| {
             }
             8 => {
                 let k = b.u8().unwrap_or(0);
-                if k % 2 == 0 {
+                if k % 5 == 4 {
+                    // A standby takes over this state.
+                    fed = FedCore::new("me", 2, None, None, now);
+                    broker.take_over(now, 2, 2);
+                    fed.take_over(now, &mut broker, &mut io);
+                } else if k % 2 == 0 {
                     fed.local_user_gone(&user(k));
                     broker.user_died(now, &user(k));
                 } else {
@@ -295,7 +309,7 @@ fuzz_target!(|data: &[u8]| {
             _ => {
                 now += Duration::from_millis(u64::from(b.u8().unwrap_or(0)) * 40);
                 if fed.poll_timeout().is_some_and(|t| t <= now) {
-                    fed.handle_timeout(now);
+                    fed.handle_timeout(now, &mut broker, &mut io);
                 }
                 if broker.poll_timeout().is_some_and(|t| t <= now) {
                     broker.handle_timeout(now);
