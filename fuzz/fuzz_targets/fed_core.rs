@@ -198,7 +198,12 @@ fuzz_target!(|data: &[u8]| {
         match op % 10 {
             0 => {
                 let (h, up) = (b.u8().unwrap_or(0), b.u8().unwrap_or(0));
-                fed.handle(now, FedInput::Alive(host(h), up % 2 == 0), &mut broker, &mut io);
+                let input = if up % 4 < 2 {
+                    FedInput::Alive(host(h), up % 2 == 0)
+                } else {
+                    FedInput::Standby(host(h), up % 2 == 0)
+                };
+                fed.handle(now, input, &mut broker, &mut io);
             }
             1 => {
                 let h = b.u8().unwrap_or(0);

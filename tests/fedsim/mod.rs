@@ -65,6 +65,8 @@ pub struct Host {
     inboxes: BTreeSet<Address>,
     /// What the broker watches: pid → addresses.
     broker_watches: BTreeMap<u32, BTreeSet<Address>>,
+    /// Whether a standby runs beside its broker (its token is up while the broker is).
+    pub standby: bool,
     /// The core's rows, and this host's own with other hosts' links counted.
     core_views: Vec<ServiceView>,
     local_views: Vec<ServiceView>,
@@ -148,6 +150,8 @@ pub struct World {
     held: Vec<(usize, usize, Wire)>,
     /// Whether host `0` sees host `1`'s token.
     seen: BTreeSet<(usize, usize)>,
+    /// Whether host `0` sees host `1`'s standby token.
+    seen_standby: BTreeSet<(usize, usize)>,
     /// Frames between hosts delivered, duplicated, lost to a cut.
     pub carried: u64,
     /// Frames delivered twice.
@@ -181,6 +185,7 @@ impl World {
             cuts: BTreeMap::new(),
             held: Vec::new(),
             seen: BTreeSet::new(),
+            seen_standby: BTreeSet::new(),
             carried: 0,
             duplicated: 0,
             lost: 0,
@@ -200,6 +205,7 @@ impl World {
                 wire: VecDeque::new(),
                 inboxes: BTreeSet::new(),
                 broker_watches: BTreeMap::new(),
+                standby: false,
                 core_views: Vec::new(),
                 local_views: Vec::new(),
             });
@@ -256,6 +262,7 @@ impl World {
         // Nobody's token is seen by a new session yet; its subscription's history
         // brings every live one.
         self.seen.retain(|(x, _)| *x != h);
+        self.seen_standby.retain(|(x, _)| *x != h);
         // The presence event: systems register again; users say hello to a new broker,
         // or adopt a standby that took over with their state.
         let host = &mut self.hosts[h];
@@ -295,8 +302,17 @@ impl World {
         broker
     }
 
-    /// Host `h`'s broker dies and a standby, in sync with it, takes over.
+    /// A standby starts (or stops) beside host `h`'s broker.
+    pub fn set_standby(&mut self, h: usize, on: bool) {
+        self.hosts[h].standby = on;
+        self.reconcile_tokens();
+        self.settle();
+    }
+
+    /// Host `h`'s broker dies and its standby, in sync with it, takes over (another
+    /// standby starts beside it).
     pub fn fail_over(&mut self, h: usize) {
+        assert!(self.hosts[h].standby, "host {h} has no standby");
         let Some(old) = self.kill_broker(h) else {
             return;
         };
@@ -353,7 +369,8 @@ impl World {
         !self.cuts.get(&pair(a, b)).is_some_and(|c| c.down)
     }
 
-    /// Sends the token changes each host's session would see.
+    /// Sends the token changes each host's session would see (a standby token before
+    /// the broker's, when both go: either order can happen).
     fn reconcile_tokens(&mut self) {
         let n = self.hosts.len();
         for x in 0..n {
@@ -361,21 +378,30 @@ impl World {
                 if x == y || self.hosts[x].fed.is_none() {
                     continue;
                 }
-                let should = self.hosts[y].fed.is_some() && self.link_up(x, y);
-                let seen = self.seen.contains(&(x, y));
-                if should != seen {
-                    if should {
-                        self.seen.insert((x, y));
+                let up = self.hosts[y].fed.is_some() && self.link_up(x, y);
+                let standby = up && self.hosts[y].standby;
+                let name = self.hosts[y].name.clone();
+                for (seen, should, input) in [
+                    (true, standby, FedInput::Standby(name.clone(), standby)),
+                    (false, up, FedInput::Alive(name, up)),
+                ] {
+                    let set = if seen {
+                        &mut self.seen_standby
                     } else {
-                        self.seen.remove(&(x, y));
+                        &mut self.seen
+                    };
+                    if set.contains(&(x, y)) == should {
+                        continue;
                     }
-                    let name = self.hosts[y].name.clone();
+                    if should {
+                        set.insert((x, y));
+                    } else {
+                        set.remove(&(x, y));
+                    }
                     let at = self.now + self.latency;
                     self.seq += 1;
-                    self.inflight.insert(
-                        (at, self.seq),
-                        (y, x, Wire::Input(FedInput::Alive(name, should))),
-                    );
+                    self.inflight
+                        .insert((at, self.seq), (y, x, Wire::Input(input)));
                 }
             }
         }

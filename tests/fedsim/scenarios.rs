@@ -174,12 +174,8 @@ fn a_host_lost_ends_its_sessions_everywhere_and_frees_what_its_users_held() {
         "ta is full: {ev:?}"
     );
     w.lose_host(b);
-    // It is waited for a while (a standby may take over): listed still, sessions open.
-    w.run_for(HOST_GRACE - secs(0.5));
-    assert!(w.list_ids(a).contains(&"tb@b/s0".to_string()));
-    assert!(ended(&w.take_events(a, &ua)).is_empty());
-    w.run_for(secs(1.0));
-    // Then its services leave every list; the sessions there end as the peer's going.
+    w.run_for(secs(0.1));
+    // Its services leave every list; the sessions there end as the peer's going.
     assert_eq!(w.list_ids(a), sorted(&["ta/s0", "dc@c/s0"]));
     assert_eq!(w.list_ids(c), sorted(&["ta@a/s0", "dc/s0"]));
     assert_eq!(ended(&w.take_events(a, &ua)), [(sa, EndReason::PeerGone)]);
@@ -217,6 +213,24 @@ fn a_user_dying_ends_its_sessions_on_other_hosts_and_frees_their_places() {
 }
 
 #[test]
+fn a_host_with_a_standby_is_waited_for_then_given_up() {
+    let mut w = three_hosts(12);
+    let (a, b) = (w.h("a"), w.h("b"));
+    w.set_standby(b, true);
+    let ua = w.add_user(a, "ua");
+    let sa = grant(&mut w, a, &ua, "tb@b/s0");
+    w.lose_host(b);
+    // Its standby may take over: it stays listed, and the session open, a while.
+    w.run_for(HOST_GRACE - secs(0.5));
+    assert!(w.list_ids(a).contains(&"tb@b/s0".to_string()));
+    assert!(ended(&w.take_events(a, &ua)).is_empty());
+    w.run_for(secs(1.0));
+    assert_eq!(w.list_ids(a), sorted(&["ta/s0", "dc@c/s0"]));
+    assert_eq!(ended(&w.take_events(a, &ua)), [(sa, EndReason::PeerGone)]);
+    assert_eq!(w.fed(a).unwrap().stats().hosts_lost, 1);
+}
+
+#[test]
 fn a_partition_past_the_lease_ends_cross_host_sessions_and_the_heal_restores_lists_and_service() {
     let mut w = three_hosts(3);
     let (a, b, c) = (0, 1, 2);
@@ -227,11 +241,9 @@ fn a_partition_past_the_lease_ends_cross_host_sessions_and_the_heal_restores_lis
     w.run_for(secs(9.0));
     assert!(w.list_ids(a).contains(&"tb@b/s0".to_string()));
     assert!(ended(&w.take_events(a, &u1)).is_empty());
-    // Past it, and past the grace a host whose token went is given: a and b are gone
-    // for each other (not for c), the session ends on both sides, and tb's place is free.
+    // Past it: a and b are gone for each other (not for c), the session ends on both
+    // sides, and tb's place is free.
     w.run_for(secs(2.0));
-    assert!(w.list_ids(a).contains(&"tb@b/s0".to_string()));
-    w.run_for(HOST_GRACE);
     assert_eq!(w.list_ids(a), sorted(&["ta/s0", "dc@c/s0"]));
     assert_eq!(w.list_ids(b), sorted(&["tb/s0", "dc@c/s0"]));
     assert_eq!(w.list_ids(c), sorted(&["ta@a/s0", "tb@b/s0", "dc/s0"]));
@@ -400,6 +412,7 @@ fn duplicated_and_reordered_frames_never_grant_twice_nor_exceed_a_quota() {
 fn a_relay_failover_keeps_the_session(relay: &str, seed: u64) {
     let mut w = three_hosts(seed);
     let (a, b, r) = (w.h("a"), w.h("b"), w.h(relay));
+    w.set_standby(r, true);
     let u1 = w.add_user(a, "u1");
     let s1 = grant(&mut w, a, &u1, "tb@b/s0");
     w.run_for(secs(10.0));
@@ -489,6 +502,8 @@ fn six_hours_of_partitions_failovers_and_churn_keep_grants_single_and_lists_conv
             users.push((h, w.add_user(h, &format!("{name}{k}"))));
         }
     }
+    w.set_standby(b, true);
+    w.set_standby(c, true);
     let mut rng = rand_pcg::Pcg64::seed_from_u64(8);
     let mut turns = Turns::new(8, &users, "dc@c/s0", (c, "dc"));
     let mut grants = 0;

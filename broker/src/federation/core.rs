@@ -53,13 +53,17 @@ pub const LIST_REFRESH: Duration = Duration::from_secs(2);
 /// broker answers a pending one once, its system a granted one with the same session).
 const REQUEST_RETRY_FIRST: Duration = Duration::from_secs(1);
 const REQUEST_RETRY_MAX: Duration = Duration::from_secs(4);
-/// How long a host whose token went is waited for before its services, requests and
-/// sessions end here: a broker that dies and is taken over by its standby comes back
-/// within it (its token goes and comes), and the sessions it relayed go on.
+/// How long a host with a standby whose token went is waited for before its services,
+/// requests and sessions end here: a broker that dies and is taken over by its standby
+/// comes back within it (its token goes and comes), and the sessions it relayed go on.
+/// A host without a standby is gone at once.
 pub const HOST_GRACE: Duration = Duration::from_secs(5);
 /// How long after taking over a broker resumes, from other hosts' [`FedMsg::Held`], the
 /// sessions of its users there that it does not know yet (its predecessor relayed them).
 const RESUME_WINDOW: Duration = Duration::from_secs(10);
+/// A host whose standby token went this long before its broker's token is still taken
+/// to have had a standby (a killed broker's tokens go together, in any order).
+const STANDBY_SLACK: Duration = Duration::from_secs(1);
 /// Most sessions in one [`FedMsg::Held`] part.
 const HELD_PART: usize = 256;
 
@@ -68,6 +72,8 @@ const HELD_PART: usize = 256;
 pub enum FedInput {
     /// A host's broker token came (`true`) or went (`false`).
     Alive(String, bool),
+    /// A host's standby token came or went: its broker has a standby in sync beside it.
+    Standby(String, bool),
     /// A host's list: its version (0: none given, always taken) and its JSON body.
     List {
         /// The host.
@@ -254,6 +260,8 @@ pub struct FedCore {
     system_tokens: BTreeSet<String>,
     /// Hosts whose token went, and until when they are waited for ([`HOST_GRACE`]).
     away: BTreeMap<String, Duration>,
+    /// Hosts with a standby: `None` while its token is up, else when it went.
+    standbys: BTreeMap<String, Option<Duration>>,
     /// Hosts asked which sessions of this host's users they hold ([`FedMsg::Resync`]),
     /// until their last [`FedMsg::Held`] part comes.
     resync: Retries<String, FedMsg>,
@@ -301,6 +309,7 @@ impl FedCore {
             list_asked: BTreeMap::new(),
             system_tokens: BTreeSet::new(),
             away: BTreeMap::new(),
+            standbys: BTreeMap::new(),
             resync: Retries::new(REQUEST_RETRY_FIRST, REQUEST_RETRY_MAX),
             held_seen: BTreeMap::new(),
             resume_until: None,
@@ -847,7 +856,11 @@ impl FedCore {
         inboxes: &mut dyn Inboxes,
     ) {
         match input {
-            FedInput::Alive(host, _) if host == self.host || !valid_host_name(&host) => {}
+            FedInput::Alive(host, _) | FedInput::Standby(host, _)
+                if host == self.host || !valid_host_name(&host) => {}
+            FedInput::Standby(host, up) => {
+                self.standbys.insert(host, (!up).then_some(now));
+            }
             FedInput::Alive(host, true) => {
                 if self.alive.insert(host.clone()) {
                     if self.away.remove(&host).is_some() {
@@ -868,9 +881,17 @@ impl FedCore {
                 }
             }
             FedInput::Alive(host, false) => {
-                if self.alive.remove(&host) {
-                    tracing::info!(host = %host, "federation: host's token went; waiting for it");
+                let standby = match self.standbys.get(&host) {
+                    Some(None) => true,
+                    Some(Some(went)) => now <= *went + STANDBY_SLACK,
+                    None => false,
+                };
+                if !self.alive.remove(&host) {
+                } else if standby {
+                    tracing::info!(host = %host, "federation: host's token went; waiting for its standby");
                     self.away.insert(host, now + HOST_GRACE);
+                } else {
+                    self.host_lost(&host, core, inboxes, now);
                 }
             }
             FedInput::List {
@@ -1015,6 +1036,7 @@ impl FedCore {
         self.list_versions.remove(host);
         self.list_asked.remove(host);
         self.away.remove(host);
+        self.standbys.remove(host);
         self.held_seen.remove(host);
         self.resync.answered(&host.to_string());
         if self.lists.remove(host).is_some() {

@@ -55,7 +55,7 @@ fn list_version(sample: &zenoh::sample::Sample) -> u64 {
 
 fn input_bytes(ev: &FedInput) -> usize {
     match ev {
-        FedInput::Alive(..) => 0,
+        FedInput::Alive(..) | FedInput::Standby(..) => 0,
         FedInput::List { body, .. } => body.len(),
         FedInput::Frame { bytes, .. } => bytes.len(),
     }
@@ -186,6 +186,8 @@ pub struct Federation {
     session: zenoh::Session,
     _token: zenoh::liveliness::LivelinessToken,
     system_tokens: BTreeMap<String, zenoh::liveliness::LivelinessToken>,
+    /// Held while a standby is in sync beside this broker.
+    standby_token: Option<zenoh::liveliness::LivelinessToken>,
     _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
     _queryable: zenoh::query::Queryable<()>,
     /// This host's list as last published, for the queryable (on Zenoh's threads).
@@ -286,6 +288,27 @@ impl Federation {
             let me = host.clone();
             subscribers.push(
                 session
+                    .liveliness()
+                    .declare_subscriber(format!("{prefix}*/standby"))
+                    .history(true)
+                    .callback(move |s| {
+                        if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
+                            if h != me {
+                                let up = s.kind() == zenoh::sample::SampleKind::Put;
+                                n.push(FedInput::Standby(h.to_string(), up));
+                            }
+                        }
+                    })
+                    .wait()
+                    .map_err(zerr)?,
+            );
+        }
+        {
+            let n = notify.clone();
+            let p = prefix.clone();
+            let me = host.clone();
+            subscribers.push(
+                session
                     .declare_subscriber(format!("{prefix}*/list"))
                     .callback(move |s| {
                         if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
@@ -359,6 +382,7 @@ impl Federation {
             session,
             _token: token,
             system_tokens: BTreeMap::new(),
+            standby_token: None,
             _subscribers: subscribers,
             _queryable: queryable,
             my_list,
@@ -373,6 +397,22 @@ impl Federation {
             },
             deliveries: VecDeque::new(),
         })
+    }
+
+    /// Whether a standby is in sync beside this broker: the other hosts then wait for
+    /// this host a while when its token goes ([`super::HOST_GRACE`]).
+    pub fn set_standby(&mut self, has: bool) {
+        if has == self.standby_token.is_some() {
+            return;
+        }
+        self.standby_token = None;
+        if has {
+            let key = format!("{}{}/standby", self.prefix, self.core.host());
+            match self.session.liveliness().declare_token(&key).wait() {
+                Ok(t) => self.standby_token = Some(t),
+                Err(e) => tracing::warn!("federation: standby token: {e}"),
+            }
+        }
     }
 
     /// This host's name.

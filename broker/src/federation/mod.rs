@@ -7,6 +7,7 @@
 //! | key | what |
 //! |---|---|
 //! | `<host>/alive` | liveliness token of the host's broker |
+//! | `<host>/standby` | liveliness token the host's broker holds while a standby is in sync beside it |
 //! | `<host>/system/<name>` | liveliness token of each system registered there |
 //! | `<host>/list` | the host's services (JSON array of [`ServiceView`](muster_shared::snapshot::ServiceView)), put on every change; also a queryable |
 //! | `<host>/req/<from>` | a user's frames ([`FedMsg`]: request, cancel, input, end, gone) from host `from` to this host |
@@ -181,7 +182,7 @@ impl Acl {
                 "key_exprs": [all]}));
             rules.push(
                 json!({"id": format!("h{i}-token"), "flows": ["ingress"], "permission": "allow",
-                "messages": ["liveliness_token"], "key_exprs": [format!("{prefix}{host}/alive")]}),
+                "messages": ["liveliness_token"], "key_exprs": [format!("{prefix}{host}/alive"), format!("{prefix}{host}/standby")]}),
             );
             mine.push(format!("h{i}-token"));
             // What goes out to a member: the federation's declarations, queries, replies

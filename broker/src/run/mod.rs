@@ -662,6 +662,7 @@ fn serve(
         }
         at(Phase::Timers);
         if let Some(f) = shell.fed.as_mut() {
+            f.set_standby(shell.replica.writer.standbys() > 0);
             f.sweep(&mut core, &shell.reactor, now);
         }
         if let Some(d) = shell.udp.as_mut() {
