@@ -4,7 +4,8 @@
 //! it (CLOCK_MONOTONIC ns, one clock for every process on the host), keyed by the user
 //! and its request number: the user sending it, the broker receiving it, sending the
 //! offer and then the grant, the user receiving the grant; and off the user's path, the
-//! system receiving the offer and confirming it, the broker taking the confirmation.
+//! system receiving the offer and confirming it, the broker taking the confirmation;
+//! and the user taking the session's first update.
 //! Each process writes its stamps to `DIR/trace-PID.csv` when it exits; the stress
 //! harness joins them. Without the variable a stamp costs one load.
 
@@ -38,11 +39,14 @@ pub enum Stage {
     BrokerRelay,
     /// The user took the grant.
     UserRecv,
+    /// The user took the session's first update (a data session: its system sends one
+    /// as the session opens).
+    FirstUpdate,
 }
 
 impl Stage {
     /// Every stage.
-    pub const ALL: [Stage; 8] = [
+    pub const ALL: [Stage; 9] = [
         Stage::UserSend,
         Stage::BrokerRecv,
         Stage::BrokerSend,
@@ -51,6 +55,7 @@ impl Stage {
         Stage::BrokerAnswer,
         Stage::BrokerRelay,
         Stage::UserRecv,
+        Stage::FirstUpdate,
     ];
 
     /// Its name in the files.
@@ -64,6 +69,7 @@ impl Stage {
             Stage::BrokerAnswer => "broker_answer",
             Stage::BrokerRelay => "broker_relay",
             Stage::UserRecv => "user_recv",
+            Stage::FirstUpdate => "first_update",
         }
     }
 

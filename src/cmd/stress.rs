@@ -382,6 +382,10 @@ struct PerHop {
     confirm: Vec<Histogram<u64>>,
     /// The whole path, user send to grant taken.
     whole: Histogram<u64>,
+    /// User send to the system's confirmation: the session open where it runs.
+    session_open: Histogram<u64>,
+    /// User send to the session's first update taken (data sessions).
+    first_update: Histogram<u64>,
 }
 
 /// Each stamped request's stamps (CLOCK_MONOTONIC ns), by stage in [`Stage::ALL`]'s
@@ -439,6 +443,8 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
         grant: GRANT_HOPS.iter().map(|_| histogram()).collect(),
         confirm: CONFIRM_HOPS.iter().map(|_| histogram()).collect(),
         whole: histogram(),
+        session_open: histogram(),
+        first_update: histogram(),
     };
     let us = |from: u64, to: u64| ((to - from) / 1000).max(1);
     // A path's stamps, if all came in order.
@@ -449,6 +455,14 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
     for stamps in paths.values() {
         if !at(stamps, &Stage::UserSend).is_some_and(&sent_at) {
             continue;
+        }
+        for (to, h) in [
+            (Stage::SystemSend, &mut out.session_open),
+            (Stage::FirstUpdate, &mut out.first_update),
+        ] {
+            if let Some(t) = path(stamps, &[Stage::UserSend, to]) {
+                let _ = h.record(us(t[0], t[1]));
+            }
         }
         if let Some(t) = path(stamps, &CONFIRM_PATH) {
             for (h, w) in out.confirm.iter_mut().zip(t.windows(2)) {
@@ -660,6 +674,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "per_hop": hops_json(&GRANT_HOPS, &hops.grant),
         "per_hop_confirm": hops_json(&CONFIRM_HOPS, &hops.confirm),
         "per_hop_whole": summary(&hops.whole),
+        "request_to_session_open": summary(&hops.session_open),
+        "request_to_first_update": summary(&hops.first_update),
+        "request_to_first_update_p50_over_floor_p50": hops.first_update.value_at_quantile(0.5) as f64
+            / if a.remote { &floor_udp } else { &floor }.value_at_quantile(0.5).max(1) as f64,
         "per_hop_first_10s": hops_json(&GRANT_HOPS, &early_hops.grant),
         "per_hop_whole_first_10s": summary(&early_hops.whole),
     });
@@ -719,6 +737,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
         print_hops("to the user", &GRANT_HOPS, &hops.grant, line);
         println!("{}", line("  whole path (stamped)", &hops.whole));
+        println!("{}", line("  request → session open", &hops.session_open));
+        println!("{}", line("  request → first update", &hops.first_update));
         print_hops(
             "the system, off the user's path",
             &CONFIRM_HOPS,

@@ -619,12 +619,29 @@ impl SystemCore {
         payload: &Payload,
         sent_ns: u64,
     ) -> Result<usize, SendError> {
+        self.publish_where(payload, sent_ns, |_, s| s.service == service)
+    }
+
+    /// Sends a data update on one session only (a session just opened gets the current
+    /// value at once, not at the next update of its service); what [`SystemCore::publish`]
+    /// does for all of a service's. Nothing is sent for a session not open.
+    pub fn publish_session(
+        &mut self,
+        session: SessionId,
+        payload: &Payload,
+        sent_ns: u64,
+    ) -> Result<usize, SendError> {
+        self.publish_where(payload, sent_ns, |id, _| *id == session)
+    }
+
+    fn publish_where(
+        &mut self,
+        payload: &Payload,
+        sent_ns: u64,
+        on: impl Fn(&SessionId, &Session) -> bool,
+    ) -> Result<usize, SendError> {
         let (mut sent, mut refused, mut why) = (0, 0, None);
-        for (id, s) in self
-            .sessions
-            .iter_mut()
-            .filter(|(_, s)| s.service == service)
-        {
+        for (id, s) in self.sessions.iter_mut().filter(|(id, s)| on(id, s)) {
             s.seq += 1;
             let msg = ToUser::Update {
                 session: *id,
@@ -1122,6 +1139,41 @@ mod tests {
             })
             .collect();
         assert_eq!(seqs, vec![(s1, 1), (s1, 2), (s2, 1)]);
+    }
+
+    #[test]
+    fn one_sessions_update_goes_to_that_session_only_and_counts_in_its_sequence() {
+        let mut c = core();
+        let s1 = answer(&offer(&mut c, 1, "u1", "c")).unwrap().unwrap();
+        let s2 = answer(&offer(&mut c, 2, "u2", "c")).unwrap().unwrap();
+        let p = Payload::Pose2d {
+            x: 1.0,
+            y: 2.0,
+            theta: 0.0,
+        };
+        assert_eq!(c.publish_session(s2, &p, 7).unwrap(), 1);
+        assert_eq!(c.publish("c", &p, 8).unwrap(), 2);
+        assert_eq!(c.publish_session(SessionId(12345), &p, 9).unwrap(), 0);
+        let seqs: Vec<(SessionId, u64, u64)> = outs(&mut c)
+            .into_iter()
+            .filter_map(|o| match o {
+                SystemOutput::ToUser(
+                    _,
+                    ToUser::Update {
+                        session,
+                        seq,
+                        sent_ns,
+                        ..
+                    },
+                ) => Some((session, seq, sent_ns)),
+                _ => None,
+            })
+            .collect();
+        let mut want = vec![(s2, 1, 7), (s1, 1, 8), (s2, 2, 8)];
+        want[1..].sort();
+        let mut got = seqs.clone();
+        got[1..].sort();
+        assert_eq!(got, want, "{seqs:?}");
     }
 
     #[test]

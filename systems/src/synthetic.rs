@@ -118,10 +118,27 @@ const MAX_CATCH_UP: Duration = Duration::from_millis(100);
 impl SystemApp for Synthetic {
     fn on_event(&mut self, core: &mut SystemCore, now: Duration, event: SystemEvent) {
         match event {
-            SystemEvent::SessionStarted { session, .. } => {
+            SystemEvent::SessionStarted {
+                session, service, ..
+            } => {
+                // The tick due now sends the session its first update; when the next
+                // one is up to a period away (others hold sessions already), a data
+                // session gets the current value at once.
+                let tick_now = self.next <= now;
                 if self.next < now {
                     self.next = now;
                     self.last = now;
+                }
+                if self.kind == ServiceKind::Data && !tick_now {
+                    let i = core.specs().iter().position(|s| s.name == service);
+                    if let Some(i) = i {
+                        let sent = core.publish_session(
+                            session,
+                            &Self::pose_at(i, now),
+                            muster_shared::protocol::monotonic_ns(),
+                        );
+                        debug_assert!(sent.is_ok(), "{sent:?}");
+                    }
                 }
                 if self.kind == ServiceKind::Command {
                     self.drives.insert(

@@ -153,6 +153,8 @@ struct Pending {
 #[derive(Clone, Debug)]
 struct SessionInfo {
     service: ServiceId,
+    /// The request it answers.
+    req: u64,
     system: String,
     kind: ServiceKind,
     payload: String,
@@ -848,6 +850,7 @@ impl UserCore {
             session,
             SessionInfo {
                 service: service.clone(),
+                req,
                 system,
                 kind,
                 payload: payload.clone(),
@@ -921,9 +924,17 @@ impl UserCore {
     }
 
     fn update(&mut self, session: SessionId, seq: u64, sent_ns: u64, payload: Payload) {
+        let first = self
+            .sessions
+            .get(&session)
+            .filter(|s| s.last_seq == 0)
+            .map(|s| s.req);
         let Some((service, gap, link)) = self.accept_seq(session, seq) else {
             return;
         };
+        if let Some(req) = first {
+            muster_shared::trace::stamp(muster_shared::trace::Stage::FirstUpdate, &self.id, req);
+        }
         self.events.push_back(UserEvent::Update {
             session,
             service,
