@@ -93,6 +93,8 @@ pub enum SystemError {
 }
 
 const TOKEN_BELL: usize = 0;
+/// How often a system with sessions open takes in new writers to its inbox.
+const CONNECT_EVERY: Duration = Duration::from_millis(100);
 const TOKEN_PRESENCE: usize = 1;
 const TOKEN_SIGNAL: usize = 2;
 const TOKEN_BROKER: usize = 3;
@@ -280,7 +282,11 @@ pub fn run_system_with<A: SystemApp>(
             .as_ref()
             .and_then(|r| r.logic.poll_timeout())
             .map(|t| t.saturating_duration_since(Instant::now()));
-        let timeout = [timeout, shell.endpoint.sweep(), housekeeping]
+        // Users holding sessions open their ports to this inbox as they go: while any
+        // session is open, the inbox takes them in every CONNECT_EVERY, so the next
+        // offer is not read behind them.
+        let connect = (core.sessions().next().is_some()).then_some(CONNECT_EVERY);
+        let timeout = [timeout, shell.endpoint.sweep(), housekeeping, connect]
             .into_iter()
             .flatten()
             .min();
@@ -398,6 +404,7 @@ pub fn run_system_with<A: SystemApp>(
             app.on_tick(&mut core, now);
             deliver(&mut app, &mut core, &mut shell, now)?;
         }
+        shell.endpoint.update_connections();
         if app.stop_requested() {
             tracing::info!(system = core.name(), "stopping: the program asked");
             core.shutdown();

@@ -59,6 +59,9 @@ pub enum Wake {
     Timeout,
 }
 
+/// How long after a grant a user opens the granting system's inbox even if it has not heard
+/// from the system yet (see `to_warm`).
+const WARM_AFTER: Duration = Duration::from_millis(20);
 const TOKEN_BELL: usize = 0;
 const TOKEN_PRESENCE: usize = 1;
 const TOKEN_SIGNAL: usize = 2;
@@ -86,9 +89,12 @@ struct Local {
     systems: HashMap<usize, (String, PidFd)>,
     system_tokens: HashMap<String, usize>,
     next_token: usize,
-    /// Systems newly granting this user a session, whose inboxes it opens once idle:
-    /// its first frame to a system (an input, an end) then costs no first contact.
-    to_warm: Vec<String>,
+    /// Systems newly granting this user a session, whose inboxes it opens once idle and
+    /// once the system was heard from (or [`WARM_AFTER`] passed): its first frame to a
+    /// system (an input, an end) then costs no first contact, and the system, which
+    /// takes in each new writer to its inbox as it next reads it (about 0.1 ms), has
+    /// read the offer before this one appears.
+    to_warm: Vec<(String, Instant)>,
 }
 
 /// How this user reaches the federation.
@@ -422,7 +428,18 @@ impl UserClient {
             if let Transport::Local(l) = &mut self.transport {
                 // Nothing for the caller now: open the inboxes of systems that just
                 // granted a session, off the path of the grant itself.
-                for system in std::mem::take(&mut l.to_warm) {
+                let core = &self.core;
+                let heard = |system: &str| {
+                    core.sessions().any(|(id, service, _)| {
+                        service.split().is_some_and(|(s, _)| s == system)
+                            && core.counters(id).is_some_and(|c| c.last_seq > 0)
+                    })
+                };
+                let (ready, later): (Vec<_>, Vec<_>) = std::mem::take(&mut l.to_warm)
+                    .into_iter()
+                    .partition(|(s, since)| heard(s) || since.elapsed() >= WARM_AFTER);
+                l.to_warm = later;
+                for (system, _) in ready {
                     if let Err(e) = l.endpoint.open_ports(&Address::System(system)) {
                         tracing::debug!("{e}");
                     }
@@ -663,7 +680,7 @@ impl Local {
                         if reactor.add(p.raw(), t).is_ok() {
                             self.systems.insert(t, (system.clone(), p));
                             self.system_tokens.insert(system.clone(), t);
-                            self.to_warm.push(system);
+                            self.to_warm.push((system, Instant::now()));
                         }
                     }
                     // Gone before we could watch it (but not merely unwatchable).

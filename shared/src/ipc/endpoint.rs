@@ -399,6 +399,17 @@ impl Endpoint {
         self.control(to, msg, false)
     }
 
+    /// Connects the inbox to writers that appeared since it was last read (mapping
+    /// each new writer's memory costs about 0.1 ms), so that the next read, which would
+    /// do it first, does not: a process calls it when idle, off the path of the next
+    /// frame it waits for.
+    pub fn update_connections(&self) {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        if let Err(e) = self.inbox.update_connections() {
+            tracing::debug!("inbox connections: {e:?}");
+        }
+    }
+
     /// Whether [`Endpoint::send_control_quiet`] left bells to ring.
     pub fn bells_pending(&self) -> bool {
         !self.pending_bells.is_empty()
