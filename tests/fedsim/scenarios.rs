@@ -3,8 +3,9 @@
 //! hours of all of it at once.
 
 use super::{LinkFaults, World};
+use crate::secs;
 use muster_broker::federation::HOST_GRACE;
-use muster_shared::types::{EndReason, ServiceKind, SessionId, UserId};
+use muster_shared::types::{EndReason, SessionId, UserId};
 use muster_systems::synthetic::SyntheticOptions;
 use muster_users::core::UserEvent;
 use rand::{RngExt, SeedableRng};
@@ -12,27 +13,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 
 fn data(name: &str, quota: u16) -> SyntheticOptions {
-    SyntheticOptions {
-        name: name.into(),
-        services: 1,
-        kind: ServiceKind::Data,
-        quota,
-        queue: false,
-        payload: None,
-        rate_hz: 10.0,
-    }
-}
-
-fn command(name: &str, quota: u16, queue: bool) -> SyntheticOptions {
-    SyntheticOptions {
-        kind: ServiceKind::Command,
-        queue,
-        ..data(name, quota)
-    }
-}
-
-fn secs(s: f64) -> Duration {
-    Duration::from_secs_f64(s)
+    crate::data(name, 1, quota)
 }
 
 fn sorted(ids: &[&str]) -> Vec<String> {
@@ -90,7 +71,7 @@ fn three_hosts(seed: u64) -> World {
     let mut w = World::new(&["a", "b", "c"], seed);
     w.add_system(0, &data("ta", 2));
     w.add_system(1, &data("tb", 1));
-    w.add_system(2, &command("dc", 1, true));
+    w.add_system(2, &crate::command("dc", 1, true));
     w.run_for(secs(1.0));
     w
 }

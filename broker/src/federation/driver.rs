@@ -175,6 +175,9 @@ impl Inboxes for ShmIo<'_> {
     }
 }
 
+/// What a liveliness token's coming (`true`) or going is for the core.
+type TokenInput = fn(String, bool) -> FedInput;
+
 fn key_part<'a>(key: &'a str, prefix: &str) -> Option<(&'a str, &'a str)> {
     key.strip_prefix(prefix)?.split_once('/')
 }
@@ -261,41 +264,23 @@ impl Federation {
         });
         let zerr = |e: zenoh::Error| FedError::Open(e.to_string());
         let mut subscribers = Vec::new();
-        {
+        // Brokers' tokens, and their standbys'.
+        let tokens: [(&str, TokenInput); 2] =
+            [("alive", FedInput::Alive), ("standby", FedInput::Standby)];
+        for (what, input) in tokens {
             let n = notify.clone();
             let p = prefix.clone();
             let me = host.clone();
             subscribers.push(
                 session
                     .liveliness()
-                    .declare_subscriber(format!("{prefix}*/alive"))
+                    .declare_subscriber(format!("{prefix}*/{what}"))
                     .history(true)
                     .callback(move |s| {
                         if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
                             if h != me {
                                 let up = s.kind() == zenoh::sample::SampleKind::Put;
-                                n.push(FedInput::Alive(h.to_string(), up));
-                            }
-                        }
-                    })
-                    .wait()
-                    .map_err(zerr)?,
-            );
-        }
-        {
-            let n = notify.clone();
-            let p = prefix.clone();
-            let me = host.clone();
-            subscribers.push(
-                session
-                    .liveliness()
-                    .declare_subscriber(format!("{prefix}*/standby"))
-                    .history(true)
-                    .callback(move |s| {
-                        if let Some((h, _)) = key_part(s.key_expr().as_str(), &p) {
-                            if h != me {
-                                let up = s.kind() == zenoh::sample::SampleKind::Put;
-                                n.push(FedInput::Standby(h.to_string(), up));
+                                n.push(input(h.to_string(), up));
                             }
                         }
                     })
