@@ -12,6 +12,9 @@ from . import _native
 from ._errors import MusterError, Refused, SessionEnded
 from ._payloads import Value, from_wire, to_wire
 
+#: How many events of sessions not made yet (their grant still being taken) a user keeps.
+_EARLY_EVENTS = 1024
+
 
 @dataclass(frozen=True)
 class Service:
@@ -278,6 +281,9 @@ class User:
         self._native = _native.NativeUser(instance, remote, key, broker_key, wait)
         self._sessions: Dict[int, Session] = {}
         self._answers: Dict[int, List[dict]] = {}
+        # A session's events pumped before its Session was made (its grant and its
+        # first updates came in one batch): kept for it, oldest dropped past the bound.
+        self._early: Deque[dict] = collections.deque(maxlen=_EARLY_EVENTS)
         self._links: Dict[int, Link] = {}
         self._list_changes = 0
         #: Whether a broker is there now (sessions go on without one).
@@ -301,6 +307,8 @@ class User:
                 s._take(ev)
                 if s.ended is not None and not s._items:
                     self._sessions.pop(s.id, None)
+            else:
+                self._early.append(ev)
         elif e in ("queued", "granted", "refused"):
             self._answers.setdefault(ev["req"], []).append(ev)
         elif e == "list_changed":
@@ -415,6 +423,12 @@ class User:
             raise Refused(ev["service"], ev["code"], ev["reason"])
         s = Session(self, ev, queued)
         self._sessions[s.id] = s
+        mine = [e for e in self._early if e["session"] == s.id]
+        if mine:
+            self._early = collections.deque(
+                (e for e in self._early if e["session"] != s.id), maxlen=_EARLY_EVENTS)
+            for e in mine:
+                self._route(e)
         return s
 
     # Links.
