@@ -543,6 +543,14 @@ impl fmt::Display for SessionId {
 #[rkyv(derive(PartialEq, Eq, PartialOrd, Ord))]
 pub struct UserId(pub String);
 
+impl UserId {
+    /// Whether this is another host's user, as a federation names it here
+    /// (`user@host`): its host's broker relays its frames.
+    pub fn is_foreign(&self) -> bool {
+        self.0.contains('@')
+    }
+}
+
 impl fmt::Display for UserId {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(&self.0)

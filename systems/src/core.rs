@@ -148,11 +148,6 @@ struct Session {
     user_pid: u32,
 }
 
-/// Whether `user` is another host's user, relayed by this host's broker (`user@host`).
-fn relayed(user: &UserId) -> bool {
-    user.0.contains('@')
-}
-
 /// How many ended requests a system remembers, to refuse a repeated offer for one.
 pub const SERVED_MEMORY: usize = 4096;
 
@@ -320,7 +315,7 @@ impl SystemCore {
                 session: *id,
                 service: s.service.clone(),
                 user: s.user.clone(),
-                relayed: relayed(&s.user) && s.user_pid != 0,
+                relayed: s.user.is_foreign() && s.user_pid != 0,
             })
             .collect()
     }
@@ -360,7 +355,7 @@ impl SystemCore {
             // whichever process that is now.
             ToSystem::Input { session, .. } | ToSystem::End { session, .. } => {
                 self.sessions.get(session).is_none_or(|s| {
-                    s.user_pid == pid || (relayed(&s.user) && self.broker_pid == Some(pid))
+                    s.user_pid == pid || (s.user.is_foreign() && self.broker_pid == Some(pid))
                 })
             }
             _ => self.broker_pid.is_none_or(|b| b == pid),
@@ -590,7 +585,7 @@ impl SystemCore {
         // Another host's user is reached through this host's broker, whose process
         // may change (a standby takes over) without the user going: the federation
         // says when it goes.
-        if user_pid != 0 && !relayed(&user) {
+        if user_pid != 0 && !user.is_foreign() {
             self.out
                 .push_back(SystemOutput::WatchUser(user.clone(), user_pid));
         }

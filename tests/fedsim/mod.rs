@@ -717,7 +717,7 @@ impl World {
                 let Some(o) = f.route(b, o) else { continue };
                 match o {
                     Output::Granted(g) => {
-                        if !FedCore::is_foreign(&g.user) {
+                        if !g.user.is_foreign() {
                             let m = encode(&g.message()).unwrap();
                             host.wire.push_back(Frame::User(g.user.clone(), m, bpid));
                         }

@@ -350,11 +350,6 @@ impl FedCore {
         self.alive.iter().map(String::as_str)
     }
 
-    /// Whether `user` is another host's user served here (`user@host`).
-    pub fn is_foreign(user: &UserId) -> bool {
-        user.0.contains('@')
-    }
-
     /// The next output.
     pub fn poll_output(&mut self) -> Option<FedOutput> {
         self.out.pop_front()
@@ -432,11 +427,7 @@ impl FedCore {
     /// those hosts say they hold them ([`FedMsg::Held`]).
     pub fn take_over(&mut self, now: Duration, core: &mut Broker, inboxes: &mut dyn Inboxes) {
         self.resume_until = Some(now + RESUME_WINDOW);
-        let theirs: Vec<UserId> = core
-            .users()
-            .filter(|u| Self::is_foreign(u))
-            .cloned()
-            .collect();
+        let theirs: Vec<UserId> = core.users().filter(|u| u.is_foreign()).cloned().collect();
         for u in theirs {
             let host = host_of_foreign(&u)
                 .filter(|h| valid_host_name(h) && *h != self.host)
@@ -716,7 +707,7 @@ impl FedCore {
     /// remote user (who has no inbox here) to its host. Gives back the rest.
     pub fn route(&mut self, core: &Broker, out: Output) -> Option<Output> {
         match out {
-            Output::WatchUser { ref user, .. } if Self::is_foreign(user) => None,
+            Output::WatchUser { ref user, .. } if user.is_foreign() => None,
             Output::ToSystem(system, mut offer @ ToSystem::Offer { remote: None, .. }) => {
                 if let ToSystem::Offer {
                     user, req, remote, ..

@@ -415,11 +415,6 @@ impl Federation {
         self.waker.as_raw_fd()
     }
 
-    /// Whether `user` is another host's user served here (`user@host`).
-    pub fn is_foreign(user: &UserId) -> bool {
-        FedCore::is_foreign(user)
-    }
-
     /// When [`Federation::sweep`] is next due.
     pub fn next_due(&self) -> Option<Duration> {
         let (t, i) = (now(), Instant::now());

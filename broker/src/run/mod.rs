@@ -741,7 +741,7 @@ impl Shell {
             read += 1;
             match decode::<ToBroker>(&frame) {
                 Ok(ToBroker::Operate { user, id, .. })
-                    if !pid.is_some_and(instance_owner) || Federation::is_foreign(&user) =>
+                    if !pid.is_some_and(instance_owner) || user.is_foreign() =>
                 {
                     let m = ToUser::Operated {
                         id,
@@ -839,7 +839,7 @@ impl Shell {
                 // users' grants went to the UDP front; a user of another host hears
                 // through its own host's broker.)
                 Output::Granted(g) => {
-                    if Federation::is_foreign(&g.user) {
+                    if g.user.is_foreign() {
                         continue;
                     }
                     muster_shared::trace::stamp(Stage::BrokerRelay, &g.user, g.req);
