@@ -562,6 +562,18 @@ impl FedCore {
         });
     }
 
+    /// A local user's session on another host is gone with it (that host left, or no
+    /// longer holds it): counted, and the user told.
+    fn far_session_lost(&mut self, user: UserId, session: SessionId) {
+        self.stats.sessions_lost += 1;
+        let m = ToUser::Ended {
+            session,
+            reason: EndReason::PeerGone,
+            last_seq: 0,
+        };
+        self.deliver_msg(user, m);
+    }
+
     fn deliver_msg(&mut self, user: UserId, msg: ToUser) {
         self.out
             .push_back(FedOutput::Deliver(Delivery::Msg(user, msg)));
@@ -1045,13 +1057,7 @@ impl FedCore {
             self.deliver_msg(user, m);
         }
         for (user, session) in take_on_host(&mut self.far, host, String::as_str) {
-            self.stats.sessions_lost += 1;
-            let m = ToUser::Ended {
-                session,
-                reason: EndReason::PeerGone,
-                last_seq: 0,
-            };
-            self.deliver_msg(user, m);
+            self.far_session_lost(user, session);
         }
         let gone: Vec<String> = self
             .systems
@@ -1379,13 +1385,7 @@ impl FedCore {
             .collect();
         for (user, session) in stale {
             self.far.remove(&(user.clone(), session));
-            self.stats.sessions_lost += 1;
-            let m = ToUser::Ended {
-                session,
-                reason: EndReason::PeerGone,
-                last_seq: 0,
-            };
-            self.deliver_msg(user, m);
+            self.far_session_lost(user, session);
         }
     }
 
