@@ -227,16 +227,10 @@ pub struct UserCore {
     /// the user ended it, before the system heard the end.
     /// With each, the copies of its grant that came.
     closed: std::collections::VecDeque<(SessionId, u8)>,
-    /// A session's first frames that came before its grant (from the system, straight,
-    /// while the grant came the broker's way), at most [`EARLY_FRAMES`], oldest first:
-    /// taken when the grant comes.
-    early: std::collections::VecDeque<ToUser>,
 }
 
 /// How many closed sessions a user remembers.
 const RECENTLY_CLOSED: usize = 256;
-/// How many frames of sessions not granted yet a user keeps.
-const EARLY_FRAMES: usize = 32;
 
 impl UserCore {
     /// A user `id` in process `pid`; `watch_list` asks the broker to ring on list changes.
@@ -244,7 +238,6 @@ impl UserCore {
         UserCore {
             ending: std::collections::BTreeSet::new(),
             closed: std::collections::VecDeque::new(),
-            early: std::collections::VecDeque::new(),
             id,
             pid,
             watch_list,
@@ -697,40 +690,6 @@ impl UserCore {
 
     /// Handles one frame from the inbox.
     pub fn handle(&mut self, msg: ToUser) {
-        // A session's update or status before its grant: the system's frame overtook
-        // the broker's (they come different ways, a remote user's over UDP), and is
-        // kept until the grant comes, not lost.
-        if let ToUser::Update { session, .. } | ToUser::Status { session, .. } = &msg {
-            let known = self.sessions.contains_key(session)
-                || self.closed.iter().any(|(s, _)| s == session);
-            if !known {
-                if self.early.len() >= EARLY_FRAMES {
-                    self.early.pop_front();
-                    self.stale_frames += 1;
-                }
-                self.early.push_back(msg);
-                return;
-            }
-        }
-        let granted = match &msg {
-            ToUser::Granted { session, .. } => Some(*session),
-            _ => None,
-        };
-        self.dispatch(msg);
-        // The frames that came ahead of this grant, in order.
-        if let Some(session) = granted.filter(|s| self.sessions.contains_key(s)) {
-            let (ahead, rest): (Vec<ToUser>, Vec<ToUser>) =
-                std::mem::take(&mut self.early).into_iter().partition(|m| {
-                    matches!(m, ToUser::Update { session: s, .. } | ToUser::Status { session: s, .. } if *s == session)
-                });
-            self.early = rest.into();
-            for m in ahead {
-                self.dispatch(m);
-            }
-        }
-    }
-
-    fn dispatch(&mut self, msg: ToUser) {
         match msg {
             ToUser::Operated { id, result } => {
                 self.events.push_back(UserEvent::Operated { id, result });
@@ -1296,46 +1255,7 @@ mod tests {
         );
         assert_eq!(u.stale_frames(), 2);
         update(&mut u, 404, 1);
-        assert_eq!(u.stale_frames(), 2, "held: its grant may come after it");
-        assert!(events(&mut u).is_empty());
-        for k in 0..EARLY_FRAMES as u64 {
-            update(&mut u, 405, k + 1);
-        }
-        assert_eq!(
-            u.stale_frames(),
-            3,
-            "an update for no session is dropped once newer ones push it out"
-        );
-        assert!(events(&mut u).is_empty());
-    }
-
-    #[test]
-    fn a_sessions_frames_that_overtake_its_grant_come_after_it_in_order() {
-        let mut u = user();
-        let req = u.request(ServiceId::new("t", "a"));
-        events(&mut u);
-        // The system's first frames, straight, before the broker's grant.
-        update(&mut u, 9, 1);
-        update(&mut u, 9, 2);
-        update(&mut u, 77, 1);
-        assert!(events(&mut u).is_empty());
-        grant(&mut u, req, 9, "t/a", ServiceKind::Data, "pose2d");
-        update(&mut u, 9, 3);
-        let seen: Vec<String> = events(&mut u)
-            .into_iter()
-            .filter_map(|e| match e {
-                UserEvent::Granted { session, .. } => Some(format!("granted {}", session.0)),
-                UserEvent::Update {
-                    session, seq, gap, ..
-                } => Some(format!("{} #{seq} gap {gap}", session.0)),
-                _ => None,
-            })
-            .collect();
-        assert_eq!(
-            seen,
-            ["granted 9", "9 #1 gap 0", "9 #2 gap 0", "9 #3 gap 0"]
-        );
-        assert_eq!(u.stale_frames(), 0);
+        assert_eq!(u.stale_frames(), 3, "updates for no session are dropped");
     }
 
     #[test]
