@@ -657,6 +657,10 @@ pub struct LivenessArgs {
     /// Users holding a data session (one process each) during the broker-restart trials.
     #[arg(long, default_value_t = 0)]
     pub users: usize,
+    /// Kill each restarted broker as soon as its list is complete, without waiting for
+    /// the cleanup after the one before (dead brokers pile up: a crash loop).
+    #[arg(long)]
+    pub crash_loop: bool,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,

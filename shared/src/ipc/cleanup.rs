@@ -77,19 +77,27 @@ fn old(meta: &std::fs::Metadata) -> bool {
 }
 
 fn cleanup_after_inner(pid: Option<u32>) -> usize {
+    // Beside whatever the host is doing, never ahead of it: a dead broker's cleanup
+    // takes seconds of a core (see `BROKER_GENERATIONS`), and nothing waits for it any
+    // more: the broker's services keep room for the dead brokers' ports meanwhile.
+    let _ = crate::reactor::set_nice(19);
     let mut n = 0;
     if let Some(pid) = pid {
         let until = std::time::Instant::now() + Duration::from_secs(10);
         while crate::reactor::process_alive(pid) && std::time::Instant::now() < until {
             std::thread::sleep(Duration::from_millis(5));
         }
-        // The old primary's first, at full speed: it holds one of the broker inbox's
-        // reader slots, which the next takeover or restart needs.
         n += cleanup_dead_nodes(Some(pid));
     }
-    // The rest beside whatever the host is doing, never ahead of it.
-    let _ = crate::reactor::set_nice(19);
+    // Dead brokers next: the slots they hold are the scarcest.
+    n += cleanup_dead_nodes_where(is_broker_node);
     n + cleanup_dead_nodes(None)
+}
+
+/// Whether an iceoryx2 node of this name is a broker's (primary or standby), of any
+/// instance.
+fn is_broker_node(name: &str) -> bool {
+    name.starts_with("muster-broker-") || name.starts_with("muster-standby-")
 }
 
 /// Removes what the dead process `pid` left, waiting up to `patience` for a cleanup
@@ -119,10 +127,22 @@ pub fn cleanup_dead_nodes_of_waiting(pid: u32, patience: Duration) -> usize {
         .count()
 }
 
+/// How many iceoryx2 nodes of dead processes are still waiting for their cleanup.
+pub fn dead_nodes() -> usize {
+    let mut n = 0;
+    let _ = Node::<Ipc>::list(&config(true), |state| {
+        if let NodeState::Dead(_) = state {
+            n += 1;
+        }
+        CallbackProgression::Continue
+    });
+    n
+}
+
 /// Removes what dead processes left in shared memory: those of process `only`, or all.
 /// Returns how many nodes were removed.
 pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
-    use iceoryx2::node::{NodeCleanupFailure, NodeView};
+    use iceoryx2::node::NodeView;
     let mut dead = Vec::new();
     let _ = Node::<Ipc>::list(&config(true), |state| {
         if let NodeState::Dead(view) = state {
@@ -132,10 +152,36 @@ pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
         }
         CallbackProgression::Continue
     });
-    let n = dead.len();
     if only.is_none() {
         remove_half_removed_monitors(&std::path::Path::new(&iox2_root()).join("nodes"));
     }
+    remove_dead(dead)
+}
+
+/// Removes what dead processes whose node name `pred` takes left in shared memory.
+/// Returns how many nodes were removed.
+fn cleanup_dead_nodes_where(pred: impl Fn(&str) -> bool) -> usize {
+    use iceoryx2::node::NodeView;
+    let mut dead = Vec::new();
+    let _ = Node::<Ipc>::list(&config(true), |state| {
+        if let NodeState::Dead(view) = state {
+            if view
+                .details()
+                .as_ref()
+                .is_some_and(|d| pred(d.name().as_str()))
+            {
+                dead.push(view);
+            }
+        }
+        CallbackProgression::Continue
+    });
+    remove_dead(dead)
+}
+
+/// Removes what the dead nodes `dead` left; returns how many there were.
+fn remove_dead(dead: Vec<iceoryx2::node::DeadNodeView<Ipc>>) -> usize {
+    use iceoryx2::node::{NodeCleanupFailure, NodeView};
+    let n = dead.len();
     for view in dead {
         if view.details().is_none() {
             // Killed while its node was being made: no details, so iceoryx2 would look

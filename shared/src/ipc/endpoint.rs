@@ -52,6 +52,55 @@ pub const MAX_BACKLOG: usize = 4096;
 /// How soon a held-back control frame is tried again.
 const BACKLOG_RETRY: Duration = Duration::from_millis(2);
 
+/// Why a port could not be made after freeing what dead holders kept.
+enum Held<E> {
+    /// Every slot is held by a live process: the name is in use.
+    Full,
+    /// Anything else iceoryx2 said.
+    Other(E),
+}
+
+/// Makes a reading port (an inbox's subscriber, a bell's listener) whose slots dead
+/// processes of the same name may still hold: a broker SIGKILLed again and again, with
+/// no cleanup between, leaves one behind each time. When `make` fails, the dead holders
+/// that `holders` names are cleaned up after first (a dead broker has hundreds of ports;
+/// the other dead nodes can wait), waiting for a cleanup another process has under way,
+/// and `make` is tried after each; then after every dead node.
+fn with_dead_holders_freed<T, E: std::fmt::Debug>(
+    node: &Node<Ipc>,
+    name: &str,
+    holders: impl Fn() -> Vec<u32>,
+    mut make: impl FnMut() -> Result<T, E>,
+) -> Result<T, Held<E>> {
+    if let Ok(port) = make() {
+        return Ok(port);
+    }
+    let dead: Vec<u32> = holders()
+        .into_iter()
+        .filter(|p| !crate::reactor::process_alive(*p))
+        .collect();
+    tracing::info!(service = %name, dead = ?dead, "the reader slots are held: cleaning up after dead readers");
+    remove_stillborn_segments();
+    for pid in dead {
+        cleanup_dead_nodes_of_waiting(pid, DEAD_HOLDER_PATIENCE);
+        if let Ok(port) = make() {
+            return Ok(port);
+        }
+    }
+    node.try_cleanup_dead_nodes();
+    make().map_err(|e| {
+        if format!("{e:?}").contains("ExceedsMax") {
+            Held::Full
+        } else {
+            Held::Other(e)
+        }
+    })
+}
+
+/// How long [`with_dead_holders_freed`] waits for another process's cleanup of one dead
+/// holder.
+const DEAD_HOLDER_PATIENCE: Duration = Duration::from_secs(3);
+
 impl Endpoint {
     /// Creates (or takes over, after a crash) the inbox and bell of `me`.
     pub fn open(inst: &Instance, me: Address, node: Node<Ipc>) -> Result<Self, TransportError> {
@@ -69,48 +118,23 @@ impl Endpoint {
             .enable_safe_overflow(false)
             .open_or_create()
             .map_err(|e| svc_err(&inbox_name, e))?;
-        let inbox = match svc.subscriber_builder().buffer_size(limits.buffer).create() {
-            Ok(s) => s,
-            Err(_) => {
-                // A dead process of the same name may still hold the reader slots: clean
-                // up after those readers first (a dead broker has hundreds of ports, and
-                // the other dead nodes can wait), then after every dead node.
-                let mut dead = Vec::new();
+        let inbox = with_dead_holders_freed(
+            &node,
+            &inbox_name,
+            || {
+                let mut pids = Vec::new();
                 svc.dynamic_config().list_subscribers(|d| {
-                    dead.extend(node_pid(&d.node_id));
+                    pids.extend(node_pid(&d.node_id));
                     CallbackProgression::Continue
                 });
-                tracing::info!(inbox = %inbox_name, readers = ?dead, "the inbox's reader slots are held: cleaning up after dead readers");
-                remove_stillborn_segments();
-                let mut made = None;
-                for pid in dead
-                    .into_iter()
-                    .filter(|p| !crate::reactor::process_alive(*p))
-                {
-                    // A cleanup process may be at it already: wait for it.
-                    cleanup_dead_nodes_of_waiting(pid, Duration::from_secs(3));
-                    if let Ok(s) = svc.subscriber_builder().buffer_size(limits.buffer).create() {
-                        made = Some(s);
-                        break;
-                    }
-                }
-                if let Some(s) = made {
-                    s
-                } else {
-                    node.try_cleanup_dead_nodes();
-                    svc.subscriber_builder()
-                        .buffer_size(limits.buffer)
-                        .create()
-                        .map_err(|e| {
-                            if format!("{e:?}").contains("ExceedsMax") {
-                                TransportError::InUse(me.clone())
-                            } else {
-                                svc_err(&inbox_name, e)
-                            }
-                        })?
-                }
-            }
-        };
+                pids
+            },
+            || svc.subscriber_builder().buffer_size(limits.buffer).create(),
+        )
+        .map_err(|e| match e {
+            Held::Full => TransportError::InUse(me.clone()),
+            Held::Other(e) => svc_err(&inbox_name, e),
+        })?;
         let bell_name = inst.bell(&me);
         let bell_svc = node
             .service_builder(&service_name(&bell_name)?)
@@ -121,16 +145,23 @@ impl Endpoint {
             .event_id_max_value(bell::MAX)
             .open_or_create()
             .map_err(|e| svc_err(&bell_name, e))?;
-        let bell = match bell_svc.listener_builder().create() {
-            Ok(l) => l,
-            Err(_) => {
-                node.try_cleanup_dead_nodes();
-                bell_svc
-                    .listener_builder()
-                    .create()
-                    .map_err(|e| svc_err(&bell_name, e))?
-            }
-        };
+        let bell = with_dead_holders_freed(
+            &node,
+            &bell_name,
+            || {
+                let mut pids = Vec::new();
+                bell_svc.dynamic_config().list_listeners(|d| {
+                    pids.extend(node_pid(&d.node_id));
+                    CallbackProgression::Continue
+                });
+                pids
+            },
+            || bell_svc.listener_builder().create(),
+        )
+        .map_err(|e| match e {
+            Held::Full => TransportError::InUse(me.clone()),
+            Held::Other(e) => svc_err(&bell_name, e),
+        })?;
         Ok(Endpoint {
             inst: inst.clone(),
             me,
