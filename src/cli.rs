@@ -103,10 +103,11 @@ pub enum Command {
     /// loss stalls a TCP stream (used between the hosts of `muster netns`).
     #[command(hide = true)]
     NetProxy(NetProxyArgs),
-    /// (internal) Remove what dead processes left in shared memory: those of `--pid`,
-    /// or all. Brokers run it as a process of its own, so that a cleanup outlives a
-    /// broker killed in the middle of it (iceoryx2 never cleans a node whose cleaner died).
-    #[command(hide = true)]
+    /// Remove what killed processes left in shared memory (/dev/shm): their iceoryx2
+    /// nodes, ports and segments (those of `--pid`, or all), and the instance's fence
+    /// file once no broker or standby of it runs. A broker runs it too, as a process of
+    /// its own, so that a cleanup outlives a broker killed in the middle of it (iceoryx2
+    /// never cleans a node whose cleaner died).
     Cleanup {
         /// Only this process's, once it has exited (a process SIGKILLed while stopped
         /// takes a moment to go; until then its nodes are not dead).
@@ -115,6 +116,10 @@ pub enum Command {
         /// Wait this long first.
         #[arg(long, default_value = "0s", value_parser = duration)]
         after: Duration,
+        /// (internal) Run by a broker: its instance's fence is never removed (a broker
+        /// starting or a standby taking over may be about to hold it).
+        #[arg(long, hide = true)]
+        beside_broker: bool,
     },
 }
 
@@ -276,6 +281,11 @@ pub enum BenchCommand {
     /// through `muster system ros2` beside rclpy to rclpy, a muster goal to an rclpy
     /// subscriber, and `muster sim --ros2` with N robots and one rclpy node on every scan.
     Ros2(Ros2BenchArgs),
+    /// Every kind of process (broker, standby, system, user, simulator, federated
+    /// broker) SIGKILLed N times each on an instance of its own; then the files in
+    /// /dev/shm left after the instance's next start and after `muster cleanup`. Run
+    /// it alone on the host.
+    Leftovers(LeftoversArgs),
     /// (internal) A user of `bench failover`.
     #[command(hide = true)]
     FailoverUser(FailoverUserArgs),
@@ -604,7 +614,9 @@ pub struct FailoverArgs {
     /// Services per system.
     #[arg(long, default_value_t = 4)]
     pub services_per_system: usize,
-    /// Which signal ends the primary: kill (SIGKILL), stop (SIGSTOP) or both, alternating.
+    /// How the primary fails: kill (SIGKILL), stop (SIGSTOP), hang (its loop stops while
+    /// the process lives: every broker runs with `--fault hang-on-usr1`, and SIGUSR1
+    /// hangs it), both (kill and stop, alternating) or all three in turn.
     #[arg(long, default_value = "both")]
     pub signal: String,
     /// The standbys' --takeover-deadline.
@@ -616,6 +628,23 @@ pub struct FailoverArgs {
     /// How long the load runs between two rounds.
     #[arg(long, default_value = "500ms", value_parser = duration)]
     pub settle: Duration,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct LeftoversArgs {
+    /// SIGKILLs per kind.
+    #[arg(long, default_value_t = 100)]
+    pub kills: usize,
+    /// The kinds (comma-separated).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "broker,standby,system,user,sim,federated"
+    )]
+    pub kinds: Vec<String>,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -687,7 +716,8 @@ fn fault(s: &str) -> Result<muster_broker::run::Fault, String> {
             .parse()
             .map(muster_broker::run::Fault::HangAfter)
             .map_err(|e| format!("hang-after:N takes a number of passes ({e})")),
-        _ => Err(format!("unknown fault {s:?} (hang-after:N)")),
+        None if s == "hang-on-usr1" => Ok(muster_broker::run::Fault::HangOnUsr1),
+        _ => Err(format!("unknown fault {s:?} (hang-after:N, hang-on-usr1)")),
     }
 }
 

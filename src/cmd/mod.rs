@@ -112,10 +112,22 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Replay(a) => view::replay(a),
         Command::Netns(a) => netns::run(&inst, a),
         Command::NetProxy(a) => netns::proxy(a),
-        Command::Cleanup { pid, after } => {
+        Command::Cleanup {
+            pid,
+            after,
+            beside_broker,
+        } => {
             std::thread::sleep(after);
             let n = muster_shared::ipc::cleanup_after(pid);
             tracing::debug!(nodes = n, "cleaned up after dead processes");
+            // The fence of a run whose brokers were all killed: no broker or standby
+            // alive (by their nodes, and the pid the fence names).
+            if !beside_broker
+                && muster_shared::ipc::live_brokers(&inst) == 0
+                && muster_shared::fence::remove_if_orphaned(&inst)
+            {
+                tracing::info!(instance = %inst, "removed the fence of a broker that was killed");
+            }
             Ok(ExitCode::SUCCESS)
         }
         Command::Capacity(a) => capacity::run(a),

@@ -27,10 +27,16 @@ pub(super) fn cleaner(
 ) -> std::thread::JoinHandle<usize> {
     let mut cmd = CLEANUP_PROGRAM.get().map(|exe| {
         let mut c = std::process::Command::new(exe);
-        c.args(["--instance", inst.as_str(), "cleanup", "--after"])
-            .arg(format!("{}ms", delay.as_millis()))
-            .stdin(std::process::Stdio::null())
-            .stdout(std::process::Stdio::null());
+        c.args([
+            "--instance",
+            inst.as_str(),
+            "cleanup",
+            "--beside-broker",
+            "--after",
+        ])
+        .arg(format!("{}ms", delay.as_millis()))
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null());
         if let Some(pid) = pid {
             c.arg("--pid").arg(pid.to_string());
         }

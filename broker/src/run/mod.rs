@@ -180,13 +180,39 @@ pub enum Fault {
     /// After this many passes, the primary's loop stops for good while its process
     /// lives on: a deadlock, as a standby sees it.
     HangAfter(u64),
+    /// Once SIGUSR1 arrives, the primary's loop stops for good at its next pass (a
+    /// standby's too, once it serves): a hang at a moment a bench chooses.
+    HangOnUsr1,
 }
 
 static FAULT: std::sync::OnceLock<Fault> = std::sync::OnceLock::new();
+/// Set by SIGUSR1 under [`Fault::HangOnUsr1`].
+static USR1: std::sync::OnceLock<std::sync::Arc<std::sync::atomic::AtomicBool>> =
+    std::sync::OnceLock::new();
 
 /// Arms `fault` in this process's primary loop.
 pub fn set_fault(fault: Fault) {
+    if fault == Fault::HangOnUsr1 {
+        let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        match signal_hook::flag::register(signal_hook::consts::SIGUSR1, flag.clone()) {
+            Ok(_) => {
+                let _ = USR1.set(flag);
+            }
+            Err(e) => tracing::warn!("fault hang-on-usr1 not armed: {e}"),
+        }
+    }
     let _ = FAULT.set(fault);
+}
+
+/// Whether the armed fault says the loop stops at this pass.
+fn fault_now(passes: u64) -> bool {
+    match FAULT.get() {
+        Some(Fault::HangAfter(n)) => passes >= *n,
+        Some(Fault::HangOnUsr1) => USR1
+            .get()
+            .is_some_and(|f| f.load(std::sync::atomic::Ordering::Relaxed)),
+        None => false,
+    }
 }
 
 /// How long after taking over a new primary rings the presence event (see `serve`).
@@ -528,12 +554,10 @@ fn serve(
         // The loop goes on: what a standby reads before it takes silence for a hang.
         shell.fence.beat();
         passes += 1;
-        if let Some(Fault::HangAfter(n)) = FAULT.get() {
-            if passes >= *n {
-                tracing::warn!(passes, "fault: the loop stops here for good (as asked)");
-                loop {
-                    std::thread::sleep(Duration::from_secs(3600));
-                }
+        if fault_now(passes) {
+            tracing::warn!(passes, "fault: the loop stops here for good (as asked)");
+            loop {
+                std::thread::sleep(Duration::from_secs(3600));
             }
         }
         if shell.deferred_at.is_some_and(|t| Instant::now() >= t) {

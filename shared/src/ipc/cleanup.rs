@@ -77,19 +77,21 @@ fn old(meta: &std::fs::Metadata) -> bool {
 }
 
 fn cleanup_after_inner(pid: Option<u32>) -> usize {
-    // Beside whatever the host is doing, never ahead of it: a dead broker's cleanup
-    // takes seconds of a core (see `BROKER_GENERATIONS`), and nothing waits for it any
-    // more: the broker's services keep room for the dead brokers' ports meanwhile.
-    let _ = crate::reactor::set_nice(19);
     let mut n = 0;
     if let Some(pid) = pid {
         let until = std::time::Instant::now() + Duration::from_secs(10);
         while crate::reactor::process_alive(pid) && std::time::Instant::now() < until {
             std::thread::sleep(Duration::from_millis(5));
         }
+        // The old primary's first, at full speed: it holds one of the reader slots of
+        // the broker's inbox and bell, which the next takeover or restart needs. (At
+        // niceness 19 it also holds /dev/shm's directory lock while it waits for a core,
+        // and everyone opening a file there waits behind it.)
         n += cleanup_dead_nodes(Some(pid));
     }
-    // Dead brokers next: the slots they hold are the scarcest.
+    // The rest beside whatever the host is doing, never ahead of it; dead brokers
+    // first, the slots they hold being the scarcest.
+    let _ = crate::reactor::set_nice(19);
     n += cleanup_dead_nodes_where(is_broker_node);
     n + cleanup_dead_nodes(None)
 }
@@ -125,6 +127,30 @@ pub fn cleanup_dead_nodes_of_waiting(pid: u32, patience: Duration) -> usize {
             },
         )
         .count()
+}
+
+/// How many live processes run a broker (primary or standby) of `inst`, by their
+/// iceoryx2 nodes.
+pub fn live_brokers(inst: &Instance) -> usize {
+    use iceoryx2::node::NodeView;
+    let names = [
+        format!("muster-broker-{inst}"),
+        format!("muster-standby-{inst}"),
+    ];
+    let mut n = 0;
+    let _ = Node::<Ipc>::list(&config(true), |state| {
+        if let NodeState::Alive(view) = state {
+            if view
+                .details()
+                .as_ref()
+                .is_some_and(|d| names.iter().any(|m| d.name().as_str() == m))
+            {
+                n += 1;
+            }
+        }
+        CallbackProgression::Continue
+    });
+    n
 }
 
 /// How many iceoryx2 nodes of dead processes are still waiting for their cleanup.

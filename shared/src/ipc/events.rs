@@ -25,9 +25,9 @@ fn event_services(
         .service_builder(&service_name(&name)?)
         .publish_subscribe::<[u8]>()
         // Each broker in turn (a standby taking over adds its own).
-        .max_publishers(BROKER_GENERATIONS)
+        .max_publishers(8)
         .max_subscribers(MAX_EVENT_READERS)
-        .max_nodes(MAX_EVENT_READERS + BROKER_GENERATIONS)
+        .max_nodes(MAX_EVENT_READERS + 8)
         .subscriber_max_buffer_size(EVENT_BUFFER)
         .history_size(EVENT_HISTORY)
         // A slow reader loses its oldest events, never holds the broker up.
@@ -39,13 +39,13 @@ fn event_services(
             .event()
             .max_notifiers(notifiers)
             .max_listeners(listeners)
-            .max_nodes(MAX_EVENT_READERS + BROKER_GENERATIONS)
+            .max_nodes(MAX_EVENT_READERS + 8)
             .open_or_create()
             .map_err(|e| svc_err(&name, e))
     };
     // News: the brokers ring, the readers listen. Hello: the other way round.
-    let news = bell(inst.events_bell(), BROKER_GENERATIONS, MAX_EVENT_READERS)?;
-    let hello = bell(inst.events_hello(), MAX_EVENT_READERS, BROKER_GENERATIONS)?;
+    let news = bell(inst.events_bell(), 8, MAX_EVENT_READERS)?;
+    let hello = bell(inst.events_hello(), MAX_EVENT_READERS, 8)?;
     Ok((stream, news, hello))
 }
 

@@ -146,8 +146,8 @@ impl InboxLimits {
         match addr {
             Address::Broker => InboxLimits {
                 max_publishers: MAX_PARTICIPANTS,
-                readers: BROKER_GENERATIONS,
-                inbox_readers: BROKER_GENERATIONS,
+                readers: 4,
+                inbox_readers: 8,
                 buffer: 32,
             },
             Address::System(_) => InboxLimits {
@@ -167,15 +167,6 @@ impl InboxLimits {
 }
 
 pub use crate::names::{iox2_root, DEFAULT_IOX2_ROOT};
-
-/// Brokers of one instance that a broker-side service (the broker's inbox and bell, the
-/// replica, the event feed, presence) keeps ports for at once: the primary, its
-/// standbys, and dead ones until their cleanup frees their ports. That cleanup is slow
-/// (iceoryx2 lists all of /dev/shm for each of a dead broker's ports: 1.8–3.2 s with
-/// 200 users on this 2-core machine), and a broker restarted before it ends must not
-/// wait for it: with 4 slots, one cold restart in eight of a hundred in a row waited up
-/// to 3 s, or failed. A slot costs a little dynamic config.
-pub const BROKER_GENERATIONS: usize = 32;
 
 /// The iceoryx2 config for a process. Users skip dead-node cleanup on node creation, which
 /// costs O(nodes) each time; the broker cleans instead (measured: 83 ms per client at 900).

@@ -19,7 +19,7 @@ fn presence_service(
         .event()
         .max_listeners(MAX_PARTICIPANTS)
         // Brokers and standbys; a killed one's notifier stays until it is cleaned up.
-        .max_notifiers(BROKER_GENERATIONS)
+        .max_notifiers(16)
         .max_nodes(MAX_PARTICIPANTS + 4)
         .event_id_max_value(bell::MAX)
         .open_or_create()

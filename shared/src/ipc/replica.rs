@@ -31,9 +31,9 @@ fn replica_services(
         // rkyv reads a record in place: its bytes must be aligned like an AlignedVec.
         .payload_alignment(Alignment::new(16).expect("16 is a power of two"))
         // Each primary in turn; a killed one's publisher stays until it is cleaned up.
-        .max_publishers(BROKER_GENERATIONS)
+        .max_publishers(8)
         .max_subscribers(MAX_STANDBYS)
-        .max_nodes(MAX_STANDBYS + BROKER_GENERATIONS)
+        .max_nodes(MAX_STANDBYS + 4)
         .subscriber_max_buffer_size(REPLICA_BUFFER)
         .subscriber_max_borrowed_samples(4)
         .history_size(0)
@@ -44,9 +44,9 @@ fn replica_services(
     let bell = node
         .service_builder(&service_name(&bell_name)?)
         .event()
-        .max_notifiers(BROKER_GENERATIONS)
+        .max_notifiers(8)
         .max_listeners(MAX_STANDBYS)
-        .max_nodes(MAX_STANDBYS + BROKER_GENERATIONS)
+        .max_nodes(MAX_STANDBYS + 4)
         .event_id_max_value(bell::MAX)
         .open_or_create()
         .map_err(|e| svc_err(&bell_name, e))?;

@@ -88,6 +88,8 @@ struct Rounds {
     to_serving: Histogram<u64>,
     to_notice: Histogram<u64>,
     cold: usize,
+    /// Takeovers whose reason was not the fault caused (a kill read as a hang, ...).
+    misread: usize,
 }
 
 impl Rounds {
@@ -99,6 +101,7 @@ impl Rounds {
             to_serving: Histogram::new(3)?,
             to_notice: Histogram::new(3)?,
             cold: 0,
+            misread: 0,
         })
     }
 }
@@ -107,14 +110,30 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
     let signals: Vec<(&'static str, i32)> = match a.signal.as_str() {
         "kill" => vec![("kill", libc::SIGKILL)],
         "stop" => vec![("stop", libc::SIGSTOP)],
+        "hang" => vec![("hang", libc::SIGUSR1)],
         "both" => vec![("kill", libc::SIGKILL), ("stop", libc::SIGSTOP)],
-        other => bail!("--signal {other:?}: expected kill, stop or both"),
+        "all" => vec![
+            ("kill", libc::SIGKILL),
+            ("stop", libc::SIGSTOP),
+            ("hang", libc::SIGUSR1),
+        ],
+        other => bail!("--signal {other:?}: expected kill, stop, hang, both or all"),
+    };
+    // A hang: every broker runs with the fault armed, and SIGUSR1 stops the primary's
+    // loop while its process lives on.
+    let hang_fault: &[&str] = if signals.iter().any(|(n, _)| *n == "hang") {
+        &["--fault", "hang-on-usr1"]
+    } else {
+        &[]
     };
     let shm_before = shm_files();
     let (tx, rx) = mpsc::channel::<Line>();
     let mut children = Children::default();
     let mut primary = "broker-0".to_string();
-    children.spawn(inst, &primary, &["broker"], Stdio::null())?;
+    let first: Vec<&str> = std::iter::once("broker")
+        .chain(hang_fault.iter().copied())
+        .collect();
+    children.spawn(inst, &primary, &first, Stdio::null())?;
     let services_per = a.services_per_system.max(1);
     let quota = ((a.users + a.requesters) / (a.systems * services_per) + 4).min(1000);
     let quota_s = quota.to_string();
@@ -210,17 +229,12 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
             .nth(k % signals.len())
             .expect("at least one signal");
         let standby = format!("broker-{}", k + 1);
-        let c = children.spawn(
-            inst,
-            &standby,
-            &[
-                "broker",
-                "--standby",
-                "--takeover-deadline",
-                &format!("{}ms", a.deadline.as_millis()),
-            ],
-            Stdio::piped(),
-        )?;
+        let deadline = format!("{}ms", a.deadline.as_millis());
+        let args: Vec<&str> = ["broker", "--standby", "--takeover-deadline", &deadline]
+            .into_iter()
+            .chain(hang_fault.iter().copied())
+            .collect();
+        let c = children.spawn(inst, &standby, &args, Stdio::piped())?;
         pipe_lines(
             standby.clone(),
             c.stdout.take().context("standby stdout")?,
@@ -290,6 +304,18 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
             if l.who == standby && l.v["event"] == "took_over" {
                 if l.v["replicated"] == false {
                     rounds[ri].cold += 1;
+                }
+                let expected = match rounds[ri].signal {
+                    "kill" => "died",
+                    "stop" => "stopped",
+                    _ => "hung",
+                };
+                if l.v["why"] != expected {
+                    eprintln!(
+                        "failover: round {k}: {} taken over as {}",
+                        rounds[ri].signal, l.v["why"]
+                    );
+                    rounds[ri].misread += 1;
                 }
                 if let Some(t) = l.v["noticed_ns"].as_u64() {
                     rounds[ri]
@@ -389,7 +415,7 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
                     json!({"rounds": r.to_grant.len(), "to_first_grant": summary(&r.to_grant),
                            "to_standby_notices": summary(&r.to_notice),
                            "to_whole_list": summary(&r.to_list), "to_serving": summary(&r.to_serving),
-                           "cold_takeovers": r.cold}),
+                           "cold_takeovers": r.cold, "misread_takeovers": r.misread}),
                 )
             })
             .collect();
@@ -424,8 +450,10 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
              (repeated grants of a held session ignored: {regrants}), grants {grants}, refusals {refusals}"
         );
         println!(
-            "in use after every session ended: {in_use_after}; files left in /dev/shm: {shm_left}; cold takeovers: {}",
-            rounds.iter().map(|r| r.cold).sum::<usize>()
+            "in use after every session ended: {in_use_after}; files left in /dev/shm: {shm_left}; cold takeovers: {}; \
+             takeovers whose reason was not the fault caused: {}",
+            rounds.iter().map(|r| r.cold).sum::<usize>(),
+            rounds.iter().map(|r| r.misread).sum::<usize>()
         );
         println!(
             "list reads during takeovers that were not whole: {incomplete_lists} (the old list stays readable until the new primary rewrites it); standbys that took over a live primary: {false_takeovers}"

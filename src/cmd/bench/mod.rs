@@ -3,6 +3,7 @@
 mod failover;
 mod federation;
 pub mod floor;
+mod leftovers;
 mod liveness;
 pub mod procfs;
 pub mod remote;
@@ -27,6 +28,7 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::Federation(a) => federation::run(inst, a),
         BenchCommand::Ros2(a) => ros2::run(inst, a),
         BenchCommand::FailoverUser(a) => failover::user(inst, a),
+        BenchCommand::Leftovers(a) => leftovers::run(inst, a),
     }
 }
 
