@@ -112,6 +112,14 @@ impl Children {
         }
     }
 
+    /// SIGKILLs every child we started and reaps them.
+    pub fn kill_all(&mut self) {
+        for (_, mut c) in self.0.drain(..) {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+
     /// Process ids, in start order.
     pub fn pids(&self) -> impl Iterator<Item = u32> + '_ {
         self.0.iter().map(|(_, c)| c.id())

@@ -53,7 +53,7 @@ pub const MAX_BACKLOG: usize = 4096;
 const BACKLOG_RETRY: Duration = Duration::from_millis(2);
 
 /// Why a port could not be made after freeing what dead holders kept.
-enum Held<E> {
+pub(super) enum Held<E> {
     /// Every slot is held by a live process: the name is in use.
     Full,
     /// Anything else iceoryx2 said.
@@ -66,7 +66,7 @@ enum Held<E> {
 /// that `holders` names are cleaned up after first (a dead broker has hundreds of ports;
 /// the other dead nodes can wait), waiting for a cleanup another process has under way,
 /// and `make` is tried after each; then after every dead node.
-fn with_dead_holders_freed<T, E: std::fmt::Debug>(
+pub(super) fn with_dead_holders_freed<T, E: std::fmt::Debug>(
     node: &Node<Ipc>,
     name: &str,
     holders: impl Fn() -> Vec<u32>,
@@ -95,6 +95,15 @@ fn with_dead_holders_freed<T, E: std::fmt::Debug>(
             Held::Other(e)
         }
     })
+}
+
+/// The error of a port [`with_dead_holders_freed`] could not make: every slot held by
+/// a live process, or what iceoryx2 said.
+pub(super) fn held_err<E: std::fmt::Debug>(name: &str, e: Held<E>) -> TransportError {
+    match e {
+        Held::Full => svc_err(name, "every slot is held by a live process"),
+        Held::Other(e) => svc_err(name, e),
+    }
 }
 
 /// How long [`with_dead_holders_freed`] waits for another process's cleanup of one dead

@@ -182,15 +182,41 @@ impl ReplicaReader {
     /// Opens the stream for reading.
     pub fn open(node: &Node<Ipc>, inst: &Instance) -> Result<Self, TransportError> {
         let (stream, bell) = replica_services(node, inst)?;
-        let subscriber = stream
-            .subscriber_builder()
-            .buffer_size(REPLICA_BUFFER)
-            .create()
-            .map_err(|e| svc_err(&inst.replica(), e))?;
-        let listener = bell
-            .listener_builder()
-            .create()
-            .map_err(|e| svc_err(&inst.replica_bell(), e))?;
+        // Standbys SIGKILLed before their cleanup (nothing watches a standby's death)
+        // still hold slots of both: freed first when they are all held.
+        let subscriber = with_dead_holders_freed(
+            node,
+            &inst.replica(),
+            || {
+                let mut pids = Vec::new();
+                stream.dynamic_config().list_subscribers(|d| {
+                    pids.extend(node_pid(&d.node_id));
+                    CallbackProgression::Continue
+                });
+                pids
+            },
+            || {
+                stream
+                    .subscriber_builder()
+                    .buffer_size(REPLICA_BUFFER)
+                    .create()
+            },
+        )
+        .map_err(|e| held_err(&inst.replica(), e))?;
+        let listener = with_dead_holders_freed(
+            node,
+            &inst.replica_bell(),
+            || {
+                let mut pids = Vec::new();
+                bell.dynamic_config().list_listeners(|d| {
+                    pids.extend(node_pid(&d.node_id));
+                    CallbackProgression::Continue
+                });
+                pids
+            },
+            || bell.listener_builder().create(),
+        )
+        .map_err(|e| held_err(&inst.replica_bell(), e))?;
         Ok(ReplicaReader {
             subscriber,
             listener,

@@ -4,10 +4,11 @@
 //!
 //! Each kind runs on an instance of its own, beside the processes it needs (a broker,
 //! a system, a user holding a session): the victim is started, waited for until it
-//! works (listed, granted, in sync, up), and SIGKILLed, `--kills` times. Then the
-//! instance's broker is started once more and stopped (its own cleanup of the dead,
-//! beside serving, has run), and /dev/shm is compared with before; then `muster
-//! cleanup` runs and it is compared again. Files in /dev/shm cannot all be told apart
+//! works (listed, granted, in sync, up), and SIGKILLed, `--kills` times. Then every
+//! other process of the instance is SIGKILLed too; the instance's broker is started once
+//! more and stopped (its own cleanup of the dead, beside serving, has run), and /dev/shm
+//! is compared with before; then every process is SIGKILLed once more, `muster cleanup`
+//! runs and /dev/shm is compared again. Files in /dev/shm cannot all be told apart
 //! by instance (iceoryx2's segments are named by port), so nothing else may run on
 //! this host meanwhile.
 
@@ -199,7 +200,7 @@ fn one_kind(inst: &Instance, kind: &str, kills: usize) -> anyhow::Result<Value> 
         }
     }
     c.close();
-    kids.stop();
+    kids.kill_all();
     next_start_and_cleanup(inst, before, kind, kills, started)
 }
 
@@ -252,12 +253,11 @@ fn federated(inst: &Instance, kills: usize, before: BTreeSet<String>) -> anyhow:
     }
     ca.close();
     cb.close();
-    kids.stop();
-    let mut v = next_start_and_cleanup(a, before.clone(), "federated", kills, started)?;
-    // Host b's instance is stopped cleanly; what is left of it counts too.
-    muster_shared::fence::remove_if_orphaned(b);
-    v["left_of_host_b"] = json!(shm_files().difference(&before).count());
-    Ok(v)
+    kids.kill_all();
+    // Host b's instance was SIGKILLed too: its `muster cleanup` first, so that what is
+    // counted after is host a's.
+    cleanup(b)?;
+    next_start_and_cleanup(a, before, "federated", kills, started)
 }
 
 /// The instance's broker started again and stopped once its cleanup of the dead ran,
@@ -271,6 +271,7 @@ fn next_start_and_cleanup(
 ) -> anyhow::Result<Value> {
     let killed_for = started.elapsed();
     let left_after_kills = shm_files().difference(&before).count();
+    // The next start: the broker cleans up after the dead beside serving.
     let mut kids = Children::default();
     kids.spawn(inst, "broker", &["broker"], Stdio::null())?;
     let c = client(inst)?;
@@ -279,6 +280,40 @@ fn next_start_and_cleanup(
     kids.stop();
     std::thread::sleep(Duration::from_millis(200));
     let after_start: Vec<String> = shm_files().difference(&before).cloned().collect();
+    for f in &after_start {
+        eprintln!("leftovers: {kind}: still there after the next start: {f}");
+    }
+    // Killed once more, everything; then `muster cleanup`.
+    let mut kids = Children::default();
+    kids.spawn(inst, "broker", &["broker"], Stdio::null())?;
+    kids.spawn(
+        inst,
+        "base",
+        &["system", "synthetic", "--name", "base"],
+        Stdio::null(),
+    )?;
+    let mut c = super::children::connect_when_listed(inst, 1, Duration::from_secs(30))?;
+    wait_listed(&mut c, "base/s0", None, Duration::from_secs(30))?;
+    c.close();
+    kids.kill_all();
+    let left_after_second_kill = shm_files().difference(&before).count();
+    cleanup(inst)?;
+    let after_cleanup: Vec<String> = shm_files().difference(&before).cloned().collect();
+    for f in &after_cleanup {
+        eprintln!("leftovers: {kind}: still there after muster cleanup: {f}");
+    }
+    Ok(
+        json!({"kind": kind, "kills": kills, "seconds": killed_for.as_secs_f64(),
+              "new_files_after_kills": left_after_kills,
+              "left_after_next_start": after_start.len(),
+              "new_files_after_killing_all_again": left_after_second_kill,
+              "left_after_cleanup": after_cleanup.len(),
+              "examples_after_next_start": after_start.iter().take(5).collect::<Vec<_>>()}),
+    )
+}
+
+/// `muster --instance INST cleanup`, as a user would type it.
+fn cleanup(inst: &Instance) -> anyhow::Result<()> {
     let exe = std::env::current_exe().context("locating the muster binary")?;
     let status = std::process::Command::new(exe)
         .args(["--instance", inst.as_str(), "cleanup"])
@@ -289,17 +324,7 @@ fn next_start_and_cleanup(
     if !status.success() {
         bail!("muster cleanup failed: {status}");
     }
-    let after_cleanup: Vec<String> = shm_files().difference(&before).cloned().collect();
-    for f in &after_cleanup {
-        eprintln!("leftovers: {kind}: still there after muster cleanup: {f}");
-    }
-    Ok(
-        json!({"kind": kind, "kills": kills, "seconds": killed_for.as_secs_f64(),
-              "new_files_after_kills": left_after_kills,
-              "left_after_next_start": after_start.len(),
-              "left_after_cleanup": after_cleanup.len(),
-              "examples_after_next_start": after_start.iter().take(5).collect::<Vec<_>>()}),
-    )
+    Ok(())
 }
 
 pub fn run(inst: &Instance, a: LeftoversArgs) -> anyhow::Result<ExitCode> {
@@ -319,19 +344,22 @@ pub fn run(inst: &Instance, a: LeftoversArgs) -> anyhow::Result<ExitCode> {
             a.kills
         );
         println!(
-            "{:<10} {:>8} {:>14} {:>18} {:>18}",
-            "kind", "seconds", "after kills", "after next start", "after cleanup"
+            "{:<10} {:>8} {:>12} {:>17} {:>14} {:>14}",
+            "kind", "seconds", "all killed", "after next start", "killed again", "after cleanup"
         );
+        let n = |r: &Value, k: &str| r[k].as_u64().unwrap_or(0);
         for r in &rows {
             println!(
-                "{:<10} {:>8.1} {:>14} {:>18} {:>18}",
+                "{:<10} {:>8.1} {:>12} {:>17} {:>14} {:>14}",
                 r["kind"].as_str().unwrap_or(""),
                 r["seconds"].as_f64().unwrap_or(0.0),
-                r["new_files_after_kills"],
-                r["left_after_next_start"],
-                r["left_after_cleanup"]
+                n(r, "new_files_after_kills"),
+                n(r, "left_after_next_start"),
+                n(r, "new_files_after_killing_all_again"),
+                n(r, "left_after_cleanup")
             );
         }
+        println!("(files in /dev/shm that were not there before: after the kills and every other process of the instance SIGKILLed too; after the instance's next start and stop; after all SIGKILLed once more; after `muster cleanup`)");
     }
     Ok(ExitCode::SUCCESS)
 }
