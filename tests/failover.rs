@@ -183,6 +183,54 @@ fn a_killed_standby_leaves_the_primary_unaffected() {
 }
 
 #[test]
+fn standbys_killed_one_after_another_beyond_the_replicas_slots_leave_room_for_the_next() {
+    // Nothing watches a standby's death, so a SIGKILLed one holds its reader slots of
+    // the replication stream until some cleanup: the stream has four. Six killed in a
+    // row, the seventh must still get in sync, and take over.
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let mut f = Fed::new("fo-standbys");
+    let p = f.broker(&[]);
+    f.system("t1", &[]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    for _ in 0..6 {
+        let s = standby(&mut f);
+        f.proc(s).signal(libc::SIGKILL);
+        assert!(f.proc(s).wait(5 * SEC).is_some());
+    }
+    let s = standby(&mut f);
+    f.proc(p).signal(libc::SIGKILL);
+    let v = next_event(&mut f, s, "took_over");
+    assert_eq!(v["why"], "died", "{v}");
+    let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
+    assert_eq!(code, 0, "{out}");
+}
+
+#[test]
+fn muster_cleanup_removes_the_fence_of_a_run_killed_whole_and_no_other() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let fence =
+        |f: &Fed| std::path::PathBuf::from(format!("/dev/shm/muster/{}.broker-fence", f.inst));
+    let mut f = Fed::new("fo-fence");
+    let p = f.broker(&[]);
+    f.system("t1", &[]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    // A live broker's fence is left alone.
+    let (code, out) = f.run(&["cleanup"], 20 * SEC);
+    assert_eq!(code, 0, "{out}");
+    assert!(fence(&f).exists(), "a live broker's fence was removed");
+    // Killed, it stays; `muster cleanup` takes it away.
+    f.proc(p).signal(libc::SIGKILL);
+    assert!(f.proc(p).wait(5 * SEC).is_some());
+    assert!(fence(&f).exists(), "nothing removes it by itself");
+    let (code, out) = f.run(&["cleanup"], 20 * SEC);
+    assert_eq!(code, 0, "{out}");
+    assert!(
+        !fence(&f).exists(),
+        "muster cleanup left the killed broker's fence"
+    );
+}
+
+#[test]
 fn three_takeovers_in_a_row_keep_one_session_running() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let mut f = Fed::new("fo-three");
