@@ -60,6 +60,10 @@ pub struct BehaveReport {
     pub session_log: Vec<SessionRecord>,
     /// Goals sent into command sessions.
     pub goals: u64,
+    /// Grants of a request this user no longer waited for: a duplicate grant, had the
+    /// broker given one (`UserCore::unwanted_grants`).
+    #[serde(default)]
+    pub unwanted_grants: u64,
 }
 
 /// One request, as the user saw it.
@@ -191,6 +195,7 @@ pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
         Err(_) => r.report.errors += 1,
     }
     r.report.ended_ms = monotonic_ns() / 1_000_000;
+    r.report.unwanted_grants = r.client.core().unwanted_grants();
     let Run { client, report, .. } = r;
     client.close();
     println!("{}", serde_json::to_string(&report)?);
