@@ -166,6 +166,12 @@ struct Setup {
     broker_pid: u32,
     system_pids: Vec<u32>,
     remote: Option<RemoteUsers>,
+    /// The broker's niceness, as the kernel reports it.
+    broker_nice: Option<i32>,
+    /// The users' niceness: their own, unless the broker could not take its lead
+    /// ([`crate::cmd::INFRASTRUCTURE_NICE`] needs privileges) and the users lower
+    /// themselves by as much instead, which needs none: the same ratio of CPU shares.
+    users_nice: Option<i32>,
 }
 
 impl Setup {
@@ -214,7 +220,21 @@ impl Setup {
         }
         super::children::connect_when_listed(inst, a.load.services, Duration::from_secs(30))?
             .close();
+        let broker_nice = procfs::nice(broker_pid);
+        let own = procfs::nice(std::process::id()).unwrap_or(0);
+        let users_nice = match broker_nice {
+            Some(b) if b > own + super::INFRASTRUCTURE_NICE => {
+                let n = (b - super::INFRASTRUCTURE_NICE).min(19);
+                eprintln!(
+                    "stress: the broker runs at niceness {b} (raising its priority needs privileges): users lower theirs to {n} instead"
+                );
+                Some(n)
+            }
+            _ => None,
+        };
         Ok(Setup {
+            broker_nice,
+            users_nice,
             children,
             broker_out,
             system_outs,
@@ -226,7 +246,11 @@ impl Setup {
 
     /// `muster user` arguments up to the verb (the transport).
     fn user_prefix(&self) -> Vec<String> {
-        let mut v: Vec<String> = ["user", "--wait", "60s"].map(String::from).to_vec();
+        let mut v: Vec<String> = Vec::new();
+        if let Some(n) = self.users_nice {
+            v.extend(["--nice".into(), n.to_string()]);
+        }
+        v.extend(["user", "--wait", "60s"].map(String::from));
         if let Some(r) = &self.remote {
             v.extend([
                 "--remote".into(),
@@ -500,6 +524,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         Some(_) => Some(UdpProbe::start(inst, &mut setup.children)?),
         None => None,
     };
+    let setup_nice = (setup.broker_nice, setup.users_nice);
     let prefix = setup.user_prefix();
     let (b0, s0) = setup.cpu_ticks();
 
@@ -660,6 +685,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "floor": summary(&floor),
         "floor_udp": if a.remote { summary(&floor_udp) } else { Value::Null },
         "transport": if a.remote { "udp" } else { "shm" },
+        "broker_nice": setup_nice.0, "users_nice": setup_nice.1,
         "cpu": cpu, "memory": mem,
         "timeline": timeline.to_json(),
         "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64

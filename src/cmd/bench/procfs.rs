@@ -32,6 +32,13 @@ pub fn cpu_ticks(pid: u32) -> Option<u64> {
     Some(f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?)
 }
 
+/// A process's scheduling niceness (`/proc/PID/stat` field 19).
+pub fn nice(pid: u32) -> Option<i32> {
+    let stat = fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    let rest = &stat[stat.rfind(')')? + 2..];
+    rest.split_whitespace().nth(16)?.parse().ok()
+}
+
 /// Clock ticks per second.
 pub fn ticks_per_second() -> u64 {
     // SAFETY: sysconf has no preconditions.
