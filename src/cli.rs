@@ -1247,6 +1247,10 @@ pub struct StressArgs {
     /// How long the users behave.
     #[arg(long, default_value = "120s", value_parser = duration)]
     pub duration: Duration,
+    /// The users' niceness. Default: their own, or, when the broker could not lower its
+    /// own (no privileges), as much above it as the broker would have been below.
+    #[arg(long, allow_hyphen_values = true, value_parser = clap::value_parser!(i32).range(-20..=19))]
+    pub users_nice: Option<i32>,
     /// Mean pause between a user's interactions.
     #[arg(long, default_value = "2s", value_parser = duration)]
     pub think: Duration,

@@ -223,6 +223,7 @@ impl Setup {
         let broker_nice = procfs::nice(broker_pid);
         let own = procfs::nice(std::process::id()).unwrap_or(0);
         let users_nice = match broker_nice {
+            _ if a.users_nice.is_some() => a.users_nice,
             Some(b) if b > own + super::INFRASTRUCTURE_NICE => {
                 let n = (b - super::INFRASTRUCTURE_NICE).min(19);
                 eprintln!(
