@@ -106,6 +106,30 @@ pub(super) fn held_err<E: std::fmt::Debug>(name: &str, e: Held<E>) -> TransportE
     }
 }
 
+/// The pids behind a publish-subscribe service's readers.
+pub(super) fn subscriber_pids(
+    svc: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+) -> Vec<u32> {
+    let mut pids = Vec::new();
+    svc.dynamic_config().list_subscribers(|d| {
+        pids.extend(node_pid(&d.node_id));
+        CallbackProgression::Continue
+    });
+    pids
+}
+
+/// The pids behind an event service's listeners.
+pub(super) fn listener_pids(
+    svc: &iceoryx2::service::port_factory::event::PortFactory<Ipc>,
+) -> Vec<u32> {
+    let mut pids = Vec::new();
+    svc.dynamic_config().list_listeners(|d| {
+        pids.extend(node_pid(&d.node_id));
+        CallbackProgression::Continue
+    });
+    pids
+}
+
 /// How long [`with_dead_holders_freed`] waits for another process's cleanup of one dead
 /// holder.
 const DEAD_HOLDER_PATIENCE: Duration = Duration::from_secs(3);
@@ -130,14 +154,7 @@ impl Endpoint {
         let inbox = with_dead_holders_freed(
             &node,
             &inbox_name,
-            || {
-                let mut pids = Vec::new();
-                svc.dynamic_config().list_subscribers(|d| {
-                    pids.extend(node_pid(&d.node_id));
-                    CallbackProgression::Continue
-                });
-                pids
-            },
+            || subscriber_pids(&svc),
             || svc.subscriber_builder().buffer_size(limits.buffer).create(),
         )
         .map_err(|e| match e {
@@ -157,14 +174,7 @@ impl Endpoint {
         let bell = with_dead_holders_freed(
             &node,
             &bell_name,
-            || {
-                let mut pids = Vec::new();
-                bell_svc.dynamic_config().list_listeners(|d| {
-                    pids.extend(node_pid(&d.node_id));
-                    CallbackProgression::Continue
-                });
-                pids
-            },
+            || listener_pids(&bell_svc),
             || bell_svc.listener_builder().create(),
         )
         .map_err(|e| match e {

@@ -187,14 +187,7 @@ impl ReplicaReader {
         let subscriber = with_dead_holders_freed(
             node,
             &inst.replica(),
-            || {
-                let mut pids = Vec::new();
-                stream.dynamic_config().list_subscribers(|d| {
-                    pids.extend(node_pid(&d.node_id));
-                    CallbackProgression::Continue
-                });
-                pids
-            },
+            || subscriber_pids(&stream),
             || {
                 stream
                     .subscriber_builder()
@@ -206,14 +199,7 @@ impl ReplicaReader {
         let listener = with_dead_holders_freed(
             node,
             &inst.replica_bell(),
-            || {
-                let mut pids = Vec::new();
-                bell.dynamic_config().list_listeners(|d| {
-                    pids.extend(node_pid(&d.node_id));
-                    CallbackProgression::Continue
-                });
-                pids
-            },
+            || listener_pids(&bell),
             || bell.listener_builder().create(),
         )
         .map_err(|e| held_err(&inst.replica_bell(), e))?;

@@ -158,6 +158,25 @@ fn start_victim(
     Ok("victim".into())
 }
 
+/// Starts a broker (labelled `broker`) and the system `base` (one service, `base/s0`);
+/// returns a client once `base/s0` is listed.
+fn start_base(
+    inst: &Instance,
+    kids: &mut Children,
+    broker: &str,
+) -> anyhow::Result<muster_users::UserClient> {
+    kids.spawn(inst, broker, &["broker"], Stdio::null())?;
+    kids.spawn(
+        inst,
+        "base",
+        &["system", "synthetic", "--name", "base"],
+        Stdio::null(),
+    )?;
+    let mut c = super::children::connect_when_listed(inst, 1, Duration::from_secs(30))?;
+    wait_listed(&mut c, "base/s0", None, Duration::from_secs(30))?;
+    Ok(c)
+}
+
 /// Runs one kind on `inst`; returns its figures.
 fn one_kind(inst: &Instance, kind: &str, kills: usize) -> anyhow::Result<Value> {
     let before = shm_files();
@@ -166,18 +185,8 @@ fn one_kind(inst: &Instance, kind: &str, kills: usize) -> anyhow::Result<Value> 
     if kind == "federated" {
         return federated(inst, kills, before);
     }
-    if kind != "broker" {
-        kids.spawn(inst, "broker", &["broker"], Stdio::null())?;
-    } else {
-        kids.spawn(inst, "victim", &["broker"], Stdio::null())?;
-    }
-    kids.spawn(
-        inst,
-        "base",
-        &["system", "synthetic", "--name", "base"],
-        Stdio::null(),
-    )?;
-    let mut c = super::children::connect_when_listed(inst, 1, Duration::from_secs(30))?;
+    let broker = if kind == "broker" { "victim" } else { "broker" };
+    let mut c = start_base(inst, &mut kids, broker)?;
     if kind != "user" {
         let ch = kids.spawn(
             inst,
@@ -285,16 +294,7 @@ fn next_start_and_cleanup(
     }
     // Killed once more, everything; then `muster cleanup`.
     let mut kids = Children::default();
-    kids.spawn(inst, "broker", &["broker"], Stdio::null())?;
-    kids.spawn(
-        inst,
-        "base",
-        &["system", "synthetic", "--name", "base"],
-        Stdio::null(),
-    )?;
-    let mut c = super::children::connect_when_listed(inst, 1, Duration::from_secs(30))?;
-    wait_listed(&mut c, "base/s0", None, Duration::from_secs(30))?;
-    c.close();
+    start_base(inst, &mut kids, "broker")?.close();
     kids.kill_all();
     let left_after_second_kill = shm_files().difference(&before).count();
     cleanup(inst)?;
