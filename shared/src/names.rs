@@ -116,6 +116,16 @@ impl Instance {
         format!("muster/{}/system/{system}/viz", self.0)
     }
 
+    /// The iceoryx2 node name of this instance's primary broker.
+    pub fn broker_node(&self) -> String {
+        format!("{BROKER_NODE}{}", self.0)
+    }
+
+    /// The iceoryx2 node name of this instance's standby brokers.
+    pub fn standby_node(&self) -> String {
+        format!("{STANDBY_NODE}{}", self.0)
+    }
+
     /// The prefix of every service of this instance.
     pub fn prefix(&self) -> String {
         format!("muster/{}/", self.0)
@@ -132,6 +142,11 @@ impl fmt::Display for Instance {
 /// otherwise. On tmpfs: iceoryx2 fsyncs these files, and on a disk-backed /tmp (its
 /// default) that cost 4 fsyncs and ~5 ms of broker time per connecting user.
 pub const DEFAULT_IOX2_ROOT: &str = "/dev/shm/muster/";
+
+/// How the iceoryx2 node of a primary broker is named, before its instance.
+pub const BROKER_NODE: &str = "muster-broker-";
+/// How the iceoryx2 node of a standby broker is named, before its instance.
+pub const STANDBY_NODE: &str = "muster-standby-";
 
 /// The iceoryx2 metadata directory in use.
 pub fn iox2_root() -> String {

@@ -222,8 +222,7 @@ impl Setup {
             .close();
         let broker_nice = procfs::nice(broker_pid);
         let own = procfs::nice(std::process::id()).unwrap_or(0);
-        let users_nice = match broker_nice {
-            _ if a.users_nice.is_some() => a.users_nice,
+        let users_nice = a.users_nice.or_else(|| match broker_nice {
             Some(b) if b > own + super::INFRASTRUCTURE_NICE => {
                 let n = (b - super::INFRASTRUCTURE_NICE).min(19);
                 eprintln!(
@@ -232,7 +231,7 @@ impl Setup {
                 Some(n)
             }
             _ => None,
-        };
+        });
         Ok(Setup {
             broker_nice,
             users_nice,
@@ -525,7 +524,6 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         Some(_) => Some(UdpProbe::start(inst, &mut setup.children)?),
         None => None,
     };
-    let setup_nice = (setup.broker_nice, setup.users_nice);
     let prefix = setup.user_prefix();
     let (b0, s0) = setup.cpu_ticks();
 
@@ -686,7 +684,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "floor": summary(&floor),
         "floor_udp": if a.remote { summary(&floor_udp) } else { Value::Null },
         "transport": if a.remote { "udp" } else { "shm" },
-        "broker_nice": setup_nice.0, "users_nice": setup_nice.1,
+        "broker_nice": setup.broker_nice, "users_nice": setup.users_nice,
         "cpu": cpu, "memory": mem,
         "timeline": timeline.to_json(),
         "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64

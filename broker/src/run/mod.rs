@@ -294,7 +294,7 @@ pub fn run_with(
     raise_fds();
     // Dead nodes (a crashed broker's above all) are cleaned up beside serving, not
     // before: the broker's inbox takes more than one reader, and each run writes its own list.
-    let node = create_node(&format!("muster-broker-{inst}"), false)?;
+    let node = create_node(&inst.broker_node(), false)?;
     let mut endpoint = Endpoint::open(inst, Address::Broker, node).map_err(|e| match e {
         TransportError::InUse(_) => BrokerError::AlreadyRunning(inst.to_string()),
         other => BrokerError::from(other),

@@ -16,7 +16,7 @@ pub fn run_standby(
     deadline: Duration,
 ) -> Result<BrokerReport, BrokerError> {
     raise_fds();
-    let node = create_node(&format!("muster-standby-{inst}"), false)?;
+    let node = create_node(&inst.standby_node(), false)?;
     let fence = open_fence(inst)?;
     let Some(standby) = follow(inst, &node, &fence, deadline)? else {
         return Ok(BrokerReport {

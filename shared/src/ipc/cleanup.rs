@@ -99,7 +99,24 @@ fn cleanup_after_inner(pid: Option<u32>) -> usize {
 /// Whether an iceoryx2 node of this name is a broker's (primary or standby), of any
 /// instance.
 fn is_broker_node(name: &str) -> bool {
-    name.starts_with("muster-broker-") || name.starts_with("muster-standby-")
+    use crate::names::{BROKER_NODE, STANDBY_NODE};
+    name.starts_with(BROKER_NODE) || name.starts_with(STANDBY_NODE)
+}
+
+/// The nodes of dead processes that `take` takes.
+fn dead_views(
+    take: impl Fn(&iceoryx2::node::DeadNodeView<Ipc>) -> bool,
+) -> Vec<iceoryx2::node::DeadNodeView<Ipc>> {
+    let mut dead = Vec::new();
+    let _ = Node::<Ipc>::list(&config(true), |state| {
+        if let NodeState::Dead(view) = state {
+            if take(&view) {
+                dead.push(view);
+            }
+        }
+        CallbackProgression::Continue
+    });
+    dead
 }
 
 /// Removes what the dead process `pid` left, waiting up to `patience` for a cleanup
@@ -107,16 +124,8 @@ fn is_broker_node(name: &str) -> bool {
 /// readers are gone). Returns how many of its nodes are gone.
 pub fn cleanup_dead_nodes_of_waiting(pid: u32, patience: Duration) -> usize {
     use iceoryx2::node::NodeView;
-    let mut dead = Vec::new();
-    let _ = Node::<Ipc>::list(&config(true), |state| {
-        if let NodeState::Dead(view) = state {
-            if node_pid(view.id()) == Some(pid) {
-                dead.push(view);
-            }
-        }
-        CallbackProgression::Continue
-    });
-    dead.into_iter()
+    dead_views(|view| node_pid(view.id()) == Some(pid))
+        .into_iter()
         .filter(
             |view| match view.clone().blocking_remove_stale_resources(patience) {
                 Ok(()) => true,
@@ -133,10 +142,7 @@ pub fn cleanup_dead_nodes_of_waiting(pid: u32, patience: Duration) -> usize {
 /// iceoryx2 nodes.
 pub fn live_brokers(inst: &Instance) -> usize {
     use iceoryx2::node::NodeView;
-    let names = [
-        format!("muster-broker-{inst}"),
-        format!("muster-standby-{inst}"),
-    ];
+    let names = [inst.broker_node(), inst.standby_node()];
     let mut n = 0;
     let _ = Node::<Ipc>::list(&config(true), |state| {
         if let NodeState::Alive(view) = state {
@@ -155,29 +161,14 @@ pub fn live_brokers(inst: &Instance) -> usize {
 
 /// How many iceoryx2 nodes of dead processes are still waiting for their cleanup.
 pub fn dead_nodes() -> usize {
-    let mut n = 0;
-    let _ = Node::<Ipc>::list(&config(true), |state| {
-        if let NodeState::Dead(_) = state {
-            n += 1;
-        }
-        CallbackProgression::Continue
-    });
-    n
+    dead_views(|_| true).len()
 }
 
 /// Removes what dead processes left in shared memory: those of process `only`, or all.
 /// Returns how many nodes were removed.
 pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
     use iceoryx2::node::NodeView;
-    let mut dead = Vec::new();
-    let _ = Node::<Ipc>::list(&config(true), |state| {
-        if let NodeState::Dead(view) = state {
-            if only.is_none_or(|pid| node_pid(view.id()) == Some(pid)) {
-                dead.push(view);
-            }
-        }
-        CallbackProgression::Continue
-    });
+    let dead = dead_views(|view| only.is_none_or(|pid| node_pid(view.id()) == Some(pid)));
     if only.is_none() {
         remove_half_removed_monitors(&std::path::Path::new(&iox2_root()).join("nodes"));
     }
@@ -188,20 +179,11 @@ pub fn cleanup_dead_nodes(only: Option<u32>) -> usize {
 /// Returns how many nodes were removed.
 fn cleanup_dead_nodes_where(pred: impl Fn(&str) -> bool) -> usize {
     use iceoryx2::node::NodeView;
-    let mut dead = Vec::new();
-    let _ = Node::<Ipc>::list(&config(true), |state| {
-        if let NodeState::Dead(view) = state {
-            if view
-                .details()
-                .as_ref()
-                .is_some_and(|d| pred(d.name().as_str()))
-            {
-                dead.push(view);
-            }
-        }
-        CallbackProgression::Continue
-    });
-    remove_dead(dead)
+    remove_dead(dead_views(|view| {
+        view.details()
+            .as_ref()
+            .is_some_and(|d| pred(d.name().as_str()))
+    }))
 }
 
 /// Removes what the dead nodes `dead` left; returns how many there were.

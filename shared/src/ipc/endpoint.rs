@@ -98,11 +98,17 @@ pub(super) fn with_dead_holders_freed<T, E: std::fmt::Debug>(
 }
 
 /// The error of a port [`with_dead_holders_freed`] could not make: every slot held by
-/// a live process, or what iceoryx2 said.
-pub(super) fn held_err<E: std::fmt::Debug>(name: &str, e: Held<E>) -> TransportError {
-    match e {
-        Held::Full => svc_err(name, "every slot is held by a live process"),
-        Held::Other(e) => svc_err(name, e),
+/// a live process (`owner`'s name in use, when it is an endpoint's), or what iceoryx2
+/// said.
+pub(super) fn held_err<E: std::fmt::Debug>(
+    name: &str,
+    owner: Option<&Address>,
+    e: Held<E>,
+) -> TransportError {
+    match (e, owner) {
+        (Held::Full, Some(me)) => TransportError::InUse(me.clone()),
+        (Held::Full, None) => svc_err(name, "every slot is held by a live process"),
+        (Held::Other(e), _) => svc_err(name, e),
     }
 }
 
@@ -157,10 +163,7 @@ impl Endpoint {
             || subscriber_pids(&svc),
             || svc.subscriber_builder().buffer_size(limits.buffer).create(),
         )
-        .map_err(|e| match e {
-            Held::Full => TransportError::InUse(me.clone()),
-            Held::Other(e) => svc_err(&inbox_name, e),
-        })?;
+        .map_err(|e| held_err(&inbox_name, Some(&me), e))?;
         let bell_name = inst.bell(&me);
         let bell_svc = node
             .service_builder(&service_name(&bell_name)?)
@@ -177,10 +180,7 @@ impl Endpoint {
             || listener_pids(&bell_svc),
             || bell_svc.listener_builder().create(),
         )
-        .map_err(|e| match e {
-            Held::Full => TransportError::InUse(me.clone()),
-            Held::Other(e) => svc_err(&bell_name, e),
-        })?;
+        .map_err(|e| held_err(&bell_name, Some(&me), e))?;
         Ok(Endpoint {
             inst: inst.clone(),
             me,

@@ -195,14 +195,14 @@ impl ReplicaReader {
                     .create()
             },
         )
-        .map_err(|e| held_err(&inst.replica(), e))?;
+        .map_err(|e| held_err(&inst.replica(), None, e))?;
         let listener = with_dead_holders_freed(
             node,
             &inst.replica_bell(),
             || listener_pids(&bell),
             || bell.listener_builder().create(),
         )
-        .map_err(|e| held_err(&inst.replica_bell(), e))?;
+        .map_err(|e| held_err(&inst.replica_bell(), None, e))?;
         Ok(ReplicaReader {
             subscriber,
             listener,

@@ -83,6 +83,8 @@ fn shm_files() -> usize {
 
 struct Rounds {
     signal: &'static str,
+    /// The reason a standby must give for taking over after this fault.
+    why: &'static str,
     to_grant: Histogram<u64>,
     to_list: Histogram<u64>,
     to_serving: Histogram<u64>,
@@ -93,9 +95,10 @@ struct Rounds {
 }
 
 impl Rounds {
-    fn new(signal: &'static str) -> anyhow::Result<Self> {
+    fn new(signal: &'static str, why: &'static str) -> anyhow::Result<Self> {
         Ok(Rounds {
             signal,
+            why,
             to_grant: Histogram::new(3)?,
             to_list: Histogram::new(3)?,
             to_serving: Histogram::new(3)?,
@@ -107,21 +110,22 @@ impl Rounds {
 }
 
 pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
-    let signals: Vec<(&'static str, i32)> = match a.signal.as_str() {
-        "kill" => vec![("kill", libc::SIGKILL)],
-        "stop" => vec![("stop", libc::SIGSTOP)],
-        "hang" => vec![("hang", libc::SIGUSR1)],
-        "both" => vec![("kill", libc::SIGKILL), ("stop", libc::SIGSTOP)],
-        "all" => vec![
-            ("kill", libc::SIGKILL),
-            ("stop", libc::SIGSTOP),
-            ("hang", libc::SIGUSR1),
-        ],
+    // Each fault: its name, the signal that causes it, and the reason a standby must
+    // give for taking over.
+    const KILL: (&str, i32, &str) = ("kill", libc::SIGKILL, "died");
+    const STOP: (&str, i32, &str) = ("stop", libc::SIGSTOP, "stopped");
+    const HANG: (&str, i32, &str) = ("hang", libc::SIGUSR1, "hung");
+    let signals: Vec<(&'static str, i32, &'static str)> = match a.signal.as_str() {
+        "kill" => vec![KILL],
+        "stop" => vec![STOP],
+        "hang" => vec![HANG],
+        "both" => vec![KILL, STOP],
+        "all" => vec![KILL, STOP, HANG],
         other => bail!("--signal {other:?}: expected kill, stop, hang, both or all"),
     };
     // A hang: every broker runs with the fault armed, and SIGUSR1 stops the primary's
     // loop while its process lives on.
-    let hang_fault: &[&str] = if signals.iter().any(|(n, _)| *n == "hang") {
+    let hang_fault: &[&str] = if signals.contains(&HANG) {
         &["--fault", "hang-on-usr1"]
     } else {
         &[]
@@ -215,7 +219,7 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
 
     let mut rounds: Vec<Rounds> = signals
         .iter()
-        .map(|(n, _)| Rounds::new(n))
+        .map(|(n, _, why)| Rounds::new(n, why))
         .collect::<anyhow::Result<_>>()?;
     let mut finals: Vec<Line> = Vec::new();
     let mut incomplete_lists = 0u64;
@@ -223,7 +227,7 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
     let mut grants = 0u64;
     let mut refusals = 0u64;
     for k in 0..a.kills {
-        let (ri, (_, sig)) = signals
+        let (ri, (_, sig, _)) = signals
             .iter()
             .enumerate()
             .nth(k % signals.len())
@@ -305,12 +309,7 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
                 if l.v["replicated"] == false {
                     rounds[ri].cold += 1;
                 }
-                let expected = match rounds[ri].signal {
-                    "kill" => "died",
-                    "stop" => "stopped",
-                    _ => "hung",
-                };
-                if l.v["why"] != expected {
+                if l.v["why"] != rounds[ri].why {
                     eprintln!(
                         "failover: round {k}: {} taken over as {}",
                         rounds[ri].signal, l.v["why"]

@@ -131,13 +131,16 @@ pub fn run(inst: &Instance, a: LivenessArgs) -> anyhow::Result<ExitCode> {
         // --crash-loop. Its time is a figure of its own.
         if !a.crash_loop {
             let until = killed + Duration::from_secs(120);
-            while muster_shared::ipc::dead_nodes() > 0 && Instant::now() < until {
+            loop {
+                if muster_shared::ipc::dead_nodes() == 0 {
+                    cleaned.record(killed.elapsed().as_micros().max(1) as u64)?;
+                    break;
+                }
+                if Instant::now() >= until {
+                    unsettled += 1;
+                    break;
+                }
                 std::thread::sleep(Duration::from_millis(20));
-            }
-            if muster_shared::ipc::dead_nodes() > 0 {
-                unsettled += 1;
-            } else {
-                cleaned.record(killed.elapsed().as_micros().max(1) as u64)?;
             }
         }
     }

@@ -25,18 +25,21 @@ fn field_kib(text: &str, name: &str) -> Option<u64> {
 
 /// User + system CPU time of a process, in clock ticks.
 pub fn cpu_ticks(pid: u32) -> Option<u64> {
-    let stat = fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
-    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
-    let rest = &stat[stat.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15.
+    let f = stat_fields(pid)?;
     Some(f.get(11)?.parse::<u64>().ok()? + f.get(12)?.parse::<u64>().ok()?)
 }
 
 /// A process's scheduling niceness (`/proc/PID/stat` field 19).
 pub fn nice(pid: u32) -> Option<i32> {
+    stat_fields(pid)?.get(16)?.parse().ok()
+}
+
+/// The fields of `/proc/PID/stat` after the parenthesised command name (field 3 on).
+fn stat_fields(pid: u32) -> Option<Vec<String>> {
     let stat = fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
     let rest = &stat[stat.rfind(')')? + 2..];
-    rest.split_whitespace().nth(16)?.parse().ok()
+    Some(rest.split_whitespace().map(String::from).collect())
 }
 
 /// Clock ticks per second.
