@@ -14,6 +14,7 @@
 //! service updates. [`shell`] drives them through their ports as [`muster_systems::SystemApp`]s.
 
 pub mod delivery;
+pub mod link_sim;
 pub mod localizer;
 pub mod navigator;
 pub mod planner;

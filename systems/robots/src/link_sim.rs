@@ -1,0 +1,290 @@
+//! The paper's Experiment 2 in one process: the tracking system's core (T1–T3, T3
+//! mobile and following the person) and the delivery robot's core (D1) drive the robots
+//! of an in-process simulator, and the red track is forwarded to D1 as its goal once a
+//! second while tracked, as a link does (a lost track forwards nothing). No broker, no
+//! processes, no shared memory: the same cores, sensors, kinematics, people and contact
+//! counting as `muster experiment link`, stepped deterministically, so that many seeds
+//! run in seconds each. Commands may be made late (`latency`), as a busy machine makes
+//! them.
+
+use crate::delivery::{DeliveryCore, DeliveryEvent, DeliveryParams};
+use crate::localizer::{Localizer, LocalizerParams};
+use crate::navigator::NavParams;
+use crate::planner::{Planner, PlannerParams};
+use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
+use crate::tracking::{TrackerRobot, TrackingCore, TrackingParams};
+use muster_sim_world::scenario::{PersonSpec, Scenario};
+use muster_sim_world::world::World;
+use muster_world_model::{wrap, Colour, OccupancyMap, Pose};
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::Arc;
+
+/// One run's settings.
+#[derive(Clone, Debug)]
+pub struct LinkSimParams {
+    /// The scenario's seed (people's walks, sensor noise).
+    pub seed: u64,
+    /// Sim seconds to run.
+    pub duration: f64,
+    /// Sim seconds between a sensor sample and the command made from it acting.
+    pub latency: f64,
+    /// Extra people (no beacon the link follows) walking the floor: a crowd.
+    pub crowd: usize,
+    /// The tracking system's settings (T3 follows red unless told otherwise).
+    pub tracking: TrackingParams,
+}
+
+impl Default for LinkSimParams {
+    fn default() -> Self {
+        LinkSimParams {
+            seed: 1,
+            duration: 600.0,
+            latency: 0.0,
+            crowd: 0,
+            tracking: TrackingParams {
+                follow: Some(Colour::Red),
+                ..TrackingParams::default()
+            },
+        }
+    }
+}
+
+/// What one run measured, against the simulator's ground truth.
+#[derive(Clone, Debug, Default)]
+pub struct LinkSimFigures {
+    /// D1's distance to the person, every 0.25 s from the link on, while the red track
+    /// was not lost, m.
+    pub d1_person_tracked: Vec<f64>,
+    /// ... and at every sample from the link on, tracked or not, m.
+    pub d1_person_all: Vec<f64>,
+    /// T3's distance to the person, every 0.25 s from the link on, m.
+    pub t3_person: Vec<f64>,
+    /// D1's distance to T3, every 0.25 s from the link on, m.
+    pub d1_t3: Vec<f64>,
+    /// The red track's updates (1 Hz) from the first sighting on, and those not lost.
+    pub red_updates: u64,
+    /// Of those, the ones with the person tracked.
+    pub red_tracked: u64,
+    /// Sim time of the link (the first tracked update), s.
+    pub linked_at: Option<f64>,
+    /// Goals forwarded to D1.
+    pub forwarded: u64,
+    /// D1's arrivals, each with D1's true distance to the person then, m.
+    pub arrivals: Vec<f64>,
+    /// Contacts per robot (the simulator's count).
+    pub contacts: BTreeMap<String, u64>,
+}
+
+impl LinkSimFigures {
+    /// Contacts of all robots.
+    pub fn total_contacts(&self) -> u64 {
+        self.contacts.values().sum()
+    }
+
+    /// Share of red's updates with the person tracked.
+    pub fn tracked_fraction(&self) -> f64 {
+        self.red_tracked as f64 / (self.red_updates.max(1) as f64)
+    }
+}
+
+/// A robot's commands made at one time, acting `latency` later.
+struct Pending {
+    at: f64,
+    robot: usize,
+    velocity: (f64, f64),
+}
+
+/// Runs Experiment 2 in process for `p.duration` sim seconds.
+pub fn run(p: &LinkSimParams) -> LinkSimFigures {
+    let mut scenario = Scenario::paper();
+    scenario.seed = p.seed;
+    for k in 0..p.crowd {
+        let at = scenario.places[k % scenario.places.len()].at;
+        scenario.people.push(PersonSpec {
+            name: format!("walker-{k}"),
+            // Colours no tracking service offers: walkers, not targets.
+            beacon: [Colour::Yellow, Colour::Magenta, Colour::Cyan][k % 3],
+            start: at,
+            speed: 0.5 + 0.05 * (k % 7) as f64,
+        });
+    }
+    let map = OccupancyMap::office();
+    let Ok(mut world) = World::new(&scenario, Some(map.clone())) else {
+        return LinkSimFigures::default();
+    };
+    let map = Arc::new(map);
+    let field = Arc::new(LikelihoodField::new(&map, 1.0));
+    let pose_of = |w: &World, i: usize| {
+        let s = &w.robots()[i].spec;
+        Pose {
+            x: s.pose[0],
+            y: s.pose[1],
+            theta: wrap(s.pose[2].to_radians()),
+        }
+    };
+    let names = ["T1", "T2", "T3"];
+    let idx: Vec<usize> = names.iter().filter_map(|n| world.robot_index(n)).collect();
+    let Some(d1) = world.robot_index("D1") else {
+        return LinkSimFigures::default();
+    };
+    let radius = idx
+        .iter()
+        .map(|&i| world.robots()[i].spec.drive.radius)
+        .fold(0.0, f64::max);
+    let robots: Vec<TrackerRobot> = names
+        .iter()
+        .zip(&idx)
+        .map(|(n, &i)| {
+            let spec = &world.robots()[i].spec;
+            TrackerRobot {
+                name: n.to_string(),
+                start: pose_of(&world, i),
+                mobile: *n == "T3",
+                geometry: SensorGeometry::of(spec),
+                max_speed: spec.drive.max_speed,
+            }
+        })
+        .collect();
+    let mut tracking = TrackingCore::new(
+        map.clone(),
+        field.clone(),
+        Arc::new(Planner::new(
+            &map,
+            PlannerParams {
+                radius,
+                ..PlannerParams::default()
+            },
+        )),
+        robots,
+        p.tracking.clone(),
+        p.seed,
+    );
+    let d1_spec = world.robots()[d1].spec.clone();
+    let d1_geometry = SensorGeometry::of(&d1_spec);
+    let home = d1_spec.home.as_ref().and_then(|h| {
+        scenario
+            .places
+            .iter()
+            .find(|pl| &pl.name == h)
+            .map(|pl| (pl.at[0], pl.at[1]))
+    });
+    let mut localizer = Localizer::new(
+        field,
+        pose_of(&world, d1),
+        LocalizerParams::default(),
+        p.seed,
+    );
+    let mut delivery = DeliveryCore::new(
+        Arc::new(Planner::new(
+            &map,
+            PlannerParams {
+                radius: d1_spec.drive.radius,
+                ..PlannerParams::default()
+            },
+        )),
+        NavParams {
+            max_speed: d1_spec.drive.max_speed.min(0.8),
+            footprint: d1_spec.drive.radius + 0.03,
+            ..NavParams::default()
+        },
+        DeliveryParams {
+            home,
+            ..DeliveryParams::default()
+        },
+    );
+    delivery.set_latency(p.latency);
+    let person = |w: &World| {
+        w.people()
+            .iter()
+            .find(|q| q.beacon == Colour::Red)
+            .map_or((0.0, 0.0), |q| (q.pose.x, q.pose.y))
+    };
+    let wanted = [Colour::Red, Colour::Green, Colour::Blue];
+    let mut figures = LinkSimFigures::default();
+    let mut pending: VecDeque<Pending> = VecDeque::new();
+    let mut d1_pose = pose_of(&world, d1);
+    let mut red_lost = true;
+    let mut t = 0.0;
+    let mut next_record = 0.0;
+    while t < p.duration {
+        let now = world.time();
+        let mut commands = Vec::new();
+        for (i, &w) in idx.iter().enumerate() {
+            let s = SensorSample::from_robot(&world.robots()[w], now);
+            let cmd = tracking.handle_sample(i, &s, &wanted);
+            if let Some((pan, tilt, zoom)) = cmd.camera {
+                world.command_camera(w, pan, tilt, zoom);
+            }
+            if let Some(v) = cmd.velocity {
+                commands.push((w, v));
+            }
+        }
+        // The link: the red track, once a second, forwarded while not lost.
+        if tracking.publish_due() {
+            if let Some(track) = tracking.payload(Colour::Red) {
+                figures.red_updates += 1;
+                red_lost = track.lost;
+                if !track.lost {
+                    figures.red_tracked += 1;
+                    figures.linked_at.get_or_insert(now);
+                    figures.forwarded += 1;
+                    let _ = delivery.set_goal(now, d1_pose, (track.x, track.y));
+                }
+            }
+        }
+        let s = SensorSample::from_robot(&world.robots()[d1], now);
+        localizer.handle_odometry(s.odom);
+        if let Some(scan) = d1_geometry.scan(&s) {
+            localizer.handle_scan(s.laser_time, &scan);
+        }
+        d1_pose = localizer.estimate();
+        let obstacles = d1_geometry.obstacle_points(&s, 3.5);
+        let (v, events) = delivery.step(now, d1_pose, &obstacles, figures.linked_at.is_some());
+        commands.push((d1, v));
+        let (px, py) = person(&world);
+        for e in &events {
+            if matches!(e, DeliveryEvent::Arrived { .. }) {
+                let r = &world.robots()[d1].pose;
+                figures.arrivals.push((r.x - px).hypot(r.y - py));
+            }
+        }
+        for (robot, velocity) in commands {
+            pending.push_back(Pending {
+                at: now + p.latency,
+                robot,
+                velocity,
+            });
+        }
+        // The simulator runs 0.1 s (the sensors' period) in five steps; commands act
+        // when their time comes.
+        for k in 1..=5 {
+            let step_end = now + 0.02 * f64::from(k);
+            while pending.front().is_some_and(|c| c.at <= step_end - 0.02 + 1e-9) {
+                if let Some(c) = pending.pop_front() {
+                    world.command_velocity(c.robot, c.velocity.0, c.velocity.1);
+                }
+            }
+            world.step(0.02);
+        }
+        t += 0.1;
+        if figures.linked_at.is_some() && t >= next_record {
+            next_record = t + 0.25;
+            let (px, py) = person(&world);
+            let d1p = world.robots()[d1].pose;
+            let t3p = world.robots()[idx[2]].pose;
+            let d = (d1p.x - px).hypot(d1p.y - py);
+            figures.d1_person_all.push(d);
+            if !red_lost {
+                figures.d1_person_tracked.push(d);
+            }
+            figures.t3_person.push((t3p.x - px).hypot(t3p.y - py));
+            figures.d1_t3.push((d1p.x - t3p.x).hypot(d1p.y - t3p.y));
+        }
+    }
+    figures.contacts = world
+        .robots()
+        .iter()
+        .map(|r| (r.spec.name.clone(), r.contacts))
+        .collect();
+    figures
+}
