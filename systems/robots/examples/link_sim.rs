@@ -27,6 +27,7 @@ fn main() {
             duration: minutes * 60.0,
             latency,
             crowd,
+            trace: std::env::var_os("TRACE").is_some(),
             ..LinkSimParams::default()
         });
         let q = |v: &[f64], x| pct(v, x).unwrap_or(f64::NAN);

@@ -32,6 +32,8 @@ pub struct LinkSimParams {
     pub crowd: usize,
     /// The tracking system's settings (T3 follows red unless told otherwise).
     pub tracking: TrackingParams,
+    /// Print a line a second to stderr (positions, tracked or not), to see a run.
+    pub trace: bool,
 }
 
 impl Default for LinkSimParams {
@@ -45,6 +47,7 @@ impl Default for LinkSimParams {
                 follow: Some(Colour::Red),
                 ..TrackingParams::default()
             },
+            trace: false,
         }
     }
 }
@@ -216,6 +219,9 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
                 world.command_camera(w, pan, tilt, zoom);
             }
             if let Some(v) = cmd.velocity {
+                if p.trace && i == 2 && (now * 10.0).round() as u64 % 20 == 0 {
+                    eprintln!("T3 cmd {v:?} pose {:?} vel {:?}", world.robots()[w].pose, world.robots()[w].velocity);
+                }
                 commands.push((w, v));
             }
         }
@@ -267,6 +273,18 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
             world.step(0.02);
         }
         t += 0.1;
+        if p.trace && (t * 10.0).round() as u64 % 10 == 0 {
+            let (px, py) = person(&world);
+            let d1p = world.robots()[d1].pose;
+            let t3p = world.robots()[idx[2]].pose;
+            let tr = tracking.payload(Colour::Red);
+            eprintln!(
+                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {:4.1} D1 ({:5.1},{:5.1}) d {:4.1} track {}",
+                t3p.x, t3p.y, (t3p.x - px).hypot(t3p.y - py),
+                d1p.x, d1p.y, (d1p.x - px).hypot(d1p.y - py),
+                tr.map_or("none".to_string(), |tr| format!("({:5.1},{:5.1}) lost {} age {:.1}", tr.x, tr.y, tr.lost, tr.age)),
+            );
+        }
         if figures.linked_at.is_some() && t >= next_record {
             next_record = t + 0.25;
             let (px, py) = person(&world);

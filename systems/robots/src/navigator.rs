@@ -187,6 +187,14 @@ impl Navigator {
         self.escape = None;
     }
 
+    /// Stop and forget the goal, but finish getting clear of anything pressing on the
+    /// robot ([`Navigator::give_way`]): for a robot that halts again at every step.
+    pub fn halt(&mut self) {
+        let escape = self.escape.take();
+        self.clear();
+        self.escape = escape;
+    }
+
     fn replan(&mut self, pose: Pose, obstacles: &[(f64, f64, f64)]) -> Result<(), PlanError> {
         let Some(goal) = self.goal else { return Ok(()) };
         self.planned_for = Some(goal);
@@ -297,12 +305,16 @@ impl Navigator {
     }
 
     /// Whether the obstacle point (x, y) in the robot's frame is a body the map does not
-    /// know (a person, a robot): more than a grid cell from any wall.
+    /// know (a person, a robot): more than two grid cells from any wall. One cell was
+    /// too few: the laser's noise and the pose estimate's error put a wall's points a
+    /// cell off it now and then, and a wall taken for a person slows the robot to a
+    /// creep for nothing (a person's near side is farther out than that, even flush
+    /// against a wall).
     fn is_body(&self, pose: Pose, x: f64, y: f64) -> bool {
         let (s, c) = pose.theta.sin_cos();
         self.planner
             .wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
-            > self.planner.params().cell
+            > 2.0 * self.planner.params().cell
     }
 
     /// The speed at which the robot can still stop before any body the map does not know,
@@ -382,6 +394,16 @@ impl Navigator {
                 .iter()
                 .any(|&(x, y)| x > -0.05 && x < p.footprint + depth && y.abs() < p.footprint + side)
         };
+        // The warning field's side margin is for what may step into the lane (people,
+        // robots); a wall alongside never does, and a robot may drive close along one.
+        let warned = || {
+            obstacles.iter().any(|&(x, y)| {
+                x > -0.05
+                    && x < p.footprint + p.warning_field
+                    && (y.abs() < p.footprint + 0.05
+                        || (y.abs() < p.footprint + 0.2 && self.is_body(pose, x, y)))
+            })
+        };
         // Bodies the map does not know (people, robots) may walk into the robot: they
         // get wider fields, so that it has stopped before they reach it.
         let body_near = |reach: f64| {
@@ -394,7 +416,7 @@ impl Navigator {
         let body_stop = body_near(p.body_protective + late);
         let body_slow = body_near(p.body_warning + late);
         let in_protective = inside(p.protective_field, 0.05);
-        let in_warning = inside(p.warning_field, 0.2);
+        let in_warning = warned();
         let lane_limit = self.body_speed_limit(pose, obstacles).max(p.warning_speed);
         v = v.min(lane_limit);
         // Getting clear: turn to the escape heading and creep out along it.

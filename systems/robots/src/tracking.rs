@@ -339,6 +339,7 @@ impl TrackingCore {
         });
         let follow_distance = self.params.follow_distance;
         let patrol = &self.params.patrol;
+        let map = &self.map;
         let r = &mut self.robots[i];
         let Some(nav) = r.nav.as_mut() else {
             return (0.0, 0.0);
@@ -347,24 +348,24 @@ impl TrackingCore {
         match target {
             Some((_, (tx, ty))) => {
                 r.searched = None;
-                let (dx, dy) = (r.pose.x - tx, r.pose.y - ty);
+                let (dx, dy) = (tx - r.pose.x, ty - r.pose.y);
                 let d = dx.hypot(dy);
-                if d <= follow_distance + 0.3 {
-                    // Close enough: hold, facing the target, and give way to anyone
-                    // (the target included) who walks into the robot.
-                    nav.clear();
+                let in_sight = map.raycast(r.pose.x, r.pose.y, dy.atan2(dx), d).is_none();
+                if d <= follow_distance + 0.3 && in_sight {
+                    // Close enough and in sight: hold, facing the target, and give way
+                    // to anyone (the target included) who walks into the robot. Halted
+                    // anew at every step, it must not forget that it is getting clear.
+                    nav.halt();
                     if let Some(v) = nav.give_way(now, r.pose, &obstacles) {
                         return v;
                     }
-                    let err = wrap((ty - r.pose.y).atan2(tx - r.pose.x) - r.pose.theta);
+                    let err = wrap(dy.atan2(dx) - r.pose.theta);
                     return (0.0, (1.5 * err).clamp(-1.0, 1.0));
                 }
-                let k = follow_distance / d.max(1e-6);
-                let goal = (tx + dx * k, ty + dy * k);
-                if nav.set_goal(r.pose, goal, 0.75).is_err() {
-                    // Keep-away point unreachable (e.g. behind a wall): head for the target.
-                    let _ = nav.set_goal(r.pose, (tx, ty), 0.75);
-                }
+                // Along the way the target went, not straight at it: a point short of it
+                // on a straight line can be behind a wall, in another room. The
+                // navigator's body fields keep the robot off the target itself.
+                let _ = nav.set_goal(r.pose, (tx, ty), 0.75);
             }
             None if search.is_some_and(|(x, y)| {
                 (x - r.pose.x).hypot(y - r.pose.y) > 1.0 && r.searched != search
