@@ -304,32 +304,49 @@ impl Navigator {
         self.latency = latency.clamp(0.0, 1.0);
     }
 
-    /// Whether the obstacle point (x, y) in the robot's frame is a body the map does not
-    /// know (a person, a robot): more than two grid cells from any wall. One cell was
-    /// too few: the laser's noise and the pose estimate's error put a wall's points a
-    /// cell off it now and then, and a wall taken for a person slows the robot to a
-    /// creep for nothing (a person's near side is farther out than that, even flush
-    /// against a wall).
-    fn is_body(&self, pose: Pose, x: f64, y: f64) -> bool {
+    /// Which obstacle points (in the robot's frame) are bodies the map does not know
+    /// (people, robots): more than a grid cell from any wall, with another such point
+    /// within 0.2 m. A lone one is the laser's noise or the pose estimate's error putting
+    /// a wall's point a cell off it (which made a wall into a person now and then, and
+    /// the robot crept past it at the warning speed); a body is wider than one beam.
+    /// Two cells off instead would miss a person in a doorway, where every point of her
+    /// is near a wall.
+    fn bodies(&self, pose: Pose, obstacles: &[(f64, f64)]) -> Vec<bool> {
         let (s, c) = pose.theta.sin_cos();
-        self.planner
-            .wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
-            > 2.0 * self.planner.params().cell
+        let cell = self.planner.params().cell;
+        let off: Vec<bool> = obstacles
+            .iter()
+            .map(|&(x, y)| {
+                self.planner
+                    .wall_distance(pose.x + c * x - s * y, pose.y + s * x + c * y)
+                    > cell
+            })
+            .collect();
+        let candidates: Vec<usize> = (0..obstacles.len()).filter(|&k| off[k]).collect();
+        let mut body = vec![false; obstacles.len()];
+        for &k in &candidates {
+            let (x, y) = obstacles[k];
+            body[k] = candidates.iter().any(|&j| {
+                j != k && (obstacles[j].0 - x).hypot(obstacles[j].1 - y) < 0.2
+            });
+        }
+        body
     }
 
     /// The speed at which the robot can still stop before any body the map does not know,
     /// in its lane ahead, could reach it walking straight at it: gap g > vb·(T + v/a) +
     /// v·T + v²/2a, with T the body reaction time plus the latency and a the braking.
-    fn body_speed_limit(&self, pose: Pose, obstacles: &[(f64, f64)]) -> f64 {
+    fn body_speed_limit(&self, obstacles: &[(f64, f64)], bodies: &[bool]) -> f64 {
         let p = &self.params;
         let gap = obstacles
             .iter()
-            .filter(|&&(x, y)| {
-                x > 0.0
+            .zip(bodies)
+            .filter(|&(&(x, y), &body)| {
+                body && x > 0.0
                     && y.abs() < p.footprint + p.body_lane
                     && x.hypot(y) < p.footprint + LOOK
-                    && self.is_body(pose, x, y)
             })
+            .map(|(pt, _)| pt)
             .map(|&(x, y)| x.hypot(y) - p.footprint)
             .fold(f64::INFINITY, f64::min);
         let (a, t, vb) = (p.brake, p.body_reaction + self.latency, p.body_speed);
@@ -396,20 +413,21 @@ impl Navigator {
         };
         // The warning field's side margin is for what may step into the lane (people,
         // robots); a wall alongside never does, and a robot may drive close along one.
+        let bodies = self.bodies(pose, obstacles);
         let warned = || {
-            obstacles.iter().any(|&(x, y)| {
+            obstacles.iter().zip(&bodies).any(|(&(x, y), &body)| {
                 x > -0.05
                     && x < p.footprint + p.warning_field
-                    && (y.abs() < p.footprint + 0.05
-                        || (y.abs() < p.footprint + 0.2 && self.is_body(pose, x, y)))
+                    && (y.abs() < p.footprint + 0.05 || (y.abs() < p.footprint + 0.2 && body))
             })
         };
         // Bodies the map does not know (people, robots) may walk into the robot: they
         // get wider fields, so that it has stopped before they reach it.
         let body_near = |reach: f64| {
-            obstacles.iter().any(|&(x, y)| {
-                x > -0.1 && x.hypot(y) < p.footprint + reach && self.is_body(pose, x, y)
-            })
+            obstacles
+                .iter()
+                .zip(&bodies)
+                .any(|(&(x, y), &body)| body && x > -0.1 && x.hypot(y) < p.footprint + reach)
         };
         // A body walks this far towards the robot before a command acts.
         let late = p.body_speed * self.latency;
@@ -417,7 +435,7 @@ impl Navigator {
         let body_slow = body_near(p.body_warning + late);
         let in_protective = inside(p.protective_field, 0.05);
         let in_warning = warned();
-        let lane_limit = self.body_speed_limit(pose, obstacles).max(p.warning_speed);
+        let lane_limit = self.body_speed_limit(obstacles, &bodies).max(p.warning_speed);
         v = v.min(lane_limit);
         // Getting clear: turn to the escape heading and creep out along it.
         if let Some(velocity) = self.escaping(now, pose, || {
