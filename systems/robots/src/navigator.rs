@@ -247,6 +247,26 @@ impl Navigator {
         Some((0.0, 0.0))
     }
 
+    /// Gets out of the way of something at bearing `toward` (rad, robot frame) that
+    /// needs to pass, before it presses on the robot (a followed person who turns back
+    /// in a doorway): turns away and creeps clear along the free heading nearest to
+    /// straight away, as [`Navigator::give_way`] does when pressed. `None` when there is
+    /// no free heading.
+    pub fn make_room(
+        &mut self,
+        now: f64,
+        pose: Pose,
+        obstacles: &[(f64, f64)],
+        toward: f64,
+    ) -> Option<(f64, f64)> {
+        if self.escape.is_none_or(|(_, until)| now >= until) {
+            let away = wrap(toward + std::f64::consts::PI);
+            let a = escape_heading(self.params.footprint, obstacles, away, 0.4)?;
+            self.escape = Some((wrap(pose.theta + a), now + 3.0));
+        }
+        self.give_way(now, pose, obstacles)
+    }
+
     /// While getting clear: turn to the escape heading, and once facing it (within
     /// 0.3 rad) move at `speed()`. `None` when not escaping (any more).
     fn escaping(

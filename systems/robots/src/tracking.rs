@@ -51,6 +51,27 @@ impl Budget {
 /// A mobile tracker searches where its target was last seen for this long, s.
 const SEARCH_FOR: f64 = 60.0;
 
+/// How far a mobile tracker looks ahead of where it lost its target, in seconds of the
+/// target's last velocity.
+const SEARCH_AHEAD: f64 = 4.0;
+
+/// Where to look for a lost target: where it was last seen, carried on along its last
+/// velocity for [`SEARCH_AHEAD`] seconds, but short of any wall on the way (a person who
+/// walked off down a corridor is further down it, not where the camera lost her).
+fn search_point(map: &OccupancyMap, t: &crate::tracker::Track) -> (f64, f64) {
+    let (x, y, vx, vy) = (t.state[0], t.state[1], t.state[2], t.state[3]);
+    let ahead = vx.hypot(vy) * SEARCH_AHEAD;
+    if ahead < 0.5 {
+        return (x, y);
+    }
+    let heading = vy.atan2(vx);
+    let go = map
+        .raycast(x, y, heading, ahead + 0.5)
+        .map_or(ahead, |hit| (hit - 0.5).min(ahead))
+        .max(0.0);
+    (x + go * heading.cos(), y + go * heading.sin())
+}
+
 /// One tracking robot, as configured.
 #[derive(Clone, Debug)]
 pub struct TrackerRobot {
@@ -330,12 +351,10 @@ impl TrackingCore {
             .iter()
             .find(|c| self.tracker.is_tracked(**c, now))
             .and_then(|c| Some((*c, self.tracker.predicted(*c, now)?)));
-        // Lost a while ago: search where it was last seen (once), then patrol.
+        // Lost a while ago: search where it was going (once), then patrol.
         let search = follow.iter().find_map(|c| {
             let t = self.tracker.track(*c)?;
-            (now - t.last_seen < SEARCH_FOR)
-                .then(|| self.tracker.predicted(*c, now))
-                .flatten()
+            (now - t.last_seen < SEARCH_FOR).then(|| search_point(&self.map, t))
         });
         let follow_distance = self.params.follow_distance;
         let patrol = &self.params.patrol;
@@ -360,6 +379,14 @@ impl TrackingCore {
                         return v;
                     }
                     let err = wrap(dy.atan2(dx) - r.pose.theta);
+                    // Much closer than it keeps: the target came back towards the
+                    // robot, which may stand where she must pass (a doorway, a dead
+                    // end): make room rather than trap her.
+                    if d < 0.6 * follow_distance {
+                        if let Some(v) = nav.make_room(now, r.pose, &obstacles, err) {
+                            return v;
+                        }
+                    }
                     return (0.0, (1.5 * err).clamp(-1.0, 1.0));
                 }
                 // Along the way the target went, not straight at it: a point short of it
