@@ -64,6 +64,8 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     let mut forwarded = 0u64;
     // The red tracker's estimates of the person, for the picture.
     let mut red_track: Vec<(f64, f64)> = Vec::new();
+    // Sim time and `lost` of each red update, to tell which samples had her tracked.
+    let mut red_states: Vec<(f64, bool)> = Vec::new();
     let mut refusal = None;
     let mut link_ended = None;
     let mut link_attempts = 0u32;
@@ -98,6 +100,9 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
                 };
                 let st = &mut targets[k];
                 st.updates += 1;
+                if k == 0 {
+                    red_states.push((rec.now, t.lost));
+                }
                 if !t.lost {
                     st.tracked += 1;
                     if k == 0 {
@@ -148,11 +153,27 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         })
         .collect();
     let dvals: Vec<f64> = dist.iter().map(|d| d.1).collect();
+    // ... and only while the red track was not lost (the latest update before each sample).
+    let tracked_at = |t: f64| {
+        let k = red_states.partition_point(|u| u.0 <= t);
+        k > 0 && !red_states[k - 1].1
+    };
+    let dvals_tracked: Vec<f64> = dist
+        .iter()
+        .filter(|d| tracked_at(d.0 + sim_start))
+        .map(|d| d.1)
+        .collect();
     let t3vals: Vec<f64> = rec
         .samples
         .iter()
         .filter(|s| s.t >= linked_from)
         .map(|s| (s.t3.0 - s.person().0).hypot(s.t3.1 - s.person().1))
+        .collect();
+    let d1_t3: Vec<f64> = rec
+        .samples
+        .iter()
+        .filter(|s| s.t >= linked_from)
+        .map(|s| (s.d1.0 - s.t3.0).hypot(s.d1.1 - s.t3.1))
         .collect();
     let convoy = rec
         .samples
@@ -193,9 +214,12 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
             "arrivals": arrivals,
             "distance_to_person_p50_m": pct(&dvals, 0.5),
             "distance_to_person_p90_m": pct(&dvals, 0.9),
+            "distance_to_person_while_tracked_p50_m": pct(&dvals_tracked, 0.5),
+            "distance_to_person_while_tracked_p90_m": pct(&dvals_tracked, 0.9),
         },
         "convoy": {
             "t3_distance_to_person_p50_m": pct(&t3vals, 0.5),
+            "d1_distance_to_t3_p50_m": pct(&d1_t3, 0.5),
             "fraction_both_within_5m": convoy,
         },
         "contacts": contacts,

@@ -219,9 +219,6 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
                 world.command_camera(w, pan, tilt, zoom);
             }
             if let Some(v) = cmd.velocity {
-                if p.trace && i == 2 && (now * 10.0).round() as u64 % 20 == 0 {
-                    eprintln!("T3 cmd {v:?} pose {:?} vel {:?}", world.robots()[w].pose, world.robots()[w].velocity);
-                }
                 commands.push((w, v));
             }
         }
@@ -265,7 +262,10 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
         // when their time comes.
         for k in 1..=5 {
             let step_end = now + 0.02 * f64::from(k);
-            while pending.front().is_some_and(|c| c.at <= step_end - 0.02 + 1e-9) {
+            while pending
+                .front()
+                .is_some_and(|c| c.at <= step_end - 0.02 + 1e-9)
+            {
                 if let Some(c) = pending.pop_front() {
                     world.command_velocity(c.robot, c.velocity.0, c.velocity.1);
                 }
@@ -273,7 +273,7 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
             world.step(0.02);
         }
         t += 0.1;
-        if p.trace && (t * 10.0).round() as u64 % 10 == 0 {
+        if p.trace && ((t * 10.0).round() as u64).is_multiple_of(10) {
             let (px, py) = person(&world);
             let d1p = world.robots()[d1].pose;
             let t3p = world.robots()[idx[2]].pose;

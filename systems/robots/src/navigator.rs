@@ -346,9 +346,9 @@ impl Navigator {
         let mut body = vec![false; obstacles.len()];
         for &k in &candidates {
             let (x, y) = obstacles[k];
-            body[k] = candidates.iter().any(|&j| {
-                j != k && (obstacles[j].0 - x).hypot(obstacles[j].1 - y) < 0.2
-            });
+            body[k] = candidates
+                .iter()
+                .any(|&j| j != k && (obstacles[j].0 - x).hypot(obstacles[j].1 - y) < 0.2);
         }
         body
     }
@@ -455,7 +455,9 @@ impl Navigator {
         let body_slow = body_near(p.body_warning + late);
         let in_protective = inside(p.protective_field, 0.05);
         let in_warning = warned();
-        let lane_limit = self.body_speed_limit(obstacles, &bodies).max(p.warning_speed);
+        let lane_limit = self
+            .body_speed_limit(obstacles, &bodies)
+            .max(p.warning_speed);
         v = v.min(lane_limit);
         // Getting clear: turn to the escape heading and creep out along it.
         if let Some(velocity) = self.escaping(now, pose, || {

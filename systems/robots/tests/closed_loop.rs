@@ -381,3 +381,40 @@ fn delivery_follows_a_walking_person_almost_without_contact_despite_latency() {
         "contacts per seed: {contacts:?}"
     );
 }
+
+/// The paper's Experiment 2 in process (`link_sim`): T3 follows the red person, her
+/// track is forwarded to D1 once a second while tracked. Over three ten-minute seeds no
+/// robot touches anything, and D1 keeps near her while she is tracked. Before T3
+/// followed along the way she went and walls stopped passing for people, D1's distance
+/// while tracked was p50 14 m over seeds 1-3; it is 3.6-4.5 m per seed now. The issue's
+/// goal (p50 ≤ 3 m, p90 ≤ 6 m) is not met yet; this holds what is.
+#[test]
+fn experiment_two_in_process_follows_the_person_without_contact() {
+    use muster_robots::link_sim::{run, LinkSimParams};
+    let mut tracked = Vec::new();
+    for seed in [1, 2, 3] {
+        let f = run(&LinkSimParams {
+            seed,
+            ..LinkSimParams::default()
+        });
+        assert_eq!(f.total_contacts(), 0, "seed {seed}: {:?}", f.contacts);
+        assert!(
+            f.linked_at.is_some_and(|t| t < 60.0),
+            "seed {seed}: linked at {:?}",
+            f.linked_at
+        );
+        assert!(
+            f.forwarded > 100,
+            "seed {seed}: {} goals forwarded",
+            f.forwarded
+        );
+        assert!(
+            f.tracked_fraction() > 0.4,
+            "seed {seed}: tracked {:.2}",
+            f.tracked_fraction()
+        );
+        tracked.extend(f.d1_person_tracked);
+    }
+    let p50 = muster_robots::percentile(&tracked, 0.5).unwrap();
+    assert!(p50 < 6.0, "D1 to the person while tracked, p50 {p50:.2} m");
+}
