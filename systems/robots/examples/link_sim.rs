@@ -1,10 +1,18 @@
 //! Runs the paper's Experiment 2 in process over seeds and prints each run's figures:
 //! `cargo run --release -p muster-robots --example link_sim -- [SEEDS] [MINUTES] [LATENCY_S] [CROWD]`
-//! (SEEDS as `1-20` or `1,5,9`).
+//! (SEEDS as `1-20` or `1,5,9`). Contacts are logged on stderr; `TRACE=1` adds a line a
+//! second of where everyone is.
 use muster_robots::link_sim::{run, LinkSimParams};
 use muster_robots::percentile as pct;
 
 fn main() {
+    // The simulator logs each contact (robot, pose, velocity, the nearest body) at info.
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
     let args: Vec<String> = std::env::args().skip(1).collect();
     let seeds: Vec<u64> = match args.first().map(String::as_str) {
         Some(s) if s.contains('-') => {

@@ -196,6 +196,9 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
         },
     );
     delivery.set_latency(p.latency);
+    for i in 0..idx.len() {
+        tracking.set_latency(i, p.latency);
+    }
     let person = |w: &World| {
         w.people()
             .iter()

@@ -119,6 +119,9 @@ pub struct Navigator {
     latency: f64,
 }
 
+/// The laser's period: a body moves this long between two looks at it, s.
+const SENSOR_PERIOD: f64 = 0.1;
+
 /// How far ahead the footprint is cast, m.
 const LOOK: f64 = 3.0;
 
@@ -223,8 +226,11 @@ impl Navigator {
         obstacles: &[(f64, f64)],
     ) -> Option<(f64, f64)> {
         let (footprint, stop_gap) = (self.params.footprint, self.params.stop_gap);
+        // Creeping clear never runs into someone else: not with a body in the protective
+        // field (grown by the latency) ahead or beside it.
+        let body_near = self.body_could_reach(obstacles, &self.bodies(pose, obstacles));
         let creep = || {
-            if free_distance(footprint, obstacles, 1.0) > stop_gap {
+            if !body_near && free_distance(footprint, obstacles, 1.0) > stop_gap {
                 0.2
             } else {
                 0.0
@@ -265,6 +271,21 @@ impl Navigator {
             self.escape = Some((wrap(pose.theta + a), now + 3.0));
         }
         self.give_way(now, pose, obstacles)
+    }
+
+    /// Whether a body the map does not know could reach the footprint, ahead of or
+    /// beside it, before a creeping robot's next command acts: within the protective
+    /// field plus the distance it walks in a sensor period and the latency. (The wider
+    /// body field would also hold a robot still beside another halted robot, and two
+    /// followers of one person then hold each other in a doorway for good.)
+    fn body_could_reach(&self, obstacles: &[(f64, f64)], bodies: &[bool]) -> bool {
+        let p = &self.params;
+        let reach =
+            p.footprint + p.protective_field + p.body_speed * (SENSOR_PERIOD + self.latency);
+        obstacles
+            .iter()
+            .zip(bodies)
+            .any(|(&(x, y), &body)| body && x > -0.1 && x.hypot(y) < reach)
     }
 
     /// While getting clear: turn to the escape heading, and once facing it (within
@@ -458,11 +479,17 @@ impl Navigator {
         let lane_limit = self
             .body_speed_limit(obstacles, &bodies)
             .max(p.warning_speed);
+        let creep_blocked = self.body_could_reach(obstacles, &bodies);
         v = v.min(lane_limit);
         // Getting clear: turn to the escape heading and creep out along it.
         if let Some(velocity) = self.escaping(now, pose, || {
-            // Getting clear never runs into someone else: the lane limit holds here too.
-            v_safe.clamp(0.0, 0.3).min(lane_limit)
+            // Getting clear never runs into someone else: the lane limit and the body
+            // protective field hold here too.
+            if creep_blocked {
+                0.0
+            } else {
+                v_safe.clamp(0.0, 0.3).min(lane_limit)
+            }
         }) {
             return NavStep {
                 velocity,

@@ -131,6 +131,9 @@ pub struct TrackingApp {
     budgeted_for: Option<usize>,
     truth_stats: Vec<LocalizationStats>,
     last_scan: Vec<f64>,
+    /// Per robot, how far the simulator had run past the sample a command was made
+    /// from (sim s), as a slowly decaying peak (see [`DeliveryApp`]).
+    latency: Vec<f64>,
     published: u64,
     /// Where the system shows its estimates and tracks (recorders, viewers).
     viz: Option<Viz>,
@@ -227,6 +230,7 @@ impl TrackingApp {
             budgeted_for: None,
             truth_stats: vec![LocalizationStats::default(); n],
             last_scan: vec![f64::NEG_INFINITY; n],
+            latency: vec![0.0; n],
             published: 0,
             viz: None,
         })
@@ -371,6 +375,14 @@ impl SystemApp for TrackingApp {
             if let Err(e) = link.velocity(v, w) {
                 tracing::warn!("robot {index}: {e}");
             }
+            // How far the simulator ran while we worked, as the delivery system
+            // measures it: a mobile tracker's margins grow with it.
+            let lag = link
+                .newer_than(sample.time)
+                .map_or(0.0, |t| (t - sample.time).max(0.0));
+            let peak = &mut self.latency[index];
+            *peak = lag.max(*peak * 0.97);
+            self.core.set_latency(index, *peak);
         }
         if let Some((pan, tilt, zoom)) = cmd.camera {
             if let Err(e) = link.camera(pan, tilt, zoom) {

@@ -234,6 +234,14 @@ impl TrackingCore {
         &self.params.colours
     }
 
+    /// How late robot `i` acts on a command (see [`Navigator::set_latency`]): a mobile
+    /// tracker's margins grow with it as the delivery robot's do.
+    pub fn set_latency(&mut self, i: usize, latency: f64) {
+        if let Some(nav) = self.robots.get_mut(i).and_then(|r| r.nav.as_mut()) {
+            nav.set_latency(latency);
+        }
+    }
+
     /// Sessions the robots can sustain now, given what they track.
     pub fn session_limit(&self) -> usize {
         self.params.budget.sessions(self.tracker.tracked(self.now))
@@ -382,7 +390,10 @@ impl TrackingCore {
                     // Much closer than it keeps: the target came back towards the
                     // robot, which may stand where she must pass (a doorway, a dead
                     // end): make room rather than trap her.
-                    if d < 0.6 * follow_distance {
+                    // Nor does it hold in a doorway (walls close on both sides): the
+                    // target's only way out may be through it.
+                    let narrow = map.clearance(r.pose.x, r.pose.y, 1.0) < 0.6;
+                    if d < 0.6 * follow_distance || narrow {
                         if let Some(v) = nav.make_room(now, r.pose, &obstacles, err) {
                             return v;
                         }
