@@ -60,6 +60,9 @@ pub struct NavParams {
     /// Time from a reading to the robot acting on it in that speed limit, s (the sensor
     /// period and the drive's lag; the measured latency is added).
     pub body_reaction: f64,
+    /// Bearings (rad, either side of the heading) within which the laser sees densely:
+    /// a lone point off the walls there is noise, beyond it (sonar only) a body.
+    pub dense_bearing: f64,
 }
 
 impl Default for NavParams {
@@ -82,6 +85,7 @@ impl Default for NavParams {
             body_speed: 0.8,
             body_lane: 0.3,
             body_reaction: 0.35,
+            dense_bearing: 80f64.to_radians(),
         }
     }
 }
@@ -347,7 +351,8 @@ impl Navigator {
 
     /// Which obstacle points (in the robot's frame) are bodies the map does not know
     /// (people, robots): more than a grid cell from any wall, with another such point
-    /// within 0.2 m. A lone one is the laser's noise or the pose estimate's error putting
+    /// within 0.2 m where the laser sees (any one beyond, where only a sonar does). A
+    /// lone one in the laser's field is the laser's noise or the pose estimate's error putting
     /// a wall's point a cell off it (which made a wall into a person now and then, and
     /// the robot crept past it at the warning speed); a body is wider than one beam.
     /// Two cells off instead would miss a person in a doorway, where every point of her
@@ -367,9 +372,11 @@ impl Navigator {
         let mut body = vec![false; obstacles.len()];
         for &k in &candidates {
             let (x, y) = obstacles[k];
-            body[k] = candidates
-                .iter()
-                .any(|&j| j != k && (obstacles[j].0 - x).hypot(obstacles[j].1 - y) < 0.2);
+            // Beyond the laser's field only the sonar sees, one echo per transducer.
+            body[k] = y.atan2(x).abs() > self.params.dense_bearing
+                || candidates
+                    .iter()
+                    .any(|&j| j != k && (obstacles[j].0 - x).hypot(obstacles[j].1 - y) < 0.2);
         }
         body
     }

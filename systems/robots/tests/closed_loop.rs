@@ -359,16 +359,17 @@ fn delivery_follows_a_walking_person_without_contact() {
     }
 }
 
+/// D1 following a walking person with every command acting 0.25 s late, on ten seeds of
+/// ten minutes: the speed limit and body fields grow with the measured latency, and the
+/// robot never moves into her. Runs are chaotic (a change of 1e-9 m in a laser range
+/// sends a run elsewhere), so this holds over ten runs, not one. History: before the
+/// lane speed limit and the latency-aware fields seeds 1 and 5 touched her 3 times in 5
+/// runs; after, 1-2 contacts in 10-16 seeds (a person coming up beside the robot as it
+/// turned; the sonar-only echoes at its sides were then taken for noise, and getting
+/// clear crept into people); 0 in seeds 1-16 since (this runs 1-10).
 #[test]
-fn delivery_follows_a_walking_person_almost_without_contact_despite_latency() {
+fn delivery_follows_a_walking_person_without_contact_despite_latency() {
     let mut contacts = Vec::new();
-    // Before the lane speed limit and the measured latency, seeds 1 and 5 touched her 3
-    // times in 5 runs. Now a contact is rare but not impossible: with commands 0.25 s
-    // late, a person who comes up beside or behind the robot in a corridor can still be
-    // touched as it turns. Runs are chaotic (a change of 1e-9 m in a laser range sends
-    // a run elsewhere), so the count is over ten runs of ten minutes: seeds 1..=16 gave
-    // one contact (seed 14) with the cell-walk ray casts and two (seeds 2 and 14) with
-    // the segment casts, which agree with them to 1e-9 m.
     for seed in 1..=10 {
         let mut d = Delivery::new(seed);
         d.latency = 0.25;
@@ -377,7 +378,7 @@ fn delivery_follows_a_walking_person_almost_without_contact_despite_latency() {
         contacts.push(d.contacts());
     }
     assert!(
-        contacts.iter().sum::<u64>() <= 1,
+        contacts.iter().all(|c| *c == 0),
         "contacts per seed: {contacts:?}"
     );
 }
