@@ -387,7 +387,7 @@ fn delivery_follows_a_walking_person_without_contact_despite_latency() {
 /// track is forwarded to D1 once a second while tracked. Over three ten-minute seeds no
 /// robot touches anything, and D1 keeps near her while she is tracked. Before T3
 /// followed along the way she went and walls stopped passing for people, D1's distance
-/// while tracked was p50 14 m over seeds 1-3; it is 3.6-4.5 m per seed now. The issue's
+/// while tracked was p50 14 m over seeds 1-3; it is 2.5-7.4 m per seed now. The issue's
 /// goal (p50 ≤ 3 m, p90 ≤ 6 m) is not met yet; this holds what is.
 #[test]
 fn experiment_two_in_process_follows_the_person_without_contact() {
