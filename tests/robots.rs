@@ -19,12 +19,11 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
     let mut f = Fed::new("uppaper");
     let pic = std::env::temp_dir().join(format!("muster-up-test-{}.png", std::process::id()));
     let mcap = std::env::temp_dir().join(format!("muster-up-test-{}.mcap", std::process::id()));
+    // At its default speed (1), as a new user runs it, for about as long as one watches.
     let up = f.spawn(&[
         "up",
         "--udp",
         "127.0.0.1:0",
-        "--speed",
-        "5",
         "--duration",
         "45s",
         "--picture",
@@ -63,6 +62,23 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         assert!(text.contains(needle), "missing {needle:?} in:\n{text}");
     }
     assert!(text.contains(" contacts; followed "), "{text}");
+    // Following shows early: a target tracked (not the fallback after 20 s with none)
+    // and D1 driving toward it within the first 30 simulated seconds.
+    assert!(text.contains(" is tracked: link tracking/"), "{text}");
+    let first_driving = text
+        .lines()
+        .find(|l| l.contains("delivery/D1: working: driving"))
+        .and_then(|l| {
+            l.rsplit_once("[sim ")?
+                .1
+                .strip_suffix(" s]")?
+                .parse::<f64>()
+                .ok()
+        });
+    assert!(
+        first_driving.is_some_and(|t| t <= 30.0),
+        "D1 first driving at sim {first_driving:?} s:\n{text}"
+    );
     let img = image::open(&pic).unwrap();
     assert_eq!((img.width(), img.height()), (800, 400));
     let _ = std::fs::remove_file(&pic);
