@@ -30,14 +30,20 @@ fn main() {
     println!("seed  d1-person tracked p50/p90  all p50/p90  tracked%  t3-person p50  d1-t3 p50  arrivals(≤1m)  contacts");
     for seed in seeds {
         let started = std::time::Instant::now();
-        let f = run(&LinkSimParams {
+        let f = match run(&LinkSimParams {
             seed,
             duration: minutes * 60.0,
             latency,
             crowd,
             trace: std::env::var_os("TRACE").is_some(),
             ..LinkSimParams::default()
-        });
+        }) {
+            Ok(f) => f,
+            Err(e) => {
+                eprintln!("seed {seed}: {e}");
+                std::process::exit(1);
+            }
+        };
         let q = |v: &[f64], x| pct(v, x).unwrap_or(f64::NAN);
         let near = f.arrivals.iter().filter(|d| **d <= 1.0).count();
         println!(

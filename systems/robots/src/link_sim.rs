@@ -97,12 +97,28 @@ struct Pending {
     velocity: (f64, f64),
 }
 
-/// Runs Experiment 2 in process for `p.duration` sim seconds.
-pub fn run(p: &LinkSimParams) -> LinkSimFigures {
+/// Runs Experiment 2 in process for `p.duration` sim seconds. Fails if the scenario
+/// does not make a world (e.g. a crowd that does not fit).
+pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
     let mut scenario = Scenario::paper();
     scenario.seed = p.seed;
+    // The crowd starts in the offices (corridor places are where robots stand) and
+    // walks from place to place like everyone, across the robots' ways.
+    let offices: Vec<[f64; 2]> = scenario
+        .places
+        .iter()
+        .filter(|pl| pl.name.starts_with("office-"))
+        .map(|pl| pl.at)
+        .collect();
+    if p.crowd > offices.len() {
+        return Err(format!(
+            "a crowd of at most {} fits the offices",
+            offices.len()
+        ));
+    }
     for k in 0..p.crowd {
-        let at = scenario.places[k % scenario.places.len()].at;
+        // Every other office first, so that neighbours do not start side by side.
+        let at = offices[(2 * k) % offices.len() + (2 * k) / offices.len()];
         scenario.people.push(PersonSpec {
             name: format!("walker-{k}"),
             // Colours no tracking service offers: walkers, not targets.
@@ -112,9 +128,7 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
         });
     }
     let map = OccupancyMap::office();
-    let Ok(mut world) = World::new(&scenario, Some(map.clone())) else {
-        return LinkSimFigures::default();
-    };
+    let mut world = World::new(&scenario, Some(map.clone())).map_err(|e| e.to_string())?;
     let map = Arc::new(map);
     let field = Arc::new(LikelihoodField::new(&map, 1.0));
     let pose_of = |w: &World, i: usize| {
@@ -127,9 +141,9 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
     };
     let names = ["T1", "T2", "T3"];
     let idx: Vec<usize> = names.iter().filter_map(|n| world.robot_index(n)).collect();
-    let Some(d1) = world.robot_index("D1") else {
-        return LinkSimFigures::default();
-    };
+    let d1 = world
+        .robot_index("D1")
+        .ok_or("the paper's scenario has no D1")?;
     let radius = idx
         .iter()
         .map(|&i| world.robots()[i].spec.drive.radius)
@@ -307,5 +321,5 @@ pub fn run(p: &LinkSimParams) -> LinkSimFigures {
         .iter()
         .map(|r| (r.spec.name.clone(), r.contacts))
         .collect();
-    figures
+    Ok(figures)
 }
