@@ -344,9 +344,14 @@ impl Navigator {
 
     /// Tells the navigator how late its commands act (measured by its shell): the
     /// reaction time of the speed limit and the body fields grow with it, so that a
-    /// slower controller keeps the same margins.
+    /// slower controller keeps the same margins. Not capped: a latency of seconds (seen
+    /// on a loaded machine: 1.9–2.6 s) grows the fields by metres, and the robot stops
+    /// near anyone rather than keep margins made for a fraction of it. A latency that
+    /// is not a number is ignored.
     pub fn set_latency(&mut self, latency: f64) {
-        self.latency = latency.clamp(0.0, 1.0);
+        if latency.is_finite() {
+            self.latency = latency.max(0.0);
+        }
     }
 
     /// Which obstacle points (in the robot's frame) are bodies the map does not know
@@ -741,6 +746,52 @@ mod tests {
             (pose.x - body_at.0).hypot(pose.y - body_at.1) > 0.35,
             "{pose:?}"
         );
+    }
+
+    #[test]
+    fn a_lone_point_in_the_lasers_field_is_noise_and_latency_grows_the_fields_uncapped() {
+        let map = OccupancyMap::office();
+        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let pose = Pose {
+            x: 10.0,
+            y: 3.0,
+            theta: 0.0,
+        };
+        let fresh = |latency: f64| {
+            let mut nav = Navigator::new(planner.clone(), NavParams::default());
+            nav.set_goal(pose, (20.0, 3.0), 0.5).unwrap();
+            nav.set_latency(latency);
+            nav
+        };
+        // Every point below is well off the walls, so only its company decides.
+        for (x, y) in [
+            (0.6, 0.35),
+            (0.6, 0.45),
+            (-0.05, 0.6),
+            (2.0, 0.0),
+            (2.0, 0.1),
+        ] {
+            assert!(
+                planner.wall_distance(pose.x + x, pose.y + y) > 0.3,
+                "({x}, {y})"
+            );
+        }
+        let speed = |nav: &mut Navigator, pts: &[(f64, f64)]| nav.step(0.0, pose, pts).velocity.0;
+        let free = speed(&mut fresh(0.0), &[]);
+        assert!(free > 0.3, "free corridor: {free}");
+        // One laser point beside the lane: noise, the robot does not slow for it.
+        assert_eq!(speed(&mut fresh(0.0), &[(0.6, 0.45)]), free);
+        // Two points together there: a body, the robot slows to the warning speed.
+        let slow = speed(&mut fresh(0.0), &[(0.6, 0.35), (0.6, 0.45)]);
+        assert!(slow <= 0.12 + 1e-9, "beside a body: {slow}");
+        // One echo at the robot's side, where only a sonar sees: a body too.
+        let side = speed(&mut fresh(0.0), &[(-0.05, 0.6)]);
+        assert!(side <= 0.12 + 1e-9, "a sonar echo at the side: {side}");
+        // A body 2 m ahead: driven towards slowly without latency, but with commands
+        // 2.5 s late (seen on a loaded machine) the fields reach it and the robot stops.
+        let body = [(2.0, 0.0), (2.0, 0.1)];
+        assert!(speed(&mut fresh(0.0), &body) > 0.12);
+        assert_eq!(speed(&mut fresh(2.5), &body), 0.0);
     }
 
     #[test]
