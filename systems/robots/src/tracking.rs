@@ -387,11 +387,9 @@ impl TrackingCore {
                         return v;
                     }
                     let err = wrap(dy.atan2(dx) - r.pose.theta);
-                    // Much closer than it keeps: the target came back towards the
-                    // robot, which may stand where she must pass (a doorway, a dead
-                    // end): make room rather than trap her.
-                    // Nor does it hold in a doorway (walls close on both sides): the
-                    // target's only way out may be through it.
+                    // Much closer than it keeps (the target came back towards the
+                    // robot), or standing in a doorway (walls close on both sides): it
+                    // may be where she must pass, so it makes room rather than trap her.
                     let narrow = map.clearance(r.pose.x, r.pose.y, 1.0) < 0.6;
                     if d < 0.6 * follow_distance || narrow {
                         if let Some(v) = nav.make_room(now, r.pose, &obstacles, err) {
