@@ -60,9 +60,6 @@ pub struct NavParams {
     /// Time from a reading to the robot acting on it in that speed limit, s (the sensor
     /// period and the drive's lag; the measured latency is added).
     pub body_reaction: f64,
-    /// Bearings (rad, either side of the heading) within which the laser sees densely:
-    /// a lone point off the walls there is noise, beyond it (sonar only) a body.
-    pub dense_bearing: f64,
 }
 
 impl Default for NavParams {
@@ -85,7 +82,6 @@ impl Default for NavParams {
             body_speed: 0.8,
             body_lane: 0.3,
             body_reaction: 0.35,
-            dense_bearing: 80f64.to_radians(),
         }
     }
 }
@@ -356,8 +352,7 @@ impl Navigator {
 
     /// Which obstacle points (in the robot's frame) are bodies the map does not know
     /// (people, robots): more than a grid cell from any wall, with another such point
-    /// within 0.2 m where the laser sees (any one beyond, where only a sonar does). A
-    /// lone one in the laser's field is the laser's noise or the pose estimate's error putting
+    /// within 0.2 m. A lone one is the laser's noise or the pose estimate's error putting
     /// a wall's point a cell off it (which made a wall into a person now and then, and
     /// the robot crept past it at the warning speed); a body is wider than one beam.
     /// Two cells off instead would miss a person in a doorway, where every point of her
@@ -377,11 +372,9 @@ impl Navigator {
         let mut body = vec![false; obstacles.len()];
         for &k in &candidates {
             let (x, y) = obstacles[k];
-            // Beyond the laser's field only the sonar sees, one echo per transducer.
-            body[k] = y.atan2(x).abs() > self.params.dense_bearing
-                || candidates
-                    .iter()
-                    .any(|&j| j != k && (obstacles[j].0 - x).hypot(obstacles[j].1 - y) < 0.2);
+            body[k] = candidates
+                .iter()
+                .any(|&j| j != k && (obstacles[j].0 - x).hypot(obstacles[j].1 - y) < 0.2);
         }
         body
     }
@@ -784,9 +777,6 @@ mod tests {
         // Two points together there: a body, the robot slows to the warning speed.
         let slow = speed(&mut fresh(0.0), &[(0.6, 0.35), (0.6, 0.45)]);
         assert!(slow <= 0.12 + 1e-9, "beside a body: {slow}");
-        // One echo at the robot's side, where only a sonar sees: a body too.
-        let side = speed(&mut fresh(0.0), &[(-0.05, 0.6)]);
-        assert!(side <= 0.12 + 1e-9, "a sonar echo at the side: {side}");
         // A body 2 m ahead: driven towards slowly without latency, but with commands
         // 2.5 s late (seen on a loaded machine) the fields reach it and the robot stops.
         let body = [(2.0, 0.0), (2.0, 0.1)];
