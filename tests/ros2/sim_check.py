@@ -105,6 +105,10 @@ if seen["clock"]:
     out["node_clock"] = node.get_clock().now().nanoseconds * 1e-9
     out["clock_at_node_clock"] = secs(seen["clock"][-1].clock)
 
+# Node names travel on their own discovery topic (ros_discovery_info) and may come
+# after the endpoints did: wait for the simulator's node a while (bounded) before
+# reading the graph once. It still fails if the node never shows.
+spin_until(lambda: "muster_sim" in node.get_node_names(), 10.0)
 out["topics"] = {name: types for name, types in node.get_topic_names_and_types()}
 out["nodes"] = node.get_node_names()
 
