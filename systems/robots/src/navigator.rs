@@ -228,7 +228,8 @@ impl Navigator {
         let (footprint, stop_gap) = (self.params.footprint, self.params.stop_gap);
         // Creeping clear never runs into someone else: not with a body in the protective
         // field (grown by the latency) ahead or beside it.
-        let body_near = self.body_could_reach(obstacles, &self.bodies(pose, obstacles));
+        let body_near = self.escape.is_some()
+            && Self::body_within(obstacles, &self.bodies(pose, obstacles), self.creep_reach());
         let creep = || {
             if !body_near && free_distance(footprint, obstacles, 1.0) > stop_gap {
                 0.2
@@ -273,15 +274,20 @@ impl Navigator {
         self.give_way(now, pose, obstacles)
     }
 
-    /// Whether a body the map does not know could reach the footprint, ahead of or
-    /// beside it, before a creeping robot's next command acts: within the protective
+    /// How far from its centre a body the map does not know could be and still reach
+    /// the footprint, ahead of or beside it, before a creeping robot's next command
+    /// acts: within the protective
     /// field plus the distance it walks in a sensor period and the latency. (The wider
     /// body field would also hold a robot still beside another halted robot, and two
     /// followers of one person then hold each other in a doorway for good.)
-    fn body_could_reach(&self, obstacles: &[(f64, f64)], bodies: &[bool]) -> bool {
+    fn creep_reach(&self) -> f64 {
         let p = &self.params;
-        let reach =
-            p.footprint + p.protective_field + p.body_speed * (SENSOR_PERIOD + self.latency);
+        p.footprint + p.protective_field + p.body_speed * (SENSOR_PERIOD + self.latency)
+    }
+
+    /// Whether a body point lies ahead of or beside the robot within `reach` of its
+    /// centre.
+    fn body_within(obstacles: &[(f64, f64)], bodies: &[bool], reach: f64) -> bool {
         obstacles
             .iter()
             .zip(bodies)
@@ -392,8 +398,7 @@ impl Navigator {
                     && y.abs() < p.footprint + p.body_lane
                     && x.hypot(y) < p.footprint + LOOK
             })
-            .map(|(pt, _)| pt)
-            .map(|&(x, y)| x.hypot(y) - p.footprint)
+            .map(|(&(x, y), _)| x.hypot(y) - p.footprint)
             .fold(f64::INFINITY, f64::min);
         let (a, t, vb) = (p.brake, p.body_reaction + self.latency, p.body_speed);
         let room = gap - vb * t;
@@ -452,39 +457,32 @@ impl Navigator {
         // (people walk into a robot faster than it can see them coming round a corner),
         // stop when it is close. They are boxes ahead of the footprint, as wide as it
         // plus a side margin, so walls alongside a corridor or a door do not slow it.
-        let inside = |depth: f64, side: f64| {
-            obstacles
-                .iter()
-                .any(|&(x, y)| x > -0.05 && x < p.footprint + depth && y.abs() < p.footprint + side)
-        };
-        // The warning field's side margin is for what may step into the lane (people,
-        // robots); a wall alongside never does, and a robot may drive close along one.
         let bodies = self.bodies(pose, obstacles);
-        let warned = || {
+        // A box ahead `depth` deep and `side` wider than the footprint, holding any point
+        // or (`bodies_only`) a body's.
+        let inside = |depth: f64, side: f64, bodies_only: bool| {
             obstacles.iter().zip(&bodies).any(|(&(x, y), &body)| {
-                x > -0.05
-                    && x < p.footprint + p.warning_field
-                    && (y.abs() < p.footprint + 0.05 || (y.abs() < p.footprint + 0.2 && body))
+                (body || !bodies_only)
+                    && x > -0.05
+                    && x < p.footprint + depth
+                    && y.abs() < p.footprint + side
             })
         };
         // Bodies the map does not know (people, robots) may walk into the robot: they
         // get wider fields, so that it has stopped before they reach it.
-        let body_near = |reach: f64| {
-            obstacles
-                .iter()
-                .zip(&bodies)
-                .any(|(&(x, y), &body)| body && x > -0.1 && x.hypot(y) < p.footprint + reach)
-        };
+        let body_near = |reach: f64| Self::body_within(obstacles, &bodies, p.footprint + reach);
         // A body walks this far towards the robot before a command acts.
         let late = p.body_speed * self.latency;
         let body_stop = body_near(p.body_protective + late);
         let body_slow = body_near(p.body_warning + late);
-        let in_protective = inside(p.protective_field, 0.05);
-        let in_warning = warned();
+        let in_protective = inside(p.protective_field, 0.05, false);
+        // The warning field's side margin is for what may step into the lane (people,
+        // robots); a wall alongside never does, and a robot may drive close along one.
+        let in_warning = inside(p.warning_field, 0.05, false) || inside(p.warning_field, 0.2, true);
         let lane_limit = self
             .body_speed_limit(obstacles, &bodies)
             .max(p.warning_speed);
-        let creep_blocked = self.body_could_reach(obstacles, &bodies);
+        let creep_blocked = Self::body_within(obstacles, &bodies, self.creep_reach());
         v = v.min(lane_limit);
         // Getting clear: turn to the escape heading and creep out along it.
         if let Some(velocity) = self.escaping(now, pose, || {
@@ -757,13 +755,7 @@ mod tests {
             nav
         };
         // Every point below is well off the walls, so only its company decides.
-        for (x, y) in [
-            (0.6, 0.35),
-            (0.6, 0.45),
-            (-0.05, 0.6),
-            (2.0, 0.0),
-            (2.0, 0.1),
-        ] {
+        for (x, y) in [(0.6, 0.35), (0.6, 0.45), (2.0, 0.0), (2.0, 0.1)] {
             assert!(
                 planner.wall_distance(pose.x + x, pose.y + y) > 0.3,
                 "({x}, {y})"

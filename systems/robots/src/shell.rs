@@ -375,13 +375,9 @@ impl SystemApp for TrackingApp {
             if let Err(e) = link.velocity(v, w) {
                 tracing::warn!("robot {index}: {e}");
             }
-            // How far the simulator ran while we worked, as the delivery system
-            // measures it: a mobile tracker's margins grow with it.
-            let lag = link
-                .newer_than(sample.time)
-                .map_or(0.0, |t| (t - sample.time).max(0.0));
+            // As the delivery system measures it: a mobile tracker's margins grow with it.
             let peak = &mut self.latency[index];
-            *peak = lag.max(*peak * 0.97);
+            *peak = latency_peak(*peak, command_lag(link.as_mut(), sample.time));
             self.core.set_latency(index, *peak);
         }
         if let Some((pan, tilt, zoom)) = cmd.camera {
@@ -715,17 +711,26 @@ impl SystemApp for DeliveryApp {
         if let Err(e) = self.link.velocity(v, w) {
             tracing::warn!("{e}");
         }
-        // The newest sample now says how far the simulator ran while we worked.
-        let lag = self
-            .link
-            .newer_than(sample.time)
-            .map_or(0.0, |t| (t - sample.time).max(0.0));
+        let lag = command_lag(self.link.as_mut(), sample.time);
         if self.latencies.len() < 200_000 {
             self.latencies.push(lag);
         }
-        self.latency = lag.max(self.latency * 0.97); // a peak with a ~2 s half-life
+        self.latency = latency_peak(self.latency, lag);
         self.core.set_latency(self.latency);
         self.tell(core, events);
         self.show();
     }
+}
+
+/// How far the simulator ran while the system worked on the sample of `sample_time`, as
+/// the newest sample says once the command is sent (sim s): the controller's latency.
+fn command_lag(link: &mut dyn RobotPort, sample_time: f64) -> f64 {
+    link.newer_than(sample_time)
+        .map_or(0.0, |t| (t - sample_time).max(0.0))
+}
+
+/// The latency a navigator plans with: the newest lag, or the last peak decaying (a
+/// half-life of about 2 s at the sensors' 10 Hz).
+fn latency_peak(peak: f64, lag: f64) -> f64 {
+    lag.max(peak * 0.97)
 }
