@@ -7,7 +7,8 @@
 //! command and what to tell the user.
 
 use crate::navigator::{NavParams, Navigator};
-use crate::planner::Planner;
+use crate::planner::{Planner, PlannerParams};
+use crate::port::RobotDescription;
 use muster_world_model::kinematics::Pose;
 use std::sync::Arc;
 
@@ -119,6 +120,28 @@ impl DeliveryCore {
             blocked_reported: false,
             arrivals: 0,
         }
+    }
+
+    /// The delivery robot `d` describes: planning on its map inflated by its radius, its
+    /// footprint a skin wider, at most 0.8 m/s, home where `d` says unless `params` names
+    /// one. The delivery system and the in-process Experiment 2 build it so.
+    pub fn for_robot(d: &RobotDescription, mut params: DeliveryParams) -> Self {
+        if params.home.is_none() {
+            params.home = d.home;
+        }
+        let planner = Arc::new(Planner::new(
+            &d.map,
+            PlannerParams {
+                radius: d.radius,
+                ..PlannerParams::default()
+            },
+        ));
+        let nav = NavParams {
+            max_speed: d.max_speed.min(0.8),
+            footprint: d.radius + 0.03,
+            ..NavParams::default()
+        };
+        DeliveryCore::new(planner, nav, params)
     }
 
     /// The goal being driven to, if any (home included).

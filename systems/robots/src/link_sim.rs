@@ -9,7 +9,6 @@
 
 use crate::delivery::{DeliveryCore, DeliveryEvent, DeliveryParams};
 use crate::localizer::{Localizer, LocalizerParams};
-use crate::navigator::NavParams;
 use crate::planner::{Planner, PlannerParams};
 use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
 use crate::tracking::{TrackerRobot, TrackingCore, TrackingParams};
@@ -176,39 +175,10 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
         p.tracking.clone(),
         p.seed,
     );
-    let d1_spec = world.robots()[d1].spec.clone();
-    let d1_geometry = SensorGeometry::of(&d1_spec);
-    let home = d1_spec.home.as_ref().and_then(|h| {
-        scenario
-            .places
-            .iter()
-            .find(|pl| &pl.name == h)
-            .map(|pl| (pl.at[0], pl.at[1]))
-    });
-    let mut localizer = Localizer::new(
-        field,
-        pose_of(&world, d1),
-        LocalizerParams::default(),
-        p.seed,
-    );
-    let mut delivery = DeliveryCore::new(
-        Arc::new(Planner::new(
-            &map,
-            PlannerParams {
-                radius: d1_spec.drive.radius,
-                ..PlannerParams::default()
-            },
-        )),
-        NavParams {
-            max_speed: d1_spec.drive.max_speed.min(0.8),
-            footprint: d1_spec.drive.radius + 0.03,
-            ..NavParams::default()
-        },
-        DeliveryParams {
-            home,
-            ..DeliveryParams::default()
-        },
-    );
+    let d1_robot = crate::sim::describe(&scenario, &map, "D1").map_err(|e| e.to_string())?;
+    let d1_geometry = d1_robot.sensors.clone();
+    let mut localizer = Localizer::new(field, d1_robot.start, LocalizerParams::default(), p.seed);
+    let mut delivery = DeliveryCore::for_robot(&d1_robot, DeliveryParams::default());
     delivery.set_latency(p.latency);
     for i in 0..idx.len() {
         tracking.set_latency(i, p.latency);

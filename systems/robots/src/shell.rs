@@ -7,7 +7,6 @@
 
 use crate::delivery::{DeliveryCore, DeliveryEvent, DeliveryParams};
 use crate::localizer::{Localizer, LocalizerParams};
-use crate::navigator::NavParams;
 use crate::planner::{Planner, PlannerParams};
 use crate::port::PortError;
 use crate::port::RobotPort;
@@ -480,10 +479,7 @@ impl DeliveryApp {
         if geometry.laser.is_none() {
             return Err(RobotSystemError::MissingSensor(opts.robot.clone(), "laser"));
         }
-        let mut params = opts.params.clone();
-        if params.home.is_none() {
-            params.home = d.home;
-        }
+        let core = DeliveryCore::for_robot(&d, opts.params.clone());
         let (start, map) = (d.start, d.map);
         let localizer = (!opts.ground_truth).then(|| {
             Localizer::new(
@@ -493,23 +489,11 @@ impl DeliveryApp {
                 opts.seed,
             )
         });
-        let planner = Arc::new(Planner::new(
-            &map,
-            PlannerParams {
-                radius: d.radius,
-                ..PlannerParams::default()
-            },
-        ));
-        let nav = NavParams {
-            max_speed: d.max_speed.min(0.8),
-            footprint: d.radius + 0.03,
-            ..NavParams::default()
-        };
         Ok(DeliveryApp {
             link,
             geometry,
             localizer,
-            core: DeliveryCore::new(planner, nav, params),
+            core,
             service: opts.service.clone(),
             pose: start,
             after: f64::NEG_INFINITY,
