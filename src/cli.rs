@@ -87,6 +87,10 @@ pub enum Command {
     /// sessions, task queues and the broker's events, live; keys to withdraw or restore
     /// a service, end a session, drop a user, move or drop a queued request.
     Console(ConsoleArgs),
+    /// The web console: an HTTP and WebSocket server with the app inside the binary.
+    /// People sign in with the access file's `web` lines (`muster keygen --web`) and
+    /// list, request, watch, drive and link services as their patterns allow.
+    Web(WebArgs),
     /// Serve the live world and infrastructure (the topics of `muster record`) over the
     /// Foxglove WebSocket protocol, for Foxglove or Lichtblick.
     View(ViewArgs),
@@ -230,6 +234,10 @@ pub struct KeygenArgs {
     /// `muster console --remote`).
     #[arg(long, conflicts_with = "broker")]
     pub operator: bool,
+    /// Also make a web token for `muster web`: written to DIR/NAME.web (mode 600), its
+    /// hash printed as a `web NAME HASH` line after the access line.
+    #[arg(long, conflicts_with = "broker")]
+    pub web: bool,
 }
 
 /// How a user reaches a broker over UDP (all user verbs).
@@ -377,6 +385,20 @@ pub struct SceneArgs {
     /// `cdr` with its `ros2msg` definition).
     #[arg(long = "service")]
     pub services: Vec<String>,
+}
+
+#[derive(Args, Debug)]
+pub struct WebArgs {
+    /// Where to listen (port 0: any free port; the address is printed as JSON).
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub listen: std::net::SocketAddr,
+    /// The access file (`muster keygen --user NAME --web [--allow PATTERN]`): who may
+    /// sign in, and which services each may see and use. Re-read when it changes.
+    #[arg(long)]
+    pub access: std::path::PathBuf,
+    /// How long a signing-in user's connection waits for a broker.
+    #[arg(long, default_value = "5s", value_parser = duration)]
+    pub wait: Duration,
 }
 
 #[derive(Args, Debug)]
@@ -1115,6 +1137,12 @@ pub struct UpArgs {
     /// Simulator speed (sim seconds per wall second; every process follows its clock).
     #[arg(long, default_value_t = 1.0)]
     pub speed: f64,
+    /// Where the web console listens (`muster web`; another free port if taken).
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub web: std::net::SocketAddr,
+    /// Start no web console.
+    #[arg(long)]
+    pub no_web: bool,
     /// Where to write the picture of the run (default: muster-up-INSTANCE.png in the
     /// temporary folder).
     #[arg(long)]

@@ -2,7 +2,7 @@
 
 use crate::cli::KeygenArgs;
 use anyhow::Context;
-use muster_shared::udp::access::{access_line, valid_user_name};
+use muster_shared::udp::access::{access_line, new_web_token, valid_user_name, web_line};
 use muster_shared::udp::crypto::KeyPair;
 use std::process::ExitCode;
 
@@ -30,7 +30,18 @@ pub fn run(a: KeygenArgs) -> anyhow::Result<ExitCode> {
         );
     } else {
         println!("{}", access_line(&name, &key.public, &a.allow, a.operator));
-        eprintln!("add the line above to the broker's access file, then `kill -HUP` the broker");
+        if a.web {
+            let token = new_web_token();
+            let path = a.out.join(format!("{name}.web"));
+            muster_web::write_secret(&path, &format!("{token}\n"))
+                .with_context(|| format!("writing {} (not overwriting one)", path.display()))?;
+            eprintln!(
+                "wrote {} (the web token: sign in to `muster web` as {name} with it)",
+                path.display()
+            );
+            println!("{}", web_line(&name, &token));
+        }
+        eprintln!("add the line(s) above to the broker's access file, then `kill -HUP` the broker");
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -108,6 +108,13 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Record(a) => record::run(&inst, a),
         Command::Operator(a) => operator::run(&inst, a),
         Command::Console(a) => console::run(&inst, a),
+        Command::Web(a) => muster_web::serve(muster_web::WebOptions {
+            instance: inst.clone(),
+            listen: a.listen,
+            access: a.access,
+            wait_for_broker: a.wait,
+        })
+        .map(|()| ExitCode::SUCCESS),
         Command::View(a) => view::run(&inst, a),
         Command::Replay(a) => view::replay(a),
         Command::Netns(a) => netns::run(&inst, a),

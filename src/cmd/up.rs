@@ -9,8 +9,9 @@
 use super::children::Children;
 use super::standbys::Standbys;
 use crate::cli::UpArgs;
+use anyhow::Context as _;
 use muster_shared::types::ServiceId;
-use muster_shared::udp::access::access_line;
+use muster_shared::udp::access::{access_line, new_web_token, web_line};
 use muster_shared::udp::crypto::KeyPair;
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, RemoteOptions, UserClient, UserError, UserEvent};
@@ -19,25 +20,27 @@ use std::process::{ExitCode, Stdio};
 use std::time::{Duration, Instant};
 
 /// A guest key and an access file letting it list and request everything, for the
-/// remote users of this run.
+/// remote users (UDP) and the web console of this run.
 pub(super) struct Guest {
     pub(super) dir: std::path::PathBuf,
     /// The broker's key file: the standby taking over must present the same key.
     pub(super) broker_key: std::path::PathBuf,
     key: KeyPair,
-    pub(super) addr: SocketAddr,
+    /// Where the broker serves remote users (`None`: `--no-udp`).
+    pub(super) addr: Option<SocketAddr>,
 }
 
 impl Guest {
-    pub(super) fn new(inst: &Instance, mut addr: SocketAddr) -> anyhow::Result<Self> {
+    pub(super) fn new(inst: &Instance, udp: Option<SocketAddr>) -> anyhow::Result<Self> {
         // Resolve port 0, and fall back to a free port if the asked one is taken (another
         // `muster up` on this machine): the demo must start on a fresh machine.
-        addr = match std::net::UdpSocket::bind(addr) {
-            Ok(s) => s.local_addr()?,
-            Err(e) => {
+        let addr = match udp.map(|a| (a, std::net::UdpSocket::bind(a))) {
+            None => None,
+            Some((_, Ok(s))) => Some(s.local_addr()?),
+            Some((addr, Err(e))) => {
                 let free = std::net::UdpSocket::bind((addr.ip(), 0))?.local_addr()?;
                 eprintln!("muster up: udp {addr} unavailable ({e}); remote users use {free}");
-                free
+                Some(free)
             }
         };
         let dir = std::env::temp_dir().join(format!("muster-up-{inst}-{}", std::process::id()));
@@ -46,9 +49,14 @@ impl Guest {
         key.write("guest", &dir.join("guest.key"))?;
         let broker_key = dir.join("broker.key");
         KeyPair::generate()?.write("broker", &broker_key)?;
+        let token = new_web_token();
+        muster_web::write_secret(&dir.join("guest.web"), &format!("{token}\n"))?;
         std::fs::write(
             dir.join("access"),
-            access_line("guest", &key.public, &["*".to_string()], false) + "\n",
+            access_line("guest", &key.public, &["*".to_string()], false)
+                + "\n"
+                + &web_line("guest", &token)
+                + "\n",
         )?;
         Ok(Guest {
             dir,
@@ -57,19 +65,61 @@ impl Guest {
             addr,
         })
     }
-}
 
-impl Guest {
-    /// The broker's arguments for this guest: UDP address, access file, key.
+    /// The broker's arguments for this guest: UDP address, access file, key (none
+    /// without UDP).
     pub(super) fn broker_args(&self) -> Vec<String> {
+        let Some(addr) = self.addr else {
+            return Vec::new();
+        };
         vec![
             "--udp".to_string(),
-            self.addr.to_string(),
+            addr.to_string(),
             "--access".to_string(),
             self.dir.join("access").display().to_string(),
             "--key".to_string(),
             self.broker_key.display().to_string(),
         ]
+    }
+
+    /// Starts `muster web` for the guest on `listen` (another free port if that one is
+    /// taken) and says where it is and how to sign in.
+    pub(super) fn start_web(
+        &self,
+        children: &mut Children,
+        inst: &Instance,
+        listen: SocketAddr,
+    ) -> anyhow::Result<()> {
+        use std::io::BufRead;
+        let listen = match std::net::TcpListener::bind(listen) {
+            Ok(l) => l.local_addr()?,
+            Err(e) => {
+                let free = std::net::TcpListener::bind((listen.ip(), 0))?.local_addr()?;
+                eprintln!("muster up: web {listen} unavailable ({e}); the console uses {free}");
+                free
+            }
+        };
+        let access = self.dir.join("access").display().to_string();
+        let listen_s = listen.to_string();
+        let child = children.spawn(
+            inst,
+            "web console",
+            &[
+                "web", "--listen", &listen_s, "--access", &access, "--wait", "60s",
+            ],
+            Stdio::piped(),
+        )?;
+        let stdout = child.stdout.take().context("the web console's output")?;
+        let mut line = String::new();
+        std::io::BufReader::new(stdout).read_line(&mut line)?;
+        let at: serde_json::Value = serde_json::from_str(&line)
+            .with_context(|| format!("the web console did not start (it said {line:?})"))?;
+        out!(
+            "== web console: {} (sign in as guest with the token in {}) ==",
+            at["url"].as_str().unwrap_or(&listen_s),
+            self.dir.join("guest.web").display()
+        );
+        Ok(())
     }
 }
 
@@ -115,14 +165,10 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         return super::up_paper::run(inst, a);
     }
     let mut children = Children::default();
-    let guest = if a.no_udp {
-        None
-    } else {
-        Some(Guest::new(inst, a.udp)?)
-    };
-    let broker_args = guest.as_ref().map(Guest::broker_args).unwrap_or_default();
+    let guest = Guest::new(inst, (!a.no_udp).then_some(a.udp))?;
+    let broker_args = guest.broker_args();
     let mut sys_udp: Vec<&str> = Vec::new();
-    if guest.is_some() {
+    if guest.addr.is_some() {
         sys_udp.extend(["--udp", "127.0.0.1:0"]);
     }
     let broker: Vec<&str> = std::iter::once("broker")
@@ -149,12 +195,11 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     };
     let mut client = UserClient::connect(inst, &opts)?;
     let end = a.duration.map(|d| Instant::now() + d);
-    let shown = wait_for_services(&mut client, 4, Duration::from_secs(10)).and_then(|()| {
-        if let Some(g) = &guest {
-            remote_list(g)?;
-        }
-        Ok(())
-    });
+    let shown = wait_for_services(&mut client, 4, Duration::from_secs(10))
+        .and_then(|()| remote_list(&guest));
+    if !a.no_web {
+        guest.start_web(&mut children, inst, a.web)?;
+    }
     let ids = (ServiceId::new("t1", "s0"), ServiceId::new("d1", "s0"));
     match shown.and_then(|()| demo(&mut client, end, ids)) {
         Ok(()) | Err(UserError::Interrupted) => {}
@@ -184,13 +229,16 @@ pub(super) fn wait_for_services(
 
 /// The same list as a remote user sees it, over authenticated UDP.
 pub(super) fn remote_list(g: &Guest) -> Result<(), UserError> {
+    let Some(addr) = g.addr else {
+        return Ok(());
+    };
     let opts = ConnectOptions {
         wait_for_broker: Duration::from_secs(10),
         handle_signals: false,
         watch_list: false,
     };
     let remote = RemoteOptions {
-        broker: g.addr,
+        broker: addr,
         name: "guest".into(),
         key: g.key.clone(),
         broker_key: None,
@@ -200,8 +248,8 @@ pub(super) fn remote_list(g: &Guest) -> Result<(), UserError> {
     let list = c.list()?;
     out!(
         "== remote users: UDP {} (this run's guest key: muster user --remote {} --key {}) ==",
-        g.addr,
-        g.addr,
+        addr,
+        addr,
         g.dir.join("guest.key").display()
     );
     out!(

@@ -25,15 +25,10 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         a.speed.is_finite() && a.speed > 0.0 && a.speed <= 50.0,
         "--speed must be in (0, 50]"
     );
-    let guest = if a.no_udp {
-        None
-    } else {
-        Some(Guest::new(inst, a.udp)?)
-    };
-    let mut broker_args = Vec::new();
+    let guest = Guest::new(inst, (!a.no_udp).then_some(a.udp))?;
+    let broker_args = guest.broker_args();
     let mut system_args = Vec::new();
-    if let Some(g) = &guest {
-        broker_args = g.broker_args();
+    if guest.addr.is_some() {
         system_args = vec!["--udp".to_string(), "127.0.0.1:0".to_string()];
     }
     let run = PaperRun::start(
@@ -51,7 +46,7 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
         },
     )?;
     let standbys =
-        (!a.no_standby).then(|| super::standbys::Standbys::start(inst, run_broker_args(&guest)));
+        (!a.no_standby).then(|| super::standbys::Standbys::start(inst, guest.broker_args()));
     let opts = ConnectOptions {
         wait_for_broker: Duration::from_secs(20),
         handle_signals: true,
@@ -61,18 +56,19 @@ pub fn run(inst: &Instance, a: UpArgs) -> anyhow::Result<ExitCode> {
     let end = a.duration.map(|d| Instant::now() + d);
     let mut rec = Recorder::new(0.5);
     let mut seen = Seen::open(&run, inst);
-    let shown = wait_for_services(&mut client, 4, Duration::from_secs(60)).and_then(|()| {
-        if let Some(g) = &guest {
-            remote_list(g)?;
-        }
-        Ok(())
-    });
+    let mut web = super::children::Children::default();
+    let shown = wait_for_services(&mut client, 4, Duration::from_secs(60))
+        .and_then(|()| remote_list(&guest));
+    if !a.no_web {
+        guest.start_web(&mut web, inst, a.web)?;
+    }
     let followed = match shown.and_then(|()| demo(&mut client, &run, &mut rec, &mut seen, end)) {
         Ok(c) => c,
         Err(UserError::Interrupted) => None,
         Err(e) => return Err(e.into()),
     };
     client.close();
+    web.stop();
     if let Some(s) = standbys {
         s.stop();
     }
@@ -260,9 +256,4 @@ impl Seen {
             self.plan = from.into_iter().chain(p.path.iter().copied()).collect();
         }
     }
-}
-
-/// The broker arguments of this run (a standby needs the primary's).
-fn run_broker_args(guest: &Option<Guest>) -> Vec<String> {
-    guest.as_ref().map(Guest::broker_args).unwrap_or_default()
 }

@@ -293,6 +293,11 @@ impl UserCore {
         })
     }
 
+    /// The link a session belongs to, if a link asked for it.
+    pub fn session_link(&self, session: SessionId) -> Option<u64> {
+        self.sessions.get(&session).and_then(|s| s.link)
+    }
+
     /// Whether request `req` still waits for an answer (pending or queued).
     pub fn is_pending(&self, req: u64) -> bool {
         self.pending.contains_key(&req)

@@ -9,7 +9,16 @@
 //! operator carol 5e0c...                                                     *
 //! ```
 //! Patterns are globs over service ids (`system/service`); a user with no pattern may
-//! connect but sees and gets nothing. An operator's actions (status, withdraw, end a
+//! connect but sees and gets nothing.
+//!
+//! ```text
+//! # web NAME SHA-256-HEX: the user may also sign in to `muster web` with a token
+//! web alice 9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08
+//! ```
+//! A `web` line names a user of a `user` or `operator` line (before or after it) and
+//! holds the SHA-256 of its web token ([`web_token_hash`]), never the token: the token
+//! is 160 random bits, so a fast hash is as strong as a slow one and the file read
+//! does not give a way in. The broker's UDP front ignores `web` lines. An operator's actions (status, withdraw, end a
 //! session, drop a user, move or drop a queued request) reach the whole broker; its
 //! patterns still decide what it lists and requests as a user.
 
@@ -26,6 +35,8 @@ pub struct Policy {
     pub patterns: Vec<String>,
     /// Whether the line was an `operator` line: the user may act as an operator.
     pub operator: bool,
+    /// The SHA-256 of the user's web token (a `web` line), if it may sign in on the web.
+    pub web: Option<[u8; 32]>,
     set: GlobSet,
 }
 
@@ -34,6 +45,39 @@ impl Policy {
     pub fn allows(&self, service: &str) -> bool {
         self.set.is_match(service)
     }
+
+    /// Whether `token` is the user's web token (in time independent of where they
+    /// differ); false for a user with no `web` line.
+    pub fn web_token_matches(&self, token: &str) -> bool {
+        let Some(want) = self.web else { return false };
+        let got = web_token_hash(token);
+        want.iter()
+            .zip(got.iter())
+            .fold(0u8, |acc, (a, b)| acc | (a ^ b))
+            == 0
+    }
+}
+
+/// The hash a `web` line holds for a web token: SHA-256 over a domain-separating prefix
+/// and the token.
+pub fn web_token_hash(token: &str) -> [u8; 32] {
+    use sha2::Digest;
+    let mut h = sha2::Sha256::new();
+    h.update(b"muster web token v1\0");
+    h.update(token.as_bytes());
+    h.finalize().into()
+}
+
+/// A new web token: 160 random bits as 40 hex digits.
+pub fn new_web_token() -> String {
+    let mut b = [0u8; 20];
+    rand::fill(&mut b);
+    hex::encode(b)
+}
+
+/// The access file's `web` line for a token.
+pub fn web_line(name: &str, token: &str) -> String {
+    format!("web {name} {}", hex::encode(web_token_hash(token)))
 }
 
 /// A parsed access file.
@@ -77,6 +121,7 @@ impl AccessFile {
     /// Parses an access file's text; errors name the line.
     pub fn parse(text: &str) -> Result<Self, String> {
         let mut users = HashMap::new();
+        let mut webs: Vec<(usize, String, [u8; 32])> = Vec::new();
         for (i, line) in text.lines().enumerate() {
             let line = line.split('#').next().unwrap_or("").trim();
             if line.is_empty() {
@@ -87,9 +132,26 @@ impl AccessFile {
             let operator = match words.next() {
                 Some("user") => false,
                 Some("operator") => true,
+                Some("web") => {
+                    let name = words.next().ok_or_else(|| at("missing user name".into()))?;
+                    let hash = words
+                        .next()
+                        .ok_or_else(|| at("missing the web token's hash".into()))?;
+                    let mut h = [0u8; 32];
+                    hex::decode_to_slice(hash, &mut h).map_err(|_| {
+                        at(format!(
+                            "bad web token hash {hash:?}: 64 hex digits (a SHA-256)"
+                        ))
+                    })?;
+                    if words.next().is_some() {
+                        return Err(at("a web line is `web NAME HASH`".into()));
+                    }
+                    webs.push((i + 1, name.to_string(), h));
+                    continue;
+                }
                 Some(w) => {
                     return Err(at(format!(
-                        "unknown directive {w:?} (expected `user` or `operator`)"
+                        "unknown directive {w:?} (expected `user`, `operator` or `web`)"
                     )))
                 }
                 None => continue,
@@ -118,6 +180,7 @@ impl AccessFile {
                         key,
                         patterns,
                         operator,
+                        web: None,
                         set,
                     },
                 )
@@ -126,7 +189,20 @@ impl AccessFile {
                 return Err(at(format!("user {name:?} appears twice")));
             }
         }
+        for (line, name, hash) in webs {
+            let policy = users.get_mut(&name).ok_or_else(|| {
+                format!("line {line}: web line for {name:?}, who has no user or operator line")
+            })?;
+            if policy.web.replace(hash).is_some() {
+                return Err(format!("line {line}: a second web line for {name:?}"));
+            }
+        }
         Ok(AccessFile { users })
+    }
+
+    /// Every listed user's name and policy.
+    pub fn users(&self) -> impl Iterator<Item = (&str, &Policy)> {
+        self.users.iter().map(|(n, p)| (n.as_str(), p))
     }
 
     /// The policy of `name`, if the file lists it.
@@ -171,6 +247,46 @@ mod tests {
         assert!(f.get("carol").unwrap().allows("anything/at-all"));
         assert!(f.get("dave").is_none());
         assert!(!a.operator && !f.get("carol").unwrap().operator);
+    }
+
+    #[test]
+    fn web_lines_give_a_user_a_token_and_only_its_hash_is_kept() {
+        let token = new_web_token();
+        assert_eq!(token.len(), 40);
+        assert_ne!(token, new_web_token(), "random");
+        let text = format!(
+            "{}\nuser alice {K} T1/*\nuser bob {K} *\n",
+            web_line("alice", &token)
+        );
+        assert!(!text.contains(&token), "the file holds only the hash");
+        let f = AccessFile::parse(&text).unwrap();
+        let a = f.get("alice").unwrap();
+        assert!(a.web_token_matches(&token));
+        assert!(!a.web_token_matches(&new_web_token()));
+        assert!(!a.web_token_matches(""));
+        let b = f.get("bob").unwrap();
+        assert!(
+            b.web.is_none() && !b.web_token_matches(&token),
+            "no web line: no sign-in"
+        );
+        let orphan = AccessFile::parse(&web_line("carol", &token)).unwrap_err();
+        assert!(
+            orphan.contains("line 1") && orphan.contains("no user"),
+            "{orphan}"
+        );
+        let twice = format!(
+            "user alice {K}\n{}\n{}\n",
+            web_line("alice", "a"),
+            web_line("alice", "b")
+        );
+        assert!(AccessFile::parse(&twice)
+            .unwrap_err()
+            .contains("second web line"));
+        assert!(
+            AccessFile::parse(&format!("user alice {K}\nweb alice 12ab\n"))
+                .unwrap_err()
+                .contains("64 hex digits")
+        );
     }
 
     #[test]

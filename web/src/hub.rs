@@ -1,0 +1,593 @@
+//! One signed-in muster user's connection to the broker, shared by all of its browser
+//! tabs: a thread that owns a [`UserClient`] (shared memory, this host), takes the
+//! tabs' commands, and broadcasts what happens as JSON text frames.
+//!
+//! The broker trusts a local process as whoever it says it is, so the access file's
+//! patterns are enforced here, exactly as the UDP front enforces them for remote users:
+//! the list shows only what they allow, and a request or link for anything else is
+//! refused as an unknown service would be.
+
+use muster_shared::protocol::Operation;
+use muster_shared::types::{Payload, Schema, ServiceId, ServiceKind, SessionId};
+use muster_shared::udp::access::Policy;
+use muster_shared::Instance;
+use muster_users::{ConnectOptions, UserClient, UserError, UserEvent, Wake};
+use serde_json::{json, Value};
+use std::collections::{BTreeMap, HashMap};
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{mpsc, Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio::sync::broadcast;
+
+/// Frames a hub keeps for a slow tab before that tab has to start again from a
+/// snapshot (a few seconds of 10 Hz sessions and list changes).
+const BACKLOG: usize = 1024;
+/// How long a hub stays connected with no tab open (a reload, a flaky network), its
+/// sessions going on.
+pub const LINGER: Duration = Duration::from_secs(60);
+
+/// What a tab asks of its user's hub.
+#[derive(Debug)]
+pub enum Cmd {
+    /// Request a service.
+    Request(String),
+    /// Give up a pending or queued request.
+    Cancel(u64),
+    /// End a session.
+    End(u64),
+    /// Task input on a command session, as JSON (see [`Payload::from_json`]).
+    Input(u64, Value),
+    /// Link a data service into a command service.
+    Link(String, String),
+    /// End a link.
+    Unlink(u64),
+    /// An operator's action (the hub's user must be an operator).
+    Operate(Operation),
+    /// The access file changed: this is the user's policy now.
+    Policy(Box<Policy>),
+    /// Sign out everywhere: end the sessions and disconnect.
+    Close,
+}
+
+/// A session as the tabs see it.
+#[derive(Clone, Debug)]
+struct SessionState {
+    service: String,
+    kind: ServiceKind,
+    payload: String,
+    schema: Option<Schema>,
+    /// The last update or status frame.
+    last: Option<Value>,
+    link: Option<u64>,
+}
+
+/// What a new tab is shown first.
+#[derive(Default)]
+struct Model {
+    list: Value,
+    sessions: BTreeMap<u64, SessionState>,
+    /// Requests out: service, queue position (0 while not queued).
+    pending: BTreeMap<u64, (String, u16)>,
+    links: BTreeMap<u64, Value>,
+    broker_up: bool,
+}
+
+/// A user's hub, shared by its tabs.
+pub struct Hub {
+    /// The muster user name it signs in as.
+    pub user: String,
+    /// Whether the user may act as an operator.
+    pub operator: bool,
+    cmds: Mutex<mpsc::Sender<Cmd>>,
+    wake: Arc<OwnedFd>,
+    frames: broadcast::Sender<Arc<str>>,
+    model: Arc<Mutex<Model>>,
+    alive: Arc<AtomicBool>,
+    tabs: AtomicUsize,
+}
+
+/// A tab's hold on a hub: counted while it lives.
+pub struct Tab {
+    hub: Arc<Hub>,
+}
+
+impl Drop for Tab {
+    fn drop(&mut self) {
+        self.hub.tabs.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+impl Tab {
+    /// The hub.
+    pub fn hub(&self) -> &Arc<Hub> {
+        &self.hub
+    }
+}
+
+fn eventfd() -> std::io::Result<OwnedFd> {
+    // SAFETY: eventfd takes no pointers; a non-negative result is a new descriptor we own.
+    let fd = unsafe { libc::eventfd(0, libc::EFD_NONBLOCK | libc::EFD_CLOEXEC) };
+    if fd < 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    // SAFETY: fd was just created and is owned by nothing else.
+    Ok(unsafe { OwnedFd::from_raw_fd(fd) })
+}
+
+fn ring(fd: &OwnedFd) {
+    let one: u64 = 1;
+    // SAFETY: writes 8 bytes from a live u64 to an eventfd we own.
+    unsafe { libc::write(fd.as_raw_fd(), (&one as *const u64).cast(), 8) };
+}
+
+fn drain(fd: &OwnedFd) {
+    let mut n: u64 = 0;
+    // SAFETY: reads 8 bytes into a live u64 from an eventfd we own (non-blocking).
+    unsafe { libc::read(fd.as_raw_fd(), (&mut n as *mut u64).cast(), 8) };
+}
+
+impl Hub {
+    /// Connects `user` to the broker of `inst` (waiting up to `wait` for one) and starts
+    /// its thread.
+    pub fn start(
+        inst: &Instance,
+        user: &str,
+        policy: Policy,
+        wait: Duration,
+    ) -> Result<Arc<Hub>, String> {
+        let (tx, rx) = mpsc::channel();
+        let wake = Arc::new(eventfd().map_err(|e| format!("eventfd: {e}"))?);
+        let (frames, _) = broadcast::channel(BACKLOG);
+        let model = Arc::new(Mutex::new(Model::default()));
+        let alive = Arc::new(AtomicBool::new(true));
+        let hub = Arc::new(Hub {
+            user: user.to_string(),
+            operator: policy.operator,
+            cmds: Mutex::new(tx),
+            wake: wake.clone(),
+            frames: frames.clone(),
+            model: model.clone(),
+            alive: alive.clone(),
+            tabs: AtomicUsize::new(0),
+        });
+        let (ready_tx, ready_rx) = mpsc::channel();
+        let inst = inst.clone();
+        let name = user.to_string();
+        let me = Arc::downgrade(&hub);
+        std::thread::Builder::new()
+            .name(format!("web-{user}"))
+            .spawn(move || {
+                let opts = ConnectOptions {
+                    wait_for_broker: wait,
+                    handle_signals: false,
+                    watch_list: true,
+                };
+                let client = match UserClient::connect(&inst, &opts) {
+                    Ok(c) => c,
+                    Err(e) => {
+                        let _ = ready_tx.send(Err(e.to_string()));
+                        alive.store(false, Ordering::Release);
+                        return;
+                    }
+                };
+                tracing::info!(user = %name, id = %client.id().0, "web user connected to the broker");
+                let mut run = Run {
+                    client,
+                    policy,
+                    rx,
+                    wake,
+                    frames,
+                    model,
+                    me,
+                    name,
+                    shown: None,
+                    idle_since: None,
+                    ops: HashMap::new(),
+                };
+                // The list is in the model before the first tab opens.
+                if let Err(e) = run.init() {
+                    let _ = ready_tx.send(Err(e.to_string()));
+                    alive.store(false, Ordering::Release);
+                    run.client.close();
+                    return;
+                }
+                let _ = ready_tx.send(Ok(()));
+                if let Err(e) = run.run() {
+                    tracing::warn!(user = %run.name, "web user's broker connection ended: {e}");
+                    run.send(json!({"t": "error", "error": format!("the broker connection ended: {e}")}));
+                }
+                alive.store(false, Ordering::Release);
+                run.client.close();
+            })
+            .map_err(|e| format!("thread: {e}"))?;
+        ready_rx
+            .recv()
+            .map_err(|_| "the hub thread died".to_string())??;
+        Ok(hub)
+    }
+
+    /// Whether its thread still runs.
+    pub fn alive(&self) -> bool {
+        self.alive.load(Ordering::Acquire)
+    }
+
+    /// Sends a command to the hub's thread.
+    pub fn send(&self, cmd: Cmd) {
+        if let Ok(tx) = self.cmds.lock() {
+            let _ = tx.send(cmd);
+        }
+        ring(&self.wake);
+    }
+
+    /// Opens a tab: the frame that shows everything now, and the frames after it (none
+    /// lost between the two).
+    pub fn open_tab(self: &Arc<Self>) -> (Tab, String, broadcast::Receiver<Arc<str>>) {
+        self.tabs.fetch_add(1, Ordering::AcqRel);
+        let model = self.model.lock().unwrap_or_else(|e| e.into_inner());
+        let rx = self.frames.subscribe();
+        let snapshot = self.snapshot(&model);
+        drop(model);
+        (Tab { hub: self.clone() }, snapshot, rx)
+    }
+
+    /// The whole state now, as a `state` frame (for a tab that fell behind).
+    pub fn resync(&self) -> (String, broadcast::Receiver<Arc<str>>) {
+        let model = self.model.lock().unwrap_or_else(|e| e.into_inner());
+        let rx = self.frames.subscribe();
+        (self.snapshot(&model), rx)
+    }
+
+    fn snapshot(&self, m: &Model) -> String {
+        let sessions: Vec<Value> = m
+            .sessions
+            .iter()
+            .map(|(id, s)| session_json(*id, s))
+            .collect();
+        let pending: Vec<Value> = m
+            .pending
+            .iter()
+            .map(|(req, (service, position))| json!({"req": req, "service": service, "position": position}))
+            .collect();
+        let links: Vec<&Value> = m.links.values().collect();
+        json!({
+            "t": "state",
+            "user": self.user,
+            "operator": self.operator,
+            "broker_up": m.broker_up,
+            "list": m.list,
+            "sessions": sessions,
+            "pending": pending,
+            "links": links,
+        })
+        .to_string()
+    }
+
+    /// Open tabs.
+    pub fn tabs(&self) -> usize {
+        self.tabs.load(Ordering::Acquire)
+    }
+}
+
+fn session_json(id: u64, s: &SessionState) -> Value {
+    json!({
+        "session": id.to_string(),
+        "service": s.service,
+        "kind": s.kind.to_string(),
+        "payload": s.payload,
+        "link": s.link,
+        "last": s.last,
+    })
+}
+
+/// The hub's thread.
+struct Run {
+    client: UserClient,
+    policy: Policy,
+    rx: mpsc::Receiver<Cmd>,
+    wake: Arc<OwnedFd>,
+    frames: broadcast::Sender<Arc<str>>,
+    model: Arc<Mutex<Model>>,
+    me: std::sync::Weak<Hub>,
+    name: String,
+    /// The list (epoch, generation) last shown.
+    shown: Option<(u64, u64)>,
+    /// Since when no tab is open.
+    idle_since: Option<Instant>,
+    /// Operator actions out: their number → what was asked.
+    ops: HashMap<u64, String>,
+}
+
+impl Run {
+    fn send(&self, v: Value) {
+        let _ = self.frames.send(Arc::from(v.to_string()));
+    }
+
+    /// Updates the model and sends the frame under one lock, so a tab opening now sees
+    /// either the state before and the frame, or the state after and not the frame.
+    fn apply(&self, v: Value, f: impl FnOnce(&mut Model)) {
+        let mut m = self.model.lock().unwrap_or_else(|e| e.into_inner());
+        f(&mut m);
+        let _ = self.frames.send(Arc::from(v.to_string()));
+    }
+
+    fn init(&mut self) -> Result<(), UserError> {
+        self.client.watch_extra(self.wake.as_raw_fd())?;
+        self.apply(json!({"t": "broker", "up": true}), |m| m.broker_up = true);
+        self.refresh_list(true)
+    }
+
+    fn run(&mut self) -> Result<(), UserError> {
+        loop {
+            match self.client.wait(Instant::now() + Duration::from_secs(1))? {
+                Wake::Event(e) => self.on_event(e)?,
+                Wake::Extra => {
+                    drain(&self.wake);
+                    while let Ok(cmd) = self.rx.try_recv() {
+                        if matches!(cmd, Cmd::Close) {
+                            return Ok(());
+                        }
+                        self.on_cmd(cmd)?;
+                    }
+                }
+                Wake::Timeout => {}
+            }
+            let Some(hub) = self.me.upgrade() else {
+                return Ok(());
+            };
+            if hub.tabs() > 0 {
+                self.idle_since = None;
+            } else if self.idle_since.get_or_insert_with(Instant::now).elapsed() >= LINGER {
+                tracing::info!(user = %self.name, "no tab open for {LINGER:?}: disconnecting");
+                return Ok(());
+            }
+        }
+    }
+
+    fn refresh_list(&mut self, force: bool) -> Result<(), UserError> {
+        let snap = self.client.list()?;
+        if !force && self.shown == Some((snap.epoch, snap.generation)) {
+            return Ok(());
+        }
+        self.shown = Some((snap.epoch, snap.generation));
+        let services: Vec<_> = snap
+            .views()
+            .into_iter()
+            .filter(|v| self.policy.allows(&v.id))
+            .collect();
+        let list = json!({"generation": snap.generation, "services": services});
+        let frame = json!({"t": "list", "list": list});
+        self.apply(frame, |m| m.list = list);
+        Ok(())
+    }
+
+    fn refuse(&self, req: u64, service: &str, reason: &str, code: &str) {
+        self.send(
+            json!({"t": "refused", "req": req, "service": service, "reason": reason, "code": code}),
+        );
+    }
+
+    fn on_cmd(&mut self, cmd: Cmd) -> Result<(), UserError> {
+        match cmd {
+            Cmd::Request(service) => {
+                if !self.policy.allows(&service) {
+                    // As the UDP front answers a denied request: like an unknown service.
+                    let r = muster_shared::types::Refusal::Unknown;
+                    self.refuse(0, &service, &r.to_string(), r.code());
+                    return Ok(());
+                }
+                let req = self.client.request(&ServiceId(service.clone()))?;
+                self.apply(
+                    json!({"t": "pending", "req": req, "service": service, "position": 0}),
+                    |m| {
+                        m.pending.insert(req, (service, 0));
+                    },
+                );
+            }
+            Cmd::Cancel(req) => {
+                self.client.cancel(req);
+                self.apply(json!({"t": "cancelled", "req": req}), |m| {
+                    m.pending.remove(&req);
+                });
+            }
+            Cmd::End(session) => self.client.end(SessionId(session)),
+            Cmd::Input(session, value) => {
+                let schema = {
+                    let m = self.model.lock().unwrap_or_else(|e| e.into_inner());
+                    match m.sessions.get(&session) {
+                        Some(s) if s.kind == ServiceKind::Command => Ok(s.schema.clone()),
+                        Some(_) => Err("not a command session".to_string()),
+                        None => Err("no such session".to_string()),
+                    }
+                };
+                let sent = schema.and_then(|schema| {
+                    let payload = Payload::from_json(&value, schema.as_ref())?;
+                    self.client.input(SessionId(session), payload)
+                });
+                if let Err(e) = sent {
+                    self.send(
+                        json!({"t": "input_refused", "session": session.to_string(), "error": e}),
+                    );
+                }
+            }
+            Cmd::Link(data, command) => {
+                let denied = [&data, &command]
+                    .into_iter()
+                    .find(|s| !self.policy.allows(s));
+                let linked = match denied {
+                    Some(s) => Err(UserError::UnknownService(s.to_string()).to_string()),
+                    None => self
+                        .client
+                        .link(&ServiceId(data.clone()), &ServiceId(command.clone()))
+                        .map_err(|e| e.to_string()),
+                };
+                match linked {
+                    Ok(link) => {
+                        let v = json!({"link": link, "data": data, "command": command, "up": false, "forwarded": 0});
+                        self.apply(json!({"t": "link", "link": v}), |m| {
+                            m.links.insert(link, v.clone());
+                        });
+                    }
+                    Err(e) => self.send(
+                        json!({"t": "link_refused", "data": data, "command": command, "error": e}),
+                    ),
+                }
+            }
+            Cmd::Unlink(link) => self.client.unlink(link),
+            Cmd::Operate(op) => {
+                if !self.policy.operator {
+                    self.send(json!({"t": "operated", "ok": false, "error": "not an operator"}));
+                    return Ok(());
+                }
+                let what = format!("{op:?}");
+                let id = self.client.operate(op);
+                self.ops.insert(id, what);
+            }
+            Cmd::Policy(p) => {
+                self.policy = *p;
+                self.refresh_list(true)?;
+            }
+            Cmd::Close => {}
+        }
+        Ok(())
+    }
+
+    fn on_event(&mut self, e: UserEvent) -> Result<(), UserError> {
+        match e {
+            UserEvent::Connected { .. } => {
+                self.apply(json!({"t": "broker", "up": true}), |m| m.broker_up = true);
+                self.refresh_list(true)?;
+            }
+            UserEvent::BrokerLost => {
+                self.apply(json!({"t": "broker", "up": false}), |m| m.broker_up = false)
+            }
+            UserEvent::ListChanged => self.refresh_list(false)?,
+            UserEvent::Queued {
+                req,
+                service,
+                position,
+            } => self.apply(
+                json!({"t": "pending", "req": req, "service": service.0, "position": position}),
+                |m| {
+                    m.pending.insert(req, (service.0.clone(), position));
+                },
+            ),
+            UserEvent::Granted {
+                req,
+                session,
+                service,
+                kind,
+                payload,
+                schema,
+            } => {
+                let link = self.client.core().session_link(session);
+                let s = SessionState {
+                    service: service.0.clone(),
+                    kind,
+                    payload,
+                    schema,
+                    last: None,
+                    link,
+                };
+                let mut frame = session_json(session.0, &s);
+                frame["t"] = json!("granted");
+                frame["req"] = json!(req);
+                self.apply(frame, |m| {
+                    m.pending.remove(&req);
+                    m.sessions.insert(session.0, s);
+                });
+            }
+            UserEvent::Refused {
+                req,
+                service,
+                reason,
+            } => {
+                let frame = json!({"t": "refused", "req": req, "service": service.0, "reason": reason.to_string(), "code": reason.code()});
+                self.apply(frame, |m| {
+                    m.pending.remove(&req);
+                });
+            }
+            UserEvent::Update {
+                session,
+                service,
+                seq,
+                gap,
+                sent_ns,
+                payload,
+            } => {
+                let mut m = self.model.lock().unwrap_or_else(|e| e.into_inner());
+                let Some(s) = m.sessions.get_mut(&session.0) else {
+                    return Ok(());
+                };
+                let value = payload.to_json_with(s.schema.as_ref());
+                let frame = json!({"t": "update", "session": session.0.to_string(), "service": service.0, "seq": seq, "gap": gap, "sent_ns": sent_ns, "value": value});
+                s.last = Some(frame.clone());
+                let _ = self.frames.send(Arc::from(frame.to_string()));
+            }
+            UserEvent::Status {
+                session,
+                service,
+                seq,
+                status,
+            } => {
+                let frame = json!({"t": "status", "session": session.0.to_string(), "service": service.0, "seq": seq, "state": status.state(), "detail": status.detail()});
+                self.apply(frame.clone(), |m| {
+                    if let Some(s) = m.sessions.get_mut(&session.0) {
+                        s.last = Some(frame);
+                    }
+                });
+            }
+            UserEvent::Ended {
+                session,
+                service,
+                reason,
+                ..
+            } => {
+                let frame = json!({"t": "ended", "session": session.0.to_string(), "service": service.0, "reason": reason.to_string(), "code": reason.code()});
+                self.apply(frame, |m| {
+                    m.sessions.remove(&session.0);
+                });
+            }
+            UserEvent::EndConfirmed { .. } | UserEvent::Feed(_) => {}
+            UserEvent::LinkUp { link } => {
+                self.apply(json!({"t": "link_up", "link": link}), |m| {
+                    if let Some(l) = m.links.get_mut(&link) {
+                        l["up"] = json!(true);
+                    }
+                });
+            }
+            UserEvent::LinkForwarded { link, input } => {
+                let input = input.to_json();
+                self.apply(
+                    json!({"t": "forwarded", "link": link, "input": input}),
+                    |m| {
+                        if let Some(l) = m.links.get_mut(&link) {
+                            let n = l["forwarded"].as_u64().unwrap_or(0) + 1;
+                            l["forwarded"] = json!(n);
+                        }
+                    },
+                );
+            }
+            UserEvent::LinkEnded { link, reason } => {
+                self.apply(
+                    json!({"t": "link_ended", "link": link, "reason": reason}),
+                    |m| {
+                        m.links.remove(&link);
+                    },
+                );
+            }
+            UserEvent::Operated { id, result } => {
+                let what = self.ops.remove(&id).unwrap_or_default();
+                let frame = match result {
+                    Ok(Some(status)) => {
+                        json!({"t": "operated", "ok": true, "what": what, "status": serde_json::to_value(&*status).unwrap_or(Value::Null)})
+                    }
+                    Ok(None) => json!({"t": "operated", "ok": true, "what": what}),
+                    Err(e) => json!({"t": "operated", "ok": false, "what": what, "error": e}),
+                };
+                self.send(frame);
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,535 @@
+//! The HTTP and WebSocket server: routes, sign-in, security headers, the sockets.
+
+use crate::auth::{random_token, Access, Limiter, WebSession, COOKIE, SESSION_IDLE};
+use crate::hub::{Cmd, Hub};
+use anyhow::Context as _;
+use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
+use axum::extract::{ConnectInfo, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use muster_shared::protocol::Operation;
+use muster_shared::types::{ServiceId, SessionId, UserId};
+use muster_shared::udp::access::web_token_hash;
+use muster_shared::Instance;
+use serde::Deserialize;
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tokio::sync::broadcast::error::RecvError;
+
+/// How `muster web` runs.
+#[derive(Clone, Debug)]
+pub struct WebOptions {
+    /// The muster instance whose broker it acts on.
+    pub instance: Instance,
+    /// Where it listens.
+    pub listen: SocketAddr,
+    /// The access file: who may sign in (`web` lines) and what each may use.
+    pub access: PathBuf,
+    /// How long a signing-in user's connection waits for a broker.
+    pub wait_for_broker: Duration,
+}
+
+/// The largest WebSocket message a browser may send (commands are tiny).
+const MAX_MESSAGE: usize = 64 * 1024;
+
+/// The app's files, inside the binary.
+const INDEX_HTML: &str = include_str!("../assets/index.html");
+const APP_JS: &str = include_str!("../assets/app.js");
+const APP_CSS: &str = include_str!("../assets/app.css");
+
+/// No inline script or style, nothing from elsewhere, no framing.
+const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data:; \
+                   connect-src 'self'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'";
+
+struct App {
+    inst: Instance,
+    access: Mutex<Access>,
+    sessions: Mutex<HashMap<String, WebSession>>,
+    hubs: Mutex<HashMap<String, Arc<Mutex<Option<Arc<Hub>>>>>>,
+    limiter: Mutex<Limiter>,
+    wait_for_broker: Duration,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Serves until SIGINT or SIGTERM; prints `{"listen": ADDR, "url": URL}` on stdout
+/// once listening.
+pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
+    let access = Access::load(opts.access.clone()).map_err(anyhow::Error::msg)?;
+    if access.web_users() == 0 {
+        tracing::warn!(
+            "no user of {} may sign in on the web: add `web NAME HASH` lines (`muster keygen --user NAME --web`)",
+            opts.access.display()
+        );
+    }
+    let app = Arc::new(App {
+        inst: opts.instance.clone(),
+        access: Mutex::new(access),
+        sessions: Mutex::new(HashMap::new()),
+        hubs: Mutex::new(HashMap::new()),
+        limiter: Mutex::new(Limiter::default()),
+        wait_for_broker: opts.wait_for_broker,
+    });
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("web")
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    rt.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(opts.listen)
+            .await
+            .with_context(|| format!("listening on {}", opts.listen))?;
+        let at = listener.local_addr()?;
+        println!(
+            "{}",
+            json!({"listen": at.to_string(), "url": format!("http://{at}/")})
+        );
+        tracing::info!("muster web on http://{at}/");
+        tokio::spawn(housekeeping(app.clone()));
+        let router = router(app.clone());
+        axum::serve(
+            listener,
+            router.into_make_service_with_connect_info::<SocketAddr>(),
+        )
+        .with_graceful_shutdown(stop_signal())
+        .await
+        .context("serving")?;
+        close_all(&app).await;
+        Ok(())
+    })
+}
+
+async fn stop_signal() {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut term = match signal(SignalKind::terminate()) {
+        Ok(s) => s,
+        Err(_) => return std::future::pending().await,
+    };
+    tokio::select! {
+        _ = tokio::signal::ctrl_c() => {}
+        _ = term.recv() => {}
+    }
+}
+
+/// Ends every user's connection (their sessions end at the systems), waiting a little
+/// for them to say goodbye.
+async fn close_all(app: &App) {
+    let hubs: Vec<Arc<Hub>> = lock(&app.hubs)
+        .values()
+        .filter_map(|slot| lock(slot).clone())
+        .collect();
+    for h in &hubs {
+        h.send(Cmd::Close);
+    }
+    let deadline = Instant::now() + Duration::from_secs(2);
+    while hubs.iter().any(|h| h.alive()) && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+fn router(app: Arc<App>) -> Router {
+    Router::new()
+        .route(
+            "/",
+            get(|| async { asset("text/html; charset=utf-8", INDEX_HTML) }),
+        )
+        .route(
+            "/app.js",
+            get(|| async { asset("text/javascript; charset=utf-8", APP_JS) }),
+        )
+        .route(
+            "/app.css",
+            get(|| async { asset("text/css; charset=utf-8", APP_CSS) }),
+        )
+        .route("/api/login", post(login))
+        .route("/api/logout", post(logout))
+        .route("/api/me", get(me))
+        .route("/ws", get(socket))
+        .layer(axum::middleware::from_fn(security_headers))
+        .with_state(app)
+}
+
+fn asset(kind: &'static str, body: &'static str) -> Response {
+    ([(header::CONTENT_TYPE, kind)], body).into_response()
+}
+
+async fn security_headers(req: Request, next: Next) -> Response {
+    let mut res = next.run(req).await;
+    let h = res.headers_mut();
+    h.insert(
+        header::CONTENT_SECURITY_POLICY,
+        HeaderValue::from_static(CSP),
+    );
+    h.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    h.insert(
+        header::REFERRER_POLICY,
+        HeaderValue::from_static("no-referrer"),
+    );
+    h.insert(header::X_FRAME_OPTIONS, HeaderValue::from_static("DENY"));
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    res
+}
+
+fn error(status: StatusCode, msg: impl Into<String>) -> Response {
+    (status, Json(json!({"error": msg.into()}))).into_response()
+}
+
+/// A request from a page of this server: its Origin is this server's own (the Host it
+/// was asked for). Browsers send Origin on every POST and WebSocket upgrade.
+fn same_origin(headers: &HeaderMap) -> Result<(), Response> {
+    let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
+    let origin = headers.get(header::ORIGIN).and_then(|h| h.to_str().ok());
+    match (host, origin) {
+        (Some(host), Some(origin)) if origin == format!("http://{host}") => Ok(()),
+        (_, None) => Err(error(StatusCode::FORBIDDEN, "no Origin header")),
+        _ => Err(error(StatusCode::FORBIDDEN, "cross-origin request refused")),
+    }
+}
+
+fn cookie_value(headers: &HeaderMap) -> Option<String> {
+    headers
+        .get_all(header::COOKIE)
+        .iter()
+        .filter_map(|h| h.to_str().ok())
+        .flat_map(|h| h.split(';'))
+        .filter_map(|kv| kv.trim().split_once('='))
+        .find(|(k, _)| *k == COOKIE)
+        .map(|(_, v)| v.to_string())
+}
+
+/// The signed-in browser session behind the request's cookie (touched).
+fn session_of(app: &App, headers: &HeaderMap) -> Option<(String, WebSession)> {
+    let cookie = cookie_value(headers)?;
+    let mut sessions = lock(&app.sessions);
+    let s = sessions.get_mut(&cookie)?;
+    s.last_seen = Instant::now();
+    Some((cookie, s.clone()))
+}
+
+#[derive(Deserialize)]
+struct Login {
+    user: String,
+    token: String,
+}
+
+async fn login(
+    State(app): State<Arc<App>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    body: Result<Json<Login>, axum::extract::rejection::JsonRejection>,
+) -> Response {
+    if let Err(r) = same_origin(&headers) {
+        return r;
+    }
+    let Ok(Json(l)) = body else {
+        return error(
+            StatusCode::BAD_REQUEST,
+            "send JSON: {\"user\": NAME, \"token\": TOKEN}",
+        );
+    };
+    let now = Instant::now();
+    if let Some(wait) = lock(&app.limiter).blocked(peer.ip(), &l.user, now) {
+        let secs = wait.as_secs().max(1);
+        let mut r = error(
+            StatusCode::TOO_MANY_REQUESTS,
+            format!("too many failed sign-ins: try again in {secs} s"),
+        );
+        r.headers_mut()
+            .insert(header::RETRY_AFTER, HeaderValue::from(secs));
+        return r;
+    }
+    let policy = {
+        let mut access = lock(&app.access);
+        if let Err(e) = access.reload() {
+            tracing::warn!("{e} (keeping the last good one)");
+        }
+        access
+            .get(&l.user)
+            .filter(|p| p.web_token_matches(&l.token))
+            .cloned()
+    };
+    let Some(policy) = policy else {
+        lock(&app.limiter).failed(peer.ip(), &l.user, now);
+        tracing::info!(from = %peer.ip(), "a failed web sign-in");
+        return error(StatusCode::UNAUTHORIZED, "wrong user name or token");
+    };
+    let cookie = random_token();
+    let csrf = random_token();
+    lock(&app.sessions).insert(
+        cookie.clone(),
+        WebSession {
+            user: l.user.clone(),
+            csrf: csrf.clone(),
+            token_hash: web_token_hash(&l.token),
+            last_seen: now,
+        },
+    );
+    tracing::info!(user = %l.user, from = %peer.ip(), "signed in on the web");
+    let set = format!(
+        "{COOKIE}={cookie}; Path=/; HttpOnly; SameSite=Strict; Max-Age={}",
+        SESSION_IDLE.as_secs()
+    );
+    let mut r =
+        Json(json!({"user": l.user, "operator": policy.operator, "csrf": csrf})).into_response();
+    if let Ok(v) = HeaderValue::from_str(&set) {
+        r.headers_mut().insert(header::SET_COOKIE, v);
+    }
+    r
+}
+
+async fn me(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
+    let Some((_, s)) = session_of(&app, &headers) else {
+        return error(StatusCode::UNAUTHORIZED, "not signed in");
+    };
+    let operator = lock(&app.access).get(&s.user).is_some_and(|p| p.operator);
+    Json(json!({"user": s.user, "operator": operator, "csrf": s.csrf})).into_response()
+}
+
+async fn logout(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
+    if let Err(r) = same_origin(&headers) {
+        return r;
+    }
+    let Some((cookie, s)) = session_of(&app, &headers) else {
+        return error(StatusCode::UNAUTHORIZED, "not signed in");
+    };
+    let csrf = headers.get("x-csrf-token").and_then(|h| h.to_str().ok());
+    if csrf != Some(s.csrf.as_str()) {
+        return error(StatusCode::FORBIDDEN, "missing or wrong X-CSRF-Token");
+    }
+    let others = {
+        let mut sessions = lock(&app.sessions);
+        sessions.remove(&cookie);
+        sessions.values().any(|o| o.user == s.user)
+    };
+    if !others {
+        close_hub(&app, &s.user);
+    }
+    let clear = format!("{COOKIE}=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0");
+    let mut r = Json(json!({"signed_out": true})).into_response();
+    if let Ok(v) = HeaderValue::from_str(&clear) {
+        r.headers_mut().insert(header::SET_COOKIE, v);
+    }
+    r
+}
+
+fn close_hub(app: &App, user: &str) {
+    let slot = lock(&app.hubs).remove(user);
+    if let Some(hub) = slot.and_then(|s| lock(&s).take()) {
+        hub.send(Cmd::Close);
+    }
+}
+
+/// The user's hub, started (connecting to the broker) if it is not running.
+fn hub_for(app: &App, user: &str) -> Result<Arc<Hub>, String> {
+    let slot = lock(&app.hubs).entry(user.to_string()).or_default().clone();
+    let mut slot = lock(&slot);
+    if let Some(h) = slot.as_ref().filter(|h| h.alive()) {
+        return Ok(h.clone());
+    }
+    let policy = lock(&app.access)
+        .get(user)
+        .cloned()
+        .ok_or_else(|| format!("user {user:?} is no longer in the access file"))?;
+    let hub = Hub::start(&app.inst, user, policy, app.wait_for_broker)?;
+    *slot = Some(hub.clone());
+    Ok(hub)
+}
+
+async fn socket(State(app): State<Arc<App>>, headers: HeaderMap, ws: WebSocketUpgrade) -> Response {
+    if let Err(r) = same_origin(&headers) {
+        return r;
+    }
+    let Some((cookie, s)) = session_of(&app, &headers) else {
+        return error(StatusCode::UNAUTHORIZED, "not signed in");
+    };
+    let a = app.clone();
+    let user = s.user.clone();
+    let hub = match tokio::task::spawn_blocking(move || hub_for(&a, &user)).await {
+        Ok(Ok(h)) => h,
+        Ok(Err(e)) => return error(StatusCode::SERVICE_UNAVAILABLE, e),
+        Err(e) => return error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
+    };
+    ws.max_message_size(MAX_MESSAGE)
+        .on_upgrade(move |sock| tab(app, cookie, hub, sock))
+}
+
+/// What a tab sends.
+#[derive(Deserialize)]
+#[serde(tag = "op", rename_all = "snake_case")]
+enum In {
+    Request { service: String },
+    Cancel { req: u64 },
+    End { session: String },
+    Goal { session: String, x: f64, y: f64 },
+    Input { session: String, value: Value },
+    Link { data: String, command: String },
+    Unlink { link: u64 },
+    Status,
+    Withdraw { service: String },
+    Restore { service: String },
+    EndSession { session: String },
+    DropUser { user: String },
+}
+
+fn session_id(s: &str) -> Result<u64, String> {
+    s.parse()
+        .map_err(|_| format!("bad session {s:?}: a decimal number, as the server sent it"))
+}
+
+fn command(msg: &str) -> Result<Cmd, String> {
+    let m: In = serde_json::from_str(msg).map_err(|e| format!("bad message: {e}"))?;
+    Ok(match m {
+        In::Request { service } => Cmd::Request(service),
+        In::Cancel { req } => Cmd::Cancel(req),
+        In::End { session } => Cmd::End(session_id(&session)?),
+        In::Goal { session, x, y } => {
+            if !x.is_finite() || !y.is_finite() {
+                return Err("a goal's x and y are numbers".into());
+            }
+            Cmd::Input(
+                session_id(&session)?,
+                json!({"type": "goal2d", "x": x, "y": y}),
+            )
+        }
+        In::Input { session, value } => Cmd::Input(session_id(&session)?, value),
+        In::Link { data, command } => Cmd::Link(data, command),
+        In::Unlink { link } => Cmd::Unlink(link),
+        In::Status => Cmd::Operate(Operation::Status),
+        In::Withdraw { service } => Cmd::Operate(Operation::Withdraw {
+            service: ServiceId(service),
+        }),
+        In::Restore { service } => Cmd::Operate(Operation::Restore {
+            service: ServiceId(service),
+        }),
+        In::EndSession { session } => Cmd::Operate(Operation::EndSession {
+            session: SessionId(session_id(&session)?),
+        }),
+        In::DropUser { user } => Cmd::Operate(Operation::DropUser { user: UserId(user) }),
+    })
+}
+
+/// One browser tab's socket: the hub's frames out, the tab's commands in.
+async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, mut sock: WebSocket) {
+    let (_tab, first, mut frames) = hub.open_tab();
+    if sock.send(Message::Text(first.into())).await.is_err() {
+        return;
+    }
+    let mut check = tokio::time::interval(Duration::from_secs(1));
+    loop {
+        tokio::select! {
+            frame = frames.recv() => match frame {
+                Ok(f) => {
+                    if sock.send(Message::Text((*f).into())).await.is_err() {
+                        return;
+                    }
+                }
+                Err(RecvError::Lagged(n)) => {
+                    tracing::debug!(user = %hub.user, "a tab fell {n} frames behind: sending the state again");
+                    let (state, rx) = hub.resync();
+                    frames = rx;
+                    if sock.send(Message::Text(state.into())).await.is_err() {
+                        return;
+                    }
+                }
+                Err(RecvError::Closed) => return,
+            },
+            msg = sock.recv() => match msg {
+                Some(Ok(Message::Text(t))) => match command(t.as_str()) {
+                    Ok(Cmd::Operate(_)) if !hub.operator => {
+                        let e = json!({"t": "error", "error": "operators only"}).to_string();
+                        if sock.send(Message::Text(e.into())).await.is_err() {
+                            return;
+                        }
+                    }
+                    Ok(cmd) => hub.send(cmd),
+                    Err(e) => {
+                        let e = json!({"t": "error", "error": e}).to_string();
+                        if sock.send(Message::Text(e.into())).await.is_err() {
+                            return;
+                        }
+                    }
+                },
+                Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
+                Some(Ok(_)) => {}
+            },
+            _ = check.tick() => {
+                // Signed out, revoked, or the broker connection ended: close the tab.
+                let signed_in = lock(&app.sessions).contains_key(&cookie);
+                if !signed_in || !hub.alive() {
+                    let why = if signed_in { "the broker connection ended" } else { "signed out" };
+                    let e = json!({"t": "closed", "reason": why}).to_string();
+                    let _ = sock.send(Message::Text(e.into())).await;
+                    let _ = sock.send(Message::Close(None)).await;
+                    return;
+                }
+            }
+        }
+    }
+}
+
+/// Every two seconds: re-read the access file (a removed user or changed token signs
+/// out; changed patterns take effect), forget idle sessions and stopped hubs.
+async fn housekeeping(app: Arc<App>) {
+    let mut every = tokio::time::interval(Duration::from_secs(2));
+    loop {
+        every.tick().await;
+        let changed = match lock(&app.access).reload() {
+            Ok(c) => c,
+            Err(e) => {
+                tracing::warn!("{e} (keeping the last good one)");
+                false
+            }
+        };
+        let now = Instant::now();
+        let mut gone_users = Vec::new();
+        {
+            let access = lock(&app.access);
+            let mut sessions = lock(&app.sessions);
+            sessions.retain(|_, s| {
+                let valid = access
+                    .get(&s.user)
+                    .and_then(|p| p.web)
+                    .is_some_and(|h| h == s.token_hash);
+                if !valid {
+                    tracing::info!(user = %s.user, "signed out: the access file no longer lets this token in");
+                }
+                valid && now.duration_since(s.last_seen) < SESSION_IDLE
+            });
+            let hubs = lock(&app.hubs);
+            for (user, slot) in hubs.iter() {
+                let Some(hub) = slot.try_lock().ok().and_then(|s| s.clone()) else {
+                    continue;
+                };
+                if !sessions.values().any(|s| &s.user == user) {
+                    gone_users.push(user.clone());
+                } else if changed {
+                    if let Some(p) = access.get(user) {
+                        hub.send(Cmd::Policy(Box::new(p.clone())));
+                    }
+                }
+            }
+        }
+        for user in gone_users {
+            close_hub(&app, &user);
+        }
+        // A slot being filled (its user's connection starting) is kept.
+        lock(&app.hubs).retain(|_, slot| {
+            slot.try_lock()
+                .map(|s| s.as_ref().is_some_and(|h| h.alive()))
+                .unwrap_or(true)
+        });
+    }
+}
