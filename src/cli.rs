@@ -399,6 +399,10 @@ pub struct WebArgs {
     /// How long a signing-in user's connection waits for a broker.
     #[arg(long, default_value = "5s", value_parser = duration)]
     pub wait: Duration,
+    /// The floor's map for the map page (ROS map_server YAML, as the simulator's
+    /// `--map`); default: the simulator's office.
+    #[arg(long)]
+    pub map: Option<std::path::PathBuf>,
 }
 
 #[derive(Args, Debug)]

@@ -113,6 +113,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             listen: a.listen,
             access: a.access,
             wait_for_broker: a.wait,
+            map: a.map,
         })
         .map(|()| ExitCode::SUCCESS),
         Command::View(a) => view::run(&inst, a),

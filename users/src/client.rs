@@ -142,13 +142,23 @@ impl Default for ConnectOptions {
 impl UserClient {
     /// Connects to the broker of `inst`, waiting up to `opts.wait_for_broker` for one.
     pub fn connect(inst: &Instance, opts: &ConnectOptions) -> Result<Self, UserError> {
+        Self::connect_as(inst, opts, "u")
+    }
+
+    /// [`UserClient::connect`], the user's id starting with `prefix` (`u` by default;
+    /// the web console's users are `web-NAME-`, so operators see whose they are).
+    pub fn connect_as(
+        inst: &Instance,
+        opts: &ConnectOptions,
+        prefix: &str,
+    ) -> Result<Self, UserError> {
         let pid = std::process::id();
         let nonce = Instant::now().elapsed().as_nanos() as u64
             ^ std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map(|d| d.as_nanos() as u64)
                 .unwrap_or(0);
-        let id = UserId(format!("u{pid}-{:06x}", nonce & 0xff_ffff));
+        let id = UserId(format!("{prefix}{pid}-{:06x}", nonce & 0xff_ffff));
         let node = create_node(&format!("muster-user-{pid}"), false)?;
         let endpoint = Endpoint::open(inst, Address::User(id.clone()), node)?;
         let presence = Presence::listen(endpoint.node(), inst)?;

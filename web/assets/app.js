@@ -15,6 +15,10 @@ const state = {
   pending: new Map(),  // req -> {req, service, position}
   links: new Map(),    // link -> {link, data, command, up, forwarded}
   brokerUp: false,
+  map: null,      // {width, height, resolution, origin, image}
+  world: null,    // the newest world frame
+  frames: [],     // arrival times of world frames, for the frame rate shown
+  status: null,   // the broker's status (operators)
 };
 
 function el(tag, props, ...children) {
@@ -44,6 +48,8 @@ async function start() {
     e.preventDefault();
     send({ op: 'link', data: $('link-data').value, command: $('link-command').value });
   });
+  $('map').addEventListener('click', mapClick);
+  setInterval(() => { if (me && me.operator && ws && ws.readyState === WebSocket.OPEN) send({ op: 'status' }); }, 1000);
   const r = await fetch('/api/me', { credentials: 'same-origin' });
   if (r.ok) signedIn(await r.json()); else showSignIn('');
 }
@@ -86,6 +92,7 @@ function signedIn(m) {
   $('console').hidden = false;
   $('signout').hidden = false;
   $('who').textContent = m.user + (m.operator ? ' (operator)' : '');
+  $('operator').hidden = !m.operator;
   connect();
 }
 
@@ -96,6 +103,7 @@ function connect() {
   const proto = location.protocol === 'https:' ? 'wss://' : 'ws://';
   ws = new WebSocket(proto + location.host + '/ws');
   ws.onmessage = (ev) => onFrame(JSON.parse(ev.data));
+  ws.onopen = () => ws.send(JSON.stringify({ op: 'map', on: true }));
   ws.onclose = () => {
     ws = null;
     setBroker(false, 'disconnected');
@@ -174,7 +182,17 @@ function onFrame(f) {
     case 'link_ended': state.links.delete(f.link); log('link ' + f.link + ' ended: ' + f.reason); renderLinks(); break;
     case 'link_refused': log('link refused: ' + f.error, true); break;
     case 'input_refused': log('input refused: ' + f.error, true); break;
-    case 'operated': log((f.what || 'operation') + (f.ok ? ': done' : ': refused: ' + f.error), !f.ok); break;
+    case 'operated':
+      if (f.status) { state.status = f.status; renderOperator(); break; }
+      log((f.what || 'operation') + (f.ok ? ': done' : ': refused: ' + f.error), !f.ok);
+      break;
+    case 'map': setMap(f); break;
+    case 'world':
+      state.world = f;
+      state.frames.push(performance.now());
+      if (state.frames.length > 30) state.frames.shift();
+      requestAnimationFrame(drawMap);
+      break;
     case 'error': log(f.error, true); break;
     case 'closed': if (f.reason === 'signed out') showSignIn('signed out'); break;
   }
@@ -197,6 +215,11 @@ function renderList() {
         el('button', { onclick: () => send({ op: 'cancel', req: p.req }) }, 'Cancel'));
     } else {
       action = el('button', { class: 'request', disabled: s.withdrawn, onclick: () => send({ op: 'request', service: s.id }) }, 'Request');
+    }
+    if (me && me.operator && !s.remote) {
+      const op = s.withdrawn ? 'restore' : 'withdraw';
+      action = el('span', {}, action, ' ',
+        el('button', { class: op, onclick: () => send({ op, service: s.id }) }, s.withdrawn ? 'Restore' : 'Withdraw'));
     }
     const tr = el('tr', { class: s.withdrawn ? 'withdrawn' : '', data: { service: s.id } },
       el('td', { class: 'id', title: s.description }, s.id),
@@ -228,6 +251,7 @@ function renderLinks() {
 }
 
 function renderSessions() {
+  renderGoalTargets();
   const box = $('sessions');
   const have = new Set();
   for (const card of [...box.children]) {
@@ -252,6 +276,117 @@ function renderSessions() {
     }
     box.append(card);
   }
+}
+
+function renderGoalTargets() {
+  const sel = $('goal-target');
+  const keep = sel.value;
+  const cmds = [...state.sessions.values()].filter((s) => s.kind === 'command' && s.payload === 'goal2d');
+  sel.replaceChildren(...(cmds.length
+    ? cmds.map((s) => el('option', { value: s.session }, s.service))
+    : [el('option', { value: '' }, '(request a goal2d command service first)')]));
+  if ([...sel.options].some((o) => o.value === keep)) sel.value = keep;
+}
+
+// ---- the floor ----
+
+const COLOURS = { red: '#e53935', green: '#43a047', blue: '#1e88e5', yellow: '#fdd835', magenta: '#d81b60', cyan: '#00acc1' };
+
+function setMap(f) {
+  const img = document.createElement('canvas');
+  img.width = f.width; img.height = f.height;
+  const g = img.getContext('2d');
+  g.fillStyle = '#fff'; g.fillRect(0, 0, f.width, f.height);
+  g.fillStyle = '#37474f';
+  for (let k = 0; k + 2 < f.runs.length; k += 3) {
+    const [j, i, n] = [f.runs[k], f.runs[k + 1], f.runs[k + 2]];
+    g.fillRect(i, f.height - 1 - j, n, 1); // row 0 is the bottom (y up)
+  }
+  state.map = { ...f, image: img };
+  const c = $('map');
+  c.height = Math.round(c.width * f.height / f.width);
+  drawMap();
+}
+
+// World metres -> canvas pixels, and back.
+function scale() { const m = state.map; return $('map').width / (m.width * m.resolution); }
+function toPx(x, y) {
+  const m = state.map, k = scale();
+  return [(x - m.origin[0]) * k, $('map').height - (y - m.origin[1]) * k];
+}
+function toWorld(px, py) {
+  const m = state.map, k = scale();
+  return [m.origin[0] + px / k, m.origin[1] + ($('map').height - py) / k];
+}
+
+function drawMap() {
+  const m = state.map;
+  if (!m) return;
+  const c = $('map'), g = c.getContext('2d');
+  g.imageSmoothingEnabled = false;
+  g.drawImage(m.image, 0, 0, c.width, c.height);
+  const w = state.world;
+  if (!w) return;
+  const k = scale();
+  for (const p of w.plans) {
+    g.strokeStyle = '#fb8c00'; g.lineWidth = 2; g.setLineDash([6, 4]);
+    g.beginPath();
+    const pts = p.path.length ? p.path : [p.goal];
+    const r = w.robots.find((r) => r.name === p.robot);
+    if (r) g.moveTo(...toPx(r.x, r.y)); else g.moveTo(...toPx(...pts[0]));
+    for (const q of pts) g.lineTo(...toPx(q[0], q[1]));
+    g.stroke(); g.setLineDash([]);
+  }
+  for (const p of w.people) {
+    const [x, y] = toPx(p.x, p.y);
+    g.fillStyle = COLOURS[p.colour] || '#999';
+    g.beginPath(); g.arc(x, y, Math.max(4, 0.25 * k), 0, 2 * Math.PI); g.fill();
+  }
+  for (const t of w.tracks) {
+    const [x, y] = toPx(t.x, t.y);
+    g.strokeStyle = COLOURS[t.colour] || '#555'; g.lineWidth = 2;
+    if (t.lost) g.setLineDash([3, 3]);
+    g.beginPath(); g.arc(x, y, Math.max(9, (t.sigma || 0) * k), 0, 2 * Math.PI); g.stroke();
+    g.setLineDash([]);
+  }
+  g.font = '12px system-ui, sans-serif';
+  for (const r of w.robots) {
+    const [x, y] = toPx(r.x, r.y), s = Math.max(7, 0.35 * k);
+    g.save(); g.translate(x, y); g.rotate(-r.theta);
+    g.fillStyle = r.name.startsWith('D') ? '#ef6c00' : '#616161';
+    g.beginPath(); g.moveTo(s, 0); g.lineTo(-s * 0.7, s * 0.6); g.lineTo(-s * 0.7, -s * 0.6); g.closePath(); g.fill();
+    g.restore();
+    g.fillStyle = '#1b1f24'; g.fillText(r.name, x + s, y - s);
+  }
+  $('map-time').textContent = 'sim ' + w.time.toFixed(1) + ' s';
+  const fr = state.frames;
+  if (fr.length > 1) $('map-fps').textContent = ((fr.length - 1) * 1000 / (fr[fr.length - 1] - fr[0])).toFixed(0) + ' frames/s';
+}
+
+function mapClick(ev) {
+  if (!state.map) return;
+  const c = $('map'), r = c.getBoundingClientRect();
+  const px = (ev.clientX - r.left) * c.width / r.width, py = (ev.clientY - r.top) * c.height / r.height;
+  const [x, y] = toWorld(px, py);
+  const session = $('goal-target').value;
+  if (!session) { log('request a goal2d command service first, then click its goal', true); return; }
+  send({ op: 'goal', session, x, y });
+  log('goal (' + x.toFixed(2) + ', ' + y.toFixed(2) + ') sent to ' + state.sessions.get(session).service);
+}
+
+// ---- operators ----
+
+function renderOperator() {
+  const st = state.status;
+  if (!st) return;
+  $('op-sessions').querySelector('tbody').replaceChildren(...st.sessions.map((s) =>
+    el('tr', { data: { session: String(s.session), user: s.user } },
+      el('td', {}, String(s.session)), el('td', {}, s.service), el('td', {}, s.user),
+      el('td', {}, el('button', { class: 'op-end', onclick: () => send({ op: 'end_session', session: String(s.session) }) }, 'End')))));
+  $('op-users').querySelector('tbody').replaceChildren(...st.users.map((u) =>
+    el('tr', { data: { user: u.user } },
+      el('td', {}, u.user), el('td', {}, String(u.pid)), el('td', {}, String(u.links.length)),
+      el('td', {}, el('button', { class: 'op-drop', onclick: () => send({ op: 'drop_user', user: u.user }) }, 'Revoke')))));
 }
 
 function fmt(v) {

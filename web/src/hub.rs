@@ -163,7 +163,7 @@ impl Hub {
                     handle_signals: false,
                     watch_list: true,
                 };
-                let client = match UserClient::connect(&inst, &opts) {
+                let client = match UserClient::connect_as(&inst, &opts, &format!("web-{name}-")) {
                     Ok(c) => c,
                     Err(e) => {
                         let _ = ready_tx.send(Err(e.to_string()));
@@ -261,6 +261,19 @@ impl Hub {
             "links": links,
         })
         .to_string()
+    }
+
+    /// The local systems the user may use a service of (whose tracks and plans the map
+    /// shows it).
+    pub fn systems(&self) -> std::collections::HashSet<String> {
+        let model = self.model.lock().unwrap_or_else(|e| e.into_inner());
+        model.list["services"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter(|v| v["remote"] != json!(true))
+            .filter_map(|v| v["system"].as_str().map(str::to_string))
+            .collect()
     }
 
     /// Open tabs.

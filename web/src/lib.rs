@@ -16,6 +16,7 @@
 pub mod auth;
 pub mod hub;
 mod server;
+pub mod world;
 
 pub use server::{serve, WebOptions};
 

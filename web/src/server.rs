@@ -2,6 +2,7 @@
 
 use crate::auth::{random_token, Access, Limiter, WebSession, COOKIE, SESSION_IDLE};
 use crate::hub::{Cmd, Hub};
+use crate::world::{map_frame, WorldFrame};
 use anyhow::Context as _;
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::extract::{ConnectInfo, Request, State};
@@ -14,14 +15,16 @@ use muster_shared::protocol::Operation;
 use muster_shared::types::{ServiceId, SessionId, UserId};
 use muster_shared::udp::access::web_token_hash;
 use muster_shared::Instance;
+use muster_world_model::OccupancyMap;
 use serde::Deserialize;
 use serde_json::{json, Value};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tokio::sync::broadcast::error::RecvError;
+use tokio::sync::broadcast::{self, error::RecvError};
 
 /// How `muster web` runs.
 #[derive(Clone, Debug)]
@@ -34,6 +37,8 @@ pub struct WebOptions {
     pub access: PathBuf,
     /// How long a signing-in user's connection waits for a broker.
     pub wait_for_broker: Duration,
+    /// The floor's map (a ROS map_server YAML); `None`: the simulator's default office.
+    pub map: Option<PathBuf>,
 }
 
 /// The largest WebSocket message a browser may send (commands are tiny).
@@ -55,6 +60,8 @@ struct App {
     hubs: Mutex<HashMap<String, Arc<Mutex<Option<Arc<Hub>>>>>>,
     limiter: Mutex<Limiter>,
     wait_for_broker: Duration,
+    world: broadcast::Sender<Arc<WorldFrame>>,
+    map_frame: Arc<str>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -71,6 +78,16 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
             opts.access.display()
         );
     }
+    let map = match &opts.map {
+        Some(p) => {
+            OccupancyMap::load(p).map_err(|e| anyhow::anyhow!("--map {}: {e}", p.display()))?
+        }
+        None => OccupancyMap::office(),
+    };
+    let (world, _) = broadcast::channel(4);
+    let stop = Arc::new(AtomicBool::new(false));
+    let reader = crate::world::start(opts.instance.clone(), world.clone(), stop.clone())
+        .context("starting the map's reader")?;
     let app = Arc::new(App {
         inst: opts.instance.clone(),
         access: Mutex::new(access),
@@ -78,6 +95,8 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
         hubs: Mutex::new(HashMap::new()),
         limiter: Mutex::new(Limiter::default()),
         wait_for_broker: opts.wait_for_broker,
+        world,
+        map_frame: Arc::from(map_frame(&map)),
     });
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -85,7 +104,7 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    rt.block_on(async move {
+    let served = rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(opts.listen)
             .await
             .with_context(|| format!("listening on {}", opts.listen))?;
@@ -106,7 +125,10 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
         .context("serving")?;
         close_all(&app).await;
         Ok(())
-    })
+    });
+    stop.store(true, Ordering::Release);
+    let _ = reader.join();
+    served
 }
 
 async fn stop_signal() {
@@ -151,6 +173,7 @@ fn router(app: Arc<App>) -> Router {
             "/app.css",
             get(|| async { asset("text/css; charset=utf-8", APP_CSS) }),
         )
+        .route("/favicon.ico", get(|| async { StatusCode::NO_CONTENT }))
         .route("/api/login", post(login))
         .route("/api/logout", post(logout))
         .route("/api/me", get(me))
@@ -382,6 +405,7 @@ enum In {
     Restore { service: String },
     EndSession { session: String },
     DropUser { user: String },
+    Map { on: bool },
 }
 
 fn session_id(s: &str) -> Result<u64, String> {
@@ -389,8 +413,11 @@ fn session_id(s: &str) -> Result<u64, String> {
         .map_err(|_| format!("bad session {s:?}: a decimal number, as the server sent it"))
 }
 
-fn command(msg: &str) -> Result<Cmd, String> {
-    let m: In = serde_json::from_str(msg).map_err(|e| format!("bad message: {e}"))?;
+fn parse(msg: &str) -> Result<In, String> {
+    serde_json::from_str(msg).map_err(|e| format!("bad message: {e}"))
+}
+
+fn command(m: In) -> Result<Cmd, String> {
     Ok(match m {
         In::Request { service } => Cmd::Request(service),
         In::Cancel { req } => Cmd::Cancel(req),
@@ -418,6 +445,7 @@ fn command(msg: &str) -> Result<Cmd, String> {
             session: SessionId(session_id(&session)?),
         }),
         In::DropUser { user } => Cmd::Operate(Operation::DropUser { user: UserId(user) }),
+        In::Map { .. } => return Err("the map is the tab's own".into()),
     })
 }
 
@@ -428,8 +456,27 @@ async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, mut sock: WebSocket) 
         return;
     }
     let mut check = tokio::time::interval(Duration::from_secs(1));
+    let mut world: Option<broadcast::Receiver<Arc<WorldFrame>>> = None;
+    let mut systems = hub.systems();
     loop {
+        let next_world = async {
+            match world.as_mut() {
+                Some(r) => r.recv().await,
+                None => std::future::pending().await,
+            }
+        };
         tokio::select! {
+            w = next_world => match w {
+                Ok(f) => {
+                    let text = f.json_for(|s| systems.contains(s));
+                    if sock.send(Message::Text(text.into())).await.is_err() {
+                        return;
+                    }
+                }
+                // A slow tab skips frames of the floor: only the newest matters.
+                Err(RecvError::Lagged(_)) => {}
+                Err(RecvError::Closed) => world = None,
+            },
             frame = frames.recv() => match frame {
                 Ok(f) => {
                     if sock.send(Message::Text((*f).into())).await.is_err() {
@@ -447,14 +494,26 @@ async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, mut sock: WebSocket) 
                 Err(RecvError::Closed) => return,
             },
             msg = sock.recv() => match msg {
-                Some(Ok(Message::Text(t))) => match command(t.as_str()) {
-                    Ok(Cmd::Operate(_)) if !hub.operator => {
+                Some(Ok(Message::Text(t))) => match parse(t.as_str()).and_then(|m| match m {
+                    In::Map { on } => Ok(Err(on)),
+                    other => command(other).map(Ok),
+                }) {
+                    Ok(Err(on)) => {
+                        world = None;
+                        if on {
+                            world = Some(app.world.subscribe());
+                            if sock.send(Message::Text((*app.map_frame).into())).await.is_err() {
+                                return;
+                            }
+                        }
+                    }
+                    Ok(Ok(Cmd::Operate(_))) if !hub.operator => {
                         let e = json!({"t": "error", "error": "operators only"}).to_string();
                         if sock.send(Message::Text(e.into())).await.is_err() {
                             return;
                         }
                     }
-                    Ok(cmd) => hub.send(cmd),
+                    Ok(Ok(cmd)) => hub.send(cmd),
                     Err(e) => {
                         let e = json!({"t": "error", "error": e}).to_string();
                         if sock.send(Message::Text(e.into())).await.is_err() {
@@ -466,6 +525,7 @@ async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, mut sock: WebSocket) 
                 Some(Ok(_)) => {}
             },
             _ = check.tick() => {
+                systems = hub.systems();
                 // Signed out, revoked, or the broker connection ended: close the tab.
                 let signed_in = lock(&app.sessions).contains_key(&cookie);
                 if !signed_in || !hub.alive() {
