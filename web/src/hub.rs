@@ -284,7 +284,7 @@ impl Hub {
 
 fn session_json(id: u64, s: &SessionState) -> Value {
     json!({
-        "session": id.to_string(),
+        "session": SessionId(id).to_string(),
         "service": s.service,
         "kind": s.kind.to_string(),
         "payload": s.payload,
@@ -419,7 +419,7 @@ impl Run {
                 });
                 if let Err(e) = sent {
                     self.send(
-                        json!({"t": "input_refused", "session": session.to_string(), "error": e}),
+                        json!({"t": "input_refused", "session": SessionId(session).to_string(), "error": e}),
                     );
                 }
             }
@@ -533,7 +533,7 @@ impl Run {
                     return Ok(());
                 };
                 let value = payload.to_json_with(s.schema.as_ref());
-                let frame = json!({"t": "update", "session": session.0.to_string(), "service": service.0, "seq": seq, "gap": gap, "sent_ns": sent_ns, "value": value});
+                let frame = json!({"t": "update", "session": session.to_string(), "service": service.0, "seq": seq, "gap": gap, "sent_ns": sent_ns, "value": value});
                 s.last = Some(frame.clone());
                 let _ = self.frames.send(Arc::from(frame.to_string()));
             }
@@ -543,7 +543,7 @@ impl Run {
                 seq,
                 status,
             } => {
-                let frame = json!({"t": "status", "session": session.0.to_string(), "service": service.0, "seq": seq, "state": status.state(), "detail": status.detail()});
+                let frame = json!({"t": "status", "session": session.to_string(), "service": service.0, "seq": seq, "state": status.state(), "detail": status.detail()});
                 self.apply(frame.clone(), |m| {
                     if let Some(s) = m.sessions.get_mut(&session.0) {
                         s.last = Some(frame);
@@ -556,7 +556,7 @@ impl Run {
                 reason,
                 ..
             } => {
-                let frame = json!({"t": "ended", "session": session.0.to_string(), "service": service.0, "reason": reason.to_string(), "code": reason.code()});
+                let frame = json!({"t": "ended", "session": session.to_string(), "service": service.0, "reason": reason.to_string(), "code": reason.code()});
                 self.apply(frame, |m| {
                     m.sessions.remove(&session.0);
                 });

@@ -408,9 +408,11 @@ enum In {
     Map { on: bool },
 }
 
+/// A session as frames name it: 16 hex digits (a 64-bit number, more than a
+/// JavaScript number holds).
 fn session_id(s: &str) -> Result<u64, String> {
-    s.parse()
-        .map_err(|_| format!("bad session {s:?}: a decimal number, as the server sent it"))
+    u64::from_str_radix(s, 16)
+        .map_err(|_| format!("bad session {s:?}: 16 hex digits, as the server sent it"))
 }
 
 fn parse(msg: &str) -> Result<In, String> {

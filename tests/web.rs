@@ -1,0 +1,565 @@
+//! `muster web`, over its HTTP and WebSocket protocol: sign-in, what a browser must not
+//! be able to do (cross-origin requests, sockets without a session, sign-out without its
+//! CSRF token, guessing tokens), and what each user may see and do (its access-file
+//! patterns), with an operator acting on another user's session. The browser itself
+//! drives the app in `web/tests/test_browser.py`.
+
+#![allow(clippy::unwrap_used)]
+
+mod common;
+
+use common::{free_tcp_port, Fed};
+use serde_json::{json, Value};
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use tungstenite::client::IntoClientRequest;
+use tungstenite::{Message, WebSocket};
+
+/// An HTTP answer: status, headers (names lower-case), body.
+struct Answer {
+    status: u16,
+    headers: Vec<(String, String)>,
+    body: String,
+}
+
+impl Answer {
+    fn header(&self, name: &str) -> Option<&str> {
+        self.headers
+            .iter()
+            .find(|(k, _)| k == name)
+            .map(|(_, v)| v.as_str())
+    }
+
+    fn json(&self) -> Value {
+        serde_json::from_str(&self.body).unwrap_or(Value::Null)
+    }
+}
+
+/// One HTTP/1.1 request on a fresh connection.
+fn http(port: u16, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> Answer {
+    let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    let mut req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\nContent-Length: {}\r\n",
+        body.len()
+    );
+    for (k, v) in headers {
+        req.push_str(&format!("{k}: {v}\r\n"));
+    }
+    req.push_str("\r\n");
+    req.push_str(body);
+    s.write_all(req.as_bytes()).unwrap();
+    let mut raw = Vec::new();
+    s.read_to_end(&mut raw).unwrap();
+    let text = String::from_utf8_lossy(&raw).to_string();
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let mut lines = head.lines();
+    let status = lines
+        .next()
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    let headers = lines
+        .filter_map(|l| l.split_once(':'))
+        .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
+        .collect();
+    Answer {
+        status,
+        headers,
+        body: body.to_string(),
+    }
+}
+
+struct Web {
+    fed: Fed,
+    port: u16,
+    origin: String,
+    dir: PathBuf,
+    log: PathBuf,
+}
+
+impl Drop for Web {
+    fn drop(&mut self) {
+        self.fed.shutdown();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// A broker, a data system `t1` (two `pose2d` services), a command system `d1` (one
+/// `goal2d` service with a queue) and `muster web` with an access file: alice may use
+/// `t1/*`, bob is an operator of everything, carol has a key but no web line.
+fn setup(name: &str) -> Web {
+    let mut fed = Fed::new(name);
+    let dir = std::env::temp_dir().join(format!("muster-web-test-{}", fed.inst));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let d = dir.to_str().unwrap();
+    let mut access = String::new();
+    for (user, extra) in [
+        ("alice", vec!["--web", "--allow", "t1/*"]),
+        ("bob", vec!["--web", "--operator", "--allow", "*"]),
+        ("carol", vec!["--allow", "*"]),
+    ] {
+        let mut args = vec!["keygen", "--user", user, "--out", d];
+        args.extend(extra);
+        let (code, out) = fed.run(&args, Duration::from_secs(10));
+        assert_eq!(code, 0, "keygen {user}");
+        access.push_str(&out);
+    }
+    std::fs::write(dir.join("access"), &access).unwrap();
+    fed.broker(&[]);
+    fed.system("t1", &["--services", "2", "--quota", "3"]);
+    fed.system(
+        "d1",
+        &[
+            "--services",
+            "1",
+            "--kind",
+            "command",
+            "--queue",
+            "--quota",
+            "1",
+        ],
+    );
+    fed.wait_list(Duration::from_secs(10), |l| l.len() == 3);
+    let port = free_tcp_port();
+    let log = dir.join("web.log");
+    let listen = format!("127.0.0.1:{port}");
+    let access_path = dir.join("access");
+    // Its log in a file, to show no token is ever written there (debug level).
+    let c = fed.command(&[
+        "web",
+        "--listen",
+        &listen,
+        "--access",
+        access_path.to_str().unwrap(),
+    ]);
+    let sh = format!("exec \"$0\" \"$@\" 2>{}", log.display());
+    let program = c.get_program().to_owned();
+    let args: Vec<_> = c.get_args().map(|a| a.to_owned()).collect();
+    let mut wrapped = std::process::Command::new("sh");
+    wrapped
+        .arg("-c")
+        .arg(sh)
+        .arg(program)
+        .args(args)
+        .env("RUST_LOG", "debug");
+    let web = fed.spawn_command(wrapped);
+    let first = fed.proc(web).json(Duration::from_secs(20)).unwrap();
+    assert_eq!(first["listen"], json!(listen));
+    Web {
+        fed,
+        port,
+        origin: format!("http://127.0.0.1:{port}"),
+        dir,
+        log,
+    }
+}
+
+impl Web {
+    fn token(&self, user: &str) -> String {
+        std::fs::read_to_string(self.dir.join(format!("{user}.web")))
+            .unwrap()
+            .trim()
+            .to_string()
+    }
+
+    fn login(&self, user: &str, token: &str) -> Answer {
+        let body = json!({"user": user, "token": token}).to_string();
+        http(
+            self.port,
+            "POST",
+            "/api/login",
+            &[
+                ("Origin", &self.origin),
+                ("Content-Type", "application/json"),
+            ],
+            &body,
+        )
+    }
+
+    /// Signs in; returns the cookie (`muster_session=...`) and the CSRF token.
+    fn sign_in(&self, user: &str) -> (String, String) {
+        let a = self.login(user, &self.token(user));
+        assert_eq!(a.status, 200, "{user} signs in: {}", a.body);
+        let cookie = a.header("set-cookie").unwrap();
+        (
+            cookie.split(';').next().unwrap().to_string(),
+            a.json()["csrf"].as_str().unwrap().to_string(),
+        )
+    }
+
+    fn socket(&self, cookie: Option<&str>, origin: Option<&str>) -> Result<Tab, u16> {
+        let mut req = format!("ws://127.0.0.1:{}/ws", self.port)
+            .into_client_request()
+            .unwrap();
+        if let Some(c) = cookie {
+            req.headers_mut().insert("Cookie", c.parse().unwrap());
+        }
+        if let Some(o) = origin {
+            req.headers_mut().insert("Origin", o.parse().unwrap());
+        }
+        let stream = TcpStream::connect(("127.0.0.1", self.port)).unwrap();
+        stream
+            .set_read_timeout(Some(Duration::from_millis(200)))
+            .unwrap();
+        match tungstenite::client(req, stream) {
+            Ok((ws, _)) => Ok(Tab { ws }),
+            Err(tungstenite::HandshakeError::Failure(tungstenite::Error::Http(r))) => {
+                Err(r.status().as_u16())
+            }
+            Err(e) => panic!("websocket: {e}"),
+        }
+    }
+}
+
+/// A signed-in tab's socket.
+struct Tab {
+    ws: WebSocket<TcpStream>,
+}
+
+impl Tab {
+    fn send(&mut self, v: Value) {
+        self.ws.send(Message::text(v.to_string())).unwrap();
+    }
+
+    /// The next frame, waiting up to `wait`.
+    fn next(&mut self, wait: Duration) -> Option<Value> {
+        let deadline = Instant::now() + wait;
+        while Instant::now() < deadline {
+            match self.ws.read() {
+                Ok(Message::Text(t)) => return serde_json::from_str(t.as_str()).ok(),
+                Ok(_) => {}
+                Err(tungstenite::Error::Io(e))
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) => {}
+                Err(_) => return None,
+            }
+        }
+        None
+    }
+
+    /// Frames until one for which `want` holds (bounded by `wait`).
+    fn until(&mut self, wait: Duration, want: impl Fn(&Value) -> bool) -> Option<Value> {
+        let deadline = Instant::now() + wait;
+        while Instant::now() < deadline {
+            if let Some(f) = self.next(deadline - Instant::now()) {
+                if want(&f) {
+                    return Some(f);
+                }
+            }
+        }
+        None
+    }
+}
+
+fn ids(state: &Value) -> Vec<String> {
+    let mut v: Vec<String> = state["list"]["services"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["id"].as_str().unwrap().to_string())
+        .collect();
+    v.sort();
+    v
+}
+
+fn read(path: &Path) -> String {
+    std::fs::read_to_string(path).unwrap_or_default()
+}
+
+#[test]
+fn sign_in_takes_a_web_token_and_the_server_refuses_what_a_browser_must_not_do() {
+    let w = setup("web-signin");
+    let page = http(w.port, "GET", "/", &[], "");
+    assert_eq!(page.status, 200);
+    let csp = page.header("content-security-policy").unwrap();
+    assert!(
+        csp.contains("script-src 'self'") && !csp.contains("unsafe-inline"),
+        "{csp}"
+    );
+    assert!(csp.contains("frame-ancestors 'none'"), "{csp}");
+    assert_eq!(page.header("x-content-type-options"), Some("nosniff"));
+    assert!(
+        page.body.contains("<script src=\"/app.js\""),
+        "the app is served"
+    );
+    assert!(!page.body.contains("<script>"), "no inline script");
+    let js = http(w.port, "GET", "/app.js", &[], "");
+    assert_eq!(js.status, 200);
+    assert!(js
+        .header("content-type")
+        .unwrap()
+        .starts_with("text/javascript"));
+
+    // Wrong token, and a user with no web line: refused alike (failures 1 and 2).
+    assert_eq!(w.login("alice", "0123").status, 401);
+    let carol = w.login("carol", &w.token("alice"));
+    assert_eq!(carol.status, 401);
+    assert_eq!(carol.json()["error"], json!("wrong user name or token"));
+    // Cross-origin, origin-less and non-JSON sign-ins are refused before any check.
+    let body = json!({"user": "alice", "token": w.token("alice")}).to_string();
+    let no_origin = http(
+        w.port,
+        "POST",
+        "/api/login",
+        &[("Content-Type", "application/json")],
+        &body,
+    );
+    assert_eq!(no_origin.status, 403);
+    let evil = http(
+        w.port,
+        "POST",
+        "/api/login",
+        &[
+            ("Origin", "http://evil.example"),
+            ("Content-Type", "application/json"),
+        ],
+        &body,
+    );
+    assert_eq!(evil.status, 403);
+    let form = http(
+        w.port,
+        "POST",
+        "/api/login",
+        &[
+            ("Origin", &w.origin),
+            ("Content-Type", "application/x-www-form-urlencoded"),
+        ],
+        "user=alice",
+    );
+    assert_eq!(form.status, 400);
+
+    // The right token: an HttpOnly, SameSite=Strict cookie and a CSRF token.
+    let ok = w.login("alice", &w.token("alice"));
+    assert_eq!(ok.status, 200, "{}", ok.body);
+    let set = ok.header("set-cookie").unwrap();
+    assert!(
+        set.contains("HttpOnly") && set.contains("SameSite=Strict"),
+        "{set}"
+    );
+    assert_eq!(ok.json()["user"], json!("alice"));
+    assert_eq!(ok.json()["operator"], json!(false));
+    let cookie = set.split(';').next().unwrap().to_string();
+    let csrf = ok.json()["csrf"].as_str().unwrap().to_string();
+    let me = http(w.port, "GET", "/api/me", &[("Cookie", &cookie)], "");
+    assert_eq!(me.json()["user"], json!("alice"));
+    assert_eq!(http(w.port, "GET", "/api/me", &[], "").status, 401);
+
+    // Sockets: a session and this server's origin, or nothing.
+    assert_eq!(w.socket(None, Some(&w.origin)).err(), Some(401));
+    assert_eq!(
+        w.socket(Some(&cookie), Some("http://evil.example")).err(),
+        Some(403)
+    );
+    assert_eq!(w.socket(Some(&cookie), None).err(), Some(403));
+    let mut tab = w.socket(Some(&cookie), Some(&w.origin)).ok().unwrap();
+    assert_eq!(
+        tab.next(Duration::from_secs(5)).unwrap()["t"],
+        json!("state")
+    );
+
+    // Sign-out needs the CSRF token; after it the cookie is worth nothing and the open
+    // socket is closed.
+    let no_csrf = http(
+        w.port,
+        "POST",
+        "/api/logout",
+        &[("Cookie", &cookie), ("Origin", &w.origin)],
+        "",
+    );
+    assert_eq!(no_csrf.status, 403);
+    let out = http(
+        w.port,
+        "POST",
+        "/api/logout",
+        &[
+            ("Cookie", &cookie),
+            ("Origin", &w.origin),
+            ("X-CSRF-Token", &csrf),
+        ],
+        "",
+    );
+    assert_eq!(out.status, 200);
+    assert_eq!(
+        http(w.port, "GET", "/api/me", &[("Cookie", &cookie)], "").status,
+        401
+    );
+    let closed = tab.until(Duration::from_secs(5), |f| f["t"] == json!("closed"));
+    assert_eq!(closed.unwrap()["reason"], json!("signed out"));
+
+    // Guessing: failures 3 to 5 are answered, then this address waits (even with the
+    // right token), with Retry-After.
+    for _ in 0..3 {
+        assert_eq!(w.login("alice", "guess").status, 401);
+    }
+    let blocked = w.login("alice", &w.token("alice"));
+    assert_eq!(blocked.status, 429, "{}", blocked.body);
+    let retry: u64 = blocked.header("retry-after").unwrap().parse().unwrap();
+    assert!((1..=60).contains(&retry), "{retry}");
+
+    // No token, cookie or CSRF token ever reaches the log (debug level).
+    let log = read(&w.log);
+    assert!(
+        log.contains("signed in on the web"),
+        "the log is read: {log}"
+    );
+    for secret in [
+        w.token("alice"),
+        w.token("bob"),
+        cookie.replace("muster_session=", ""),
+        csrf,
+    ] {
+        assert!(!log.contains(&secret), "a secret in the log");
+    }
+}
+
+#[test]
+fn a_web_user_sees_and_gets_only_what_its_patterns_allow_and_operators_act_on_any_session() {
+    let w = setup("web-access");
+    let (alice_cookie, _) = w.sign_in("alice");
+    let (bob_cookie, _) = w.sign_in("bob");
+    let mut alice = w.socket(Some(&alice_cookie), Some(&w.origin)).ok().unwrap();
+    let mut bob = w.socket(Some(&bob_cookie), Some(&w.origin)).ok().unwrap();
+    let a0 = alice.next(Duration::from_secs(10)).unwrap();
+    let b0 = bob.next(Duration::from_secs(10)).unwrap();
+    assert_eq!(
+        ids(&a0),
+        ["t1/s0", "t1/s1"],
+        "alice lists t1's services only"
+    );
+    assert_eq!(ids(&b0), ["d1/s0", "t1/s0", "t1/s1"]);
+    assert_eq!(
+        (a0["operator"].clone(), b0["operator"].clone()),
+        (json!(false), json!(true))
+    );
+
+    // What alice may not use is refused as an unknown service would be, asked for
+    // directly or through a link; operators' actions are not hers.
+    alice.send(json!({"op": "request", "service": "d1/s0"}));
+    let r = alice
+        .until(Duration::from_secs(5), |f| f["t"] == json!("refused"))
+        .unwrap();
+    assert_eq!(
+        (r["service"].clone(), r["code"].clone()),
+        (json!("d1/s0"), json!("unknown"))
+    );
+    alice.send(json!({"op": "link", "data": "t1/s0", "command": "d1/s0"}));
+    let l = alice
+        .until(Duration::from_secs(5), |f| f["t"] == json!("link_refused"))
+        .unwrap();
+    assert!(l["error"].as_str().unwrap().contains("d1/s0"), "{l}");
+    alice.send(json!({"op": "withdraw", "service": "t1/s0"}));
+    let e = alice
+        .until(Duration::from_secs(5), |f| f["t"] == json!("error"))
+        .unwrap();
+    assert_eq!(e["error"], json!("operators only"));
+    alice.send(json!({"op": "nonsense"}));
+    let e = alice
+        .until(Duration::from_secs(5), |f| f["t"] == json!("error"))
+        .unwrap();
+    assert!(
+        e["error"].as_str().unwrap().starts_with("bad message"),
+        "{e}"
+    );
+
+    // What she may use streams: a session and updates in order.
+    alice.send(json!({"op": "request", "service": "t1/s0"}));
+    let g = alice
+        .until(Duration::from_secs(10), |f| f["t"] == json!("granted"))
+        .unwrap();
+    let session = g["session"].as_str().unwrap().to_string();
+    let mut seqs = Vec::new();
+    while seqs.len() < 3 {
+        let u = alice
+            .until(Duration::from_secs(5), |f| f["t"] == json!("update"))
+            .expect("updates stream");
+        assert_eq!(u["session"], json!(session));
+        assert_eq!(u["value"]["type"], json!("pose2d"));
+        seqs.push(u["seq"].as_u64().unwrap());
+    }
+    assert!(seqs.windows(2).all(|p| p[1] > p[0]), "{seqs:?}");
+    // Bob's list shows it in use (the list changes for every watcher).
+    let in_use = bob.until(Duration::from_secs(5), |f| {
+        f["t"] == json!("list")
+            && f["list"]["services"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|s| s["id"] == json!("t1/s0") && s["in_use"] == json!(1))
+    });
+    assert!(in_use.is_some(), "bob sees t1/s0 in use");
+
+    // Bob drives d1 to a goal: its status comes as it goes.
+    bob.send(json!({"op": "request", "service": "d1/s0"}));
+    let g = bob
+        .until(Duration::from_secs(10), |f| f["t"] == json!("granted"))
+        .unwrap();
+    assert_eq!(g["kind"], json!("command"));
+    let d1 = g["session"].as_str().unwrap().to_string();
+    bob.send(json!({"op": "goal", "session": d1, "x": 2.0, "y": 1.0}));
+    let working = bob.until(Duration::from_secs(10), |f| {
+        f["t"] == json!("status") && f["session"] == json!(d1) && f["state"] == json!("working")
+    });
+    assert!(working.is_some(), "d1 works on the goal");
+    bob.send(json!({"op": "goal", "session": d1, "x": "far", "y": 1.0}));
+    let e = bob
+        .until(Duration::from_secs(5), |f| f["t"] == json!("error"))
+        .unwrap();
+    assert!(
+        e["error"].as_str().unwrap().starts_with("bad message"),
+        "{e}"
+    );
+
+    // As an operator, bob sees alice's session under her web user and ends it.
+    bob.send(json!({"op": "status"}));
+    let st = bob
+        .until(Duration::from_secs(5), |f| {
+            f["t"] == json!("operated") && f["status"].is_object()
+        })
+        .unwrap();
+    let row = st["status"]["sessions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["session"] == json!(session))
+        .cloned()
+        .unwrap_or_else(|| panic!("alice's session {session} in the status: {st}"));
+    assert!(
+        row["user"].as_str().unwrap().starts_with("web-alice-"),
+        "{row}"
+    );
+    bob.send(json!({"op": "end_session", "session": session}));
+    let ended = alice
+        .until(Duration::from_secs(10), |f| f["t"] == json!("ended"))
+        .unwrap();
+    assert_eq!(ended["session"], json!(session));
+
+    // Alice's web line goes from the access file: her socket is closed, bob's is not.
+    let access = read(&w.dir.join("access"));
+    let without: String = access
+        .lines()
+        .filter(|l| !l.starts_with("web alice"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::thread::sleep(Duration::from_millis(1100)); // a new mtime, even on coarse clocks
+    std::fs::write(w.dir.join("access"), without).unwrap();
+    let closed = alice.until(Duration::from_secs(10), |f| f["t"] == json!("closed"));
+    assert_eq!(closed.unwrap()["reason"], json!("signed out"));
+    assert_eq!(
+        http(w.port, "GET", "/api/me", &[("Cookie", &alice_cookie)], "").status,
+        401
+    );
+    assert_eq!(
+        http(w.port, "GET", "/api/me", &[("Cookie", &bob_cookie)], "").status,
+        200
+    );
+    bob.send(json!({"op": "status"}));
+    assert!(bob
+        .until(Duration::from_secs(5), |f| f["t"] == json!("operated"))
+        .is_some());
+}
