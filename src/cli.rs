@@ -403,6 +403,10 @@ pub struct WebArgs {
     /// `--map`); default: the simulator's office.
     #[arg(long)]
     pub map: Option<std::path::PathBuf>,
+    /// Serve HTTPS: a certificate chain and its private key, PEM files (session
+    /// cookies are then `Secure`).
+    #[arg(long, num_args = 2, value_names = ["CERT", "KEY"])]
+    pub tls: Option<Vec<std::path::PathBuf>>,
 }
 
 #[derive(Args, Debug)]

@@ -114,6 +114,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             access: a.access,
             wait_for_broker: a.wait,
             map: a.map,
+            tls: a.tls.map(|v| (v[0].clone(), v[1].clone())),
         })
         .map(|()| ExitCode::SUCCESS),
         Command::View(a) => view::run(&inst, a),

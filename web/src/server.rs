@@ -20,11 +20,12 @@ use serde::Deserialize;
 use serde_json::{json, Value};
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::sync::broadcast::{self, error::RecvError};
+use tokio_rustls::rustls;
 
 /// How `muster web` runs.
 #[derive(Clone, Debug)]
@@ -39,6 +40,8 @@ pub struct WebOptions {
     pub wait_for_broker: Duration,
     /// The floor's map (a ROS map_server YAML); `None`: the simulator's default office.
     pub map: Option<PathBuf>,
+    /// Serve HTTPS with this certificate chain and private key (PEM files).
+    pub tls: Option<(PathBuf, PathBuf)>,
 }
 
 /// The largest WebSocket message a browser may send (commands are tiny).
@@ -62,6 +65,8 @@ struct App {
     wait_for_broker: Duration,
     world: broadcast::Sender<Arc<WorldFrame>>,
     map_frame: Arc<str>,
+    /// Served over TLS: cookies are `Secure`, origins `https://`.
+    tls: bool,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -97,7 +102,13 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
         wait_for_broker: opts.wait_for_broker,
         world,
         map_frame: Arc::from(map_frame(&map)),
+        tls: opts.tls.is_some(),
     });
+    let tls = opts
+        .tls
+        .as_ref()
+        .map(|(c, k)| tls_config(c, k))
+        .transpose()?;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("web")
@@ -109,26 +120,112 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
             .await
             .with_context(|| format!("listening on {}", opts.listen))?;
         let at = listener.local_addr()?;
+        let scheme = if tls.is_some() { "https" } else { "http" };
         println!(
             "{}",
-            json!({"listen": at.to_string(), "url": format!("http://{at}/")})
+            json!({"listen": at.to_string(), "url": format!("{scheme}://{at}/")})
         );
-        tracing::info!("muster web on http://{at}/");
+        tracing::info!("muster web on {scheme}://{at}/");
         tokio::spawn(housekeeping(app.clone()));
         let router = router(app.clone());
-        axum::serve(
-            listener,
-            router.into_make_service_with_connect_info::<SocketAddr>(),
-        )
-        .with_graceful_shutdown(stop_signal())
-        .await
-        .context("serving")?;
+        match tls {
+            None => axum::serve(
+                listener,
+                router.into_make_service_with_connect_info::<SocketAddr>(),
+            )
+            .with_graceful_shutdown(stop_signal())
+            .await
+            .context("serving")?,
+            Some(tls) => {
+                tokio::select! {
+                    r = serve_tls(listener, tls, router) => r?,
+                    _ = stop_signal() => {}
+                }
+            }
+        }
         close_all(&app).await;
         Ok(())
     });
     stop.store(true, Ordering::Release);
     let _ = reader.join();
     served
+}
+
+/// The server's TLS configuration from PEM files: a certificate chain and its key.
+fn tls_config(cert: &Path, key: &Path) -> anyhow::Result<Arc<rustls::ServerConfig>> {
+    let read = |p: &Path| {
+        std::fs::read(p)
+            .with_context(|| format!("--tls: reading {}", p.display()))
+            .map(std::io::Cursor::new)
+    };
+    let certs = rustls_pemfile::certs(&mut read(cert)?)
+        .collect::<Result<Vec<_>, _>>()
+        .with_context(|| format!("--tls: certificates in {}", cert.display()))?;
+    anyhow::ensure!(
+        !certs.is_empty(),
+        "--tls: no certificate in {}",
+        cert.display()
+    );
+    let key = rustls_pemfile::private_key(&mut read(key)?)
+        .with_context(|| format!("--tls: the key in {}", key.display()))?
+        .with_context(|| format!("--tls: no private key in {}", key.display()))?;
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut config = rustls::ServerConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .context("--tls: protocol versions")?
+        .with_no_client_auth()
+        .with_single_cert(certs, key)
+        .context("--tls: the certificate and key")?;
+    config.alpn_protocols = vec![b"http/1.1".to_vec()];
+    Ok(Arc::new(config))
+}
+
+/// Serves HTTPS: each connection's TLS handshake (bounded), then HTTP/1.1 with upgrades
+/// (the WebSocket), the peer's address given to the handlers as axum's own server does.
+async fn serve_tls(
+    listener: tokio::net::TcpListener,
+    tls: Arc<rustls::ServerConfig>,
+    router: Router,
+) -> anyhow::Result<()> {
+    use hyper_util::rt::{TokioExecutor, TokioIo};
+    use tower::ServiceExt as _;
+    let acceptor = tokio_rustls::TlsAcceptor::from(tls);
+    loop {
+        let (tcp, peer) = match listener.accept().await {
+            Ok(c) => c,
+            Err(e) => {
+                // Out of descriptors and the like: wait, do not spin.
+                tracing::warn!("accepting a connection: {e}");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        let acceptor = acceptor.clone();
+        let router = router.clone();
+        tokio::spawn(async move {
+            let stream =
+                match tokio::time::timeout(Duration::from_secs(10), acceptor.accept(tcp)).await {
+                    Ok(Ok(s)) => s,
+                    Ok(Err(e)) => {
+                        tracing::debug!(from = %peer, "TLS handshake failed: {e}");
+                        return;
+                    }
+                    Err(_) => return,
+                };
+            let svc = hyper::service::service_fn(
+                move |mut req: hyper::Request<hyper::body::Incoming>| {
+                    req.extensions_mut().insert(ConnectInfo(peer));
+                    router.clone().oneshot(req)
+                },
+            );
+            let served = hyper_util::server::conn::auto::Builder::new(TokioExecutor::new())
+                .serve_connection_with_upgrades(TokioIo::new(stream), svc)
+                .await;
+            if let Err(e) = served {
+                tracing::debug!(from = %peer, "connection: {e}");
+            }
+        });
+    }
 }
 
 async fn stop_signal() {
@@ -212,11 +309,12 @@ fn error(status: StatusCode, msg: impl Into<String>) -> Response {
 
 /// A request from a page of this server: its Origin is this server's own (the Host it
 /// was asked for). Browsers send Origin on every POST and WebSocket upgrade.
-fn same_origin(headers: &HeaderMap) -> Result<(), Response> {
+fn same_origin(app: &App, headers: &HeaderMap) -> Result<(), Response> {
     let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
     let origin = headers.get(header::ORIGIN).and_then(|h| h.to_str().ok());
+    let scheme = if app.tls { "https" } else { "http" };
     match (host, origin) {
-        (Some(host), Some(origin)) if origin == format!("http://{host}") => Ok(()),
+        (Some(host), Some(origin)) if origin == format!("{scheme}://{host}") => Ok(()),
         (_, None) => Err(error(StatusCode::FORBIDDEN, "no Origin header")),
         _ => Err(error(StatusCode::FORBIDDEN, "cross-origin request refused")),
     }
@@ -254,7 +352,7 @@ async fn login(
     headers: HeaderMap,
     body: Result<Json<Login>, axum::extract::rejection::JsonRejection>,
 ) -> Response {
-    if let Err(r) = same_origin(&headers) {
+    if let Err(r) = same_origin(&app, &headers) {
         return r;
     }
     let Ok(Json(l)) = body else {
@@ -301,8 +399,9 @@ async fn login(
         },
     );
     tracing::info!(user = %l.user, from = %peer.ip(), "signed in on the web");
+    let secure = if app.tls { "; Secure" } else { "" };
     let set = format!(
-        "{COOKIE}={cookie}; Path=/; HttpOnly; SameSite=Strict; Max-Age={}",
+        "{COOKIE}={cookie}; Path=/; HttpOnly; SameSite=Strict; Max-Age={}{secure}",
         SESSION_IDLE.as_secs()
     );
     let mut r =
@@ -322,7 +421,7 @@ async fn me(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
 }
 
 async fn logout(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
-    if let Err(r) = same_origin(&headers) {
+    if let Err(r) = same_origin(&app, &headers) {
         return r;
     }
     let Some((cookie, s)) = session_of(&app, &headers) else {
@@ -340,7 +439,8 @@ async fn logout(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
     if !others {
         close_hub(&app, &s.user);
     }
-    let clear = format!("{COOKIE}=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0");
+    let secure = if app.tls { "; Secure" } else { "" };
+    let clear = format!("{COOKIE}=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0{secure}");
     let mut r = Json(json!({"signed_out": true})).into_response();
     if let Ok(v) = HeaderValue::from_str(&clear) {
         r.headers_mut().insert(header::SET_COOKIE, v);
@@ -372,7 +472,7 @@ fn hub_for(app: &App, user: &str) -> Result<Arc<Hub>, String> {
 }
 
 async fn socket(State(app): State<Arc<App>>, headers: HeaderMap, ws: WebSocketUpgrade) -> Response {
-    if let Err(r) = same_origin(&headers) {
+    if let Err(r) = same_origin(&app, &headers) {
         return r;
     }
     let Some((cookie, s)) = session_of(&app, &headers) else {

@@ -92,10 +92,10 @@ class Paper:
         self.procs.append(p)
         return p
 
-    def web(self, label: str = "web") -> str:
+    def web(self, label: str = "web", *extra: str) -> str:
         port = free_port()
         self.spawn("web", "--listen", f"127.0.0.1:{port}", "--access", str(self.access),
-                   "--wait", "30s", name=label)
+                   "--wait", "30s", *extra, name=label)
         out = self.dir / f"{label}.out"
         line = wait_until(lambda: out.read_text().strip(), 30, "muster web listening")
         return json.loads(line.splitlines()[0])["url"]
@@ -255,3 +255,24 @@ def test_bad_sign_ins_are_refused_then_rate_limited(paper, browser):
     expect(page.locator("#signin-error")).to_contain_text("too many failed sign-ins", timeout=5_000)
     expect(page.locator("#console")).to_be_hidden()
     page.context.close()
+
+
+def test_over_tls_the_console_works_and_its_session_cookie_is_secure(paper, browser):
+    certs = paper.dir / "certs"
+    r = subprocess.run([BIN, "certs", "--out", str(certs), "--hosts", "web", "--san", "127.0.0.1"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    url = paper.web("web-tls", "--tls", str(certs / "web.pem"), str(certs / "web.key"))
+    assert url.startswith("https://"), url
+    # The certificate is the test's own CA's, which this browser does not know.
+    ctx = browser.new_context(ignore_https_errors=True)
+    page = ctx.new_page()
+    page.goto(url)
+    page.fill("#signin-user", "guest")
+    page.fill("#signin-token", paper.token("guest"))
+    page.click("#signin-button")
+    wait_until(lambda: listed(page) == PAPER, 30, "the list over wss://")
+    cookie = [c for c in ctx.cookies() if c["name"] == "muster_session"]
+    assert len(cookie) == 1, ctx.cookies()
+    assert cookie[0]["secure"] and cookie[0]["httpOnly"] and cookie[0]["sameSite"] == "Strict", cookie
+    ctx.close()
