@@ -56,11 +56,14 @@ const APP_CSS: &str = include_str!("../assets/app.css");
 const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data:; \
                    connect-src 'self'; base-uri 'none'; form-action 'self'; frame-ancestors 'none'";
 
+/// A user's hub, or nothing while it starts (its lock held) or after it stopped.
+type HubSlot = Arc<Mutex<Option<Arc<Hub>>>>;
+
 struct App {
     inst: Instance,
     access: Mutex<Access>,
     sessions: Mutex<HashMap<String, WebSession>>,
-    hubs: Mutex<HashMap<String, Arc<Mutex<Option<Arc<Hub>>>>>>,
+    hubs: Mutex<HashMap<String, HubSlot>>,
     limiter: Mutex<Limiter>,
     wait_for_broker: Duration,
     world: broadcast::Sender<Arc<WorldFrame>>,
@@ -307,16 +310,17 @@ fn error(status: StatusCode, msg: impl Into<String>) -> Response {
     (status, Json(json!({"error": msg.into()}))).into_response()
 }
 
-/// A request from a page of this server: its Origin is this server's own (the Host it
-/// was asked for). Browsers send Origin on every POST and WebSocket upgrade.
-fn same_origin(app: &App, headers: &HeaderMap) -> Result<(), Response> {
+/// The refusal of a request not from a page of this server: its Origin must be this
+/// server's own (the Host it was asked for). Browsers send Origin on every POST and
+/// WebSocket upgrade.
+fn cross_origin(app: &App, headers: &HeaderMap) -> Option<Response> {
     let host = headers.get(header::HOST).and_then(|h| h.to_str().ok());
     let origin = headers.get(header::ORIGIN).and_then(|h| h.to_str().ok());
     let scheme = if app.tls { "https" } else { "http" };
     match (host, origin) {
-        (Some(host), Some(origin)) if origin == format!("{scheme}://{host}") => Ok(()),
-        (_, None) => Err(error(StatusCode::FORBIDDEN, "no Origin header")),
-        _ => Err(error(StatusCode::FORBIDDEN, "cross-origin request refused")),
+        (Some(host), Some(origin)) if origin == format!("{scheme}://{host}") => None,
+        (_, None) => Some(error(StatusCode::FORBIDDEN, "no Origin header")),
+        _ => Some(error(StatusCode::FORBIDDEN, "cross-origin request refused")),
     }
 }
 
@@ -352,7 +356,7 @@ async fn login(
     headers: HeaderMap,
     body: Result<Json<Login>, axum::extract::rejection::JsonRejection>,
 ) -> Response {
-    if let Err(r) = same_origin(&app, &headers) {
+    if let Some(r) = cross_origin(&app, &headers) {
         return r;
     }
     let Ok(Json(l)) = body else {
@@ -421,7 +425,7 @@ async fn me(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
 }
 
 async fn logout(State(app): State<Arc<App>>, headers: HeaderMap) -> Response {
-    if let Err(r) = same_origin(&app, &headers) {
+    if let Some(r) = cross_origin(&app, &headers) {
         return r;
     }
     let Some((cookie, s)) = session_of(&app, &headers) else {
@@ -472,7 +476,7 @@ fn hub_for(app: &App, user: &str) -> Result<Arc<Hub>, String> {
 }
 
 async fn socket(State(app): State<Arc<App>>, headers: HeaderMap, ws: WebSocketUpgrade) -> Response {
-    if let Err(r) = same_origin(&app, &headers) {
+    if let Some(r) = cross_origin(&app, &headers) {
         return r;
     }
     let Some((cookie, s)) = session_of(&app, &headers) else {
