@@ -289,6 +289,12 @@ pub enum BenchCommand {
     /// through `muster system ros2` beside rclpy to rclpy, a muster goal to an rclpy
     /// subscriber, and `muster sim --ros2` with N robots and one rclpy node on every scan.
     Ros2(Ros2BenchArgs),
+    /// The web console under many viewers: N WebSocket clients (Python `websockets`)
+    /// signed in as N users, each watching the list and one data session at 10 Hz;
+    /// update latency from the system's send to the client's receive beside a shared
+    /// memory user's in the same run, the web process's CPU and memory, updates lost,
+    /// and the broker's request latency before and while they watch.
+    Web(WebBenchArgs),
     /// Every kind of process (broker, standby, system, user, simulator, federated
     /// broker) SIGKILLed N times each on an instance of its own; then the files in
     /// /dev/shm left after the instance's next start and after `muster cleanup`. Run
@@ -597,6 +603,28 @@ pub struct Ros2BenchArgs {
 }
 
 #[derive(Args, Debug)]
+pub struct WebBenchArgs {
+    /// A Python with the `websockets` package (`bash scripts/test` makes `.venv`).
+    #[arg(long, default_value = ".venv/bin/python")]
+    pub python: String,
+    /// WebSocket clients, each a user of its own.
+    #[arg(long, default_value_t = 500)]
+    pub clients: usize,
+    /// Client processes they are spread over.
+    #[arg(long, default_value_t = 2)]
+    pub procs: usize,
+    /// How long updates are timed once every client holds its session.
+    #[arg(long, default_value = "30s", value_parser = duration)]
+    pub duration: Duration,
+    /// Requests timed at the broker before, and again while, the clients watch.
+    #[arg(long, default_value_t = 200)]
+    pub probes: usize,
+    /// Print one JSON object instead of tables.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args, Debug)]
 pub struct FederationBenchArgs {
     /// Service requests per row.
     #[arg(long, default_value_t = 500)]
@@ -777,6 +805,10 @@ pub struct BrokerArgs {
     /// Most links one user may have counted in the list.
     #[arg(long, default_value_t = muster_broker::core::MAX_LINKS_PER_USER)]
     pub max_links_per_user: usize,
+    /// Most users one local process may hold at once. `muster web` is one user per
+    /// person signed in: give its broker at least as many as sign in at once.
+    #[arg(long, default_value_t = muster_broker::core::MAX_USERS_PER_PROCESS)]
+    pub max_users_per_process: usize,
     /// On stopping, print one JSON line: counters and time to handle each message type.
     #[arg(long)]
     pub stats_json: bool,

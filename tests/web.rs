@@ -483,16 +483,24 @@ fn a_web_user_sees_and_gets_only_what_its_patterns_allow_and_operators_act_on_an
         seqs.push(u["seq"].as_u64().unwrap());
     }
     assert!(seqs.windows(2).all(|p| p[1] > p[0]), "{seqs:?}");
-    // Bob's list shows it in use (the list changes for every watcher).
-    let in_use = bob.until(Duration::from_secs(5), |f| {
-        f["t"] == json!("list")
-            && f["list"]["services"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .any(|s| s["id"] == json!("t1/s0") && s["in_use"] == json!(1))
-    });
-    assert!(in_use.is_some(), "bob sees t1/s0 in use");
+    // Bob's list shows it in use: only what changed comes (the list changes for every
+    // watcher).
+    let in_use = bob
+        .until(Duration::from_secs(5), |f| {
+            f["t"] == json!("list_delta")
+                && f["set"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|s| s["id"] == json!("t1/s0") && s["in_use"] == json!(1))
+        })
+        .expect("bob sees t1/s0 in use");
+    assert_eq!(
+        in_use["set"].as_array().unwrap().len(),
+        1,
+        "only t1/s0 changed: {in_use}"
+    );
+    assert_eq!(in_use["removed"], json!([]));
 
     // Bob drives d1 to a goal: its status comes as it goes.
     bob.send(json!({"op": "request", "service": "d1/s0"}));

@@ -32,6 +32,9 @@ pub struct BrokerConfig {
     pub queue_capacity: u16,
     /// Most links one user may have counted in the list.
     pub max_links_per_user: usize,
+    /// Most user ids one local process may hold at once (a gateway such as `muster
+    /// web`, one user per person signed in, needs more than the default).
+    pub max_users_per_process: usize,
 }
 
 impl Default for BrokerConfig {
@@ -42,6 +45,7 @@ impl Default for BrokerConfig {
             offer_timeout: Duration::from_secs(10),
             queue_capacity: 32,
             max_links_per_user: MAX_LINKS_PER_USER,
+            max_users_per_process: MAX_USERS_PER_PROCESS,
         }
     }
 }
@@ -60,7 +64,8 @@ impl BrokerConfig {
     }
 }
 
-/// Most user ids one local process may hold at once (a process may run a few clients).
+/// Default bound on the user ids one local process may hold at once (a process may run
+/// a few clients; [`BrokerConfig::max_users_per_process`]).
 pub const MAX_USERS_PER_PROCESS: usize = 16;
 
 /// Default bound on the links one user may have counted ([`BrokerConfig::max_links_per_user`]).
@@ -604,7 +609,7 @@ impl Broker {
                     .count();
                 *claimed == pid
                     && self.users.get(user).is_none_or(|r| r.pid == pid)
-                    && others_of_pid < MAX_USERS_PER_PROCESS
+                    && others_of_pid < self.cfg.max_users_per_process
             }
             ToBroker::Pong { system, .. }
             | ToBroker::OfferAnswer { system, .. }

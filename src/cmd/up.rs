@@ -66,20 +66,23 @@ impl Guest {
         })
     }
 
-    /// The broker's arguments for this guest: UDP address, access file, key (none
-    /// without UDP).
+    /// The broker's arguments for this guest: room for the web console's users, and the
+    /// UDP address, access file and key (without UDP, only the first).
     pub(super) fn broker_args(&self) -> Vec<String> {
+        // The web console is one user per person signed in, all in one process.
+        let mut args = vec!["--max-users-per-process".to_string(), "1024".to_string()];
         let Some(addr) = self.addr else {
-            return Vec::new();
+            return args;
         };
-        vec![
+        args.extend([
             "--udp".to_string(),
             addr.to_string(),
             "--access".to_string(),
             self.dir.join("access").display().to_string(),
             "--key".to_string(),
             self.broker_key.display().to_string(),
-        ]
+        ]);
+        args
     }
 
     /// Starts `muster web` for the guest on `listen` (another free port if that one is

@@ -146,6 +146,14 @@ function onFrame(f) {
       break;
     case 'broker': setBroker(f.up); break;
     case 'list': state.list = f.list; renderList(); renderLinks(); break;
+    case 'list_delta': {
+      const byId = new Map(state.list.services.map((s) => [s.id, s]));
+      for (const id of f.removed) byId.delete(id);
+      for (const s of f.set) byId.set(s.id, s);
+      state.list = { generation: f.generation, services: [...byId.values()].sort((a, b) => (a.id < b.id ? -1 : a.id > b.id ? 1 : 0)) };
+      renderList(); renderLinks();
+      break;
+    }
     case 'pending':
       state.pending.set(f.req, f);
       if (f.position > 0) log(f.service + ': queued, position ' + f.position);

@@ -8,6 +8,7 @@
 //! refused as an unknown service would be.
 
 use muster_shared::protocol::Operation;
+use muster_shared::snapshot::{ServiceListSnapshot, ServiceView};
 use muster_shared::types::{Payload, Schema, ServiceId, ServiceKind, SessionId};
 use muster_shared::udp::access::Policy;
 use muster_shared::Instance;
@@ -15,7 +16,7 @@ use muster_users::{ConnectOptions, UserClient, UserError, UserEvent, Wake};
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashMap};
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::sync::broadcast;
@@ -60,6 +61,27 @@ struct SessionState {
     /// The last update or status frame.
     last: Option<Value>,
     link: Option<u64>,
+}
+
+/// The service list, read once for every hub (`server`'s list reader) and handed
+/// to them: each hub filtering it by its user's patterns, not each reading it.
+#[derive(Default)]
+pub struct ListShare {
+    snap: Mutex<Option<Arc<ServiceListSnapshot>>>,
+    version: AtomicU64,
+}
+
+impl ListShare {
+    /// Stores a new snapshot; the hubs are to be rung after.
+    pub fn set(&self, s: Arc<ServiceListSnapshot>) {
+        *self.snap.lock().unwrap_or_else(|e| e.into_inner()) = Some(s);
+        self.version.fetch_add(1, Ordering::AcqRel);
+    }
+
+    fn get(&self) -> (u64, Option<Arc<ServiceListSnapshot>>) {
+        let snap = self.snap.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        (self.version.load(Ordering::Acquire), snap)
+    }
 }
 
 /// What a new tab is shown first.
@@ -135,6 +157,7 @@ impl Hub {
         user: &str,
         policy: Policy,
         wait: Duration,
+        lists: Arc<ListShare>,
     ) -> Result<Arc<Hub>, String> {
         let (tx, rx) = mpsc::channel();
         let wake = Arc::new(eventfd().map_err(|e| format!("eventfd: {e}"))?);
@@ -161,7 +184,8 @@ impl Hub {
                 let opts = ConnectOptions {
                     wait_for_broker: wait,
                     handle_signals: false,
-                    watch_list: true,
+                    // The list comes from the shared reader.
+                    watch_list: false,
                 };
                 let client = match UserClient::connect_as(&inst, &opts, &format!("web-{name}-")) {
                     Ok(c) => c,
@@ -181,7 +205,10 @@ impl Hub {
                     model,
                     me,
                     name,
-                    shown: None,
+                    lists,
+                    seen: u64::MAX,
+                    shown: BTreeMap::new(),
+                    generation: 0,
                     idle_since: None,
                     ops: HashMap::new(),
                 };
@@ -205,6 +232,11 @@ impl Hub {
             .recv()
             .map_err(|_| "the hub thread died".to_string())??;
         Ok(hub)
+    }
+
+    /// Wakes the hub's thread (the shared list changed).
+    pub fn notify(&self) {
+        ring(&self.wake);
     }
 
     /// Whether its thread still runs.
@@ -303,8 +335,12 @@ struct Run {
     model: Arc<Mutex<Model>>,
     me: std::sync::Weak<Hub>,
     name: String,
-    /// The list (epoch, generation) last shown.
-    shown: Option<(u64, u64)>,
+    lists: Arc<ListShare>,
+    /// The version of the shared list last looked at.
+    seen: u64,
+    /// The services shown (the user's patterns allow them), by id.
+    shown: BTreeMap<String, ServiceView>,
+    generation: u64,
     /// Since when no tab is open.
     idle_since: Option<Instant>,
     /// Operator actions out: their number → what was asked.
@@ -327,7 +363,13 @@ impl Run {
     fn init(&mut self) -> Result<(), UserError> {
         self.client.watch_extra(self.wake.as_raw_fd())?;
         self.apply(json!({"t": "broker", "up": true}), |m| m.broker_up = true);
-        self.refresh_list(true)
+        // The first hub comes before the shared reader has read anything.
+        if self.lists.get().1.is_none() {
+            let snap = self.client.list()?;
+            self.lists.set(snap);
+        }
+        self.refresh_list(true);
+        Ok(())
     }
 
     fn run(&mut self) -> Result<(), UserError> {
@@ -336,6 +378,7 @@ impl Run {
                 Wake::Event(e) => self.on_event(e)?,
                 Wake::Extra => {
                     drain(&self.wake);
+                    self.refresh_list(false);
                     while let Ok(cmd) = self.rx.try_recv() {
                         if matches!(cmd, Cmd::Close) {
                             return Ok(());
@@ -357,21 +400,53 @@ impl Run {
         }
     }
 
-    fn refresh_list(&mut self, force: bool) -> Result<(), UserError> {
-        let snap = self.client.list()?;
-        if !force && self.shown == Some((snap.epoch, snap.generation)) {
-            return Ok(());
+    /// Takes a new shared list, if there is one: the services the user's patterns allow,
+    /// sent as a `list` frame (`force`: the whole list) or as a `list_delta` of what
+    /// changed (`set`: new or changed rows, `removed`: ids), or nothing when nothing
+    /// the user sees changed.
+    fn refresh_list(&mut self, force: bool) {
+        let (version, snap) = self.lists.get();
+        if !force && version == self.seen {
+            return;
         }
-        self.shown = Some((snap.epoch, snap.generation));
-        let services: Vec<_> = snap
+        self.seen = version;
+        let Some(snap) = snap else { return };
+        let now: BTreeMap<String, ServiceView> = snap
             .views()
             .into_iter()
             .filter(|v| self.policy.allows(&v.id))
+            .map(|v| (v.id.clone(), v))
             .collect();
-        let list = json!({"generation": snap.generation, "services": services});
-        let frame = json!({"t": "list", "list": list});
-        self.apply(frame, |m| m.list = list);
-        Ok(())
+        let set: Vec<&ServiceView> = now
+            .iter()
+            .filter(|(id, v)| self.shown.get(*id) != Some(v))
+            .map(|(_, v)| v)
+            .collect();
+        let removed: Vec<&String> = self
+            .shown
+            .keys()
+            .filter(|id| !now.contains_key(*id))
+            .collect();
+        let changed = !set.is_empty() || !removed.is_empty();
+        let generation = snap.generation;
+        let frame = if force {
+            Some(
+                json!({"t": "list", "list": {"generation": generation, "services": now.values().collect::<Vec<_>>()}}),
+            )
+        } else if changed {
+            Some(
+                json!({"t": "list_delta", "generation": generation, "set": set, "removed": removed}),
+            )
+        } else {
+            None
+        };
+        self.generation = generation;
+        if let Some(frame) = frame {
+            let list =
+                json!({"generation": generation, "services": now.values().collect::<Vec<_>>()});
+            self.apply(frame, |m| m.list = list);
+        }
+        self.shown = now;
     }
 
     fn refuse(&self, req: u64, service: &str, reason: &str, code: &str) {
@@ -458,7 +533,7 @@ impl Run {
             }
             Cmd::Policy(p) => {
                 self.policy = *p;
-                self.refresh_list(true)?;
+                self.refresh_list(true);
             }
             Cmd::Close => {}
         }
@@ -469,12 +544,12 @@ impl Run {
         match e {
             UserEvent::Connected { .. } => {
                 self.apply(json!({"t": "broker", "up": true}), |m| m.broker_up = true);
-                self.refresh_list(true)?;
+                self.refresh_list(false);
             }
             UserEvent::BrokerLost => {
                 self.apply(json!({"t": "broker", "up": false}), |m| m.broker_up = false)
             }
-            UserEvent::ListChanged => self.refresh_list(false)?,
+            UserEvent::ListChanged => self.refresh_list(false),
             UserEvent::Queued {
                 req,
                 service,
@@ -533,7 +608,10 @@ impl Run {
                     return Ok(());
                 };
                 let value = payload.to_json_with(s.schema.as_ref());
-                let frame = json!({"t": "update", "session": session.to_string(), "service": service.0, "seq": seq, "gap": gap, "sent_ns": sent_ns, "value": value});
+                // `hub_ns`: when this process had it (CLOCK_MONOTONIC), to tell the
+                // web's share of the latency from the network's and the browser's.
+                let hub_ns = muster_shared::protocol::monotonic_ns();
+                let frame = json!({"t": "update", "session": session.to_string(), "service": service.0, "seq": seq, "gap": gap, "sent_ns": sent_ns, "hub_ns": hub_ns, "value": value});
                 s.last = Some(frame.clone());
                 let _ = self.frames.send(Arc::from(frame.to_string()));
             }

@@ -1,7 +1,7 @@
 //! The HTTP and WebSocket server: routes, sign-in, security headers, the sockets.
 
 use crate::auth::{random_token, Access, Limiter, WebSession, COOKIE, SESSION_IDLE};
-use crate::hub::{Cmd, Hub};
+use crate::hub::{Cmd, Hub, ListShare};
 use crate::world::{map_frame, WorldFrame};
 use anyhow::Context as _;
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
@@ -44,6 +44,36 @@ pub struct WebOptions {
     pub tls: Option<(PathBuf, PathBuf)>,
 }
 
+/// Descriptors one signed-in user's broker connection holds (measured: 46, its
+/// iceoryx2 ports, their configurations and connections, two pidfds, an epoll set).
+const FDS_PER_USER: u64 = 48;
+
+/// Raises this process's descriptor limit as far as it may: with the privilege to
+/// (root, CAP_SYS_RESOURCE), the hard limit too, up to the kernel's `nr_open`;
+/// otherwise the soft limit to the hard one. Returns the soft limit.
+fn raise_descriptor_limit() -> u64 {
+    let nr_open = std::fs::read_to_string("/proc/sys/fs/nr_open")
+        .ok()
+        .and_then(|s| s.trim().parse::<u64>().ok())
+        .unwrap_or(1 << 20)
+        .min(1 << 20);
+    let want = libc::rlimit {
+        rlim_cur: nr_open as libc::rlim_t,
+        rlim_max: nr_open as libc::rlim_t,
+    };
+    // SAFETY: a valid in-pointer; the kernel refuses a raise without the privilege.
+    if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &want) } == 0 {
+        return nr_open;
+    }
+    match muster_shared::reactor::raise_fd_limit() {
+        Ok(n) => n,
+        Err(e) => {
+            tracing::warn!("could not raise the descriptor limit: {e}");
+            1024
+        }
+    }
+}
+
 /// The largest WebSocket message a browser may send (commands are tiny).
 const MAX_MESSAGE: usize = 64 * 1024;
 
@@ -70,6 +100,8 @@ struct App {
     map_frame: Arc<str>,
     /// Served over TLS: cookies are `Secure`, origins `https://`.
     tls: bool,
+    /// The service list, read once for all hubs.
+    lists: Arc<ListShare>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -79,6 +111,11 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// Serves until SIGINT or SIGTERM; prints `{"listen": ADDR, "url": URL}` on stdout
 /// once listening.
 pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
+    let fds = raise_descriptor_limit();
+    tracing::info!(
+        "descriptor limit {fds}: room for about {} signed-in users (each holds about {FDS_PER_USER} for its broker connection)",
+        fds / FDS_PER_USER
+    );
     let access = Access::load(opts.access.clone()).map_err(anyhow::Error::msg)?;
     if access.web_users() == 0 {
         tracing::warn!(
@@ -106,7 +143,16 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
         world,
         map_frame: Arc::from(map_frame(&map)),
         tls: opts.tls.is_some(),
+        lists: Arc::new(ListShare::default()),
     });
+    let lister = {
+        let app = app.clone();
+        let stop = stop.clone();
+        std::thread::Builder::new()
+            .name("web-list".into())
+            .spawn(move || read_list(&app, &stop))
+            .context("starting the list's reader")?
+    };
     let tls = opts
         .tls
         .as_ref()
@@ -151,7 +197,55 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
     });
     stop.store(true, Ordering::Release);
     let _ = reader.join();
+    let _ = lister.join();
     served
+}
+
+/// How often the shared list is looked at (a look that finds it unchanged copies
+/// nothing): changes reach the tabs within this and a hop.
+const LIST_POLL: Duration = Duration::from_millis(25);
+
+/// Reads the broker's list for every hub while some hub runs, and rings the hubs when
+/// it changed (a new broker's list too).
+fn read_list(app: &App, stop: &AtomicBool) {
+    let node = match muster_shared::ipc::create_node(
+        &format!("muster-web-list-{}", std::process::id()),
+        false,
+    ) {
+        Ok(n) => n,
+        Err(e) => {
+            tracing::warn!("the list's reader: {e}");
+            return;
+        }
+    };
+    let mut reader: Option<muster_shared::ipc::ListReader> = None;
+    let mut last: Option<(u64, u64)> = None;
+    let mut next_open = Instant::now();
+    while !stop.load(Ordering::Acquire) {
+        std::thread::sleep(LIST_POLL);
+        let hubs: Vec<Arc<Hub>> = lock(&app.hubs)
+            .values()
+            .filter_map(|slot| slot.try_lock().ok().and_then(|s| s.clone()))
+            .collect();
+        if hubs.is_empty() {
+            continue;
+        }
+        if reader.is_none() && Instant::now() >= next_open {
+            next_open = Instant::now() + Duration::from_secs(1);
+            reader = muster_shared::ipc::ListReader::open(&node, &app.inst).ok();
+        }
+        let Some(snap) = reader.as_mut().and_then(|r| r.read_from(&node).ok()) else {
+            continue;
+        };
+        if last == Some((snap.epoch, snap.generation)) {
+            continue;
+        }
+        last = Some((snap.epoch, snap.generation));
+        app.lists.set(snap);
+        for h in &hubs {
+            h.notify();
+        }
+    }
 }
 
 /// The server's TLS configuration from PEM files: a certificate chain and its key.
@@ -470,7 +564,25 @@ fn hub_for(app: &App, user: &str) -> Result<Arc<Hub>, String> {
         .get(user)
         .cloned()
         .ok_or_else(|| format!("user {user:?} is no longer in the access file"))?;
-    let hub = Hub::start(&app.inst, user, policy, app.wait_for_broker)?;
+    let others = lock(&app.hubs).len().saturating_sub(1);
+    let hub = Hub::start(
+        &app.inst,
+        user,
+        policy,
+        app.wait_for_broker,
+        app.lists.clone(),
+    )
+    .map_err(|e| {
+        if others > 0 && e.starts_with("no broker") {
+            // The broker ignores a process's users past its limit: it looks absent.
+            format!(
+                "{e} (with {others} other users signed in here: the broker lets one process \
+                 hold --max-users-per-process users, 16 unless started with more)"
+            )
+        } else {
+            e
+        }
+    })?;
     *slot = Some(hub.clone());
     Ok(hub)
 }
@@ -486,7 +598,10 @@ async fn socket(State(app): State<Arc<App>>, headers: HeaderMap, ws: WebSocketUp
     let user = s.user.clone();
     let hub = match tokio::task::spawn_blocking(move || hub_for(&a, &user)).await {
         Ok(Ok(h)) => h,
-        Ok(Err(e)) => return error(StatusCode::SERVICE_UNAVAILABLE, e),
+        Ok(Err(e)) => {
+            tracing::warn!(user = %s.user, "connecting to the broker: {e}");
+            return error(StatusCode::SERVICE_UNAVAILABLE, e);
+        }
         Err(e) => return error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
     };
     ws.max_message_size(MAX_MESSAGE)

@@ -8,6 +8,7 @@ mod liveness;
 pub mod procfs;
 pub mod remote;
 mod ros2;
+mod web;
 use super::children;
 mod scale;
 
@@ -27,6 +28,7 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::Failover(a) => failover::run(inst, a),
         BenchCommand::Federation(a) => federation::run(inst, a),
         BenchCommand::Ros2(a) => ros2::run(inst, a),
+        BenchCommand::Web(a) => web::run(inst, a),
         BenchCommand::FailoverUser(a) => failover::user(inst, a),
         BenchCommand::Leftovers(a) => leftovers::run(inst, a),
     }
