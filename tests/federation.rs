@@ -519,7 +519,14 @@ fn the_interactive_menu_lists_requests_links_and_exits() {
 #[test]
 fn up_synthetic_runs_the_demo_and_stops_cleanly_on_ctrl_c() {
     let mut f = Fed::new("up");
-    let up = f.spawn(&["up", "--synthetic", "--udp", "127.0.0.1:0"]);
+    let up = f.spawn(&[
+        "up",
+        "--synthetic",
+        "--udp",
+        "127.0.0.1:0",
+        "--web",
+        "127.0.0.1:0",
+    ]);
     let mut seen = Vec::new();
     let deadline = Instant::now() + 30 * SEC;
     while !seen.iter().any(|l: &String| l.contains("forwarded goal2d")) {

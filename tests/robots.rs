@@ -24,6 +24,8 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         "up",
         "--udp",
         "127.0.0.1:0",
+        "--web",
+        "127.0.0.1:0",
         "--duration",
         "45s",
         "--picture",
@@ -38,6 +40,48 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         "--duration",
         "40s",
     ]);
+    // The web console: its URL and how to sign in, printed beside the UDP guest line;
+    // its page answers, and the guest's token signs in.
+    let mut seen = Vec::new();
+    let web_line = loop {
+        let l = f
+            .proc(up)
+            .line(60 * SEC)
+            .expect("up prints the web console's line");
+        seen.push(l.clone());
+        if l.starts_with("== web console: ") {
+            break l;
+        }
+    };
+    let url = web_line["== web console: ".len()..]
+        .split(' ')
+        .next()
+        .unwrap();
+    let addr = url
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .to_string();
+    let token_file = web_line
+        .split("the token in ")
+        .nth(1)
+        .unwrap()
+        .trim_end_matches(") ==");
+    let token = std::fs::read_to_string(token_file)
+        .unwrap()
+        .trim()
+        .to_string();
+    let page = http_once(&addr, "GET / HTTP/1.1", &[], "");
+    assert!(page.starts_with("HTTP/1.1 200"), "{page}");
+    let body = format!("{{\"user\": \"guest\", \"token\": \"{token}\"}}");
+    let origin = format!("http://{addr}");
+    let login = http_once(
+        &addr,
+        "POST /api/login HTTP/1.1",
+        &[("Origin", &origin), ("Content-Type", "application/json")],
+        &body,
+    );
+    assert!(login.starts_with("HTTP/1.1 200"), "{login}");
+    assert!(login.contains("\"user\":\"guest\""), "{login}");
     assert_eq!(
         f.proc(up).wait(120 * SEC),
         Some(0),
@@ -46,7 +90,8 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
     let recorded = f.proc(rec).json(60 * SEC).expect("record's summary");
     check_recording(&mcap, &recorded);
     let _ = std::fs::remove_file(&mcap);
-    let text = f.proc(up).rest_lines(5 * SEC).join("\n");
+    seen.extend(f.proc(up).rest_lines(5 * SEC));
+    let text = seen.join("\n");
     for needle in [
         "the same list over UDP: 4 services",
         "delivery/D1",
@@ -88,6 +133,26 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(1), "the broker is gone too");
+}
+
+/// One HTTP/1.1 request on a fresh connection to `addr`; the whole answer.
+fn http_once(addr: &str, request_line: &str, headers: &[(&str, &str)], body: &str) -> String {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(10 * SEC)).unwrap();
+    let mut req = format!(
+        "{request_line}\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n",
+        body.len()
+    );
+    for (k, v) in headers {
+        req.push_str(&format!("{k}: {v}\r\n"));
+    }
+    req.push_str("\r\n");
+    req.push_str(body);
+    s.write_all(req.as_bytes()).unwrap();
+    let mut out = String::new();
+    let _ = s.read_to_string(&mut out);
+    out
 }
 
 #[test]
@@ -372,7 +437,15 @@ fn a_foxglove_client_sees_the_live_world_and_its_replay() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let mut f = Fed::new("view");
     let mcap = std::env::temp_dir().join(format!("muster-view-test-{}.mcap", std::process::id()));
-    let up = f.spawn(&["up", "--no-udp", "--speed", "5", "--duration", "60s"]);
+    let up = f.spawn(&[
+        "up",
+        "--no-udp",
+        "--no-web",
+        "--speed",
+        "5",
+        "--duration",
+        "60s",
+    ]);
     let view = f.spawn(&["view", "--listen", "127.0.0.1:0", "--duration", "30s"]);
     let rec = f.spawn(&[
         "record",
@@ -591,7 +664,15 @@ fn the_view_limits_its_viewers_and_lets_slow_ones_go() {
     };
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let mut f = Fed::new("viewcap");
-    let up = f.spawn(&["up", "--no-udp", "--speed", "5", "--duration", "120s"]);
+    let up = f.spawn(&[
+        "up",
+        "--no-udp",
+        "--no-web",
+        "--speed",
+        "5",
+        "--duration",
+        "120s",
+    ]);
     let view = f.spawn(&[
         "view",
         "--listen",

@@ -281,7 +281,15 @@ fn a_killed_up_leaves_no_process_running() {
     // `muster up` starts a broker, its standby, the simulator, the robot systems: when
     // it is SIGKILLed, they stop too (each gets SIGTERM as its parent dies).
     let mut f = Fed::new("orphans");
-    let up = f.spawn(&["up", "--no-udp", "--speed", "2", "--duration", "120s"]);
+    let up = f.spawn(&[
+        "up",
+        "--no-udp",
+        "--no-web",
+        "--speed",
+        "2",
+        "--duration",
+        "120s",
+    ]);
     f.wait_list(60 * SEC, |l| l.len() >= 4);
     let started = on_instance(&f.inst);
     assert!(started.len() >= 4, "{started:?}");

@@ -103,23 +103,32 @@ impl Guest {
             }
         };
         let access = self.dir.join("access").display().to_string();
-        let listen_s = listen.to_string();
-        let child = children.spawn(
-            inst,
-            "web console",
-            &[
-                "web", "--listen", &listen_s, "--access", &access, "--wait", "60s",
-            ],
-            Stdio::piped(),
-        )?;
-        let stdout = child.stdout.take().context("the web console's output")?;
-        let mut line = String::new();
-        std::io::BufReader::new(stdout).read_line(&mut line)?;
-        let at: serde_json::Value = serde_json::from_str(&line)
-            .with_context(|| format!("the web console did not start (it said {line:?})"))?;
+        // Another program may take the port between the look above and the console's
+        // own bind: then any free port.
+        let mut at = None;
+        for listen in [listen, SocketAddr::new(listen.ip(), 0)] {
+            let listen_s = listen.to_string();
+            let child = children.spawn(
+                inst,
+                "web console",
+                &[
+                    "web", "--listen", &listen_s, "--access", &access, "--wait", "60s",
+                ],
+                Stdio::piped(),
+            )?;
+            let stdout = child.stdout.take().context("the web console's output")?;
+            let mut line = String::new();
+            std::io::BufReader::new(stdout).read_line(&mut line)?;
+            if let Ok(v) = serde_json::from_str::<serde_json::Value>(&line) {
+                at = Some(v);
+                break;
+            }
+            eprintln!("muster up: the web console did not start on {listen}");
+        }
+        let at = at.context("the web console did not start")?;
         out!(
             "== web console: {} (sign in as guest with the token in {}) ==",
-            at["url"].as_str().unwrap_or(&listen_s),
+            at["url"].as_str().unwrap_or_default(),
             self.dir.join("guest.web").display()
         );
         Ok(())
