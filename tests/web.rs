@@ -571,3 +571,41 @@ fn a_web_user_sees_and_gets_only_what_its_patterns_allow_and_operators_act_on_an
         .until(Duration::from_secs(5), |f| f["t"] == json!("operated"))
         .is_some());
 }
+
+#[test]
+fn the_web_benchmark_runs_its_clients_and_counts_every_update() {
+    let Some(python) = common::python_with("websockets", "websockets") else {
+        return;
+    };
+    let f = Fed::new("web-bench");
+    let (code, out) = f.run(
+        &[
+            "bench",
+            "web",
+            "--clients",
+            "6",
+            "--procs",
+            "2",
+            "--duration",
+            "3s",
+            "--probes",
+            "20",
+            "--python",
+            &python,
+            "--json",
+        ],
+        Duration::from_secs(120),
+    );
+    assert_eq!(code, 0, "{out}");
+    let r: Value = serde_json::from_str(out.lines().last().unwrap()).unwrap();
+    assert_eq!(r["clients"], json!(6));
+    assert_eq!(r["gaps"], json!(0), "{r}");
+    assert_eq!(r["errors"], json!([]), "{r}");
+    // Six sessions at 10 Hz for 3 s: about 180 updates, each timed.
+    let updates = r["updates"].as_u64().unwrap();
+    assert!((150..=200).contains(&updates), "{r}");
+    assert_eq!(r["web_update"]["count"].as_u64().unwrap(), updates);
+    assert_eq!(r["broker_request_before"]["count"], json!(20));
+    assert_eq!(r["broker_request_during"]["count"], json!(20));
+    assert!(r["web_rss_kib"].as_u64().unwrap() > 0);
+}

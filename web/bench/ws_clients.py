@@ -94,9 +94,11 @@ async def main():
     t0 = time.monotonic()
     tasks = [asyncio.create_task(client(args.url, c, s, stats, e, stop))
              for c, (_, _, s), e in zip(cookies, users, events)]
-    waiting = asyncio.gather(*(e.wait() for e in events))
-    done, _ = await asyncio.wait([asyncio.ensure_future(waiting), *tasks],
-                                 return_when=asyncio.FIRST_COMPLETED, timeout=120)
+    waiting = asyncio.ensure_future(asyncio.gather(*(e.wait() for e in events)))
+    await asyncio.wait([waiting, *tasks], return_when=asyncio.FIRST_COMPLETED, timeout=120)
+    if not waiting.done():
+        waiting.cancel()
+    await asyncio.gather(waiting, return_exceptions=True)
     failed = [t for t in tasks if t.done() and not t.cancelled() and t.exception()]
     failed += [t for t, e in zip(tasks, events) if not e.is_set() and t not in failed]
     print(json.dumps({"event": "ready", "clients": len(users), "setup_s": time.monotonic() - t0,
