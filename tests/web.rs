@@ -541,6 +541,25 @@ fn a_web_user_sees_and_gets_only_what_its_patterns_allow_and_operators_act_on_an
         row["user"].as_str().unwrap().starts_with("web-alice-"),
         "{row}"
     );
+    // Withdrawn by bob, t1/s1 shows withdrawn on alice's list; restored, it is back.
+    for (op, withdrawn) in [("withdraw", true), ("restore", false)] {
+        bob.send(json!({"op": op, "service": "t1/s1"}));
+        let d = alice.until(Duration::from_secs(10), |f| {
+            f["t"] == json!("list_delta")
+                && f["set"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .any(|s| s["id"] == json!("t1/s1"))
+        });
+        let row = d.unwrap()["set"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["id"] == json!("t1/s1"))
+            .cloned();
+        assert_eq!(row.unwrap()["withdrawn"], json!(withdrawn), "after {op}");
+    }
     bob.send(json!({"op": "end_session", "session": session}));
     let ended = alice
         .until(Duration::from_secs(10), |f| f["t"] == json!("ended"))
