@@ -555,7 +555,14 @@ fn close_hub(app: &App, user: &str) {
 
 /// The user's hub, started (connecting to the broker) if it is not running.
 fn hub_for(app: &App, user: &str) -> Result<Arc<Hub>, String> {
-    let slot = lock(&app.hubs).entry(user.to_string()).or_default().clone();
+    let (slot, others) = {
+        let mut hubs = lock(&app.hubs);
+        let others = hubs
+            .len()
+            .saturating_sub(usize::from(hubs.contains_key(user)));
+        (hubs.entry(user.to_string()).or_default().clone(), others)
+    };
+    // Never `hubs` while holding a slot: `close_all` takes them the other way round.
     let mut slot = lock(&slot);
     if let Some(h) = slot.as_ref().filter(|h| h.alive()) {
         return Ok(h.clone());
@@ -564,7 +571,6 @@ fn hub_for(app: &App, user: &str) -> Result<Arc<Hub>, String> {
         .get(user)
         .cloned()
         .ok_or_else(|| format!("user {user:?} is no longer in the access file"))?;
-    let others = lock(&app.hubs).len().saturating_sub(1);
     let hub = Hub::start(
         &app.inst,
         user,
