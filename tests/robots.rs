@@ -70,11 +70,11 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         .unwrap()
         .trim()
         .to_string();
-    let page = http_once(&addr, "GET / HTTP/1.1", &[], "");
+    let page = common::http(&addr, "GET / HTTP/1.1", &[], "");
     assert!(page.starts_with("HTTP/1.1 200"), "{page}");
     let body = format!("{{\"user\": \"guest\", \"token\": \"{token}\"}}");
     let origin = format!("http://{addr}");
-    let login = http_once(
+    let login = common::http(
         &addr,
         "POST /api/login HTTP/1.1",
         &[("Origin", &origin), ("Content-Type", "application/json")],
@@ -133,26 +133,6 @@ fn up_shows_the_four_services_a_grant_forwarded_goals_and_delivery_status() {
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(1), "the broker is gone too");
-}
-
-/// One HTTP/1.1 request on a fresh connection to `addr`; the whole answer.
-fn http_once(addr: &str, request_line: &str, headers: &[(&str, &str)], body: &str) -> String {
-    use std::io::{Read, Write};
-    let mut s = std::net::TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(10 * SEC)).unwrap();
-    let mut req = format!(
-        "{request_line}\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n",
-        body.len()
-    );
-    for (k, v) in headers {
-        req.push_str(&format!("{k}: {v}\r\n"));
-    }
-    req.push_str("\r\n");
-    req.push_str(body);
-    s.write_all(req.as_bytes()).unwrap();
-    let mut out = String::new();
-    let _ = s.read_to_string(&mut out);
-    out
 }
 
 #[test]

@@ -162,6 +162,28 @@ impl Drop for Children {
 
 /// Connects a quiet client (no signal handling, no list watching) and waits until the
 /// list holds at least `services` entries.
+/// Requests `service` and waits up to `wait` for its grant; the session, or why not.
+pub fn request_granted(
+    client: &mut UserClient,
+    service: &muster_shared::types::ServiceId,
+    wait: Duration,
+) -> anyhow::Result<muster_shared::types::SessionId> {
+    let req = client.request(service)?;
+    let deadline = Instant::now() + wait;
+    loop {
+        match client.next_event(deadline)? {
+            Some(muster_users::UserEvent::Granted {
+                req: r, session, ..
+            }) if r == req => return Ok(session),
+            Some(muster_users::UserEvent::Refused { req: r, reason, .. }) if r == req => {
+                bail!("{service} refused: {reason}")
+            }
+            Some(_) => {}
+            None => bail!("{service}: no answer within {wait:?}"),
+        }
+    }
+}
+
 pub fn connect_when_listed(
     inst: &Instance,
     services: usize,

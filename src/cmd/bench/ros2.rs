@@ -10,7 +10,7 @@
 //!    odometry) and one rclpy node subscribed to every robot's scan: the simulator's
 //!    real-time factor (from `/clock`), scans received, and the simulator's CPU per robot.
 
-use super::children::{connect_when_listed, Children};
+use super::children::{connect_when_listed, request_granted, Children};
 use super::{header, row, summary};
 use crate::cli::Ros2BenchArgs;
 use anyhow::Context as _;
@@ -256,19 +256,11 @@ fn bridge_latency(
     goals.expect("goal subscriber", Duration::from_secs(30), |v| {
         v["event"] == "ready"
     })?;
-    let req = client.request(&ServiceId::new("bench", "goal"))?;
-    let goal_session = loop {
-        match client.next_event(Instant::now() + Duration::from_secs(30))? {
-            Some(UserEvent::Granted {
-                req: r, session, ..
-            }) if r == req => break session,
-            Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
-                anyhow::bail!("bench/goal refused: {reason}")
-            }
-            Some(_) => {}
-            None => anyhow::bail!("bench/goal: no answer"),
-        }
-    };
+    let goal_session = request_granted(
+        &mut client,
+        &ServiceId::new("bench", "goal"),
+        Duration::from_secs(30),
+    )?;
     // Discovery between the system's writer and the new reader: send until one arrives.
     let mut sent = Vec::new();
     let warm_end = Instant::now() + Duration::from_secs(30);

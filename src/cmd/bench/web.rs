@@ -9,7 +9,7 @@
 //! broker's request → grant for a service of its own (`probe/s0`) before the clients
 //! come and while they watch; the web process's CPU and memory.
 
-use super::children::{connect_when_listed, Children};
+use super::children::{connect_when_listed, request_granted, Children};
 use super::procfs::{cpu_ticks, pss_kib, rss_kib, ticks_per_second};
 use super::{header, row, summary};
 use crate::cli::WebBenchArgs;
@@ -64,20 +64,7 @@ fn probe(client: &mut UserClient, service: &ServiceId, n: usize) -> anyhow::Resu
     let mut h = histogram();
     for _ in 0..n {
         let t0 = Instant::now();
-        let req = client.request(service)?;
-        let deadline = Instant::now() + Duration::from_secs(10);
-        let session = loop {
-            match client.next_event(deadline)? {
-                Some(UserEvent::Granted {
-                    req: r, session, ..
-                }) if r == req => break session,
-                Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
-                    anyhow::bail!("{service} refused: {reason}")
-                }
-                Some(_) => {}
-                None => anyhow::bail!("{service}: no answer within 10 s"),
-            }
-        };
+        let session = request_granted(client, service, Duration::from_secs(10))?;
         h.saturating_record(t0.elapsed().as_micros() as u64);
         client.end(session);
         let deadline = Instant::now() + Duration::from_secs(10);
