@@ -820,3 +820,68 @@ async fn housekeeping(app: Arc<App>) {
         });
     }
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    fn cmd(text: &str) -> Result<Cmd, String> {
+        parse(text).and_then(command)
+    }
+
+    #[test]
+    fn a_tabs_messages_become_commands_and_bad_ones_say_why() {
+        assert!(
+            matches!(cmd(r#"{"op": "request", "service": "t1/s0"}"#), Ok(Cmd::Request(s)) if s == "t1/s0")
+        );
+        match cmd(r#"{"op": "goal", "session": "00000000000000ff", "x": 1.5, "y": -2}"#) {
+            Ok(Cmd::Input(255, v)) => assert_eq!(v, json!({"type": "goal2d", "x": 1.5, "y": -2.0})),
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(
+            cmd(r#"{"op": "end", "session": "ffffffffffffffff"}"#),
+            Ok(Cmd::End(u64::MAX))
+        ));
+        assert!(matches!(
+            cmd(r#"{"op": "end_session", "session": "1"}"#),
+            Ok(Cmd::Operate(Operation::EndSession {
+                session: SessionId(1)
+            }))
+        ));
+        // A session's number more than JavaScript holds, given as a decimal: refused.
+        let e = cmd(r#"{"op": "end", "session": "18446744073709551615"}"#).unwrap_err();
+        assert!(e.contains("16 hex digits"), "{e}");
+        assert!(cmd(r#"{"op": "goal", "session": "1", "x": "far", "y": 0}"#)
+            .unwrap_err()
+            .starts_with("bad message"));
+        assert!(cmd(r#"{"op": "launch", "service": "t1/s0"}"#)
+            .unwrap_err()
+            .starts_with("bad message"));
+        assert!(cmd("not json").unwrap_err().starts_with("bad message"));
+        assert!(
+            cmd(r#"{"op": "map", "on": true}"#).is_err(),
+            "the map is not a hub's command"
+        );
+        assert!(matches!(
+            parse(r#"{"op": "map", "on": true}"#),
+            Ok(In::Map { on: true })
+        ));
+    }
+
+    #[test]
+    fn the_session_cookie_is_found_among_others() {
+        let mut h = HeaderMap::new();
+        h.insert(
+            header::COOKIE,
+            HeaderValue::from_static("a=1; muster_session=abc; b=2"),
+        );
+        assert_eq!(cookie_value(&h).as_deref(), Some("abc"));
+        let mut h = HeaderMap::new();
+        h.insert(
+            header::COOKIE,
+            HeaderValue::from_static("muster_sessionx=abc"),
+        );
+        assert_eq!(cookie_value(&h), None);
+    }
+}

@@ -177,3 +177,76 @@ fn run(
     }
     Ok(())
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_map_frame_holds_each_rows_runs_of_walls() {
+        // 5 × 3 cells, row 0 at the bottom: a full bottom row, two runs in the middle,
+        // an empty top.
+        #[rustfmt::skip]
+        let cells = [
+            1, 1, 1, 1, 1,
+            1, 0, 0, 1, 1,
+            0, 0, 0, 0, 0,
+        ];
+        let map = OccupancyMap::from_grid(
+            5,
+            3,
+            0.5,
+            (-1.0, 2.0),
+            cells.iter().map(|&c| c == 1).collect(),
+        );
+        let f: Value = serde_json::from_str(&map_frame(&map)).unwrap();
+        assert_eq!(f["t"], json!("map"));
+        assert_eq!(
+            (f["width"].clone(), f["height"].clone()),
+            (json!(5), json!(3))
+        );
+        assert_eq!(f["resolution"], json!(0.5));
+        assert_eq!(f["origin"], json!([-1.0, 2.0]));
+        assert_eq!(f["runs"], json!([0, 0, 5, 1, 0, 1, 1, 3, 2]));
+    }
+
+    #[test]
+    fn a_user_sees_the_world_and_only_the_views_of_systems_it_may_use() {
+        let mut views = BTreeMap::new();
+        views.insert(
+            "tracking".to_string(),
+            (json!([{"colour": "red", "x": 1.0}]), json!([])),
+        );
+        views.insert(
+            "delivery".to_string(),
+            (
+                json!([]),
+                json!([{"robot": "D1", "goal": [2.0, 3.0], "path": []}]),
+            ),
+        );
+        let frame = WorldFrame {
+            t: 12.5,
+            robots: json!([{"name": "D1"}]),
+            people: json!([{"name": "p0", "colour": "red"}]),
+            views,
+        };
+        let all: Value = serde_json::from_str(&frame.json_for(|_| true)).unwrap();
+        assert_eq!(all["time"], json!(12.5));
+        assert_eq!(all["tracks"].as_array().unwrap().len(), 1);
+        assert_eq!(all["plans"].as_array().unwrap().len(), 1);
+        let tracking_only: Value =
+            serde_json::from_str(&frame.json_for(|s| s == "tracking")).unwrap();
+        assert_eq!(tracking_only["tracks"][0]["colour"], json!("red"));
+        assert_eq!(
+            tracking_only["plans"],
+            json!([]),
+            "no plan of a system it may not use"
+        );
+        assert_eq!(
+            tracking_only["robots"], all["robots"],
+            "the floor itself is everyone's"
+        );
+        assert_eq!(tracking_only["people"], all["people"]);
+    }
+}
