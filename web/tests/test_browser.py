@@ -70,9 +70,10 @@ class Paper:
         self.dir = Path(tempfile.mkdtemp(prefix=f"muster-web-{self.inst}-"))
         self.procs: list[subprocess.Popen] = []
         lines = []
-        for user, allow in [("guest", "*"), ("vera", "*"), ("ursula", "tracking/*")]:
+        for user, allow, *role in [("guest", "*"), ("vera", "*"), ("ursula", "tracking/*"),
+                                   ("olga", "*", "--operator")]:
             r = subprocess.run([BIN, "keygen", "--user", user, "--web", "--out", str(self.dir),
-                                "--allow", allow], capture_output=True, text=True, timeout=30)
+                                "--allow", allow, *role], capture_output=True, text=True, timeout=30)
             assert r.returncode == 0, r.stderr
             lines.append(r.stdout)
         self.access = self.dir / "access"
@@ -145,7 +146,7 @@ def sign_in(browser, url: str, user: str, token: str):
     page.fill("#signin-user", user)
     page.fill("#signin-token", token)
     page.click("#signin-button")
-    expect(page.locator("#who")).to_have_text(user, timeout=10_000)
+    expect(page.locator("#who")).to_have_text(re.compile("^" + user + r"( \(operator\))?$"), timeout=10_000)
     return page
 
 
@@ -237,6 +238,30 @@ def test_a_user_without_delivery_neither_sees_it_nor_gets_it_through_the_socket(
     assert frame["t"] == "refused" and frame["code"] == "unknown", frame
     assert frame["service"] == "delivery/D1"
     page.context.close()
+
+
+def test_an_operator_ends_another_users_session_and_withdraws_and_restores_a_service(paper, browser):
+    user = sign_in(browser, paper.url, "vera", paper.token("vera"))
+    op = sign_in(browser, paper.url, "olga", paper.token("olga"))
+    expect(op.locator("#operator")).to_be_visible()
+    expect(user.locator("#operator")).to_be_hidden()
+    wait_until(lambda: listed(user) == PAPER, 30, "vera's list")
+    user.click('tr[data-service="tracking/green"] button.request')
+    expect(user.locator('.session[data-service="tracking/green"]')).to_have_count(1, timeout=15_000)
+    # The operator's table shows vera's session under her web user; End ends it.
+    row = op.locator('#op-sessions tr', has_text="tracking/green").filter(has_text="web-vera-")
+    expect(row).to_have_count(1, timeout=10_000)
+    row.locator("button.op-end").click()
+    expect(user.locator('.session[data-service="tracking/green"]')).to_have_count(0, timeout=15_000)
+    expect(user.locator("#log")).to_contain_text("tracking/green: session ended", timeout=5_000)
+    # Withdraw and restore: vera's row follows.
+    op.click('tr[data-service="tracking/blue"] button.withdraw')
+    expect(user.locator('tr[data-service="tracking/blue"]')).to_have_class("withdrawn", timeout=5_000)
+    expect(user.locator('tr[data-service="tracking/blue"] button.request')).to_be_disabled()
+    op.click('tr[data-service="tracking/blue"] button.restore')
+    expect(user.locator('tr[data-service="tracking/blue"]')).not_to_have_class("withdrawn", timeout=5_000)
+    user.context.close()
+    op.context.close()
 
 
 def test_bad_sign_ins_are_refused_then_rate_limited(paper, browser):
