@@ -33,7 +33,7 @@ pub fn run(a: KeygenArgs) -> anyhow::Result<ExitCode> {
         if a.web {
             let token = new_web_token();
             let path = a.out.join(format!("{name}.web"));
-            muster_web::write_secret(&path, &format!("{token}\n"))
+            muster_shared::udp::crypto::write_secret(&path, &format!("{token}\n"))
                 .with_context(|| format!("writing {} (not overwriting one)", path.display()))?;
             eprintln!(
                 "wrote {} (the web token: sign in to `muster web` as {name} with it)",

@@ -50,7 +50,7 @@ impl Guest {
         let broker_key = dir.join("broker.key");
         KeyPair::generate()?.write("broker", &broker_key)?;
         let token = new_web_token();
-        muster_web::write_secret(&dir.join("guest.web"), &format!("{token}\n"))?;
+        muster_shared::udp::crypto::write_secret(&dir.join("guest.web"), &format!("{token}\n"))?;
         std::fs::write(
             dir.join("access"),
             access_line("guest", &key.public, &["*".to_string()], false)

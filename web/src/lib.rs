@@ -19,15 +19,3 @@ mod server;
 pub mod world;
 
 pub use server::{serve, WebOptions};
-
-/// Writes a secret to a new file only its owner may read (never over an existing one).
-pub fn write_secret(path: &std::path::Path, text: &str) -> std::io::Result<()> {
-    use std::io::Write;
-    use std::os::unix::fs::OpenOptionsExt;
-    let mut f = std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .mode(0o600)
-        .open(path)?;
-    f.write_all(text.as_bytes())
-}

@@ -103,19 +103,10 @@ impl KeyPair {
 
     /// Writes a key file readable only by its owner.
     pub fn write(&self, name: &str, path: &Path) -> Result<(), CryptoError> {
-        use std::io::Write;
-        use std::os::unix::fs::OpenOptionsExt;
-        let err = |e: std::io::Error| CryptoError::KeyFile {
+        write_secret(path, &self.to_file_text(name)).map_err(|e| CryptoError::KeyFile {
             path: path.display().to_string(),
             detail: e.to_string(),
-        };
-        let mut f = std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .mode(0o600)
-            .open(path)
-            .map_err(err)?;
-        f.write_all(self.to_file_text(name).as_bytes()).map_err(err)
+        })
     }
 
     /// Reads a key file; returns the name in it and the key pair (checked to match).
@@ -496,6 +487,19 @@ impl Default for Cookies {
     fn default() -> Self {
         Self::new()
     }
+}
+
+/// Writes a secret (a key file, a web token) to a new file only its owner may read,
+/// never over an existing one.
+pub fn write_secret(path: &Path, text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o600)
+        .open(path)?;
+    f.write_all(text.as_bytes())
 }
 
 #[cfg(test)]

@@ -65,3 +65,87 @@ pub fn row(name: &str, h: &hdrhistogram::Histogram<u64>) -> String {
         h.max()
     )
 }
+
+/// Latencies in µs, 1 µs to 60 s, three significant digits (the benches that time
+/// against outside clients).
+pub fn histogram() -> hdrhistogram::Histogram<u64> {
+    hdrhistogram::Histogram::new_with_bounds(1, 60_000_000, 3).expect("histogram bounds")
+}
+
+/// A client process nobody here wrote (rclpy, Python `websockets`) driven by a bench:
+/// its stdout's lines read on a thread of their own; SIGKILLed and reaped when dropped.
+pub struct LineChild {
+    name: &'static str,
+    child: std::process::Child,
+    lines: std::sync::mpsc::Receiver<String>,
+}
+
+impl LineChild {
+    /// Starts `cmd` (stdin closed, stdout read here, stderr shared); `name` says what it
+    /// is in errors, `hint` how to get it when it will not start.
+    pub fn spawn(
+        mut cmd: std::process::Command,
+        name: &'static str,
+        hint: &str,
+    ) -> anyhow::Result<LineChild> {
+        use anyhow::Context as _;
+        use std::io::{BufRead, BufReader};
+        use std::process::Stdio;
+        let mut child = cmd
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .with_context(|| format!("starting {:?} ({hint})", cmd.get_program()))?;
+        let out = child.stdout.take().context("stdout")?;
+        let (tx, lines) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for l in BufReader::new(out).lines().map_while(Result::ok) {
+                if tx.send(l).is_err() {
+                    break;
+                }
+            }
+        });
+        Ok(LineChild { name, child, lines })
+    }
+
+    /// The next JSON line within `timeout` (other lines are skipped).
+    pub fn json(&self, timeout: std::time::Duration) -> Option<serde_json::Value> {
+        let end = std::time::Instant::now() + timeout;
+        loop {
+            let l = self
+                .lines
+                .recv_timeout(end.saturating_duration_since(std::time::Instant::now()))
+                .ok()?;
+            if let Ok(v) = serde_json::from_str(&l) {
+                return Some(v);
+            }
+        }
+    }
+
+    /// The next JSON line for which `pred` holds, within `timeout`.
+    pub fn expect(
+        &self,
+        what: &str,
+        timeout: std::time::Duration,
+        pred: impl Fn(&serde_json::Value) -> bool,
+    ) -> anyhow::Result<serde_json::Value> {
+        use anyhow::Context as _;
+        let end = std::time::Instant::now() + timeout;
+        loop {
+            let v = self
+                .json(end.saturating_duration_since(std::time::Instant::now()))
+                .with_context(|| format!("{}: no {what} within {timeout:?}", self.name))?;
+            if pred(&v) {
+                return Ok(v);
+            }
+        }
+    }
+}
+
+impl Drop for LineChild {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

@@ -11,99 +11,33 @@
 //!    real-time factor (from `/clock`), scans received, and the simulator's CPU per robot.
 
 use super::children::{connect_when_listed, request_granted, Children};
-use super::{header, row, summary};
+use super::{header, histogram, row, summary, LineChild};
 use crate::cli::Ros2BenchArgs;
-use anyhow::Context as _;
-use hdrhistogram::Histogram;
 use muster_shared::protocol::monotonic_ns;
 use muster_shared::types::{Payload, ServiceId};
 use muster_shared::Instance;
 use muster_users::UserEvent;
 use serde_json::{json, Value};
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 const SCRIPT: &str = include_str!("../../../bridges/ros2/bench/rclpy_bench.py");
 
-/// rclpy processes, SIGKILLed and reaped when dropped.
-struct Py {
-    child: Child,
-    lines: mpsc::Receiver<String>,
-}
+/// An rclpy process of the bench script.
+type Py = LineChild;
 
-impl Py {
-    fn start(
-        python: &str,
-        script: &std::path::Path,
-        domain: u16,
-        args: &[&str],
-    ) -> anyhow::Result<Py> {
-        let mut child = Command::new(python)
-            .arg(script)
-            .args(args)
-            .env("ROS_DOMAIN_ID", domain.to_string())
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .with_context(|| {
-                format!("starting {python} (rclpy: see the README's ROS 2 section)")
-            })?;
-        let out = child.stdout.take().context("stdout")?;
-        let (tx, lines) = mpsc::channel();
-        std::thread::spawn(move || {
-            for l in BufReader::new(out).lines().map_while(Result::ok) {
-                if tx.send(l).is_err() {
-                    break;
-                }
-            }
-        });
-        Ok(Py { child, lines })
-    }
-
-    /// The next JSON line within `timeout`.
-    fn json(&self, timeout: Duration) -> Option<Value> {
-        let end = Instant::now() + timeout;
-        loop {
-            let l = self
-                .lines
-                .recv_timeout(end.saturating_duration_since(Instant::now()))
-                .ok()?;
-            if let Ok(v) = serde_json::from_str(&l) {
-                return Some(v);
-            }
-        }
-    }
-
-    fn expect(
-        &self,
-        what: &str,
-        timeout: Duration,
-        pred: impl Fn(&Value) -> bool,
-    ) -> anyhow::Result<Value> {
-        let end = Instant::now() + timeout;
-        loop {
-            let v = self
-                .json(end.saturating_duration_since(Instant::now()))
-                .with_context(|| format!("rclpy: no {what} within {timeout:?}"))?;
-            if pred(&v) {
-                return Ok(v);
-            }
-        }
-    }
-}
-
-impl Drop for Py {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn histogram() -> Histogram<u64> {
-    Histogram::new_with_bounds(1, 60_000_000, 3).expect("histogram bounds")
+/// Starts the bench script with `args` on ROS domain `domain`.
+fn start_py(
+    python: &str,
+    script: &std::path::Path,
+    domain: u16,
+    args: &[&str],
+) -> anyhow::Result<Py> {
+    let mut cmd = Command::new(python);
+    cmd.arg(script)
+        .args(args)
+        .env("ROS_DOMAIN_ID", domain.to_string());
+    LineChild::spawn(cmd, "rclpy", "rclpy: see the README's ROS 2 section")
 }
 
 pub fn run(inst: &Instance, a: Ros2BenchArgs) -> anyhow::Result<std::process::ExitCode> {
@@ -168,7 +102,7 @@ fn bridge_latency(
     let mut client = connect_when_listed(inst, 2, Duration::from_secs(30))?;
     let count = a.samples.to_string();
     let secs = (a.samples as f64 / a.rate + 30.0).to_string();
-    let sub = Py::start(
+    let sub = start_py(
         &a.python,
         script,
         domain,
@@ -181,7 +115,7 @@ fn bridge_latency(
     // 1. rclpy → muster user, beside rclpy → rclpy. The system withdraws the service
     // until the topic is heard: ask until it is granted.
     let rate = a.rate.to_string();
-    let pubr = Py::start(
+    let pubr = start_py(
         &a.python,
         script,
         domain,
@@ -247,7 +181,7 @@ fn bridge_latency(
     client.end(session);
 
     // 2. A muster user's goal → an rclpy subscriber of PoseStamped.
-    let goals = Py::start(
+    let goals = start_py(
         &a.python,
         script,
         domain,
@@ -370,7 +304,7 @@ fn sim_scaling(
         let secs = a.window.as_secs_f64();
         let ns = n.to_string();
         let ws = secs.to_string();
-        let sub = Py::start(&a.python, script, domain, &["scans", &ns, &ws])?;
+        let sub = start_py(&a.python, script, domain, &["scans", &ns, &ws])?;
         sub.expect("scan subscriber", Duration::from_secs(30), |v| {
             v["event"] == "ready"
         })?;

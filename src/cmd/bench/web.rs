@@ -11,7 +11,7 @@
 
 use super::children::{connect_when_listed, request_granted, Children};
 use super::procfs::{cpu_ticks, pss_kib, rss_kib, ticks_per_second};
-use super::{header, row, summary};
+use super::{header, histogram, row, summary, LineChild};
 use crate::cli::WebBenchArgs;
 use anyhow::Context as _;
 use hdrhistogram::Histogram;
@@ -22,41 +22,14 @@ use muster_shared::Instance;
 use muster_users::{UserClient, UserEvent};
 use serde_json::{json, Value};
 use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{mpsc, Arc};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 const SCRIPT: &str = include_str!("../../../web/bench/ws_clients.py");
 /// Clients per service of `bw` (its quota leaves one place for the shm user).
 const PER_SERVICE: usize = 10;
-
-fn histogram() -> Histogram<u64> {
-    Histogram::new_with_bounds(1, 60_000_000, 3).expect("histogram bounds")
-}
-
-/// A client process, SIGKILLed and reaped when dropped.
-struct Clients {
-    child: Child,
-    lines: mpsc::Receiver<String>,
-}
-
-impl Clients {
-    fn json(&self, what: &str, timeout: Duration) -> anyhow::Result<Value> {
-        let line = self
-            .lines
-            .recv_timeout(timeout)
-            .with_context(|| format!("the clients said nothing of {what} within {timeout:?}"))?;
-        serde_json::from_str(&line).with_context(|| format!("the clients' {what}: {line:?}"))
-    }
-}
-
-impl Drop for Clients {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 /// Requests `service` `n` times (each session ended before the next request);
 /// request → grant, µs.
@@ -191,32 +164,23 @@ fn bench(inst: &Instance, a: &WebBenchArgs, dir: &std::path::Path) -> anyhow::Re
     for (k, chunk) in users.chunks(per).enumerate() {
         let tokens = dir.join(format!("tokens-{k}.json"));
         std::fs::write(&tokens, Value::Array(chunk.to_vec()).to_string())?;
-        let mut child = Command::new(&a.python)
-            .arg(&script)
+        let mut cmd = Command::new(&a.python);
+        cmd.arg(&script)
             .arg(&url)
             .arg(&tokens)
             .arg("--duration")
-            .arg(a.duration.as_secs_f64().to_string())
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .with_context(|| format!("starting {} (pip install websockets)", a.python))?;
-        let out = child.stdout.take().context("stdout")?;
-        let (tx, lines) = mpsc::channel();
-        std::thread::spawn(move || {
-            for l in BufReader::new(out).lines().map_while(Result::ok) {
-                if tx.send(l).is_err() {
-                    break;
-                }
-            }
-        });
-        procs.push(Clients { child, lines });
+            .arg(a.duration.as_secs_f64().to_string());
+        procs.push(LineChild::spawn(
+            cmd,
+            "the clients",
+            "pip install websockets",
+        )?);
     }
     let mut ready = Vec::new();
     for p in &procs {
-        let r = p.json("being ready", Duration::from_secs(180))?;
-        anyhow::ensure!(r["event"] == "ready", "the clients: {r}");
+        let r = p.expect("being ready", Duration::from_secs(180), |r| {
+            r["event"] == "ready"
+        })?;
         let failed = r["failed"].as_array().map_or(0, Vec::len);
         anyhow::ensure!(failed == 0, "clients failed to start: {}", r["failed"]);
         ready.push(r);
@@ -249,8 +213,11 @@ fn bench(inst: &Instance, a: &WebBenchArgs, dir: &std::path::Path) -> anyhow::Re
     let during = probe(&mut client, &probe_id, a.probes)?;
     let mut results = Vec::new();
     for p in &procs {
-        let r = p.json("the window's figures", a.duration + Duration::from_secs(60))?;
-        anyhow::ensure!(r["event"] == "done", "the clients: {r}");
+        let r = p.expect(
+            "the window's figures",
+            a.duration + Duration::from_secs(60),
+            |r| r["event"] == "done",
+        )?;
         results.push(r);
     }
     let window = t0.elapsed().as_secs_f64();
