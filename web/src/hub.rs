@@ -120,13 +120,6 @@ impl Drop for Tab {
     }
 }
 
-impl Tab {
-    /// The hub.
-    pub fn hub(&self) -> &Arc<Hub> {
-        &self.hub
-    }
-}
-
 fn eventfd() -> std::io::Result<OwnedFd> {
     // SAFETY: eventfd takes no pointers; a non-negative result is a new descriptor we own.
     let fd = unsafe { libc::eventfd(0, libc::EFD_NONBLOCK | libc::EFD_CLOEXEC) };
@@ -208,7 +201,6 @@ impl Hub {
                     lists,
                     seen: u64::MAX,
                     shown: BTreeMap::new(),
-                    generation: 0,
                     idle_since: None,
                     ops: HashMap::new(),
                 };
@@ -340,7 +332,6 @@ struct Run {
     seen: u64,
     /// The services shown (the user's patterns allow them), by id.
     shown: BTreeMap<String, ServiceView>,
-    generation: u64,
     /// Since when no tab is open.
     idle_since: Option<Instant>,
     /// Operator actions out: their number → what was asked.
@@ -427,32 +418,18 @@ impl Run {
             .keys()
             .filter(|id| !now.contains_key(*id))
             .collect();
-        let changed = !set.is_empty() || !removed.is_empty();
         let generation = snap.generation;
-        let frame = if force {
-            Some(
-                json!({"t": "list", "list": {"generation": generation, "services": now.values().collect::<Vec<_>>()}}),
-            )
-        } else if changed {
-            Some(
-                json!({"t": "list_delta", "generation": generation, "set": set, "removed": removed}),
-            )
-        } else {
-            None
-        };
-        self.generation = generation;
-        if let Some(frame) = frame {
+        if force || !set.is_empty() || !removed.is_empty() {
             let list =
                 json!({"generation": generation, "services": now.values().collect::<Vec<_>>()});
+            let frame = if force {
+                json!({"t": "list", "list": list})
+            } else {
+                json!({"t": "list_delta", "generation": generation, "set": set, "removed": removed})
+            };
             self.apply(frame, |m| m.list = list);
         }
         self.shown = now;
-    }
-
-    fn refuse(&self, req: u64, service: &str, reason: &str, code: &str) {
-        self.send(
-            json!({"t": "refused", "req": req, "service": service, "reason": reason, "code": code}),
-        );
     }
 
     fn on_cmd(&mut self, cmd: Cmd) -> Result<(), UserError> {
@@ -461,7 +438,8 @@ impl Run {
                 if !self.policy.allows(&service) {
                     // As the UDP front answers a denied request: like an unknown service.
                     let r = muster_shared::types::Refusal::Unknown;
-                    self.refuse(0, &service, &r.to_string(), r.code());
+                    self.send(json!({"t": "refused", "req": 0, "service": service,
+                                     "reason": r.to_string(), "code": r.code()}));
                     return Ok(());
                 }
                 let req = self.client.request(&ServiceId(service.clone()))?;
