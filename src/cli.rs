@@ -899,6 +899,44 @@ pub enum SystemCommand {
     /// A ROS 2 robot as a muster system, with no code: its topics become services as the
     /// config file says (see the README's "ROS 2").
     Ros2(Ros2SystemArgs),
+    /// A VDA 5050 fleet's vehicles as muster services (over MQTT): per vehicle, a
+    /// command service (a goal becomes an order) and a data service (its state).
+    Vda5050(Vda5050SystemArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct Vda5050SystemArgs {
+    /// The MQTT broker, HOST:PORT.
+    #[arg(long)]
+    pub mqtt: String,
+    /// `interfaceName` of the topics.
+    #[arg(long, default_value = "uagv")]
+    pub interface: String,
+    /// Only this manufacturer's vehicles (default: all).
+    #[arg(long)]
+    pub manufacturer: Option<String>,
+    /// The muster system's name.
+    #[arg(long, default_value = "vda5050")]
+    pub name: String,
+    /// The VDA 5050 version written to a vehicle before it said its own (2.x.y).
+    #[arg(long, default_value = "2.1.0")]
+    pub vda_version: String,
+    /// The road map (JSON: mapId, nodes with id/x/y, edges): goals go to its nearest
+    /// node along the shortest path. Without it, orders go straight to the point.
+    #[arg(long)]
+    pub graph: Option<std::path::PathBuf>,
+    /// How long a vehicle has to show an order in its state.
+    #[arg(long, default_value = "10s", value_parser = duration)]
+    pub order_timeout: Duration,
+    /// How long to wait at start for the vehicles the MQTT broker knows.
+    #[arg(long, default_value = "2s", value_parser = duration)]
+    pub wait: Duration,
+    /// Serve remote users' sessions on this UDP address (e.g. `127.0.0.1:0`).
+    #[arg(long)]
+    pub udp: Option<std::net::SocketAddr>,
+    /// Print the bridge's counters as JSON when it stops.
+    #[arg(long)]
+    pub stats_json: bool,
 }
 
 #[derive(Args, Debug)]

@@ -1,6 +1,8 @@
 //! `muster system ...`.
 
-use crate::cli::{DeliveryArgs, RobotSystemArgs, Ros2SystemArgs, SystemCommand, TrackingArgs};
+use crate::cli::{
+    DeliveryArgs, RobotSystemArgs, Ros2SystemArgs, SystemCommand, TrackingArgs, Vda5050SystemArgs,
+};
 use anyhow::Context;
 use muster_robots::port::RobotPort;
 use muster_robots::shell::{
@@ -51,7 +53,44 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
         SystemCommand::Tracking(a) => tracking(inst, a),
         SystemCommand::Delivery(a) => delivery(inst, a),
         SystemCommand::Ros2(a) => ros2(inst, a),
+        SystemCommand::Vda5050(a) => vda5050(inst, a),
     }
+}
+
+fn vda5050(inst: &Instance, a: Vda5050SystemArgs) -> anyhow::Result<ExitCode> {
+    use muster_vda5050::fleet::{Fleet, FleetOptions};
+    let graph = match &a.graph {
+        Some(p) => {
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let g = muster_vda5050::graph::Graph::parse(&text)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            Some(g)
+        }
+        None => None,
+    };
+    let opts = FleetOptions {
+        mqtt: a.mqtt,
+        system: a.name,
+        interface: a.interface,
+        manufacturer: a.manufacturer,
+        version: a.vda_version,
+        graph,
+        order_timeout: a.order_timeout,
+    };
+    validate_registration(&opts.system, &[])?;
+    let mut fleet = Fleet::connect(opts.clone(), a.wait)?;
+    let core = SystemCore::create(&opts.system, fleet.specs())?;
+    let run = muster_systems::RunOptions {
+        udp: a.udp,
+        ..Default::default()
+    };
+    muster_systems::run_system_with(inst, core, &mut fleet, &run)?;
+    fleet.close();
+    if a.stats_json {
+        out!("{}", serde_json::to_string(fleet.stats())?);
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// The ROS domain of a robot system's `--ros2`: `--domain`, else `ROS_DOMAIN_ID`, else 0.

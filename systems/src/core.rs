@@ -807,6 +807,43 @@ impl SystemCore {
         });
     }
 
+    /// Changes the services offered, for a system whose robots come and go (a fleet
+    /// bridge discovering vehicles). The new list is checked as [`SystemCore::create`]
+    /// checks one; sessions of services no longer declared end (their users told), and
+    /// a registered system registers again at once, keeping its other sessions and its
+    /// withdrawn services withdrawn.
+    pub fn set_specs(&mut self, specs: Vec<ServiceSpec>) -> Result<(), SpecError> {
+        muster_shared::types::validate_registration(&self.name, &specs)?;
+        let keep: BTreeSet<&str> = specs.iter().map(|s| s.name.as_str()).collect();
+        let gone: Vec<SessionId> = self
+            .sessions
+            .iter()
+            .filter(|(_, s)| !keep.contains(s.service.as_str()))
+            .map(|(id, _)| *id)
+            .collect();
+        for id in gone {
+            self.close(
+                id,
+                EndReason::BySystem("service no longer offered".into()),
+                true,
+            );
+        }
+        self.withdrawn.retain(|s| keep.contains(s.as_str()));
+        self.specs = specs;
+        if matches!(self.state, BrokerState::Registered { .. }) {
+            // The broker takes a registration from the same process as a new service
+            // list, and clears its withdrawn flags: withdraw them again after it.
+            self.register();
+            for service in self.withdrawn.clone() {
+                self.send_broker(ToBroker::Withdraw {
+                    system: self.name.clone(),
+                    service,
+                });
+            }
+        }
+        Ok(())
+    }
+
     /// Offers a withdrawn service again.
     pub fn restore(&mut self, service: &str) {
         if self.withdrawn.remove(service) {
@@ -976,6 +1013,74 @@ mod tests {
 
     fn big_again() -> TaskStatus {
         TaskStatus::Working("z".repeat(5000))
+    }
+
+    #[test]
+    fn new_specs_end_the_sessions_of_dropped_services_and_register_again_keeping_withdrawals() {
+        let mut c = SystemCore::new(
+            "t1",
+            7,
+            vec![
+                spec("a", ServiceKind::Data, 1),
+                spec("c", ServiceKind::Command, 2),
+                spec("w", ServiceKind::Data, 1),
+            ],
+        );
+        c.handle(ToSystem::Registered {
+            epoch: 3,
+            broker_pid: 9,
+        });
+        outs(&mut c);
+        let on_a = answer(&offer(&mut c, 1, "u1", "a")).unwrap().unwrap();
+        let on_c = answer(&offer(&mut c, 2, "u2", "c")).unwrap().unwrap();
+        c.withdraw("w");
+        outs(&mut c);
+        // A bad list is refused whole and changes nothing.
+        let bad = vec![
+            spec("a", ServiceKind::Data, 1),
+            spec("a", ServiceKind::Data, 1),
+        ];
+        assert!(c.set_specs(bad).is_err());
+        assert_eq!(c.specs().len(), 3);
+        // "a" goes, "c" stays with its session, "w" stays withdrawn, "n" comes.
+        c.handle(ToSystem::Registered {
+            epoch: 3,
+            broker_pid: 9,
+        });
+        outs(&mut c);
+        let news = vec![
+            spec("c", ServiceKind::Command, 2),
+            spec("w", ServiceKind::Data, 1),
+            spec("n", ServiceKind::Data, 1),
+        ];
+        c.set_specs(news).unwrap();
+        let out = outs(&mut c);
+        let ended: Vec<SessionId> = out
+            .iter()
+            .filter_map(|o| match o {
+                SystemOutput::ToUser(_, ToUser::Ended { session, .. }) => Some(*session),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(ended, [on_a]);
+        let order: Vec<String> = out
+            .iter()
+            .filter_map(|o| match o {
+                SystemOutput::ToBroker(ToBroker::Register {
+                    services, sessions, ..
+                }) => {
+                    let names: Vec<&str> = services.iter().map(|s| s.name.as_str()).collect();
+                    let held: Vec<SessionId> = sessions.iter().map(|a| a.session).collect();
+                    Some(format!("register {names:?} {}", held == [on_c]))
+                }
+                SystemOutput::ToBroker(ToBroker::Withdraw { service, .. }) => {
+                    Some(format!("withdraw {service}"))
+                }
+                _ => None,
+            })
+            .collect();
+        assert_eq!(order, [r#"register ["c", "w", "n"] true"#, "withdraw w"]);
+        assert_eq!(c.sessions_of("a"), 0);
     }
 
     #[test]
