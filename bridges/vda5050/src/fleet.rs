@@ -21,7 +21,7 @@ use crate::graph::Graph;
 use crate::mqtt::{Incoming, MqttConfig, MqttLink};
 use crate::msg::{
     self, Action, BlockingType, Connection, ConnectionState, Edge, ErrorLevel, Factsheet, Header,
-    InstantActions, Node, NodePosition, Order, State,
+    InstantActions, Node, NodePosition, Order, State, Visualization,
 };
 use crate::{muster_name, Topics, VdaFail};
 use muster_shared::protocol::monotonic_ns;
@@ -115,7 +115,6 @@ struct Vehicle {
     task: Option<Task>,
     /// A goal that came before the vehicle's first state (asked for with `stateRequest`).
     pending: Option<(SessionId, Payload, Duration)>,
-    state_asked: bool,
 }
 
 impl Vehicle {
@@ -178,7 +177,7 @@ impl Fleet {
             broker: opts.mqtt.clone(),
             client_id: format!("muster-{}-{}", opts.system, std::process::id()),
             keep_alive: Duration::from_secs(5),
-            subscriptions: ["connection", "factsheet", "state"]
+            subscriptions: ["connection", "factsheet", "state", "visualization"]
                 .iter()
                 .map(|t| topics.filter(m, t))
                 .collect(),
@@ -323,6 +322,10 @@ impl Fleet {
                 self.check_sender(&key, &st.header)
                     .map(|()| self.state(core.as_deref_mut(), &key, st))
             }),
+            "visualization" => msg::decode::<Visualization>(&payload).map(|vis| {
+                self.check_sender(&key, &vis.header)
+                    .map(|()| self.visualization(core.as_deref_mut(), &key, vis))
+            }),
             _ => return,
         };
         match result {
@@ -374,7 +377,6 @@ impl Fleet {
                     session: None,
                     task: None,
                     pending: None,
-                    state_asked: false,
                 },
             );
             self.stats.vehicles += 1;
@@ -418,9 +420,10 @@ impl Fleet {
         }
         tracing::info!(vehicle = %command, state = ?c, "vehicle connection");
         if !now {
+            // What it said before is stale once it is back (restarted, moved by hand).
+            v.state = None;
             v.task = None;
             v.pending = None;
-            v.state_asked = false;
         } else if v.state.is_none() {
             // State is not kept by the broker: ask for it rather than wait up to 30 s.
             self.instant(key, "stateRequest", "muster-state");
@@ -457,6 +460,26 @@ impl Fleet {
                 return self.goal(core, at, session, payload);
             }
         }
+        self.follow(core, key, Duration::ZERO);
+    }
+
+    /// The position between states: the data service and the driving note follow it.
+    fn visualization(&mut self, core: Option<&mut SystemCore>, key: &Key, vis: Visualization) {
+        let Some(v) = self.vehicles.get_mut(key) else {
+            return; // not found by its connection, factsheet or state: not ours yet
+        };
+        let Some(st) = v.state.as_mut() else { return };
+        if vis.agv_position.is_none() && vis.velocity.is_none() {
+            return;
+        }
+        if let Some(p) = vis.agv_position {
+            st.agv_position = Some(p);
+        }
+        if let Some(vel) = vis.velocity {
+            st.velocity = Some(vel);
+        }
+        let Some(core) = core else { return };
+        self.publish_state(core, key);
         self.follow(core, key, Duration::ZERO);
     }
 
@@ -885,9 +908,7 @@ impl Fleet {
     fn instant(&mut self, key: &Key, action_type: &str, id: &str) -> bool {
         let version = self.version_for(&self.vehicles[key]);
         let v = self.vehicles.get_mut(key).expect("known vehicle");
-        if action_type == "stateRequest" {
-            v.state_asked = true;
-        }
+        if action_type == "stateRequest" {}
         let msg = InstantActions {
             header: Header::now(v.instant_header, &version, &v.manufacturer, &v.serial),
             instant_actions: vec![Action {

@@ -9,8 +9,8 @@
 // state a vehicle publishes, {"event":"invalid",...} for any message that fails its
 // schema, and {"event":"checked",...} counts when told `stats` on standard input.
 // Standard input also takes `offline SERIAL` (an orderly stop: OFFLINE), `online
-// SERIAL` (started again) and `exit` (the process ends without a word: the broker
-// sends each vehicle's last will, CONNECTIONBROKEN).
+// SERIAL` (started again), `raw TOPIC JSON` (publishes as is) and `exit` (the process
+// ends without a word: the broker sends each vehicle's last will, CONNECTIONBROKEN).
 "use strict";
 const { AgvController, VirtualAgvAdapter } = require("vda-5050-lib");
 const validators = require("vda-5050-lib/common/vda-5050-validators-2.0");
@@ -105,6 +105,10 @@ readline.createInterface({ input: process.stdin }).on("line", async (line) => {
       agvs[serial] = makeAgv(serial);
       await agvs[serial].start();
       say({ event: "online", serial });
+    } else if (cmd === "raw") {
+      // raw TOPIC JSON: a message from nobody's vehicle (a test's hostile input).
+      const rest = line.trim().split(/\s+/).slice(2).join(" ");
+      sniffer.publish(serial, rest, { qos: 1 }, () => say({ event: "sent", topic: serial }));
     } else if (cmd === "stats") {
       say({ event: "checked", ...counts });
     } else if (cmd === "exit") {

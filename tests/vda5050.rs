@@ -1,0 +1,448 @@
+//! VDA 5050 against code nobody here wrote: Siemens' vda-5050-lib (its AgvController
+//! with the VirtualAgvAdapter plays the vehicle) through Debian's mosquitto. Every
+//! message on the interface is checked by the library's VDA 5050 2.0 validators (made
+//! from the official JSON schemas) in the peer process.
+//!
+//! Needs `mosquitto` and `node` with `bridges/vda5050/tests/js/node_modules` (`.ci/run`
+//! installs them); skipped without them unless `MUSTER_REQUIRE_VDA5050` is set.
+
+mod common;
+
+use common::{find, free_tcp_port, skip, Fed, Proc};
+use muster_shared::types::{EndReason, Payload, ServiceId, SessionId, TaskStatus};
+use muster_users::{ConnectOptions, UserClient, UserEvent};
+use serde_json::Value;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+const SEC: Duration = Duration::from_secs(1);
+const JS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/bridges/vda5050/tests/js");
+
+/// Whether mosquitto, node and the library are here (else the test is skipped, or
+/// fails where `MUSTER_REQUIRE_VDA5050` says they must be).
+fn peers_here() -> bool {
+    let has = |prog: &str| {
+        Command::new(prog)
+            .arg("--help")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok()
+    };
+    let lib = std::path::Path::new(JS).join("node_modules/vda-5050-lib/package.json");
+    let ok = has("mosquitto") && has("node") && lib.exists();
+    if !ok {
+        assert!(
+            std::env::var_os("MUSTER_REQUIRE_VDA5050").is_none(),
+            "mosquitto, node or {} missing: run .ci/run's setup",
+            lib.display()
+        );
+        skip("mosquitto, node or vda-5050-lib missing (see .ci/run)");
+    }
+    ok
+}
+
+/// Starts mosquitto on a free loopback port; returns its `host:port`.
+fn mosquitto(f: &mut Fed) -> String {
+    let port = free_tcp_port();
+    let dir = std::env::temp_dir().join(format!("muster-mosq-{}-{port}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let conf = dir.join("mosquitto.conf");
+    std::fs::write(
+        &conf,
+        format!("listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\n"),
+    )
+    .unwrap();
+    let mut c = Command::new("mosquitto");
+    c.arg("-c").arg(&conf);
+    f.spawn_command(c);
+    let addr = format!("127.0.0.1:{port}");
+    let deadline = Instant::now() + 10 * SEC;
+    while std::net::TcpStream::connect(&addr).is_err() {
+        assert!(
+            Instant::now() < deadline,
+            "mosquitto did not listen on {addr}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    addr
+}
+
+/// The virtual vehicles (vda-5050-lib) on interface `iface`.
+fn virtual_agvs(f: &mut Fed, mqtt: &str, iface: &str, extra: &[&str]) -> usize {
+    let mut c = Command::new("node");
+    c.current_dir(JS)
+        .arg("virtual_agv.js")
+        .args(["--broker", &format!("mqtt://{mqtt}"), "--interface", iface])
+        .args(extra);
+    let i = f.spawn_command(c);
+    wait_event(f.proc(i), "ready", 20 * SEC);
+    i
+}
+
+/// The next line of the peer with `"event": event`.
+fn wait_event(p: &mut Proc, event: &str, timeout: Duration) -> Value {
+    wait_for(p, timeout, |v| v["event"] == event)
+}
+
+fn wait_for(p: &mut Proc, timeout: Duration, pred: impl Fn(&Value) -> bool) -> Value {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        assert!(
+            !left.is_zero(),
+            "the VDA 5050 peer did not say it within {timeout:?}"
+        );
+        if let Some(v) = p.json(left) {
+            if v["event"] == "invalid" {
+                panic!("a message failed its VDA 5050 schema: {v}");
+            }
+            if pred(&v) {
+                return v;
+            }
+        }
+    }
+}
+
+fn user(f: &Fed) -> UserClient {
+    let inst = muster_shared::Instance::new(&f.inst).unwrap();
+    let opts = ConnectOptions {
+        handle_signals: false,
+        ..ConnectOptions::default()
+    };
+    UserClient::connect(&inst, &opts).unwrap()
+}
+
+fn grant(c: &mut UserClient, id: &str) -> SessionId {
+    let (system, name) = id.split_once('/').unwrap();
+    let service = ServiceId::new(system, name);
+    let req = c.request(&service).unwrap();
+    let deadline = Instant::now() + 10 * SEC;
+    loop {
+        match c.next_event(deadline).unwrap() {
+            Some(UserEvent::Granted {
+                req: r, session, ..
+            }) if r == req => return session,
+            Some(UserEvent::Refused { req: r, reason, .. }) if r == req => {
+                panic!("{id} refused: {reason:?}")
+            }
+            Some(_) => {}
+            None => panic!("{id} not granted within 10 s"),
+        }
+    }
+}
+
+/// Statuses of `session` until one satisfies `done` (all of them, in order).
+fn statuses_until(
+    c: &mut UserClient,
+    session: SessionId,
+    timeout: Duration,
+    done: impl Fn(&TaskStatus) -> bool,
+) -> Vec<TaskStatus> {
+    statuses_and_data(c, session, timeout, done, &mut Vec::new())
+}
+
+/// [`statuses_until`], keeping the data sessions' updates (JSON) in `data`.
+fn statuses_and_data(
+    c: &mut UserClient,
+    session: SessionId,
+    timeout: Duration,
+    done: impl Fn(&TaskStatus) -> bool,
+    data: &mut Vec<Value>,
+) -> Vec<TaskStatus> {
+    let deadline = Instant::now() + timeout;
+    let mut seen = Vec::new();
+    loop {
+        match c.next_event(deadline).unwrap() {
+            Some(UserEvent::Status {
+                session: s, status, ..
+            }) if s == session => {
+                let stop = done(&status);
+                seen.push(status);
+                if stop {
+                    return seen;
+                }
+            }
+            Some(UserEvent::Update {
+                payload: Payload::Encoded { data: d, .. },
+                ..
+            }) => data.push(serde_json::from_slice(&d).unwrap()),
+            Some(_) => {}
+            None => panic!("no such status within {timeout:?}; saw {seen:?}"),
+        }
+    }
+}
+
+fn done(s: &TaskStatus) -> bool {
+    matches!(s, TaskStatus::Done(_) | TaskStatus::Rejected(_))
+}
+
+/// The metres to go a driving note names.
+fn to_go(s: &TaskStatus) -> Option<f64> {
+    let d = s.detail()?;
+    let (before, _) = d.split_once(" m to go")?;
+    before.rsplit(' ').next()?.parse().ok()
+}
+
+fn goal(c: &mut UserClient, session: SessionId, x: f64, y: f64) {
+    c.input(session, Payload::Goal2d { x, y }).unwrap();
+}
+
+/// The vehicle's states (from the sniffer) until one satisfies `pred`.
+fn state_until(p: &mut Proc, timeout: Duration, pred: impl Fn(&Value) -> bool) -> Value {
+    wait_for(p, timeout, |v| v["event"] == "state" && pred(v))
+}
+
+#[test]
+fn a_vda5050_vehicle_is_listed_driven_by_a_users_goals_cancelled_and_withdrawn_when_offline() {
+    if !peers_here() {
+        return;
+    }
+    let mut f = Fed::new("vda1");
+    let mqtt = mosquitto(&mut f);
+    let iface = format!("t{}", std::process::id());
+    let agv = virtual_agvs(&mut f, &mqtt, &iface, &["--speed", "4"]);
+    f.broker(&[]);
+    let fleet = f.spawn(&[
+        "system",
+        "vda5050",
+        "--mqtt",
+        &mqtt,
+        "--interface",
+        &iface,
+        "--vda-version",
+        "2.0.0",
+        "--stats-json",
+    ]);
+    let (list, _) = f.wait_list(20 * SEC, |l| l.len() == 2);
+    let cmd = find(&list, "vda5050/agv1").expect("the vehicle's command service");
+    assert_eq!(cmd["kind"], "command");
+    assert_eq!(cmd["payload"], "goal2d");
+    assert_eq!(cmd["quota"], 1);
+    let data = find(&list, "vda5050/agv1.state").expect("the vehicle's state service");
+    assert_eq!(data["payload"], "vda5050/VehicleState");
+
+    let mut c = user(&f);
+    let watch = grant(&mut c, "vda5050/agv1.state");
+    let drive = grant(&mut c, "vda5050/agv1");
+
+    // A goal becomes an order: from the node the vehicle stands on to a node at the goal.
+    goal(&mut c, drive, 8.0, 0.0);
+    let mut updates = Vec::new();
+    let seen = statuses_and_data(&mut c, drive, 20 * SEC, done, &mut updates);
+    let last = seen.last().unwrap();
+    assert_eq!(
+        last,
+        &TaskStatus::Done("arrived at muster-goal-0 (8.00, 0.00)".into()),
+        "{seen:?}"
+    );
+    let notes: Vec<&str> = seen.iter().filter_map(|s| s.detail()).collect();
+    assert!(
+        notes
+            .iter()
+            .any(|n| n.starts_with("order muster-") && n.ends_with("/0 sent: to (8.00, 0.00)")),
+        "{notes:?}"
+    );
+    assert!(
+        notes.iter().any(
+            |n| n.starts_with("driving to (8.00, 0.00): 1 nodes left") && n.contains("m to go")
+        ),
+        "{notes:?}"
+    );
+    let p = f.proc(agv);
+    let order = wait_event(p, "order", 5 * SEC);
+    let nodes: Vec<&str> = order["message"]["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n["nodeId"].as_str().unwrap())
+        .collect();
+    assert_eq!(nodes, ["0", "muster-goal-0"]);
+    let order_id = order["message"]["orderId"].as_str().unwrap().to_string();
+    let fin = state_until(p, 5 * SEC, |s| {
+        s["orderId"] == order_id.as_str()
+            && s["nodeStates"].as_array().unwrap().is_empty()
+            && s["driving"] == false
+    });
+    assert_eq!(fin["lastNodeId"], "muster-goal-0");
+    assert!((fin["x"].as_f64().unwrap() - 8.0).abs() < 0.01, "{fin}");
+
+    // The data session saw the vehicle drive.
+    while let Ok(Some(e)) = c.try_event() {
+        if let UserEvent::Update {
+            payload: Payload::Encoded { data, .. },
+            ..
+        } = e
+        {
+            updates.push(serde_json::from_slice(&data).unwrap());
+        }
+    }
+    assert!(updates.iter().all(|j| j["serial"] == "agv1"));
+    let xs: Vec<f64> = updates.iter().map(|j| j["x"].as_f64().unwrap()).collect();
+    assert!(xs.len() >= 3, "{xs:?}");
+    assert!(
+        xs.windows(2).all(|w| w[1] >= w[0] - 1e-9),
+        "x only grows: {xs:?}"
+    );
+    assert!((xs.last().unwrap() - 8.0).abs() < 0.01, "{xs:?}");
+
+    // The next goal of the session updates the same order from the node reached; a
+    // goal given while driving is stitched onto the end of the base.
+    goal(&mut c, drive, 8.0, 6.0);
+    let seen = statuses_until(&mut c, drive, 20 * SEC, |s| {
+        s.detail().is_some_and(|d| d.starts_with("driving"))
+    });
+    assert!(!done(seen.last().unwrap()));
+    goal(&mut c, drive, 0.0, 6.0);
+    let seen = statuses_until(&mut c, drive, 30 * SEC, |s| {
+        matches!(s, TaskStatus::Done(d) if d.starts_with("arrived at muster-goal-2"))
+            || matches!(s, TaskStatus::Rejected(_))
+    });
+    assert_eq!(
+        seen.last().unwrap(),
+        &TaskStatus::Done("arrived at muster-goal-2 (0.00, 6.00)".into()),
+        "{seen:?}"
+    );
+    let p = f.proc(agv);
+    let u1 = wait_event(p, "order", 5 * SEC);
+    let u2 = wait_event(p, "order", 5 * SEC);
+    for (u, id, first, seq) in [(&u1, 1, "muster-goal-0", 2), (&u2, 2, "muster-goal-1", 4)] {
+        assert_eq!(u["message"]["orderId"], order_id.as_str());
+        assert_eq!(u["message"]["orderUpdateId"], id);
+        assert_eq!(u["message"]["nodes"][0]["nodeId"], first, "{u}");
+        assert_eq!(u["message"]["nodes"][0]["sequenceId"], seq, "{u}");
+    }
+    let fin = state_until(p, 5 * SEC, |s| {
+        s["orderUpdateId"] == 2
+            && s["nodeStates"].as_array().unwrap().is_empty()
+            && s["driving"] == false
+    });
+    assert!(fin["errors"].as_array().unwrap().is_empty(), "{fin}");
+    assert!(
+        fin["x"].as_f64().unwrap().abs() < 0.01 && (fin["y"].as_f64().unwrap() - 6.0).abs() < 0.01,
+        "{fin}"
+    );
+
+    // Ending the session while the vehicle drives cancels its order.
+    goal(&mut c, drive, 30.0, 6.0);
+    statuses_until(&mut c, drive, 10 * SEC, |s| {
+        s.detail().is_some_and(|d| d.starts_with("driving")) && to_go(s).is_some_and(|m| m < 28.0)
+    });
+    c.end(drive);
+    let p = f.proc(agv);
+    let cancel = wait_event(p, "instantActions", 5 * SEC);
+    assert_eq!(
+        cancel["message"]["instantActions"][0]["actionType"],
+        "cancelOrder"
+    );
+    let stopped = state_until(p, 10 * SEC, |s| {
+        s["actions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|a| a == "cancelOrder:FINISHED")
+    });
+    assert_eq!(stopped["driving"], false);
+    assert!(stopped["nodeStates"].as_array().unwrap().is_empty());
+    let x = stopped["x"].as_f64().unwrap();
+    assert!(x > 0.0 && x < 29.0, "stopped on the way: {stopped}");
+
+    // A message breaking the rules is refused and not acted on: a state with a heading
+    // outside [-π, π] (and a made-up position) does not reach the data session.
+    let bad = serde_json::json!({"headerId": 1, "timestamp": "2026-11-27T06:00:00.00Z",
+        "version": "2.0.0", "manufacturer": "acme", "serialNumber": "agv1", "orderId": "",
+        "orderUpdateId": 0, "lastNodeId": "", "lastNodeSequenceId": 0, "driving": false,
+        "operatingMode": "AUTOMATIC", "nodeStates": [], "edgeStates": [], "actionStates": [],
+        "batteryState": {"batteryCharge": 50, "charging": false}, "errors": [],
+        "agvPosition": {"x": 99.0, "y": 99.0, "theta": 4.0, "mapId": "local", "positionInitialized": true},
+        "safetyState": {"eStop": "NONE", "fieldViolation": false}});
+    let p = f.proc(agv);
+    p.send(&format!("raw {iface}/v2/acme/agv1/state {bad}"));
+    // The sniffer calls it invalid too (the one message expected to be).
+    let deadline = Instant::now() + 5 * SEC;
+    let (mut sent, mut flagged) = (false, false);
+    while !(sent && flagged) {
+        let v = p
+            .json(deadline.saturating_duration_since(Instant::now()))
+            .expect("the peer's word on the bad state");
+        match v["event"].as_str() {
+            Some("sent") => sent = true,
+            Some("invalid") => {
+                assert_eq!(v["payload"]["agvPosition"]["theta"], 4.0, "{v}");
+                flagged = true;
+            }
+            _ => {}
+        }
+    }
+
+    // Offline: withdrawn, its users told; online again: offered again.
+    let watch_ended = |c: &mut UserClient| loop {
+        match c.next_event(Instant::now() + 10 * SEC).unwrap() {
+            Some(UserEvent::Ended {
+                session, reason, ..
+            }) if session == watch => return reason,
+            Some(UserEvent::Update {
+                payload: Payload::Encoded { data, .. },
+                ..
+            }) => {
+                let j: Value = serde_json::from_slice(&data).unwrap();
+                assert_ne!(j["x"], 99.0, "the refused state was acted on: {j}");
+            }
+            Some(_) => {}
+            None => panic!("the data session did not end"),
+        }
+    };
+    f.proc(agv).send("offline agv1");
+    assert_eq!(watch_ended(&mut c), EndReason::Withdrawn);
+    let (l, _) = f.wait_list(10 * SEC, |l| {
+        find(l, "vda5050/agv1").is_some_and(|s| s["withdrawn"] == true)
+    });
+    assert_eq!(find(&l, "vda5050/agv1.state").unwrap()["withdrawn"], true);
+    f.proc(agv).send("online agv1");
+    f.wait_list(10 * SEC, |l| {
+        find(l, "vda5050/agv1").is_some_and(|s| s["withdrawn"] == false)
+    });
+    let drive = grant(&mut c, "vda5050/agv1");
+    goal(&mut c, drive, 0.0, 0.0);
+    let seen = statuses_until(&mut c, drive, 20 * SEC, done);
+    assert!(
+        matches!(seen.last().unwrap(), TaskStatus::Done(_)),
+        "{seen:?}"
+    );
+
+    // Every message both ways passed the library's schema checks, but the test's own.
+    let p = f.proc(agv);
+    p.send("stats");
+    let stats = wait_for(p, 5 * SEC, |v| v["event"] == "checked");
+    assert_eq!(
+        stats["invalid"], 1,
+        "only the test's own bad state: {stats}"
+    );
+    let by = &stats["byTopic"];
+    for topic in [
+        "order",
+        "instantActions",
+        "state",
+        "connection",
+        "visualization",
+    ] {
+        assert!(
+            by[topic].as_u64().unwrap_or(0) >= 1,
+            "no {topic} checked: {stats}"
+        );
+    }
+    assert!(by["order"].as_u64().unwrap() >= 5, "{stats}");
+
+    // The process dies without a word: the last will withdraws it.
+    p.send("exit");
+    f.wait_list(10 * SEC, |l| {
+        find(l, "vda5050/agv1").is_some_and(|s| s["withdrawn"] == true)
+    });
+    c.close();
+    f.proc(fleet).signal(libc::SIGTERM);
+    let counts = f.proc(fleet).json(10 * SEC).expect("the bridge's counters");
+    assert_eq!(counts["vehicles"], 1, "{counts}");
+    assert!(counts["invalid"].as_u64().unwrap() >= 1, "{counts}");
+    assert_eq!(counts["cancels"], 1, "{counts}");
+    assert!(counts["orders"].as_u64().unwrap() >= 5, "{counts}");
+}
