@@ -762,7 +762,7 @@ impl Fleet {
                     sequence_id: st.last_node_sequence_id,
                     node_description: None,
                     released: true,
-                    node_position: pos.map(|p| here(p)),
+                    node_position: pos.map(here),
                     actions: vec![],
                 };
                 (t.order_id.clone(), t.update_id + 1, node, t.next_goal)
@@ -895,7 +895,7 @@ impl Fleet {
         });
         // Sent while the vehicle may not have shown the order yet, too: it may be on
         // its way.
-        if !(active || !task.seen) {
+        if !active && task.seen {
             return;
         }
         let id = format!("{}-cancel-{}", task.order_id, task.update_id);
@@ -908,7 +908,6 @@ impl Fleet {
     fn instant(&mut self, key: &Key, action_type: &str, id: &str) -> bool {
         let version = self.version_for(&self.vehicles[key]);
         let v = self.vehicles.get_mut(key).expect("known vehicle");
-        if action_type == "stateRequest" {}
         let msg = InstantActions {
             header: Header::now(v.instant_header, &version, &v.manufacturer, &v.serial),
             instant_actions: vec![Action {
