@@ -6,6 +6,8 @@
 //! Needs `mosquitto` and `node` with `bridges/vda5050/tests/js/node_modules` (`.ci/run`
 //! installs them); skipped without them unless `MUSTER_REQUIRE_VDA5050` is set.
 
+#![allow(clippy::unwrap_used)]
+
 mod common;
 
 use common::{find, free_tcp_port, skip, Fed, Proc};
