@@ -220,6 +220,14 @@ impl DeliveryCore {
         }
     }
 
+    /// Drops the goal and halts where it is (a cancelled or paused order); the home
+    /// timer starts.
+    pub fn halt(&mut self, now: f64) {
+        self.nav.clear();
+        self.task = Task::None;
+        self.idle_since = now;
+    }
+
     /// Nobody is tasking the robot any more (its session ended): the home timer starts.
     pub fn untasked(&mut self, now: f64) {
         self.idle_since = now;

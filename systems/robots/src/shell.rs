@@ -446,13 +446,15 @@ pub fn delivery_specs(opts: &DeliveryOptions) -> Vec<ServiceSpec> {
     }]
 }
 
-/// The delivery system as a [`SystemApp`].
-pub struct DeliveryApp {
+/// The delivery robot's control loop on one robot: reads each sensor sample, localizes
+/// (or takes ground truth), steps the [`DeliveryCore`] and sends its velocity. The
+/// delivery system ([`DeliveryApp`]) drives it from muster sessions; a fleet bridge (VDA
+/// 5050) from orders.
+pub struct DeliveryDriver {
     link: Box<dyn RobotPort>,
     geometry: SensorGeometry,
     localizer: Option<Localizer>,
     core: DeliveryCore,
-    service: String,
     pose: Pose,
     after: f64,
     last_scan: f64,
@@ -466,35 +468,38 @@ pub struct DeliveryApp {
     latency: f64,
     latencies: Vec<f64>,
     robot: String,
-    /// Where the system shows its estimate and plan (recorders, viewers).
-    viz: Option<Viz>,
 }
 
-impl DeliveryApp {
-    /// Builds the system for `opts`, driving the robot behind `link` (the simulator's
-    /// shared memory, ROS 2 topics, ...).
-    pub fn new(link: Box<dyn RobotPort>, opts: &DeliveryOptions) -> Result<Self, RobotSystemError> {
+impl DeliveryDriver {
+    /// Drives the robot behind `link` (the simulator's shared memory, ROS 2 topics, ...)
+    /// as robot `robot`, localizing unless `ground_truth`.
+    pub fn new(
+        link: Box<dyn RobotPort>,
+        robot: &str,
+        ground_truth: bool,
+        params: DeliveryParams,
+        seed: u64,
+    ) -> Result<Self, RobotSystemError> {
         let d = link.description().clone();
         let geometry = d.sensors.clone();
         if geometry.laser.is_none() {
-            return Err(RobotSystemError::MissingSensor(opts.robot.clone(), "laser"));
+            return Err(RobotSystemError::MissingSensor(robot.to_string(), "laser"));
         }
-        let core = DeliveryCore::for_robot(&d, opts.params.clone());
+        let core = DeliveryCore::for_robot(&d, params);
         let (start, map) = (d.start, d.map);
-        let localizer = (!opts.ground_truth).then(|| {
+        let localizer = (!ground_truth).then(|| {
             Localizer::new(
                 Arc::new(LikelihoodField::new(&map, 1.0)),
                 start,
                 LocalizerParams::default(),
-                opts.seed,
+                seed,
             )
         });
-        Ok(DeliveryApp {
+        Ok(DeliveryDriver {
             link,
             geometry,
             localizer,
             core,
-            service: opts.service.clone(),
             pose: start,
             after: f64::NEG_INFINITY,
             last_scan: f64::NEG_INFINITY,
@@ -504,45 +509,58 @@ impl DeliveryApp {
             last_command: (0.0, 0.0),
             latency: 0.0,
             latencies: Vec::new(),
-            robot: opts.robot.clone(),
-            viz: None,
+            robot: robot.to_string(),
         })
     }
 
-    /// Shows the robot's estimated pose and planned path on `writer` (as system
-    /// `system`).
-    pub fn show_on(&mut self, writer: VizWriter, system: &str) {
-        self.viz = Some(Viz::new(writer, system));
+    /// The robot's name.
+    pub fn robot(&self) -> &str {
+        &self.robot
     }
 
-    fn show(&mut self) {
-        let now = self.now;
-        let Some(viz) = self.viz.as_mut().filter(|v| v.next <= now) else {
-            return;
-        };
-        let plans = self
-            .core
-            .goal()
-            .map(|goal| PlanView {
-                robot: self.robot.clone(),
-                goal,
-                path: self.core.path().to_vec(),
-            })
-            .into_iter()
-            .collect();
-        let view = SystemView {
-            system: viz.system.clone(),
-            t: self.now,
-            robots: vec![RobotEstimate {
-                name: self.robot.clone(),
-                x: self.pose.x,
-                y: self.pose.y,
-                theta: self.pose.theta,
-            }],
-            tracks: Vec::new(),
-            plans,
-        };
-        viz.publish(view);
+    /// What the robot is.
+    pub fn description(&self) -> &crate::port::RobotDescription {
+        self.link.description()
+    }
+
+    /// The descriptor readable when the robot has a new sample.
+    pub fn fd(&self) -> RawFd {
+        self.link.fd()
+    }
+
+    /// The pose estimate.
+    pub fn pose(&self) -> Pose {
+        self.pose
+    }
+
+    /// The newest sample's sim time, s.
+    pub fn now(&self) -> f64 {
+        self.now
+    }
+
+    /// The last velocity sent (v m/s, w rad/s).
+    pub fn last_command(&self) -> (f64, f64) {
+        self.last_command
+    }
+
+    /// The task logic (goal, path, arrivals).
+    pub fn core(&self) -> &DeliveryCore {
+        &self.core
+    }
+
+    /// A new goal (it replaces the current one).
+    pub fn set_goal(&mut self, goal: (f64, f64)) -> Vec<DeliveryEvent> {
+        self.core.set_goal(self.now, self.pose, goal)
+    }
+
+    /// Drops the goal and halts.
+    pub fn halt(&mut self) {
+        self.core.halt(self.now);
+    }
+
+    /// Nobody is tasking the robot any more: the home timer starts.
+    pub fn untasked(&mut self) {
+        self.core.untasked(self.now);
     }
 
     /// Localization error against ground truth.
@@ -558,9 +576,141 @@ impl DeliveryApp {
         serde_json::json!({"samples": s.len(), "p50_s": q(0.5), "p99_s": q(0.99), "max_s": q(1.0)})
     }
 
+    /// One control step on the robot's newest sample, if there is a new one (call when
+    /// [`DeliveryDriver::fd`] is readable): what the task logic reported.
+    pub fn step(&mut self, tasked: bool) -> Option<Vec<DeliveryEvent>> {
+        self.link.drain();
+        let sample = match self.link.latest(self.after) {
+            Ok(Some(s)) => s,
+            Ok(None) => return None,
+            Err(e) => {
+                tracing::warn!("{e}");
+                return None;
+            }
+        };
+        self.after = sample.time;
+        self.now = sample.time;
+        match &mut self.localizer {
+            Some(l) => {
+                l.handle_odometry(sample.odom);
+                if let Some(scan) = self.geometry.scan(&sample) {
+                    l.handle_scan(sample.laser_time, &scan);
+                }
+                self.pose = l.estimate();
+            }
+            None => self.pose = sample.truth,
+        }
+        if sample.laser_time > self.last_scan {
+            self.last_scan = sample.laser_time;
+            self.stats.add(self.pose, sample.truth);
+        }
+        let obstacles = self.geometry.obstacle_points(&sample, 3.5);
+        if sample.bumped && !self.bumped {
+            // A contact: say what the robot saw and did, to find out why.
+            let nearest = obstacles
+                .iter()
+                .map(|(x, y)| (x.hypot(*y), y.atan2(*x).to_degrees()))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            tracing::warn!(
+                t = sample.time,
+                pose = ?self.pose,
+                last_command = ?self.last_command,
+                ?nearest,
+                "contact: the robot's move was cut short"
+            );
+        }
+        self.bumped = sample.bumped;
+        let ((v, w), events) = self.core.step(sample.time, self.pose, &obstacles, tasked);
+        self.last_command = (v, w);
+        if let Err(e) = self.link.velocity(v, w) {
+            tracing::warn!("{e}");
+        }
+        let lag = command_lag(self.link.as_mut(), sample.time);
+        if self.latencies.len() < 200_000 {
+            self.latencies.push(lag);
+        }
+        self.latency = latency_peak(self.latency, lag);
+        self.core.set_latency(self.latency);
+        Some(events)
+    }
+}
+
+/// The delivery system as a [`SystemApp`].
+pub struct DeliveryApp {
+    driver: DeliveryDriver,
+    service: String,
+    /// Where the system shows its estimate and plan (recorders, viewers).
+    viz: Option<Viz>,
+}
+
+impl DeliveryApp {
+    /// Builds the system for `opts`, driving the robot behind `link` (the simulator's
+    /// shared memory, ROS 2 topics, ...).
+    pub fn new(link: Box<dyn RobotPort>, opts: &DeliveryOptions) -> Result<Self, RobotSystemError> {
+        Ok(DeliveryApp {
+            driver: DeliveryDriver::new(
+                link,
+                &opts.robot,
+                opts.ground_truth,
+                opts.params.clone(),
+                opts.seed,
+            )?,
+            service: opts.service.clone(),
+            viz: None,
+        })
+    }
+
+    /// Shows the robot's estimated pose and planned path on `writer` (as system
+    /// `system`).
+    pub fn show_on(&mut self, writer: VizWriter, system: &str) {
+        self.viz = Some(Viz::new(writer, system));
+    }
+
+    fn show(&mut self) {
+        let d = &self.driver;
+        let now = d.now();
+        let Some(viz) = self.viz.as_mut().filter(|v| v.next <= now) else {
+            return;
+        };
+        let plans = d
+            .core()
+            .goal()
+            .map(|goal| PlanView {
+                robot: d.robot().to_string(),
+                goal,
+                path: d.core().path().to_vec(),
+            })
+            .into_iter()
+            .collect();
+        let pose = d.pose();
+        let view = SystemView {
+            system: viz.system.clone(),
+            t: now,
+            robots: vec![RobotEstimate {
+                name: d.robot().to_string(),
+                x: pose.x,
+                y: pose.y,
+                theta: pose.theta,
+            }],
+            tracks: Vec::new(),
+            plans,
+        };
+        viz.publish(view);
+    }
+
+    /// Localization error against ground truth.
+    pub fn localization(&self) -> &LocalizationStats {
+        self.driver.localization()
+    }
+
+    /// The controller's latency: `{samples, p50_s, p99_s, max_s}`.
+    pub fn latency_summary(&self) -> serde_json::Value {
+        self.driver.latency_summary()
+    }
+
     /// Goals reached.
     pub fn arrivals(&self) -> u64 {
-        self.core.arrivals()
+        self.driver.core().arrivals()
     }
 
     fn tell(&self, core: &mut SystemCore, events: Vec<DeliveryEvent>) {
@@ -622,7 +772,7 @@ impl SystemApp for DeliveryApp {
                 session, payload, ..
             } => match payload.convert_to("goal2d") {
                 Some(Payload::Goal2d { x, y }) if x.is_finite() && y.is_finite() => {
-                    let ev = self.core.set_goal(self.now, self.pose, (x, y));
+                    let ev = self.driver.set_goal((x, y));
                     self.tell(core, ev);
                 }
                 _ => core.status(
@@ -631,7 +781,7 @@ impl SystemApp for DeliveryApp {
                 ),
             },
             SystemEvent::SessionEnded { .. } if core.sessions_of(&self.service) == 0 => {
-                self.core.untasked(self.now);
+                self.driver.untasked();
             }
             _ => {}
         }
@@ -644,65 +794,15 @@ impl SystemApp for DeliveryApp {
     }
 
     fn descriptors(&self) -> Vec<RawFd> {
-        vec![self.link.fd()]
+        vec![self.driver.fd()]
     }
 
     fn on_ready(&mut self, core: &mut SystemCore, _now: Duration, _index: usize) {
-        self.link.drain();
-        let sample = match self.link.latest(self.after) {
-            Ok(Some(s)) => s,
-            Ok(None) => return,
-            Err(e) => {
-                tracing::warn!("{e}");
-                return;
-            }
-        };
-        self.after = sample.time;
-        self.now = sample.time;
-        match &mut self.localizer {
-            Some(l) => {
-                l.handle_odometry(sample.odom);
-                if let Some(scan) = self.geometry.scan(&sample) {
-                    l.handle_scan(sample.laser_time, &scan);
-                }
-                self.pose = l.estimate();
-            }
-            None => self.pose = sample.truth,
-        }
-        if sample.laser_time > self.last_scan {
-            self.last_scan = sample.laser_time;
-            self.stats.add(self.pose, sample.truth);
-        }
-        let obstacles = self.geometry.obstacle_points(&sample, 3.5);
-        if sample.bumped && !self.bumped {
-            // A contact: say what the robot saw and did, to find out why.
-            let nearest = obstacles
-                .iter()
-                .map(|(x, y)| (x.hypot(*y), y.atan2(*x).to_degrees()))
-                .min_by(|a, b| a.0.total_cmp(&b.0));
-            tracing::warn!(
-                t = sample.time,
-                pose = ?self.pose,
-                last_command = ?self.last_command,
-                ?nearest,
-                "contact: the robot's move was cut short"
-            );
-        }
-        self.bumped = sample.bumped;
         let tasked = core.sessions_of(&self.service) > 0;
-        let ((v, w), events) = self.core.step(sample.time, self.pose, &obstacles, tasked);
-        self.last_command = (v, w);
-        if let Err(e) = self.link.velocity(v, w) {
-            tracing::warn!("{e}");
+        if let Some(events) = self.driver.step(tasked) {
+            self.tell(core, events);
+            self.show();
         }
-        let lag = command_lag(self.link.as_mut(), sample.time);
-        if self.latencies.len() < 200_000 {
-            self.latencies.push(lag);
-        }
-        self.latency = latency_peak(self.latency, lag);
-        self.core.set_latency(self.latency);
-        self.tell(core, events);
-        self.show();
     }
 }
 
