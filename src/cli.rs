@@ -47,6 +47,11 @@ pub enum Command {
     /// Run the simulator: every robot's kinematics and sensors, and people, published in
     /// shared memory. Also renders a picture, exports the map, or benchmarks.
     Sim(SimArgs),
+    /// The simulator's robots (or ROS 2 robots, `--ros2`) as VDA 5050 vehicles over
+    /// MQTT, driven by any master control: orders driven node by node with the delivery
+    /// robot's planner and safety; state, visualization, connection (last will) and
+    /// factsheet published; instant actions answered.
+    Agv(AgvArgs),
     /// Benchmarks that print figures.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -902,6 +907,40 @@ pub enum SystemCommand {
     /// A VDA 5050 fleet's vehicles as muster services (over MQTT): per vehicle, a
     /// command service (a goal becomes an order) and a data service (its state).
     Vda5050(Vda5050SystemArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct AgvArgs {
+    /// The MQTT broker, HOST:PORT.
+    #[arg(long)]
+    pub mqtt: String,
+    /// The robots (each one vehicle, its serial number the robot's name).
+    #[arg(long, value_delimiter = ',', default_value = "D1")]
+    pub robots: Vec<String>,
+    /// `interfaceName` of the topics.
+    #[arg(long, default_value = "uagv")]
+    pub interface: String,
+    /// The vehicles' manufacturer.
+    #[arg(long, default_value = "muster")]
+    pub manufacturer: String,
+    /// The VDA 5050 version written (2.x.y; vda-5050-lib speaks 2.0.0).
+    #[arg(long, default_value = "2.1.0")]
+    pub vda_version: String,
+    /// The map id of the robots' positions (orders must use it).
+    #[arg(long, default_value = "muster")]
+    pub map_id: String,
+    /// A node is reached within this distance, m (unless the order allows more); a new
+    /// order's first node must be this close.
+    #[arg(long, default_value_t = 0.5)]
+    pub deviation: f64,
+    /// State at least this often (VDA 5050: at most 30 s).
+    #[arg(long, default_value = "30s", value_parser = duration)]
+    pub state_every: Duration,
+    /// Visualization this often (`0s`: none).
+    #[arg(long, default_value = "1s", value_parser = duration)]
+    pub visualization_every: Duration,
+    #[command(flatten)]
+    pub common: RobotSystemArgs,
 }
 
 #[derive(Args, Debug)]

@@ -77,7 +77,10 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let inst = Instance::new(&cli.instance).context("--instance")?;
     // Before any thread starts: Linux keeps a niceness per thread, and new threads
     // take their creator's.
-    let infrastructure = matches!(cli.command, Command::Broker(_) | Command::System(_));
+    let infrastructure = matches!(
+        cli.command,
+        Command::Broker(_) | Command::System(_) | Command::Agv(_)
+    );
     match (cli.nice, infrastructure) {
         (Some(n), _) => {
             if let Err(e) = muster_shared::reactor::set_nice(n) {
@@ -101,6 +104,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Up(a) => up::run(&inst, a),
         Command::Bench(b) => bench::run(&inst, b),
         Command::Sim(a) => sim::run(&inst, a),
+        Command::Agv(a) => system::agv(&inst, a),
         Command::Stress(a) => stress::run(&inst, a),
         Command::Keygen(a) => keygen::run(a),
         Command::Certs(a) => certs::run(a),

@@ -1,7 +1,8 @@
 //! `muster system ...`.
 
 use crate::cli::{
-    DeliveryArgs, RobotSystemArgs, Ros2SystemArgs, SystemCommand, TrackingArgs, Vda5050SystemArgs,
+    AgvArgs, DeliveryArgs, RobotSystemArgs, Ros2SystemArgs, SystemCommand, TrackingArgs,
+    Vda5050SystemArgs,
 };
 use anyhow::Context;
 use muster_robots::port::RobotPort;
@@ -113,6 +114,60 @@ fn ros2(inst: &Instance, a: Ros2SystemArgs) -> anyhow::Result<ExitCode> {
         ..Default::default()
     };
     muster_systems::run_system_with(inst, core, app, &run)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `muster agv`: the robots as VDA 5050 vehicles.
+pub fn agv(inst: &Instance, a: AgvArgs) -> anyhow::Result<ExitCode> {
+    use muster_robots::delivery::DeliveryParams;
+    use muster_robots::shell::DeliveryDriver;
+    use muster_vda5050::agv::{run_agvs, AgvOptions};
+    anyhow::ensure!(
+        a.deviation.is_finite() && a.deviation > 0.0,
+        "--deviation must be > 0"
+    );
+    anyhow::ensure!(!a.state_every.is_zero(), "--state-every must be > 0");
+    anyhow::ensure!(!a.robots.is_empty(), "--robots: name one at least");
+    let opts = AgvOptions {
+        mqtt: a.mqtt,
+        interface: a.interface,
+        manufacturer: a.manufacturer,
+        version: a.vda_version,
+        map_id: a.map_id,
+        deviation: a.deviation,
+        state_every: a.state_every,
+        visualization_every: (!a.visualization_every.is_zero()).then_some(a.visualization_every),
+    };
+    let node = muster_shared::ipc::create_node("muster-agv", false)?;
+    let robots: Vec<(String, String)> = a
+        .robots
+        .iter()
+        .map(|r| (r.clone(), format!("/{r}")))
+        .collect();
+    let ports = robot_ports(inst, &node, &a.common, "agv", &robots, false)?;
+    let params = DeliveryParams {
+        // A node is reached within the deviation; no going home between orders.
+        arrival: a.deviation,
+        home_after: f64::INFINITY,
+        ..DeliveryParams::default()
+    };
+    let drivers = ports
+        .into_iter()
+        .zip(&a.robots)
+        .map(|(port, robot)| {
+            DeliveryDriver::new(
+                port,
+                robot,
+                a.common.ground_truth,
+                params.clone(),
+                a.common.seed,
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let stats = run_agvs(&opts, drivers)?;
+    if a.common.stats_json {
+        out!("{}", serde_json::to_string(&stats)?);
+    }
     Ok(ExitCode::SUCCESS)
 }
 

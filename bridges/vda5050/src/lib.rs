@@ -7,6 +7,7 @@
 //! or the configured one before it said any. Every message read or written is checked
 //! ([`msg::decode`], [`msg::encode`]); one that breaks the rules is logged and dropped.
 
+pub mod agv;
 pub mod fleet;
 pub mod graph;
 pub mod mqtt;

@@ -558,6 +558,16 @@ impl DeliveryDriver {
         self.core.halt(self.now);
     }
 
+    /// Drops the goal and stops the robot now (not at the next sample): for a
+    /// controller about to go away.
+    pub fn stop(&mut self) {
+        self.core.halt(self.now);
+        self.last_command = (0.0, 0.0);
+        if let Err(e) = self.link.velocity(0.0, 0.0) {
+            tracing::warn!("{e}");
+        }
+    }
+
     /// Nobody is tasking the robot any more: the home timer starts.
     pub fn untasked(&mut self) {
         self.core.untasked(self.now);

@@ -13,14 +13,10 @@
 // ends without a word: the broker sends each vehicle's last will, CONNECTIONBROKEN).
 "use strict";
 const { AgvController, VirtualAgvAdapter } = require("vda-5050-lib");
-const validators = require("vda-5050-lib/common/vda-5050-validators-2.0");
-const mqtt = require("mqtt");
+const { startSniffer, parseArgs } = require("./sniffer");
 const readline = require("readline");
 
-const args = {};
-for (let i = 2; i < process.argv.length; i += 2) {
-  args[process.argv[i].replace(/^--/, "")] = process.argv[i + 1];
-}
+const args = parseArgs();
 const broker = args.broker;
 const iface = args.interface || "uagv";
 const manufacturer = args.manufacturer || "acme";
@@ -29,51 +25,7 @@ const speed = parseFloat(args.speed || "2");
 const stateEvery = parseInt(args["state-every-ms"] || "30000", 10);
 const say = (o) => process.stdout.write(JSON.stringify(o) + "\n");
 
-const check = {
-  connection: validators.validateConnection,
-  state: validators.validateState,
-  order: validators.validateOrder,
-  instantActions: validators.validateInstantActions,
-  visualization: validators.validateVisualization,
-  factsheet: validators.validateFactsheet,
-};
-const counts = { checked: 0, invalid: 0, byTopic: {} };
-
-const sniffer = mqtt.connect(broker, { clientId: `sniffer-${process.pid}` });
-sniffer.on("message", (topic, payload) => {
-  const levels = topic.split("/");
-  const kind = levels[4];
-  const validate = check[kind];
-  if (!validate) return;
-  let obj;
-  try {
-    obj = JSON.parse(payload.toString());
-  } catch (e) {
-    counts.invalid++;
-    say({ event: "invalid", topic, reason: "not JSON" });
-    return;
-  }
-  counts.checked++;
-  counts.byTopic[kind] = (counts.byTopic[kind] || 0) + 1;
-  if (!validate(obj)) {
-    counts.invalid++;
-    say({ event: "invalid", topic, reason: JSON.stringify(validate.errors), payload: obj });
-  }
-  if (kind === "state") {
-    say({
-      event: "state", serial: levels[3], orderId: obj.orderId, orderUpdateId: obj.orderUpdateId,
-      lastNodeId: obj.lastNodeId, lastNodeSequenceId: obj.lastNodeSequenceId,
-      nodeStates: obj.nodeStates.map((n) => n.nodeId), driving: obj.driving,
-      x: obj.agvPosition && obj.agvPosition.x, y: obj.agvPosition && obj.agvPosition.y,
-      errors: obj.errors.map((e) => e.errorType + ": " + (e.errorDescription || "")),
-      actions: obj.actionStates.map((a) => `${a.actionType}:${a.actionStatus}`),
-      headerId: obj.headerId,
-    });
-  }
-  if (kind === "order" || kind === "instantActions") {
-    say({ event: kind, serial: levels[3], message: obj });
-  }
-});
+const sniffer = startSniffer(broker, iface, say);
 
 const agvs = {};
 function makeAgv(serial) {
@@ -86,7 +38,7 @@ function makeAgv(serial) {
 }
 
 async function main() {
-  await new Promise((ok) => sniffer.subscribe(`${iface}/#`, { qos: 1 }, ok));
+  await sniffer.ready;
   for (let i = 1; i <= count; i++) {
     const serial = `agv${i}`;
     agvs[serial] = makeAgv(serial);
@@ -108,9 +60,9 @@ readline.createInterface({ input: process.stdin }).on("line", async (line) => {
     } else if (cmd === "raw") {
       // raw TOPIC JSON: a message from nobody's vehicle (a test's hostile input).
       const rest = line.trim().split(/\s+/).slice(2).join(" ");
-      sniffer.publish(serial, rest, { qos: 1 }, () => say({ event: "sent", topic: serial }));
+      sniffer.client.publish(serial, rest, { qos: 1 }, () => say({ event: "sent", topic: serial }));
     } else if (cmd === "stats") {
-      say({ event: "checked", ...counts });
+      say({ event: "checked", ...sniffer.counts });
     } else if (cmd === "exit") {
       process.exit(0);
     }
