@@ -448,3 +448,258 @@ fn a_vda5050_vehicle_is_listed_driven_by_a_users_goals_cancelled_and_withdrawn_w
     assert_eq!(counts["cancels"], 1, "{counts}");
     assert!(counts["orders"].as_u64().unwrap() >= 5, "{counts}");
 }
+
+/// A headerless order: `nodes` as (id, sequence id, x, y, released), each edge joining
+/// two neighbours (released with its end node).
+fn order(id: &str, update: u32, nodes: &[(&str, u32, f64, f64, bool)]) -> String {
+    let ns: Vec<Value> = nodes
+        .iter()
+        .map(|(n, seq, x, y, rel)| {
+            serde_json::json!({"nodeId": n, "sequenceId": seq, "released": rel, "actions": [],
+                "nodePosition": {"x": x, "y": y, "mapId": "muster"}})
+        })
+        .collect();
+    let es: Vec<Value> = nodes
+        .windows(2)
+        .map(|w| {
+            serde_json::json!({"edgeId": format!("{}-{}", w[0].0, w[1].0), "sequenceId": w[0].1 + 1,
+                "released": w[1].4, "startNodeId": w[0].0, "endNodeId": w[1].0, "actions": []})
+        })
+        .collect();
+    serde_json::json!({"orderId": id, "orderUpdateId": update, "nodes": ns, "edges": es})
+        .to_string()
+}
+
+/// The master's events up to `orderProcessed` of `id`: the nodes traversed, and that.
+fn processed(p: &mut Proc, id: &str, timeout: Duration) -> (Vec<String>, Value) {
+    let mut nodes = Vec::new();
+    let deadline = Instant::now() + timeout;
+    loop {
+        let v = wait_for(p, deadline.saturating_duration_since(Instant::now()), |v| {
+            v["event"] == "nodeTraversed" || (v["event"] == "orderProcessed" && v["orderId"] == id)
+        });
+        if v["event"] == "orderProcessed" {
+            return (nodes, v);
+        }
+        nodes.push(v["nodeId"].as_str().unwrap().to_string());
+    }
+}
+
+fn connection_state(p: &mut Proc, state: &str, timeout: Duration) -> Value {
+    wait_for(p, timeout, |v| {
+        v["event"] == "connection"
+            && v["serial"] == "D1"
+            && v["message"]["connectionState"] == state
+    })
+}
+
+#[test]
+fn a_simulated_robot_is_a_vda5050_vehicle_that_vda_5050_libs_master_control_drives() {
+    if !peers_here() {
+        return;
+    }
+    let mut f = Fed::new("vda2");
+    let mqtt = mosquitto(&mut f);
+    let iface = format!("u{}", std::process::id());
+    f.spawn(&["sim", "--speed", "3"]);
+    let agv_args = [
+        "agv",
+        "--mqtt",
+        &mqtt,
+        "--interface",
+        &iface,
+        "--robots",
+        "D1",
+        "--vda-version",
+        "2.0.0",
+        "--stats-json",
+    ];
+    let agv = f.spawn(&agv_args);
+    let mut c = Command::new("node");
+    c.current_dir(JS).arg("master.js").args([
+        "--broker",
+        &format!("mqtt://{mqtt}"),
+        "--interface",
+        &iface,
+        "--manufacturer",
+        "muster",
+        "--serial",
+        "D1",
+    ]);
+    let master = f.spawn_command(c);
+    let p = f.proc(master);
+    // The retained connection says ONLINE (whether it came before the master or after).
+    connection_state(p, "ONLINE", 30 * SEC);
+    wait_event(p, "ready", 20 * SEC);
+
+    // An order along the corridor from where D1 stands: every node traversed, in order,
+    // and processed without error within the deviation of the last node.
+    let o1 = order(
+        "o1",
+        0,
+        &[
+            ("n0", 0, 30.0, 3.0, true),
+            ("n1", 2, 26.0, 3.0, true),
+            ("n2", 4, 22.0, 3.0, true),
+        ],
+    );
+    p.send(&format!("order {o1}"));
+    let (nodes, done) = processed(p, "o1", 60 * SEC);
+    assert_eq!(nodes, ["n0", "n1", "n2"]);
+    assert_eq!(done["withError"], Value::Null, "{done}");
+    assert_eq!(
+        (done["active"].clone(), done["byCancelation"].clone()),
+        (false.into(), false.into())
+    );
+    assert_eq!(done["lastNodeId"], "n2");
+    assert!(
+        (done["x"].as_f64().unwrap() - 22.0).hypot(done["y"].as_f64().unwrap() - 3.0) <= 0.5,
+        "{done}"
+    );
+
+    // An update stitched on n2 with a horizon: the base is driven, then the vehicle
+    // waits (processed, still active); the next update releases the horizon.
+    let u1 = order(
+        "o1",
+        1,
+        &[
+            ("n2", 4, 22.0, 3.0, true),
+            ("n3", 6, 19.0, 3.0, true),
+            ("n4", 8, 16.0, 3.0, false),
+        ],
+    );
+    p.send(&format!("order {u1}"));
+    let (nodes, done) = processed(p, "o1", 60 * SEC);
+    // The library counts an order's first node traversed at once (the vehicle is on it).
+    assert_eq!(nodes, ["n2", "n3"]);
+    assert_eq!(done["active"], true, "only the horizon is left: {done}");
+    let u2 = order(
+        "o1",
+        2,
+        &[("n3", 6, 19.0, 3.0, true), ("n4", 8, 16.0, 3.0, true)],
+    );
+    p.send(&format!("order {u2}"));
+    let (nodes, done) = processed(p, "o1", 60 * SEC);
+    // (still the active order to the library: n3 is not reported again)
+    assert_eq!(nodes, ["n4"]);
+    assert_eq!(
+        (done["active"].clone(), done["withError"].clone()),
+        (false.into(), Value::Null)
+    );
+
+    // Paused while driving: stops; resumed: arrives.
+    let o2 = order(
+        "o2",
+        0,
+        &[("n4", 0, 16.0, 3.0, true), ("n5", 2, 10.0, 3.0, true)],
+    );
+    p.send(&format!("order {o2}"));
+    state_until(p, 30 * SEC, |s| {
+        s["orderId"] == "o2" && s["driving"] == true
+    });
+    p.send("instant startPause");
+    let paused = state_until(p, 10 * SEC, |s| {
+        s["paused"] == true && s["driving"] == false
+    });
+    assert!(
+        paused["x"].as_f64().unwrap() > 10.5,
+        "stopped before n5: {paused}"
+    );
+    // Once it has come to rest (its last command was under way), it stays.
+    let mut at = Vec::new();
+    for _ in 0..2 {
+        std::thread::sleep(SEC);
+        p.send("instant stateRequest");
+        let s = state_until(p, 10 * SEC, |s| {
+            s["actions"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|a| *a == "stateRequest:FINISHED")
+                .count()
+                > at.len()
+        });
+        at.push(s["x"].as_f64().unwrap());
+    }
+    assert!((at[1] - at[0]).abs() < 0.02, "moved while paused: {at:?}");
+    assert!(at[1] > 10.5, "{at:?}");
+    p.send("instant stopPause");
+    let (nodes, done) = processed(p, "o2", 60 * SEC);
+    // (n4's report went by while the test waited for the pause)
+    assert_eq!(nodes.last().map(String::as_str), Some("n5"), "{nodes:?}");
+    assert_eq!(done["withError"], Value::Null, "{done}");
+
+    // Cancelled while driving.
+    let o3 = order(
+        "o3",
+        0,
+        &[("n5", 0, 10.0, 3.0, true), ("n6", 2, 24.0, 3.0, true)],
+    );
+    p.send(&format!("order {o3}"));
+    state_until(p, 30 * SEC, |s| {
+        s["orderId"] == "o3" && s["driving"] == true
+    });
+    p.send("instant cancelOrder");
+    let (_, done) = processed(p, "o3", 30 * SEC);
+    assert_eq!(done["byCancelation"], true, "{done}");
+    let stopped = state_until(p, 10 * SEC, |s| s["driving"] == false);
+    assert!(stopped["nodeStates"].as_array().unwrap().is_empty());
+    assert!(stopped["x"].as_f64().unwrap() < 23.0, "{stopped}");
+
+    // Refused: a new order whose first node is not where the vehicle stands.
+    let far = order(
+        "o4",
+        0,
+        &[("f0", 0, 5.0, 15.0, true), ("f1", 2, 6.0, 15.0, true)],
+    );
+    p.send(&format!("order {far}"));
+    let (_, done) = processed(p, "o4", 30 * SEC);
+    let err = done["withError"].as_str().unwrap_or_default();
+    assert!(err.starts_with("noRouteError"), "{done}");
+
+    // A message breaking the schema is refused by the vehicle, which says so in its
+    // state (a validationError); the sniffer flags it too: the one invalid message.
+    p.send(&format!(
+        "raw {iface}/v2/muster/D1/order {{\"orderId\": 5}}"
+    ));
+    let deadline = Instant::now() + 10 * SEC;
+    let (mut said, mut flagged) = (false, false);
+    while !(said && flagged) {
+        let v = p
+            .json(deadline.saturating_duration_since(Instant::now()))
+            .expect("the vehicle's and the sniffer's word on the bad order");
+        flagged |= v["event"] == "invalid" && v["payload"]["orderId"] == 5;
+        said |= v["event"] == "state"
+            && v["errors"].as_array().unwrap().iter().any(|e| {
+                e.as_str()
+                    .unwrap()
+                    .starts_with("validationError: not a valid order message")
+            });
+    }
+    p.send("stats");
+    let stats = wait_for(p, 5 * SEC, |v| v["event"] == "checked");
+    assert_eq!(stats["invalid"], 1, "{stats}");
+    for topic in [
+        "order",
+        "instantActions",
+        "state",
+        "connection",
+        "factsheet",
+        "visualization",
+    ] {
+        assert!(
+            stats["byTopic"][topic].as_u64().unwrap_or(0) >= 1,
+            "no {topic}: {stats}"
+        );
+    }
+
+    // Stopped in order: OFFLINE; killed: the broker's last will, CONNECTIONBROKEN.
+    f.proc(agv).signal(libc::SIGTERM);
+    connection_state(f.proc(master), "OFFLINE", 10 * SEC);
+    let counts = f.proc(agv).json(10 * SEC).expect("the vehicles' counters");
+    assert_eq!(counts["invalid"], 1, "{counts}");
+    let again = f.spawn(&agv_args);
+    connection_state(f.proc(master), "ONLINE", 30 * SEC);
+    f.proc(again).signal(libc::SIGKILL);
+    connection_state(f.proc(master), "CONNECTIONBROKEN", 15 * SEC);
+}

@@ -256,8 +256,9 @@ impl AgvCore {
                 return false;
             }
         }
-        // Accepted: errors of earlier orders go, the horizon held is replaced.
-        self.errors.retain(|e| e.reference("orderId").is_none());
+        // Accepted: errors of earlier orders and messages go, the horizon held is replaced.
+        self.errors
+            .retain(|e| e.reference("orderId").is_none() && e.error_type != "validationError");
         let stitching = o.order_id == self.order_id || self.active();
         self.order_id = o.order_id.clone();
         self.order_update_id = o.order_update_id;
@@ -360,6 +361,19 @@ impl AgvCore {
             ],
             error_description: Some(why.chars().take(200).collect()),
             error_level: ErrorLevel::Fatal,
+        });
+        self.dirty = true;
+    }
+
+    /// A message on `topic` was refused (bad JSON, broken rules, another vehicle's): the
+    /// state says so with a `validationError` (the newest one only).
+    pub fn invalid_message(&mut self, topic: &str, why: &str) {
+        self.errors.retain(|e| e.error_type != "validationError");
+        self.errors.push(VdaError {
+            error_type: "validationError".into(),
+            error_references: vec![reference("topic", topic.to_string())],
+            error_description: Some(why.chars().take(200).collect()),
+            error_level: ErrorLevel::Warning,
         });
         self.dirty = true;
     }
@@ -718,7 +732,9 @@ impl Vehicle {
     }
 
     fn on_mqtt(&mut self, opts: &AgvOptions) {
-        for m in self.link.drain() {
+        let got = self.link.drain();
+        tracing::trace!(n = got.len(), "MQTT drained");
+        for m in got {
             match m {
                 Incoming::Connected => {
                     self.publish_connection(ConnectionState::Online);
@@ -779,6 +795,7 @@ impl Vehicle {
             if self.invalid <= 20 || self.invalid.is_power_of_two() {
                 tracing::warn!(%topic, invalid = self.invalid, "VDA 5050 message refused: {why}");
             }
+            self.core.invalid_message(kind, &why);
         }
     }
 }
@@ -865,6 +882,7 @@ pub fn run_agvs(opts: &AgvOptions, drivers: Vec<DeliveryDriver>) -> Result<AgvSt
         let ready = reactor
             .wait(Some(next.saturating_duration_since(now)))
             .map_err(os)?;
+        tracing::trace!(?ready, "woke");
         if ready.contains(&SIGNAL) && signals.drain() {
             break;
         }

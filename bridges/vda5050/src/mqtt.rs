@@ -110,10 +110,11 @@ impl MqttLink {
                     ok
                 };
                 let mut down_said = false;
+                // A blocking receive: a timeout around it would drop the event loop's
+                // poll half way through a packet. `close` wakes it with a disconnect.
                 while !stopping.load(Ordering::Relaxed) {
-                    let event = match connection.recv_timeout(Duration::from_millis(200)) {
-                        Err(rumqttc::RecvTimeoutError::Timeout) => continue,
-                        Err(rumqttc::RecvTimeoutError::Disconnected) => break,
+                    let event = match connection.recv() {
+                        Err(_) => break, // every client handle is gone
                         Ok(e) => e,
                     };
                     let m = match event {
@@ -128,11 +129,14 @@ impl MqttLink {
                             }
                             Incoming::Connected
                         }
-                        Ok(Event::Incoming(Packet::Publish(p))) => Incoming::Publish {
-                            topic: p.topic,
-                            payload: p.payload.to_vec(),
-                            retained: p.retain,
-                        },
+                        Ok(Event::Incoming(Packet::Publish(p))) => {
+                            tracing::trace!(topic = %p.topic, bytes = p.payload.len(), "MQTT in");
+                            Incoming::Publish {
+                                topic: p.topic,
+                                payload: p.payload.to_vec(),
+                                retained: p.retain,
+                            }
+                        }
                         Ok(_) => continue,
                         Err(e) => {
                             if stopping.load(Ordering::Relaxed) {
@@ -189,10 +193,10 @@ impl MqttLink {
 
     /// Disconnects in order (no last will) and stops the thread.
     pub fn close(&mut self) {
-        let _ = self.client.try_disconnect();
-        // Give the disconnect a moment to go out before the thread is stopped.
-        std::thread::sleep(Duration::from_millis(50));
         self.stop.store(true, Ordering::Relaxed);
+        // The disconnect goes out through the thread's event loop, which wakes for it
+        // and sees the stop; while the broker is unreachable it is between tries.
+        let _ = self.client.try_disconnect();
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }
@@ -201,9 +205,8 @@ impl MqttLink {
 
 impl Drop for MqttLink {
     fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
+        if self.thread.is_some() {
+            self.close();
         }
     }
 }

@@ -10,6 +10,7 @@
 //                  {"event": "nodeTraversed", nodeId} as they come
 //   instant TYPE   initiateInstantActions() with one action of TYPE; prints
 //                  {"event": "instantActionState", actionType, actionStatus}
+//   raw TOPIC TEXT publishes TEXT as is (prints {"event": "sent"})
 //   stats          {"event": "checked", ...counts of checked messages}
 //   exit
 // The vehicle's connection states come as {"event": "connection", ...} (sniffer).
@@ -57,6 +58,11 @@ readline.createInterface({ input: process.stdin }).on("line", async (line) => {
         }),
         onActionError: (err) => say({ event: "instantActionError", error: String(err.errorDescription) }),
       });
+    } else if (cmd === "raw") {
+      // raw TOPIC TEXT: published as is (a test's hostile input).
+      const sp = rest.indexOf(" ");
+      const topic = rest.slice(0, sp);
+      sniffer.client.publish(topic, rest.slice(sp + 1), { qos: 1 }, () => say({ event: "sent", topic }));
     } else if (cmd === "stats") {
       say({ event: "checked", ...sniffer.counts });
     } else if (cmd === "exit") {
