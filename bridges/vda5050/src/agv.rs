@@ -925,3 +925,305 @@ pub fn run_agvs(opts: &AgvOptions, drivers: Vec<DeliveryDriver>) -> Result<AgvSt
     tracing::info!("VDA 5050 vehicles offline");
     Ok(stats)
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::msg::{BlockingType, NodePosition};
+
+    fn core() -> AgvCore {
+        AgvCore::new(&AgvOptions::new("x:1"), "D1")
+    }
+
+    fn node(id: &str, seq: u32, x: f64, released: bool) -> Node {
+        Node {
+            node_id: id.into(),
+            sequence_id: seq,
+            node_description: None,
+            released,
+            node_position: Some(NodePosition {
+                x,
+                y: 0.0,
+                theta: None,
+                allowed_deviation_x_y: None,
+                allowed_deviation_theta: None,
+                map_id: "muster".into(),
+                map_description: None,
+            }),
+            actions: vec![],
+        }
+    }
+
+    fn order(id: &str, update: u32, nodes: Vec<Node>) -> Order {
+        let edges = nodes
+            .windows(2)
+            .map(|w| Edge {
+                edge_id: format!("{}{}", w[0].node_id, w[1].node_id),
+                sequence_id: w[0].sequence_id + 1,
+                edge_description: None,
+                released: w[1].released,
+                start_node_id: w[0].node_id.clone(),
+                end_node_id: w[1].node_id.clone(),
+                max_speed: None,
+                length: None,
+                actions: vec![],
+            })
+            .collect();
+        Order {
+            header: Header::now(7, "2.1.0", "muster", "D1"),
+            order_id: id.into(),
+            order_update_id: update,
+            zone_set_id: None,
+            nodes,
+            edges,
+        }
+    }
+
+    fn action(t: &str, id: &str) -> Action {
+        Action {
+            action_type: t.into(),
+            action_id: id.into(),
+            action_description: None,
+            blocking_type: BlockingType::None,
+            action_parameters: vec![],
+        }
+    }
+
+    fn instant(c: &mut AgvCore, t: &str, id: &str) -> Vec<Effect> {
+        c.instant(InstantActions {
+            header: Header::now(1, "2.1.0", "muster", "D1"),
+            instant_actions: vec![action(t, id)],
+        })
+    }
+
+    fn errors(c: &AgvCore) -> Vec<String> {
+        c.errors.iter().map(|e| e.error_type.clone()).collect()
+    }
+
+    fn status(c: &AgvCore, id: &str) -> Option<ActionStatus> {
+        c.actions
+            .iter()
+            .find(|a| a.action_id == id)
+            .map(|a| a.action_status)
+    }
+
+    #[test]
+    fn a_new_order_starts_where_the_vehicle_stands_and_is_driven_node_by_node() {
+        let mut c = core();
+        // Too far from the first node: refused, the error names the order.
+        assert!(!c.order(
+            order(
+                "o1",
+                0,
+                vec![node("a", 0, 5.0, true), node("b", 2, 9.0, true)]
+            ),
+            (0.0, 0.0)
+        ));
+        assert_eq!(errors(&c), ["noRouteError"]);
+        assert_eq!(c.errors[0].reference("orderId"), Some("o1"));
+        assert!(c.target().is_none());
+        // From here: the first node is traversed at once, the rest are driven in turn;
+        // the refusal of before is gone.
+        assert!(c.order(
+            order(
+                "o1",
+                0,
+                vec![
+                    node("a", 0, 0.2, true),
+                    node("b", 2, 4.0, true),
+                    node("c", 4, 8.0, true)
+                ]
+            ),
+            (0.0, 0.0)
+        ));
+        assert!(c.errors.is_empty());
+        let st = c.state(0, (0.0, 0.0, 0.0), (0.0, 0.0));
+        assert_eq!(
+            (st.last_node_id.as_str(), st.last_node_sequence_id),
+            ("a", 0)
+        );
+        let left: Vec<&str> = st.node_states.iter().map(|n| n.node_id.as_str()).collect();
+        assert_eq!(left, ["b", "c"]);
+        assert_eq!(st.edge_states.len(), 2);
+        assert_eq!(c.target(), Some((4.0, 0.0)));
+        c.reached();
+        assert_eq!(c.target(), Some((8.0, 0.0)));
+        c.reached();
+        assert_eq!(c.target(), None);
+        assert!(!c.active());
+        let st = c.state(1, (8.0, 0.0, 0.0), (0.0, 0.0));
+        assert!(st.node_states.is_empty() && st.edge_states.is_empty() && !st.driving);
+        assert_eq!(
+            (st.last_node_id.as_str(), st.last_node_sequence_id),
+            ("c", 4)
+        );
+        // What goes out passes the checks the other side makes.
+        msg::encode(&st).unwrap();
+    }
+
+    #[test]
+    fn updates_stitch_on_the_base_end_and_release_the_horizon() {
+        let mut c = core();
+        let base = vec![
+            node("a", 0, 0.0, true),
+            node("b", 2, 4.0, true),
+            node("c", 4, 8.0, false),
+        ];
+        assert!(c.order(order("o1", 0, base), (0.0, 0.0)));
+        assert!(c.active());
+        c.reached(); // b
+        assert_eq!(c.target(), None, "the horizon is not driven");
+        assert!(!c.active());
+        let st = c.state(0, (4.0, 0.0, 0.0), (0.0, 0.0));
+        assert_eq!(st.new_base_request, Some(true));
+        // The same update again: nothing changes.
+        assert!(!c.order(order("o1", 0, vec![node("a", 0, 0.0, true)]), (4.0, 0.0)));
+        // An update that does not start on the last base node: refused.
+        assert!(!c.order(
+            order(
+                "o1",
+                1,
+                vec![node("a", 0, 0.0, true), node("c", 2, 8.0, true)]
+            ),
+            (4.0, 0.0)
+        ));
+        assert_eq!(errors(&c), ["orderUpdateError"]);
+        // An older update: refused.
+        c.order_update_id = 3;
+        assert!(!c.order(
+            order(
+                "o1",
+                2,
+                vec![node("b", 2, 4.0, true), node("c", 4, 8.0, true)]
+            ),
+            (4.0, 0.0)
+        ));
+        assert_eq!(errors(&c), ["orderUpdateError", "orderUpdateError"]);
+        // On b: accepted, the horizon replaced by the released c and a new d.
+        let up = vec![
+            node("b", 2, 4.0, true),
+            node("c", 4, 8.0, true),
+            node("d", 6, 12.0, true),
+        ];
+        assert!(c.order(order("o1", 4, up), (4.0, 0.0)));
+        assert!(c.errors.is_empty());
+        let ids: Vec<&str> = c.nodes.iter().map(|n| n.node_id.as_str()).collect();
+        assert_eq!(ids, ["c", "d"]);
+        assert_eq!(c.target(), Some((8.0, 0.0)));
+        // While it is active, another order must stitch on its base end too.
+        assert!(!c.order(order("o2", 0, vec![node("x", 0, 4.0, true)]), (4.0, 0.0)));
+        assert_eq!(errors(&c), ["orderError"]);
+        assert!(c.order(
+            order(
+                "o2",
+                0,
+                vec![node("d", 6, 12.0, true), node("e", 8, 16.0, true)]
+            ),
+            (4.0, 0.0)
+        ));
+        let ids: Vec<&str> = c.nodes.iter().map(|n| n.node_id.as_str()).collect();
+        assert_eq!(ids, ["c", "d", "e"]);
+    }
+
+    #[test]
+    fn orders_off_the_map_or_without_positions_are_refused() {
+        let mut c = core();
+        let mut o = order(
+            "o1",
+            0,
+            vec![node("a", 0, 0.0, true), node("b", 2, 4.0, true)],
+        );
+        o.nodes[1].node_position = None;
+        assert!(!c.order(o, (0.0, 0.0)));
+        let mut o = order(
+            "o1",
+            0,
+            vec![node("a", 0, 0.0, true), node("b", 2, 4.0, true)],
+        );
+        o.nodes[1].node_position.as_mut().unwrap().map_id = "other".into();
+        assert!(!c.order(o, (0.0, 0.0)));
+        assert_eq!(errors(&c), ["noRouteError", "noRouteError"]);
+        let why = c.errors[1].error_description.clone().unwrap();
+        assert!(why.contains("\"other\""), "{why}");
+    }
+
+    #[test]
+    fn instant_actions_pause_cancel_and_say_what_they_cannot_do() {
+        let mut c = core();
+        // Nothing to cancel: failed, with an error.
+        assert!(instant(&mut c, "cancelOrder", "i1").is_empty());
+        assert_eq!(status(&c, "i1"), Some(ActionStatus::Failed));
+        assert_eq!(errors(&c), ["noOrderToCancel"]);
+        let mut o = order(
+            "o1",
+            0,
+            vec![node("a", 0, 0.0, true), node("b", 2, 4.0, true)],
+        );
+        o.nodes[1].actions.push(action("pick", "p1"));
+        assert!(c.order(o, (0.0, 0.0)));
+        assert_eq!(status(&c, "p1"), Some(ActionStatus::Waiting));
+        instant(&mut c, "startPause", "i2");
+        assert_eq!(c.target(), None, "paused");
+        assert_eq!(c.state(0, (0.0, 0.0, 0.0), (0.0, 0.0)).paused, Some(true));
+        instant(&mut c, "stopPause", "i3");
+        assert_eq!(c.target(), Some((4.0, 0.0)));
+        assert_eq!(instant(&mut c, "stateRequest", "i4"), [Effect::State]);
+        assert_eq!(
+            instant(&mut c, "factsheetRequest", "i5"),
+            [Effect::Factsheet]
+        );
+        instant(&mut c, "liftFork", "i6");
+        assert_eq!(status(&c, "i6"), Some(ActionStatus::Failed));
+        assert!(errors(&c).contains(&"unsupportedActionError".to_string()));
+        instant(&mut c, "cancelOrder", "i7");
+        assert_eq!(status(&c, "i7"), Some(ActionStatus::Finished));
+        assert_eq!(c.target(), None);
+        assert!(c.nodes.is_empty() && c.edges.is_empty());
+        // The node's action never ran: failed with the reason.
+        assert_eq!(status(&c, "p1"), Some(ActionStatus::Failed));
+        for id in ["i2", "i3", "i4", "i5"] {
+            assert_eq!(status(&c, id), Some(ActionStatus::Finished), "{id}");
+        }
+        // A message refused is said once, the newest.
+        c.invalid_message("order", "bad 1");
+        c.invalid_message("order", "bad 2");
+        let v: Vec<_> = c
+            .errors
+            .iter()
+            .filter(|e| e.error_type == "validationError")
+            .collect();
+        assert_eq!(v.len(), 1);
+        assert_eq!(v[0].error_description.as_deref(), Some("bad 2"));
+    }
+
+    #[test]
+    fn node_actions_are_reported_failed_when_their_node_is_reached() {
+        let mut c = core();
+        let mut o = order(
+            "o1",
+            0,
+            vec![node("a", 0, 0.0, true), node("b", 2, 4.0, true)],
+        );
+        o.nodes[0].actions.push(action("beep", "on-a"));
+        o.edges[0].actions.push(action("blink", "on-ab"));
+        o.nodes[1].actions.push(action("drop", "on-b"));
+        assert!(c.order(o, (0.0, 0.0)));
+        assert_eq!(
+            status(&c, "on-a"),
+            Some(ActionStatus::Failed),
+            "the first node is traversed at once"
+        );
+        assert_eq!(status(&c, "on-ab"), Some(ActionStatus::Waiting));
+        c.reached();
+        for id in ["on-ab", "on-b"] {
+            let a = c.actions.iter().find(|a| a.action_id == id).unwrap();
+            assert_eq!(a.action_status, ActionStatus::Failed);
+            assert!(a
+                .result_description
+                .as_deref()
+                .unwrap()
+                .contains("not supported"));
+        }
+    }
+}
