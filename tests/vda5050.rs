@@ -703,3 +703,86 @@ fn a_simulated_robot_is_a_vda5050_vehicle_that_vda_5050_libs_master_control_driv
     f.proc(again).signal(libc::SIGKILL);
     connection_state(f.proc(master), "CONNECTIONBROKEN", 15 * SEC);
 }
+
+#[test]
+fn with_a_road_map_a_goal_goes_to_the_nearest_node_along_the_shortest_path() {
+    if !peers_here() {
+        return;
+    }
+    let mut f = Fed::new("vda3");
+    let mqtt = mosquitto(&mut f);
+    let iface = format!("g{}", std::process::id());
+    // A square missing its west side: from "0" to "c" the way is round by a and b.
+    let graph = std::env::temp_dir().join(format!("muster-graph-{}.json", std::process::id()));
+    std::fs::write(
+        &graph,
+        r#"{"mapId": "local", "nodes": [{"id": "0", "x": 0, "y": 0}, {"id": "a", "x": 5, "y": 0},
+            {"id": "b", "x": 5, "y": 5}, {"id": "c", "x": 0, "y": 5}],
+            "edges": [["0", "a"], ["a", "b"], ["b", "c"]]}"#,
+    )
+    .unwrap();
+    let agv = virtual_agvs(&mut f, &mqtt, &iface, &["--speed", "8"]);
+    f.broker(&[]);
+    f.spawn(&[
+        "system",
+        "vda5050",
+        "--mqtt",
+        &mqtt,
+        "--interface",
+        &iface,
+        "--vda-version",
+        "2.0.0",
+        "--graph",
+        graph.to_str().unwrap(),
+    ]);
+    f.wait_list(20 * SEC, |l| l.len() == 2);
+    std::fs::remove_file(&graph).unwrap();
+    let mut c = user(&f);
+    let drive = grant(&mut c, "vda5050/agv1");
+    goal(&mut c, drive, 0.4, 4.7);
+    let seen = statuses_until(&mut c, drive, 20 * SEC, done);
+    assert_eq!(
+        seen.last().unwrap(),
+        &TaskStatus::Done("arrived at c (0.00, 5.00)".into()),
+        "{seen:?}"
+    );
+    let o = wait_event(f.proc(agv), "order", 5 * SEC);
+    let ids: Vec<&str> = o["message"]["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n["nodeId"].as_str().unwrap())
+        .collect();
+    assert_eq!(ids, ["0", "a", "b", "c"]);
+    // A node by name: back to b, as an update of the session's order.
+    c.input(drive, Payload::Text("node b".into())).unwrap();
+    let seen = statuses_until(&mut c, drive, 20 * SEC, done);
+    assert_eq!(
+        seen.last().unwrap(),
+        &TaskStatus::Done("arrived at b (5.00, 5.00)".into()),
+        "{seen:?}"
+    );
+    let o = wait_event(f.proc(agv), "order", 5 * SEC);
+    assert_eq!(o["message"]["orderUpdateId"], 1);
+    let ids: Vec<&str> = o["message"]["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n["nodeId"].as_str().unwrap())
+        .collect();
+    assert_eq!(ids, ["c", "b"]);
+    // Names not on the map, and text that names no node, are refused with the reason.
+    c.input(drive, Payload::Text("node z".into())).unwrap();
+    let seen = statuses_until(&mut c, drive, 5 * SEC, done);
+    assert_eq!(
+        seen.last().unwrap(),
+        &TaskStatus::Rejected("node \"z\" is not on the road map".into())
+    );
+    c.input(drive, Payload::Text("go west".into())).unwrap();
+    let seen = statuses_until(&mut c, drive, 5 * SEC, done);
+    assert!(
+        matches!(seen.last().unwrap(), TaskStatus::Rejected(r) if r.contains("send `node ID`")),
+        "{seen:?}"
+    );
+    c.close();
+}
