@@ -300,6 +300,12 @@ pub enum BenchCommand {
     /// memory user's in the same run, the web process's CPU and memory, updates lost,
     /// and the broker's request latency before and while they watch.
     Web(WebBenchArgs),
+    /// VDA 5050 fleets: N virtual vehicles (vda-5050-lib, state at 1 Hz) behind `muster
+    /// system vda5050`, N muster users each holding one and giving it goals; order →
+    /// the vehicle's acknowledging state against a raw MQTT publish → subscribe round
+    /// trip through the same mosquitto, in the same run; CPU of mosquitto, the bridge,
+    /// the vehicles' process and the broker.
+    Vda5050(Vda5050BenchArgs),
     /// Every kind of process (broker, standby, system, user, simulator, federated
     /// broker) SIGKILLed N times each on an instance of its own; then the files in
     /// /dev/shm left after the instance's next start and after `muster cleanup`. Run
@@ -624,6 +630,31 @@ pub struct WebBenchArgs {
     /// Requests timed at the broker before, and again while, the clients watch.
     #[arg(long, default_value_t = 200)]
     pub probes: usize,
+    /// Print one JSON object instead of tables.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct Vda5050BenchArgs {
+    /// Virtual vehicles, and muster users holding one each.
+    #[arg(long, default_value_t = 100)]
+    pub vehicles: usize,
+    /// How long goals are given and timed once every user holds its vehicle.
+    #[arg(long, default_value = "30s", value_parser = duration)]
+    pub duration: Duration,
+    /// Each user's time between goals.
+    #[arg(long, default_value = "3s", value_parser = duration)]
+    pub goal_every: Duration,
+    /// Raw MQTT round trips timed (spread over the window).
+    #[arg(long, default_value_t = 300)]
+    pub round_trips: usize,
+    /// The mosquitto program (Debian: /usr/sbin/mosquitto).
+    #[arg(long, default_value = "mosquitto")]
+    pub mosquitto: String,
+    /// The folder of the VDA 5050 peers (`npm ci` done: `bash scripts/test` does it).
+    #[arg(long, default_value = "bridges/vda5050/tests/js")]
+    pub peers: std::path::PathBuf,
     /// Print one JSON object instead of tables.
     #[arg(long)]
     pub json: bool,

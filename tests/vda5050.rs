@@ -786,3 +786,42 @@ fn with_a_road_map_a_goal_goes_to_the_nearest_node_along_the_shortest_path() {
     );
     c.close();
 }
+
+#[test]
+fn the_vda5050_bench_runs_small_and_reports_what_it_timed() {
+    if !peers_here() {
+        return;
+    }
+    let f = Fed::new("vda4");
+    let (code, out) = f.run(
+        &[
+            "bench",
+            "vda5050",
+            "--vehicles",
+            "3",
+            "--duration",
+            "4s",
+            "--goal-every",
+            "1s",
+            "--round-trips",
+            "20",
+            "--peers",
+            JS,
+            "--json",
+        ],
+        120 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let r: Value = serde_json::from_str(out.lines().last().unwrap()).unwrap();
+    assert_eq!(r["vehicles"], 3);
+    assert_eq!(r["bridges"], 1);
+    let goals = r["goals"].as_u64().unwrap();
+    assert!(goals >= 6, "{r}");
+    assert_eq!(r["refused"], 0, "{r}");
+    assert_eq!(r["invalid"], 0, "{r}");
+    assert_eq!(r["orders"], goals, "every goal an order: {r}");
+    assert_eq!(r["mqtt_round_trip"]["count"], 20, "{r}");
+    // Every order was acknowledged by a state, and every user saw it.
+    assert_eq!(r["order_to_state"]["count"], goals, "{r}");
+    assert_eq!(r["goal_to_vehicle_status"]["count"], goals, "{r}");
+}

@@ -342,6 +342,19 @@ pub enum SpecError {
     /// More services than [`MAX_SERVICES_PER_SYSTEM`]; split the system.
     #[error("{0} services declared, at most {MAX_SERVICES_PER_SYSTEM} per system")]
     TooMany(usize),
+    /// The registration (names, descriptions, schemas of all the services) is larger
+    /// than one frame; shorten descriptions and schemas, or split the system.
+    #[error(
+        "the registration of {services} services is {bytes} bytes, more than one \
+         {}-byte frame: shorten descriptions and schemas, or split the system",
+        crate::protocol::MAX_FRAME
+    )]
+    RegistrationTooLarge {
+        /// Services declared.
+        services: usize,
+        /// The registration's size.
+        bytes: usize,
+    },
 }
 
 /// Checks a name against the naming rule shared by systems, services and payload types.
@@ -420,10 +433,33 @@ pub fn validate_registration(system: &str, specs: &[ServiceSpec]) -> Result<(), 
         return Err(SpecError::TooMany(specs.len()));
     }
     let mut seen = std::collections::BTreeSet::new();
+    let mut bytes = 0;
     for s in specs {
         s.validate()?;
         if !seen.insert(s.name.as_str()) {
             return Err(SpecError::Duplicate(s.name.clone()));
+        }
+        bytes += s.name.len()
+            + s.description.len()
+            + s.payload.len()
+            + s.schema.as_ref().map_or(0, |x| x.text.len());
+    }
+    // Each spec fits on its own; many may not fit one frame together. Encoded only when
+    // the texts alone come near the limit.
+    if bytes > crate::protocol::MAX_FRAME / 2 {
+        let msg = crate::protocol::ToBroker::Register {
+            system: system.to_string(),
+            pid: 0,
+            services: specs.to_vec(),
+            sessions: Vec::new(),
+            udp: None,
+        };
+        let len = crate::protocol::encode(&msg).map_or(usize::MAX, |b| b.len());
+        if len > crate::protocol::MAX_FRAME {
+            return Err(SpecError::RegistrationTooLarge {
+                services: specs.len(),
+                bytes: if len == usize::MAX { bytes } else { len },
+            });
         }
     }
     Ok(())
@@ -969,6 +1005,27 @@ mod tests {
             validate_registration("t1", &many),
             Err(SpecError::TooMany(MAX_SERVICES_PER_SYSTEM + 1))
         );
+        // Each within its limits, together more than one frame: refused with the size.
+        let with_schema = |i: usize, len: usize| ServiceSpec {
+            payload: "x/Big".into(),
+            schema: Some(Schema {
+                encoding: SchemaEncoding::JsonSchema,
+                text: format!("{{\"title\": \"{}\"}}", "a".repeat(len)),
+            }),
+            ..spec(&format!("s{i}"))
+        };
+        let fat: Vec<_> = (0..40).map(|i| with_schema(i, 2000)).collect();
+        match validate_registration("t1", &fat) {
+            Err(SpecError::RegistrationTooLarge {
+                services: 40,
+                bytes,
+            }) => {
+                assert!(bytes > crate::protocol::MAX_FRAME, "{bytes}")
+            }
+            other => panic!("{other:?}"),
+        }
+        let fits: Vec<_> = (0..20).map(|i| with_schema(i, 2000)).collect();
+        assert!(validate_registration("t1", &fits).is_ok());
     }
 
     #[test]

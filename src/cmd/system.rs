@@ -89,7 +89,7 @@ fn vda5050(inst: &Instance, a: Vda5050SystemArgs) -> anyhow::Result<ExitCode> {
     muster_systems::run_system_with(inst, core, &mut fleet, &run)?;
     fleet.close();
     if a.stats_json {
-        out!("{}", serde_json::to_string(fleet.stats())?);
+        out!("{}", fleet.stats().report());
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -26,8 +26,8 @@ use crate::msg::{
 use crate::{muster_name, Topics, VdaFail};
 use muster_shared::protocol::monotonic_ns;
 use muster_shared::types::{
-    Payload, Schema, SchemaEncoding, ServiceKind, ServiceSpec, SessionId, TaskStatus,
-    MAX_SERVICES_PER_SYSTEM, MAX_SERVICE_NAME,
+    validate_registration, Payload, Schema, SchemaEncoding, ServiceKind, ServiceSpec, SessionId,
+    TaskStatus, MAX_DESCRIPTION, MAX_SERVICES_PER_SYSTEM, MAX_SERVICE_NAME,
 };
 use muster_systems::{SystemApp, SystemCore, SystemEvent};
 use std::collections::{BTreeMap, HashMap};
@@ -73,8 +73,9 @@ impl FleetOptions {
 /// The payload type of the data services.
 pub const STATE_TYPE: &str = "vda5050/VehicleState";
 
-/// The JSON Schema of [`STATE_TYPE`] samples.
-pub const STATE_SCHEMA: &str = r#"{"$schema":"https://json-schema.org/draft/2020-12/schema","title":"VehicleState","type":"object","required":["manufacturer","serial","online","driving","battery","errors","orderId","nodesLeft"],"properties":{"manufacturer":{"type":"string"},"serial":{"type":"string"},"online":{"type":"boolean"},"x":{"type":"number"},"y":{"type":"number"},"theta":{"type":"number"},"mapId":{"type":"string"},"driving":{"type":"boolean"},"paused":{"type":"boolean"},"battery":{"type":"number","description":"state of charge, %"},"charging":{"type":"boolean"},"operatingMode":{"type":"string"},"errors":{"type":"array","items":{"type":"object","properties":{"type":{"type":"string"},"level":{"type":"string"},"description":{"type":"string"}}}},"orderId":{"type":"string"},"orderUpdateId":{"type":"integer"},"lastNodeId":{"type":"string"},"nodesLeft":{"type":"integer"}}}"#;
+/// The JSON Schema of [`STATE_TYPE`] samples, short: it goes with every vehicle's data
+/// service in the registration (the fields are listed in the README).
+pub const STATE_SCHEMA: &str = r#"{"title":"VehicleState","type":"object","required":["manufacturer","serial","online","driving","battery","errors","orderId","nodesLeft"]}"#;
 
 /// Most errors copied into one state sample (the rest are counted).
 const MAX_ERRORS_SHOWN: usize = 8;
@@ -91,6 +92,8 @@ struct Task {
     /// The goal, for the notes.
     goal: String,
     sent_at: Duration,
+    /// When the order went out (for the acknowledgement time).
+    sent_wall: std::time::Instant,
     /// The vehicle's state has shown this order update.
     seen: bool,
     /// Arrived, refused or timed out: nothing more to say until the next goal.
@@ -141,6 +144,27 @@ pub struct FleetStats {
     pub cancels: u64,
     /// Vehicles found.
     pub vehicles: u64,
+    /// Order sent → first state of the vehicle showing it, µs (the first 100,000).
+    #[serde(skip)]
+    pub order_ack_us: Vec<u64>,
+}
+
+impl FleetStats {
+    /// The counters, and the order → acknowledging state times' quantiles (ms).
+    pub fn report(&self) -> serde_json::Value {
+        let mut j = serde_json::to_value(self).expect("counters are JSON");
+        let mut s = self.order_ack_us.clone();
+        s.sort_unstable();
+        let q = |q: f64| -> Option<f64> {
+            let i = ((s.len() as f64 - 1.0) * q).round() as usize;
+            s.get(i).map(|us| *us as f64 / 1000.0)
+        };
+        j["order_ack_ms"] = serde_json::json!({
+            "n": s.len(), "p50": q(0.5), "p99": q(0.99), "max": q(1.0),
+        });
+        j["order_ack_us"] = serde_json::json!(s);
+        j
+    }
 }
 
 /// The bridge's logic, run by muster's system runtime.
@@ -218,10 +242,15 @@ impl Fleet {
         Ok(fleet)
     }
 
-    /// The services of the vehicles found so far, in a stable order.
+    /// The services of the vehicles found so far, in a stable order: as many vehicles as
+    /// one system offers (64, the services per system; fewer if their registration would
+    /// not fit one frame).
     pub fn specs(&self) -> Vec<ServiceSpec> {
         let mut out = Vec::new();
         for v in self.vehicles.values() {
+            if out.len() + 2 > MAX_SERVICES_PER_SYSTEM {
+                break;
+            }
             let series = v
                 .factsheet
                 .as_ref()
@@ -230,10 +259,10 @@ impl Fleet {
                 .unwrap_or_default();
             out.push(ServiceSpec {
                 name: v.command.clone(),
-                description: format!(
+                description: clip(format!(
                     "VDA 5050 vehicle{series} {}/{}: a goal becomes an order",
                     v.manufacturer, v.serial
-                ),
+                )),
                 kind: ServiceKind::Command,
                 queue: true,
                 quota: 1,
@@ -242,10 +271,10 @@ impl Fleet {
             });
             out.push(ServiceSpec {
                 name: v.data.clone(),
-                description: format!(
+                description: clip(format!(
                     "VDA 5050 vehicle {}/{}: position, battery, errors, order progress",
                     v.manufacturer, v.serial
-                ),
+                )),
                 kind: ServiceKind::Data,
                 queue: false,
                 quota: 64,
@@ -255,8 +284,12 @@ impl Fleet {
                     text: STATE_SCHEMA.into(),
                 }),
             });
+            // A vehicle more than one registration frame holds waits for another bridge.
+            if validate_registration(&self.opts.system, &out).is_err() {
+                out.truncate(out.len() - 2);
+                break;
+            }
         }
-        out.truncate(MAX_SERVICES_PER_SYSTEM);
         out
     }
 
@@ -393,8 +426,10 @@ impl Fleet {
         if specs.len() < 2 * self.vehicles.len() && !self.full_warned {
             self.full_warned = true;
             tracing::warn!(
-                vehicles = self.vehicles.len(),
-                "more vehicles than one system offers ({} services): run a second bridge with --manufacturer",
+                "{} vehicles found, {} offered: one system offers {} services in one \
+                 registration; run another bridge (--manufacturer, --name) for the rest",
+                self.vehicles.len(),
+                specs.len() / 2,
                 MAX_SERVICES_PER_SYSTEM
             );
         }
@@ -577,7 +612,11 @@ impl Fleet {
             }
             return;
         }
-        task.seen = true;
+        if !std::mem::replace(&mut task.seen, true) && self.stats.order_ack_us.len() < 100_000 {
+            self.stats
+                .order_ack_us
+                .push(task.sent_wall.elapsed().as_micros() as u64);
+        }
         let actions_done = st.action_states.iter().all(|a| {
             matches!(
                 a.action_status,
@@ -877,6 +916,7 @@ impl Fleet {
             base_end: order.nodes.last().expect("one node at least").clone(),
             goal: goal_text,
             sent_at: now,
+            sent_wall: std::time::Instant::now(),
             seen: false,
             closed: false,
             last_note: String::new(),
@@ -930,6 +970,18 @@ impl Fleet {
         }
         sent.is_ok()
     }
+}
+
+/// A description cut to what the protocol takes (on a character boundary).
+fn clip(mut s: String) -> String {
+    if s.len() > MAX_DESCRIPTION {
+        let mut end = MAX_DESCRIPTION;
+        while !s.is_char_boundary(end) {
+            end -= 1;
+        }
+        s.truncate(end);
+    }
+    s
 }
 
 enum Target {

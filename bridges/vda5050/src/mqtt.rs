@@ -90,6 +90,11 @@ impl MqttLink {
             ));
         }
         let (client, mut connection) = Client::new(opts, 1024);
+        // Small messages both ways (an order, then the vehicle's acknowledgement): no
+        // Nagle delay (measured: 40 ms tails on loopback with it, the delayed-ACK timer).
+        let mut net = rumqttc::NetworkOptions::new();
+        net.set_tcp_nodelay(true);
+        connection.eventloop.set_network_options(net);
         let (wake, mut tx_wake) =
             UnixStream::pair().map_err(|e| VdaFail::Config(format!("socketpair: {e}")))?;
         wake.set_nonblocking(true)

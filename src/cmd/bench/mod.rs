@@ -8,6 +8,7 @@ mod liveness;
 pub mod procfs;
 pub mod remote;
 mod ros2;
+mod vda5050;
 mod web;
 use super::children;
 mod scale;
@@ -29,6 +30,7 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::Federation(a) => federation::run(inst, a),
         BenchCommand::Ros2(a) => ros2::run(inst, a),
         BenchCommand::Web(a) => web::run(inst, a),
+        BenchCommand::Vda5050(a) => vda5050::run(inst, a),
         BenchCommand::FailoverUser(a) => failover::user(inst, a),
         BenchCommand::Leftovers(a) => leftovers::run(inst, a),
     }
@@ -107,6 +109,11 @@ impl LineChild {
             }
         });
         Ok(LineChild { name, child, lines })
+    }
+
+    /// Its process id.
+    pub fn id(&self) -> u32 {
+        self.child.id()
     }
 
     /// The next JSON line within `timeout` (other lines are skipped).
