@@ -36,6 +36,25 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
     }
 }
 
+/// Runs a bench with a fresh temporary folder `muster-bench-NAME-PID` (removed after,
+/// whatever happened) and prints its report as one JSON line when `json` (the bench
+/// printed its tables otherwise).
+pub fn in_temp_dir(
+    name: &str,
+    json: bool,
+    bench: impl FnOnce(&std::path::Path) -> anyhow::Result<serde_json::Value>,
+) -> anyhow::Result<ExitCode> {
+    let dir = std::env::temp_dir().join(format!("muster-bench-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let result = bench(&dir);
+    let _ = std::fs::remove_dir_all(&dir);
+    let report = result?;
+    if json {
+        println!("{report}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 /// p50/p99/max of a histogram of microseconds, as a JSON object.
 pub fn summary(h: &hdrhistogram::Histogram<u64>) -> serde_json::Value {
     serde_json::json!({

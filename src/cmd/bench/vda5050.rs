@@ -44,15 +44,7 @@ pub fn run(inst: &Instance, a: Vda5050BenchArgs) -> anyhow::Result<std::process:
     );
     // A thread of this process per user: each holds an iceoryx2 node.
     let _ = muster_shared::reactor::raise_fd_limit();
-    let dir = std::env::temp_dir().join(format!("muster-bench-vda-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
-    let result = bench(inst, &a, &dir);
-    let _ = std::fs::remove_dir_all(&dir);
-    let report = result?;
-    if a.json {
-        println!("{report}");
-    }
-    Ok(std::process::ExitCode::SUCCESS)
+    super::in_temp_dir("vda", a.json, |dir| bench(inst, &a, dir))
 }
 
 /// What one user measured: goal → first status from the vehicle's state (µs), goals

@@ -56,15 +56,7 @@ pub fn run(inst: &Instance, a: WebBenchArgs) -> anyhow::Result<std::process::Exi
         a.clients > 0 && a.procs > 0,
         "--clients and --procs must be > 0"
     );
-    let dir = std::env::temp_dir().join(format!("muster-bench-web-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
-    let result = bench(inst, &a, &dir);
-    let _ = std::fs::remove_dir_all(&dir);
-    let report = result?;
-    if a.json {
-        println!("{report}");
-    }
-    Ok(std::process::ExitCode::SUCCESS)
+    super::in_temp_dir("web", a.json, |dir| bench(inst, &a, dir))
 }
 
 fn bench(inst: &Instance, a: &WebBenchArgs, dir: &std::path::Path) -> anyhow::Result<Value> {
