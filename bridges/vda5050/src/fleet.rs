@@ -79,6 +79,9 @@ pub const STATE_SCHEMA: &str = r#"{"title":"VehicleState","type":"object","requi
 
 /// Most errors copied into one state sample (the rest are counted).
 const MAX_ERRORS_SHOWN: usize = 8;
+/// Most vehicles one bridge keeps track of (found, offered or not): names beyond are
+/// ignored, so a flood of made-up vehicles cannot grow the bridge without end.
+pub const MAX_VEHICLES: usize = 4096;
 /// How often timeouts are looked at.
 const TICK: Duration = Duration::from_millis(250);
 
@@ -337,6 +340,12 @@ impl Fleet {
             return;
         };
         let key = (m.to_string(), s.to_string());
+        if !self.vehicles.contains_key(&key) && self.vehicles.len() >= MAX_VEHICLES {
+            return self.invalid(
+                &topic,
+                &format!("more than {MAX_VEHICLES} vehicles: not taken"),
+            );
+        }
         let result = match t {
             "connection" => msg::decode::<Connection>(&payload).map(|c| {
                 self.check_sender(&key, &c.header).map(|()| {
@@ -386,9 +395,22 @@ impl Fleet {
     fn vehicle(&mut self, key: &Key) -> &mut Vehicle {
         if !self.vehicles.contains_key(key) {
             let base_max = MAX_SERVICE_NAME - ".state".len();
+            // The serial as a name; the manufacturer's too, then a number, when another
+            // vehicle's names (either of its two) are the same.
+            let free = |c: &str| {
+                !self.by_service.contains_key(c)
+                    && !self.by_service.contains_key(&format!("{c}.state"))
+            };
             let mut command = muster_name(&key.1, base_max);
-            if self.by_service.contains_key(&command) {
-                command = muster_name(&format!("{}-{}", key.0, key.1), base_max);
+            let mut n = 1;
+            while !free(&command) {
+                let tail = if n == 1 {
+                    String::new()
+                } else {
+                    format!("-{n}")
+                };
+                command = muster_name(&format!("{}-{}{tail}", key.0, key.1), base_max);
+                n += 1;
             }
             let data = format!("{command}.state");
             tracing::info!(manufacturer = %key.0, serial = %key.1, service = %command, "vehicle found");
@@ -1086,5 +1108,95 @@ impl SystemApp for Fleet {
         for m in self.link.drain() {
             self.take(Some(core), m);
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    /// A bridge whose MQTT broker is never reached: messages are handed to it here.
+    fn fleet() -> Fleet {
+        Fleet::connect(FleetOptions::new("127.0.0.1:1"), Duration::ZERO).unwrap()
+    }
+
+    fn connection(m: &str, s: &str, state: &str) -> Incoming {
+        let h = Header::now(0, "2.0.0", m, s);
+        let mut j = serde_json::to_value(h).unwrap();
+        j["connectionState"] = state.into();
+        Incoming::Publish {
+            topic: format!("uagv/v2/{m}/{s}/connection"),
+            payload: j.to_string().into_bytes(),
+            retained: true,
+        }
+    }
+
+    fn names(f: &Fleet) -> Vec<String> {
+        f.specs().into_iter().map(|s| s.name).collect()
+    }
+
+    #[test]
+    fn vehicles_found_get_names_of_their_own_even_when_serials_clash() {
+        let mut f = fleet();
+        for (m, s) in [
+            ("acme", "x.state"),
+            ("acme", "x"),
+            ("bcme", "x"),
+            ("acme", "a b"),
+            ("acme", "a_b"),
+        ] {
+            f.take(None, connection(m, s, "ONLINE"));
+        }
+        let n = names(&f);
+        assert_eq!(n.len(), 10, "{n:?}");
+        let unique: std::collections::BTreeSet<_> = n.iter().collect();
+        assert_eq!(unique.len(), 10, "{n:?}");
+        validate_registration("vda5050", &f.specs()).unwrap();
+        assert!(
+            n.contains(&"x.state".to_string()) && n.contains(&"a_b".to_string()),
+            "{n:?}"
+        );
+        assert_eq!(f.stats().vehicles, 5);
+        assert!(f.offline_services().is_empty());
+        f.take(None, connection("bcme", "x", "CONNECTIONBROKEN"));
+        assert_eq!(f.offline_services().len(), 2);
+    }
+
+    #[test]
+    fn bad_messages_are_counted_and_change_nothing() {
+        let mut f = fleet();
+        let bad = |topic: &str, payload: &str| Incoming::Publish {
+            topic: topic.into(),
+            payload: payload.as_bytes().to_vec(),
+            retained: false,
+        };
+        f.take(None, bad("uagv/v2/acme/agv1/connection", "{not json"));
+        f.take(None, bad("uagv/v2/acme/agv1/state", r#"{"headerId": 1}"#));
+        // A header naming another vehicle than the topic.
+        let mut other = connection("acme", "agv2", "ONLINE");
+        if let Incoming::Publish { topic, .. } = &mut other {
+            *topic = "uagv/v2/acme/agv1/connection".into();
+        }
+        f.take(None, other);
+        // Not our interface or version: not looked at.
+        f.take(None, bad("other/v2/acme/agv1/state", "{"));
+        f.take(None, bad("uagv/v1/acme/agv1/state", "{"));
+        assert_eq!(f.stats().invalid, 3);
+        assert_eq!(f.stats().taken, 0);
+        assert!(f.specs().is_empty());
+    }
+
+    #[test]
+    fn a_flood_of_made_up_vehicles_stops_at_the_cap_and_one_system_offers_64() {
+        let mut f = fleet();
+        for i in 0..MAX_VEHICLES + 10 {
+            f.take(None, connection("acme", &format!("v{i}"), "ONLINE"));
+        }
+        assert_eq!(f.stats().vehicles, MAX_VEHICLES as u64);
+        assert_eq!(f.stats().invalid, 10);
+        let specs = f.specs();
+        assert_eq!(specs.len(), MAX_SERVICES_PER_SYSTEM);
+        validate_registration("vda5050", &specs).unwrap();
     }
 }
