@@ -940,11 +940,32 @@ pub enum SystemCommand {
     Vda5050(Vda5050SystemArgs),
 }
 
+/// How to reach an MQTT broker that asks for TLS or a password.
+#[derive(Args, Debug, Clone)]
+pub struct MqttArgs {
+    /// TLS to the MQTT broker, trusting the certificate authorities in this PEM file
+    /// (the broker's certificate must name the host or address of `--mqtt`).
+    #[arg(long)]
+    pub mqtt_ca: Option<std::path::PathBuf>,
+    /// With `--mqtt-ca`: this client's certificate chain and its key (PEM), for a broker
+    /// that asks for one.
+    #[arg(long, num_args = 2, value_names = ["CERT", "KEY"], requires = "mqtt_ca")]
+    pub mqtt_client_cert: Option<Vec<std::path::PathBuf>>,
+    /// The MQTT user name (its password from `--mqtt-password-file`).
+    #[arg(long, requires = "mqtt_password_file")]
+    pub mqtt_user: Option<String>,
+    /// A file whose first line is the MQTT password (never on the command line).
+    #[arg(long, requires = "mqtt_user")]
+    pub mqtt_password_file: Option<std::path::PathBuf>,
+}
+
 #[derive(Args, Debug)]
 pub struct AgvArgs {
     /// The MQTT broker, HOST:PORT.
     #[arg(long)]
     pub mqtt: String,
+    #[command(flatten)]
+    pub mqtt_security: MqttArgs,
     /// The robots (each one vehicle, its serial number the robot's name).
     #[arg(long, value_delimiter = ',', default_value = "D1")]
     pub robots: Vec<String>,
@@ -979,6 +1000,8 @@ pub struct Vda5050SystemArgs {
     /// The MQTT broker, HOST:PORT.
     #[arg(long)]
     pub mqtt: String,
+    #[command(flatten)]
+    pub mqtt_security: MqttArgs,
     /// `interfaceName` of the topics.
     #[arg(long, default_value = "uagv")]
     pub interface: String,

@@ -825,3 +825,106 @@ fn the_vda5050_bench_runs_small_and_reports_what_it_timed() {
     assert_eq!(r["order_to_state"]["count"], goals, "{r}");
     assert_eq!(r["goal_to_vehicle_status"]["count"], goals, "{r}");
 }
+
+#[test]
+fn both_bridges_reach_a_broker_that_asks_for_tls_and_a_password_and_a_user_drives_d1_through_them()
+{
+    if !peers_here() {
+        return;
+    }
+    let mut f = Fed::new("vda5");
+    let dir = std::env::temp_dir().join(format!("muster-mqtt-tls-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let d = |name: &str| dir.join(name).to_str().unwrap().to_string();
+    // The broker's certificate from muster's own authority tool; a password file made
+    // by mosquitto's.
+    let (code, out) = f.run(&["certs", "--out", &d(""), "--hosts", "mqtt"], 30 * SEC);
+    assert_eq!(code, 0, "{out}");
+    let made = Command::new("mosquitto_passwd")
+        .args(["-b", "-c", &d("passwd"), "fleet", "s3cret"])
+        .status()
+        .unwrap();
+    assert!(made.success());
+    std::fs::write(d("pw"), "s3cret\n").unwrap();
+    std::fs::write(d("wrong"), "guess\n").unwrap();
+    let port = free_tcp_port();
+    std::fs::write(
+        d("mosquitto.conf"),
+        format!(
+            "listener {port} 127.0.0.1\ncafile {}\ncertfile {}\nkeyfile {}\npassword_file {}\n\
+             allow_anonymous false\npersistence false\nuser root\n",
+            d("ca.pem"),
+            d("mqtt.pem"),
+            d("mqtt.key"),
+            d("passwd")
+        ),
+    )
+    .unwrap();
+    let mut c = Command::new("mosquitto");
+    c.arg("-c").arg(d("mosquitto.conf"));
+    f.spawn_command(c);
+    let mqtt = format!("127.0.0.1:{port}");
+    let deadline = Instant::now() + 10 * SEC;
+    while std::net::TcpStream::connect(&mqtt).is_err() {
+        assert!(Instant::now() < deadline, "mosquitto did not listen");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let iface = format!("s{}", std::process::id());
+    let secure = [
+        "--mqtt-ca",
+        &d("ca.pem"),
+        "--mqtt-user",
+        "fleet",
+        "--mqtt-password-file",
+    ];
+    f.broker(&[]);
+    f.spawn(&["sim", "--speed", "3"]);
+    let mut agv = vec![
+        "agv",
+        "--mqtt",
+        &mqtt,
+        "--interface",
+        &iface,
+        "--robots",
+        "D1",
+    ];
+    agv.extend(secure);
+    let pw = d("pw");
+    agv.push(&pw);
+    f.spawn(&agv);
+    // A bridge with the wrong password never lists anything; the right one lists D1.
+    let wrong = d("wrong");
+    let mut bad = vec![
+        "system",
+        "vda5050",
+        "--name",
+        "nope",
+        "--mqtt",
+        &mqtt,
+        "--interface",
+        &iface,
+    ];
+    bad.extend(secure);
+    bad.push(&wrong);
+    f.spawn(&bad);
+    let mut good = vec!["system", "vda5050", "--mqtt", &mqtt, "--interface", &iface];
+    good.extend(secure);
+    good.push(&pw);
+    f.spawn(&good);
+    let (list, _) = f.wait_list(30 * SEC, |l| find(l, "vda5050/D1").is_some());
+    assert!(list.iter().all(|s| s["system"] == "vda5050"), "{list:?}");
+    // A muster user → the bridge → TLS MQTT → muster's D1 on the simulator.
+    let mut u = user(&f);
+    let drive = grant(&mut u, "vda5050/D1");
+    goal(&mut u, drive, 26.0, 3.0);
+    let seen = statuses_until(&mut u, drive, 60 * SEC, done);
+    assert!(
+        matches!(seen.last().unwrap(), TaskStatus::Done(d) if d.starts_with("arrived at muster-goal-0")),
+        "{seen:?}"
+    );
+    u.close();
+    // Still nothing from the bridge with the wrong password.
+    assert!(f.list().iter().all(|s| s["system"] == "vda5050"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -78,6 +78,7 @@ fn vda5050(inst: &Instance, a: Vda5050SystemArgs) -> anyhow::Result<ExitCode> {
         version: a.vda_version,
         graph,
         order_timeout: a.order_timeout,
+        security: mqtt_security(&a.mqtt_security)?,
     };
     validate_registration(&opts.system, &[])?;
     let mut fleet = Fleet::connect(opts.clone(), a.wait)?;
@@ -117,6 +118,26 @@ fn ros2(inst: &Instance, a: Ros2SystemArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// TLS and credentials for an MQTT broker, from the flags.
+fn mqtt_security(a: &crate::cli::MqttArgs) -> anyhow::Result<muster_vda5050::mqtt::MqttSecurity> {
+    use muster_vda5050::mqtt::MqttSecurity;
+    let credentials = match (&a.mqtt_user, &a.mqtt_password_file) {
+        (Some(u), Some(f)) => Some(MqttSecurity::password_from(u, f)?),
+        _ => None,
+    };
+    if credentials.is_some() && a.mqtt_ca.is_none() {
+        tracing::warn!("--mqtt-user without --mqtt-ca: the password goes in clear");
+    }
+    Ok(MqttSecurity {
+        ca: a.mqtt_ca.clone(),
+        client_cert: a
+            .mqtt_client_cert
+            .as_ref()
+            .map(|v| (v[0].clone(), v[1].clone())),
+        credentials,
+    })
+}
+
 /// `muster agv`: the robots as VDA 5050 vehicles.
 pub fn agv(inst: &Instance, a: AgvArgs) -> anyhow::Result<ExitCode> {
     use muster_robots::delivery::DeliveryParams;
@@ -137,6 +158,7 @@ pub fn agv(inst: &Instance, a: AgvArgs) -> anyhow::Result<ExitCode> {
         deviation: a.deviation,
         state_every: a.state_every,
         visualization_every: (!a.visualization_every.is_zero()).then_some(a.visualization_every),
+        security: mqtt_security(&a.mqtt_security)?,
     };
     let node = muster_shared::ipc::create_node("muster-agv", false)?;
     let robots: Vec<(String, String)> = a

@@ -13,7 +13,7 @@
 //!
 //! [`AgvCore`] is the protocol's bookkeeping with no I/O; [`run_agvs`] runs the robots.
 
-use crate::mqtt::{Incoming, MqttConfig, MqttLink};
+use crate::mqtt::{Incoming, MqttConfig, MqttLink, MqttSecurity};
 use crate::msg::{
     self, Action, ActionState, ActionStatus, AgvPosition, BatteryState, Connection,
     ConnectionState, EStop, Edge, EdgeState, ErrorLevel, ErrorReference, Header, InstantActions,
@@ -45,6 +45,8 @@ pub struct AgvOptions {
     pub state_every: Duration,
     /// Visualization this often (`None`: none).
     pub visualization_every: Option<Duration>,
+    /// TLS and credentials for the MQTT broker.
+    pub security: MqttSecurity,
 }
 
 impl AgvOptions {
@@ -60,6 +62,7 @@ impl AgvOptions {
             deviation: 0.5,
             state_every: Duration::from_secs(30),
             visualization_every: Some(Duration::from_secs(1)),
+            security: MqttSecurity::default(),
         }
     }
 }
@@ -830,6 +833,7 @@ pub fn run_agvs(opts: &AgvOptions, drivers: Vec<DeliveryDriver>) -> Result<AgvSt
         let will = msg::encode(&will).map_err(|e| VdaFail::Config(e.to_string()))?;
         let cfg = MqttConfig {
             broker: opts.mqtt.clone(),
+            security: opts.security.clone(),
             client_id: format!("{}-{}-{}", opts.manufacturer, serial, std::process::id()),
             keep_alive: Duration::from_secs(5),
             subscriptions: ["order", "instantActions"]

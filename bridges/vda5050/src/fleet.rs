@@ -18,7 +18,7 @@
 //! sessions end, their users told why); `ONLINE` offers it again.
 
 use crate::graph::Graph;
-use crate::mqtt::{Incoming, MqttConfig, MqttLink};
+use crate::mqtt::{Incoming, MqttConfig, MqttLink, MqttSecurity};
 use crate::msg::{
     self, Action, BlockingType, Connection, ConnectionState, Edge, ErrorLevel, Factsheet, Header,
     InstantActions, Node, NodePosition, Order, State, Visualization,
@@ -52,6 +52,8 @@ pub struct FleetOptions {
     /// How long a vehicle has to show an order in its state before the session is told
     /// the vehicle did not take it.
     pub order_timeout: Duration,
+    /// TLS and credentials for the MQTT broker.
+    pub security: MqttSecurity,
 }
 
 impl FleetOptions {
@@ -66,6 +68,7 @@ impl FleetOptions {
             version: "2.1.0".into(),
             graph: None,
             order_timeout: Duration::from_secs(10),
+            security: MqttSecurity::default(),
         }
     }
 }
@@ -202,6 +205,7 @@ impl Fleet {
         let m = opts.manufacturer.as_deref();
         let cfg = MqttConfig {
             broker: opts.mqtt.clone(),
+            security: opts.security.clone(),
             client_id: format!("muster-{}-{}", opts.system, std::process::id()),
             keep_alive: Duration::from_secs(5),
             subscriptions: ["connection", "factsheet", "state", "visualization"]

@@ -17,11 +17,114 @@ pub const MAX_PACKET: usize = 1 << 20;
 /// How long the thread waits between tries while the MQTT broker cannot be reached.
 const RETRY: Duration = Duration::from_millis(500);
 
+/// How to reach a broker that asks for more than a plain connection.
+#[derive(Clone, Default)]
+pub struct MqttSecurity {
+    /// TLS, trusting the certificate authorities in this PEM file (the broker's
+    /// certificate must name the host or IP address of `broker`).
+    pub ca: Option<std::path::PathBuf>,
+    /// With TLS: this client's certificate chain and key (PEM), for brokers that ask
+    /// for one (`require_certificate true`).
+    pub client_cert: Option<(std::path::PathBuf, std::path::PathBuf)>,
+    /// User name and password (sent only over TLS unless the caller accepts a plain
+    /// connection).
+    pub credentials: Option<(String, String)>,
+}
+
+/// The password is never printed.
+impl std::fmt::Debug for MqttSecurity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MqttSecurity")
+            .field("ca", &self.ca)
+            .field("client_cert", &self.client_cert)
+            .field("user", &self.credentials.as_ref().map(|(u, _)| u))
+            .finish()
+    }
+}
+
+impl MqttSecurity {
+    /// Reads the password of `user` from `file` (its first line): never on a command
+    /// line, where other users of the host could read it.
+    pub fn password_from(user: &str, file: &std::path::Path) -> Result<(String, String), VdaFail> {
+        let text = std::fs::read_to_string(file)
+            .map_err(|e| VdaFail::Config(format!("password file {}: {e}", file.display())))?;
+        let pass = text
+            .lines()
+            .next()
+            .unwrap_or_default()
+            .trim_end()
+            .to_string();
+        if pass.is_empty() {
+            return Err(VdaFail::Config(format!(
+                "password file {} is empty",
+                file.display()
+            )));
+        }
+        Ok((user.to_string(), pass))
+    }
+
+    /// The rustls client configuration for [`MqttSecurity::ca`], if TLS is asked for.
+    fn tls(&self) -> Result<Option<rustls::ClientConfig>, VdaFail> {
+        let Some(ca) = &self.ca else {
+            if self.client_cert.is_some() {
+                return Err(VdaFail::Config(
+                    "a client certificate needs TLS: give the CA too".into(),
+                ));
+            }
+            return Ok(None);
+        };
+        let bad = |what: &str, e: &dyn std::fmt::Display| VdaFail::Config(format!("{what}: {e}"));
+        let pem = |p: &std::path::Path| -> Result<Vec<u8>, VdaFail> {
+            std::fs::read(p).map_err(|e| bad(&p.display().to_string(), &e))
+        };
+        let mut roots = rustls::RootCertStore::empty();
+        let ca_pem = pem(ca)?;
+        for cert in rustls_pemfile::certs(&mut ca_pem.as_slice()) {
+            let cert = cert.map_err(|e| bad(&ca.display().to_string(), &e))?;
+            roots
+                .add(cert)
+                .map_err(|e| bad(&ca.display().to_string(), &e))?;
+        }
+        if roots.is_empty() {
+            return Err(VdaFail::Config(format!(
+                "{}: no certificate in it",
+                ca.display()
+            )));
+        }
+        let provider = Arc::new(rustls::crypto::ring::default_provider());
+        let builder = rustls::ClientConfig::builder_with_provider(provider)
+            .with_safe_default_protocol_versions()
+            .map_err(|e| bad("TLS", &e))?
+            .with_root_certificates(roots);
+        let config = match &self.client_cert {
+            None => builder.with_no_client_auth(),
+            Some((cert, key)) => {
+                let chain_pem = pem(cert)?;
+                let chain = rustls_pemfile::certs(&mut chain_pem.as_slice())
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(|e| bad(&cert.display().to_string(), &e))?;
+                let key_pem = pem(key)?;
+                let key = rustls_pemfile::private_key(&mut key_pem.as_slice())
+                    .map_err(|e| bad(&key.display().to_string(), &e))?
+                    .ok_or_else(|| {
+                        VdaFail::Config(format!("{}: no private key in it", key.display()))
+                    })?;
+                builder
+                    .with_client_auth_cert(chain, key)
+                    .map_err(|e| bad("client certificate", &e))?
+            }
+        };
+        Ok(Some(config))
+    }
+}
+
 /// What to connect to and ask for.
 #[derive(Clone, Debug)]
 pub struct MqttConfig {
     /// `host:port` of the MQTT broker.
     pub broker: String,
+    /// TLS and credentials, if the broker asks for them.
+    pub security: MqttSecurity,
     /// This client's id (unique per broker).
     pub client_id: String,
     /// Keep-alive: the broker sends the last will after 1.5 times this of silence.
@@ -81,6 +184,14 @@ impl MqttLink {
         opts.set_keep_alive(cfg.keep_alive)
             .set_clean_session(true)
             .set_max_packet_size(MAX_PACKET, MAX_PACKET);
+        if let Some(tls) = cfg.security.tls()? {
+            opts.set_transport(rumqttc::Transport::tls_with_config(
+                rumqttc::TlsConfiguration::Rustls(Arc::new(tls)),
+            ));
+        }
+        if let Some((user, pass)) = &cfg.security.credentials {
+            opts.set_credentials(user.clone(), pass.clone());
+        }
         if let Some((topic, payload, retain)) = &cfg.will {
             opts.set_last_will(LastWill::new(
                 topic.clone(),

@@ -130,6 +130,7 @@ fn on_the_wire(
     let topic = format!("muster-bench-rtt/{}", std::process::id());
     let mut link = MqttLink::connect(&MqttConfig {
         broker: mqtt.to_string(),
+        security: Default::default(),
         client_id: format!("muster-bench-rtt-{}", std::process::id()),
         keep_alive: Duration::from_secs(5),
         subscriptions: vec![
