@@ -1372,6 +1372,14 @@ pub struct SimArgs {
     /// ROS domain id for `--ros2` (default: `ROS_DOMAIN_ID`, else 0).
     #[arg(long, requires = "ros2", value_parser = clap::value_parser!(u16).range(0..=232))]
     pub domain: Option<u16>,
+    /// Also make the robots VDA 5050 vehicles on the MQTT broker HOST:PORT: runs `muster
+    /// agv` beside the simulator (stopped with it) for `--vda5050-robots`, with this
+    /// scenario and map.
+    #[arg(long, value_name = "HOST:PORT")]
+    pub vda5050: Option<String>,
+    /// With `--vda5050`: which robots (default: every robot of the scenario).
+    #[arg(long, value_delimiter = ',', requires = "vda5050")]
+    pub vda5050_robots: Vec<String>,
 }
 
 #[derive(Args, Debug, Clone)]

@@ -928,3 +928,39 @@ fn both_bridges_reach_a_broker_that_asks_for_tls_and_a_password_and_a_user_drive
     assert!(f.list().iter().all(|s| s["system"] == "vda5050"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn muster_sim_with_vda5050_makes_its_robots_vehicles_and_takes_them_away_when_it_stops() {
+    if !peers_here() {
+        return;
+    }
+    let mut f = Fed::new("vda6");
+    let mqtt = mosquitto(&mut f);
+    let mut c = Command::new("node");
+    c.current_dir(JS).arg("master.js").args([
+        "--broker",
+        &format!("mqtt://{mqtt}"),
+        "--manufacturer",
+        "muster",
+        "--serial",
+        "D1",
+    ]);
+    let master = f.spawn_command(c);
+    wait_event(f.proc(master), "ready", 20 * SEC);
+    let sim = f.spawn(&["sim", "--vda5050", &mqtt, "--vda5050-robots", "D1,T1"]);
+    // Both robots say they are online and describe themselves; nothing else does.
+    let mut seen = std::collections::BTreeSet::new();
+    while seen.len() < 4 {
+        let v = wait_for(f.proc(master), 30 * SEC, |v| {
+            v["event"] == "factsheet" || v["event"] == "connection"
+        });
+        assert!(["D1", "T1"].contains(&v["serial"].as_str().unwrap()), "{v}");
+        if v["event"] == "connection" {
+            assert_eq!(v["message"]["connectionState"], "ONLINE", "{v}");
+        }
+        seen.insert(format!("{} {}", v["serial"], v["event"]));
+    }
+    // The simulator stops in order, and its vehicles with it.
+    f.proc(sim).signal(libc::SIGTERM);
+    connection_state(f.proc(master), "OFFLINE", 15 * SEC);
+}

@@ -88,6 +88,11 @@ fn simulate(
     } else {
         None
     };
+    // The robots as VDA 5050 vehicles: `muster agv` beside us, stopped with us.
+    let mut agv = match &a.vda5050 {
+        Some(mqtt) => Some(start_agv(inst, world, a, mqtt)?),
+        None => None,
+    };
     let mut signals = SignalPipe::install()?;
     let mut reactor = Reactor::new()?;
     reactor.add(signals.raw(), 0)?;
@@ -150,6 +155,9 @@ fn simulate(
             );
         }
     }
+    if let Some(c) = &mut agv {
+        c.stop();
+    }
     tracing::info!(
         sim_time = world.time(),
         wall = ?start.elapsed(),
@@ -157,6 +165,35 @@ fn simulate(
         "simulator stopped"
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Starts `muster agv --mqtt MQTT` for `--vda5050-robots` (every robot by default),
+/// on this simulator's scenario and map.
+fn start_agv(
+    inst: &Instance,
+    world: &World,
+    a: &SimArgs,
+    mqtt: &str,
+) -> anyhow::Result<super::children::Children> {
+    let robots = if a.vda5050_robots.is_empty() {
+        world.robots().iter().map(|r| r.spec.name.clone()).collect()
+    } else {
+        a.vda5050_robots.clone()
+    };
+    let robots = robots.join(",");
+    let mut args = vec!["agv", "--mqtt", mqtt, "--robots", &robots];
+    let scenario = a.scenario.as_ref().map(|p| p.display().to_string());
+    let map = a.map.as_ref().map(|p| p.display().to_string());
+    if let Some(p) = &scenario {
+        args.extend(["--scenario", p]);
+    }
+    if let Some(p) = &map {
+        args.extend(["--map", p]);
+    }
+    let mut kids = super::children::Children::default();
+    kids.spawn(inst, "muster agv", &args, std::process::Stdio::inherit())?;
+    tracing::info!(%mqtt, %robots, "the robots are VDA 5050 vehicles (muster agv)");
+    Ok(kids)
 }
 
 fn run_bench(counts: &[usize], as_json: bool) -> anyhow::Result<ExitCode> {
