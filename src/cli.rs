@@ -957,6 +957,11 @@ pub struct MqttArgs {
     /// A file whose first line is the MQTT password (never on the command line).
     #[arg(long, requires = "mqtt_user")]
     pub mqtt_password_file: Option<std::path::PathBuf>,
+    /// A folder of VDA 5050 JSON schemas (the official ones of the version spoken:
+    /// `order.schema`, `state.schema.json`, ...): every message read and written must
+    /// also pass them (checked with `jsonschema`).
+    #[arg(long)]
+    pub vda_schemas: Option<std::path::PathBuf>,
 }
 
 #[derive(Args, Debug)]

@@ -964,3 +964,103 @@ fn muster_sim_with_vda5050_makes_its_robots_vehicles_and_takes_them_away_when_it
     f.proc(sim).signal(libc::SIGTERM);
     connection_state(f.proc(master), "OFFLINE", 15 * SEC);
 }
+
+#[test]
+fn json_schemas_given_are_checked_on_every_message_with_the_official_ones_among_them() {
+    if !peers_here() {
+        return;
+    }
+    let mut f = Fed::new("vda7");
+    let mqtt = mosquitto(&mut f);
+    let iface = format!("j{}", std::process::id());
+    // The official connection schema vda-5050-cli ships (with the files it refers to),
+    // and a stricter state schema of our own: a charge above 100 % is refused.
+    let dir = std::env::temp_dir().join(format!("muster-vda-schemas-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let official = std::path::Path::new(JS).join("node_modules/vda-5050-cli/schema/v1.1");
+    assert!(
+        official.exists(),
+        "vda-5050-cli is not installed: run .ci/run's setup"
+    );
+    for name in [
+        "common.schema.json",
+        "header.schema.json",
+        "connection.schema.json",
+    ] {
+        std::fs::copy(official.join(name), dir.join(name)).unwrap();
+    }
+    std::fs::write(
+        dir.join("state.schema.json"),
+        r#"{"$schema": "http://json-schema.org/draft-07/schema#", "type": "object",
+            "required": ["batteryState"], "properties": {"batteryState": {"type": "object",
+            "properties": {"batteryCharge": {"type": "number", "minimum": 0, "maximum": 100}}}}}"#,
+    )
+    .unwrap();
+    let agv = virtual_agvs(&mut f, &mqtt, &iface, &[]);
+    f.broker(&[]);
+    let fleet = f.spawn(&[
+        "system",
+        "vda5050",
+        "--mqtt",
+        &mqtt,
+        "--interface",
+        &iface,
+        "--vda-version",
+        "2.0.0",
+        "--vda-schemas",
+        dir.to_str().unwrap(),
+        "--stats-json",
+    ]);
+    // The vehicle's connection passed the official schema: it is listed.
+    f.wait_list(20 * SEC, |l| find(l, "vda5050/agv1.state").is_some());
+    let mut c = user(&f);
+    let watch = grant(&mut c, "vda5050/agv1.state");
+    let state = |charge: f64, x: f64| {
+        serde_json::json!({"headerId": 900, "timestamp": "2026-11-27T06:00:00.00Z",
+            "version": "2.0.0", "manufacturer": "acme", "serialNumber": "agv1", "orderId": "",
+            "orderUpdateId": 0, "lastNodeId": "0", "lastNodeSequenceId": 0, "driving": false,
+            "operatingMode": "AUTOMATIC", "nodeStates": [], "edgeStates": [], "actionStates": [],
+            "agvPosition": {"x": x, "y": 0.0, "theta": 0.0, "mapId": "local", "positionInitialized": true},
+            "batteryState": {"batteryCharge": charge, "charging": false}, "errors": [],
+            "safetyState": {"eStop": "NONE", "fieldViolation": false}})
+    };
+    // 140 % passes the Rust rules and the library's 2.0 schema, not the one given; the
+    // next state (in order after it, same publisher and topic) does.
+    let p = f.proc(agv);
+    p.send(&format!(
+        "raw {iface}/v2/acme/agv1/state {}",
+        state(140.0, 7.0)
+    ));
+    p.send(&format!(
+        "raw {iface}/v2/acme/agv1/state {}",
+        state(55.0, 8.0)
+    ));
+    let deadline = Instant::now() + 10 * SEC;
+    loop {
+        match c.next_event(deadline).unwrap() {
+            Some(UserEvent::Update {
+                session,
+                payload: Payload::Encoded { data, .. },
+                ..
+            }) if session == watch => {
+                let j: Value = serde_json::from_slice(&data).unwrap();
+                assert_ne!(
+                    j["battery"], 140.0,
+                    "a state the schema refuses was shown: {j}"
+                );
+                if j["battery"] == 55.0 {
+                    assert_eq!(j["x"], 8.0);
+                    break;
+                }
+            }
+            Some(_) => {}
+            None => panic!("the valid state after the refused one never came"),
+        }
+    }
+    c.close();
+    f.proc(fleet).signal(libc::SIGTERM);
+    let counts = f.proc(fleet).json(10 * SEC).expect("the bridge's counters");
+    assert_eq!(counts["invalid"], 1, "{counts}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -79,6 +79,7 @@ fn vda5050(inst: &Instance, a: Vda5050SystemArgs) -> anyhow::Result<ExitCode> {
         graph,
         order_timeout: a.order_timeout,
         security: mqtt_security(&a.mqtt_security)?,
+        schemas: vda_schemas(&a.mqtt_security)?,
     };
     validate_registration(&opts.system, &[])?;
     let mut fleet = Fleet::connect(opts.clone(), a.wait)?;
@@ -138,6 +139,18 @@ fn mqtt_security(a: &crate::cli::MqttArgs) -> anyhow::Result<muster_vda5050::mqt
     })
 }
 
+/// The JSON schemas of `--vda-schemas`, compiled.
+fn vda_schemas(
+    a: &crate::cli::MqttArgs,
+) -> anyhow::Result<Option<std::sync::Arc<muster_vda5050::schemas::Schemas>>> {
+    let Some(dir) = &a.vda_schemas else {
+        return Ok(None);
+    };
+    let s = muster_vda5050::schemas::Schemas::load(dir)?;
+    tracing::info!(dir = %dir.display(), topics = ?s.topics(), "VDA 5050 JSON schemas");
+    Ok(Some(std::sync::Arc::new(s)))
+}
+
 /// `muster agv`: the robots as VDA 5050 vehicles.
 pub fn agv(inst: &Instance, a: AgvArgs) -> anyhow::Result<ExitCode> {
     use muster_robots::delivery::DeliveryParams;
@@ -159,6 +172,7 @@ pub fn agv(inst: &Instance, a: AgvArgs) -> anyhow::Result<ExitCode> {
         state_every: a.state_every,
         visualization_every: (!a.visualization_every.is_zero()).then_some(a.visualization_every),
         security: mqtt_security(&a.mqtt_security)?,
+        schemas: vda_schemas(&a.mqtt_security)?,
     };
     let node = muster_shared::ipc::create_node("muster-agv", false)?;
     let robots: Vec<(String, String)> = a

@@ -47,6 +47,8 @@ pub struct AgvOptions {
     pub visualization_every: Option<Duration>,
     /// TLS and credentials for the MQTT broker.
     pub security: MqttSecurity,
+    /// JSON schemas every message read and written must also pass (`--vda-schemas`).
+    pub schemas: Option<std::sync::Arc<crate::schemas::Schemas>>,
 }
 
 impl AgvOptions {
@@ -63,6 +65,7 @@ impl AgvOptions {
             state_every: Duration::from_secs(30),
             visualization_every: Some(Duration::from_secs(1)),
             security: MqttSecurity::default(),
+            schemas: None,
         }
     }
 }
@@ -616,6 +619,7 @@ struct Vehicle {
     next_vis: Instant,
     invalid: u64,
     driving: bool,
+    schemas: Option<std::sync::Arc<crate::schemas::Schemas>>,
 }
 
 const H_STATE: usize = 0;
@@ -642,7 +646,11 @@ impl Vehicle {
 
     fn send(&mut self, topic: &str, bytes: Result<Vec<u8>, String>, retain: bool) {
         let t = self.topic(topic);
-        if let Err(e) = bytes.and_then(|b| self.link.publish(&t, b, retain)) {
+        let checked = bytes.and_then(|b| match &self.schemas {
+            Some(s) => s.check_bytes(topic, &b).map(|()| b),
+            None => Ok(b),
+        });
+        if let Err(e) = checked.and_then(|b| self.link.publish(&t, b, retain)) {
             tracing::warn!(topic = %t, "not sent: {e}");
         }
     }
@@ -756,6 +764,9 @@ impl Vehicle {
         let Some((_, _, kind)) = self.topics.parse(topic) else {
             return;
         };
+        if let Some(Err(why)) = self.schemas.as_ref().map(|s| s.check_bytes(kind, payload)) {
+            return self.refused(topic, kind, &why);
+        }
         let ours = |h: &Header, core: &AgvCore| {
             if h.manufacturer == core.manufacturer && h.serial_number == core.serial {
                 Ok(())
@@ -794,12 +805,17 @@ impl Vehicle {
             _ => return,
         };
         if let Err(why) = result {
-            self.invalid += 1;
-            if self.invalid <= 20 || self.invalid.is_power_of_two() {
-                tracing::warn!(%topic, invalid = self.invalid, "VDA 5050 message refused: {why}");
-            }
-            self.core.invalid_message(kind, &why);
+            self.refused(topic, kind, &why);
         }
+    }
+
+    /// A message not taken: counted, logged, and said in the next state.
+    fn refused(&mut self, topic: &str, kind: &str, why: &str) {
+        self.invalid += 1;
+        if self.invalid <= 20 || self.invalid.is_power_of_two() {
+            tracing::warn!(%topic, invalid = self.invalid, "VDA 5050 message refused: {why}");
+        }
+        self.core.invalid_message(kind, why);
     }
 }
 
@@ -831,6 +847,10 @@ pub fn run_agvs(opts: &AgvOptions, drivers: Vec<DeliveryDriver>) -> Result<AgvSt
             connection_state: ConnectionState::ConnectionBroken,
         };
         let will = msg::encode(&will).map_err(|e| VdaFail::Config(e.to_string()))?;
+        if let Some(s) = &opts.schemas {
+            s.check_bytes("connection", &will)
+                .map_err(|e| VdaFail::Config(format!("the last will: {e}")))?;
+        }
         let cfg = MqttConfig {
             broker: opts.mqtt.clone(),
             security: opts.security.clone(),
@@ -858,6 +878,7 @@ pub fn run_agvs(opts: &AgvOptions, drivers: Vec<DeliveryDriver>) -> Result<AgvSt
             next_vis: Instant::now(),
             invalid: 0,
             driving: false,
+            schemas: opts.schemas.clone(),
         });
     }
     let os = |e: std::io::Error| VdaFail::Config(format!("os: {e}"));

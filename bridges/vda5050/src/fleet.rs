@@ -54,6 +54,8 @@ pub struct FleetOptions {
     pub order_timeout: Duration,
     /// TLS and credentials for the MQTT broker.
     pub security: MqttSecurity,
+    /// JSON schemas every message read and written must also pass (`--vda-schemas`).
+    pub schemas: Option<std::sync::Arc<crate::schemas::Schemas>>,
 }
 
 impl FleetOptions {
@@ -69,6 +71,7 @@ impl FleetOptions {
             graph: None,
             order_timeout: Duration::from_secs(10),
             security: MqttSecurity::default(),
+            schemas: None,
         }
     }
 }
@@ -349,6 +352,11 @@ impl Fleet {
                 &topic,
                 &format!("more than {MAX_VEHICLES} vehicles: not taken"),
             );
+        }
+        if let Some(schemas) = &self.opts.schemas {
+            if let Err(why) = schemas.check_bytes(t, &payload) {
+                return self.invalid(&topic, &why);
+            }
         }
         let result = match t {
             "connection" => msg::decode::<Connection>(&payload).map(|c| {
@@ -707,6 +715,15 @@ impl Fleet {
         }
     }
 
+    /// A message to send, checked by [`msg::encode`] and the schemas given.
+    fn encode<M: msg::Message>(&self, m: &M) -> Result<Vec<u8>, String> {
+        let bytes = msg::encode(m).map_err(|e| e.to_string())?;
+        if let Some(s) = &self.opts.schemas {
+            s.check_bytes(M::TOPIC, &bytes)?;
+        }
+        Ok(bytes)
+    }
+
     /// The version to write to vehicle `v`.
     fn version_for(&self, v: &Vehicle) -> String {
         v.version
@@ -757,8 +774,8 @@ impl Fleet {
             Ok(order) => {
                 let v = &self.vehicles[&key];
                 let topic = self.topics.topic(&v.manufacturer, &v.serial, "order");
-                let sent = msg::encode(&order)
-                    .map_err(|e| e.to_string())
+                let sent = self
+                    .encode(&order)
                     .and_then(|bytes| self.link.publish(&topic, bytes, false));
                 match sent {
                     Ok(()) => {
@@ -988,8 +1005,8 @@ impl Fleet {
         let topic = self
             .topics
             .topic(&v.manufacturer, &v.serial, "instantActions");
-        let sent = msg::encode(&msg)
-            .map_err(|e| e.to_string())
+        let sent = self
+            .encode(&msg)
             .and_then(|bytes| self.link.publish(&topic, bytes, false));
         if let Err(e) = &sent {
             tracing::warn!(%topic, "{action_type} not sent: {e}");

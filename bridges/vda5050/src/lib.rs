@@ -12,6 +12,7 @@ pub mod fleet;
 pub mod graph;
 pub mod mqtt;
 pub mod msg;
+pub mod schemas;
 
 /// Why the bridge could not start.
 #[derive(Debug, thiserror::Error)]
