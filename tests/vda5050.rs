@@ -82,6 +82,33 @@ fn virtual_agvs(f: &mut Fed, mqtt: &str, iface: &str, extra: &[&str]) -> usize {
     i
 }
 
+/// vda-5050-lib's master control (`master.js`) for muster's D1 on interface `iface`.
+fn master_control(f: &mut Fed, mqtt: &str, iface: &str) -> usize {
+    let mut c = Command::new("node");
+    c.current_dir(JS).arg("master.js").args([
+        "--broker",
+        &format!("mqtt://{mqtt}"),
+        "--interface",
+        iface,
+        "--manufacturer",
+        "muster",
+        "--serial",
+        "D1",
+    ]);
+    f.spawn_command(c)
+}
+
+/// A state of vda-5050-lib's `acme/agv1`, at (x, 0) heading `theta`, charged `charge` %.
+fn agv1_state(charge: f64, x: f64, theta: f64) -> Value {
+    serde_json::json!({"headerId": 900, "timestamp": "2026-11-27T06:00:00.00Z",
+        "version": "2.0.0", "manufacturer": "acme", "serialNumber": "agv1", "orderId": "",
+        "orderUpdateId": 0, "lastNodeId": "0", "lastNodeSequenceId": 0, "driving": false,
+        "operatingMode": "AUTOMATIC", "nodeStates": [], "edgeStates": [], "actionStates": [],
+        "agvPosition": {"x": x, "y": 0.0, "theta": theta, "mapId": "local", "positionInitialized": true},
+        "batteryState": {"batteryCharge": charge, "charging": false}, "errors": [],
+        "safetyState": {"eStop": "NONE", "fieldViolation": false}})
+}
+
 /// The next line of the peer with `"event": event`.
 fn wait_event(p: &mut Proc, event: &str, timeout: Duration) -> Value {
     wait_for(p, timeout, |v| v["event"] == event)
@@ -351,13 +378,7 @@ fn a_vda5050_vehicle_is_listed_driven_by_a_users_goals_cancelled_and_withdrawn_w
 
     // A message breaking the rules is refused and not acted on: a state with a heading
     // outside [-π, π] (and a made-up position) does not reach the data session.
-    let bad = serde_json::json!({"headerId": 1, "timestamp": "2026-11-27T06:00:00.00Z",
-        "version": "2.0.0", "manufacturer": "acme", "serialNumber": "agv1", "orderId": "",
-        "orderUpdateId": 0, "lastNodeId": "", "lastNodeSequenceId": 0, "driving": false,
-        "operatingMode": "AUTOMATIC", "nodeStates": [], "edgeStates": [], "actionStates": [],
-        "batteryState": {"batteryCharge": 50, "charging": false}, "errors": [],
-        "agvPosition": {"x": 99.0, "y": 99.0, "theta": 4.0, "mapId": "local", "positionInitialized": true},
-        "safetyState": {"eStop": "NONE", "fieldViolation": false}});
+    let bad = agv1_state(50.0, 99.0, 4.0);
     let p = f.proc(agv);
     p.send(&format!("raw {iface}/v2/acme/agv1/state {bad}"));
     // The sniffer calls it invalid too (the one message expected to be).
@@ -515,18 +536,7 @@ fn a_simulated_robot_is_a_vda5050_vehicle_that_vda_5050_libs_master_control_driv
         "--stats-json",
     ];
     let agv = f.spawn(&agv_args);
-    let mut c = Command::new("node");
-    c.current_dir(JS).arg("master.js").args([
-        "--broker",
-        &format!("mqtt://{mqtt}"),
-        "--interface",
-        &iface,
-        "--manufacturer",
-        "muster",
-        "--serial",
-        "D1",
-    ]);
-    let master = f.spawn_command(c);
+    let master = master_control(&mut f, &mqtt, &iface);
     let p = f.proc(master);
     // The retained connection says ONLINE (whether it came before the master or after).
     connection_state(p, "ONLINE", 30 * SEC);
@@ -936,16 +946,7 @@ fn muster_sim_with_vda5050_makes_its_robots_vehicles_and_takes_them_away_when_it
     }
     let mut f = Fed::new("vda6");
     let mqtt = mosquitto(&mut f);
-    let mut c = Command::new("node");
-    c.current_dir(JS).arg("master.js").args([
-        "--broker",
-        &format!("mqtt://{mqtt}"),
-        "--manufacturer",
-        "muster",
-        "--serial",
-        "D1",
-    ]);
-    let master = f.spawn_command(c);
+    let master = master_control(&mut f, &mqtt, "uagv");
     wait_event(f.proc(master), "ready", 20 * SEC);
     let sim = f.spawn(&["sim", "--vda5050", &mqtt, "--vda5050-robots", "D1,T1"]);
     // Both robots say they are online and describe themselves; nothing else does.
@@ -1016,25 +1017,16 @@ fn json_schemas_given_are_checked_on_every_message_with_the_official_ones_among_
     f.wait_list(20 * SEC, |l| find(l, "vda5050/agv1.state").is_some());
     let mut c = user(&f);
     let watch = grant(&mut c, "vda5050/agv1.state");
-    let state = |charge: f64, x: f64| {
-        serde_json::json!({"headerId": 900, "timestamp": "2026-11-27T06:00:00.00Z",
-            "version": "2.0.0", "manufacturer": "acme", "serialNumber": "agv1", "orderId": "",
-            "orderUpdateId": 0, "lastNodeId": "0", "lastNodeSequenceId": 0, "driving": false,
-            "operatingMode": "AUTOMATIC", "nodeStates": [], "edgeStates": [], "actionStates": [],
-            "agvPosition": {"x": x, "y": 0.0, "theta": 0.0, "mapId": "local", "positionInitialized": true},
-            "batteryState": {"batteryCharge": charge, "charging": false}, "errors": [],
-            "safetyState": {"eStop": "NONE", "fieldViolation": false}})
-    };
     // 140 % passes the Rust rules and the library's 2.0 schema, not the one given; the
     // next state (in order after it, same publisher and topic) does.
     let p = f.proc(agv);
     p.send(&format!(
         "raw {iface}/v2/acme/agv1/state {}",
-        state(140.0, 7.0)
+        agv1_state(140.0, 7.0, 0.0)
     ));
     p.send(&format!(
         "raw {iface}/v2/acme/agv1/state {}",
-        state(55.0, 8.0)
+        agv1_state(55.0, 8.0, 0.0)
     ));
     let deadline = Instant::now() + 10 * SEC;
     loop {
