@@ -497,11 +497,7 @@ impl AgvCore {
                 })
                 .collect(),
             agv_position: Some(self.position(pose)),
-            velocity: Some(Velocity {
-                vx: Some(velocity.0),
-                vy: Some(0.0),
-                omega: Some(velocity.1),
-            }),
+            velocity: Some(moving(velocity)),
             loads: None,
             action_states: self.actions.clone(),
             battery_state: BatteryState {
@@ -543,11 +539,7 @@ impl AgvCore {
         Visualization {
             header: self.header(header_id),
             agv_position: Some(self.position(pose)),
-            velocity: Some(Velocity {
-                vx: Some(velocity.0),
-                vy: Some(0.0),
-                omega: Some(velocity.1),
-            }),
+            velocity: Some(moving(velocity)),
         }
     }
 
@@ -587,6 +579,15 @@ impl AgvCore {
             o.extend(e.clone());
         }
         j
+    }
+}
+
+/// A differential drive's velocity (v m/s, w rad/s) as VDA 5050 says it.
+fn moving((v, w): (f64, f64)) -> Velocity {
+    Velocity {
+        vx: Some(v),
+        vy: Some(0.0),
+        omega: Some(w),
     }
 }
 

@@ -483,11 +483,10 @@ impl Fleet {
         let was = v.online();
         v.connection = Some(c);
         let now = v.online();
-        let (command, data) = (v.command.clone(), v.data.clone());
         if was == now {
             return;
         }
-        tracing::info!(vehicle = %command, state = ?c, "vehicle connection");
+        tracing::info!(vehicle = %v.command, state = ?c, "vehicle connection");
         if !now {
             // What it said before is stale once it is back (restarted, moved by hand).
             v.state = None;
@@ -498,15 +497,7 @@ impl Fleet {
             self.instant(key, "stateRequest", "muster-state");
         }
         if let Some(core) = core {
-            if self.specs_dirty {
-                return; // offered (or withdrawn) with the new list
-            }
-            for s in [command, data] {
-                match now {
-                    true => core.restore(&s),
-                    false => core.withdraw(&s),
-                }
-            }
+            self.offer(core, key, now);
         }
     }
 
@@ -518,7 +509,9 @@ impl Fleet {
         v.state = Some(st);
         if came_back && v.online() {
             // A vehicle that never sent a connection is online while it sends state.
-            self.connection_restored(core, key);
+            if let Some(core) = core {
+                self.offer(core, key, true);
+            }
             return;
         }
         let Some(core) = core else { return };
@@ -552,17 +545,23 @@ impl Fleet {
         self.follow(core, key, Duration::ZERO);
     }
 
-    fn connection_restored(&mut self, core: Option<&mut SystemCore>, key: &Key) {
-        if let (Some(core), false) = (core, self.specs_dirty) {
-            let v = &self.vehicles[key];
-            for s in [v.command.clone(), v.data.clone()] {
-                core.restore(&s);
+    /// Offers the vehicle's two services again, or withdraws them (unless the next
+    /// registration, already due, says so with the new list).
+    fn offer(&mut self, core: &mut SystemCore, key: &Key, online: bool) {
+        if self.specs_dirty {
+            return;
+        }
+        let v = &self.vehicles[key];
+        for s in [v.command.as_str(), v.data.as_str()] {
+            match online {
+                true => core.restore(s),
+                false => core.withdraw(s),
             }
         }
     }
 
-    /// The vehicle's state as the data service's JSON.
-    fn summary(v: &Vehicle) -> Option<serde_json::Value> {
+    /// The vehicle's state as the data service's sample (JSON).
+    fn summary(v: &Vehicle) -> Option<Payload> {
         let st = v.state.as_ref()?;
         let mut j = serde_json::json!({
             "manufacturer": v.manufacturer, "serial": v.serial, "online": v.online(),
@@ -583,7 +582,10 @@ impl Fleet {
             j["theta"] = p.theta.into();
             j["mapId"] = p.map_id.clone().into();
         }
-        Some(j)
+        Some(Payload::Encoded {
+            type_name: STATE_TYPE.into(),
+            data: j.to_string().into_bytes(),
+        })
     }
 
     fn publish_state(&mut self, core: &mut SystemCore, key: &Key) {
@@ -591,10 +593,8 @@ impl Fleet {
         if core.sessions_of(&v.data) == 0 {
             return;
         }
-        let Some(j) = Self::summary(v) else { return };
-        let payload = Payload::Encoded {
-            type_name: STATE_TYPE.into(),
-            data: j.to_string().into_bytes(),
+        let Some(payload) = Self::summary(v) else {
+            return;
         };
         if let Err(e) = core.publish(&v.data, &payload, monotonic_ns()) {
             tracing::warn!(service = %v.data, "state not sent: {e}");
@@ -1074,11 +1074,7 @@ impl SystemApp for Fleet {
                     v.task = None;
                     self.sessions.insert(session, key);
                     core.status(session, TaskStatus::Idle);
-                } else if let Some(j) = Self::summary(v) {
-                    let payload = Payload::Encoded {
-                        type_name: STATE_TYPE.into(),
-                        data: j.to_string().into_bytes(),
-                    };
+                } else if let Some(payload) = Self::summary(v) {
                     let _ = core.publish_session(session, &payload, monotonic_ns());
                 }
             }
