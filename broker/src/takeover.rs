@@ -259,12 +259,18 @@ mod tests {
             .spawn()
             .expect("sleep");
         let pid = child.id();
+        // The state seen when the wait ends, not a second read: a child still starting
+        // up passes through disk sleep (read as sleeping) and running before `sleep`
+        // settles, so a re-read could catch it running again.
         let wait_for = |want: ProcState| {
             let deadline = std::time::Instant::now() + Duration::from_secs(5);
-            while proc_state(pid) != want && std::time::Instant::now() < deadline {
+            loop {
+                let state = proc_state(pid);
+                if state == want || std::time::Instant::now() >= deadline {
+                    return state;
+                }
                 std::thread::sleep(ms(5));
             }
-            proc_state(pid)
         };
         assert_eq!(wait_for(ProcState::Sleeping), ProcState::Sleeping);
         assert!(run_queue_wait(pid).is_some(), "schedstat is readable");
