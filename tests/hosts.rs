@@ -166,6 +166,15 @@ fn make_certs(dir: &std::path::Path, hosts: &str) -> i32 {
 
 /// A Zenoh peer of this test's own (an attacker, a third party) connected to
 /// `endpoints`, over TLS with `certs`' certificate `name` if given.
+/// Frames as one batch, as a host puts them on another's key.
+fn wire(frames: &[&[u8]]) -> Vec<u8> {
+    let mut b = muster_broker::federation::Batch::default();
+    for f in frames {
+        b.push(f);
+    }
+    b.take()
+}
+
 fn raw_peer(endpoints: &[String], tls: Option<(&std::path::Path, &str)>) -> zenoh::Session {
     use zenoh::Wait;
     let mut conf = zenoh::Config::default();
@@ -568,7 +577,7 @@ fn hostile_frames_from_another_host_are_dropped() {
     use muster_shared::types::{EndReason, Payload, ServiceId, ServiceKind, SessionId, UserId};
     use zenoh::Wait;
     // A peer on the federation's network puts what it likes on b's inbox key: bytes
-    // that are no frame, a frame claiming to be from a user with '@' in its name, input
+    // that are no batch, batches of bytes that are no frame, a frame claiming to be from a user with '@' in its name, input
     // and an end for a session it does not hold, a grant for nobody. b keeps serving,
     // and the session that a's user holds there goes on to its end.
     let mut h = Hosts::new("fh", &["a", "b"]);
@@ -706,10 +715,24 @@ fn hostile_frames_from_another_host_are_dropped() {
         })
         .unwrap(),
     ));
+    let to_a: Vec<&[u8]> = frames
+        .iter()
+        .filter(|(k, _)| *k == to_b("a"))
+        .map(|(_, f)| f.as_slice())
+        .collect();
+    let mut truncated = wire(&to_a);
+    truncated.truncate(truncated.len() - 3);
     for _ in 0..50 {
+        for (k, f) in &frames {
+            z.put(k, wire(&[f])).wait().unwrap();
+        }
+        // Each frame as the whole payload (no batch), all in one batch, and that batch
+        // cut short.
         for (k, f) in &frames {
             z.put(k, f.clone()).wait().unwrap();
         }
+        z.put(to_b("a"), wire(&to_a)).wait().unwrap();
+        z.put(to_b("a"), truncated.clone()).wait().unwrap();
     }
     z.close().wait().unwrap();
     let lines = h.host(0).proc(holder).all_json(20 * SEC);
@@ -1342,10 +1365,10 @@ fn a_member_host_sees_only_its_own_frames_and_acts_only_as_itself() {
         })
         .unwrap()
     };
-    z.put(format!("{fed}b/req/a"), request("forged"))
+    z.put(format!("{fed}b/req/a"), wire(&[&request("forged")]))
         .wait()
         .unwrap();
-    z.put(format!("{fed}b/req/spy"), request("spyuser"))
+    z.put(format!("{fed}b/req/spy"), wire(&[&request("spyuser")]))
         .wait()
         .unwrap();
     // Its own request is served: b's grant comes back to it, on its own key.
@@ -1408,8 +1431,12 @@ fn a_grant_is_taken_only_from_the_host_asked_and_for_the_service_asked() {
     let _sub = z
         .declare_subscriber(format!("{fed}b/req/a"))
         .callback(move |s| {
-            if let Ok(m) = decode::<FedMsg>(&s.payload().to_bytes()) {
-                sink.lock().unwrap().push(m);
+            let bytes = s.payload().to_bytes();
+            let (frames, _) = muster_broker::federation::split_batch(&bytes);
+            for f in frames {
+                if let Ok(m) = decode::<FedMsg>(f) {
+                    sink.lock().unwrap().push(m);
+                }
             }
         })
         .wait()
@@ -1454,10 +1481,10 @@ fn a_grant_is_taken_only_from_the_host_asked_and_for_the_service_asked() {
         .unwrap()
     };
     // As c, for the service asked; as b, for another.
-    z.put(format!("{fed}a/in/c"), forged("robo/s0"))
+    z.put(format!("{fed}a/in/c"), wire(&[&forged("robo/s0")]))
         .wait()
         .unwrap();
-    z.put(format!("{fed}a/in/b"), forged("evil/s0"))
+    z.put(format!("{fed}a/in/b"), wire(&[&forged("evil/s0")]))
         .wait()
         .unwrap();
     let lines = h.host(0).proc(waiter).all_json(30 * SEC);

@@ -6,7 +6,10 @@
 //! endpoints the broker owns for peers on other hosts). Nothing here decides anything.
 
 use super::core::{FedCore, FedInput, FedOutput, Inboxes};
-use super::{Delivery, FedConfig, FedError, FedMsg, FedStats, Role, MAX_FED_FRAME};
+use super::{
+    split_batch, Batch, Delivery, FedConfig, FedError, FedMsg, FedStats, Role, MAX_FED_BATCH,
+    MAX_FED_FRAME,
+};
 use crate::core::{Broker, Output};
 use muster_shared::ipc::{create_node, Endpoint};
 use muster_shared::names::{Address, Instance};
@@ -23,6 +26,15 @@ use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use zenoh::Wait;
+
+/// What a batch to a host holds: frames on its users' key or on its systems' (access
+/// control is by key), and updates only, which Zenoh may drop when the way is congested,
+/// or frames that must arrive, which wait for room.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct BatchKind {
+    users_key: bool,
+    droppable: bool,
+}
 
 /// The first reactor token of proxy inboxes; the shell's own tokens stay below it.
 pub const FIRST_PROXY_TOKEN: usize = 1 << 32;
@@ -89,6 +101,46 @@ impl Inflow {
             }
         }
         self.queued.fetch_sub(n, Ordering::Relaxed);
+    }
+
+    /// The frames of a batch another host sent, handed over together with one wake-up.
+    fn push_batch(&self, s: &zenoh::sample::Sample, from: &str, users_side: bool) {
+        if s.payload().len() > MAX_FED_BATCH {
+            self.refused.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        let payload = s.payload().to_bytes();
+        let (frames, bad) = split_batch(&payload);
+        if bad {
+            self.refused.fetch_add(1, Ordering::Relaxed);
+        }
+        let n: usize = frames.iter().map(|f| f.len()).sum();
+        if frames.is_empty() {
+            return;
+        }
+        if self.queued.fetch_add(n, Ordering::Relaxed) + n > MAX_QUEUED_BYTES {
+            self.queued.fetch_sub(n, Ordering::Relaxed);
+            self.refused
+                .fetch_add(frames.len() as u64, Ordering::Relaxed);
+            return;
+        }
+        let Ok(tx) = self.tx.lock() else {
+            self.queued.fetch_sub(n, Ordering::Relaxed);
+            return;
+        };
+        for f in frames {
+            let ev = FedInput::Frame {
+                from: from.to_string(),
+                users_side,
+                bytes: f.to_vec(),
+            };
+            if tx.send(ev).is_err() {
+                // The loop is gone: nothing is counted any more.
+                return;
+            }
+        }
+        // Full pipe: a wake-up is pending already.
+        let _ = (&*self.ring).write(&[1]);
     }
 
     /// A sample's bytes, if at most `max` (counted as refused otherwise, not copied).
@@ -202,6 +254,15 @@ pub struct Federation {
     shm: ShmInboxes,
     /// Frames for local users, for the shell to deliver.
     deliveries: VecDeque<Delivery>,
+    /// Frames for other hosts not yet put, by host: the batch's kind and the batch
+    /// ([`Federation::send_pending`]).
+    outgoing: BTreeMap<String, (BatchKind, Batch)>,
+}
+
+impl Drop for Federation {
+    fn drop(&mut self) {
+        self.send_pending();
+    }
 }
 
 impl Federation {
@@ -319,13 +380,7 @@ impl Federation {
                     .declare_subscriber(format!("{inbox}*"))
                     .callback(move |s| {
                         if let Some(from) = s.key_expr().as_str().strip_prefix(&inbox) {
-                            if let Some(bytes) = n.payload(&s, MAX_FED_FRAME) {
-                                n.push(FedInput::Frame {
-                                    from: from.to_string(),
-                                    users_side,
-                                    bytes,
-                                });
-                            }
+                            n.push_batch(&s, from, users_side);
                         }
                     })
                     .wait()
@@ -381,6 +436,7 @@ impl Federation {
                 lingering: Vec::new(),
             },
             deliveries: VecDeque::new(),
+            outgoing: BTreeMap::new(),
         })
     }
 
@@ -567,9 +623,12 @@ impl Federation {
                         *l = (version, body.clone());
                     }
                     let key = format!("{}{}/list", self.prefix, self.core.host());
+                    // Waits for room rather than being dropped: the others would see
+                    // the change only at their next refresh.
                     let put = self
                         .session
                         .put(&key, body)
+                        .congestion_control(zenoh::qos::CongestionControl::Block)
                         .attachment(version.to_le_bytes().to_vec());
                     if let Err(e) = put.wait() {
                         tracing::warn!("federation: cannot publish the list: {e}");
@@ -593,14 +652,66 @@ impl Federation {
         }
     }
 
-    fn put_frame(&self, to: &str, msg: &FedMsg) {
+    /// Adds a frame to `to`'s batch; a batch of another kind, or one it does not fit
+    /// beside, is put first (a host's frames keep their order).
+    fn put_frame(&mut self, to: &str, msg: &FedMsg) {
         let frame = match encode(msg) {
             Ok(f) => f,
             Err(e) => return tracing::warn!("federation: cannot encode a frame for {to}: {e}"),
         };
-        let part = if msg.on_users_key() { "req" } else { "in" };
+        if frame.len() > MAX_FED_FRAME {
+            // The other host would drop it unread.
+            return tracing::warn!(
+                bytes = frame.len(),
+                limit = MAX_FED_FRAME,
+                "federation: a frame for {to} is too large: not sent"
+            );
+        }
+        let kind = BatchKind {
+            users_key: msg.on_users_key(),
+            droppable: msg.droppable(),
+        };
+        let flush = self
+            .outgoing
+            .get(to)
+            .is_some_and(|(k, b)| !b.is_empty() && (*k != kind || !b.fits(&frame)));
+        if flush {
+            self.put_batch(to);
+        }
+        let (k, batch) = self.outgoing.entry(to.to_string()).or_default();
+        *k = kind;
+        batch.push(&frame);
+    }
+
+    /// Puts every batch gathered since the last call. The shell calls it at the end of
+    /// each flush of its outputs, so a frame waits at most for the rest of the pass of
+    /// the loop that made it.
+    pub fn send_pending(&mut self) {
+        let hosts: Vec<String> = self
+            .outgoing
+            .iter()
+            .filter(|(_, (_, b))| !b.is_empty())
+            .map(|(h, _)| h.clone())
+            .collect();
+        for h in hosts {
+            self.put_batch(&h);
+        }
+    }
+
+    fn put_batch(&mut self, to: &str) {
+        let Some((kind, batch)) = self.outgoing.get_mut(to) else {
+            return;
+        };
+        let part = if kind.users_key { "req" } else { "in" };
+        let congestion = if kind.droppable {
+            zenoh::qos::CongestionControl::Drop
+        } else {
+            zenoh::qos::CongestionControl::Block
+        };
+        let bytes = batch.take();
         let key = format!("{}{to}/{part}/{}", self.prefix, self.core.host());
-        if let Err(e) = self.session.put(&key, frame).wait() {
+        let put = self.session.put(&key, bytes).congestion_control(congestion);
+        if let Err(e) = put.wait() {
             tracing::warn!("federation: cannot send to {to}: {e}");
         }
     }

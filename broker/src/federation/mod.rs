@@ -310,6 +310,13 @@ impl FedConfig {
         if !self.connect.is_empty() {
             set(&mut c, "connect/endpoints", &json_list(&tls(&self.connect)))?;
         }
+        if self.zenoh_config.is_none() {
+            set(
+                &mut c,
+                "transport/link/tx/queue/size/data",
+                &ZENOH_DATA_QUEUE.to_string(),
+            )?;
+        }
         if self.acl.is_some() && self.tls.is_none() {
             return Err(FedError::Config(
                 "--acl needs --tls: hosts are known by their certificates".into(),
@@ -531,6 +538,20 @@ impl FedMsg {
             FedMsg::ToUser { .. } | FedMsg::Granted(_) | FedMsg::Held { .. }
         )
     }
+
+    /// Whether the frame may be dropped when the way to its host is congested: a data
+    /// update, which its user counts as a gap (the next update or the session's end
+    /// names the numbers missed). Everything else (requests, grants, ends, inputs) must
+    /// arrive, and waits for room instead.
+    pub fn droppable(&self) -> bool {
+        matches!(
+            self,
+            FedMsg::ToUser {
+                msg: ToUser::Update { .. },
+                ..
+            }
+        )
+    }
 }
 
 /// A frame the federation has for a local user; the shell delivers it through shared
@@ -571,6 +592,78 @@ pub const MAX_FED_FRAME: usize = 64 << 10;
 /// Zenoh's own limit on a message it reassembles from fragments: bigger ones are
 /// dropped by Zenoh before muster sees them.
 const MAX_ZENOH_MESSAGE: usize = 2 << 20;
+/// Most bytes of one batch of frames (one Zenoh put): within one of Zenoh's own 64 KiB
+/// batches, so that it is never cut into fragments. A single frame goes alone however
+/// large, up to [`MAX_FED_FRAME`].
+pub const MAX_FED_BATCH: usize = 60 << 10;
+/// Zenoh's transmission queue for data, in batches of 64 KiB (Zenoh's default is 2, its
+/// most 16): a burst of frames to a host waits in it rather than being dropped or
+/// holding the broker's loop.
+const ZENOH_DATA_QUEUE: usize = 16;
+
+/// Frames for one host on one key, gathered over a pass of the broker's loop and sent as
+/// one Zenoh put: each frame is its length (`u32`, little-endian) and its bytes. Under
+/// load a relay passes hundreds of frames a pass (a system's burst to another host's
+/// users); one put and one wake-up at the other end each, rather than one per frame.
+#[derive(Debug, Default)]
+pub struct Batch {
+    bytes: Vec<u8>,
+    frames: usize,
+}
+
+impl Batch {
+    /// Whether `frame` fits beside what the batch holds (an empty batch takes any frame
+    /// up to [`MAX_FED_FRAME`]).
+    pub fn fits(&self, frame: &[u8]) -> bool {
+        frame.len() <= MAX_FED_FRAME
+            && (self.frames == 0 || self.bytes.len() + 4 + frame.len() <= MAX_FED_BATCH)
+    }
+
+    /// Adds a frame (the caller checked [`Batch::fits`], or sends what it holds first).
+    pub fn push(&mut self, frame: &[u8]) {
+        // A frame is at most MAX_FED_FRAME (64 KiB), so its length fits a u32.
+        self.bytes
+            .extend_from_slice(&(frame.len() as u32).to_le_bytes());
+        self.bytes.extend_from_slice(frame);
+        self.frames += 1;
+    }
+
+    /// How many frames it holds.
+    pub fn len(&self) -> usize {
+        self.frames
+    }
+
+    /// Whether it holds none.
+    pub fn is_empty(&self) -> bool {
+        self.frames == 0
+    }
+
+    /// Its bytes, leaving it empty.
+    pub fn take(&mut self) -> Vec<u8> {
+        self.frames = 0;
+        std::mem::take(&mut self.bytes)
+    }
+}
+
+/// The frames of a batch as another host sent it, in order, and whether anything was
+/// wrong with it: a length running past the end, or a frame over [`MAX_FED_FRAME`]. The
+/// frames before the fault are kept; nothing after it is read.
+pub fn split_batch(mut bytes: &[u8]) -> (Vec<&[u8]>, bool) {
+    let mut frames = Vec::new();
+    while !bytes.is_empty() {
+        let Some((len, rest)) = bytes.split_first_chunk::<4>() else {
+            return (frames, true);
+        };
+        let len = u32::from_le_bytes(*len) as usize;
+        if len > MAX_FED_FRAME || len > rest.len() {
+            return (frames, true);
+        }
+        let (frame, rest) = rest.split_at(len);
+        frames.push(frame);
+        bytes = rest;
+    }
+    (frames, false)
+}
 
 /// The specific IP of a Zenoh endpoint (`tcp/10.0.0.2:7447`), if it has one.
 fn listen_ip(endpoint: &str) -> Option<IpAddr> {
@@ -588,6 +681,80 @@ mod tests {
     use muster_shared::protocol::{decode, encode};
     use muster_shared::snapshot::ServiceView;
     use std::time::Duration;
+
+    #[test]
+    fn a_batch_splits_into_its_frames_in_order_and_a_bad_one_keeps_what_came_before() {
+        let mut b = Batch::default();
+        assert!(b.is_empty());
+        for f in [&b"one"[..], b"", b"three"] {
+            assert!(b.fits(f));
+            b.push(f);
+        }
+        assert_eq!(b.len(), 3);
+        let bytes = b.take();
+        assert!(b.is_empty() && b.take().is_empty(), "taking empties it");
+        assert_eq!(
+            split_batch(&bytes),
+            (vec![&b"one"[..], b"", b"three"], false)
+        );
+        assert_eq!(split_batch(&[]), (vec![], false));
+        // A length past the end, a short length, a frame over the limit.
+        assert_eq!(
+            split_batch(&bytes[..bytes.len() - 1]),
+            (vec![&b"one"[..], b""], true)
+        );
+        assert_eq!(split_batch(&bytes[..9]), (vec![&b"one"[..]], true));
+        let mut big = ((MAX_FED_FRAME + 1) as u32).to_le_bytes().to_vec();
+        big.resize(4 + MAX_FED_FRAME + 1, 0);
+        assert_eq!(split_batch(&big), (vec![], true));
+        // A frame at the frame limit goes alone, over the batch's size; nothing goes
+        // beside it.
+        let edge = vec![7u8; MAX_FED_FRAME];
+        let mut b = Batch::default();
+        assert!(b.fits(&edge));
+        b.push(&edge);
+        assert!(!b.fits(&[0u8; 1]), "nothing beside a frame at the limit");
+        assert!(!Batch::default().fits(&vec![0u8; MAX_FED_FRAME + 1]));
+        let (frames, bad) = split_batch(&b.bytes);
+        assert_eq!(
+            (frames.len(), frames[0].len(), bad),
+            (1, MAX_FED_FRAME, false)
+        );
+        // Two frames filling a batch to its last byte fit; one byte more does not.
+        let first = vec![1u8; MAX_FED_BATCH - 4 - 4 - 100];
+        let mut b = Batch::default();
+        b.push(&first);
+        assert!(b.fits(&[0u8; 100]));
+        assert!(!b.fits(&[0u8; 101]));
+        b.push(&[0u8; 100]);
+        assert_eq!(b.take().len(), MAX_FED_BATCH);
+    }
+
+    #[test]
+    fn only_data_updates_may_be_dropped_on_a_congested_way() {
+        use muster_shared::protocol::ToUser;
+        use muster_shared::types::{EndReason, Payload};
+        let user = UserId("u".into());
+        let to_user = |msg| FedMsg::ToUser {
+            user: user.clone(),
+            msg,
+        };
+        let update = to_user(ToUser::Update {
+            session: SessionId(1),
+            seq: 1,
+            sent_ns: 0,
+            payload: Payload::Text("x".into()),
+        });
+        assert!(update.droppable());
+        let ended = to_user(ToUser::Ended {
+            session: SessionId(1),
+            reason: EndReason::ByUser,
+            last_seq: 1,
+        });
+        assert!(!ended.droppable());
+        let cancel = FedMsg::Cancel { user, req: 1 };
+        assert!(!cancel.droppable());
+    }
 
     #[test]
     fn access_files_parse_and_are_checked() {

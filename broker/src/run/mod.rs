@@ -804,6 +804,10 @@ impl Shell {
             self.flush_outputs(core, &mut dead)?;
             self.replica.publish(core);
             if dead.is_empty() {
+                // The pass's frames for other hosts, a batch each.
+                if let Some(f) = self.fed.as_mut() {
+                    f.send_pending();
+                }
                 return Ok(());
             }
             // A process that registered or said hello but is already gone.

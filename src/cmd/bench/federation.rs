@@ -275,6 +275,7 @@ fn updates(
     };
     let mut h = hist();
     let mut gaps = 0;
+    tracing::info!("bench: updates of {service} for {d:?}");
     let until = Instant::now() + d;
     while let Some(ev) = c.next_event(until)? {
         if let UserEvent::Update {
