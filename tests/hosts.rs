@@ -66,6 +66,23 @@ impl Hosts {
         hs
     }
 
+    /// `muster broker --standby` arguments for a standby beside host `i`'s broker: its
+    /// own port (the killed broker's may not be free at once), and, since nobody dials
+    /// that port, it dials every other host itself.
+    fn standby_args(&self, i: usize) -> Vec<String> {
+        let mut args = vec!["broker".to_string(), "--standby".to_string()];
+        args.extend(self.args(i));
+        let at = args.iter().position(|a| a == "--listen").unwrap();
+        args[at + 1] = format!("tcp/127.0.0.1:{}", free_tcp_port());
+        for (j, (_, _, p)) in self.hosts.iter().enumerate() {
+            let to = format!("tcp/127.0.0.1:{p}");
+            if j != i && !args.contains(&to) {
+                args.extend(["--connect".to_string(), to]);
+            }
+        }
+        args
+    }
+
     fn args(&self, i: usize) -> Vec<String> {
         let (host, _, port) = &self.hosts[i];
         let mut a = vec![
@@ -94,8 +111,10 @@ impl Hosts {
         } else {
             a.push("--listen".into());
             a.push(format!("tcp/127.0.0.1:{port}"));
+            // Each pair of hosts has one side that dials (the later one), as
+            // `LoopbackHosts` does: both dialling raced when one restarted.
             for (j, (_, _, p)) in self.hosts.iter().enumerate() {
-                if j != i {
+                if j < i {
                     a.push("--connect".into());
                     a.push(format!("tcp/127.0.0.1:{p}"));
                 }
@@ -944,15 +963,9 @@ fn a_standby_takes_its_hosts_place_in_the_federation() {
     let mut h = Hosts::new("fs", &["a", "b"]);
     h.host(1).system("robo", &["--rate", "20"]);
     h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
-    let args = h.args(0);
-    let mut args: Vec<&str> = args.iter().map(String::as_str).collect();
-    // Its own port: the killed broker's may not be free at once.
-    let port = format!("tcp/127.0.0.1:{}", free_tcp_port());
-    let at = args.iter().position(|a| *a == "--listen").unwrap();
-    args[at + 1] = &port;
-    let mut full = vec!["broker", "--standby"];
-    full.extend(args);
-    let standby = h.host(0).spawn(&full);
+    let args = h.standby_args(0);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let standby = h.host(0).spawn(&args);
     let synced = h.host(0).proc(standby).json(20 * SEC).unwrap();
     assert_eq!(synced["event"], "in_sync", "{synced}");
     h.kill_broker(0);
@@ -972,15 +985,9 @@ fn a_cross_host_session_survives_a_relays_failover(test: &str, relay: usize) {
     let mut h = Hosts::new(test, &["a", "b"]);
     h.host(1).system("robo", &["--rate", "20"]);
     h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
-    let args = h.args(relay);
-    let mut args: Vec<&str> = args.iter().map(String::as_str).collect();
-    // Its own port: the killed broker's may not be free at once.
-    let port = format!("tcp/127.0.0.1:{}", free_tcp_port());
-    let at = args.iter().position(|a| *a == "--listen").unwrap();
-    args[at + 1] = &port;
-    let mut full = vec!["broker", "--standby"];
-    full.extend(args);
-    let standby = h.host(relay).spawn(&full);
+    let args = h.standby_args(relay);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let standby = h.host(relay).spawn(&args);
     let synced = h.host(relay).proc(standby).json(20 * SEC).unwrap();
     assert_eq!(synced["event"], "in_sync", "{synced}");
     let user = h.host(0).spawn(&[
