@@ -1392,6 +1392,10 @@ pub struct BehaveArgs {
     /// How long to behave (scenario time, like every duration here: see `--time-scale`).
     #[arg(long, default_value = "30s", value_parser = duration)]
     pub duration: Duration,
+    /// Wait for a line, or the end, on standard input before connecting: a harness
+    /// starts hundreds of users at one moment (`muster stress --together`).
+    #[arg(long)]
+    pub start_on_stdin: bool,
     /// Seed of this user's choices.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -1480,6 +1484,11 @@ pub struct StressArgs {
     /// the broker, the systems and the users, and memory.
     #[arg(long)]
     pub idle: bool,
+    /// Start every user at one moment: all user processes are started first and wait;
+    /// then all are let go at once and connect together (a storm of arrivals, and later
+    /// of departures). The run's seconds count from that moment.
+    #[arg(long, conflicts_with = "idle")]
+    pub together: bool,
 }
 
 /// The size of a load run: how many user processes, services and systems.

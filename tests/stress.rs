@@ -243,3 +243,55 @@ fn the_broker_and_systems_run_ahead_of_user_processes_unless_told_otherwise() {
     let (code, _) = f.run(&["--nice", "-21", "broker"], 10 * SEC);
     assert_eq!(code, 2, "clap's usage error");
 }
+
+#[test]
+fn users_let_go_together_all_connect_and_every_request_is_answered() {
+    // `--together`: every user process waits on its input until all have started, then
+    // all connect at once. The broker meets a hundred new peers in one pass (opening
+    // each one's ports, a part of them per pass) while the first of them already ask
+    // for services: each peer's frames must still come in order (its welcome before
+    // its grants), and nobody is left unanswered.
+    let f = Fed::new("stresstg");
+    let (code, out) = f.run(
+        &[
+            "stress",
+            "--users",
+            "100",
+            "--services",
+            "10",
+            "--systems",
+            "4",
+            "--duration",
+            "6s",
+            "--think",
+            "300ms",
+            "--together",
+            "--json",
+        ],
+        240 * SEC,
+    );
+    let r: Value = serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
+    assert_eq!(code, 0, "{r:#}");
+    assert_eq!(r["together"], true);
+    assert_eq!(
+        r["users_waiting_at_start"], 100,
+        "every user waited to be let go"
+    );
+    assert_eq!(r["missing_user_reports"], 0, "{r:#}");
+    assert_eq!(r["errors"], 0, "{r:#}");
+    assert_eq!(r["checks"]["every_user_got_a_list"], true);
+    assert_eq!(r["checks"]["every_request_answered"], true);
+    assert_eq!(r["checks"]["quota_never_exceeded"], true);
+    // All of them were online at once, counted from the moment they were let go.
+    let most_online = r["timeline"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["online"].as_i64().unwrap())
+        .max()
+        .unwrap();
+    assert_eq!(most_online, 100, "{:#}", r["timeline"]);
+    let t = &r["totals"];
+    assert!(t["requests"].as_u64().unwrap() >= 100, "{t}");
+    assert!(r["service_request_first_10s"]["count"].as_u64().unwrap() >= 100);
+}

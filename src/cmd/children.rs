@@ -53,6 +53,17 @@ impl Children {
         stdout: Stdio,
         stderr: Stdio,
     ) -> anyhow::Result<&mut Child> {
+        self.spawn_io(inst, label, args, [Stdio::null(), stdout, stderr])
+    }
+
+    /// [`Children::spawn`] with the child's standard input, output and error.
+    pub fn spawn_io(
+        &mut self,
+        inst: &Instance,
+        label: &str,
+        args: &[&str],
+        [stdin, stdout, stderr]: [Stdio; 3],
+    ) -> anyhow::Result<&mut Child> {
         let exe = std::env::current_exe().context("locating the muster binary")?;
         let mut cmd = Command::new(exe);
         die_with_parent(&mut cmd);
@@ -62,7 +73,7 @@ impl Children {
             .arg("--time-scale")
             .arg(muster_shared::clock::global().to_string())
             .args(args)
-            .stdin(Stdio::null())
+            .stdin(stdin)
             .stdout(stdout)
             .stderr(stderr)
             .spawn()

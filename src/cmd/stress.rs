@@ -531,9 +531,11 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let (tx, rx) = mpsc::channel::<(usize, Option<Value>)>();
     let duration = format!("{}ms", a.duration.as_millis());
     let think = format!("{}ms", a.think.as_millis().max(1));
-    let start = Instant::now();
-    let start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
+    let mut start = Instant::now();
+    let mut start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
     let mut user_pids = Vec::new();
+    // With --together, each user's standard input: closing them all lets them go.
+    let mut gates = Vec::new();
     for i in 0..a.load.users {
         let seed = i.to_string();
         let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
@@ -546,8 +548,20 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             "--seed",
             &seed,
         ]);
-        let child = setup.children.spawn(inst, "user", &args, Stdio::piped())?;
+        let stdin = if a.together {
+            args.push("--start-on-stdin");
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        };
+        let child = setup.children.spawn_io(
+            inst,
+            "user",
+            &args,
+            [stdin, Stdio::piped(), Stdio::inherit()],
+        )?;
         user_pids.push(child.id());
+        gates.extend(child.stdin.take());
         let out = child.stdout.take().context("user stdout")?;
         let tx = tx.clone();
         std::thread::spawn(move || {
@@ -556,6 +570,33 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         });
     }
     drop(tx);
+    let mut waiting_at_start = None;
+    if a.together {
+        // Every user started and waiting on its input, then all let go at once.
+        let until = Instant::now() + Duration::from_secs(120);
+        let waiting = |pids: &[u32]| {
+            pids.iter()
+                .filter(|p| {
+                    std::fs::read_to_string(format!("/proc/{p}/wchan"))
+                        .is_ok_and(|w| w.contains("pipe_read"))
+                })
+                .count()
+        };
+        let mut n = waiting(&user_pids);
+        while n < user_pids.len() && Instant::now() < until {
+            std::thread::sleep(Duration::from_millis(50));
+            n = waiting(&user_pids);
+        }
+        waiting_at_start = Some(n);
+        tracing::info!(
+            waiting = n,
+            users = user_pids.len(),
+            "stress: every user let go at once"
+        );
+        start = Instant::now();
+        start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
+        gates.clear();
+    }
     // While they behave, the floor, every 20 ms, under the same load.
     let mut floor = histogram();
     let mut floor_udp = histogram();
@@ -685,6 +726,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "floor_udp": if a.remote { summary(&floor_udp) } else { Value::Null },
         "transport": if a.remote { "udp" } else { "shm" },
         "broker_nice": setup.broker_nice, "users_nice": setup.users_nice,
+        "together": a.together, "users_waiting_at_start": waiting_at_start,
         "cpu": cpu, "memory": mem,
         "timeline": timeline.to_json(),
         "service_request_p50_over_floor_p50": request.value_at_quantile(0.5) as f64
@@ -729,6 +771,21 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             a.load.systems,
             a.duration.as_secs_f64()
         );
+        if let Some(n) = waiting_at_start {
+            // How fast they came: users online at the end of each of the first seconds.
+            let online: Vec<String> = report["timeline"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .take(3)
+                .map(|t| format!("{} s: {}", t["t_s"].as_u64().unwrap_or(0) + 1, t["online"]))
+                .collect();
+            println!(
+                "started together: {n} of {} users waiting when let go; online after {}",
+                a.load.users,
+                online.join(", ")
+            );
+        }
         // The paper's Table 1 (count, max, median, min) plus p90/p99, and each median
         // as a multiple of the floor's median measured in the same run.
         let base = if a.remote { &floor_udp } else { &floor };

@@ -17,6 +17,13 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
         handle_signals: true,
         watch_list,
     };
+    if let Some(UserVerb::Behave(b)) = &a.verb {
+        if b.start_on_stdin {
+            // Until the harness lets every user go at once (a line, or the end).
+            let mut line = String::new();
+            let _ = std::io::stdin().read_line(&mut line);
+        }
+    }
     let started = Instant::now();
     let client = connect(inst, &a.remote, &opts)?;
     match a.verb {

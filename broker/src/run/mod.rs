@@ -27,7 +27,7 @@ use muster_shared::udp::access::AccessFile;
 use muster_shared::udp::wire::MAX_DATAGRAM;
 use muster_shared::udp::{recv_one, send_transmit, size_recv_buffer, RECV_BATCH};
 use rand::RngExt;
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::net::UdpSocket;
 use std::os::fd::AsRawFd;
 use std::path::PathBuf;
@@ -140,6 +140,8 @@ struct Shell {
     /// When what waits for the peers just woken is done ([`AFTER_WAKING`]): the bells
     /// of systems sent offers, and a change of this host's list's counts.
     deferred_at: Option<Instant>,
+    /// Outputs for peers whose ports are not open yet: see [`OPEN_BUDGET`].
+    unopened: PeerQueue,
     udp: Option<UdpDriver>,
     replica: Replication,
     /// This host's membership in a federation, if it joined one.
@@ -165,6 +167,12 @@ const RING_EVERY: Duration = Duration::from_millis(100);
 /// first frame to the system rings it at once anyway). The reactor waits in whole
 /// milliseconds.
 const AFTER_WAKING: Duration = Duration::from_micros(500);
+/// How long one flush spends opening ports to peers it has not written to yet (a
+/// welcome to a new user, its first grant): hundreds of µs each, and when hundreds of
+/// users connect at once their welcomes would hold the loop for a second while the
+/// requests of users already connected wait in the inbox. Past it, outputs for such
+/// peers wait, in order, for the next pass, which reads the inbox first.
+const OPEN_BUDGET: Duration = Duration::from_millis(2);
 /// Up to this many outputs of one flush go out before the list is written; more, and
 /// the list goes first.
 const LIST_AFTER_AT_MOST: usize = 16;
@@ -449,6 +457,7 @@ fn serve(
         last_ring: None,
         ring_owed: false,
         deferred_at: None,
+        unopened: PeerQueue::default(),
         handling: Handling::new(keep_log),
         udp,
         replica: Replication {
@@ -586,8 +595,12 @@ fn serve(
                     if signals.drain() {
                         let standbys = shell.replica.writer.standbys();
                         if standbys > 0 {
-                            // Hand over: the standbys have everything up to here.
+                            // Hand over: the standbys have everything up to here, and
+                            // every peer what the core had for it.
                             shell.flush(&mut core, host_now())?;
+                            while !shell.unopened.is_empty() {
+                                shell.flush(&mut core, host_now())?;
+                            }
                             let _ = shell
                                 .replica
                                 .writer
@@ -738,6 +751,67 @@ fn serve(
     }
 }
 
+/// Outputs waiting for their peers' ports to open, in order, with how many each peer has
+/// waiting: a later output for a peer with one waiting waits behind it.
+#[derive(Default)]
+struct PeerQueue {
+    outputs: VecDeque<(Address, Output)>,
+    waiting: HashMap<Address, usize>,
+}
+
+impl PeerQueue {
+    /// Whether an output for `peer` waits.
+    fn holds(&self, peer: &Address) -> bool {
+        self.waiting.contains_key(peer)
+    }
+
+    fn push(&mut self, peer: Address, out: Output) {
+        *self.waiting.entry(peer.clone()).or_default() += 1;
+        self.outputs.push_back((peer, out));
+    }
+
+    /// The oldest output.
+    fn pop(&mut self) -> Option<Output> {
+        let (peer, out) = self.outputs.pop_front()?;
+        if let Some(n) = self.waiting.get_mut(&peer) {
+            *n -= 1;
+            if *n == 0 {
+                self.waiting.remove(&peer);
+            }
+        }
+        Some(out)
+    }
+
+    fn is_empty(&self) -> bool {
+        self.outputs.is_empty()
+    }
+}
+
+/// The peer an output is for (sent to, watched or forgotten), if any: its outputs keep
+/// their order.
+fn output_peer(out: &Output) -> Option<Address> {
+    match out {
+        Output::Granted(g) if !g.user.is_foreign() => Some(Address::User(g.user.clone())),
+        Output::Granted(_) => None,
+        Output::ToSystem(name, _) => Some(Address::System(name.clone())),
+        Output::ToUser(user, _) => Some(Address::User(user.clone())),
+        Output::WatchSystem { system, .. } | Output::ForgetSystem(system) => {
+            Some(Address::System(system.clone()))
+        }
+        Output::WatchUser { user, .. } | Output::ForgetUser(user) => {
+            Some(Address::User(user.clone()))
+        }
+    }
+}
+
+/// Whether sending the output writes to its peer (opening the ports if need be).
+fn opens_ports(out: &Output) -> bool {
+    matches!(
+        out,
+        Output::Granted(_) | Output::ToSystem(..) | Output::ToUser(..)
+    )
+}
+
 fn fenced(fence: &Fence) -> BrokerError {
     let h = fence.holder();
     tracing::error!(
@@ -817,6 +891,42 @@ impl Shell {
         }
     }
 
+    /// Sends one output of the core's (routed past the UDP front and the federation).
+    fn send_output(&mut self, out: Output, dead: &mut Vec<Address>) {
+        match out {
+            // A local user hears of its grant from the broker, over a port open
+            // since its hello, right after its system was sent the offer. (Remote
+            // users' grants went to the UDP front; a user of another host hears
+            // through its own host's broker.)
+            Output::Granted(g) => {
+                if g.user.is_foreign() {
+                    return;
+                }
+                muster_shared::trace::stamp(Stage::BrokerRelay, &g.user, g.req);
+                self.endpoint
+                    .send_control(&Address::User(g.user.clone()), &g.message());
+            }
+            // An offer is written at once and its bell rung a moment after the grant
+            // that follows it: the user's wake-up does not wait behind the system's
+            // (which, woken first on a busy core, would run before the broker sent
+            // the grant), and a user that heard of its grant finds the offer in the
+            // system's inbox before its own first frame.
+            Output::ToSystem(name, msg @ ToSystem::Offer { .. }) => {
+                if let ToSystem::Offer { user, req, .. } = &msg {
+                    muster_shared::trace::stamp(Stage::BrokerSend, user, *req);
+                }
+                self.endpoint
+                    .send_control_quiet(&Address::System(name), &msg)
+            }
+            Output::ToSystem(name, msg) => self.endpoint.send_control(&Address::System(name), &msg),
+            Output::ToUser(user, msg) => self.endpoint.send_control(&Address::User(user), &msg),
+            Output::WatchSystem { system, pid } => self.watch(Address::System(system), pid, dead),
+            Output::WatchUser { user, pid } => self.watch(Address::User(user), pid, dead),
+            Output::ForgetSystem(system) => self.forget(Address::System(system)),
+            Output::ForgetUser(user) => self.forget(Address::User(user)),
+        }
+    }
+
     fn flush_outputs(
         &mut self,
         core: &mut Broker,
@@ -861,42 +971,28 @@ impl Shell {
                 },
                 None => out,
             };
-            match out {
-                // A local user hears of its grant from the broker, over a port open
-                // since its hello, right after its system was sent the offer. (Remote
-                // users' grants went to the UDP front; a user of another host hears
-                // through its own host's broker.)
-                Output::Granted(g) => {
-                    if g.user.is_foreign() {
-                        continue;
-                    }
-                    muster_shared::trace::stamp(Stage::BrokerRelay, &g.user, g.req);
-                    self.endpoint
-                        .send_control(&Address::User(g.user.clone()), &g.message());
+            // Behind what waits for its peer, or waiting itself for ports to open.
+            match output_peer(&out) {
+                Some(p)
+                    if self.unopened.holds(&p)
+                        || (opens_ports(&out) && !self.endpoint.has_ports(&p)) =>
+                {
+                    self.unopened.push(p, out)
                 }
-                // An offer is written at once and its bell rung a moment after the grant
-                // that follows it: the user's wake-up does not wait behind the system's
-                // (which, woken first on a busy core, would run before the broker sent
-                // the grant), and a user that heard of its grant finds the offer in the
-                // system's inbox before its own first frame.
-                Output::ToSystem(name, msg @ ToSystem::Offer { .. }) => {
-                    if let ToSystem::Offer { user, req, .. } = &msg {
-                        muster_shared::trace::stamp(Stage::BrokerSend, user, *req);
-                    }
-                    self.endpoint
-                        .send_control_quiet(&Address::System(name), &msg)
-                }
-                Output::ToSystem(name, msg) => {
-                    self.endpoint.send_control(&Address::System(name), &msg)
-                }
-                Output::ToUser(user, msg) => self.endpoint.send_control(&Address::User(user), &msg),
-                Output::WatchSystem { system, pid } => {
-                    self.watch(Address::System(system), pid, dead)
-                }
-                Output::WatchUser { user, pid } => self.watch(Address::User(user), pid, dead),
-                Output::ForgetSystem(system) => self.forget(Address::System(system)),
-                Output::ForgetUser(user) => self.forget(Address::User(user)),
+                _ => self.send_output(out, dead),
             }
+        }
+        // Peers met for the first time, within the budget; the rest on the next pass.
+        let opening = Instant::now();
+        while opening.elapsed() < OPEN_BUDGET {
+            let Some(out) = self.unopened.pop() else {
+                break;
+            };
+            self.send_output(out, dead);
+        }
+        if !self.unopened.is_empty() {
+            let now = Instant::now();
+            self.deferred_at = Some(self.deferred_at.map_or(now, |t| t.min(now)));
         }
         // The systems sent offers are woken a moment later: their part is off the
         // user's path, and on a busy core their wake-up would go before the user's.
@@ -1182,6 +1278,24 @@ mod tests {
     use super::*;
     use muster_shared::protocol::{encode, BrokerStatus, LinkInfo, UserStatus, MAX_FRAME};
     use muster_shared::types::{ServiceId, UserId};
+
+    #[test]
+    fn outputs_waiting_for_ports_leave_in_order_and_hold_back_their_peers_later_ones() {
+        let user = |n: &str| Address::User(UserId(n.into()));
+        let forget = |n: &str| Output::ForgetUser(UserId(n.into()));
+        let mut q = PeerQueue::default();
+        assert!(q.is_empty() && q.pop().is_none());
+        q.push(user("a"), forget("a1"));
+        q.push(user("b"), forget("b1"));
+        q.push(user("a"), forget("a2"));
+        assert!(q.holds(&user("a")) && q.holds(&user("b")) && !q.holds(&user("c")));
+        assert_eq!(q.pop(), Some(forget("a1")));
+        assert!(q.holds(&user("a")), "a's second output still waits");
+        assert_eq!(q.pop(), Some(forget("b1")));
+        assert!(!q.holds(&user("b")));
+        assert_eq!(q.pop(), Some(forget("a2")));
+        assert!(!q.holds(&user("a")) && q.is_empty() && q.pop().is_none());
+    }
 
     #[test]
     fn an_operators_status_is_cut_to_fit_one_frame() {
