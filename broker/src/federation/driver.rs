@@ -36,6 +36,31 @@ struct BatchKind {
     droppable: bool,
 }
 
+/// Puts a batch of frames from `me` on host `to`'s key for its kind.
+fn put_batch(
+    session: &zenoh::Session,
+    prefix: &str,
+    me: &str,
+    to: &str,
+    kind: BatchKind,
+    bytes: Vec<u8>,
+) {
+    let part = if kind.users_key { "req" } else { "in" };
+    let congestion = if kind.droppable {
+        zenoh::qos::CongestionControl::Drop
+    } else {
+        zenoh::qos::CongestionControl::Block
+    };
+    let key = format!("{prefix}{to}/{part}/{me}");
+    if let Err(e) = session
+        .put(&key, bytes)
+        .congestion_control(congestion)
+        .wait()
+    {
+        tracing::warn!("federation: cannot send to {to}: {e}");
+    }
+}
+
 /// The first reactor token of proxy inboxes; the shell's own tokens stay below it.
 pub const FIRST_PROXY_TOKEN: usize = 1 << 32;
 /// How long a proxy whose peer is gone keeps its ports: frames just sent through them
@@ -87,23 +112,39 @@ struct Inflow {
 
 impl Inflow {
     fn push(&self, ev: FedInput) {
-        let n = input_bytes(&ev);
-        if self.queued.fetch_add(n, Ordering::Relaxed) + n > MAX_QUEUED_BYTES {
-            self.queued.fetch_sub(n, Ordering::Relaxed);
-            self.refused.fetch_add(1, Ordering::Relaxed);
-            return;
-        }
-        if let Ok(tx) = self.tx.lock() {
-            if tx.send(ev).is_ok() {
-                // Full pipe: a wake-up is pending already.
-                let _ = (&*self.ring).write(&[1]);
-                return;
-            }
-        }
-        self.queued.fetch_sub(n, Ordering::Relaxed);
+        self.push_all(vec![ev]);
     }
 
-    /// The frames of a batch another host sent, handed over together with one wake-up.
+    /// Hands inputs over together, with one wake-up, if they fit the byte budget (all
+    /// of them are counted as refused otherwise).
+    fn push_all(&self, evs: Vec<FedInput>) {
+        if evs.is_empty() {
+            return;
+        }
+        let n: usize = evs.iter().map(input_bytes).sum();
+        if self.queued.fetch_add(n, Ordering::Relaxed) + n > MAX_QUEUED_BYTES {
+            self.queued.fetch_sub(n, Ordering::Relaxed);
+            self.refused.fetch_add(evs.len() as u64, Ordering::Relaxed);
+            return;
+        }
+        let mut unsent = n;
+        if let Ok(tx) = self.tx.lock() {
+            for ev in evs {
+                let size = input_bytes(&ev);
+                if tx.send(ev).is_err() {
+                    break;
+                }
+                unsent -= size;
+            }
+            if unsent < n {
+                // Full pipe: a wake-up is pending already.
+                let _ = (&*self.ring).write(&[1]);
+            }
+        }
+        self.queued.fetch_sub(unsent, Ordering::Relaxed);
+    }
+
+    /// The frames of a batch another host sent, handed over together.
     fn push_batch(&self, s: &zenoh::sample::Sample, from: &str, users_side: bool) {
         if s.payload().len() > MAX_FED_BATCH {
             self.refused.fetch_add(1, Ordering::Relaxed);
@@ -114,33 +155,16 @@ impl Inflow {
         if bad {
             self.refused.fetch_add(1, Ordering::Relaxed);
         }
-        let n: usize = frames.iter().map(|f| f.len()).sum();
-        if frames.is_empty() {
-            return;
-        }
-        if self.queued.fetch_add(n, Ordering::Relaxed) + n > MAX_QUEUED_BYTES {
-            self.queued.fetch_sub(n, Ordering::Relaxed);
-            self.refused
-                .fetch_add(frames.len() as u64, Ordering::Relaxed);
-            return;
-        }
-        let Ok(tx) = self.tx.lock() else {
-            self.queued.fetch_sub(n, Ordering::Relaxed);
-            return;
-        };
-        for f in frames {
-            let ev = FedInput::Frame {
-                from: from.to_string(),
-                users_side,
-                bytes: f.to_vec(),
-            };
-            if tx.send(ev).is_err() {
-                // The loop is gone: nothing is counted any more.
-                return;
-            }
-        }
-        // Full pipe: a wake-up is pending already.
-        let _ = (&*self.ring).write(&[1]);
+        self.push_all(
+            frames
+                .into_iter()
+                .map(|f| FedInput::Frame {
+                    from: from.to_string(),
+                    users_side,
+                    bytes: f.to_vec(),
+                })
+                .collect(),
+        );
     }
 
     /// A sample's bytes, if at most `max` (counted as refused otherwise, not copied).
@@ -675,10 +699,17 @@ impl Federation {
             .outgoing
             .get(to)
             .is_some_and(|(k, b)| !b.is_empty() && (*k != kind || !b.fits(&frame)));
-        if flush {
-            self.put_batch(to);
-        }
         let (k, batch) = self.outgoing.entry(to.to_string()).or_default();
+        if flush {
+            put_batch(
+                &self.session,
+                &self.prefix,
+                self.core.host(),
+                to,
+                *k,
+                batch.take(),
+            );
+        }
         *k = kind;
         batch.push(&frame);
     }
@@ -687,32 +718,9 @@ impl Federation {
     /// each flush of its outputs, so a frame waits at most for the rest of the pass of
     /// the loop that made it.
     pub fn send_pending(&mut self) {
-        let hosts: Vec<String> = self
-            .outgoing
-            .iter()
-            .filter(|(_, (_, b))| !b.is_empty())
-            .map(|(h, _)| h.clone())
-            .collect();
-        for h in hosts {
-            self.put_batch(&h);
-        }
-    }
-
-    fn put_batch(&mut self, to: &str) {
-        let Some((kind, batch)) = self.outgoing.get_mut(to) else {
-            return;
-        };
-        let part = if kind.users_key { "req" } else { "in" };
-        let congestion = if kind.droppable {
-            zenoh::qos::CongestionControl::Drop
-        } else {
-            zenoh::qos::CongestionControl::Block
-        };
-        let bytes = batch.take();
-        let key = format!("{}{to}/{part}/{}", self.prefix, self.core.host());
-        let put = self.session.put(&key, bytes).congestion_control(congestion);
-        if let Err(e) = put.wait() {
-            tracing::warn!("federation: cannot send to {to}: {e}");
+        let host = self.core.host();
+        for (to, (kind, batch)) in self.outgoing.iter_mut().filter(|(_, (_, b))| !b.is_empty()) {
+            put_batch(&self.session, &self.prefix, host, to, *kind, batch.take());
         }
     }
 
