@@ -127,7 +127,7 @@ impl Inflow {
             self.refused.fetch_add(evs.len() as u64, Ordering::Relaxed);
             return;
         }
-        let mut unsent = n;
+        let (mut unsent, mut sent) = (n, 0);
         if let Ok(tx) = self.tx.lock() {
             for ev in evs {
                 let size = input_bytes(&ev);
@@ -135,11 +135,12 @@ impl Inflow {
                     break;
                 }
                 unsent -= size;
+                sent += 1;
             }
-            if unsent < n {
-                // Full pipe: a wake-up is pending already.
-                let _ = (&*self.ring).write(&[1]);
-            }
+        }
+        if sent > 0 {
+            // Full pipe: a wake-up is pending already.
+            let _ = (&*self.ring).write(&[1]);
         }
         self.queued.fetch_sub(unsent, Ordering::Relaxed);
     }
@@ -746,5 +747,56 @@ impl Federation {
         if let Err(e) = r {
             tracing::warn!("federation: cannot ask {host} for its list: {e}");
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    fn inflow() -> (Inflow, mpsc::Receiver<FedInput>, UnixStream) {
+        let (tx, rx) = mpsc::channel();
+        let (ring, woken) = UnixStream::pair().unwrap();
+        woken.set_nonblocking(true).unwrap();
+        let inflow = Inflow {
+            tx: Mutex::new(tx),
+            ring: Arc::new(ring),
+            queued: AtomicUsize::new(0),
+            refused: AtomicU64::new(0),
+        };
+        (inflow, rx, woken)
+    }
+
+    fn rang(woken: &UnixStream) -> bool {
+        let mut buf = [0u8; 16];
+        matches!((&*woken).read(&mut buf), Ok(n) if n > 0)
+    }
+
+    #[test]
+    fn every_input_wakes_the_loop_even_one_of_no_bytes_and_the_budget_is_kept() {
+        let (inflow, rx, woken) = inflow();
+        // A host's token going carries no bytes: it must wake the loop all the same.
+        inflow.push(FedInput::Alive("b".into(), false));
+        assert!(rang(&woken), "a token wakes the loop");
+        assert_eq!(rx.try_recv().unwrap(), FedInput::Alive("b".into(), false));
+        let frame = |n: usize| FedInput::Frame {
+            from: "b".into(),
+            users_side: true,
+            bytes: vec![0; n],
+        };
+        inflow.push_all(vec![frame(3), frame(4)]);
+        assert!(rang(&woken));
+        assert_eq!(inflow.queued.load(Ordering::Relaxed), 7);
+        assert_eq!(
+            (rx.try_recv().unwrap(), rx.try_recv().unwrap()),
+            (frame(3), frame(4))
+        );
+        // Over the budget: refused whole, counted, nothing queued, no wake-up.
+        inflow.push_all(vec![frame(MAX_QUEUED_BYTES), frame(1)]);
+        assert!(!rang(&woken));
+        assert_eq!(inflow.refused.load(Ordering::Relaxed), 2);
+        assert_eq!(inflow.queued.load(Ordering::Relaxed), 7);
+        assert!(rx.try_recv().is_err());
     }
 }
