@@ -3,7 +3,9 @@
 
 use crate::core::{UserCore, UserEvent, UserOutput};
 use crate::remote::{RemoteLink, RemoteOptions};
-use muster_shared::ipc::{bell, create_node, Endpoint, ListReader, Presence, TransportError};
+use muster_shared::ipc::{
+    bell, create_node, Endpoint, ListReader, PortShare, Presence, TransportError,
+};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToUser};
 use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
@@ -152,6 +154,38 @@ impl UserClient {
         opts: &ConnectOptions,
         prefix: &str,
     ) -> Result<Self, UserError> {
+        let node = create_node(&format!("muster-user-{}", std::process::id()), false)?;
+        let client = Self::local(inst, opts, prefix, |me| Endpoint::open(inst, me, node))?;
+        client.greet(opts, || UserError::NoBroker(inst.to_string()))
+    }
+
+    /// Starts connecting a user that writes to the broker and to systems through
+    /// `share`, the ports of this thread's other users (it keeps only its own inbox and
+    /// bell), and returns at once with its hello sent: [`UserEvent::Connected`] comes
+    /// through [`UserClient::poll`] when a broker welcomes it, now or when one starts.
+    /// For a process hosting many users on a few threads (the web console): each
+    /// user's descriptors drop from about 48 to about 20.
+    pub fn start_shared(
+        inst: &Instance,
+        opts: &ConnectOptions,
+        prefix: &str,
+        share: &PortShare,
+    ) -> Result<Self, UserError> {
+        let mut client = Self::local(inst, opts, prefix, |me| {
+            Endpoint::open_shared(inst, me, share)
+        })?;
+        client.core.hello();
+        client.flush();
+        Ok(client)
+    }
+
+    /// A local user, its endpoint made by `open`, not yet greeted.
+    fn local(
+        inst: &Instance,
+        opts: &ConnectOptions,
+        prefix: &str,
+        open: impl FnOnce(Address) -> Result<Endpoint, TransportError>,
+    ) -> Result<Self, UserError> {
         let pid = std::process::id();
         let nonce = Instant::now().elapsed().as_nanos() as u64
             ^ std::time::SystemTime::now()
@@ -159,8 +193,7 @@ impl UserClient {
                 .map(|d| d.as_nanos() as u64)
                 .unwrap_or(0);
         let id = UserId(format!("{prefix}{pid}-{:06x}", nonce & 0xff_ffff));
-        let node = create_node(&format!("muster-user-{pid}"), false)?;
-        let endpoint = Endpoint::open(inst, Address::User(id.clone()), node)?;
+        let endpoint = open(Address::User(id.clone()))?;
         let presence = Presence::listen(endpoint.node(), inst)?;
         let reactor = Reactor::new()?;
         reactor.add(endpoint.bell_fd(), TOKEN_BELL)?;
@@ -168,7 +201,7 @@ impl UserClient {
             reactor.add(fd, TOKEN_PRESENCE)?;
         }
         let signals = signals_for(&reactor, opts)?;
-        let client = UserClient {
+        Ok(UserClient {
             core: UserCore::new(id, pid, opts.watch_list),
             transport: Transport::Local(Box::new(Local {
                 inst: inst.clone(),
@@ -189,8 +222,7 @@ impl UserClient {
             extra: None,
             extra_seen: false,
             closed: false,
-        };
-        client.greet(opts, || UserError::NoBroker(inst.to_string()))
+        })
     }
 
     /// Connects to a broker's UDP front as a remote user, waiting up to
@@ -435,27 +467,68 @@ impl UserClient {
             if Instant::now() >= deadline {
                 return Ok(Wake::Timeout);
             }
-            if let Transport::Local(l) = &mut self.transport {
-                // Nothing for the caller now: open the inboxes of systems that just
-                // granted a session, off the path of the grant itself.
-                let core = &self.core;
-                let heard = |system: &str| {
-                    core.sessions().any(|(id, service, _)| {
-                        service.split().is_some_and(|(s, _)| s == system)
-                            && core.counters(id).is_some_and(|c| c.last_seq > 0)
-                    })
-                };
-                let (ready, later): (Vec<_>, Vec<_>) = std::mem::take(&mut l.to_warm)
-                    .into_iter()
-                    .partition(|(s, since)| heard(s) || since.elapsed() >= WARM_AFTER);
-                l.to_warm = later;
-                for (system, _) in ready {
-                    if let Err(e) = l.endpoint.open_ports(&Address::System(system)) {
-                        tracing::debug!("{e}");
-                    }
+            self.warm();
+            self.turn(deadline)?;
+        }
+    }
+
+    /// [`UserClient::wait`] without waiting: what is here now, or [`Wake::Timeout`] when
+    /// nothing is. For a caller that drives many clients from one loop, watching each
+    /// one's [`UserClient::fd`] and calling this until it says `Timeout` (and again by
+    /// [`UserClient::next_turn`]).
+    pub fn poll(&mut self) -> Result<Wake, UserError> {
+        for first in [true, false] {
+            if let Some(e) = self.events.pop_front() {
+                return Ok(Wake::Event(e));
+            }
+            if std::mem::take(&mut self.extra_seen) {
+                return Ok(Wake::Extra);
+            }
+            if first {
+                self.warm();
+                self.turn(Instant::now())?;
+            }
+        }
+        Ok(Wake::Timeout)
+    }
+
+    /// When this client's own timers next need a [`UserClient::poll`] even if its fd
+    /// stays quiet: a remote link's retransmissions and keepalives; a local user's
+    /// held-back frames, lingering ports, a standby it looks for and systems' inboxes
+    /// it opens. `None`: nothing is due.
+    pub fn next_turn(&mut self) -> Option<Instant> {
+        let now = Instant::now();
+        match &mut self.transport {
+            Transport::Remote(r) => Some(r.next_deadline()),
+            Transport::Local(l) => {
+                let sweep = l.endpoint.sweep().map(|d| now + d);
+                let successor = l.successor.map(|_| now + SUCCESSOR_POLL);
+                let warm = l.to_warm.iter().map(|(_, since)| *since + WARM_AFTER).min();
+                [sweep, successor, warm].into_iter().flatten().min()
+            }
+        }
+    }
+
+    /// Nothing for the caller now: open the inboxes of systems that just granted a
+    /// session, off the path of the grant itself.
+    fn warm(&mut self) {
+        if let Transport::Local(l) = &mut self.transport {
+            let core = &self.core;
+            let heard = |system: &str| {
+                core.sessions().any(|(id, service, _)| {
+                    service.split().is_some_and(|(s, _)| s == system)
+                        && core.counters(id).is_some_and(|c| c.last_seq > 0)
+                })
+            };
+            let (ready, later): (Vec<_>, Vec<_>) = std::mem::take(&mut l.to_warm)
+                .into_iter()
+                .partition(|(s, since)| heard(s) || since.elapsed() >= WARM_AFTER);
+            l.to_warm = later;
+            for (system, _) in ready {
+                if let Err(e) = l.endpoint.open_ports(&Address::System(system)) {
+                    tracing::debug!("{e}");
                 }
             }
-            self.turn(deadline)?;
         }
     }
 

@@ -7,12 +7,12 @@
 //! the list shows only what they allow, and a request or link for anything else is
 //! refused as an unknown service would be.
 
+use crate::pool::Pool;
 use muster_shared::protocol::Operation;
 use muster_shared::snapshot::{ServiceListSnapshot, ServiceView};
 use muster_shared::types::{Payload, Schema, ServiceId, ServiceKind, SessionId};
 use muster_shared::udp::access::Policy;
-use muster_shared::Instance;
-use muster_users::{ConnectOptions, UserClient, UserError, UserEvent, Wake};
+use muster_users::{UserClient, UserError, UserEvent, Wake};
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashMap};
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
@@ -86,7 +86,7 @@ impl ListShare {
 
 /// What a new tab is shown first.
 #[derive(Default)]
-struct Model {
+pub(crate) struct Model {
     list: Value,
     sessions: BTreeMap<u64, SessionState>,
     /// Requests out: service, queue position (0 while not queued).
@@ -120,7 +120,7 @@ impl Drop for Tab {
     }
 }
 
-fn eventfd() -> std::io::Result<OwnedFd> {
+pub(crate) fn eventfd() -> std::io::Result<OwnedFd> {
     // SAFETY: eventfd takes no pointers; a non-negative result is a new descriptor we own.
     let fd = unsafe { libc::eventfd(0, libc::EFD_NONBLOCK | libc::EFD_CLOEXEC) };
     if fd < 0 {
@@ -130,23 +130,23 @@ fn eventfd() -> std::io::Result<OwnedFd> {
     Ok(unsafe { OwnedFd::from_raw_fd(fd) })
 }
 
-fn ring(fd: &OwnedFd) {
+pub(crate) fn ring(fd: &OwnedFd) {
     let one: u64 = 1;
     // SAFETY: writes 8 bytes from a live u64 to an eventfd we own.
     unsafe { libc::write(fd.as_raw_fd(), (&one as *const u64).cast(), 8) };
 }
 
-fn drain(fd: &OwnedFd) {
+pub(crate) fn drain(fd: &OwnedFd) {
     let mut n: u64 = 0;
     // SAFETY: reads 8 bytes into a live u64 from an eventfd we own (non-blocking).
     unsafe { libc::read(fd.as_raw_fd(), (&mut n as *mut u64).cast(), 8) };
 }
 
 impl Hub {
-    /// Connects `user` to the broker of `inst` (waiting up to `wait` for one) and starts
-    /// its thread.
+    /// Connects `user` to the broker of `inst` (waiting up to `wait` for one) on one of
+    /// `pool`'s threads.
     pub fn start(
-        inst: &Instance,
+        pool: &Pool,
         user: &str,
         policy: Policy,
         wait: Duration,
@@ -168,61 +168,22 @@ impl Hub {
             tabs: AtomicUsize::new(0),
         });
         let (ready_tx, ready_rx) = mpsc::channel();
-        let inst = inst.clone();
-        let name = user.to_string();
-        let me = Arc::downgrade(&hub);
-        std::thread::Builder::new()
-            .name(format!("web-{user}"))
-            .spawn(move || {
-                let opts = ConnectOptions {
-                    wait_for_broker: wait,
-                    handle_signals: false,
-                    // The list comes from the shared reader.
-                    watch_list: false,
-                };
-                let client = match UserClient::connect_as(&inst, &opts, &format!("web-{name}-")) {
-                    Ok(c) => c,
-                    Err(e) => {
-                        let _ = ready_tx.send(Err(e.to_string()));
-                        alive.store(false, Ordering::Release);
-                        return;
-                    }
-                };
-                tracing::info!(user = %name, id = %client.id().0, "web user connected to the broker");
-                let mut run = Run {
-                    client,
-                    policy,
-                    rx,
-                    wake,
-                    frames,
-                    model,
-                    me,
-                    name,
-                    lists,
-                    seen: u64::MAX,
-                    shown: BTreeMap::new(),
-                    idle_since: None,
-                    ops: HashMap::new(),
-                };
-                // The list is in the model before the first tab opens.
-                if let Err(e) = run.init() {
-                    let _ = ready_tx.send(Err(e.to_string()));
-                    alive.store(false, Ordering::Release);
-                    run.client.close();
-                    return;
-                }
-                let _ = ready_tx.send(Ok(()));
-                if let Err(e) = run.run() {
-                    tracing::warn!(user = %run.name, "web user's broker connection ended: {e}");
-                    run.send(json!({"t": "error", "error": format!("the broker connection ended: {e}")}));
-                }
-                alive.store(false, Ordering::Release);
-                run.client.close();
-            })
-            .map_err(|e| format!("thread: {e}"))?;
+        pool.start(Start {
+            user: user.to_string(),
+            policy,
+            wait,
+            lists,
+            rx,
+            wake,
+            frames,
+            model,
+            alive,
+            me: Arc::downgrade(&hub),
+            ready: ready_tx,
+        })?;
         ready_rx
             .recv()
-            .map_err(|_| "the hub thread died".to_string())??;
+            .map_err(|_| "the web console's worker thread died".to_string())??;
         Ok(hub)
     }
 
@@ -317,16 +278,33 @@ fn session_json(id: u64, s: &SessionState) -> Value {
     })
 }
 
-/// The hub's thread.
-struct Run {
-    client: UserClient,
+/// What a worker needs to start a hub's user (see [`crate::pool::Pool`]).
+pub(crate) struct Start {
+    pub(crate) user: String,
+    pub(crate) policy: Policy,
+    pub(crate) wait: Duration,
+    pub(crate) lists: Arc<ListShare>,
+    pub(crate) rx: mpsc::Receiver<Cmd>,
+    pub(crate) wake: Arc<OwnedFd>,
+    pub(crate) frames: broadcast::Sender<Arc<str>>,
+    pub(crate) model: Arc<Mutex<Model>>,
+    pub(crate) alive: Arc<AtomicBool>,
+    pub(crate) me: std::sync::Weak<Hub>,
+    /// Told once the user is welcomed by the broker, or why not.
+    pub(crate) ready: mpsc::Sender<Result<(), String>>,
+}
+
+/// A hub's user, driven by a worker thread.
+pub(crate) struct Run {
+    pub(crate) client: UserClient,
     policy: Policy,
     rx: mpsc::Receiver<Cmd>,
     wake: Arc<OwnedFd>,
     frames: broadcast::Sender<Arc<str>>,
     model: Arc<Mutex<Model>>,
+    pub(crate) alive: Arc<AtomicBool>,
     me: std::sync::Weak<Hub>,
-    name: String,
+    pub(crate) name: String,
     lists: Arc<ListShare>,
     /// The version of the shared list last looked at.
     seen: u64,
@@ -339,7 +317,33 @@ struct Run {
 }
 
 impl Run {
-    fn send(&self, v: Value) {
+    /// The hub's user, and whom to tell once it is welcomed.
+    pub(crate) fn new(start: Start, client: UserClient) -> (Run, mpsc::Sender<Result<(), String>>) {
+        let run = Run {
+            client,
+            policy: start.policy,
+            rx: start.rx,
+            wake: start.wake,
+            frames: start.frames,
+            model: start.model,
+            alive: start.alive,
+            me: start.me,
+            name: start.user,
+            lists: start.lists,
+            seen: u64::MAX,
+            shown: BTreeMap::new(),
+            idle_since: None,
+            ops: HashMap::new(),
+        };
+        (run, start.ready)
+    }
+
+    /// Ends the user's sessions and says goodbye.
+    pub(crate) fn close(self) {
+        self.client.close();
+    }
+
+    pub(crate) fn send(&self, v: Value) {
         let _ = self.frames.send(Arc::from(v.to_string()));
     }
 
@@ -351,7 +355,8 @@ impl Run {
         let _ = self.frames.send(Arc::from(v.to_string()));
     }
 
-    fn init(&mut self) -> Result<(), UserError> {
+    /// Once welcomed: the list in the model before the first tab opens.
+    pub(crate) fn init(&mut self) -> Result<(), UserError> {
         self.client.watch_extra(self.wake.as_raw_fd())?;
         self.apply(json!({"t": "broker", "up": true}), |m| m.broker_up = true);
         // The first hub comes before the shared reader has read anything.
@@ -363,32 +368,40 @@ impl Run {
         Ok(())
     }
 
-    fn run(&mut self) -> Result<(), UserError> {
+    /// Handles whatever is here for this hub now (its client's news, its tabs'
+    /// commands). `Ok(false)`: the hub is done (signed out).
+    pub(crate) fn step(&mut self) -> Result<bool, UserError> {
         loop {
-            match self.client.wait(Instant::now() + Duration::from_secs(1))? {
+            match self.client.poll()? {
                 Wake::Event(e) => self.on_event(e)?,
                 Wake::Extra => {
                     drain(&self.wake);
                     self.refresh_list(false);
                     while let Ok(cmd) = self.rx.try_recv() {
                         if matches!(cmd, Cmd::Close) {
-                            return Ok(());
+                            return Ok(false);
                         }
                         self.on_cmd(cmd)?;
                     }
                 }
-                Wake::Timeout => {}
-            }
-            let Some(hub) = self.me.upgrade() else {
-                return Ok(());
-            };
-            if hub.tabs() > 0 {
-                self.idle_since = None;
-            } else if self.idle_since.get_or_insert_with(Instant::now).elapsed() >= LINGER {
-                tracing::info!(user = %self.name, "no tab open for {LINGER:?}: disconnecting");
-                return Ok(());
+                Wake::Timeout => return Ok(true),
             }
         }
+    }
+
+    /// Once a second: whether the hub goes on (a tab is open, or was within
+    /// [`LINGER`], and the hub is still wanted).
+    pub(crate) fn keep(&mut self, now: Instant) -> bool {
+        let Some(hub) = self.me.upgrade() else {
+            return false;
+        };
+        if hub.tabs() > 0 {
+            self.idle_since = None;
+        } else if now.duration_since(*self.idle_since.get_or_insert(now)) >= LINGER {
+            tracing::info!(user = %self.name, "no tab open for {LINGER:?}: disconnecting");
+            return false;
+        }
+        true
     }
 
     /// Takes a new shared list, if there is one: the services the user's patterns allow,
@@ -518,7 +531,7 @@ impl Run {
         Ok(())
     }
 
-    fn on_event(&mut self, e: UserEvent) -> Result<(), UserError> {
+    pub(crate) fn on_event(&mut self, e: UserEvent) -> Result<(), UserError> {
         match e {
             UserEvent::Connected { .. } => {
                 self.apply(json!({"t": "broker", "up": true}), |m| m.broker_up = true);

@@ -15,6 +15,7 @@
 
 pub mod auth;
 pub mod hub;
+pub mod pool;
 mod server;
 pub mod world;
 

@@ -2,6 +2,7 @@
 
 use crate::auth::{random_token, Access, Limiter, WebSession, COOKIE, SESSION_IDLE};
 use crate::hub::{Cmd, Hub, ListShare};
+use crate::pool::Pool;
 use crate::world::{map_frame, WorldFrame};
 use anyhow::Context as _;
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
@@ -47,6 +48,9 @@ pub struct WebOptions {
 /// Descriptors one signed-in user's broker connection holds (measured: 46, its
 /// iceoryx2 ports, their configurations and connections, two pidfds, an epoll set).
 const FDS_PER_USER: u64 = 48;
+/// Threads driving the signed-in users' broker connections (each waits on all of its
+/// users at once): as many as the machine has cores, up to four.
+const HUB_THREADS_MAX: usize = 4;
 
 /// Raises this process's descriptor limit as far as it may: with the privilege to
 /// (root, CAP_SYS_RESOURCE), the hard limit too, up to the kernel's `nr_open`;
@@ -76,6 +80,10 @@ fn raise_descriptor_limit() -> u64 {
 
 /// The largest WebSocket message a browser may send (commands are tiny).
 const MAX_MESSAGE: usize = 64 * 1024;
+/// A socket's read buffer. tungstenite zeroes the whole buffer (128 KiB by default)
+/// each time a read is tried, and a tab's read is tried at each frame sent to it: at
+/// 500 tabs of 10 Hz that was 15 % of the process's CPU in memset. Commands are tiny.
+const READ_BUFFER: usize = 4096;
 
 /// The app's files, inside the binary.
 const INDEX_HTML: &str = include_str!("../assets/index.html");
@@ -102,6 +110,8 @@ struct App {
     tls: bool,
     /// The service list, read once for all hubs.
     lists: Arc<ListShare>,
+    /// The threads driving the hubs' broker connections.
+    pool: Pool,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -144,6 +154,11 @@ pub fn serve(opts: WebOptions) -> anyhow::Result<()> {
         map_frame: Arc::from(map_frame(&map)),
         tls: opts.tls.is_some(),
         lists: Arc::new(ListShare::default()),
+        pool: Pool::new(
+            &opts.instance,
+            std::thread::available_parallelism().map_or(2, |n| n.get().min(HUB_THREADS_MAX)),
+        )
+        .map_err(anyhow::Error::msg)?,
     });
     let lister = {
         let app = app.clone();
@@ -572,7 +587,7 @@ fn hub_for(app: &App, user: &str) -> Result<Arc<Hub>, String> {
         .cloned()
         .ok_or_else(|| format!("user {user:?} is no longer in the access file"))?;
     let hub = Hub::start(
-        &app.inst,
+        &app.pool,
         user,
         policy,
         app.wait_for_broker,
@@ -611,6 +626,7 @@ async fn socket(State(app): State<Arc<App>>, headers: HeaderMap, ws: WebSocketUp
         Err(e) => return error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()),
     };
     ws.max_message_size(MAX_MESSAGE)
+        .read_buffer_size(READ_BUFFER)
         .on_upgrade(move |sock| tab(app, cookie, hub, sock))
 }
 

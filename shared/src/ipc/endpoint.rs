@@ -3,6 +3,9 @@
 
 #[allow(unused_imports)]
 use super::*;
+use std::cell::RefCell;
+use std::collections::HashSet;
+use std::rc::Rc;
 
 /// Empties a listener; returns the event ids rung as bits (bit i = id i).
 pub(super) fn drain_ids(listener: &Listener<Ipc>) -> u64 {
@@ -22,28 +25,75 @@ struct Peer {
     inbox: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
 }
 
+/// The ports to peers' inboxes (a publisher and a bell's notifier each), cached, with
+/// the control frames held back for full inboxes. Owned by one [`Endpoint`], or shared
+/// by the endpoints of one thread ([`PortShare`]): a process that hosts many users
+/// (the web console) writes to the broker and to each system through one pair of ports,
+/// not one per user. A receiver tells writers apart by process, never by port.
+struct Ports {
+    inst: Instance,
+    node: Rc<Node<Ipc>>,
+    /// Whether a system owns them (its frames to the broker may be large).
+    large: bool,
+    peers: HashMap<Address, Peer>,
+    /// How many endpoints hold each peer's ports (sent to it, not released since).
+    holders: HashMap<Address, usize>,
+    lingering: HashMap<Address, Instant>,
+    dropped_sends: u64,
+    /// Control frames a full inbox could not take yet, per peer, in order: retried by
+    /// [`Endpoint::sweep`], so no control message is lost to a burst.
+    backlog: HashMap<Address, VecDeque<Vec<u8>>>,
+    /// Peers sent frames by [`Endpoint::send_control_quiet`] whose bells
+    /// [`Endpoint::ring_pending`] rings.
+    pending_bells: Vec<Address>,
+}
+
+/// Ports to peers shared by several endpoints of one thread, and their iceoryx2 node:
+/// see [`Endpoint::open_shared`]. Cloning shares them.
+#[derive(Clone)]
+pub struct PortShare(Rc<RefCell<Ports>>);
+
+impl PortShare {
+    /// Ports to be shared by endpoints opened on `node` (see [`Endpoint::open_shared`]).
+    pub fn new(inst: &Instance, node: Node<Ipc>) -> Self {
+        PortShare(Rc::new(RefCell::new(Ports::new(
+            inst,
+            Rc::new(node),
+            false,
+        ))))
+    }
+
+    /// Peers with open ports (including lingering ones).
+    pub fn open_peers(&self) -> usize {
+        self.0.borrow().peers.len()
+    }
+}
+
 /// One process's inbox and bell, plus cached ports to its peers.
 pub struct Endpoint {
     inst: Instance,
     me: Address,
-    node: Node<Ipc>,
+    node: Rc<Node<Ipc>>,
     inbox: Subscriber<Ipc, [u8], ()>,
     bell: Listener<Ipc>,
-    peers: HashMap<Address, Peer>,
-    lingering: HashMap<Address, Instant>,
-    dropped_sends: u64,
+    ports: Rc<RefCell<Ports>>,
+    /// The peers whose ports this endpoint holds (see [`Ports::holders`]).
+    held: HashSet<Address>,
     recv_errors: u64,
-    /// Control frames a full inbox could not take yet, per peer, in order: retried by
-    /// [`Endpoint::sweep`], so no control message is lost to a burst.
-    backlog: HashMap<Address, VecDeque<Vec<u8>>>,
     /// This endpoint's own inbox service, to look up who is behind a publisher.
     inbox_svc: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
     /// The process behind each publisher writing to this inbox (iceoryx2 records the
     /// node, and the node id the pid of the process that created it).
     senders: HashMap<iceoryx2::identifiers::UniquePublisherId, Option<u32>>,
-    /// Peers sent frames by [`Endpoint::send_control_quiet`] whose bells
-    /// [`Endpoint::ring_pending`] rings.
-    pending_bells: Vec<Address>,
+}
+
+impl Drop for Endpoint {
+    fn drop(&mut self) {
+        let mut ports = self.ports.borrow_mut();
+        for to in self.held.drain() {
+            ports.unhold(&to);
+        }
+    }
 }
 
 /// Most control frames held back for one peer whose inbox is full; beyond it the peer
@@ -143,6 +193,27 @@ const DEAD_HOLDER_PATIENCE: Duration = Duration::from_secs(3);
 impl Endpoint {
     /// Creates (or takes over, after a crash) the inbox and bell of `me`.
     pub fn open(inst: &Instance, me: Address, node: Node<Ipc>) -> Result<Self, TransportError> {
+        let large = matches!(me, Address::System(_));
+        let ports = Rc::new(RefCell::new(Ports::new(inst, Rc::new(node), large)));
+        Self::open_with(inst, me, ports)
+    }
+
+    /// [`Endpoint::open`] on a thread's shared node, writing to peers through the
+    /// thread's shared ports: the endpoint owns only its inbox and bell.
+    pub fn open_shared(
+        inst: &Instance,
+        me: Address,
+        share: &PortShare,
+    ) -> Result<Self, TransportError> {
+        Self::open_with(inst, me, share.0.clone())
+    }
+
+    fn open_with(
+        inst: &Instance,
+        me: Address,
+        ports: Rc<RefCell<Ports>>,
+    ) -> Result<Self, TransportError> {
+        let node = ports.borrow().node.clone();
         let limits = InboxLimits::for_addr(&me);
         let inbox_name = inst.inbox(&me);
         let svc = node
@@ -187,14 +258,11 @@ impl Endpoint {
             node,
             inbox,
             bell,
-            peers: HashMap::new(),
-            lingering: HashMap::new(),
-            dropped_sends: 0,
+            ports,
+            held: HashSet::new(),
             recv_errors: 0,
-            backlog: HashMap::new(),
             inbox_svc: svc,
             senders: HashMap::new(),
-            pending_bells: Vec::new(),
         })
     }
 
@@ -300,7 +368,7 @@ impl Endpoint {
             });
             out
         }
-        if let Some(peer) = self.peers.get(of) {
+        if let Some(peer) = self.ports.borrow().peers.get(of) {
             return pids(&peer.inbox);
         }
         if *of == self.me {
@@ -323,62 +391,12 @@ impl Endpoint {
         self.recv_errors
     }
 
-    fn peer(&mut self, to: &Address) -> Result<&mut Peer, TransportError> {
-        if !self.peers.contains_key(to) {
-            let started = Instant::now();
-            let opened = self.open_peer(to);
-            let took = started.elapsed();
-            if took > Duration::from_millis(50) {
-                tracing::debug!(peer = %to, ?took, ok = opened.is_ok(), "opening a peer's ports was slow");
-            }
-            opened?;
+    /// Marks `to`'s ports as held by this endpoint (it is sending to it).
+    fn hold(&mut self, ports: &mut Ports, to: &Address) {
+        if !self.held.contains(to) {
+            self.held.insert(to.clone());
+            *ports.holders.entry(to.clone()).or_default() += 1;
         }
-        Ok(self.peers.get_mut(to).expect("inserted above"))
-    }
-
-    fn open_peer(&mut self, to: &Address) -> Result<(), TransportError> {
-        {
-            let inbox_name = self.inst.inbox(to);
-            let svc = self
-                .node
-                .service_builder(&service_name(&inbox_name)?)
-                .publish_subscribe::<[u8]>()
-                .open()
-                .map_err(|_| TransportError::Unreachable(to.clone()))?;
-            let (len, strategy) = match (&self.me, to) {
-                (Address::System(_), Address::Broker) => {
-                    (INITIAL_LARGE_FRAME, AllocationStrategy::PowerOfTwo)
-                }
-                _ => (SMALL_FRAME, AllocationStrategy::Static),
-            };
-            let publisher = svc
-                .publisher_builder()
-                .initial_max_slice_len(len)
-                .allocation_strategy(strategy)
-                .max_loaned_samples(1)
-                .backpressure_strategy(BackpressureStrategy::DiscardData)
-                .create()
-                .map_err(|e| svc_err(&inbox_name, e))?;
-            let bell_name = self.inst.bell(to);
-            let notifier = self
-                .node
-                .service_builder(&service_name(&bell_name)?)
-                .event()
-                .open()
-                .map_err(|_| TransportError::Unreachable(to.clone()))?
-                .notifier_builder()
-                .create()
-                .map_err(|e| svc_err(&bell_name, e))?;
-            self.peers.insert(
-                to.clone(),
-                Peer {
-                    publisher,
-                    notifier,
-                    inbox: svc,
-                },
-            );
-        }
-        Ok(())
     }
 
     /// Encodes `msg` and sends it to `to` (see [`Endpoint::send`]).
@@ -425,19 +443,10 @@ impl Endpoint {
                 return tracing::error!("{e}");
             }
         };
-        if let Some(q) = self.backlog.get_mut(to) {
-            // Behind earlier frames: keep the order.
-            return Self::hold(q, to, frame, &mut self.dropped_sends);
-        }
-        match self.send_ringing(to, &frame, ring) {
-            Ok(()) => {}
-            Err(TransportError::Full(_)) => {
-                self.dropped_sends -= 1; // not dropped: held back
-                let q = self.backlog.entry(to.clone()).or_default();
-                Self::hold(q, to, frame, &mut self.dropped_sends);
-            }
-            Err(e) => tracing::debug!("{e}"),
-        }
+        let ports = self.ports.clone();
+        let mut ports = ports.borrow_mut();
+        self.hold(&mut ports, to);
+        ports.control(&self.me, to, frame, ring);
     }
 
     /// [`Endpoint::send_control`], but the frame is only written: `to`'s bell rings at
@@ -462,15 +471,194 @@ impl Endpoint {
 
     /// Whether [`Endpoint::send_control_quiet`] left bells to ring.
     pub fn bells_pending(&self) -> bool {
-        !self.pending_bells.is_empty()
+        !self.ports.borrow().pending_bells.is_empty()
     }
 
     /// Rings the bells [`Endpoint::send_control_quiet`] left, once per peer.
     pub fn ring_pending(&mut self) {
-        for to in std::mem::take(&mut self.pending_bells) {
-            if let Err(e) = self.ring(&to, bell::MESSAGE) {
+        let mut ports = self.ports.borrow_mut();
+        for to in std::mem::take(&mut ports.pending_bells) {
+            if let Err(e) = ports.ring(&to, bell::MESSAGE) {
                 tracing::debug!("{e}");
             }
+        }
+    }
+
+    /// Control frames held back for full inboxes.
+    pub fn backlog(&self) -> usize {
+        self.ports
+            .borrow()
+            .backlog
+            .values()
+            .map(VecDeque::len)
+            .sum()
+    }
+
+    /// Writes a frame into `to`'s inbox and rings its bell.
+    /// Behind held-back control frames, it is not sent (a data update overtaking them
+    /// would break their order) and counts as full.
+    pub fn send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
+        let ports = self.ports.clone();
+        let mut ports = ports.borrow_mut();
+        self.hold(&mut ports, to);
+        ports.send_ringing(&self.me, to, frame, true)
+    }
+
+    /// Rings `to`'s bell with `id` without sending a frame.
+    pub fn ring(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
+        let ports = self.ports.clone();
+        let mut ports = ports.borrow_mut();
+        self.hold(&mut ports, to);
+        ports.ring(to, id)
+    }
+
+    /// Forgets the cached ports to `to` at once (it died), releasing their shared memory,
+    /// for every endpoint sharing them.
+    pub fn forget(&mut self, to: &Address) {
+        self.held.remove(to);
+        let mut ports = self.ports.borrow_mut();
+        ports.peers.remove(to);
+        ports.holders.remove(to);
+        ports.lingering.remove(to);
+    }
+
+    /// Forgets the ports to `to` after [`LINGER`], so frames just sent still arrive.
+    /// Sending to `to` again in the meantime keeps them; so does another endpoint
+    /// sharing them that has not released them.
+    pub fn release(&mut self, to: &Address) {
+        if self.held.remove(to) {
+            self.ports.borrow_mut().unhold(to);
+        }
+    }
+
+    /// Retries held-back control frames and drops lingering ports whose time is up;
+    /// returns how long until either is due again.
+    pub fn sweep(&mut self) -> Option<Duration> {
+        self.ports.borrow_mut().sweep()
+    }
+
+    /// Opens the ports to `to` now, if they are not open, so a later send to it costs no
+    /// first contact.
+    pub fn open_ports(&mut self, to: &Address) -> Result<(), TransportError> {
+        let ports = self.ports.clone();
+        let mut ports = ports.borrow_mut();
+        self.hold(&mut ports, to);
+        ports.peer(to).map(|_| ())
+    }
+
+    /// Whether the ports to `to` are open (a send to it costs no first contact).
+    pub fn has_ports(&self, to: &Address) -> bool {
+        self.ports.borrow().peers.contains_key(to)
+    }
+
+    /// Peers with open ports (including lingering ones).
+    pub fn open_peers(&self) -> usize {
+        self.ports.borrow().peers.len()
+    }
+
+    /// Frames that could not be delivered so far (by every endpoint sharing the ports).
+    pub fn dropped_sends(&self) -> u64 {
+        self.ports.borrow().dropped_sends
+    }
+}
+
+impl Ports {
+    fn new(inst: &Instance, node: Rc<Node<Ipc>>, large: bool) -> Self {
+        Ports {
+            inst: inst.clone(),
+            node,
+            large,
+            peers: HashMap::new(),
+            holders: HashMap::new(),
+            lingering: HashMap::new(),
+            dropped_sends: 0,
+            backlog: HashMap::new(),
+            pending_bells: Vec::new(),
+        }
+    }
+
+    /// One endpoint let go of `to`'s ports: with no endpoint holding them, they linger.
+    fn unhold(&mut self, to: &Address) {
+        let Some(n) = self.holders.get_mut(to) else {
+            return;
+        };
+        *n = n.saturating_sub(1);
+        if *n == 0 {
+            self.holders.remove(to);
+            if self.peers.contains_key(to) {
+                self.lingering.insert(to.clone(), Instant::now() + LINGER);
+            }
+        }
+    }
+
+    fn peer(&mut self, to: &Address) -> Result<&mut Peer, TransportError> {
+        if !self.peers.contains_key(to) {
+            let started = Instant::now();
+            let opened = self.open_peer(to);
+            let took = started.elapsed();
+            if took > Duration::from_millis(50) {
+                tracing::debug!(peer = %to, ?took, ok = opened.is_ok(), "opening a peer's ports was slow");
+            }
+            opened?;
+        }
+        Ok(self.peers.get_mut(to).expect("inserted above"))
+    }
+
+    fn open_peer(&mut self, to: &Address) -> Result<(), TransportError> {
+        let inbox_name = self.inst.inbox(to);
+        let svc = self
+            .node
+            .service_builder(&service_name(&inbox_name)?)
+            .publish_subscribe::<[u8]>()
+            .open()
+            .map_err(|_| TransportError::Unreachable(to.clone()))?;
+        let (len, strategy) = match to {
+            // Only a system writes large frames to the broker (its registration).
+            Address::Broker if self.large => (INITIAL_LARGE_FRAME, AllocationStrategy::PowerOfTwo),
+            _ => (SMALL_FRAME, AllocationStrategy::Static),
+        };
+        let publisher = svc
+            .publisher_builder()
+            .initial_max_slice_len(len)
+            .allocation_strategy(strategy)
+            .max_loaned_samples(1)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .create()
+            .map_err(|e| svc_err(&inbox_name, e))?;
+        let bell_name = self.inst.bell(to);
+        let notifier = self
+            .node
+            .service_builder(&service_name(&bell_name)?)
+            .event()
+            .open()
+            .map_err(|_| TransportError::Unreachable(to.clone()))?
+            .notifier_builder()
+            .create()
+            .map_err(|e| svc_err(&bell_name, e))?;
+        self.peers.insert(
+            to.clone(),
+            Peer {
+                publisher,
+                notifier,
+                inbox: svc,
+            },
+        );
+        Ok(())
+    }
+
+    fn control(&mut self, me: &Address, to: &Address, frame: Vec<u8>, ring: bool) {
+        if let Some(q) = self.backlog.get_mut(to) {
+            // Behind earlier frames: keep the order.
+            return Self::hold(q, to, frame, &mut self.dropped_sends);
+        }
+        match self.send_ringing(me, to, &frame, ring) {
+            Ok(()) => {}
+            Err(TransportError::Full(_)) => {
+                self.dropped_sends -= 1; // not dropped: held back
+                let q = self.backlog.entry(to.clone()).or_default();
+                Self::hold(q, to, frame, &mut self.dropped_sends);
+            }
+            Err(e) => tracing::debug!("{e}"),
         }
     }
 
@@ -513,21 +701,10 @@ impl Endpoint {
         }
     }
 
-    /// Control frames held back for full inboxes.
-    pub fn backlog(&self) -> usize {
-        self.backlog.values().map(VecDeque::len).sum()
-    }
-
-    /// Writes a frame into `to`'s inbox and rings its bell.
-    /// Behind held-back control frames, it is not sent (a data update overtaking them
-    /// would break their order) and counts as full.
-    pub fn send(&mut self, to: &Address, frame: &[u8]) -> Result<(), TransportError> {
-        self.send_ringing(to, frame, true)
-    }
-
     /// [`Endpoint::send`]; the bell is left for [`Endpoint::ring_pending`] unless `ring`.
     fn send_ringing(
         &mut self,
+        me: &Address,
         to: &Address,
         frame: &[u8],
         ring: bool,
@@ -537,7 +714,18 @@ impl Endpoint {
             self.dropped_sends += 1;
             return Err(TransportError::Full(to.clone()));
         }
-        let result = self.try_send(to, frame, ring);
+        let large = self.large && matches!((me, to), (Address::System(_), Address::Broker));
+        let result = if !large && frame.len() > SMALL_FRAME {
+            Err(TransportError::Send {
+                peer: to.clone(),
+                detail: format!(
+                    "frame of {} bytes exceeds the {SMALL_FRAME}-byte limit of this path",
+                    frame.len()
+                ),
+            })
+        } else {
+            self.try_send(to, frame, ring)
+        };
         match &result {
             Ok(()) => {}
             Err(TransportError::Full(_)) => self.dropped_sends += 1,
@@ -551,16 +739,6 @@ impl Endpoint {
     }
 
     fn try_send(&mut self, to: &Address, frame: &[u8], ring: bool) -> Result<(), TransportError> {
-        let large = matches!((&self.me, to), (Address::System(_), Address::Broker));
-        if !large && frame.len() > SMALL_FRAME {
-            return Err(TransportError::Send {
-                peer: to.clone(),
-                detail: format!(
-                    "frame of {} bytes exceeds the {SMALL_FRAME}-byte limit of this path",
-                    frame.len()
-                ),
-            });
-        }
         let peer = self.peer(to)?;
         let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
             peer: to.clone(),
@@ -594,8 +772,7 @@ impl Endpoint {
         Ok(())
     }
 
-    /// Rings `to`'s bell with `id` without sending a frame.
-    pub fn ring(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
+    fn ring(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
         let result = self.peer(to).and_then(|p| {
             p.notifier
                 .notify_with_custom_event_id(EventId::new(id))
@@ -611,23 +788,7 @@ impl Endpoint {
         result
     }
 
-    /// Forgets the cached ports to `to` at once (it died), releasing their shared memory.
-    pub fn forget(&mut self, to: &Address) {
-        self.peers.remove(to);
-        self.lingering.remove(to);
-    }
-
-    /// Forgets the ports to `to` after [`LINGER`], so frames just sent still arrive.
-    /// Sending to `to` again in the meantime keeps them.
-    pub fn release(&mut self, to: &Address) {
-        if self.peers.contains_key(to) {
-            self.lingering.insert(to.clone(), Instant::now() + LINGER);
-        }
-    }
-
-    /// Retries held-back control frames and drops lingering ports whose time is up;
-    /// returns how long until either is due again.
-    pub fn sweep(&mut self) -> Option<Duration> {
+    fn sweep(&mut self) -> Option<Duration> {
         self.flush_backlog();
         let now = Instant::now();
         let due: Vec<Address> = self
@@ -647,26 +808,5 @@ impl Endpoint {
             .map(|t| t.saturating_duration_since(now));
         let retry = (!self.backlog.is_empty()).then_some(BACKLOG_RETRY);
         [linger, retry].into_iter().flatten().min()
-    }
-
-    /// Opens the ports to `to` now, if they are not open, so a later send to it costs no
-    /// first contact.
-    pub fn open_ports(&mut self, to: &Address) -> Result<(), TransportError> {
-        self.peer(to).map(|_| ())
-    }
-
-    /// Whether the ports to `to` are open (a send to it costs no first contact).
-    pub fn has_ports(&self, to: &Address) -> bool {
-        self.peers.contains_key(to)
-    }
-
-    /// Peers with open ports (including lingering ones).
-    pub fn open_peers(&self) -> usize {
-        self.peers.len()
-    }
-
-    /// Frames that could not be delivered so far.
-    pub fn dropped_sends(&self) -> u64 {
-        self.dropped_sends
     }
 }
