@@ -14,6 +14,7 @@ again: updates skipped), errors.
 import argparse
 import asyncio
 import json
+import os
 import sys
 import time
 import urllib.request
@@ -85,6 +86,7 @@ async def main():
     ap.add_argument("url")
     ap.add_argument("tokens", help="JSON: [[user, token, service], ...]")
     ap.add_argument("--duration", type=float, default=30.0)
+    ap.add_argument("--go", help="measure once this file exists (every process's clients are in)")
     args = ap.parse_args()
     users = json.load(open(args.tokens))
     cookies = [sign_in(args.url, u, t) for u, t, _ in users]
@@ -104,6 +106,10 @@ async def main():
     print(json.dumps({"event": "ready", "clients": len(users), "setup_s": time.monotonic() - t0,
                       "failed": [str(t.exception() if t.done() and not t.cancelled() else "no grant")
                                  for t in failed][:5], "failed_count": len(failed)}), flush=True)
+    if args.go:
+        deadline = time.monotonic() + 180
+        while not os.path.exists(args.go) and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
     stats.measuring = True
     await asyncio.sleep(args.duration)
     stats.measuring = False

@@ -23,6 +23,8 @@ use std::time::{Duration, Instant};
 /// How often a worker looks at every hub (connections that did not come, tabs all
 /// closed, hubs dropped).
 const HOUSEKEEPING: Duration = Duration::from_secs(1);
+/// The longest a worker spends starting new users before it looks at the others.
+const START_BUDGET: Duration = Duration::from_millis(2);
 /// The worker's own token in its reactor (new hubs, stop); hubs' tokens follow.
 const TOKEN_WORKER: usize = 0;
 
@@ -151,12 +153,19 @@ impl Work {
         let mut timers: BinaryHeap<Reverse<(Instant, usize)>> = BinaryHeap::new();
         let mut next_token = TOKEN_WORKER + 1;
         let mut housekeeping = Instant::now() + HOUSEKEEPING;
+        // New hubs wait in the queue.
+        let mut starting = false;
         loop {
             let now = Instant::now();
             let next = timers
                 .peek()
                 .map_or(housekeeping, |Reverse((at, _))| (*at).min(housekeeping));
-            let tokens = match reactor.wait(Some(next.saturating_duration_since(now))) {
+            let wait = if starting {
+                Duration::ZERO
+            } else {
+                next.saturating_duration_since(now)
+            };
+            let tokens = match reactor.wait(Some(wait)) {
                 Ok(t) => t,
                 Err(e) => {
                     tracing::error!("web worker's epoll failed: {e}");
@@ -177,6 +186,14 @@ impl Work {
                     }
                     return;
                 }
+                starting = true;
+            }
+            if starting {
+                // New users, for at most START_BUDGET a pass: a storm of sign-ins (each
+                // a few iceoryx2 services) must not hold up the updates of those
+                // already in; the rest wait for the next pass, which comes at once.
+                let began = Instant::now();
+                starting = false;
                 while let Ok(start) = self.rx.try_recv() {
                     let token = next_token;
                     next_token += 1;
@@ -184,6 +201,10 @@ impl Work {
                         slots.insert(token, slot);
                         // Its hello is out: the welcome may already be here.
                         ready.push(token);
+                    }
+                    if began.elapsed() >= START_BUDGET {
+                        starting = true;
+                        break;
                     }
                 }
             }

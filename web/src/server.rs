@@ -12,6 +12,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
+use futures_util::{SinkExt as _, StreamExt as _};
 use muster_shared::protocol::Operation;
 use muster_shared::types::{ServiceId, SessionId, UserId};
 use muster_shared::udp::access::web_token_hash;
@@ -693,7 +694,26 @@ fn command(m: In) -> Result<Cmd, String> {
 }
 
 /// One browser tab's socket: the hub's frames out, the tab's commands in.
-async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, mut sock: WebSocket) {
+async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, sock: WebSocket) {
+    // The socket is read by a task of its own: a read tried at every frame sent (as a
+    // `select!` over both would) costs a system call per frame, for commands that are
+    // rare.
+    let (mut sock, mut incoming) = sock.split();
+    let (texts, mut from_reader) = tokio::sync::mpsc::channel(16);
+    let reader = tokio::spawn(async move {
+        while let Some(msg) = incoming.next().await {
+            match msg {
+                Ok(Message::Text(t)) => {
+                    if texts.send(t).await.is_err() {
+                        return;
+                    }
+                }
+                Ok(Message::Close(_)) | Err(_) => return,
+                Ok(_) => {}
+            }
+        }
+    });
+    let _reader = AbortOnDrop(reader);
     let (_tab, first, mut frames) = hub.open_tab();
     if sock.send(Message::Text(first.into())).await.is_err() {
         return;
@@ -736,8 +756,10 @@ async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, mut sock: WebSocket) 
                 }
                 Err(RecvError::Closed) => return,
             },
-            msg = sock.recv() => match msg {
-                Some(Ok(Message::Text(t))) => match parse(t.as_str()).and_then(|m| match m {
+            text = from_reader.recv() => match text {
+                // Closed, or the connection failed.
+                None => return,
+                Some(t) => match parse(t.as_str()).and_then(|m| match m {
                     In::Map { on } => Ok(Err(on)),
                     other => command(other).map(Ok),
                 }) {
@@ -764,8 +786,6 @@ async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, mut sock: WebSocket) 
                         }
                     }
                 },
-                Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
-                Some(Ok(_)) => {}
             },
             _ = check.tick() => {
                 systems = hub.systems();
@@ -780,6 +800,15 @@ async fn tab(app: Arc<App>, cookie: String, hub: Arc<Hub>, mut sock: WebSocket) 
                 }
             }
         }
+    }
+}
+
+/// Aborts a task when dropped (a tab's reader, when its writer ends).
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
     }
 }
 

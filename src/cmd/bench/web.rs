@@ -153,6 +153,8 @@ fn bench(inst: &Instance, a: &WebBenchArgs, dir: &std::path::Path) -> anyhow::Re
     let started = Instant::now();
     let mut procs = Vec::new();
     let per = a.clients.div_ceil(a.procs);
+    // Every process measures from the same moment: once all of them are in.
+    let go = dir.join("go");
     for (k, chunk) in users.chunks(per).enumerate() {
         let tokens = dir.join(format!("tokens-{k}.json"));
         std::fs::write(&tokens, Value::Array(chunk.to_vec()).to_string())?;
@@ -161,7 +163,9 @@ fn bench(inst: &Instance, a: &WebBenchArgs, dir: &std::path::Path) -> anyhow::Re
             .arg(&url)
             .arg(&tokens)
             .arg("--duration")
-            .arg(a.duration.as_secs_f64().to_string());
+            .arg(a.duration.as_secs_f64().to_string())
+            .arg("--go")
+            .arg(&go);
         procs.push(LineChild::spawn(
             cmd,
             "the clients",
@@ -178,6 +182,7 @@ fn bench(inst: &Instance, a: &WebBenchArgs, dir: &std::path::Path) -> anyhow::Re
         ready.push(r);
     }
     let setup_s = started.elapsed().as_secs_f64();
+    std::fs::write(&go, "")?;
 
     // While they watch: a shared-memory user on the same system, the broker's requests,
     // the web process's CPU.
