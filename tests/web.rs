@@ -63,6 +63,8 @@ fn http(port: u16, method: &str, path: &str, headers: &[(&str, &str)], body: &st
 }
 
 struct Web {
+    /// `muster web`'s pid.
+    pid: i32,
     fed: Fed,
     port: u16,
     origin: String,
@@ -81,26 +83,43 @@ impl Drop for Web {
 /// `goal2d` service with a queue) and `muster web` with an access file: alice may use
 /// `t1/*`, bob is an operator of everything, carol has a key but no web line.
 fn setup(name: &str) -> Web {
+    let users = [
+        ("alice".to_string(), vec!["--web", "--allow", "t1/*"]),
+        (
+            "bob".to_string(),
+            vec!["--web", "--operator", "--allow", "*"],
+        ),
+        ("carol".to_string(), vec!["--allow", "*"]),
+    ];
+    setup_with(name, &users, &[], 3)
+}
+
+/// A broker (`broker_args`), systems t1 (two data services, `quota` sessions each) and
+/// d1 (a queued command service), the access file's `users` made by `muster keygen`
+/// (name, its flags), and `muster web` on a free port.
+fn setup_with(
+    name: &str,
+    users: &[(String, Vec<&str>)],
+    broker_args: &[&str],
+    quota: usize,
+) -> Web {
     let mut fed = Fed::new(name);
     let dir = std::env::temp_dir().join(format!("muster-web-test-{}", fed.inst));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let d = dir.to_str().unwrap();
     let mut access = String::new();
-    for (user, extra) in [
-        ("alice", vec!["--web", "--allow", "t1/*"]),
-        ("bob", vec!["--web", "--operator", "--allow", "*"]),
-        ("carol", vec!["--allow", "*"]),
-    ] {
-        let mut args = vec!["keygen", "--user", user, "--out", d];
+    for (user, extra) in users {
+        let mut args = vec!["keygen", "--user", user.as_str(), "--out", d];
         args.extend(extra);
         let (code, out) = fed.run(&args, Duration::from_secs(10));
         assert_eq!(code, 0, "keygen {user}");
         access.push_str(&out);
     }
     std::fs::write(dir.join("access"), &access).unwrap();
-    fed.broker(&[]);
-    fed.system("t1", &["--services", "2", "--quota", "3"]);
+    fed.broker(broker_args);
+    let quota = quota.to_string();
+    fed.system("t1", &["--services", "2", "--quota", &quota]);
     fed.system(
         "d1",
         &[
@@ -139,7 +158,9 @@ fn setup(name: &str) -> Web {
     let web = fed.spawn_command(wrapped);
     let first = fed.proc(web).json(Duration::from_secs(20)).unwrap();
     assert_eq!(first["listen"], json!(listen));
+    let pid = fed.proc(web).pid();
     Web {
+        pid,
         fed,
         port,
         origin: format!("http://127.0.0.1:{port}"),
@@ -617,4 +638,94 @@ fn the_web_benchmark_runs_its_clients_and_counts_every_update() {
     assert_eq!(r["broker_request_before"]["count"], json!(20));
     assert_eq!(r["broker_request_during"]["count"], json!(20));
     assert!(r["web_rss_kib"].as_u64().unwrap() > 0);
+}
+
+/// Descriptors a process holds now.
+fn descriptors(pid: i32) -> usize {
+    std::fs::read_dir(format!("/proc/{pid}/fd")).map_or(0, Iterator::count)
+}
+
+#[test]
+fn many_people_signed_in_share_the_web_processs_ports_and_each_gets_its_updates() {
+    // 40 people, each in a tab holding a session of t1's two data services: more than
+    // a process's default share of the broker (16 users), and each person a muster user
+    // of its own, all driven by the web process's few worker threads through shared
+    // ports to the broker and to t1 (each keeps only its inbox and bell).
+    const PEOPLE: usize = 40;
+    let users: Vec<(String, Vec<&str>)> = (0..PEOPLE)
+        .map(|i| (format!("p{i}"), vec!["--web", "--allow", "t1/*"]))
+        .collect();
+    let w = setup_with("web-many", &users, &["--max-users-per-process", "64"], 32);
+    let before = descriptors(w.pid);
+    let mut tabs = Vec::new();
+    for (i, (user, _)) in users.iter().enumerate() {
+        let (cookie, csrf) = w.sign_in(user);
+        let mut tab = w.socket(Some(&cookie), Some(&w.origin)).unwrap();
+        let state = tab
+            .until(Duration::from_secs(10), |f| f["t"] == "state")
+            .unwrap_or_else(|| panic!("{user}'s tab got no state"));
+        assert_eq!(state["user"], json!(user));
+        assert_eq!(ids(&state), ["t1/s0", "t1/s1"], "{user} sees t1 only");
+        let service = format!("t1/s{}", i % 2);
+        tab.send(json!({"op": "request", "service": service}));
+        tabs.push((user.clone(), service, tab, (cookie, csrf)));
+    }
+    // Every person's session is granted and streams: updates in order, none lost.
+    for (user, service, tab, _) in &mut tabs {
+        let granted = tab
+            .until(Duration::from_secs(10), |f| f["t"] == "granted")
+            .unwrap_or_else(|| panic!("{user}: no grant for {service}"));
+        assert_eq!(granted["service"], json!(service));
+        let session = granted["session"].clone();
+        let mut seqs = Vec::new();
+        while seqs.len() < 3 {
+            let u = tab
+                .until(Duration::from_secs(5), |f| {
+                    f["t"] == "update" && f["session"] == session
+                })
+                .unwrap_or_else(|| panic!("{user}: {} updates of {service}", seqs.len()));
+            seqs.push(u["seq"].as_u64().unwrap());
+            assert_eq!(u["gap"], json!(0), "{user}: nothing lost");
+        }
+        assert!(
+            seqs.windows(2).all(|p| p[1] == p[0] + 1),
+            "{user}: updates in order, none missing: {seqs:?}"
+        );
+    }
+    // The broker shows 40 sessions on t1 (20 on each service), every one a web user.
+    let list = w.fed.list();
+    for s in ["t1/s0", "t1/s1"] {
+        let row = common::find(&list, s).unwrap();
+        assert_eq!(row["in_use"], json!(PEOPLE / 2), "{s}: {row}");
+    }
+    // About 26 descriptors a person (a node, a thread and ports to the broker and t1
+    // per person took about 48).
+    let per_person = (descriptors(w.pid) - before) as f64 / PEOPLE as f64;
+    assert!(
+        per_person < 32.0,
+        "{per_person:.1} descriptors per person signed in"
+    );
+    // Signing out ends every session: the counts fall back to 0.
+    for (user, _, tab, (cookie, csrf)) in tabs {
+        drop(tab);
+        let a = http(
+            w.port,
+            "POST",
+            "/api/logout",
+            &[
+                ("Origin", &w.origin),
+                ("Cookie", &cookie),
+                ("X-CSRF-Token", &csrf),
+                ("Content-Type", "application/json"),
+            ],
+            "{}",
+        );
+        assert_eq!(a.status, 200, "{user} signs out: {}", a.body);
+    }
+    // (wait_list fails the test if they do not within the time.)
+    w.fed.wait_list(Duration::from_secs(10), |l| {
+        ["t1/s0", "t1/s1"]
+            .iter()
+            .all(|s| common::find(l, s).is_some_and(|r| r["in_use"] == json!(0)))
+    });
 }

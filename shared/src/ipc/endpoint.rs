@@ -810,3 +810,65 @@ impl Ports {
         [linger, retry].into_iter().flatten().min()
     }
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::types::UserId;
+
+    fn writers(e: &Endpoint) -> usize {
+        let mut n = 0;
+        e.inbox_svc.dynamic_config().list_publishers(|_| {
+            n += 1;
+            CallbackProgression::Continue
+        });
+        n
+    }
+
+    #[test]
+    fn users_sharing_ports_write_through_one_pair_and_keep_it_while_one_holds_it() {
+        let inst = Instance::new(&format!("share-test-{}", std::process::id())).unwrap();
+        let s = Address::System("s".into());
+        let mut system = Endpoint::open(
+            &inst,
+            s.clone(),
+            create_node("share-test-s", false).unwrap(),
+        )
+        .unwrap();
+        let share = PortShare::new(&inst, create_node("share-test-u", false).unwrap());
+        let a_addr = Address::User(UserId("a".into()));
+        let mut a = Endpoint::open_shared(&inst, a_addr.clone(), &share).unwrap();
+        let mut b =
+            Endpoint::open_shared(&inst, Address::User(UserId("b".into())), &share).unwrap();
+        a.send(&s, b"from a").unwrap();
+        b.send(&s, b"from b").unwrap();
+        assert_eq!(share.open_peers(), 1, "one pair of ports to s for both");
+        assert_eq!(writers(&system), 1, "s's inbox has one writer");
+        // s takes both, in order, each from this process.
+        let pid = Some(std::process::id());
+        assert_eq!(system.recv_from(), Some((b"from a".to_vec(), pid)));
+        assert_eq!(system.recv_from(), Some((b"from b".to_vec(), pid)));
+        assert_eq!(system.recv_from(), None);
+        // Each user keeps its own inbox.
+        system.send(&a_addr, b"to a").unwrap();
+        assert_eq!(a.recv(), Some(b"to a".to_vec()));
+        assert_eq!(b.recv(), None);
+        // a lets go: b still holds the ports, so they do not linger.
+        a.release(&s);
+        assert!(share.0.borrow().lingering.is_empty());
+        // b lets go too: now they linger (and go after LINGER).
+        b.release(&s);
+        assert!(share.0.borrow().lingering.contains_key(&s));
+        // a sends again: held, no longer lingering; a endpoint dropped lets go of it.
+        a.send(&s, b"again").unwrap();
+        assert!(share.0.borrow().lingering.is_empty());
+        drop(a);
+        assert!(share.0.borrow().lingering.contains_key(&s));
+        assert_eq!(system.recv(), Some(b"again".to_vec()));
+        // Forgotten (s died): gone for every user at once.
+        b.send(&s, b"last").unwrap();
+        b.forget(&s);
+        assert_eq!(share.open_peers(), 0);
+    }
+}
