@@ -164,7 +164,7 @@ impl UserClient {
     /// bell), and returns at once with its hello sent: [`UserEvent::Connected`] comes
     /// through [`UserClient::poll`] when a broker welcomes it, now or when one starts.
     /// For a process hosting many users on a few threads (the web console): each
-    /// user's descriptors drop from about 48 to about 20.
+    /// user's descriptors drop from about 48 to about 22–26.
     pub fn start_shared(
         inst: &Instance,
         opts: &ConnectOptions,
@@ -495,7 +495,8 @@ impl UserClient {
     /// When this client's own timers next need a [`UserClient::poll`] even if its fd
     /// stays quiet: a remote link's retransmissions and keepalives; a local user's
     /// held-back frames, lingering ports, a standby it looks for and systems' inboxes
-    /// it opens. `None`: nothing is due.
+    /// it opens. `None`: nothing is due. A local user's held-back frames and lingering
+    /// ports that are due now are dealt with here.
     pub fn next_turn(&mut self) -> Option<Instant> {
         let now = Instant::now();
         match &mut self.transport {

@@ -3,7 +3,7 @@
 //! shared by its users (each keeps its own inbox and bell: the broker and the systems
 //! tell users apart by the user ids in the frames and hold a process to its pid), and one
 //! epoll over every user's descriptor. A few hundred people signed in are then a few
-//! threads and about 20 descriptors each, where a thread and a node per user took one
+//! threads and about 22–26 descriptors each, where a thread and a node per user took one
 //! thread and about 48 descriptors each: 500 people did not fit the descriptor limit,
 //! and their 500 threads queued for the cores behind everything else.
 
@@ -214,7 +214,9 @@ impl Work {
                     break;
                 }
                 timers.pop();
-                if slots.get(&t).is_some_and(|s| s.due == Some(at)) {
+                if let Some(slot) = slots.get_mut(&t).filter(|s| s.due == Some(at)) {
+                    // Spent: the step below sets the next one.
+                    slot.due = None;
                     ready.push(t);
                 }
             }
@@ -224,9 +226,14 @@ impl Work {
                 };
                 match step(slot) {
                     Ok(true) => {
-                        slot.due = slot.run.client.next_turn();
-                        if let Some(at) = slot.due {
-                            timers.push(Reverse((at, t)));
+                        // One timer a hub: a new one only when the time changed (the
+                        // one in the heap still stands otherwise).
+                        let due = slot.run.client.next_turn();
+                        if due != slot.due {
+                            slot.due = due;
+                            if let Some(at) = due {
+                                timers.push(Reverse((at, t)));
+                            }
                         }
                     }
                     Ok(false) => {
