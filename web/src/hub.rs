@@ -73,26 +73,52 @@ pub struct ListShare {
     version: AtomicU64,
 }
 
-/// One version of the list, as rows.
+/// One version of the list, as rows, and what changed since the one before.
 pub(crate) struct SharedList {
     generation: u64,
     views: Vec<ServiceView>,
+    /// Indexes in `views` of the rows new or changed since the version before.
+    changed: Vec<usize>,
+    /// Whether a row of the version before is gone.
+    removed: bool,
 }
 
 impl ListShare {
     /// Stores a new snapshot; the hubs are to be rung after.
     pub fn set(&self, s: Arc<ServiceListSnapshot>) {
-        let list = Arc::new(SharedList {
+        let views = s.views();
+        let mut slot = self.list.lock().unwrap_or_else(|e| e.into_inner());
+        let (changed, removed) = match slot.as_ref() {
+            Some(before) => {
+                let old: HashMap<&str, &ServiceView> =
+                    before.views.iter().map(|v| (v.id.as_str(), v)).collect();
+                let changed: Vec<usize> = views
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, v)| old.get(v.id.as_str()) != Some(v))
+                    .map(|(i, _)| i)
+                    .collect();
+                let kept = views.len() - changed.len()
+                    + changed
+                        .iter()
+                        .filter(|i| old.contains_key(views[**i].id.as_str()))
+                        .count();
+                (changed, kept < old.len())
+            }
+            None => ((0..views.len()).collect(), false),
+        };
+        *slot = Some(Arc::new(SharedList {
             generation: s.generation,
-            views: s.views(),
-        });
-        *self.list.lock().unwrap_or_else(|e| e.into_inner()) = Some(list);
+            views,
+            changed,
+            removed,
+        }));
         self.version.fetch_add(1, Ordering::AcqRel);
     }
 
     fn get(&self) -> (u64, Option<Arc<SharedList>>) {
-        let list = self.list.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        (self.version.load(Ordering::Acquire), list)
+        let list = self.list.lock().unwrap_or_else(|e| e.into_inner());
+        (self.version.load(Ordering::Acquire), list.clone())
     }
 }
 
@@ -425,10 +451,22 @@ impl Run {
         if !force && version == self.seen {
             return;
         }
+        let next = self.seen.wrapping_add(1) == version;
         self.seen = version;
         let Some(list) = list else { return };
-        // What changed for this user, without copying anything when nothing did (the
-        // usual case: a change elsewhere in the list).
+        // A hub that saw the version before looks only at the rows that changed: with
+        // none it may see (a request elsewhere in the list), that is all.
+        if next
+            && !force
+            && !list.removed
+            && !list
+                .changed
+                .iter()
+                .any(|i| self.policy.allows(&list.views[*i].id))
+        {
+            return;
+        }
+        // What changed for this user, without copying anything when nothing did.
         let mut allowed = 0;
         let mut new_rows = 0;
         let mut set: Vec<&ServiceView> = Vec::new();
