@@ -65,6 +65,8 @@ fn http(port: u16, method: &str, path: &str, headers: &[(&str, &str)], body: &st
 struct Web {
     /// `muster web`'s pid.
     pid: i32,
+    /// The broker's index in `fed`.
+    broker: usize,
     fed: Fed,
     port: u16,
     origin: String,
@@ -117,7 +119,7 @@ fn setup_with(
         access.push_str(&out);
     }
     std::fs::write(dir.join("access"), &access).unwrap();
-    fed.broker(broker_args);
+    let broker = fed.broker(broker_args);
     let quota = quota.to_string();
     fed.system("t1", &["--services", "2", "--quota", &quota]);
     fed.system(
@@ -144,6 +146,8 @@ fn setup_with(
         &listen,
         "--access",
         access_path.to_str().unwrap(),
+        "--wait",
+        "2s",
     ]);
     let sh = format!("exec \"$0\" \"$@\" 2>{}", log.display());
     let program = c.get_program().to_owned();
@@ -161,6 +165,7 @@ fn setup_with(
     let pid = fed.proc(web).pid();
     Web {
         pid,
+        broker,
         fed,
         port,
         origin: format!("http://127.0.0.1:{port}"),
@@ -213,11 +218,18 @@ impl Web {
             req.headers_mut().insert("Origin", o.parse().unwrap());
         }
         let stream = TcpStream::connect(("127.0.0.1", self.port)).unwrap();
+        // The upgrade waits for the user's broker connection (up to `--wait`); reads
+        // after it are short, so a tab's frames can be waited for in a loop.
         stream
-            .set_read_timeout(Some(Duration::from_millis(200)))
+            .set_read_timeout(Some(Duration::from_secs(15)))
             .unwrap();
         match tungstenite::client(req, stream) {
-            Ok((ws, _)) => Ok(Tab { ws }),
+            Ok((ws, _)) => {
+                ws.get_ref()
+                    .set_read_timeout(Some(Duration::from_millis(200)))
+                    .unwrap();
+                Ok(Tab { ws })
+            }
             Err(tungstenite::HandshakeError::Failure(tungstenite::Error::Http(r))) => {
                 Err(r.status().as_u16())
             }
@@ -728,4 +740,57 @@ fn many_people_signed_in_share_the_web_processs_ports_and_each_gets_its_updates(
             .iter()
             .all(|s| common::find(l, s).is_some_and(|r| r["in_use"] == json!(0)))
     });
+}
+
+#[test]
+fn a_tab_outlives_a_broker_restart_and_nobody_can_sign_in_to_a_missing_broker() {
+    let mut w = setup("web-restart");
+    let (cookie, _) = w.sign_in("alice");
+    let mut tab = w.socket(Some(&cookie), Some(&w.origin)).unwrap();
+    let state = tab
+        .until(Duration::from_secs(10), |f| f["t"] == "state")
+        .unwrap();
+    assert_eq!(state["broker_up"], json!(true));
+    // The broker dies: the tab is told, and stays open.
+    w.fed.proc(w.broker).signal(libc::SIGKILL);
+    w.fed.proc(w.broker).wait(Duration::from_secs(5));
+    let down = tab.until(Duration::from_secs(10), |f| f["t"] == "broker");
+    assert_eq!(
+        down.unwrap()["up"],
+        json!(false),
+        "the tab hears the broker is gone"
+    );
+    // Meanwhile a second person cannot get a connection: the socket is refused (503)
+    // once `--wait` (2 s) has passed, and the first person's worker goes on.
+    let (bob, _) = w.sign_in("bob");
+    let started = Instant::now();
+    assert_eq!(
+        w.socket(Some(&bob), Some(&w.origin)).err(),
+        Some(503),
+        "no broker, no session"
+    );
+    assert!(
+        started.elapsed() >= Duration::from_secs(2),
+        "it waited for one"
+    );
+    // A new broker: the tab's user is welcomed again and its requests are served.
+    w.broker = w.fed.broker(&[]);
+    let up = tab.until(Duration::from_secs(15), |f| f["t"] == "broker");
+    assert_eq!(
+        up.unwrap()["up"],
+        json!(true),
+        "the tab hears the broker is back"
+    );
+    w.fed.wait_list(Duration::from_secs(15), |l| l.len() == 3);
+    tab.send(json!({"op": "request", "service": "t1/s0"}));
+    let granted = tab.until(Duration::from_secs(10), |f| {
+        f["t"] == "granted" || f["t"] == "refused"
+    });
+    assert_eq!(granted.unwrap()["t"], json!("granted"));
+    // And bob gets in now.
+    let mut bobs = w.socket(Some(&bob), Some(&w.origin)).unwrap();
+    let state = bobs
+        .until(Duration::from_secs(10), |f| f["t"] == "state")
+        .unwrap();
+    assert_eq!(state["user"], json!("bob"));
 }
