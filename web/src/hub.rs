@@ -181,7 +181,7 @@ pub(crate) fn drain(fd: &OwnedFd) {
 }
 
 impl Hub {
-    /// Connects `user` to the broker of `inst` (waiting up to `wait` for one) on one of
+    /// Connects `user` to the broker (waiting up to `wait` for one) on one of
     /// `pool`'s threads.
     pub fn start(
         pool: &Pool,
