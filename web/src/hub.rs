@@ -1,6 +1,7 @@
 //! One signed-in muster user's connection to the broker, shared by all of its browser
-//! tabs: a thread that owns a [`UserClient`] (shared memory, this host), takes the
-//! tabs' commands, and broadcasts what happens as JSON text frames.
+//! tabs: a [`UserClient`] (shared memory, this host) driven by one of the
+//! [`crate::pool::Pool`]'s workers, which takes the tabs' commands and broadcasts what
+//! happens as JSON text frames.
 //!
 //! The broker trusts a local process as whoever it says it is, so the access file's
 //! patterns are enforced here, exactly as the UDP front enforces them for remote users:
@@ -225,17 +226,17 @@ impl Hub {
         Ok(hub)
     }
 
-    /// Wakes the hub's thread (the shared list changed).
+    /// Wakes the hub's worker for it (the shared list changed).
     pub fn notify(&self) {
         ring(&self.wake);
     }
 
-    /// Whether its thread still runs.
+    /// Whether its worker still drives it.
     pub fn alive(&self) -> bool {
         self.alive.load(Ordering::Acquire)
     }
 
-    /// Sends a command to the hub's thread.
+    /// Sends a command to the hub's worker.
     pub fn send(&self, cmd: Cmd) {
         if let Ok(tx) = self.cmds.lock() {
             let _ = tx.send(cmd);

@@ -446,7 +446,7 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        ports.control(&self.me, to, frame, ring);
+        ports.control(to, frame, ring);
     }
 
     /// [`Endpoint::send_control`], but the frame is only written: `to`'s bell rings at
@@ -501,7 +501,7 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        ports.send_ringing(&self.me, to, frame, true)
+        ports.send_ringing(to, frame, true)
     }
 
     /// Rings `to`'s bell with `id` without sending a frame.
@@ -646,12 +646,12 @@ impl Ports {
         Ok(())
     }
 
-    fn control(&mut self, me: &Address, to: &Address, frame: Vec<u8>, ring: bool) {
+    fn control(&mut self, to: &Address, frame: Vec<u8>, ring: bool) {
         if let Some(q) = self.backlog.get_mut(to) {
             // Behind earlier frames: keep the order.
             return Self::hold(q, to, frame, &mut self.dropped_sends);
         }
-        match self.send_ringing(me, to, &frame, ring) {
+        match self.send_ringing(to, &frame, ring) {
             Ok(()) => {}
             Err(TransportError::Full(_)) => {
                 self.dropped_sends -= 1; // not dropped: held back
@@ -704,7 +704,6 @@ impl Ports {
     /// [`Endpoint::send`]; the bell is left for [`Endpoint::ring_pending`] unless `ring`.
     fn send_ringing(
         &mut self,
-        me: &Address,
         to: &Address,
         frame: &[u8],
         ring: bool,
@@ -714,7 +713,8 @@ impl Ports {
             self.dropped_sends += 1;
             return Err(TransportError::Full(to.clone()));
         }
-        let large = self.large && matches!((me, to), (Address::System(_), Address::Broker));
+        // Only a system's frames to the broker may be large (its registration).
+        let large = self.large && *to == Address::Broker;
         let result = if !large && frame.len() > SMALL_FRAME {
             Err(TransportError::Send {
                 peer: to.clone(),
