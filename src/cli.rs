@@ -200,6 +200,11 @@ pub struct ExperimentLinkArgs {
     /// Seed of the simulator and the filters.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// People beside the paper's three, walking from office to office across the
+    /// robots' ways (a crowd; at most one per office, 16). Their beacons are colours no
+    /// tracking service offers.
+    #[arg(long, default_value_t = 0)]
+    pub crowd: usize,
     /// Show the processes' logs.
     #[arg(long)]
     pub verbose: bool,

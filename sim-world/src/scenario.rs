@@ -321,6 +321,37 @@ impl Scenario {
         Ok(())
     }
 
+    /// Adds a crowd of `n` people who carry no beacon a tracking service offers (yellow,
+    /// magenta and cyan): they start in every other office of the scenario's places (the
+    /// corridor places are where robots stand) and walk from place to place like
+    /// everyone, across the robots' ways, at 0.5-0.8 m/s. Fails if they do not fit the
+    /// offices.
+    pub fn add_crowd(&mut self, n: usize) -> Result<(), ScenarioError> {
+        let offices: Vec<[f64; 2]> = self
+            .places
+            .iter()
+            .filter(|pl| pl.name.starts_with("office-"))
+            .map(|pl| pl.at)
+            .collect();
+        if n > offices.len() {
+            return Err(ScenarioError::Invalid(format!(
+                "a crowd of at most {} fits the offices",
+                offices.len()
+            )));
+        }
+        for k in 0..n {
+            // Every other office first, so that neighbours do not start side by side.
+            let at = offices[(2 * k) % offices.len() + (2 * k) / offices.len()];
+            self.people.push(PersonSpec {
+                name: format!("walker-{k}"),
+                beacon: [Colour::Yellow, Colour::Magenta, Colour::Cyan][k % 3],
+                start: at,
+                speed: 0.5 + 0.05 * (k % 7) as f64,
+            });
+        }
+        Ok(())
+    }
+
     /// The paper's scenario on the built-in office: tracking robots T1 and T2 stationary
     /// in the corridors, T3 able to move, delivery robot D1 with a home office, and three
     /// people with red, green and blue beacons.

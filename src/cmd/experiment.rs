@@ -13,6 +13,7 @@ use muster_shared::types::{Payload, ServiceId, SessionId, TaskStatus};
 use muster_shared::Instance;
 use muster_sim_world::map::OccupancyMap;
 use muster_sim_world::render::render_paths;
+use muster_sim_world::scenario::Scenario;
 use muster_users::UserEvent;
 use plotters::prelude::*;
 use serde_json::json;
@@ -29,6 +30,18 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
     let duration = a.duration.as_secs_f64();
     anyhow::ensure!(duration >= 10.0, "--duration must be at least 10 s");
     std::fs::create_dir_all(&a.report)?;
+    // A crowd is the paper's scenario with more people, given to the simulator and the
+    // systems as a file; without one, they run on the built-in scenario.
+    let scenario_args = if a.crowd > 0 {
+        let mut scenario = Scenario::paper();
+        scenario.seed = a.seed;
+        scenario.add_crowd(a.crowd)?;
+        let path = std::fs::canonicalize(&a.report)?.join("scenario.toml");
+        std::fs::write(&path, toml::to_string(&scenario)?)?;
+        vec!["--scenario".to_string(), path.display().to_string()]
+    } else {
+        Vec::new()
+    };
     let wall_start = Instant::now();
     let run = PaperRun::start(
         inst,
@@ -36,8 +49,8 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
             speed: a.speed,
             mobile: vec!["T3".into()],
             broker_args: Vec::new(),
-            sim_args: Vec::new(),
-            system_args: Vec::new(),
+            sim_args: scenario_args.clone(),
+            system_args: scenario_args,
             // T3 follows the person the user links (the paper's convoy).
             extra_systems: Vec::new(),
             tracking_args: vec!["--follow".into(), "red".into()],
@@ -197,6 +210,8 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
         "wall_seconds": wall,
         "sim_seconds_per_wall_second": sim_seconds / wall.max(1e-9),
         "speed_asked": a.speed,
+        "seed": a.seed,
+        "crowd": a.crowd,
         "refused": refusal,
         "tracking": {
             "red": targets[0].json(),

@@ -12,7 +12,7 @@ use crate::localizer::{Localizer, LocalizerParams};
 use crate::planner::{Planner, PlannerParams};
 use crate::sensing::{LikelihoodField, SensorGeometry, SensorSample};
 use crate::tracking::{TrackerRobot, TrackingCore, TrackingParams};
-use muster_sim_world::scenario::{PersonSpec, Scenario};
+use muster_sim_world::scenario::Scenario;
 use muster_sim_world::world::World;
 use muster_world_model::{wrap, Colour, OccupancyMap, Pose};
 use std::collections::{BTreeMap, VecDeque};
@@ -101,31 +101,7 @@ struct Pending {
 pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
     let mut scenario = Scenario::paper();
     scenario.seed = p.seed;
-    // The crowd starts in the offices (corridor places are where robots stand) and
-    // walks from place to place like everyone, across the robots' ways.
-    let offices: Vec<[f64; 2]> = scenario
-        .places
-        .iter()
-        .filter(|pl| pl.name.starts_with("office-"))
-        .map(|pl| pl.at)
-        .collect();
-    if p.crowd > offices.len() {
-        return Err(format!(
-            "a crowd of at most {} fits the offices",
-            offices.len()
-        ));
-    }
-    for k in 0..p.crowd {
-        // Every other office first, so that neighbours do not start side by side.
-        let at = offices[(2 * k) % offices.len() + (2 * k) / offices.len()];
-        scenario.people.push(PersonSpec {
-            name: format!("walker-{k}"),
-            // Colours no tracking service offers: walkers, not targets.
-            beacon: [Colour::Yellow, Colour::Magenta, Colour::Cyan][k % 3],
-            start: at,
-            speed: 0.5 + 0.05 * (k % 7) as f64,
-        });
-    }
+    scenario.add_crowd(p.crowd).map_err(|e| e.to_string())?;
     let map = OccupancyMap::office();
     let mut world = World::new(&scenario, Some(map.clone())).map_err(|e| e.to_string())?;
     let map = Arc::new(map);
