@@ -11,8 +11,29 @@ pub struct Body {
     pub y: f64,
     /// Radius, m.
     pub r: f64,
-    /// The beacon it carries, if any.
+    /// The beacon it carries, if any, worn [`BEACON_AT`] of the way up.
     pub beacon: Option<Colour>,
+    /// Height, m: what a camera sees over ([`PERSON_HEIGHT`], [`ROBOT_HEIGHT`]).
+    pub height: f64,
+}
+
+/// A person's height, m. People hide what is behind them from a robot's camera.
+pub const PERSON_HEIGHT: f64 = 1.7;
+
+/// A robot's height to the top of its base, m (a Pioneer-class base with its laser and
+/// sonar): below the camera mounted on it, which sees over other robots at a person's
+/// beacon, as the paper's convoy (a tracker behind the delivery robot behind the
+/// person) needs.
+pub const ROBOT_HEIGHT: f64 = 0.4;
+
+/// Where on a body its beacon is, as a share of its height (a person's chest).
+pub const BEACON_AT: f64 = 0.75;
+
+impl Body {
+    /// The height of its beacon, m.
+    pub fn beacon_height(&self) -> f64 {
+        self.height * BEACON_AT
+    }
 }
 
 /// Bodies bucketed in square cells, built once per step and read by every robot.
@@ -216,6 +237,7 @@ mod tests {
             y,
             r: 0.25,
             beacon: None,
+            height: PERSON_HEIGHT,
         }
     }
 

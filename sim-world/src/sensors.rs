@@ -224,8 +224,13 @@ pub fn camera_cone(params: &CameraParams, zoom: f64) -> (f64, f64) {
     (params.fov_deg.to_radians() / z, params.range * z.sqrt())
 }
 
+/// Height of a robot's camera, m: on top of its base, above
+/// [`ROBOT_HEIGHT`](crate::bodies::ROBOT_HEIGHT).
+pub const CAMERA_HEIGHT: f64 = 0.5;
+
 /// One camera frame: every beacon inside the field of view and range, not hidden by a
-/// wall or another body, with noisy bearing and range.
+/// wall or by a body taller than the line of sight (a person; not a robot's base,
+/// unless the beacon is low too), with noisy bearing and range.
 #[allow(clippy::too_many_arguments)] // the sensor's full context, as the others take it
 pub fn camera_frame(
     map: &OccupancyMap,
@@ -240,7 +245,7 @@ pub fn camera_frame(
     out.clear();
     let (fov, range) = camera_cone(params, ptz.zoom);
     let axis = p.theta + ptz.pan;
-    let mut seen: Vec<(usize, Colour, f64, f64, f64)> = Vec::new();
+    let mut seen: Vec<(usize, Colour, f64, f64, f64, f64)> = Vec::new();
     // Cheap tests first (range, and the cone by a dot product, with a margin), the
     // exact ones after.
     let (ax, ay) = (axis.cos(), axis.sin());
@@ -264,9 +269,9 @@ pub fn camera_frame(
         if d > range || wrap(angle - axis).abs() > fov / 2.0 {
             return;
         }
-        seen.push((n, colour, angle, d, b.r));
+        seen.push((n, colour, angle, d, b.r, b.beacon_height()));
     });
-    for (n, colour, angle, d, radius) in seen {
+    for (n, colour, angle, d, radius, beacon_z) in seen {
         let visible_to = d - radius;
         if map.raycast(p.x, p.y, angle, visible_to).is_some() {
             continue; // a wall in between
@@ -276,7 +281,10 @@ pub fn camera_frame(
         bodies.near(p.x, p.y, d, |m, b| {
             if m != skip && m != n && !hidden {
                 if let Some(t) = ray_circle(p.x, p.y, dx, dy, b) {
-                    hidden = t < visible_to;
+                    // In front of the beacon and taller than the line of sight where
+                    // it stands: a person hides it, a robot's base is below the view.
+                    let sight = CAMERA_HEIGHT + (beacon_z - CAMERA_HEIGHT) * t / d;
+                    hidden = t < visible_to && b.height > sight;
                 }
             }
         });
@@ -299,7 +307,7 @@ pub fn camera_frame(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::bodies::{Body, BodyGrid};
+    use crate::bodies::{Body, BodyGrid, PERSON_HEIGHT, ROBOT_HEIGHT};
     use rand::SeedableRng;
 
     /// 10 m × 10 m room, 0.1 m cells, walls on the border; a wall segment from
@@ -332,6 +340,7 @@ mod tests {
             y: 3.0,
             r: 0.25,
             beacon: None,
+            height: PERSON_HEIGHT,
         }
     }
 
@@ -369,12 +378,14 @@ mod tests {
             y: 3.0,
             r: 0.25,
             beacon: None,
+            height: PERSON_HEIGHT,
         };
         let other = Body {
             x: 5.0,
             y: 3.0,
             r: 0.25,
             beacon: None,
+            height: PERSON_HEIGHT,
         };
         let bodies = grid(vec![me, other]);
         let mut scan = Vec::new();
@@ -449,18 +460,21 @@ mod tests {
             y: 5.0,
             r: 0.25,
             beacon: None,
+            height: PERSON_HEIGHT,
         };
         let red = Body {
             x: 5.0,
             y: 5.5,
             r: 0.25,
             beacon: Some(Colour::Red),
+            height: PERSON_HEIGHT,
         };
         let behind_wall = Body {
             x: 8.0,
             y: 5.0,
             r: 0.25,
             beacon: Some(Colour::Green),
+            height: PERSON_HEIGHT,
         };
         let bodies = grid(vec![me, red, behind_wall]);
         let mut det = Vec::new();
@@ -503,6 +517,7 @@ mod tests {
             y: 5.25,
             r: 0.25,
             beacon: None,
+            height: PERSON_HEIGHT,
         };
         let bodies = grid(vec![me, red, behind_wall, blocker]);
         camera_frame(
@@ -523,6 +538,7 @@ mod tests {
                 y: 5.0,
                 r: 0.25,
                 beacon: None,
+                height: PERSON_HEIGHT,
             },
             behind_wall,
         ]);
@@ -542,6 +558,69 @@ mod tests {
         );
         assert_eq!(det.len(), 1);
         assert_eq!(det[0].colour, Colour::Green);
+    }
+
+    #[test]
+    fn a_robots_camera_sees_a_persons_beacon_over_another_robot_but_not_a_robots() {
+        let map = room();
+        let params = CameraParams {
+            bearing_noise_deg: 0.0,
+            range_noise: 0.0,
+            ..CameraParams::default()
+        };
+        let robot = |x: f64, beacon: Option<Colour>| Body {
+            x,
+            y: 5.0,
+            r: 0.25,
+            beacon,
+            height: ROBOT_HEIGHT,
+        };
+        let person = Body {
+            x: 6.0,
+            y: 5.0,
+            r: 0.25,
+            beacon: Some(Colour::Red),
+            height: PERSON_HEIGHT,
+        };
+        let look = |bodies: Vec<Body>| {
+            let mut det = Vec::new();
+            camera_frame(
+                &map,
+                &grid(bodies),
+                0,
+                Pose {
+                    x: 2.0,
+                    y: 5.0,
+                    theta: 0.0,
+                },
+                Ptz::default(),
+                &params,
+                &mut rng(),
+                &mut det,
+            );
+            det.iter().map(|d| d.colour).collect::<Vec<_>>()
+        };
+        // A robot halfway between: its base is below the line of sight to her chest.
+        assert_eq!(
+            look(vec![robot(2.0, None), robot(4.0, None), person]),
+            vec![Colour::Red]
+        );
+        // A person halfway between hides her.
+        let mut other = person;
+        other.x = 4.0;
+        other.beacon = None;
+        assert!(look(vec![robot(2.0, None), other, person]).is_empty());
+        // A beacon on a robot's base, low, is hidden by a robot near it.
+        assert!(look(vec![
+            robot(2.0, None),
+            robot(5.2, None),
+            robot(6.0, Some(Colour::Green))
+        ])
+        .is_empty());
+        assert_eq!(
+            look(vec![robot(2.0, None), robot(6.0, Some(Colour::Green))]),
+            vec![Colour::Green]
+        );
     }
 
     #[test]
@@ -571,6 +650,7 @@ mod tests {
                 y: 1.0 + r.random::<f64>() * 8.0,
                 r: 0.25,
                 beacon: None,
+                height: PERSON_HEIGHT,
             };
             let mut all = vec![me];
             for _ in 0..(round % 12) {
@@ -579,6 +659,7 @@ mod tests {
                     y: me.y + (r.random::<f64>() - 0.5) * 8.0,
                     r: 0.1 + r.random::<f64>() * 0.4,
                     beacon: None,
+                    height: PERSON_HEIGHT,
                 });
             }
             let g = grid(all.clone());

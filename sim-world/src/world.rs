@@ -7,7 +7,7 @@
 //! comes from a per-robot or per-person generator seeded from the scenario, so a run is
 //! the same step for step whatever the thread count.
 
-use crate::bodies::{Body, BodyGrid, Nearby};
+use crate::bodies::{Body, BodyGrid, Nearby, PERSON_HEIGHT, ROBOT_HEIGHT};
 use crate::kinematics::{approach, integrate, wrap, Pose};
 use crate::map::OccupancyMap;
 use crate::people::Navigation;
@@ -458,12 +458,14 @@ fn bodies<'a>(robots: &'a [Robot], people: &'a [Person]) -> impl Iterator<Item =
         y: r.pose.y,
         r: r.spec.drive.radius,
         beacon: r.spec.beacon,
+        height: ROBOT_HEIGHT,
     });
     robots.chain(people.iter().map(|p| Body {
         x: p.pose.x,
         y: p.pose.y,
         r: PERSON_RADIUS,
         beacon: Some(p.beacon),
+        height: PERSON_HEIGHT,
     }))
 }
 

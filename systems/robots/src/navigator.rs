@@ -122,6 +122,11 @@ pub struct Navigator {
 /// The laser's period: a body moves this long between two looks at it, s.
 const SENSOR_PERIOD: f64 = 0.1;
 
+/// A body within the body protective field stops the robot when it lies within this
+/// angle either side of the heading, rad (70°), or beside it on the side it turns to;
+/// beside it otherwise, only the warning field's speed holds.
+const STOP_CONE: f64 = 70.0 * std::f64::consts::PI / 180.0;
+
 /// How far ahead the footprint is cast, m.
 const LOOK: f64 = 3.0;
 
@@ -385,18 +390,30 @@ impl Navigator {
         body
     }
 
+    /// Whether a point (robot frame) lies where driving on closes on it: within ±70° of
+    /// the heading, widened on the side the robot turns to by the angle it turns
+    /// before a command made now has stopped it (turn rate `w` times the body reaction
+    /// time and the latency).
+    fn ahead_of_motion(&self, x: f64, y: f64, w: f64) -> bool {
+        let bearing = y.atan2(x);
+        let turn = w.abs() * (self.params.body_reaction + self.latency);
+        bearing.abs() < STOP_CONE || (bearing * w > 0.0 && bearing.abs() < STOP_CONE + turn)
+    }
+
     /// The speed at which the robot can still stop before any body the map does not know,
-    /// in its lane ahead, could reach it walking straight at it: gap g > vb·(T + v/a) +
+    /// in its lane ahead or where its driving closes on it ([`Self::ahead_of_motion`]),
+    /// could reach it walking straight at it: gap g > vb·(T + v/a) +
     /// v·T + v²/2a, with T the body reaction time plus the latency and a the braking.
-    fn body_speed_limit(&self, obstacles: &[(f64, f64)], bodies: &[bool]) -> f64 {
+    fn body_speed_limit(&self, obstacles: &[(f64, f64)], bodies: &[bool], w: f64) -> f64 {
         let p = &self.params;
         let gap = obstacles
             .iter()
             .zip(bodies)
             .filter(|&(&(x, y), &body)| {
+                let d = x.hypot(y);
                 body && x > 0.0
-                    && y.abs() < p.footprint + p.body_lane
-                    && x.hypot(y) < p.footprint + LOOK
+                    && (y.abs() < p.footprint + p.body_lane || self.ahead_of_motion(x, y, w))
+                    && d < p.footprint + LOOK
             })
             .map(|(&(x, y), _)| x.hypot(y) - p.footprint)
             .fold(f64::INFINITY, f64::min);
@@ -473,14 +490,21 @@ impl Navigator {
         let body_near = |reach: f64| Self::body_within(obstacles, &bodies, p.footprint + reach);
         // A body walks this far towards the robot before a command acts.
         let late = p.body_speed * self.latency;
-        let body_stop = body_near(p.body_protective + late);
+        // Stopped only by bodies its driving would close on: ahead, within ±70°, and
+        // beside it on the side it turns to. A body right beside a robot driving straight
+        // is not approached, and stopping for it held two robots side by side in a
+        // corridor, each for the other, for minutes.
+        let body_stop = obstacles.iter().zip(&bodies).any(|(&(x, y), &body)| {
+            let d = x.hypot(y);
+            body && d < p.footprint + p.body_protective + late && self.ahead_of_motion(x, y, w)
+        });
         let body_slow = body_near(p.body_warning + late);
         let in_protective = inside(p.protective_field, 0.05, false);
         // The warning field's side margin is for what may step into the lane (people,
         // robots); a wall alongside never does, and a robot may drive close along one.
         let in_warning = inside(p.warning_field, 0.05, false) || inside(p.warning_field, 0.2, true);
         let lane_limit = self
-            .body_speed_limit(obstacles, &bodies)
+            .body_speed_limit(obstacles, &bodies, w)
             .max(p.warning_speed);
         let creep_blocked = Self::body_within(obstacles, &bodies, self.creep_reach());
         v = v.min(lane_limit);
@@ -819,5 +843,43 @@ mod tests {
             (pose.x - 15.0).hypot(pose.y - 3.0) < 0.5,
             "ended at {pose:?}"
         );
+    }
+
+    #[test]
+    fn a_body_beside_a_robot_driving_straight_slows_it_but_one_it_turns_towards_stops_it() {
+        let map = OccupancyMap::office();
+        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let mut nav = Navigator::new(planner, NavParams::default());
+        let pose = Pose {
+            x: 20.0,
+            y: 10.0,
+            theta: 0.0,
+        };
+        nav.set_goal(pose, (30.0, 10.0), 0.5).unwrap();
+        // Another robot's flank at 85° to the right, 0.55 m from the centre: inside the
+        // body protective field (0.58 m), beside the robot.
+        let side: Vec<(f64, f64)> = (-2..=2)
+            .map(|k| {
+                let a = (-85.0 + 4.0 * f64::from(k)).to_radians();
+                (0.55 * a.cos(), 0.55 * a.sin())
+            })
+            .collect();
+        // Driving straight, it is not closed on: the robot drives on at the warning
+        // speed (two robots side by side no longer hold each other for good).
+        let s = nav.step(0.0, pose, &side);
+        assert!((s.velocity.0 - 0.12).abs() < 1e-9, "{:?}", s.velocity);
+        // Turning right, towards it: it is as good as ahead, and the robot stops.
+        let turning = Pose { theta: 0.5, ..pose };
+        let s = nav.step(0.1, turning, &side);
+        assert!(s.velocity.1 < -0.5, "turns right: {:?}", s.velocity);
+        assert_eq!(s.velocity.0, 0.0);
+        // Turning left, away from it: on at the warning speed.
+        let away = Pose {
+            theta: -0.5,
+            ..pose
+        };
+        let s = nav.step(0.2, away, &side);
+        assert!(s.velocity.1 > 0.5, "turns left: {:?}", s.velocity);
+        assert!(s.velocity.0 > 0.0, "{:?}", s.velocity);
     }
 }

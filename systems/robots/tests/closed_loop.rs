@@ -360,47 +360,63 @@ fn delivery_follows_a_walking_person_without_contact() {
 }
 
 /// D1 following a walking person with every command acting 0.25 s late, on ten seeds of
-/// ten minutes: the speed limit and body fields grow with the measured latency. Runs are
+/// ten minutes, touches nobody: the speed limit and body fields grow with the measured
+/// latency, and a body the robot turns towards counts as one ahead of it. Runs are
 /// chaotic (a change of 1e-9 m in a laser range sends a run elsewhere), so the count is
-/// over ten runs, not one. Not yet 0: seed 3 touches her once (a person coming up beside
-/// the robot as it brakes). History: before the lane speed limit and the latency-aware
+/// over ten runs, not one. History: before the lane speed limit and the latency-aware
 /// fields, seeds 1 and 5 touched her 3 times in 5 runs; after, 1-2 contacts in 10-16
-/// seeds. Counting a lone echo at the robot's sides as a body made this 0 in seeds
-/// 1-16, but then D1 missed the 150 s budget for one goal of the test above (it was
-/// slowed somewhere on the way; not looked into), so it was taken back.
+/// seeds (a person coming up beside the robot as it brakes, or one it turned towards).
+/// With the speed limit over every body within 70° of the heading, widened on the side
+/// it turns to, seeds 1-40 have 0.
 #[test]
-fn delivery_follows_a_walking_person_almost_without_contact_despite_latency() {
-    let mut contacts = Vec::new();
-    for seed in 1..=10 {
-        let mut d = Delivery::new(seed);
-        d.latency = 0.25;
-        d.core.set_latency(d.latency);
-        follow_alice(&mut d);
-        contacts.push(d.contacts());
-    }
-    assert!(
-        contacts.iter().sum::<u64>() <= 1,
-        "contacts per seed: {contacts:?}"
-    );
+fn delivery_follows_a_walking_person_without_contact_despite_latency() {
+    let contacts: Vec<u64> = std::thread::scope(|s| {
+        let runs: Vec<_> = (1..=10)
+            .map(|seed| {
+                s.spawn(move || {
+                    let mut d = Delivery::new(seed);
+                    d.latency = 0.25;
+                    d.core.set_latency(d.latency);
+                    follow_alice(&mut d);
+                    d.contacts()
+                })
+            })
+            .collect();
+        runs.into_iter().map(|r| r.join().unwrap()).collect()
+    });
+    assert_eq!(contacts, vec![0; 10], "contacts per seed");
 }
 
 /// The paper's Experiment 2 in process (`link_sim`): T3 follows the red person, her
-/// track is forwarded to D1 once a second while tracked. Over three ten-minute seeds no
+/// track is forwarded to D1 once a second while tracked. Over eight ten-minute seeds no
 /// robot touches anything and D1 keeps near her while she is tracked; with ten more
-/// people walking about, no robot touches anything either. Before T3 followed along the
-/// way she went and walls stopped passing for people, D1's distance while tracked was
-/// p50 14 m over seeds 1-3; it is 3.1-5.9 m per seed now. The goal set for it (p50 ≤
-/// 3 m, p90 ≤ 6 m) is not met yet; this holds what is.
+/// people walking about, no robot touches anything either. Runs are chaotic, so the
+/// figures are pooled over the seeds. Before T3 followed along the way she went and walls
+/// stopped passing for people, D1's distance while tracked was p50 14 m over seeds 1-3;
+/// pooled over seeds 1-8 it is 5.9 m now (4.7-5.1 m over seeds 11-20 and 21-30), and red
+/// is tracked 56 % of the time. The goals set for them (p50 ≤ 3 m, p90 ≤ 6 m, tracked
+/// ≥ 85 %) are not met yet; this holds what is.
 #[test]
 fn experiment_two_in_process_follows_the_person_without_contact() {
     use muster_robots::link_sim::{run, LinkSimParams};
+    let runs: Vec<_> = std::thread::scope(|s| {
+        let runs: Vec<_> = (1..=8)
+            .map(|seed| {
+                s.spawn(move || {
+                    run(&LinkSimParams {
+                        seed,
+                        ..LinkSimParams::default()
+                    })
+                })
+            })
+            .collect();
+        runs.into_iter()
+            .map(|r| r.join().unwrap().unwrap())
+            .collect()
+    });
     let mut tracked = Vec::new();
-    for seed in [1, 2, 3] {
-        let f = run(&LinkSimParams {
-            seed,
-            ..LinkSimParams::default()
-        })
-        .unwrap();
+    let (mut updates, mut with_her) = (0, 0);
+    for (f, seed) in runs.iter().zip(1..) {
         assert_eq!(f.total_contacts(), 0, "seed {seed}: {:?}", f.contacts);
         assert!(
             f.linked_at.is_some_and(|t| t < 60.0),
@@ -412,13 +428,12 @@ fn experiment_two_in_process_follows_the_person_without_contact() {
             "seed {seed}: {} goals forwarded",
             f.forwarded
         );
-        assert!(
-            f.tracked_fraction() > 0.4,
-            "seed {seed}: tracked {:.2}",
-            f.tracked_fraction()
-        );
-        tracked.extend(f.d1_person_tracked);
+        tracked.extend(&f.d1_person_tracked);
+        updates += f.red_updates;
+        with_her += f.red_tracked;
     }
+    let fraction = with_her as f64 / updates as f64;
+    assert!(fraction > 0.5, "red tracked {fraction:.2} of the time");
     let p50 = muster_robots::percentile(&tracked, 0.5).unwrap();
     assert!(p50 < 6.0, "D1 to the person while tracked, p50 {p50:.2} m");
     // And in a crowd: ten more people walking from office to office across the robots'
