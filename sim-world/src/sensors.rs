@@ -333,6 +333,37 @@ mod tests {
         BodyGrid::new(bodies, (0.0, 0.0), (10.0, 10.0), 2.0)
     }
 
+    /// What a noiseless camera at (x, 5) facing +x (body 0 is its own), panned `pan`, sees of the
+    /// beacons among `bodies` in the test room.
+    fn look(bodies: Vec<Body>, x: f64, pan: f64) -> Vec<Detection> {
+        let params = CameraParams {
+            bearing_noise_deg: 0.0,
+            range_noise: 0.0,
+            ..CameraParams::default()
+        };
+        let mut det = Vec::new();
+        let p = Pose {
+            x,
+            y: 5.0,
+            theta: 0.0,
+        };
+        let ptz = Ptz {
+            pan,
+            ..Ptz::default()
+        };
+        camera_frame(
+            &room(),
+            &grid(bodies),
+            0,
+            p,
+            ptz,
+            &params,
+            &mut rng(),
+            &mut det,
+        );
+        det
+    }
+
     /// The sensing robot's own body, at (3, 3).
     fn robot_at_3_3() -> Body {
         Body {
@@ -449,125 +480,34 @@ mod tests {
 
     #[test]
     fn beacons_are_seen_unless_a_wall_or_body_is_in_between() {
-        let map = room();
-        let params = CameraParams {
-            bearing_noise_deg: 0.0,
-            range_noise: 0.0,
-            ..CameraParams::default()
-        };
-        let me = Body {
-            x: 3.0,
-            y: 5.0,
+        let person = |x: f64, y: f64, beacon: Option<Colour>| Body {
+            x,
+            y,
             r: 0.25,
-            beacon: None,
+            beacon,
             height: PERSON_HEIGHT,
         };
-        let red = Body {
-            x: 5.0,
-            y: 5.5,
-            r: 0.25,
-            beacon: Some(Colour::Red),
-            height: PERSON_HEIGHT,
-        };
-        let behind_wall = Body {
-            x: 8.0,
-            y: 5.0,
-            r: 0.25,
-            beacon: Some(Colour::Green),
-            height: PERSON_HEIGHT,
-        };
-        let bodies = grid(vec![me, red, behind_wall]);
-        let mut det = Vec::new();
-        let p = Pose {
-            x: 3.0,
-            y: 5.0,
-            theta: 0.0,
-        };
-        camera_frame(
-            &map,
-            &bodies,
-            0,
-            p,
-            Ptz::default(),
-            &params,
-            &mut rng(),
-            &mut det,
-        );
+        let me = person(3.0, 5.0, None);
+        let red = person(5.0, 5.5, Some(Colour::Red));
+        let behind_wall = person(8.0, 5.0, Some(Colour::Green));
+        let det = look(vec![me, red, behind_wall], 3.0, 0.0);
         assert_eq!(det.len(), 1, "green is behind the wall: {det:?}");
         assert_eq!(det[0].colour, Colour::Red);
         assert!((det[0].bearing - 0.5f64.atan2(2.0)).abs() < 1e-9);
         assert!((det[0].range - 2.0f64.hypot(0.5)).abs() < 1e-9);
         // Panned away, nothing is in view; panned back with a body in between, red is hidden.
-        camera_frame(
-            &map,
-            &bodies,
-            0,
-            p,
-            Ptz {
-                pan: 1.5,
-                ..Ptz::default()
-            },
-            &params,
-            &mut rng(),
-            &mut det,
-        );
-        assert!(det.is_empty());
-        let blocker = Body {
-            x: 4.0,
-            y: 5.25,
-            r: 0.25,
-            beacon: None,
-            height: PERSON_HEIGHT,
-        };
-        let bodies = grid(vec![me, red, behind_wall, blocker]);
-        camera_frame(
-            &map,
-            &bodies,
-            0,
-            p,
-            Ptz::default(),
-            &params,
-            &mut rng(),
-            &mut det,
-        );
+        assert!(look(vec![me, red, behind_wall], 3.0, 1.5).is_empty());
+        let blocker = person(4.0, 5.25, None);
+        let det = look(vec![me, red, behind_wall, blocker], 3.0, 0.0);
         assert!(det.is_empty(), "{det:?}");
         // Without the wall, green would be seen: check from the other side of it.
-        let bodies = grid(vec![
-            Body {
-                x: 7.0,
-                y: 5.0,
-                r: 0.25,
-                beacon: None,
-                height: PERSON_HEIGHT,
-            },
-            behind_wall,
-        ]);
-        camera_frame(
-            &map,
-            &bodies,
-            0,
-            Pose {
-                x: 7.0,
-                y: 5.0,
-                theta: 0.0,
-            },
-            Ptz::default(),
-            &params,
-            &mut rng(),
-            &mut det,
-        );
+        let det = look(vec![person(7.0, 5.0, None), behind_wall], 7.0, 0.0);
         assert_eq!(det.len(), 1);
         assert_eq!(det[0].colour, Colour::Green);
     }
 
     #[test]
     fn a_robots_camera_sees_a_persons_beacon_over_another_robot_but_not_a_robots() {
-        let map = room();
-        let params = CameraParams {
-            bearing_noise_deg: 0.0,
-            range_noise: 0.0,
-            ..CameraParams::default()
-        };
         let robot = |x: f64, beacon: Option<Colour>| Body {
             x,
             y: 5.0,
@@ -582,45 +522,26 @@ mod tests {
             beacon: Some(Colour::Red),
             height: PERSON_HEIGHT,
         };
-        let look = |bodies: Vec<Body>| {
-            let mut det = Vec::new();
-            camera_frame(
-                &map,
-                &grid(bodies),
-                0,
-                Pose {
-                    x: 2.0,
-                    y: 5.0,
-                    theta: 0.0,
-                },
-                Ptz::default(),
-                &params,
-                &mut rng(),
-                &mut det,
-            );
-            det.iter().map(|d| d.colour).collect::<Vec<_>>()
+        let colours = |bodies| {
+            look(bodies, 2.0, 0.0)
+                .iter()
+                .map(|d| d.colour)
+                .collect::<Vec<_>>()
         };
         // A robot halfway between: its base is below the line of sight to her chest.
         assert_eq!(
-            look(vec![robot(2.0, None), robot(4.0, None), person]),
+            colours(vec![robot(2.0, None), robot(4.0, None), person]),
             vec![Colour::Red]
         );
         // A person halfway between hides her.
         let mut other = person;
         other.x = 4.0;
         other.beacon = None;
-        assert!(look(vec![robot(2.0, None), other, person]).is_empty());
+        assert!(colours(vec![robot(2.0, None), other, person]).is_empty());
         // A beacon on a robot's base, low, is hidden by a robot near it.
-        assert!(look(vec![
-            robot(2.0, None),
-            robot(5.2, None),
-            robot(6.0, Some(Colour::Green))
-        ])
-        .is_empty());
-        assert_eq!(
-            look(vec![robot(2.0, None), robot(6.0, Some(Colour::Green))]),
-            vec![Colour::Green]
-        );
+        let green = robot(6.0, Some(Colour::Green));
+        assert!(colours(vec![robot(2.0, None), robot(5.2, None), green]).is_empty());
+        assert_eq!(colours(vec![robot(2.0, None), green]), vec![Colour::Green]);
     }
 
     #[test]
