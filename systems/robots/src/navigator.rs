@@ -409,13 +409,13 @@ impl Navigator {
         let gap = obstacles
             .iter()
             .zip(bodies)
-            .filter(|&(&(x, y), &body)| {
-                let d = x.hypot(y);
-                body && x > 0.0
+            .filter(|&(&(x, _), &body)| body && x > 0.0)
+            .map(|(&(x, y), _)| (x, y, x.hypot(y)))
+            .filter(|&(x, y, d)| {
+                d < p.footprint + LOOK
                     && (y.abs() < p.footprint + p.body_lane || self.ahead_of_motion(x, y, w))
-                    && d < p.footprint + LOOK
             })
-            .map(|(&(x, y), _)| x.hypot(y) - p.footprint)
+            .map(|(_, _, d)| d - p.footprint)
             .fold(f64::INFINITY, f64::min);
         let (a, t, vb) = (p.brake, p.body_reaction + self.latency, p.body_speed);
         let room = gap - vb * t;

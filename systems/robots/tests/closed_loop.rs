@@ -359,6 +359,16 @@ fn delivery_follows_a_walking_person_without_contact() {
     }
 }
 
+/// `f` of each seed, each on a thread of its own (the runs are independent and take
+/// seconds each), in the seeds' order.
+fn per_seed<T: Send>(seeds: std::ops::RangeInclusive<u64>, f: impl Fn(u64) -> T + Sync) -> Vec<T> {
+    std::thread::scope(|s| {
+        let f = &f;
+        let runs: Vec<_> = seeds.map(|seed| s.spawn(move || f(seed))).collect();
+        runs.into_iter().map(|r| r.join().unwrap()).collect()
+    })
+}
+
 /// D1 following a walking person with every command acting 0.25 s late, on ten seeds of
 /// ten minutes, touches nobody: the speed limit and body fields grow with the measured
 /// latency, and a body the robot turns towards counts as one ahead of it. Runs are
@@ -370,19 +380,12 @@ fn delivery_follows_a_walking_person_without_contact() {
 /// it turns to, seeds 1-40 have 0.
 #[test]
 fn delivery_follows_a_walking_person_without_contact_despite_latency() {
-    let contacts: Vec<u64> = std::thread::scope(|s| {
-        let runs: Vec<_> = (1..=10)
-            .map(|seed| {
-                s.spawn(move || {
-                    let mut d = Delivery::new(seed);
-                    d.latency = 0.25;
-                    d.core.set_latency(d.latency);
-                    follow_alice(&mut d);
-                    d.contacts()
-                })
-            })
-            .collect();
-        runs.into_iter().map(|r| r.join().unwrap()).collect()
+    let contacts = per_seed(1..=10, |seed| {
+        let mut d = Delivery::new(seed);
+        d.latency = 0.25;
+        d.core.set_latency(d.latency);
+        follow_alice(&mut d);
+        d.contacts()
     });
     assert_eq!(contacts, vec![0; 10], "contacts per seed");
 }
@@ -399,20 +402,12 @@ fn delivery_follows_a_walking_person_without_contact_despite_latency() {
 #[test]
 fn experiment_two_in_process_follows_the_person_without_contact() {
     use muster_robots::link_sim::{run, LinkSimParams};
-    let runs: Vec<_> = std::thread::scope(|s| {
-        let runs: Vec<_> = (1..=8)
-            .map(|seed| {
-                s.spawn(move || {
-                    run(&LinkSimParams {
-                        seed,
-                        ..LinkSimParams::default()
-                    })
-                })
-            })
-            .collect();
-        runs.into_iter()
-            .map(|r| r.join().unwrap().unwrap())
-            .collect()
+    let runs = per_seed(1..=8, |seed| {
+        run(&LinkSimParams {
+            seed,
+            ..LinkSimParams::default()
+        })
+        .unwrap()
     });
     let mut tracked = Vec::new();
     let (mut updates, mut with_her) = (0, 0);
