@@ -850,6 +850,11 @@ pub struct BrokerArgs {
     /// person signed in: give its broker at least as many as sign in at once.
     #[arg(long, default_value_t = muster_broker::core::MAX_USERS_PER_PROCESS)]
     pub max_users_per_process: usize,
+    /// Most services listed at once: a system that would take the list past it is
+    /// refused. The list itself has no fixed size (it grows in shared memory and is
+    /// paged to remote users); this keeps a runaway system from filling memory.
+    #[arg(long, default_value_t = muster_shared::snapshot::DEFAULT_MAX_SERVICES)]
+    pub max_services: usize,
     /// On stopping, print one JSON line: counters and time to handle each message type.
     #[arg(long)]
     pub stats_json: bool,

@@ -181,12 +181,11 @@ fn list(c: &mut Criterion) {
     let (core, _) = loaded();
     let mut snapshot = Box::new(ServiceListSnapshot::empty());
     // What the broker does on every list change before the blackboard write: the
-    // views of all 80 services, copied into the fixed-size snapshot.
+    // views of all 80 services, copied into the snapshot.
     c.bench_function("list_snapshot_fill_80_services", |b| {
         b.iter(|| {
             let views = core.views();
-            snapshot.count = views.len() as u32;
-            for (slot, v) in snapshot.entries.iter_mut().zip(views.iter()) {
+            for (slot, v) in snapshot.resize(views.len()).iter_mut().zip(views.iter()) {
                 *slot = v.to_entry();
             }
             black_box(&snapshot);
@@ -207,12 +206,11 @@ fn list_read(c: &mut Criterion) {
     let (core, _) = loaded();
     let mut snapshot = Box::new(ServiceListSnapshot::empty());
     let views = core.views();
-    snapshot.count = views.len() as u32;
-    for (slot, v) in snapshot.entries.iter_mut().zip(views.iter()) {
+    for (slot, v) in snapshot.resize(views.len()).iter_mut().zip(views.iter()) {
         *slot = v.to_entry();
     }
     snapshot.generation = 1;
-    writer.publish(&snapshot, &fence).expect("publish");
+    writer.publish(&node, &snapshot, &fence).expect("publish");
     let mut reader = ListReader::open(&node, &inst).expect("reader");
     let mut g = c.benchmark_group("list_read_80_services");
     g.bench_function("unchanged", |b| {
@@ -223,7 +221,7 @@ fn list_read(c: &mut Criterion) {
             let mut spent = Duration::ZERO;
             for _ in 0..iters {
                 snapshot.generation += 1;
-                writer.publish(&snapshot, &fence).expect("publish");
+                writer.publish(&node, &snapshot, &fence).expect("publish");
                 let t = Instant::now();
                 black_box(reader.read_from(&node).expect("read").count);
                 spent += t.elapsed();

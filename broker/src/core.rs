@@ -11,7 +11,7 @@ use muster_shared::protocol::{
     SessionLimit, SessionStatus, SystemStatus, ToBroker, ToSystem, ToUser, UserStatus,
     MAX_STATUS_ROWS,
 };
-use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
+use muster_shared::snapshot::{ServiceView, DEFAULT_MAX_SERVICES};
 use muster_shared::types::{
     validate_registration, EndReason, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId,
     UserId,
@@ -35,6 +35,9 @@ pub struct BrokerConfig {
     /// Most user ids one local process may hold at once (a gateway such as `muster
     /// web`, one user per person signed in, needs more than the default).
     pub max_users_per_process: usize,
+    /// Most services listed at once (a system whose services would take the list past
+    /// it is refused); in a federation, the merged list is held to it too.
+    pub max_services: usize,
 }
 
 impl Default for BrokerConfig {
@@ -46,6 +49,7 @@ impl Default for BrokerConfig {
             queue_capacity: 32,
             max_links_per_user: MAX_LINKS_PER_USER,
             max_users_per_process: MAX_USERS_PER_PROCESS,
+            max_services: DEFAULT_MAX_SERVICES,
         }
     }
 }
@@ -397,6 +401,11 @@ impl Broker {
     /// This run's epoch.
     pub fn epoch(&self) -> u64 {
         self.epoch
+    }
+
+    /// The configuration it runs with.
+    pub fn config(&self) -> &BrokerConfig {
+        &self.cfg
     }
 
     /// The whole state in rkyv's archived form (what [`crate::replica`] ships), for
@@ -966,9 +975,10 @@ impl Broker {
             .filter(|(n, _)| **n != system)
             .map(|(_, s)| s.services.len())
             .sum();
-        if others + services.len() > MAX_LISTED_SERVICES {
+        let max = self.cfg.max_services;
+        if others + services.len() > max {
             let reason = format!(
-                "service list full: {others} services listed, {} more asked, at most {MAX_LISTED_SERVICES}",
+                "service list full: {others} services listed, {} more asked, at most {max}",
                 services.len()
             );
             return self.refuse_registration(&system, reason);

@@ -254,8 +254,12 @@ fn a_name_held_by_a_live_process_cannot_be_taken() {
 }
 
 #[test]
-fn the_list_has_a_hard_size_limit() {
-    let mut b = broker();
+fn the_list_grows_past_the_old_256_to_the_configured_limit_and_refuses_past_it() {
+    let cfg = BrokerConfig {
+        max_services: 1000,
+        ..BrokerConfig::default()
+    };
+    let mut b = Broker::new(cfg, 42, 1000);
     let per = muster_shared::types::MAX_SERVICES_PER_SYSTEM;
     let mut registered = 0;
     for i in 0.. {
@@ -267,8 +271,9 @@ fn the_list_has_a_hard_size_limit() {
         }
         registered += per;
     }
-    assert_eq!(registered, MAX_LISTED_SERVICES);
-    assert_eq!(b.views().len(), MAX_LISTED_SERVICES);
+    // Seven systems of 128; the eighth would make 1,024.
+    assert_eq!(registered, 896);
+    assert_eq!(b.views().len(), 896);
 }
 
 #[test]

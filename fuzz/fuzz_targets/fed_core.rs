@@ -9,7 +9,7 @@ use muster_broker::federation::{FedCore, FedInput, FedMsg, FedOutput, HeldSessio
 use muster_broker::{Broker, BrokerConfig, Output};
 use muster_shared::names::Address;
 use muster_shared::protocol::{encode, ToBroker, ToSystem, ToUser};
-use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
+use muster_shared::snapshot::{ServiceView, DEFAULT_MAX_SERVICES};
 use muster_shared::types::{
     EndReason, Payload, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId, UserId,
 };
@@ -333,7 +333,7 @@ fuzz_target!(|data: &[u8]| {
         if broker.take_list_change_into(&mut views).is_some() || fed.take_links_change() {
             local = fed.publish_list(now, now.as_nanos() as u64, &views, &["t"]);
         }
-        assert!(fed.merged_views(&local, MAX_LISTED_SERVICES).len() <= MAX_LISTED_SERVICES);
+        assert!(fed.merged_views(&local, DEFAULT_MAX_SERVICES).len() <= DEFAULT_MAX_SERVICES);
         while let Some(o) = fed.poll_output() {
             match o {
                 FedOutput::Send { to, msg } => {

@@ -12,8 +12,11 @@ use crate::types::{
 use iceoryx2::prelude::ZeroCopySend;
 use serde::Serialize;
 
-/// Most services the global list holds (the paper ran 80).
-pub const MAX_LISTED_SERVICES: usize = 256;
+/// Most services a broker lists unless told otherwise (`muster broker --max-services`;
+/// the paper ran 80). Neither the list in shared memory nor the remote users' list has a
+/// fixed size: this is an admission limit, kept so that a runaway system cannot fill
+/// memory, and a federation's merged list is held to it too.
+pub const DEFAULT_MAX_SERVICES: usize = 65_536;
 
 /// A fixed-capacity UTF-8 string that lives in shared memory.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ZeroCopySend)]
@@ -128,20 +131,17 @@ impl ServiceEntry {
     }
 }
 
-/// The whole list: what the blackboard holds.
-#[derive(Clone, Copy, Debug, ZeroCopySend)]
-#[repr(C)]
+/// The whole list, as a reader copies it out of shared memory (or a remote user gets it).
+#[derive(Clone, Debug, Default)]
 pub struct ServiceListSnapshot {
     /// Bumped by the broker on every change; with the epoch it orders snapshots.
     pub generation: u64,
     /// The broker run that wrote it (0 = no broker has written yet).
     pub epoch: u64,
-    /// Number of valid entries.
+    /// Number of entries.
     pub count: u32,
-    /// Padding, zero.
-    pub _pad: u32,
-    /// The entries; only `..count` are valid.
-    pub entries: [ServiceEntry; MAX_LISTED_SERVICES],
+    /// The entries, in id order.
+    entries: Vec<ServiceEntry>,
 }
 
 impl ServiceListSnapshot {
@@ -165,18 +165,29 @@ impl ServiceListSnapshot {
 
     /// An empty list.
     pub fn empty() -> Self {
+        Self::default()
+    }
+
+    /// A list of these entries.
+    pub fn from_entries(generation: u64, epoch: u64, entries: Vec<ServiceEntry>) -> Self {
         ServiceListSnapshot {
-            generation: 0,
-            epoch: 0,
-            count: 0,
-            _pad: 0,
-            entries: [Self::EMPTY_ENTRY; MAX_LISTED_SERVICES],
+            generation,
+            epoch,
+            count: entries.len() as u32,
+            entries,
         }
     }
 
-    /// The valid entries.
+    /// Makes the list `count` entries long (new ones empty) and gives them to be written.
+    pub fn resize(&mut self, count: usize) -> &mut [ServiceEntry] {
+        self.entries.resize(count, Self::EMPTY_ENTRY);
+        self.count = count as u32;
+        &mut self.entries
+    }
+
+    /// The entries.
     pub fn entries(&self) -> &[ServiceEntry] {
-        &self.entries[..(self.count as usize).min(MAX_LISTED_SERVICES)]
+        &self.entries
     }
 
     /// Finds a service by id.
@@ -188,17 +199,139 @@ impl ServiceListSnapshot {
     pub fn views(&self) -> Vec<ServiceView> {
         self.entries().iter().map(ServiceEntry::view).collect()
     }
+
+    /// The entries `filter` lets through, from the `offset`th of them, at most `limit`.
+    pub fn page(&self, filter: &ListFilter, offset: usize, limit: usize) -> ListPage {
+        let mut page = ListPage {
+            generation: self.generation,
+            epoch: self.epoch,
+            ..ListPage::default()
+        };
+        for e in self.entries.iter().filter(|e| filter.matches(e)) {
+            if page.matching >= offset && page.entries.len() < limit {
+                page.entries.push(*e);
+            }
+            page.matching += 1;
+        }
+        page
+    }
+}
+
+/// Which services a user wants to see: every condition given must hold.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
+pub struct ListFilter {
+    /// The host offering it (in a federation, this host's services carry its name).
+    pub host: Option<String>,
+    /// The offering system.
+    pub system: Option<String>,
+    /// Data or command.
+    pub kind: Option<ServiceKind>,
+    /// The payload type's name.
+    pub payload: Option<String>,
+    /// A glob over the service's name (`*`, `?`, `[...]`, `{a,b}`).
+    pub name: Option<String>,
+}
+
+/// The most bytes of a [`ListFilter`]'s texts taken: longer can match nothing listed.
+const MAX_FILTER_TEXT: usize = 256;
+
+impl ListFilter {
+    /// Whether it lets every service through.
+    pub fn is_everything(&self) -> bool {
+        *self == ListFilter::default()
+    }
+
+    /// Checks the name glob and the lengths; an error says what is wrong.
+    pub fn check(&self) -> Result<(), String> {
+        for (what, t) in [
+            ("host", &self.host),
+            ("system", &self.system),
+            ("payload", &self.payload),
+            ("name", &self.name),
+        ] {
+            if t.as_ref().is_some_and(|t| t.len() > MAX_FILTER_TEXT) {
+                return Err(format!(
+                    "the {what} filter is longer than {MAX_FILTER_TEXT} bytes"
+                ));
+            }
+        }
+        if let Some(g) = &self.name {
+            globset::Glob::new(g).map_err(|e| format!("the name filter {g:?}: {e}"))?;
+        }
+        Ok(())
+    }
+
+    /// The filter ready to match; a bad name glob matches nothing (see [`Self::check`]).
+    pub fn matcher(&self) -> ListMatcher<'_> {
+        ListMatcher {
+            filter: self,
+            name: self
+                .name
+                .as_ref()
+                .map(|g| globset::Glob::new(g).ok().map(|g| g.compile_matcher())),
+        }
+    }
+
+    /// Whether `e` passes (compiles the glob each time: for many entries, use
+    /// [`Self::matcher`]).
+    pub fn matches(&self, e: &ServiceEntry) -> bool {
+        self.matcher().matches(e)
+    }
+}
+
+/// A [`ListFilter`] with its glob compiled.
+pub struct ListMatcher<'a> {
+    filter: &'a ListFilter,
+    name: Option<Option<globset::GlobMatcher>>,
+}
+
+impl ListMatcher<'_> {
+    /// Whether `e` passes.
+    pub fn matches(&self, e: &ServiceEntry) -> bool {
+        let f = self.filter;
+        let same = |want: &Option<String>, have: &str| want.as_deref().is_none_or(|w| w == have);
+        same(&f.system, e.system.as_str())
+            && same(&f.host, e.host.as_str())
+            && same(&f.payload, e.payload.as_str())
+            && f.kind.is_none_or(|k| k == e.kind())
+            && match &self.name {
+                None => true,
+                Some(None) => false,
+                Some(Some(g)) => g.is_match(e.name.as_str()),
+            }
+    }
+}
+
+/// One page of the list: the entries a filter lets through, from an offset.
+#[derive(Clone, Debug, Default)]
+pub struct ListPage {
+    /// The list's generation.
+    pub generation: u64,
+    /// The broker run that wrote it.
+    pub epoch: u64,
+    /// How many entries in the whole list the filter lets through.
+    pub matching: usize,
+    /// The page's entries, in id order.
+    pub entries: Vec<ServiceEntry>,
+}
+
+impl ListPage {
+    /// Owned views of the page's entries.
+    pub fn views(&self) -> Vec<ServiceView> {
+        self.entries.iter().map(ServiceEntry::view).collect()
+    }
 }
 
 /// Entries per chunk of the list in shared memory.
 pub const CHUNK_ENTRIES: usize = 16;
-/// Chunks of the list in shared memory.
-pub const LIST_CHUNKS: usize = MAX_LISTED_SERVICES / CHUNK_ENTRIES;
+/// Chunks of the first list in shared memory a broker run makes; a longer list is
+/// written into a new one with room for twice as many, and so on.
+pub const FIRST_LIST_CHUNKS: usize = 16;
 
 /// The list's header in shared memory: which write it is, and how many entries.
 ///
-/// The list is a header and [`LIST_CHUNKS`] chunks of [`CHUNK_ENTRIES`] entries, each
-/// a blackboard entry of its own, so a reader copies only the chunks that hold
+/// The list is a header and `chunks` chunks of [`CHUNK_ENTRIES`] entries, each a
+/// blackboard entry of its own, so a reader copies only the chunks that hold
 /// entries and the broker writes only the chunks that changed. The broker writes the
 /// changed chunks, each stamped with the write's `seq`, then the header; a reader takes
 /// the header, the chunks, and the header again, and keeps what it read only if the
@@ -214,8 +347,8 @@ pub struct ListHeader {
     pub epoch: u64,
     /// Valid entries.
     pub count: u32,
-    /// Padding, zero.
-    pub _pad: u32,
+    /// The chunks this blackboard holds (fixed when it is made).
+    pub chunks: u32,
 }
 
 /// One chunk of the list in shared memory (see [`ListHeader`]).

@@ -19,6 +19,7 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         queue_capacity: a.queue_capacity,
         max_links_per_user: a.max_links_per_user,
         max_users_per_process: a.max_users_per_process,
+        max_services: a.max_services,
     }
     .scaled(muster_shared::clock::global());
     let udp = match a.udp {

@@ -226,15 +226,15 @@ impl crate::cli::LoadArgs {
     /// participant limit does not bound them (the UDP front's connection cap does).
     pub fn check_for(&self, fds_per_user: u64, remote: bool) -> anyhow::Result<()> {
         use muster_shared::ipc::MAX_PARTICIPANTS;
-        use muster_shared::snapshot::MAX_LISTED_SERVICES;
+        use muster_shared::snapshot::DEFAULT_MAX_SERVICES;
         use muster_shared::types::MAX_SERVICES_PER_SYSTEM;
         if self.systems == 0 || self.services < self.systems {
             bail!("--services must be at least --systems (and --systems at least 1)");
         }
-        if self.services > MAX_LISTED_SERVICES
+        if self.services > DEFAULT_MAX_SERVICES
             || self.services.div_ceil(self.systems) > MAX_SERVICES_PER_SYSTEM
         {
-            bail!("at most {MAX_LISTED_SERVICES} services, {MAX_SERVICES_PER_SYSTEM} per system");
+            bail!("at most {DEFAULT_MAX_SERVICES} services, {MAX_SERVICES_PER_SYSTEM} per system");
         }
         let cap = if remote {
             4096

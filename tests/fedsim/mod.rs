@@ -16,7 +16,7 @@ use muster_broker::federation::{Delivery, FedCore, FedInput, FedOutput, Inboxes}
 use muster_broker::replica::{Follower, Leader};
 use muster_shared::names::Address;
 use muster_shared::protocol::{decode, encode, ToBroker, ToSystem, ToUser};
-use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
+use muster_shared::snapshot::{ServiceView, DEFAULT_MAX_SERVICES};
 use muster_shared::types::{ServiceId, UserId};
 use muster_systems::core::{SystemCore, SystemOutput};
 use muster_systems::runtime::SystemApp;
@@ -517,7 +517,7 @@ impl World {
         let host = &self.hosts[h];
         match host.fed.as_ref() {
             Some(f) => f
-                .merged_views(&host.local_views, MAX_LISTED_SERVICES)
+                .merged_views(&host.local_views, DEFAULT_MAX_SERVICES)
                 .into_iter()
                 .cloned()
                 .collect(),

@@ -13,7 +13,7 @@
 use crate::core::UserCore;
 use crate::remote::RemoteOptions;
 use muster_shared::protocol::{EventRecord, ToBroker, ToSystem, ToUser};
-use muster_shared::snapshot::{ServiceListSnapshot, ServiceView, MAX_LISTED_SERVICES};
+use muster_shared::snapshot::{ServiceListSnapshot, ServiceView};
 use muster_shared::types::{SessionId, UserId};
 use muster_shared::udp::crypto::{self, Channel, HandshakeState, SessionCipher, Side};
 use muster_shared::udp::msgs::{
@@ -919,16 +919,12 @@ impl RemoteConn {
         }
         part.chunks.insert(index, entries);
         if part.chunks.len() == usize::from(part.total) {
-            let mut snap = Box::new(ServiceListSnapshot::empty());
-            snap.generation = part.generation;
-            snap.epoch = part.epoch;
-            let views = part.chunks.values().flatten().take(MAX_LISTED_SERVICES);
-            let mut n = 0;
-            for (slot, v) in snap.entries.iter_mut().zip(views) {
-                *slot = v.to_entry();
-                n += 1;
-            }
-            snap.count = n as u32;
+            let entries = part.chunks.values().flatten().map(ServiceView::to_entry);
+            let snap = Box::new(ServiceListSnapshot::from_entries(
+                part.generation,
+                part.epoch,
+                entries.collect(),
+            ));
             self.generation = part.generation;
             self.list_done = Some(snap);
             self.list_want = None;

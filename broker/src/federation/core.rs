@@ -14,7 +14,7 @@ use super::{valid_host_name, Acl, Delivery, FarGrant, FedMsg, FedStats, HeldSess
 use crate::core::{Broker, Output};
 use muster_shared::names::Address;
 use muster_shared::protocol::{decode, LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser};
-use muster_shared::snapshot::{ServiceView, MAX_LISTED_SERVICES};
+use muster_shared::snapshot::{ServiceView, DEFAULT_MAX_SERVICES};
 use muster_shared::types::{
     check_name, EndReason, Refusal, ServiceId, SessionId, UserId, MAX_SERVICE_NAME, MAX_SYSTEM_NAME,
 };
@@ -35,7 +35,7 @@ const MAX_CONTACTS: usize = 16 * 1024;
 const MAX_CONTACTS_PER_HOST: usize = MAX_CONTACTS / 2;
 /// Most services taken from one host's list (a broker lists at most this many of its
 /// own).
-pub const MAX_SERVICES_PER_HOST: usize = MAX_LISTED_SERVICES;
+pub const MAX_SERVICES_PER_HOST: usize = DEFAULT_MAX_SERVICES;
 /// Most links of other hosts' users over this host's services counted at once.
 const MAX_LINKS_IN: usize = 16 * 1024;
 /// A host's list not come this long after asking is asked for again, the wait doubling

@@ -20,7 +20,7 @@ use muster_shared::protocol::{decode, ToBroker, ToSystem, ToUser};
 use muster_shared::reactor::{
     process_alive, process_exists, raise_fd_limit, PidFd, Reactor, SignalPipe,
 };
-use muster_shared::snapshot::{ServiceListSnapshot, MAX_LISTED_SERVICES};
+use muster_shared::snapshot::ServiceListSnapshot;
 use muster_shared::trace::Stage;
 use muster_shared::types::UserId;
 use muster_shared::udp::access::AccessFile;
@@ -1121,22 +1121,22 @@ impl Shell {
         // fairly among them when there are more than the list holds.
         let (all, host) = match self.fed.as_ref() {
             Some(f) => (
-                f.merged_views(&self.local_views, MAX_LISTED_SERVICES),
+                f.merged_views(&self.local_views, core.config().max_services),
                 Some(muster_shared::snapshot::FixedStr::new(f.host())),
             ),
             None => (self.local_views.iter().collect(), None),
         };
-        let mut n = 0;
-        for (slot, v) in self.snapshot.entries.iter_mut().zip(&all) {
+        for (slot, v) in self.snapshot.resize(all.len()).iter_mut().zip(&all) {
             *slot = v.to_entry();
             if let Some(h) = host.filter(|_| !v.remote) {
                 slot.host = h;
             }
-            n += 1;
         }
-        self.snapshot.count = n;
         let t = Instant::now();
-        match self.list.publish(&self.snapshot, &self.fence) {
+        match self
+            .list
+            .publish(self.endpoint.node(), &self.snapshot, &self.fence)
+        {
             Ok(()) => self.handling.record("list_write", t, t.elapsed()),
             // Never fatal: readers keep the last list; the next change writes again.
             Err(e) => tracing::warn!("the service list could not be written: {e}"),

@@ -1,7 +1,15 @@
 //! The service list blackboard: the broker writes it, everyone reads it in place.
+//!
+//! A blackboard's entries are fixed when it is made, so the list has no fixed size the
+//! other way: a broker run writes its list into a blackboard of [`FIRST_LIST_CHUNKS`]
+//! chunks, and when the list outgrows it, into a new one with room for twice as many
+//! (and so on), named in the instance's fence like the first. Readers move to the new
+//! one on their next read; the old one goes when the last of them has moved.
 
 #[allow(unused_imports)]
 use super::*;
+use crate::snapshot::ServiceEntry;
+use iceoryx2::service::builder::blackboard::BlackboardCreateError;
 
 /// The broker's side of the service list blackboard.
 ///
@@ -11,13 +19,22 @@ use super::*;
 /// the middle of an update leaves its entry held for good), and readers keep the old
 /// list, whole, until the new one is there.
 pub struct ListWriter {
-    header: EntryHandleMut<Ipc, u64, ListHeader>,
-    chunks: Vec<EntryHandleMut<Ipc, u64, ListChunk>>,
+    board: Board,
     /// What the chunks hold now, to write only the ones that change.
-    written: Box<ServiceListSnapshot>,
+    written: Vec<ServiceEntry>,
     seq: u64,
     epoch: u64,
+    node_inst: Instance,
+    /// Whether the fence names `board`.
     announced: bool,
+}
+
+/// One list blackboard as its writer holds it.
+struct Board {
+    /// Its name's number, which the fence gives readers.
+    id: u64,
+    header: EntryHandleMut<Ipc, u64, ListHeader>,
+    chunks: Vec<EntryHandleMut<Ipc, u64, ListChunk>>,
     // Dropped last: the handles above hold the writer's state.
     _writer: Writer<Ipc, u64>,
 }
@@ -30,23 +47,9 @@ fn chunk_key(k: usize) -> u64 {
     k as u64 + 1
 }
 
-/// The list's header entry and its chunks' entries, from a blackboard writer's or
-/// reader's `entry` (the two sides open the same keys).
-fn list_entries<H, C, E: std::fmt::Debug>(
-    header: impl FnOnce(&u64) -> Result<H, E>,
-    mut chunk: impl FnMut(&u64) -> Result<C, E>,
-) -> Result<(H, Vec<C>), TransportError> {
-    let header = header(&HEADER_KEY).map_err(|e| svc_err("service-list header", e))?;
-    let chunks = (0..LIST_CHUNKS)
-        .map(|k| chunk(&chunk_key(k)))
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| svc_err("service-list chunk", e))?;
-    Ok((header, chunks))
-}
-
 /// How many chunks hold `count` entries.
 fn chunks_for(count: usize) -> usize {
-    count.min(MAX_LISTED_SERVICES).div_ceil(CHUNK_ENTRIES)
+    count.div_ceil(CHUNK_ENTRIES)
 }
 
 /// The entries of a `count`-entry list that chunk `k` holds.
@@ -54,86 +57,151 @@ fn chunk_range(k: usize, count: usize) -> std::ops::Range<usize> {
     k * CHUNK_ENTRIES..((k + 1) * CHUNK_ENTRIES).min(count)
 }
 
+/// Most blackboards a writer tries when a name it picks is taken.
+const BOARD_NAME_TRIES: u64 = 64;
+
+impl Board {
+    /// Creates a list blackboard of `chunks` chunks named after `id` (or a higher
+    /// number, if that name is taken).
+    fn create(
+        node: &Node<Ipc>,
+        inst: &Instance,
+        id: u64,
+        epoch: u64,
+        chunks: usize,
+    ) -> Result<Self, TransportError> {
+        let mut last = None;
+        for id in id..id.saturating_add(BOARD_NAME_TRIES) {
+            let name = inst.service_list(id);
+            let sname = service_name(&name)?;
+            let mut builder = node
+                .service_builder(&sname)
+                .blackboard_creator::<u64>()
+                .max_readers(MAX_PARTICIPANTS)
+                .max_nodes(MAX_PARTICIPANTS + 4)
+                .add::<ListHeader>(
+                    HEADER_KEY,
+                    ListHeader {
+                        seq: 0,
+                        generation: 0,
+                        epoch,
+                        count: 0,
+                        chunks: chunks as u32,
+                    },
+                );
+            for k in 0..chunks {
+                builder = builder.add::<ListChunk>(chunk_key(k), ListChunk::empty());
+            }
+            let svc = match builder.create() {
+                Ok(s) => s,
+                Err(BlackboardCreateError::AlreadyExists) => {
+                    last = Some(svc_err(&name, BlackboardCreateError::AlreadyExists));
+                    continue;
+                }
+                Err(e) => return Err(svc_err(&name, e)),
+            };
+            let writer = svc
+                .writer_builder()
+                .create()
+                .map_err(|e| svc_err(&name, e))?;
+            let header = writer
+                .entry::<ListHeader>(&HEADER_KEY)
+                .map_err(|e| svc_err("service-list header", e))?;
+            let chunks = (0..chunks)
+                .map(|k| writer.entry::<ListChunk>(&chunk_key(k)))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| svc_err("service-list chunk", e))?;
+            return Ok(Board {
+                id,
+                header,
+                chunks,
+                _writer: writer,
+            });
+        }
+        Err(last.unwrap_or_else(|| svc_err("service list", "no name left")))
+    }
+}
+
+/// A new list blackboard's number: past `after`'s, and the wall clock's in ns (so
+/// another broker run's epoch, which starts at the wall clock, is not taken either).
+fn next_board_id(after: u64) -> u64 {
+    let wall = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0);
+    wall.max(after.saturating_add(1))
+}
+
 impl ListWriter {
     /// Creates the blackboard of the broker run `epoch`.
     pub fn open(node: &Node<Ipc>, inst: &Instance, epoch: u64) -> Result<Self, TransportError> {
-        let name = inst.service_list(epoch);
-        let sname = service_name(&name)?;
-        let mut builder = node
-            .service_builder(&sname)
-            .blackboard_creator::<u64>()
-            .max_readers(MAX_PARTICIPANTS)
-            .max_nodes(MAX_PARTICIPANTS + 4)
-            .add::<ListHeader>(
-                HEADER_KEY,
-                ListHeader {
-                    seq: 0,
-                    generation: 0,
-                    epoch,
-                    count: 0,
-                    _pad: 0,
-                },
-            );
-        for k in 0..LIST_CHUNKS {
-            builder = builder.add::<ListChunk>(chunk_key(k), ListChunk::empty());
-        }
-        let svc = builder.create().map_err(|e| svc_err(&name, e))?;
-        let writer = svc
-            .writer_builder()
-            .create()
-            .map_err(|e| svc_err(&name, e))?;
-        let (header, chunks) = list_entries(
-            |k| writer.entry::<ListHeader>(k),
-            |k| writer.entry::<ListChunk>(k),
-        )?;
         Ok(ListWriter {
-            header,
-            chunks,
-            written: Box::new(ServiceListSnapshot::empty()),
+            board: Board::create(node, inst, epoch, epoch, FIRST_LIST_CHUNKS)?,
+            written: Vec::new(),
             seq: 0,
             epoch,
+            node_inst: inst.clone(),
             announced: false,
-            _writer: writer,
         })
+    }
+
+    /// How many entries the blackboard in use holds.
+    pub fn capacity(&self) -> usize {
+        self.board.chunks.len() * CHUNK_ENTRIES
     }
 
     /// Publishes a new snapshot (its chunks that changed, then the header); readers see
     /// it on their next read. The first one also names this list in `fence`, so readers
-    /// move to it.
+    /// move to it; so does the first one written into a bigger blackboard, made when
+    /// the list outgrows the one in use.
     pub fn publish(
         &mut self,
+        node: &Node<Ipc>,
         snapshot: &ServiceListSnapshot,
         fence: &crate::fence::Fence,
     ) -> Result<(), TransportError> {
+        let entries = snapshot.entries();
+        let count = entries.len();
+        if count > self.capacity() {
+            let mut chunks = self.board.chunks.len().max(1);
+            while chunks * CHUNK_ENTRIES < count {
+                chunks *= 2;
+            }
+            let id = next_board_id(self.board.id);
+            self.board = Board::create(node, &self.node_inst, id, self.epoch, chunks)?;
+            self.written.clear();
+            self.announced = false;
+            tracing::info!(
+                services = count,
+                room = chunks * CHUNK_ENTRIES,
+                "the service list moves to a bigger blackboard"
+            );
+        }
         self.seq += 1;
-        let count = (snapshot.count as usize).min(MAX_LISTED_SERVICES);
-        let before = (self.written.count as usize).min(MAX_LISTED_SERVICES);
+        let before = self.written.len();
         let mut chunk = ListChunk::empty();
         for k in 0..chunks_for(count) {
             let range = chunk_range(k, count);
             // Unchanged, and whole in shared memory already: left as it is.
-            if self.seq > 1
-                && range.end <= before
-                && self.written.entries[range.clone()] == snapshot.entries[range.clone()]
-            {
+            if range.end <= before && self.written[range.clone()] == entries[range.clone()] {
                 continue;
             }
             chunk.seq = self.seq;
             chunk.entries = [ServiceListSnapshot::EMPTY_ENTRY; CHUNK_ENTRIES];
-            chunk.entries[..range.len()].copy_from_slice(&snapshot.entries[range.clone()]);
-            self.chunks[k].update_with_copy(chunk);
-            self.written.entries[range.clone()].copy_from_slice(&snapshot.entries[range]);
+            chunk.entries[..range.len()].copy_from_slice(&entries[range]);
+            self.board.chunks[k].update_with_copy(chunk);
         }
-        self.written.count = count as u32;
-        self.header.update_with_copy(ListHeader {
+        self.written.clear();
+        self.written.extend_from_slice(entries);
+        self.board.header.update_with_copy(ListHeader {
             seq: self.seq,
             generation: snapshot.generation,
             epoch: snapshot.epoch,
             count: count as u32,
-            _pad: 0,
+            chunks: self.board.chunks.len() as u32,
         });
         if !self.announced {
-            fence.set_list(self.epoch);
+            fence.set_list(self.board.id);
             self.announced = true;
         }
         Ok(())
@@ -146,21 +214,62 @@ pub struct ListReader {
     node_inst: Instance,
     fence: crate::fence::Fence,
     current: Option<OpenList>,
+    /// The last whole copy taken, with the write it came from (kept across blackboards:
+    /// a reader moving to a bigger one reuses its memory).
+    copy: Option<((u64, u64), Arc<ServiceListSnapshot>)>,
 }
 
-/// One broker run's list as a reader holds it: the entries' handles, opened once, and
-/// the last copy taken with the write it came from.
+/// One list blackboard as a reader holds it: the entries' handles, opened once.
 struct OpenList {
-    epoch: u64,
+    id: u64,
     header: EntryHandle<Ipc, u64, ListHeader>,
     chunks: Vec<EntryHandle<Ipc, u64, ListChunk>>,
-    copy: Option<(u64, Arc<ServiceListSnapshot>)>,
     // Dropped last: the handles above hold the reader's state.
     _reader: Reader<Ipc, u64>,
 }
 
 /// Most times a reader takes the list again because the broker wrote it meanwhile.
 const LIST_READ_TRIES: usize = 1000;
+
+impl OpenList {
+    /// Reads the header, then what `take` reads of the chunks, then the header again,
+    /// until the two headers agree and no chunk read is newer (a consistent copy of
+    /// one write). `take` gets the header and a chunk reader, and says whether a chunk
+    /// it read was newer than the header.
+    fn consistent<T>(
+        &self,
+        mut take: impl FnMut(&ListHeader, &dyn Fn(usize) -> ListChunkRef) -> Option<T>,
+    ) -> Result<(ListHeader, T), TransportError> {
+        let mut header = *self.header.get();
+        for attempt in 0..LIST_READ_TRIES {
+            if attempt >= 8 {
+                // The broker writes faster than this reader reads: let it run.
+                std::thread::yield_now();
+            }
+            let read = |k: usize| ListChunkRef(self.chunks.get(k).map(|c| c.get()));
+            let got = take(&header, &read);
+            let again = *self.header.get();
+            if let Some(got) = got.filter(|_| again.seq == header.seq) {
+                return Ok((header, got));
+            }
+            header = again;
+        }
+        Err(TransportError::Service {
+            name: "service list".into(),
+            detail: format!("it changed under each of {LIST_READ_TRIES} reads in a row"),
+        })
+    }
+}
+
+/// A chunk as read (a copy out of shared memory), or none past the blackboard's end.
+struct ListChunkRef(Option<iceoryx2::port::reader::BlackboardValue<ListChunk>>);
+
+impl ListChunkRef {
+    /// The chunk, if it exists and is not newer than `header`.
+    fn of(&self, header: &ListHeader) -> Option<&ListChunk> {
+        self.0.as_deref().filter(|c| c.seq <= header.seq)
+    }
+}
 
 impl ListReader {
     /// Opens the list of the running broker; fails if no broker ever wrote one.
@@ -171,6 +280,7 @@ impl ListReader {
             node_inst: inst.clone(),
             fence,
             current: None,
+            copy: None,
         };
         r.follow(node)?;
         Ok(r)
@@ -178,22 +288,22 @@ impl ListReader {
 
     /// Moves to the list the fence names, if it is another one.
     fn follow(&mut self, node: &Node<Ipc>) -> Result<(), TransportError> {
-        let mut epoch = self.fence.list();
-        if epoch == 0 {
+        let mut id = self.fence.list();
+        if id == 0 {
             // The broker stopped on purpose and removed the fence; a new one may have
             // made another.
             if let Ok(f) = crate::fence::Fence::open_existing(&self.node_inst) {
                 self.fence = f;
-                epoch = self.fence.list();
+                id = self.fence.list();
             }
         }
-        if epoch == 0 {
+        if id == 0 {
             return Err(TransportError::Unreachable(Address::Broker));
         }
-        if self.current.as_ref().is_some_and(|c| c.epoch == epoch) {
+        if self.current.as_ref().is_some_and(|c| c.id == id) {
             return Ok(());
         }
-        let name = self.node_inst.service_list(epoch);
+        let name = self.node_inst.service_list(id);
         let svc = node
             .service_builder(&service_name(&name)?)
             .blackboard_opener::<u64>()
@@ -203,18 +313,29 @@ impl ListReader {
             .reader_builder()
             .create()
             .map_err(|e| svc_err(&name, e))?;
-        let (header, chunks) = list_entries(
-            |k| reader.entry::<ListHeader>(k),
-            |k| reader.entry::<ListChunk>(k),
-        )?;
+        let header = reader
+            .entry::<ListHeader>(&HEADER_KEY)
+            .map_err(|e| svc_err("service-list header", e))?;
+        let chunks = (0..header.get().chunks as usize)
+            .map(|k| reader.entry::<ListChunk>(&chunk_key(k)))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| svc_err("service-list chunk", e))?;
         self.current = Some(OpenList {
-            epoch,
+            id,
             header,
             chunks,
-            copy: None,
             _reader: reader,
         });
         Ok(())
+    }
+
+    /// Moves to a new broker's (or a bigger) list first if there is one; the old list
+    /// stays readable until a new one can be opened.
+    fn follow_or_stay(&mut self, node: &Node<Ipc>) -> Result<(), TransportError> {
+        match self.follow(node) {
+            Err(e) if self.current.is_none() => Err(e),
+            _ => Ok(()),
+        }
     }
 
     /// The newest snapshot of the running broker's list, moving to a new broker's list
@@ -224,65 +345,87 @@ impl ListReader {
         &mut self,
         node: &Node<Ipc>,
     ) -> Result<Arc<ServiceListSnapshot>, TransportError> {
-        if let Err(e) = self.follow(node) {
-            // The old list stays readable until a new one can be opened.
-            if self.current.is_none() {
-                return Err(e);
-            }
-        }
+        self.follow_or_stay(node)?;
         self.read()
+    }
+
+    /// One page of the running broker's list: the entries `filter` lets through, from
+    /// the `offset`th of them, at most `limit`. Without a filter it reads only the
+    /// chunks the page is in, where they are in shared memory; with one, it filters the
+    /// whole list (copied out only when it changed since the last read).
+    pub fn page_from(
+        &mut self,
+        node: &Node<Ipc>,
+        filter: &ListFilter,
+        offset: usize,
+        limit: usize,
+    ) -> Result<ListPage, TransportError> {
+        self.follow_or_stay(node)?;
+        if !filter.is_everything() {
+            return Ok(self.read()?.page(filter, offset, limit));
+        }
+        let Some(open) = &self.current else {
+            return Err(TransportError::Unreachable(Address::Broker));
+        };
+        let mut entries = Vec::with_capacity(limit.min(CHUNK_ENTRIES * 64));
+        let (header, ()) = open.consistent(|header, chunk| {
+            entries.clear();
+            let count = header.count as usize;
+            let end = offset.saturating_add(limit).min(count);
+            let mut at = offset.min(end);
+            while at < end {
+                let k = at / CHUNK_ENTRIES;
+                let c = chunk(k);
+                let c = c.of(header)?;
+                let range = chunk_range(k, count);
+                let upto = range.end.min(end);
+                entries.extend_from_slice(&c.entries[at - range.start..upto - range.start]);
+                at = upto;
+            }
+            Some(())
+        })?;
+        Ok(ListPage {
+            generation: header.generation,
+            epoch: header.epoch,
+            matching: header.count as usize,
+            entries,
+        })
     }
 
     /// The newest snapshot of the list this reader is on: a consistent copy of one
     /// write, taking only the chunks that hold entries.
     pub fn read(&mut self) -> Result<Arc<ServiceListSnapshot>, TransportError> {
-        let Some(open) = &mut self.current else {
+        let Some(open) = &self.current else {
             return Err(TransportError::Unreachable(Address::Broker));
         };
-        let mut header = *open.header.get();
-        if let Some((seq, copy)) = &open.copy {
-            if *seq == header.seq {
+        let key = (open.id, open.header.get().seq);
+        if let Some((k, copy)) = &self.copy {
+            if *k == key {
                 return Ok(Arc::clone(copy));
             }
         }
         // Into the last copy's memory if no one holds it any more: a fresh allocation
         // of the list's size would fault its pages in again on every change.
-        let mut copy = match open.copy.take() {
+        let mut copy = match self.copy.take() {
             Some((_, c)) if Arc::strong_count(&c) == 1 => c,
             _ => Arc::new(ServiceListSnapshot::empty()),
         };
         let snap = Arc::get_mut(&mut copy).expect("held by no one else");
-        for attempt in 0..LIST_READ_TRIES {
-            if attempt >= 8 {
-                // The broker writes faster than this reader reads: let it run.
-                std::thread::yield_now();
-            }
-            let count = (header.count as usize).min(MAX_LISTED_SERVICES);
-            let mut torn = false;
-            for (k, chunk) in open.chunks.iter().take(chunks_for(count)).enumerate() {
-                let c = chunk.get();
-                if c.seq > header.seq {
-                    // Written after the header we hold: a newer write is under way.
-                    torn = true;
-                    break;
-                }
+        let (header, ()) = open.consistent(|header, chunk| {
+            let count = header.count as usize;
+            let entries = snap.resize(count);
+            for k in 0..chunks_for(count) {
+                let c = chunk(k);
+                let c = c.of(header)?;
                 let range = chunk_range(k, count);
                 let n = range.len();
-                snap.entries[range].copy_from_slice(&c.entries[..n]);
+                entries[range].copy_from_slice(&c.entries[..n]);
             }
-            let again = *open.header.get();
-            if !torn && again.seq == header.seq {
-                snap.generation = header.generation;
-                snap.epoch = header.epoch;
-                snap.count = count as u32;
-                open.copy = Some((header.seq, Arc::clone(&copy)));
-                return Ok(copy);
-            }
-            header = again;
-        }
-        Err(TransportError::Service {
-            name: "service list".into(),
-            detail: format!("it changed under each of {LIST_READ_TRIES} reads in a row"),
-        })
+            Some(())
+        })?;
+        snap.generation = header.generation;
+        snap.epoch = header.epoch;
+        self.copy = Some(((open.id, header.seq), Arc::clone(&copy)));
+        Ok(copy)
     }
 }

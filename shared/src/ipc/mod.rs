@@ -9,7 +9,8 @@
 
 use crate::names::{Address, Instance};
 use crate::snapshot::{
-    ListChunk, ListHeader, ServiceListSnapshot, CHUNK_ENTRIES, LIST_CHUNKS, MAX_LISTED_SERVICES,
+    ListChunk, ListFilter, ListHeader, ListPage, ServiceListSnapshot, CHUNK_ENTRIES,
+    FIRST_LIST_CHUNKS,
 };
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -380,8 +381,7 @@ mod tests {
         let mut s = Box::new(ServiceListSnapshot::empty());
         s.generation = generation;
         s.epoch = 1;
-        s.count = count as u32;
-        for (i, e) in s.entries.iter_mut().take(count).enumerate() {
+        for (i, e) in s.resize(count).iter_mut().enumerate() {
             e.name = crate::snapshot::FixedStr::new(&format!("s{i}"));
             e.quota = (generation % 60_000) as u16;
         }
@@ -394,23 +394,23 @@ mod tests {
         let node = create_node("list-test", false).unwrap();
         let fence = crate::fence::Fence::open(&inst).unwrap();
         let mut w = ListWriter::open(&node, &inst, 1).unwrap();
-        w.publish(&stamped_list(1, 40), &fence).unwrap();
+        w.publish(&node, &stamped_list(1, 40), &fence).unwrap();
         let mut r = ListReader::open(&node, &inst).unwrap();
         let a = r.read().unwrap();
-        assert_eq!((a.generation, a.count, a.entries[39].quota), (1, 40, 1));
-        assert_eq!(a.entries[39].name.as_str(), "s39");
+        assert_eq!((a.generation, a.count, a.entries()[39].quota), (1, 40, 1));
+        assert_eq!(a.entries()[39].name.as_str(), "s39");
         let b = r.read().unwrap();
         assert!(Arc::ptr_eq(&a, &b), "unchanged: the same copy");
         // Fewer entries, then more: the chunks left over from before are not read.
-        w.publish(&stamped_list(2, 3), &fence).unwrap();
+        w.publish(&node, &stamped_list(2, 3), &fence).unwrap();
         let c = r.read().unwrap();
         assert_eq!((c.generation, c.count, c.entries().len()), (2, 3, 3));
         assert!(c.entries().iter().all(|e| e.quota == 2));
-        w.publish(&stamped_list(3, 250), &fence).unwrap();
+        w.publish(&node, &stamped_list(3, 250), &fence).unwrap();
         let d = r.read().unwrap();
         assert_eq!(d.count, 250);
         assert!(d.entries().iter().all(|e| e.quota == 3));
-        assert_eq!(d.entries[249].name.as_str(), "s249");
+        assert_eq!(d.entries()[249].name.as_str(), "s249");
         drop((a, b, c, d));
 
         // A writer changing the list every 200 µs, and a reader in another thread:
@@ -446,12 +446,88 @@ mod tests {
         // (Paced: the broker writes on a change, a few hundred times a second at most;
         // a writer that never pauses would starve a reader of whole reads.)
         for g in 4..4_000u64 {
-            w.publish(&stamped_list(g, 1 + (g % 200) as usize), &fence)
+            w.publish(&node, &stamped_list(g, 1 + (g % 200) as usize), &fence)
                 .unwrap();
             std::thread::sleep(Duration::from_micros(200));
         }
         stop.store(true, std::sync::atomic::Ordering::Relaxed);
         assert!(reader.join().unwrap() > 0);
+        drop(r);
+        drop(w);
+        fence.remove();
+    }
+
+    #[test]
+    fn a_list_outgrowing_its_blackboard_moves_to_a_bigger_one_and_reads_in_pages() {
+        use crate::snapshot::{ListFilter, FIRST_LIST_CHUNKS};
+        let inst = Instance::new(&format!("list-grow-{}", std::process::id())).unwrap();
+        let node = create_node("list-grow", false).unwrap();
+        let fence = crate::fence::Fence::open(&inst).unwrap();
+        let mut w = ListWriter::open(&node, &inst, 1).unwrap();
+        w.publish(&node, &stamped_list(1, 40), &fence).unwrap();
+        let first = fence.list();
+        let mut r = ListReader::open(&node, &inst).unwrap();
+        assert_eq!(r.read_from(&node).unwrap().count, 40);
+        // 10,000 entries: past the first blackboard's room, so a new one (named anew
+        // in the fence) with room for them.
+        assert!(w.capacity() == FIRST_LIST_CHUNKS * CHUNK_ENTRIES && w.capacity() < 10_000);
+        w.publish(&node, &stamped_list(2, 10_000), &fence).unwrap();
+        assert!(w.capacity() >= 10_000);
+        assert_ne!(fence.list(), first, "the fence names the new blackboard");
+        let all = r.read_from(&node).unwrap();
+        assert_eq!((all.generation, all.count), (2, 10_000));
+        assert!(all.entries().iter().all(|e| e.quota == 2));
+        assert_eq!(all.entries()[9_999].name.as_str(), "s9999");
+        // A page in place: entries 4,990..5,090, across chunk boundaries.
+        let page = r
+            .page_from(&node, &ListFilter::default(), 4_990, 100)
+            .unwrap();
+        assert_eq!(
+            (page.generation, page.matching, page.entries.len()),
+            (2, 10_000, 100)
+        );
+        let names: Vec<&str> = page.entries.iter().map(|e| e.name.as_str()).collect();
+        assert_eq!(names[0], "s4990");
+        assert_eq!(names[99], "s5089");
+        // The last page is short; past the end is empty.
+        let tail = r
+            .page_from(&node, &ListFilter::default(), 9_950, 100)
+            .unwrap();
+        assert_eq!(tail.entries.len(), 50);
+        assert_eq!(tail.entries[49].name.as_str(), "s9999");
+        let past = r
+            .page_from(&node, &ListFilter::default(), 20_000, 100)
+            .unwrap();
+        assert!(past.entries.is_empty());
+        // Filtered: names s7, s70..s79, s700..s799, s7000..s7999 (1,111 of them); the
+        // second page of 100 starts at the 101st.
+        let f = ListFilter {
+            name: Some("s7*".into()),
+            ..ListFilter::default()
+        };
+        let p = r.page_from(&node, &f, 100, 100).unwrap();
+        assert_eq!((p.matching, p.entries.len()), (1_111, 100));
+        let expect: Vec<String> = all
+            .entries()
+            .iter()
+            .map(|e| e.name.as_str().to_string())
+            .filter(|n| n.starts_with("s7"))
+            .skip(100)
+            .take(100)
+            .collect();
+        let got: Vec<String> = p
+            .entries
+            .iter()
+            .map(|e| e.name.as_str().to_string())
+            .collect();
+        assert_eq!(got, expect);
+        // Shrinking keeps the big blackboard; a reader sees the short list whole.
+        let id = fence.list();
+        w.publish(&node, &stamped_list(3, 17), &fence).unwrap();
+        assert_eq!(fence.list(), id);
+        let short = r.read_from(&node).unwrap();
+        assert_eq!((short.generation, short.count), (3, 17));
+        drop((all, short));
         drop(r);
         drop(w);
         fence.remove();
