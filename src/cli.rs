@@ -1222,10 +1222,59 @@ pub struct UserArgs {
     pub verb: Option<UserVerb>,
 }
 
+/// Which part of the service list to show.
+#[derive(Args, Debug, Clone, Default)]
+pub struct ListFilterArgs {
+    /// Only services offered by this host (in a federation).
+    #[arg(long)]
+    pub host: Option<String>,
+    /// Only services of this system.
+    #[arg(long)]
+    pub system: Option<String>,
+    /// Only `data` or only `command` services.
+    #[arg(long, value_parser = ["data", "command"])]
+    pub kind: Option<String>,
+    /// Only services of this payload type (e.g. `goal2d`, `geometry_msgs/msg/Twist`).
+    #[arg(long)]
+    pub payload: Option<String>,
+    /// Only services whose name matches this glob (`*`, `?`, `[..]`, `{a,b}`).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Skip this many of the services let through.
+    #[arg(long, default_value_t = 0)]
+    pub offset: usize,
+    /// Show at most this many.
+    #[arg(long)]
+    pub limit: Option<usize>,
+}
+
+impl ListFilterArgs {
+    /// The filter these flags name.
+    pub fn filter(&self) -> muster_shared::snapshot::ListFilter {
+        use muster_shared::types::ServiceKind;
+        muster_shared::snapshot::ListFilter {
+            host: self.host.clone(),
+            system: self.system.clone(),
+            kind: self.kind.as_deref().map(|k| {
+                if k == "command" {
+                    ServiceKind::Command
+                } else {
+                    ServiceKind::Data
+                }
+            }),
+            payload: self.payload.clone(),
+            name: self.name.clone(),
+        }
+    }
+}
+
 #[derive(Subcommand, Debug)]
 pub enum UserVerb {
-    /// Print the service list snapshot.
+    /// Print the service list snapshot, or the part of it the filters let through, a
+    /// page at a time with `--offset` and `--limit`.
     List {
+        #[command(flatten)]
+        filter: ListFilterArgs,
         /// One JSON array instead of a table.
         #[arg(long)]
         json: bool,
@@ -1255,8 +1304,11 @@ pub enum UserVerb {
         #[arg(long)]
         json: bool,
     },
-    /// Stay connected, idle, and print the list each time it changes.
+    /// Stay connected, idle, and print the list each time it changes (with filters:
+    /// the part they let through, each time that part changes).
     Watch {
+        #[command(flatten)]
+        filter: ListFilterArgs,
         /// Stop after this long (default: until Ctrl-C).
         #[arg(long, value_parser = duration)]
         duration: Option<Duration>,

@@ -86,6 +86,58 @@ fn watchers_are_woken_when_the_list_changes() {
 }
 
 #[test]
+fn the_list_holds_more_than_256_services_and_users_read_it_filtered_and_in_pages() {
+    let mut f = Fed::new("biglist");
+    f.broker(&[]);
+    // Three systems of 128 (the old list held 256): the list grows in shared memory.
+    for s in ["t1", "t2", "t3"] {
+        f.system(s, &["--services", "128"]);
+    }
+    let (all, _) = f.wait_list(30 * SEC, |l| l.len() == 384);
+    assert_eq!(all[383]["id"], "t3/s99", "in id order");
+    let names = |args: &[&str]| -> Vec<String> {
+        let mut a = vec!["user", "list", "--json"];
+        a.extend_from_slice(args);
+        let (code, out) = f.run(&a, 20 * SEC);
+        assert_eq!(code, 0, "{args:?}: {out}");
+        let v: Value = serde_json::from_str(&out).expect("JSON");
+        v.as_array()
+            .expect("array")
+            .iter()
+            .map(|s| s["id"].as_str().unwrap().to_string())
+            .collect()
+    };
+    // t2's services whose names start s1: s1, s10..s19, s100..s127.
+    let s1 = names(&["--system", "t2", "--name", "s1*"]);
+    assert_eq!(s1.len(), 1 + 10 + 28);
+    assert!(s1.iter().all(|id| id.starts_with("t2/s1")), "{s1:?}");
+    // A page of that: the 6th to the 8th, in id order.
+    let page = names(&[
+        "--system", "t2", "--name", "s1*", "--offset", "5", "--limit", "3",
+    ]);
+    assert_eq!(page, s1[5..8].to_vec());
+    // A page of the whole list, read in place: across the first blackboard's end.
+    let page = names(&["--offset", "250", "--limit", "10"]);
+    let want: Vec<String> = all[250..260]
+        .iter()
+        .map(|s| s["id"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(page, want);
+    // Nothing matches: an empty array. A bad glob: a clear error.
+    assert!(names(&["--kind", "command"]).is_empty());
+    let (code, _, err) = f.run_full(&["user", "list", "--name", "s[1"], 20 * SEC);
+    assert_ne!(code, 0);
+    assert!(err.contains("list filter"), "{err}");
+    // The table says which part it shows.
+    let (code, out) = f.run(
+        &["user", "list", "--system", "t3", "--limit", "2"],
+        20 * SEC,
+    );
+    assert_eq!(code, 0);
+    assert!(out.contains("(1-2 of 128, list generation"), "{out}");
+}
+
+#[test]
 fn a_killed_system_is_removed_without_waiting_for_a_ping() {
     let mut f = Fed::new("sigkill");
     f.broker(&[]); // default pings: 20 s + 10 s

@@ -873,8 +873,36 @@ fn remote_user_works(
         list = n.ruser(&u).conn.take_list();
         list.is_some()
     }));
-    let list = list.unwrap();
-    assert_eq!(list.count, 3, "two data services and one command service");
+    let (matching, list) = list.unwrap();
+    assert_eq!(
+        (matching, list.count),
+        (3, 3),
+        "two data services and one command service"
+    );
+    // A page: the command services only, and then the data services from the second.
+    for (kind, offset, want) in [
+        (ServiceKind::Command, 0, (1, vec!["d1/s0"])),
+        (ServiceKind::Data, 1, (2, vec!["t1/s1"])),
+    ] {
+        let filter = muster_shared::snapshot::ListFilter {
+            kind: Some(kind),
+            ..Default::default()
+        };
+        let t = net.at(net.now);
+        net.ruser(&u).conn.ask_list_page(t, &filter, offset, 10);
+        net.settle();
+        let mut page = None;
+        assert!(run_while(&mut net, secs(30.0), |n| {
+            page = n.ruser(&u).conn.take_list();
+            page.is_some()
+        }));
+        let (matching, page) = page.unwrap();
+        let ids: Vec<String> = page.entries().iter().map(|e| e.id().0).collect();
+        assert_eq!(
+            (matching, ids),
+            (want.0, want.1.iter().map(|s| s.to_string()).collect())
+        );
+    }
     // A data session.
     net.user(&u).request(ServiceId::new("t1", "s0"));
     net.settle();

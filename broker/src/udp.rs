@@ -23,7 +23,7 @@
 use crate::core::{Broker, Output};
 use crate::federation::FarGrant;
 use muster_shared::protocol::{LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser};
-use muster_shared::snapshot::ServiceView;
+use muster_shared::snapshot::{ListFilter, ServiceView};
 use muster_shared::types::{Refusal, ServiceId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
@@ -757,22 +757,44 @@ impl UdpFront {
                 let generation = self.generation;
                 self.send(id, &Down::Pong { nonce, generation });
             }
-            Up::List => self.send_list(id),
+            Up::List {
+                ask,
+                filter,
+                offset,
+                limit,
+            } => self.send_list(id, ask, &filter, (offset as usize, limit as usize)),
             Up::PathResponse { .. } => {}
             Up::Msg(m) => self.on_user_msg(dir, t, id, m, from),
         }
     }
 
-    fn send_list(&mut self, id: u64) {
+    /// Sends the services `filter` lets through that the user may see, from the
+    /// `offset`th, at most `limit` (a bad name glob lets nothing through; the client
+    /// checks it before asking).
+    fn send_list(
+        &mut self,
+        id: u64,
+        ask: u32,
+        filter: &ListFilter,
+        (offset, limit): (usize, usize),
+    ) {
         let Some(c) = self.conns.get(&id) else { return };
         let policy = self.access.get(&c.name);
-        let views: Vec<ServiceView> = self
+        let m = filter.matcher();
+        let mut matching = 0usize;
+        let mut views: Vec<ServiceView> = Vec::new();
+        for v in self
             .views
             .iter()
-            .filter(|v| policy.is_some_and(|p| p.allows(&v.id)))
-            .cloned()
-            .collect();
-        for chunk in chunk_list(self.epoch, self.generation, &views) {
+            .filter(|v| policy.is_some_and(|p| p.allows(&v.id)) && m.matches_view(v))
+        {
+            if matching >= offset && views.len() < limit {
+                views.push(v.clone());
+            }
+            matching += 1;
+        }
+        let matching = u32::try_from(matching).unwrap_or(u32::MAX);
+        for chunk in chunk_list(self.epoch, self.generation, (ask, matching), &views) {
             self.send(id, &chunk);
         }
     }

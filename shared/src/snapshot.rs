@@ -207,7 +207,8 @@ impl ServiceListSnapshot {
             epoch: self.epoch,
             ..ListPage::default()
         };
-        for e in self.entries.iter().filter(|e| filter.matches(e)) {
+        let m = filter.matcher();
+        for e in self.entries.iter().filter(|e| m.matches(e)) {
             if page.matching >= offset && page.entries.len() < limit {
                 page.entries.push(*e);
             }
@@ -288,16 +289,43 @@ pub struct ListMatcher<'a> {
 impl ListMatcher<'_> {
     /// Whether `e` passes.
     pub fn matches(&self, e: &ServiceEntry) -> bool {
+        self.passes(
+            e.system.as_str(),
+            e.host.as_str(),
+            e.payload.as_str(),
+            e.kind(),
+            e.name.as_str(),
+        )
+    }
+
+    /// Whether `v` passes.
+    pub fn matches_view(&self, v: &ServiceView) -> bool {
+        let kind = if v.kind == ServiceKind::Command.as_str() {
+            ServiceKind::Command
+        } else {
+            ServiceKind::Data
+        };
+        self.passes(&v.system, &v.host, &v.payload, kind, &v.name)
+    }
+
+    fn passes(
+        &self,
+        system: &str,
+        host: &str,
+        payload: &str,
+        kind: ServiceKind,
+        name: &str,
+    ) -> bool {
         let f = self.filter;
         let same = |want: &Option<String>, have: &str| want.as_deref().is_none_or(|w| w == have);
-        same(&f.system, e.system.as_str())
-            && same(&f.host, e.host.as_str())
-            && same(&f.payload, e.payload.as_str())
-            && f.kind.is_none_or(|k| k == e.kind())
+        same(&f.system, system)
+            && same(&f.host, host)
+            && same(&f.payload, payload)
+            && f.kind.is_none_or(|k| k == kind)
             && match &self.name {
                 None => true,
                 Some(None) => false,
-                Some(Some(g)) => g.is_match(e.name.as_str()),
+                Some(Some(g)) => g.is_match(name),
             }
     }
 }

@@ -39,7 +39,7 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             muster_users::menu::run(client)?;
             Ok(ExitCode::SUCCESS)
         }
-        Some(UserVerb::List { json }) => list(client, json),
+        Some(UserVerb::List { filter, json }) => list(client, &filter, json),
         Some(UserVerb::Request {
             id,
             duration,
@@ -61,7 +61,11 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             };
             request(client, &ServiceId(id), duration, input, json)
         }
-        Some(UserVerb::Watch { duration, json }) => watch(client, duration, json),
+        Some(UserVerb::Watch {
+            filter,
+            duration,
+            json,
+        }) => watch(client, &filter, duration, json),
         Some(UserVerb::Idle { duration }) => idle(client, duration, started),
         Some(UserVerb::Behave(b)) => super::behave::run(client, &b),
         Some(UserVerb::Link {
@@ -149,49 +153,76 @@ pub fn payload_text(p: &Payload, schema: Option<&Schema>) -> String {
     }
 }
 
-fn list(mut client: UserClient, as_json: bool) -> anyhow::Result<ExitCode> {
-    let snapshot = client.list()?;
-    let views = snapshot.views();
+fn list(
+    mut client: UserClient,
+    part: &crate::cli::ListFilterArgs,
+    as_json: bool,
+) -> anyhow::Result<ExitCode> {
+    let page = client.list_page(
+        &part.filter(),
+        part.offset,
+        part.limit.unwrap_or(usize::MAX),
+    )?;
+    let views = page.views();
     if as_json {
         out!("{}", serde_json::to_string_pretty(&views)?);
     } else {
         out!("{}", muster_users::menu::table(&views));
         out!(
-            "({} services, list generation {})",
-            views.len(),
-            snapshot.generation
+            "({}, list generation {})",
+            shown(&page, part.offset),
+            page.generation
         );
     }
     client.close();
     Ok(ExitCode::SUCCESS)
 }
 
+/// "12 services", or which of how many a filtered or paged list shows.
+fn shown(page: &muster_shared::snapshot::ListPage, offset: usize) -> String {
+    let n = page.entries.len();
+    if n == page.matching {
+        format!("{n} services")
+    } else if n == 0 {
+        format!("none of {} from {}", page.matching, offset + 1)
+    } else {
+        format!("{}-{} of {}", offset + 1, offset + n, page.matching)
+    }
+}
+
 fn watch(
     mut client: UserClient,
+    part: &crate::cli::ListFilterArgs,
     duration: Option<Duration>,
     as_json: bool,
 ) -> anyhow::Result<ExitCode> {
     let deadline = Instant::now() + duration.unwrap_or(Duration::from_secs(100 * 365 * 86400));
-    let mut shown = None;
+    let filter = part.filter();
+    let limit = part.limit.unwrap_or(usize::MAX);
+    // What was shown last: a change elsewhere in the list is not shown again.
+    let mut shown_views: Option<(u64, Vec<muster_shared::snapshot::ServiceView>)> = None;
     loop {
-        let snapshot = match client.list() {
-            Ok(s) => Some(s),
+        let page = match client.list_page(&filter, part.offset, limit) {
+            Ok(p) => Some(p),
             // Remote, with the broker away: keep waiting for it.
             Err(UserError::ListTimeout(_)) => None,
             Err(e) => return Err(e.into()),
         };
-        if let Some(snapshot) = snapshot.filter(|s| shown != Some((s.epoch, s.generation))) {
-            shown = Some((snapshot.epoch, snapshot.generation));
-            let views = snapshot.views();
-            emit(
-                as_json,
-                json!({"generation": snapshot.generation, "services": views}),
-                format!(
-                    "-- generation {} --\n{}",
-                    snapshot.generation,
-                    muster_users::menu::table(&views)
-                ),
-            );
+        if let Some(page) = page {
+            let views = page.views();
+            if shown_views.as_ref() != Some(&(page.epoch, views.clone())) {
+                emit(
+                    as_json,
+                    json!({"generation": page.generation, "matching": page.matching, "services": views}),
+                    format!(
+                        "-- generation {} ({}) --\n{}",
+                        page.generation,
+                        shown(&page, part.offset),
+                        muster_users::menu::table(&views)
+                    ),
+                );
+                shown_views = Some((page.epoch, views));
+            }
         }
         match client.next_event(deadline) {
             Ok(Some(_)) => {}

@@ -9,7 +9,7 @@ use muster_shared::ipc::{
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToUser};
 use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
-use muster_shared::snapshot::ServiceListSnapshot;
+use muster_shared::snapshot::{ListFilter, ListPage, ServiceListSnapshot};
 use muster_shared::types::{link_compatible, Payload, ServiceId, ServiceKind, SessionId, UserId};
 use std::collections::{HashMap, VecDeque};
 use std::os::fd::RawFd;
@@ -48,6 +48,9 @@ pub enum UserError {
     /// The remote list did not arrive complete in time.
     #[error("the service list did not arrive within {0:?}")]
     ListTimeout(Duration),
+    /// A list filter that cannot be used (a bad name glob, a text too long).
+    #[error("list filter: {0}")]
+    BadFilter(String),
 }
 
 /// What [`UserClient::wait`] woke for.
@@ -301,27 +304,81 @@ impl UserClient {
     pub fn list(&mut self) -> Result<Arc<ServiceListSnapshot>, UserError> {
         match &mut self.transport {
             Transport::Local(l) => {
-                if l.list.is_none() {
-                    l.list = Some(ListReader::open(l.endpoint.node(), &l.inst)?);
-                }
-                let node = l.endpoint.node();
-                Ok(l.list.as_mut().expect("opened above").read_from(node)?)
+                let (node, list) = Self::local_list(l)?;
+                Ok(list.read_from(node)?)
             }
-            Transport::Remote(r) => {
-                r.ask_list();
-                let deadline = Instant::now() + LIST_WAIT;
-                loop {
-                    if let Transport::Remote(r) = &mut self.transport {
-                        if let Some(l) = r.take_list() {
-                            return Ok(Arc::from(l));
-                        }
-                    }
-                    if Instant::now() >= deadline {
-                        return Err(UserError::ListTimeout(LIST_WAIT));
-                    }
-                    self.turn(deadline)?;
+            Transport::Remote(_) => {
+                let (_, l) = self.remote_list(&ListFilter::default(), 0, usize::MAX)?;
+                Ok(Arc::from(l))
+            }
+        }
+    }
+
+    /// One page of the list: the services `filter` lets through, from the `offset`th
+    /// of them, at most `limit`, with how many it lets through in all. A local user
+    /// reads it in place in shared memory (without a filter, only the part the page is
+    /// in); a remote user is sent only the page.
+    pub fn list_page(
+        &mut self,
+        filter: &ListFilter,
+        offset: usize,
+        limit: usize,
+    ) -> Result<ListPage, UserError> {
+        filter.check().map_err(UserError::BadFilter)?;
+        match &mut self.transport {
+            Transport::Local(l) => {
+                let (node, list) = Self::local_list(l)?;
+                Ok(list.page_from(node, filter, offset, limit)?)
+            }
+            Transport::Remote(_) => {
+                let (matching, l) = self.remote_list(filter, offset, limit)?;
+                Ok(ListPage {
+                    generation: l.generation,
+                    epoch: l.epoch,
+                    matching: matching as usize,
+                    entries: l.entries().to_vec(),
+                })
+            }
+        }
+    }
+
+    /// The local list's reader, opened on first use, and the node it reads with.
+    fn local_list(
+        l: &mut Local,
+    ) -> Result<
+        (
+            &iceoryx2::node::Node<muster_shared::ipc::Ipc>,
+            &mut ListReader,
+        ),
+        UserError,
+    > {
+        if l.list.is_none() {
+            l.list = Some(ListReader::open(l.endpoint.node(), &l.inst)?);
+        }
+        Ok((l.endpoint.node(), l.list.as_mut().expect("opened above")))
+    }
+
+    /// Asks the broker for a (part of the) list and waits for it.
+    fn remote_list(
+        &mut self,
+        filter: &ListFilter,
+        offset: usize,
+        limit: usize,
+    ) -> Result<(u32, Box<ServiceListSnapshot>), UserError> {
+        if let Transport::Remote(r) = &mut self.transport {
+            r.ask_list(filter, offset, limit);
+        }
+        let deadline = Instant::now() + LIST_WAIT;
+        loop {
+            if let Transport::Remote(r) = &mut self.transport {
+                if let Some(l) = r.take_list() {
+                    return Ok(l);
                 }
             }
+            if Instant::now() >= deadline {
+                return Err(UserError::ListTimeout(LIST_WAIT));
+            }
+            self.turn(deadline)?;
         }
     }
 

@@ -13,7 +13,7 @@
 use crate::core::UserCore;
 use crate::remote::RemoteOptions;
 use muster_shared::protocol::{EventRecord, ToBroker, ToSystem, ToUser};
-use muster_shared::snapshot::{ServiceListSnapshot, ServiceView};
+use muster_shared::snapshot::{ListFilter, ServiceListSnapshot, ServiceView};
 use muster_shared::types::{SessionId, UserId};
 use muster_shared::udp::crypto::{self, Channel, HandshakeState, SessionCipher, Side};
 use muster_shared::udp::msgs::{
@@ -102,10 +102,21 @@ struct Session {
     ending: Option<(Retry, u32)>,
 }
 
+/// What asks for the whole list.
+fn whole_list() -> Up {
+    Up::List {
+        ask: 0,
+        filter: ListFilter::default(),
+        offset: 0,
+        limit: u32::MAX,
+    }
+}
+
 struct ListAssembly {
     generation: u64,
     epoch: u64,
     total: u16,
+    matching: u32,
     chunks: BTreeMap<u16, Vec<ServiceView>>,
 }
 
@@ -154,8 +165,11 @@ pub struct RemoteConn {
     operations: BTreeMap<u64, Operation>,
     sessions: HashMap<u64, Session>,
     list_want: Option<Retry>,
+    /// What was asked for the list (sent again until it comes).
+    list_ask: Up,
     list_part: Option<ListAssembly>,
-    list_done: Option<Box<ServiceListSnapshot>>,
+    /// The list (or page) that came, with how many services the filter let through.
+    list_done: Option<(u32, Box<ServiceListSnapshot>)>,
     generation: u64,
     stats: LinkStats,
     ever_connected: bool,
@@ -212,6 +226,7 @@ impl RemoteConn {
             operations: BTreeMap::new(),
             sessions: HashMap::new(),
             list_want: None,
+            list_ask: whole_list(),
             list_part: None,
             list_done: None,
             generation: 0,
@@ -326,14 +341,37 @@ impl RemoteConn {
 
     /// Asks the broker for the list; [`RemoteLink::take_list`] returns it once complete.
     pub fn ask_list(&mut self, now: Instant) {
+        self.ask_list_page(now, &ListFilter::default(), 0, usize::MAX);
+    }
+
+    /// Asks for the services `filter` lets through, from the `offset`th, at most
+    /// `limit` (sent again until every chunk of one generation came).
+    pub fn ask_list_page(
+        &mut self,
+        now: Instant,
+        filter: &ListFilter,
+        offset: usize,
+        limit: usize,
+    ) {
         self.list_want = Some(Retry::new(now, self.rto()));
         self.list_part = None;
         self.list_done = None;
-        self.send_up(&Up::List);
+        let ask = match &self.list_ask {
+            Up::List { ask, .. } => ask.wrapping_add(1),
+            _ => 1,
+        };
+        self.list_ask = Up::List {
+            ask,
+            filter: filter.clone(),
+            offset: u32::try_from(offset).unwrap_or(u32::MAX),
+            limit: u32::try_from(limit).unwrap_or(u32::MAX),
+        };
+        self.send_up(&self.list_ask.clone());
     }
 
-    /// The list, once every chunk of one generation arrived.
-    pub fn take_list(&mut self) -> Option<Box<ServiceListSnapshot>> {
+    /// The list (or the page asked for), once every chunk of one generation arrived,
+    /// with how many services the filter let through.
+    pub fn take_list(&mut self) -> Option<(u32, Box<ServiceListSnapshot>)> {
         self.list_done.take()
     }
 
@@ -471,7 +509,7 @@ impl RemoteConn {
         if self.list_want.as_mut().is_some_and(|r| r.due(now)) {
             self.stats.retransmissions += 1;
             self.list_part = None;
-            self.send_up(&Up::List);
+            self.send_up(&self.list_ask.clone());
         }
         // Keepalives and silence.
         if now >= self.next_ping {
@@ -867,8 +905,14 @@ impl RemoteConn {
                 generation,
                 index,
                 total,
+                ask,
+                matching,
                 entries,
-            } => self.on_chunk(epoch, generation, index, total, entries),
+            } => {
+                if matches!(self.list_ask, Up::List { ask: a, .. } if a == ask) {
+                    self.on_chunk(epoch, generation, (index, total), matching, entries);
+                }
+            }
             Down::Pong { nonce, generation } => {
                 let sent = self.born + Duration::from_nanos(nonce);
                 if let Some(rtt) = now.checked_duration_since(sent) {
@@ -895,8 +939,8 @@ impl RemoteConn {
         &mut self,
         epoch: u64,
         generation: u64,
-        index: u16,
-        total: u16,
+        (index, total): (u16, u16),
+        matching: u32,
         entries: Vec<ServiceView>,
     ) {
         if self.list_want.is_none() || total == 0 || index >= total {
@@ -906,14 +950,20 @@ impl RemoteConn {
             generation,
             epoch,
             total,
+            matching,
             chunks: BTreeMap::new(),
         });
-        if part.generation != generation || part.epoch != epoch || part.total != total {
+        if part.generation != generation
+            || part.epoch != epoch
+            || part.total != total
+            || part.matching != matching
+        {
             // A newer list began: start over with it.
             *part = ListAssembly {
                 generation,
                 epoch,
                 total,
+                matching,
                 chunks: BTreeMap::new(),
             };
         }
@@ -926,7 +976,7 @@ impl RemoteConn {
                 entries.collect(),
             ));
             self.generation = part.generation;
-            self.list_done = Some(snap);
+            self.list_done = Some((part.matching, snap));
             self.list_want = None;
             self.list_part = None;
         }

@@ -4,7 +4,7 @@
 use crate::conn::RemoteConn;
 use crate::core::UserCore;
 use muster_shared::protocol::{ToBroker, ToSystem};
-use muster_shared::snapshot::ServiceListSnapshot;
+use muster_shared::snapshot::{ListFilter, ServiceListSnapshot};
 use muster_shared::types::UserId;
 use muster_shared::udp::crypto::KeyPair;
 use muster_shared::udp::wire::MAX_DATAGRAM;
@@ -228,14 +228,17 @@ impl RemoteLink {
         self.transmit();
     }
 
-    /// Asks the broker for the list; [`RemoteLink::take_list`] returns it once complete.
-    pub fn ask_list(&mut self) {
-        self.conn.ask_list(Instant::now());
+    /// Asks the broker for the services `filter` lets through, from the `offset`th, at
+    /// most `limit`; [`RemoteLink::take_list`] returns them once complete.
+    pub fn ask_list(&mut self, filter: &ListFilter, offset: usize, limit: usize) {
+        self.conn
+            .ask_list_page(Instant::now(), filter, offset, limit);
         self.transmit();
     }
 
-    /// The list, once every chunk of one generation arrived.
-    pub fn take_list(&mut self) -> Option<Box<ServiceListSnapshot>> {
+    /// The list (or page) asked for, once every chunk of one generation arrived, with
+    /// how many services the filter let through.
+    pub fn take_list(&mut self) -> Option<(u32, Box<ServiceListSnapshot>)> {
         self.conn.take_list()
     }
 

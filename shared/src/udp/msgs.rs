@@ -23,8 +23,20 @@ pub enum Up {
     /// A user message: `Hello`, `Request`, `Cancel`, `LinkOpened`, `LinkClosed` or
     /// `Goodbye`. The broker replaces its user and pid fields with what it authenticated.
     Msg(ToBroker),
-    /// Send me the service list (all chunks of the current generation).
-    List,
+    /// Send me the services of the list that `filter` lets through, from the
+    /// `offset`th of them, at most `limit` (all chunks of the current generation).
+    /// The whole list: no filter, from 0, `u32::MAX`.
+    List {
+        /// The ask's number, echoed in each chunk of the answer (an answer to an earlier
+        /// ask, late or repeated, is not taken for this one's).
+        ask: u32,
+        /// Which services.
+        filter: crate::snapshot::ListFilter,
+        /// How many of them to skip.
+        offset: u32,
+        /// Most to send.
+        limit: u32,
+    },
     /// Keepalive; answered by [`Down::Pong`].
     Ping {
         /// Echoed.
@@ -77,6 +89,11 @@ pub enum Down {
         index: u16,
         /// Number of chunks.
         total: u16,
+        /// The ask this answers ([`Up::List`]'s).
+        ask: u32,
+        /// How many services of the whole list the asked filter lets through (the
+        /// chunks hold those from the asked offset, at most the asked limit).
+        matching: u32,
         /// The services in it.
         entries: Vec<ServiceView>,
     },
@@ -221,7 +238,12 @@ pub fn seal_session<T: Serialize>(
 }
 
 /// Splits a list into `ListChunk`s that each fit one datagram.
-pub fn chunk_list(epoch: u64, generation: u64, views: &[ServiceView]) -> Vec<Down> {
+pub fn chunk_list(
+    epoch: u64,
+    generation: u64,
+    (ask, matching): (u32, u32),
+    views: &[ServiceView],
+) -> Vec<Down> {
     // Room for the chunk's own fields and postcard's length prefixes.
     const BUDGET: usize = MAX_PLAINTEXT - 40;
     let mut groups: Vec<Vec<ServiceView>> = vec![Vec::new()];
@@ -244,6 +266,8 @@ pub fn chunk_list(epoch: u64, generation: u64, views: &[ServiceView]) -> Vec<Dow
             generation,
             index: i as u16,
             total,
+            ask,
+            matching,
             entries,
         })
         .collect()
@@ -383,7 +407,7 @@ mod tests {
     #[test]
     fn lists_split_into_datagrams_and_reassemble_in_order() {
         let views: Vec<ServiceView> = (0..256).map(view).collect();
-        let chunks = chunk_list(1, 9, &views);
+        let chunks = chunk_list(1, 9, (1, 256), &views);
         assert!(chunks.len() > 10, "256 long entries need many datagrams");
         let mut back = Vec::new();
         for (i, c) in chunks.iter().enumerate() {
@@ -408,7 +432,7 @@ mod tests {
         }
         assert_eq!(back, views);
         assert_eq!(
-            chunk_list(1, 1, &[]).len(),
+            chunk_list(1, 1, (1, 0), &[]).len(),
             1,
             "an empty list is one empty chunk"
         );
