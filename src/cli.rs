@@ -316,6 +316,10 @@ pub enum BenchCommand {
     /// /dev/shm left after the instance's next start and after `muster cleanup`. Run
     /// it alone on the host.
     Leftovers(LeftoversArgs),
+    /// The service list at a size (default 10,000 services), in shared memory: a page
+    /// read in place, pages through filters, the whole list read unchanged and after a
+    /// change, and the broker's side of one change.
+    List(ListBenchArgs),
     /// (internal) A user of `bench failover`.
     #[command(hide = true)]
     FailoverUser(FailoverUserArgs),
@@ -661,6 +665,25 @@ pub struct Vda5050BenchArgs {
     #[arg(long, default_value = "bridges/vda5050/tests/js")]
     pub peers: std::path::PathBuf,
     /// Print one JSON object instead of tables.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct ListBenchArgs {
+    /// Services listed.
+    #[arg(long, default_value_t = 10_000)]
+    pub services: usize,
+    /// Services per page.
+    #[arg(long, default_value_t = 100)]
+    pub page: usize,
+    /// Reads timed per row.
+    #[arg(long, default_value_t = 20_000)]
+    pub reads: usize,
+    /// Seed of the pages' offsets.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,
 }

@@ -48,6 +48,11 @@ impl<const N: usize> FixedStr<N> {
         }
     }
 
+    /// The bytes, as stored (a reader that only compares need not check them).
+    pub fn as_bytes(&self) -> &[u8] {
+        &self.bytes[..(self.len as usize).min(N)]
+    }
+
     /// The text; empty if the bytes in shared memory are not valid UTF-8.
     pub fn as_str(&self) -> &str {
         let len = (self.len as usize).min(N);
@@ -266,10 +271,16 @@ impl ListFilter {
     pub fn matcher(&self) -> ListMatcher<'_> {
         ListMatcher {
             filter: self,
-            name: self
-                .name
-                .as_ref()
-                .map(|g| globset::Glob::new(g).ok().map(|g| g.compile_matcher())),
+            name: self.name.as_ref().map(|g| {
+                // The glob's own regex, matched on the name's bytes: globset's path
+                // matcher first makes every name a path, which costs more than the match.
+                let g = globset::Glob::new(g).ok()?;
+                regex::bytes::Regex::new(g.regex()).ok()
+            }),
+            prefix: self.name.as_deref().map_or(&[][..], |g| {
+                let end = g.find(['*', '?', '[', '{', '\\']).unwrap_or(g.len());
+                &g.as_bytes()[..end]
+            }),
         }
     }
 
@@ -283,50 +294,46 @@ impl ListFilter {
 /// A [`ListFilter`] with its glob compiled.
 pub struct ListMatcher<'a> {
     filter: &'a ListFilter,
-    name: Option<Option<globset::GlobMatcher>>,
+    name: Option<Option<regex::bytes::Regex>>,
+    /// What every name the glob matches starts with (its text before the first
+    /// wildcard): most names fail on it, before the regex.
+    prefix: &'a [u8],
 }
 
 impl ListMatcher<'_> {
-    /// Whether `e` passes.
+    /// Whether `e` passes (only the fields the filter names are looked at).
     pub fn matches(&self, e: &ServiceEntry) -> bool {
-        self.passes(
-            e.system.as_str(),
-            e.host.as_str(),
-            e.payload.as_str(),
-            e.kind(),
-            e.name.as_str(),
-        )
+        let f = self.filter;
+        let same = |want: &Option<String>, have: &[u8]| {
+            want.as_deref().is_none_or(|w| w.as_bytes() == have)
+        };
+        same(&f.system, e.system.as_bytes())
+            && same(&f.host, e.host.as_bytes())
+            && same(&f.payload, e.payload.as_bytes())
+            && f.kind.is_none_or(|k| k == e.kind())
+            && self.name_passes(|| e.name.as_bytes())
     }
 
     /// Whether `v` passes.
     pub fn matches_view(&self, v: &ServiceView) -> bool {
-        let kind = if v.kind == ServiceKind::Command.as_str() {
-            ServiceKind::Command
-        } else {
-            ServiceKind::Data
-        };
-        self.passes(&v.system, &v.host, &v.payload, kind, &v.name)
-    }
-
-    fn passes(
-        &self,
-        system: &str,
-        host: &str,
-        payload: &str,
-        kind: ServiceKind,
-        name: &str,
-    ) -> bool {
         let f = self.filter;
         let same = |want: &Option<String>, have: &str| want.as_deref().is_none_or(|w| w == have);
-        same(&f.system, system)
-            && same(&f.host, host)
-            && same(&f.payload, payload)
-            && f.kind.is_none_or(|k| k == kind)
-            && match &self.name {
-                None => true,
-                Some(None) => false,
-                Some(Some(g)) => g.is_match(name),
+        same(&f.system, &v.system)
+            && same(&f.host, &v.host)
+            && same(&f.payload, &v.payload)
+            && f.kind.is_none_or(|k| k.as_str() == v.kind)
+            && self.name_passes(|| v.name.as_bytes())
+    }
+
+    fn name_passes<'n>(&self, name: impl FnOnce() -> &'n [u8]) -> bool {
+        match &self.name {
+            None => true,
+            Some(None) => false,
+            Some(Some(g)) => {
+                let name = name();
+                name.starts_with(self.prefix) && g.is_match(name)
             }
+        }
     }
 }
 

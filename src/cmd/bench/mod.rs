@@ -4,6 +4,7 @@ mod failover;
 mod federation;
 pub mod floor;
 mod leftovers;
+mod list;
 mod liveness;
 pub mod procfs;
 pub mod remote;
@@ -33,6 +34,7 @@ pub fn run(inst: &Instance, cmd: BenchCommand) -> anyhow::Result<ExitCode> {
         BenchCommand::Vda5050(a) => vda5050::run(inst, a),
         BenchCommand::FailoverUser(a) => failover::user(inst, a),
         BenchCommand::Leftovers(a) => leftovers::run(inst, a),
+        BenchCommand::List(a) => list::run(inst, a),
     }
 }
 
