@@ -396,6 +396,19 @@ pub struct ListChunk {
     pub entries: [ServiceEntry; CHUNK_ENTRIES],
 }
 
+/// Chunks whose last write one [`ListSeqs`] page holds.
+pub const SEQS_PER_PAGE: usize = 512;
+
+/// Which write last changed each of [`SEQS_PER_PAGE`] chunks (page `p` holds chunks
+/// `p * SEQS_PER_PAGE ..`): a reader holding a copy takes only the chunks that changed
+/// since, and a whole-list read after a change copies one chunk, not the whole list.
+#[derive(Clone, Copy, Debug, ZeroCopySend)]
+#[repr(C)]
+pub struct ListSeqs {
+    /// The chunks' `seq`s.
+    pub seqs: [u64; SEQS_PER_PAGE],
+}
+
 impl ListChunk {
     /// A chunk of empty entries.
     pub fn empty() -> Self {

@@ -35,6 +35,9 @@ struct Board {
     id: u64,
     header: EntryHandleMut<Ipc, u64, ListHeader>,
     chunks: Vec<EntryHandleMut<Ipc, u64, ListChunk>>,
+    seq_pages: Vec<EntryHandleMut<Ipc, u64, ListSeqs>>,
+    /// What the seq pages hold.
+    seqs: Vec<u64>,
     // Dropped last: the handles above hold the writer's state.
     _writer: Writer<Ipc, u64>,
 }
@@ -45,6 +48,16 @@ const HEADER_KEY: u64 = 0;
 /// The blackboard key of chunk `k`.
 fn chunk_key(k: usize) -> u64 {
     k as u64 + 1
+}
+
+/// The blackboard key of seq page `p` of a blackboard of `chunks` chunks.
+fn seqs_key(chunks: usize, p: usize) -> u64 {
+    (chunks + 1 + p) as u64
+}
+
+/// How many seq pages a blackboard of `chunks` chunks has.
+fn seq_pages(chunks: usize) -> usize {
+    chunks.div_ceil(SEQS_PER_PAGE)
 }
 
 /// How many chunks hold `count` entries.
@@ -92,6 +105,14 @@ impl Board {
             for k in 0..chunks {
                 builder = builder.add::<ListChunk>(chunk_key(k), ListChunk::empty());
             }
+            for p in 0..seq_pages(chunks) {
+                builder = builder.add::<ListSeqs>(
+                    seqs_key(chunks, p),
+                    ListSeqs {
+                        seqs: [0; SEQS_PER_PAGE],
+                    },
+                );
+            }
             let svc = match builder.create() {
                 Ok(s) => s,
                 Err(BlackboardCreateError::AlreadyExists) => {
@@ -107,14 +128,20 @@ impl Board {
             let header = writer
                 .entry::<ListHeader>(&HEADER_KEY)
                 .map_err(|e| svc_err("service-list header", e))?;
-            let chunks = (0..chunks)
+            let seq_pages = (0..seq_pages(chunks))
+                .map(|p| writer.entry::<ListSeqs>(&seqs_key(chunks, p)))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| svc_err("service-list seqs", e))?;
+            let chunk_handles = (0..chunks)
                 .map(|k| writer.entry::<ListChunk>(&chunk_key(k)))
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(|e| svc_err("service-list chunk", e))?;
             return Ok(Board {
                 id,
                 header,
-                chunks,
+                chunks: chunk_handles,
+                seq_pages,
+                seqs: vec![0; chunks],
                 _writer: writer,
             });
         }
@@ -180,6 +207,7 @@ impl ListWriter {
         self.seq += 1;
         let before = self.written.len();
         let mut chunk = ListChunk::empty();
+        let mut pages_changed = vec![false; self.board.seq_pages.len()];
         for k in 0..chunks_for(count) {
             let range = chunk_range(k, count);
             // Unchanged, and whole in shared memory already: left as it is.
@@ -190,6 +218,19 @@ impl ListWriter {
             chunk.entries = [ServiceListSnapshot::EMPTY_ENTRY; CHUNK_ENTRIES];
             chunk.entries[..range.len()].copy_from_slice(&entries[range]);
             self.board.chunks[k].update_with_copy(chunk);
+            self.board.seqs[k] = self.seq;
+            pages_changed[k / SEQS_PER_PAGE] = true;
+        }
+        // The chunks, then their seqs, then the header: a reader that sees the header
+        // sees every seq and chunk of that write.
+        for (p, _) in pages_changed.iter().enumerate().filter(|(_, c)| **c) {
+            let mut page = ListSeqs {
+                seqs: [0; SEQS_PER_PAGE],
+            };
+            let seqs = &self.board.seqs[p * SEQS_PER_PAGE..];
+            let n = seqs.len().min(SEQS_PER_PAGE);
+            page.seqs[..n].copy_from_slice(&seqs[..n]);
+            self.board.seq_pages[p].update_with_copy(page);
         }
         self.written.clear();
         self.written.extend_from_slice(entries);
@@ -217,6 +258,8 @@ pub struct ListReader {
     /// The last whole copy taken, with the write it came from (kept across blackboards:
     /// a reader moving to a bigger one reuses its memory).
     copy: Option<((u64, u64), Arc<ServiceListSnapshot>)>,
+    /// The write each chunk of `copy` came from (of the blackboard in `copy`'s key).
+    copy_seqs: Vec<u64>,
 }
 
 /// One list blackboard as a reader holds it: the entries' handles, opened once.
@@ -224,6 +267,7 @@ struct OpenList {
     id: u64,
     header: EntryHandle<Ipc, u64, ListHeader>,
     chunks: Vec<EntryHandle<Ipc, u64, ListChunk>>,
+    seq_pages: Vec<EntryHandle<Ipc, u64, ListSeqs>>,
     // Dropped last: the handles above hold the reader's state.
     _reader: Reader<Ipc, u64>,
 }
@@ -281,6 +325,7 @@ impl ListReader {
             fence,
             current: None,
             copy: None,
+            copy_seqs: Vec::new(),
         };
         r.follow(node)?;
         Ok(r)
@@ -316,14 +361,20 @@ impl ListReader {
         let header = reader
             .entry::<ListHeader>(&HEADER_KEY)
             .map_err(|e| svc_err("service-list header", e))?;
-        let chunks = (0..header.get().chunks as usize)
+        let n = header.get().chunks as usize;
+        let chunks = (0..n)
             .map(|k| reader.entry::<ListChunk>(&chunk_key(k)))
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| svc_err("service-list chunk", e))?;
+        let seq_pages = (0..seq_pages(n))
+            .map(|p| reader.entry::<ListSeqs>(&seqs_key(n, p)))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| svc_err("service-list seqs", e))?;
         self.current = Some(OpenList {
             id,
             header,
             chunks,
+            seq_pages,
             _reader: reader,
         });
         Ok(())
@@ -393,7 +444,9 @@ impl ListReader {
     }
 
     /// The newest snapshot of the list this reader is on: a consistent copy of one
-    /// write, taking only the chunks that hold entries.
+    /// write. Only the chunks that changed since the last copy are taken out of shared
+    /// memory (the last copy's memory is reused if no one holds it any more, else
+    /// copied first).
     pub fn read(&mut self) -> Result<Arc<ServiceListSnapshot>, TransportError> {
         let Some(open) = &self.current else {
             return Err(TransportError::Unreachable(Address::Broker));
@@ -404,22 +457,43 @@ impl ListReader {
                 return Ok(Arc::clone(copy));
             }
         }
-        // Into the last copy's memory if no one holds it any more: a fresh allocation
-        // of the list's size would fault its pages in again on every change.
-        let mut copy = match self.copy.take() {
-            Some((_, c)) if Arc::strong_count(&c) == 1 => c,
-            _ => Arc::new(ServiceListSnapshot::empty()),
+        let (mut copy, same_board) = match self.copy.take() {
+            Some(((id, _), c)) => (c, id == open.id),
+            None => (Arc::new(ServiceListSnapshot::empty()), false),
         };
-        let snap = Arc::get_mut(&mut copy).expect("held by no one else");
+        if !same_board {
+            self.copy_seqs.clear();
+        }
+        // Held elsewhere too: this reader's copy becomes its own (a clone of it).
+        let snap = Arc::make_mut(&mut copy);
+        let have = &mut self.copy_seqs;
         let (header, ()) = open.consistent(|header, chunk| {
             let count = header.count as usize;
+            let n = chunks_for(count);
+            let mut seqs = Vec::with_capacity(n);
+            for p in 0..n.div_ceil(SEQS_PER_PAGE) {
+                let page = open.seq_pages.get(p)?.get();
+                let upto = (n - p * SEQS_PER_PAGE).min(SEQS_PER_PAGE);
+                seqs.extend_from_slice(&page.seqs[..upto]);
+            }
+            if seqs.iter().any(|s| *s > header.seq) {
+                return None; // a newer write is under way
+            }
+            have.resize(n, 0);
             let entries = snap.resize(count);
-            for k in 0..chunks_for(count) {
+            for k in 0..n {
+                if have[k] == seqs[k] && seqs[k] != 0 {
+                    continue; // the copy holds this chunk as it is
+                }
                 let c = chunk(k);
                 let c = c.of(header)?;
+                if c.seq != seqs[k] {
+                    return None;
+                }
                 let range = chunk_range(k, count);
-                let n = range.len();
-                entries[range].copy_from_slice(&c.entries[..n]);
+                let len = range.len();
+                entries[range].copy_from_slice(&c.entries[..len]);
+                have[k] = c.seq;
             }
             Some(())
         })?;

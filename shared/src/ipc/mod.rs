@@ -9,7 +9,8 @@
 
 use crate::names::{Address, Instance};
 use crate::snapshot::{
-    ListChunk, ListFilter, ListHeader, ListPage, ServiceListSnapshot, CHUNK_ENTRIES,
+    ListChunk, ListFilter, ListHeader, ListPage, ListSeqs, ServiceListSnapshot, CHUNK_ENTRIES,
+    SEQS_PER_PAGE,
     FIRST_LIST_CHUNKS,
 };
 use iceoryx2::port::listener::Listener;
@@ -453,6 +454,64 @@ mod tests {
         stop.store(true, std::sync::atomic::Ordering::Relaxed);
         assert!(reader.join().unwrap() > 0);
         drop(r);
+        drop(w);
+        fence.remove();
+    }
+
+    #[test]
+    fn a_reader_taking_only_the_chunks_that_changed_still_reads_whole_writes() {
+        // 200 entries in 13 chunks; write g (from 2) stamps chunk g % 13 with g. At
+        // generation G, chunk k holds the last g <= G with g % 13 == k (1 if none).
+        const CHUNKS: u64 = 13;
+        let inst = Instance::new(&format!("list-incr-{}", std::process::id())).unwrap();
+        let node = create_node("list-incr", false).unwrap();
+        let fence = crate::fence::Fence::open(&inst).unwrap();
+        let mut w = ListWriter::open(&node, &inst, 1).unwrap();
+        let mut list = stamped_list(1, 200);
+        w.publish(&node, &list, &fence).unwrap();
+        let expect = |g: u64, k: u64| -> u64 {
+            if g < 2 {
+                return 1;
+            }
+            // The last g' <= g with g' % CHUNKS == k, if it is at least 2.
+            let back = (g % CHUNKS + CHUNKS - k) % CHUNKS;
+            if g >= back + 2 { g - back } else { 1 }
+        };
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let reader = {
+            let (inst, stop) = (inst.clone(), Arc::clone(&stop));
+            std::thread::spawn(move || {
+                let node = create_node("list-incr-reader", false).unwrap();
+                let mut r = ListReader::open(&node, &inst).unwrap();
+                let mut reads = 0u64;
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) && reads < 2_000_000 {
+                    let s = r.read_from(&node).unwrap();
+                    let g = s.generation;
+                    for (i, e) in s.entries().iter().enumerate() {
+                        let k = (i / CHUNK_ENTRIES) as u64;
+                        assert_eq!(
+                            u64::from(e.quota),
+                            expect(g, k) % 60_000,
+                            "write {g}, entry {i}"
+                        );
+                    }
+                    reads += 1;
+                }
+                reads
+            })
+        };
+        for g in 2..6_000u64 {
+            list.generation = g;
+            let k = (g % CHUNKS) as usize;
+            let end = ((k + 1) * CHUNK_ENTRIES).min(200);
+            for e in &mut list.resize(200)[k * CHUNK_ENTRIES..end] {
+                e.quota = (g % 60_000) as u16;
+            }
+            w.publish(&node, &list, &fence).unwrap();
+            std::thread::sleep(Duration::from_micros(100));
+        }
+        stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        assert!(reader.join().unwrap() > 100);
         drop(w);
         fence.remove();
     }
