@@ -991,6 +991,56 @@ fn a_remote_user_connects_and_works_at_300ms_rtt_with_5_percent_loss() {
 }
 
 #[test]
+fn a_remote_user_gets_a_list_of_2000_services_whole_at_10_percent_loss() {
+    // 16 systems of 125: hundreds of datagrams, so every answer loses some; the chunks
+    // that came are kept across the asks sent again, and the list completes.
+    let mut net = Net::with_udp(UdpLimits::default(), 7);
+    for i in 0..16 {
+        net.add_system(data(&format!("t{i:02}"), 125, 10));
+    }
+    let u = net.add_remote_user(
+        1,
+        "alice",
+        PathFaults {
+            rtt: secs(0.05),
+            loss: 0.1,
+            ..PathFaults::default()
+        },
+    );
+    let mut events = Vec::new();
+    assert!(run_while(&mut net, secs(60.0), |n| {
+        events.extend(n.take_events(&u));
+        events
+            .iter()
+            .any(|e| matches!(e, UserEvent::Connected { .. }))
+    }));
+    assert_eq!(net.list().len(), 2000);
+    let t = net.at(net.now);
+    net.ruser(&u).conn.ask_list(t);
+    net.settle();
+    let mut list = None;
+    let asked = net.now;
+    assert!(
+        run_while(&mut net, secs(120.0), |n| {
+            list = n.ruser(&u).conn.take_list();
+            list.is_some()
+        }),
+        "the whole list within 120 s: {:?}",
+        net.ruser(&u).conn.stats()
+    );
+    let (matching, list) = list.unwrap();
+    assert_eq!((matching, list.count), (2000, 2000));
+    let ids: Vec<String> = list.entries().iter().map(|e| e.id().0).collect();
+    let want: Vec<String> = net.list().into_iter().map(|v| v.id).collect();
+    assert_eq!(ids, want);
+    eprintln!(
+        "2,000 services at 10 % loss: whole after {:?}, {:?}",
+        net.now - asked,
+        net.ruser(&u).conn.stats()
+    );
+}
+
+#[test]
 fn a_remote_user_works_on_a_clean_path() {
     let (_, stats) = remote_user_works(PathFaults::default(), 5);
     assert_eq!(stats.handshakes, 1);

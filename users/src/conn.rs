@@ -507,8 +507,9 @@ impl RemoteConn {
             });
         }
         if self.list_want.as_mut().is_some_and(|r| r.due(now)) {
+            // The chunks that came are kept: the answer to this ask again is the same
+            // list while its generation holds, and fills in the chunks lost.
             self.stats.retransmissions += 1;
-            self.list_part = None;
             self.send_up(&self.list_ask.clone());
         }
         // Keepalives and silence.

@@ -10,8 +10,7 @@
 use crate::names::{Address, Instance};
 use crate::snapshot::{
     ListChunk, ListFilter, ListHeader, ListPage, ListSeqs, ServiceListSnapshot, CHUNK_ENTRIES,
-    SEQS_PER_PAGE,
-    FIRST_LIST_CHUNKS,
+    FIRST_LIST_CHUNKS, SEQS_PER_PAGE,
 };
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
@@ -475,7 +474,11 @@ mod tests {
             }
             // The last g' <= g with g' % CHUNKS == k, if it is at least 2.
             let back = (g % CHUNKS + CHUNKS - k) % CHUNKS;
-            if g >= back + 2 { g - back } else { 1 }
+            if g >= back + 2 {
+                g - back
+            } else {
+                1
+            }
         };
         let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
         let reader = {
