@@ -444,6 +444,9 @@ pub struct ConsoleArgs {
     /// broker's access file); the event log then comes over the same connection.
     #[command(flatten)]
     pub remote: RemoteArgs,
+    /// The services pane shows this part of the list.
+    #[command(flatten)]
+    pub list: ListFilterArgs,
 }
 
 #[derive(Args, Debug)]
@@ -1241,6 +1244,9 @@ pub struct UserArgs {
     /// when standard input or output is not a terminal, or TERM is dumb).
     #[arg(long)]
     pub plain: bool,
+    /// Without a verb: the menu shows this part of the list.
+    #[command(flatten)]
+    pub list: ListFilterArgs,
     #[command(subcommand)]
     pub verb: Option<UserVerb>,
 }
@@ -1272,6 +1278,15 @@ pub struct ListFilterArgs {
 }
 
 impl ListFilterArgs {
+    /// The part of the list these flags name.
+    pub fn part(&self) -> muster_shared::snapshot::ListPart {
+        muster_shared::snapshot::ListPart {
+            filter: self.filter(),
+            offset: self.offset,
+            limit: self.limit.unwrap_or(usize::MAX),
+        }
+    }
+
     /// The filter these flags name.
     pub fn filter(&self) -> muster_shared::snapshot::ListFilter {
         use muster_shared::types::ServiceKind;

@@ -291,6 +291,28 @@ impl ListFilter {
     }
 }
 
+/// The part of the list a view shows: the services a filter lets through, from an
+/// offset, at most a limit.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ListPart {
+    /// Which services.
+    pub filter: ListFilter,
+    /// How many of them to skip.
+    pub offset: usize,
+    /// Most to show.
+    pub limit: usize,
+}
+
+impl Default for ListPart {
+    fn default() -> Self {
+        ListPart {
+            filter: ListFilter::default(),
+            offset: 0,
+            limit: usize::MAX,
+        }
+    }
+}
+
 /// A [`ListFilter`] with its glob compiled.
 pub struct ListMatcher<'a> {
     filter: &'a ListFilter,

@@ -398,6 +398,7 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
         watch_list: true,
     };
     let mut client = super::user::connect(inst, &a.remote, &opts)?;
+    let part = a.list.part();
     let inputs = Inputs::start(&mut client)?;
     // A remote operator hears the event feed from the broker's front (once it has
     // acted: the first status read); a local one reads the feed in shared memory.
@@ -454,7 +455,7 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
         let mut list_owed = true;
         loop {
             if list_owed {
-                c.list = client.list()?.views();
+                c.list = client.list_part(&part)?.views();
                 list_owed = false;
                 dirty = true;
             }

@@ -32,11 +32,11 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
                 Some(addr) => format!("{} via {addr}", client.id()),
                 None => format!("{} on instance {inst}", client.id()),
             };
-            super::user_tui::run(client, who)?;
+            super::user_tui::run(client, who, &a.list.part())?;
             Ok(ExitCode::SUCCESS)
         }
         None => {
-            muster_users::menu::run(client)?;
+            muster_users::menu::run(client, &a.list.part())?;
             Ok(ExitCode::SUCCESS)
         }
         Some(UserVerb::List { filter, json }) => list(client, &filter, json),
@@ -158,11 +158,7 @@ fn list(
     part: &crate::cli::ListFilterArgs,
     as_json: bool,
 ) -> anyhow::Result<ExitCode> {
-    let page = client.list_page(
-        &part.filter(),
-        part.offset,
-        part.limit.unwrap_or(usize::MAX),
-    )?;
+    let page = client.list_part(&part.part())?;
     let views = page.views();
     if as_json {
         out!("{}", serde_json::to_string_pretty(&views)?);
@@ -197,12 +193,11 @@ fn watch(
     as_json: bool,
 ) -> anyhow::Result<ExitCode> {
     let deadline = Instant::now() + duration.unwrap_or(Duration::from_secs(100 * 365 * 86400));
-    let filter = part.filter();
-    let limit = part.limit.unwrap_or(usize::MAX);
+    let want = part.part();
     // What was shown last: a change elsewhere in the list is not shown again.
     let mut shown_views: Option<(u64, Vec<muster_shared::snapshot::ServiceView>)> = None;
     loop {
-        let page = match client.list_page(&filter, part.offset, limit) {
+        let page = match client.list_part(&want) {
             Ok(p) => Some(p),
             // Remote, with the broker away: keep waiting for it.
             Err(UserError::ListTimeout(_)) => None,

@@ -525,7 +525,11 @@ fn parse_xy(s: &str) -> Option<(f64, f64)> {
 }
 
 /// Runs the full-screen view until `q`, Ctrl-C or a signal.
-pub fn run(mut client: UserClient, who: String) -> anyhow::Result<()> {
+pub fn run(
+    mut client: UserClient,
+    who: String,
+    part: &muster_shared::snapshot::ListPart,
+) -> anyhow::Result<()> {
     let inputs = Inputs::start(&mut client)?;
     let mut v = View {
         who,
@@ -545,7 +549,7 @@ pub fn run(mut client: UserClient, who: String) -> anyhow::Result<()> {
         let mut list_owed = true;
         loop {
             if list_owed {
-                v.list = client.list()?.views();
+                v.list = client.list_part(part)?.views();
                 list_owed = false;
                 dirty = true;
             }

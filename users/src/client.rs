@@ -9,7 +9,7 @@ use muster_shared::ipc::{
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToUser};
 use muster_shared::reactor::{process_exists, PidFd, Reactor, SignalPipe};
-use muster_shared::snapshot::{ListFilter, ListPage, ServiceListSnapshot};
+use muster_shared::snapshot::{ListFilter, ListPage, ListPart, ServiceListSnapshot};
 use muster_shared::types::{link_compatible, Payload, ServiceId, ServiceKind, SessionId, UserId};
 use std::collections::{HashMap, VecDeque};
 use std::os::fd::RawFd;
@@ -340,6 +340,11 @@ impl UserClient {
                 })
             }
         }
+    }
+
+    /// [`UserClient::list_page`] of a [`ListPart`].
+    pub fn list_part(&mut self, part: &ListPart) -> Result<ListPage, UserError> {
+        self.list_page(&part.filter, part.offset, part.limit)
     }
 
     /// The local list's reader, opened on first use, and the node it reads with.

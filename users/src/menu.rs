@@ -3,7 +3,7 @@
 
 use crate::client::{UserClient, UserError, Wake};
 use crate::core::UserEvent;
-use muster_shared::snapshot::ServiceView;
+use muster_shared::snapshot::{ListPart, ServiceView};
 use muster_shared::types::{Payload, Schema, ServiceId, SessionId};
 use std::collections::HashMap;
 use std::io::{BufRead, Write};
@@ -61,7 +61,7 @@ const HELP: &str = "\
   x            exit";
 
 /// Runs the menu on the terminal until `x`, end of input, or Ctrl-C.
-pub fn run(mut client: UserClient) -> Result<(), UserError> {
+pub fn run(mut client: UserClient, part: &ListPart) -> Result<(), UserError> {
     let (lines_tx, lines_rx) = mpsc::channel::<String>();
     let (wake_read, mut wake_write) = UnixStream::pair()?;
     wake_read.set_nonblocking(true)?;
@@ -77,7 +77,7 @@ pub fn run(mut client: UserClient) -> Result<(), UserError> {
         let _ = wake_write.write_all(b"x");
     });
     client.watch_extra(wake_read.as_raw_fd())?;
-    let mut views = client.list()?.views();
+    let mut views = client.list_part(part)?.views();
     println!("{}\n{HELP}", table(&views));
     prompt();
     // Open sessions, in the order granted, with the schema of each's payload if any.
@@ -102,7 +102,7 @@ pub fn run(mut client: UserClient) -> Result<(), UserError> {
                             if !command(
                                 &mut client,
                                 line.trim(),
-                                &mut views,
+                                (part, &mut views),
                                 &sessions,
                                 &mut stale,
                             )? {
@@ -218,7 +218,7 @@ fn pick(views: &[ServiceView], s: &str) -> Option<ServiceId> {
 fn command(
     client: &mut UserClient,
     line: &str,
-    views: &mut Vec<ServiceView>,
+    (part, views): (&ListPart, &mut Vec<ServiceView>),
     sessions: &[(SessionId, Option<Schema>)],
     stale: &mut bool,
 ) -> Result<bool, UserError> {
@@ -253,7 +253,7 @@ fn command(
         [] => {}
         ["x"] | ["exit"] | ["q"] => return Ok(false),
         ["r"] | ["refresh"] => {
-            *views = client.list()?.views();
+            *views = client.list_part(part)?.views();
             *stale = false;
             println!("{}", table(views));
         }
