@@ -51,6 +51,22 @@ fn access_matrix_users_keys_and_services() {
     // Known user, right key: sees and gets exactly what the patterns allow.
     let (code, out) = remote(&f, &r, &r.key("alice"), &["user", "list", "--json"]);
     assert_eq!((code, ids(&out)), (0, vec!["t1/s0".to_string()]));
+    // A filtered list is sent only what the filter and the access file both let
+    // through: t2 is hidden whatever the filter says.
+    for (filter, want) in [
+        (&["--system", "t1"][..], vec!["t1/s0".to_string()]),
+        (&["--system", "t2"][..], vec![]),
+        (&["--name", "s*", "--offset", "1"][..], vec![]),
+        (
+            &["--kind", "data", "--limit", "5"][..],
+            vec!["t1/s0".to_string()],
+        ),
+    ] {
+        let mut args = vec!["user", "list", "--json"];
+        args.extend_from_slice(filter);
+        let (code, out) = remote(&f, &r, &r.key("alice"), &args);
+        assert_eq!((code, ids(&out)), (0, want), "{filter:?}");
+    }
     let (code, out) = remote(
         &f,
         &r,
