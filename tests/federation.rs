@@ -138,6 +138,32 @@ fn the_list_holds_more_than_256_services_and_users_read_it_filtered_and_in_pages
 }
 
 #[test]
+fn a_watcher_of_part_of_the_list_sees_only_that_part_change() {
+    let mut f = Fed::new("watchpart");
+    f.broker(&[]);
+    let t1 = f.system("t1", &["--services", "2"]);
+    f.wait_list(10 * SEC, |l| l.len() == 2);
+    let w = f.spawn(&["user", "watch", "--json", "--system", "t1"]);
+    let first = f.proc(w).json(10 * SEC).expect("first snapshot");
+    assert_eq!(first["services"].as_array().unwrap().len(), 2);
+    assert_eq!(first["matching"], 2);
+    // Another system comes: not in the part, so nothing is printed; then t1 goes.
+    f.system("t2", &["--services", "3"]);
+    f.wait_list(10 * SEC, |l| l.len() == 5);
+    f.proc(t1).signal(libc::SIGKILL);
+    f.wait_list(10 * SEC, |l| l.len() == 3);
+    let next = f.proc(w).json(10 * SEC).expect("woken by t1 going");
+    assert_eq!(
+        (
+            next["matching"].as_u64(),
+            next["services"].as_array().unwrap().len()
+        ),
+        (Some(0), 0),
+        "the next thing printed is t1 gone, not t2 come: {next}"
+    );
+}
+
+#[test]
 fn a_killed_system_is_removed_without_waiting_for_a_ping() {
     let mut f = Fed::new("sigkill");
     f.broker(&[]); // default pings: 20 s + 10 s

@@ -11,7 +11,7 @@ use muster_shared::protocol::{
     SessionLimit, SessionStatus, SystemStatus, ToBroker, ToSystem, ToUser, UserStatus,
     MAX_STATUS_ROWS,
 };
-use muster_shared::snapshot::{ServiceView, DEFAULT_MAX_SERVICES};
+use muster_shared::snapshot::{ListFilter, ServiceView, DEFAULT_MAX_SERVICES};
 use muster_shared::types::{
     validate_registration, EndReason, Refusal, ServiceId, ServiceKind, ServiceSpec, SessionId,
     UserId,
@@ -235,6 +235,8 @@ impl ServiceRec {
 struct UserRec {
     pid: u32,
     watch_list: bool,
+    /// The part of the list it watches (`None`: all of it).
+    watch_filter: Option<ListFilter>,
     links: BTreeMap<u64, LinkInfo>,
 }
 
@@ -514,6 +516,16 @@ impl Broker {
             .map(|(id, _)| id)
     }
 
+    /// The users who watch the list, each with the part it watches (`None`: all).
+    pub fn list_watchers_with_filters(
+        &self,
+    ) -> impl Iterator<Item = (&UserId, Option<&ListFilter>)> {
+        self.users
+            .iter()
+            .filter(|(_, u)| u.watch_list)
+            .map(|(id, u)| (id, u.watch_filter.as_ref()))
+    }
+
     /// Registered system names.
     pub fn systems(&self) -> impl Iterator<Item = &str> {
         self.systems.keys().map(String::as_str)
@@ -635,6 +647,7 @@ impl Broker {
             | ToBroker::LinkOpened { user, .. }
             | ToBroker::LinkClosed { user, .. }
             | ToBroker::Operate { user, .. }
+            | ToBroker::WatchList { user, .. }
             | ToBroker::Goodbye { user } => self.users.get(user).is_none_or(|u| u.pid == pid),
         };
         muster_shared::protocol::note_impersonation(
@@ -700,6 +713,11 @@ impl Broker {
                 }
             }
             ToBroker::Goodbye { user } => self.forget_user(now, &user),
+            ToBroker::WatchList { user, filter } => {
+                if let Some(u) = self.users.get_mut(&user) {
+                    u.watch_filter = filter.filter(|f| !f.is_everything());
+                }
+            }
             ToBroker::Operate { user, id, op } => self.operate(now, user, id, op),
         }
     }
@@ -1371,6 +1389,7 @@ impl Broker {
         let rec = self.users.entry(user.clone()).or_default();
         rec.pid = pid;
         rec.watch_list = watch_list;
+        rec.watch_filter = None;
         let old = std::mem::take(&mut rec.links);
         for l in old.values() {
             self.count_link(l, false);

@@ -5,6 +5,7 @@
 pub mod core;
 pub mod federation;
 pub mod replica;
+pub mod rings;
 pub mod run;
 pub mod takeover;
 pub mod udp;

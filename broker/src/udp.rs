@@ -863,6 +863,9 @@ impl UdpFront {
             ToBroker::LinkClosed { link, .. } => self
                 .events
                 .push_back(FrontEvent::ToCore(ToBroker::LinkClosed { user, link })),
+            ToBroker::WatchList { filter, .. } => self
+                .events
+                .push_back(FrontEvent::ToCore(ToBroker::WatchList { user, filter })),
             ToBroker::Goodbye { .. } => {
                 self.by_user.remove(&user);
                 self.conns.remove(&id);

@@ -382,6 +382,15 @@ mod to_broker {
             /// The link number.
             link: u64,
         },
+        /// A user that watches the list (its hello said so) is rung only when a service
+        /// `filter` lets through changes, comes or goes; `None`: on every change. A new
+        /// hello forgets it (a user sends it again after each).
+        WatchList {
+            /// User id.
+            user: UserId,
+            /// The part of the list it watches.
+            filter: Option<crate::snapshot::ListFilter>,
+        },
         /// A user leaves.
         Goodbye {
             /// User id.
@@ -596,6 +605,7 @@ impl ToBroker {
             ToBroker::LinkOpened { .. } => "link_opened",
             ToBroker::LinkClosed { .. } => "link_closed",
             ToBroker::Goodbye { .. } => "goodbye",
+            ToBroker::WatchList { .. } => "watch_list",
             ToBroker::Operate { .. } => "operate",
         }
     }

@@ -224,7 +224,18 @@ impl ServiceListSnapshot {
 }
 
 /// Which services a user wants to see: every condition given must hold.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
+#[derive(
+    Clone,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    Serialize,
+    serde::Deserialize,
+    rkyv::Archive,
+    rkyv::Serialize,
+    rkyv::Deserialize,
+)]
 pub struct ListFilter {
     /// The host offering it (in a federation, this host's services carry its name).
     pub host: Option<String>,
@@ -268,18 +279,18 @@ impl ListFilter {
     }
 
     /// The filter ready to match; a bad name glob matches nothing (see [`Self::check`]).
-    pub fn matcher(&self) -> ListMatcher<'_> {
+    pub fn matcher(&self) -> ListMatcher {
         ListMatcher {
-            filter: self,
+            filter: self.clone(),
             name: self.name.as_ref().map(|g| {
                 // The glob's own regex, matched on the name's bytes: globset's path
                 // matcher first makes every name a path, which costs more than the match.
                 let g = globset::Glob::new(g).ok()?;
                 regex::bytes::Regex::new(g.regex()).ok()
             }),
-            prefix: self.name.as_deref().map_or(&[][..], |g| {
+            prefix: self.name.as_deref().map_or(Vec::new(), |g| {
                 let end = g.find(['*', '?', '[', '{', '\\']).unwrap_or(g.len());
-                &g.as_bytes()[..end]
+                g.as_bytes()[..end].to_vec()
             }),
         }
     }
@@ -314,18 +325,23 @@ impl Default for ListPart {
 }
 
 /// A [`ListFilter`] with its glob compiled.
-pub struct ListMatcher<'a> {
-    filter: &'a ListFilter,
+pub struct ListMatcher {
+    filter: ListFilter,
     name: Option<Option<regex::bytes::Regex>>,
     /// What every name the glob matches starts with (its text before the first
     /// wildcard): most names fail on it, before the regex.
-    prefix: &'a [u8],
+    prefix: Vec<u8>,
 }
 
-impl ListMatcher<'_> {
+impl ListMatcher {
+    /// The filter it matches.
+    pub fn filter(&self) -> &ListFilter {
+        &self.filter
+    }
+
     /// Whether `e` passes (only the fields the filter names are looked at).
     pub fn matches(&self, e: &ServiceEntry) -> bool {
-        let f = self.filter;
+        let f = &self.filter;
         let same = |want: &Option<String>, have: &[u8]| {
             want.as_deref().is_none_or(|w| w.as_bytes() == have)
         };
@@ -338,7 +354,7 @@ impl ListMatcher<'_> {
 
     /// Whether `v` passes.
     pub fn matches_view(&self, v: &ServiceView) -> bool {
-        let f = self.filter;
+        let f = &self.filter;
         let same = |want: &Option<String>, have: &str| want.as_deref().is_none_or(|w| w == have);
         same(&f.system, &v.system)
             && same(&f.host, &v.host)
@@ -353,7 +369,7 @@ impl ListMatcher<'_> {
             Some(None) => false,
             Some(Some(g)) => {
                 let name = name();
-                name.starts_with(self.prefix) && g.is_match(name)
+                name.starts_with(&self.prefix) && g.is_match(name)
             }
         }
     }

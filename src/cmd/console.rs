@@ -399,6 +399,7 @@ pub fn run(inst: &Instance, a: ConsoleArgs) -> anyhow::Result<ExitCode> {
     };
     let mut client = super::user::connect(inst, &a.remote, &opts)?;
     let part = a.list.part();
+    client.watch_part(Some(part.filter.clone()))?;
     let inputs = Inputs::start(&mut client)?;
     // A remote operator hears the event feed from the broker's front (once it has
     // acted: the first status read); a local one reads the feed in shared memory.

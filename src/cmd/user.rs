@@ -25,7 +25,10 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
         }
     }
     let started = Instant::now();
-    let client = connect(inst, &a.remote, &opts)?;
+    let mut client = connect(inst, &a.remote, &opts)?;
+    if a.verb.is_none() {
+        client.watch_part(Some(a.list.filter()))?;
+    }
     match a.verb {
         None if !a.plain && super::tui::interactive() => {
             let who = match &a.remote.remote {
@@ -194,6 +197,8 @@ fn watch(
 ) -> anyhow::Result<ExitCode> {
     let deadline = Instant::now() + duration.unwrap_or(Duration::from_secs(100 * 365 * 86400));
     let want = part.part();
+    // The broker rings this process only when that part changes.
+    client.watch_part(Some(want.filter.clone()))?;
     // What was shown last: a change elsewhere in the list is not shown again.
     let mut shown_views: Option<(u64, Vec<muster_shared::snapshot::ServiceView>)> = None;
     loop {

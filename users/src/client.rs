@@ -403,6 +403,18 @@ impl UserClient {
         id
     }
 
+    /// Watches only the part of the list `filter` lets through (`None`: all of it):
+    /// this user's list bell rings only when a service of that part changes, comes or
+    /// goes. For a user connected with `watch_list`.
+    pub fn watch_part(&mut self, filter: Option<ListFilter>) -> Result<(), UserError> {
+        if let Some(f) = &filter {
+            f.check().map_err(UserError::BadFilter)?;
+        }
+        self.core.watch_part(filter);
+        self.flush();
+        Ok(())
+    }
+
     /// Gives up a pending or queued request.
     pub fn cancel(&mut self, req: u64) {
         self.core.cancel(req);

@@ -4,6 +4,7 @@
 
 use muster_shared::names::Address;
 use muster_shared::protocol::{LinkInfo, ToBroker, ToSystem, ToUser};
+use muster_shared::snapshot::ListFilter;
 use muster_shared::types::{
     link_compatible, EndReason, Payload, Refusal, ServiceId, ServiceKind, SessionId, TaskStatus,
     UserId,
@@ -201,6 +202,8 @@ pub struct UserCore {
     id: UserId,
     pid: u32,
     watch_list: bool,
+    /// The part of the list watched (`None`: all), said again after each hello.
+    watch_filter: Option<ListFilter>,
     connected: Option<u64>,
     next_req: u64,
     next_link: u64,
@@ -241,6 +244,7 @@ impl UserCore {
             id,
             pid,
             watch_list,
+            watch_filter: None,
             connected: None,
             next_req: 1,
             next_link: 1,
@@ -416,7 +420,30 @@ impl UserCore {
             links,
             watch_list: self.watch_list,
         });
+        if self.watch_list && self.watch_filter.is_some() {
+            self.send_broker(ToBroker::WatchList {
+                user: self.id.clone(),
+                filter: self.watch_filter.clone(),
+            });
+        }
         self.resend_pending();
+    }
+
+    /// Watches only the part of the list `filter` lets through (`None`: all of it): the
+    /// broker rings this user only when a service of that part changes, comes or goes.
+    /// A user that does not watch the list (see [`UserCore::new`]) is not rung at all.
+    pub fn watch_part(&mut self, filter: Option<ListFilter>) {
+        let filter = filter.filter(|f| !f.is_everything());
+        if filter == self.watch_filter {
+            return;
+        }
+        self.watch_filter = filter;
+        if self.watch_list {
+            self.send_broker(ToBroker::WatchList {
+                user: self.id.clone(),
+                filter: self.watch_filter.clone(),
+            });
+        }
     }
 
     /// Whether this user has something the broker must hear again after a takeover

@@ -137,6 +137,9 @@ struct Shell {
     /// When list watchers were last rung, and whether a ring is owed.
     last_ring: Option<Instant>,
     ring_owed: bool,
+    /// What changed in the list since watchers were last rung, to ring those watching
+    /// a part of it only when that part changed.
+    rings: crate::rings::Rings,
     /// When what waits for the peers just woken is done ([`AFTER_WAKING`]): the bells
     /// of systems sent offers, and a change of this host's list's counts.
     deferred_at: Option<Instant>,
@@ -456,6 +459,7 @@ fn serve(
         snapshot: Box::new(ServiceListSnapshot::empty()),
         last_ring: None,
         ring_owed: false,
+        rings: crate::rings::Rings::new(),
         deferred_at: None,
         unopened: PeerQueue::default(),
         handling: Handling::new(keep_log),
@@ -1126,10 +1130,18 @@ impl Shell {
             ),
             None => (self.local_views.iter().collect(), None),
         };
+        if self.snapshot.entries().len() != all.len() {
+            // Services came or went: rows moved, so every watcher is rung.
+            self.rings.everything_changed();
+        }
         for (slot, v) in self.snapshot.resize(all.len()).iter_mut().zip(&all) {
-            *slot = v.to_entry();
+            let mut e = v.to_entry();
             if let Some(h) = host.filter(|_| !v.remote) {
-                slot.host = h;
+                e.host = h;
+            }
+            if *slot != e {
+                self.rings.changed(slot, &e);
+                *slot = e;
             }
         }
         let t = Instant::now();
@@ -1175,7 +1187,7 @@ impl Shell {
         }
         self.ring_owed = false;
         self.last_ring = Some(Instant::now());
-        let mut watchers: Vec<UserId> = core.list_watchers().cloned().collect();
+        let mut watchers: Vec<UserId> = self.rings.take_from(core);
         if let Some(d) = self.udp.as_mut() {
             let (remote, local): (Vec<UserId>, Vec<UserId>) =
                 watchers.into_iter().partition(|u| d.front.is_remote(u));

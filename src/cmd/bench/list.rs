@@ -187,7 +187,6 @@ fn bench(
         got_page,
     );
     add("broker: one change, fill + write", &write, n);
-    drop(add);
     if !a.json {
         println!(
             "service list of {n} in shared memory (blackboard room for {}; first write {first_write_us:.0} µs)",
