@@ -374,6 +374,51 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
 }
 
 #[test]
+fn a_federations_list_holds_more_than_256_services_and_filters_by_host() {
+    let mut h = Hosts::new("fbig", &["a", "b"]);
+    for s in ["t1", "t2", "t3"] {
+        h.host(1).system(s, &["--services", "128"]);
+    }
+    h.host(0).system("own", &["--services", "2"]);
+    // a lists b's 384 and its own 2 (the old merged list held 256 in all).
+    let (list, _) = h.host(0).wait_list(30 * SEC, |l| l.len() == 386);
+    assert_eq!(list.iter().filter(|v| v["host"] == "b").count(), 384);
+    let (code, out) = h.host(0).run(
+        &[
+            "user", "list", "--json", "--host", "b", "--system", "t2", "--name", "s12?",
+        ],
+        20 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let v: Value = serde_json::from_str(&out).unwrap();
+    let got: Vec<&str> = v
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["id"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        got,
+        [
+            "t2@b/s120",
+            "t2@b/s121",
+            "t2@b/s122",
+            "t2@b/s123",
+            "t2@b/s124",
+            "t2@b/s125",
+            "t2@b/s126",
+            "t2@b/s127"
+        ]
+    );
+    let (code, out) = h
+        .host(0)
+        .run(&["user", "list", "--json", "--host", "a"], 20 * SEC);
+    assert_eq!(code, 0, "{out}");
+    let v: Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(ids(v.as_array().unwrap()), ["own/s0", "own/s1"]);
+}
+
+#[test]
 fn a_link_runs_across_three_hosts() {
     let mut h = Hosts::new("fk", &["a", "b", "c"]);
     h.host(0).system("t1", &["--rate", "20"]);

@@ -257,6 +257,9 @@ pub fn chunk_list(
         used += size;
         groups.last_mut().expect("never empty").push(v.clone());
     }
+    // A chunk's number is 16 bits: a longer answer is cut there (about half a million
+    // services), and `matching` still says how many there are, for pages.
+    groups.truncate(usize::from(u16::MAX));
     let total = groups.len() as u16;
     groups
         .into_iter()
