@@ -173,6 +173,63 @@ fn registration_lists_services_and_bumps_generation() {
 }
 
 #[test]
+fn rows_taken_by_their_counts_are_the_list_and_name_the_rows_that_changed() {
+    let mut b = broker();
+    let (mut rows, mut shape) = (Vec::new(), u64::MAX);
+    let mut take = |b: &mut Broker, rows: &mut Vec<ServiceView>| {
+        let (_, changed) = b.take_list_change_rows(rows, &mut shape).unwrap();
+        assert_eq!(*rows, b.views());
+        changed
+    };
+    register(
+        &mut b,
+        S,
+        "t1",
+        7,
+        vec![
+            spec("a", 3, true),
+            spec("b", 10, false),
+            spec("c", 1, false),
+        ],
+    );
+    assert_eq!(take(&mut b, &mut rows), None, "services came: every row");
+    // A grant (t1/b's sessions in use): only its row.
+    request(&mut b, S, 1, 1, "t1/b");
+    let t = offers(&drain(&mut b))[0].1;
+    grant(&mut b, S, "t1", t);
+    drain(&mut b);
+    assert_eq!(take(&mut b, &mut rows), Some(vec![1]));
+    // A request for t1/a (an offer out counts in use) and t1/c withdrawn: two rows.
+    request(&mut b, S, 2, 1, "t1/a");
+    drain(&mut b);
+    b.handle(
+        S,
+        ToBroker::Withdraw {
+            system: "t1".into(),
+            service: "c".into(),
+        },
+    );
+    drain(&mut b);
+    assert_eq!(take(&mut b, &mut rows), Some(vec![0, 2]));
+    // Nothing changed: no new generation.
+    assert!(b.take_list_change_rows(&mut rows, &mut shape).is_none());
+    // The same system declaring its services anew (a description changed): every row.
+    let mut d = spec("a", 3, true);
+    d.description = "another".into();
+    register(
+        &mut b,
+        S,
+        "t1",
+        7,
+        vec![d, spec("b", 10, false), spec("c", 1, false)],
+    );
+    drain(&mut b);
+    let (_, changed) = b.take_list_change_rows(&mut rows, &mut shape).unwrap();
+    assert_eq!((changed, rows.clone()), (None, b.views()));
+    assert_eq!(view(&rows, "t1/a").description, "another");
+}
+
+#[test]
 fn rows_written_over_in_place_are_the_list() {
     let mut b = broker();
     let mut rows = Vec::new();

@@ -381,6 +381,26 @@ impl UdpFront {
         self.views = views.to_vec();
     }
 
+    /// [`UdpFront::list_changed`] where only `rows` of `views` changed since the last
+    /// call (`None`: any may have).
+    pub fn list_changed_rows(
+        &mut self,
+        epoch: u64,
+        generation: u64,
+        views: &[ServiceView],
+        rows: Option<&[usize]>,
+    ) {
+        match rows.filter(|_| self.views.len() == views.len() && self.epoch == epoch) {
+            Some(rows) => {
+                self.generation = generation;
+                for &i in rows {
+                    self.views[i].clone_from(&views[i]);
+                }
+            }
+            None => self.list_changed(epoch, generation, views),
+        }
+    }
+
     /// Tells remote list watchers that the list changed.
     pub fn ring(&mut self, watchers: &[UserId]) {
         let generation = self.generation;

@@ -140,6 +140,8 @@ struct Shell {
     /// What changed in the list since watchers were last rung, to ring those watching
     /// a part of it only when that part changed.
     rings: crate::rings::Rings,
+    /// The core's list shape the rows in `local_views` were taken at.
+    list_shape: u64,
     /// When what waits for the peers just woken is done ([`AFTER_WAKING`]): the bells
     /// of systems sent offers, and a change of this host's list's counts.
     deferred_at: Option<Instant>,
@@ -460,6 +462,7 @@ fn serve(
         last_ring: None,
         ring_owed: false,
         rings: crate::rings::Rings::new(),
+        list_shape: u64::MAX,
         deferred_at: None,
         unopened: PeerQueue::default(),
         handling: Handling::new(keep_log),
@@ -1094,11 +1097,15 @@ impl Shell {
     fn write_list(&mut self, core: &mut Broker) {
         // The core's rows, updated in place: alone, they are the list; in a federation,
         // other hosts' users' links are added to them first.
-        let mine = match self.fed {
-            None => &mut self.local_views,
-            Some(_) => &mut self.core_views,
+        // Alone, only the rows whose counts changed are taken when no service came or
+        // went (`rows`); in a federation, every row.
+        let (local, rows) = match self.fed {
+            None => match core.take_list_change_rows(&mut self.local_views, &mut self.list_shape) {
+                Some((g, rows)) => (Some(g), rows),
+                None => (None, None),
+            },
+            Some(_) => (core.take_list_change_into(&mut self.core_views), None),
         };
-        let local = core.take_list_change_into(mine);
         let (far, links) = self.fed.as_mut().map_or((false, false), |f| {
             (f.take_list_change(), f.take_links_change())
         });
@@ -1130,25 +1137,40 @@ impl Shell {
             ),
             None => (self.local_views.iter().collect(), None),
         };
-        if self.snapshot.entries().len() != all.len() {
-            // Services came or went: rows moved, so every watcher is rung.
-            self.rings.everything_changed();
-        }
-        for (slot, v) in self.snapshot.resize(all.len()).iter_mut().zip(&all) {
-            let mut e = v.to_entry();
-            if let Some(h) = host.filter(|_| !v.remote) {
-                e.host = h;
+        let rows = rows.filter(|_| self.snapshot.entries().len() == all.len());
+        match &rows {
+            Some(rows) => {
+                let slots = self.snapshot.resize(all.len());
+                for &i in rows {
+                    let e = all[i].to_entry();
+                    self.rings.changed(&slots[i], &e);
+                    slots[i] = e;
+                }
             }
-            if *slot != e {
-                self.rings.changed(slot, &e);
-                *slot = e;
+            None => {
+                if self.snapshot.entries().len() != all.len() {
+                    // Services came or went: rows moved, so every watcher is rung.
+                    self.rings.everything_changed();
+                }
+                for (slot, v) in self.snapshot.resize(all.len()).iter_mut().zip(&all) {
+                    let mut e = v.to_entry();
+                    if let Some(h) = host.filter(|_| !v.remote) {
+                        e.host = h;
+                    }
+                    if *slot != e {
+                        self.rings.changed(slot, &e);
+                        *slot = e;
+                    }
+                }
             }
         }
         let t = Instant::now();
-        match self
-            .list
-            .publish(self.endpoint.node(), &self.snapshot, &self.fence)
-        {
+        match self.list.publish_rows(
+            self.endpoint.node(),
+            &self.snapshot,
+            &self.fence,
+            rows.as_deref(),
+        ) {
             Ok(()) => self.handling.record("list_write", t, t.elapsed()),
             // Never fatal: readers keep the last list; the next change writes again.
             Err(e) => tracing::warn!("the service list could not be written: {e}"),
@@ -1161,9 +1183,12 @@ impl Shell {
                         all.into_iter().cloned().collect();
                     d.front.list_changed(self.snapshot.epoch, generation, &all);
                 }
-                None => d
-                    .front
-                    .list_changed(self.snapshot.epoch, generation, &self.local_views),
+                None => d.front.list_changed_rows(
+                    self.snapshot.epoch,
+                    generation,
+                    &self.local_views,
+                    rows.as_deref(),
+                ),
             }
         }
         self.ring_owed = true;

@@ -187,6 +187,18 @@ impl ListWriter {
         snapshot: &ServiceListSnapshot,
         fence: &crate::fence::Fence,
     ) -> Result<(), TransportError> {
+        self.publish_rows(node, snapshot, fence, None)
+    }
+
+    /// [`ListWriter::publish`] where the caller knows that only entries `rows` changed
+    /// since the last one (`None`: any may have): only their chunks are looked at.
+    pub fn publish_rows(
+        &mut self,
+        node: &Node<Ipc>,
+        snapshot: &ServiceListSnapshot,
+        fence: &crate::fence::Fence,
+        rows: Option<&[usize]>,
+    ) -> Result<(), TransportError> {
         let entries = snapshot.entries();
         let count = entries.len();
         if count > self.capacity() {
@@ -208,7 +220,20 @@ impl ListWriter {
         let before = self.written.len();
         let mut chunk = ListChunk::empty();
         let mut pages_changed = vec![false; self.board.seq_pages.len()];
-        for k in 0..chunks_for(count) {
+        // The chunks to look at: those of the rows that changed, or all.
+        let look: Vec<usize> = match rows.filter(|_| before == count) {
+            Some(rows) => {
+                let mut ks: Vec<usize> = rows
+                    .iter()
+                    .filter(|r| **r < count)
+                    .map(|r| r / CHUNK_ENTRIES)
+                    .collect();
+                ks.dedup();
+                ks
+            }
+            None => (0..chunks_for(count)).collect(),
+        };
+        for k in look {
             let range = chunk_range(k, count);
             // Unchanged, and whole in shared memory already: left as it is.
             if range.end <= before && self.written[range.clone()] == entries[range.clone()] {
@@ -232,8 +257,15 @@ impl ListWriter {
             page.seqs[..n].copy_from_slice(&seqs[..n]);
             self.board.seq_pages[p].update_with_copy(page);
         }
-        self.written.clear();
-        self.written.extend_from_slice(entries);
+        if before == count && rows.is_some() {
+            for k in rows.unwrap_or_default().iter().map(|r| r / CHUNK_ENTRIES) {
+                let range = chunk_range(k, count);
+                self.written[range.clone()].copy_from_slice(&entries[range]);
+            }
+        } else {
+            self.written.clear();
+            self.written.extend_from_slice(entries);
+        }
         self.board.header.update_with_copy(ListHeader {
             seq: self.seq,
             generation: snapshot.generation,

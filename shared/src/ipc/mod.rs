@@ -520,6 +520,34 @@ mod tests {
     }
 
     #[test]
+    fn a_write_of_the_rows_that_changed_is_read_whole() {
+        let inst = Instance::new(&format!("list-rows-{}", std::process::id())).unwrap();
+        let node = create_node("list-rows", false).unwrap();
+        let fence = crate::fence::Fence::open(&inst).unwrap();
+        let mut w = ListWriter::open(&node, &inst, 1).unwrap();
+        let mut list = stamped_list(1, 1000);
+        w.publish(&node, &list, &fence).unwrap();
+        let mut r = ListReader::open(&node, &inst).unwrap();
+        assert_eq!(r.read_from(&node).unwrap().entries(), list.entries());
+        for g in 2..50u64 {
+            list.generation = g;
+            let rows = [(g * 37 % 1000) as usize, (g * 101 % 1000) as usize];
+            for &i in &rows {
+                list.resize(1000)[i].in_use = g as u16;
+            }
+            let mut sorted = rows.to_vec();
+            sorted.sort_unstable();
+            w.publish_rows(&node, &list, &fence, Some(&sorted)).unwrap();
+            let got = r.read_from(&node).unwrap();
+            assert_eq!(got.generation, g);
+            assert_eq!(got.entries(), list.entries(), "write {g}");
+        }
+        drop(r);
+        drop(w);
+        fence.remove();
+    }
+
+    #[test]
     fn a_list_outgrowing_its_blackboard_moves_to_a_bigger_one_and_reads_in_pages() {
         use crate::snapshot::{ListFilter, FIRST_LIST_CHUNKS};
         let inst = Instance::new(&format!("list-grow-{}", std::process::id())).unwrap();

@@ -4,14 +4,18 @@
 //! read back by a real reader (a user's), both in this process: what crosses between
 //! processes is the same shared memory. It times a page of the list read in place,
 //! pages through filters, the whole list read (unchanged, and after a change), and the
-//! broker's side of one change (the rows made into entries, then written).
+//! broker's side of one change: every row made into an entry and written, and the
+//! broker's own path (a core of N services taking only the rows whose counts changed).
 
 use crate::cli::ListBenchArgs;
 use hdrhistogram::Histogram;
+use muster_broker::core::{Broker, BrokerConfig};
 use muster_shared::fence::Fence;
 use muster_shared::ipc::{create_node, ListReader, ListWriter};
+use muster_shared::protocol::ToBroker;
+use muster_shared::snapshot::DEFAULT_MAX_SERVICES;
 use muster_shared::snapshot::{ListFilter, ServiceListSnapshot, ServiceView};
-use muster_shared::types::ServiceKind;
+use muster_shared::types::{ServiceId, ServiceKind, ServiceSpec, UserId};
 use muster_shared::Instance;
 use rand::{RngExt, SeedableRng};
 use serde_json::{json, Value};
@@ -61,6 +65,61 @@ fn rows(n: usize) -> Vec<ServiceView> {
         .collect();
     rows.sort_by(|a, b| a.id.cmp(&b.id));
     rows
+}
+
+/// A broker core with `n` services (systems of [`PER_SYSTEM`], as [`rows`] names
+/// them, quota 1000) and 1,000 users said hello.
+fn loaded_core(n: usize) -> anyhow::Result<(Broker, Vec<UserId>)> {
+    let cfg = BrokerConfig {
+        max_services: n.max(DEFAULT_MAX_SERVICES),
+        ..BrokerConfig::default()
+    };
+    let mut core = Broker::new(cfg, 1, 1);
+    let now = std::time::Duration::from_secs(1);
+    for s in 0..n.div_ceil(PER_SYSTEM) {
+        let services = (s * PER_SYSTEM..((s + 1) * PER_SYSTEM).min(n))
+            .map(|i| ServiceSpec {
+                name: format!("s{}", i % PER_SYSTEM),
+                description: "a synthetic service of bench list".into(),
+                kind: if i % 4 == 3 {
+                    ServiceKind::Command
+                } else {
+                    ServiceKind::Data
+                },
+                queue: false,
+                quota: 1000,
+                payload: if i % 4 == 3 { "goal2d" } else { "pose2d" }.into(),
+                schema: None,
+            })
+            .collect();
+        core.handle(
+            now,
+            ToBroker::Register {
+                system: format!("sys{s:05}"),
+                pid: 100_000 + s as u32,
+                services,
+                sessions: vec![],
+                udp: None,
+            },
+        );
+    }
+    let users: Vec<UserId> = (0..1000).map(|u| UserId(format!("u{u}"))).collect();
+    for (k, u) in users.iter().enumerate() {
+        core.handle(
+            now,
+            ToBroker::Hello {
+                user: u.clone(),
+                pid: 200_000 + k as u32,
+                links: vec![],
+                watch_list: false,
+            },
+        );
+    }
+    while core.poll_output().is_some() {}
+    if core.views().len() != n {
+        anyhow::bail!("the core lists {} services, not {n}", core.views().len());
+    }
+    Ok((core, users))
 }
 
 /// The broker's steps on a list change: the rows made into the snapshot's entries.
@@ -186,7 +245,49 @@ fn bench(
         &paged,
         got_page,
     );
-    add("broker: one change, fill + write", &write, n);
+    add("fill every row + write", &write, n);
+    // The broker's own path: a core of N services; each request puts an offer out
+    // (one service's sessions in use change), and the list is taken (only the rows
+    // whose counts changed), filled and written.
+    let (mut core, users) = loaded_core(n)?;
+    let ids: Vec<ServiceId> = rows.iter().map(|v| ServiceId(v.id.clone())).collect();
+    let (mut views, mut shape) = (Vec::new(), u64::MAX);
+    let mut snap = ServiceListSnapshot::empty();
+    snap.epoch = 1;
+    if let Some((g, _)) = core.take_list_change_rows(&mut views, &mut shape) {
+        snap.generation = g;
+        fill(&mut snap, &views);
+    }
+    writer.publish(node, &snap, fence)?;
+    let mut broker = histogram()?;
+    let t0 = std::time::Duration::from_secs(2);
+    for (i, &k) in offsets.iter().enumerate() {
+        core.handle(
+            t0,
+            ToBroker::Request {
+                user: users[i % users.len()].clone(),
+                req: i as u64 + 1,
+                service: ids[k].clone(),
+            },
+        );
+        while core.poll_output().is_some() {}
+        let t = Instant::now();
+        if let Some((g, changed)) = core.take_list_change_rows(&mut views, &mut shape) {
+            snap.generation = g;
+            match &changed {
+                Some(changed) => {
+                    let slots = snap.resize(views.len());
+                    for &r in changed {
+                        slots[r] = views[r].to_entry();
+                    }
+                }
+                None => fill(&mut snap, &views),
+            }
+            writer.publish_rows(node, &snap, fence, changed.as_deref())?;
+        }
+        broker.record(t.elapsed().as_nanos().max(1) as u64)?;
+    }
+    add("broker: a request's list change", &broker, n);
     if !a.json {
         println!(
             "service list of {n} in shared memory (blackboard room for {}; first write {first_write_us:.0} µs)",
