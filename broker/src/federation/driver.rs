@@ -68,8 +68,9 @@ pub const FIRST_PROXY_TOKEN: usize = 1 << 32;
 const PROXY_LINGER: Duration = Duration::from_secs(2);
 /// How long a starting broker looks for another broker already using its host name.
 const HOST_CHECK: Duration = Duration::from_millis(400);
-/// Largest list taken from another host (a host lists at most 256 services).
-const MAX_FED_LIST: usize = 1 << 20;
+/// Largest list taken from another host: its JSON, about 300 bytes a service, so some
+/// 28,000 services.
+const MAX_FED_LIST: usize = 8 << 20;
 /// Most bytes of frames and lists waiting for the broker's loop; beyond it, what comes
 /// is dropped (and counted) rather than held: a flooding peer costs bounded memory.
 const MAX_QUEUED_BYTES: usize = 32 << 20;

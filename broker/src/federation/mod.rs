@@ -591,7 +591,7 @@ pub struct FedStats {
 pub const MAX_FED_FRAME: usize = 64 << 10;
 /// Zenoh's own limit on a message it reassembles from fragments: bigger ones are
 /// dropped by Zenoh before muster sees them.
-const MAX_ZENOH_MESSAGE: usize = 2 << 20;
+const MAX_ZENOH_MESSAGE: usize = 8 << 20;
 /// Most bytes of one batch of frames (one Zenoh put): within one of Zenoh's own 64 KiB
 /// batches, so that it is never cut into fragments. A single frame goes alone however
 /// large, up to [`MAX_FED_FRAME`].
