@@ -229,6 +229,18 @@ impl ServiceRec {
     fn used(&self) -> usize {
         self.sessions.len() + self.pending as usize
     }
+
+    /// What of its row changes without the service being declared anew: sessions in
+    /// use, requests queued, links, withdrawn.
+    fn counts(&self) -> (u16, u16, u16, bool) {
+        let n = |x: usize| u16::try_from(x).unwrap_or(u16::MAX);
+        (
+            n(self.used()),
+            n(self.queue.len()),
+            n(self.links as usize),
+            self.withdrawn,
+        )
+    }
 }
 
 #[derive(rkyv::Archive, rkyv::Serialize, rkyv::Deserialize, Debug, Default)]
@@ -550,6 +562,13 @@ impl Broker {
     /// If the list changed since the last call: the new generation, with `views` made
     /// the new rows (written over in place, see [`Broker::fill_views`]).
     pub fn take_list_change_into(&mut self, views: &mut Vec<ServiceView>) -> Option<u64> {
+        let generation = self.next_generation()?;
+        self.fill_views(views);
+        Some(generation)
+    }
+
+    /// If the list changed since it was last taken: a new generation (journaled).
+    fn next_generation(&mut self) -> Option<u64> {
         if !self.list_dirty {
             return None;
         }
@@ -559,7 +578,6 @@ impl Broker {
             // No clock in this step: the op's time is not used.
             j.push((Duration::ZERO, Op::ListTaken));
         }
-        self.fill_views(views);
         Some(self.generation)
     }
 
@@ -579,25 +597,16 @@ impl Broker {
             *shape = self.shape;
             return Some((generation, None));
         }
-        if !self.list_dirty {
-            return None;
-        }
-        self.list_dirty = false;
-        self.generation += 1;
-        if let Some(j) = self.journal.as_mut() {
-            j.push((Duration::ZERO, Op::ListTaken));
-        }
+        let generation = self.next_generation()?;
         let mut rows = Vec::new();
         for (i, (v, s)) in views.iter_mut().zip(self.services.values()).enumerate() {
-            let in_use = u16::try_from(s.used()).unwrap_or(u16::MAX);
-            let queued = u16::try_from(s.queue.len()).unwrap_or(u16::MAX);
-            let links = u16::try_from(s.links).unwrap_or(u16::MAX);
-            if (v.in_use, v.queued, v.links, v.withdrawn) != (in_use, queued, links, s.withdrawn) {
-                (v.in_use, v.queued, v.links, v.withdrawn) = (in_use, queued, links, s.withdrawn);
+            let counts = s.counts();
+            if (v.in_use, v.queued, v.links, v.withdrawn) != counts {
+                (v.in_use, v.queued, v.links, v.withdrawn) = counts;
                 rows.push(i);
             }
         }
-        Some((self.generation, Some(rows)))
+        Some((generation, Some(rows)))
     }
 
     /// The current list, in id order.
@@ -633,10 +642,7 @@ impl Broker {
             );
             v.queue = s.spec.queue;
             v.quota = s.spec.quota;
-            v.in_use = u16::try_from(s.used()).unwrap_or(u16::MAX);
-            v.queued = u16::try_from(s.queue.len()).unwrap_or(u16::MAX);
-            v.links = u16::try_from(s.links).unwrap_or(u16::MAX);
-            v.withdrawn = s.withdrawn;
+            (v.in_use, v.queued, v.links, v.withdrawn) = s.counts();
             v.host.clear();
             v.remote = false;
         }

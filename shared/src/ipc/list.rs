@@ -310,8 +310,8 @@ const LIST_READ_TRIES: usize = 1000;
 impl OpenList {
     /// Reads the header, then what `take` reads of the chunks, then the header again,
     /// until the two headers agree and no chunk read is newer (a consistent copy of
-    /// one write). `take` gets the header and a chunk reader, and says whether a chunk
-    /// it read was newer than the header.
+    /// one write). `take` gets the header and a chunk reader, and returns `None` when
+    /// what it read is newer than the header (a write under way: read again).
     fn consistent<T>(
         &self,
         mut take: impl FnMut(&ListHeader, &dyn Fn(usize) -> ListChunkRef) -> Option<T>,
