@@ -6,7 +6,7 @@ import asyncio
 import collections
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Deque, Dict, Iterator, List, Optional, Union, cast
+from typing import Any, Callable, Deque, Dict, Iterator, List, Optional, Tuple, Union, cast
 
 from . import _native
 from ._errors import MusterError, Refused, SessionEnded
@@ -370,24 +370,54 @@ class User:
         return self._pump(0)
 
     # The list.
-    def list(self) -> List[Service]:
-        """The service list."""
-        return [Service._of(d) for d in self._native.list()]
+    def list(self, *, host: Optional[str] = None, system: Optional[str] = None,
+             kind: Optional[str] = None, payload: Optional[str] = None,
+             name: Optional[str] = None, offset: int = 0,
+             limit: Optional[int] = None) -> List[Service]:
+        """The service list, or the part of it the filters let through (every one
+        given must hold; `name` is a glob such as "cam*"), from the `offset`th, at
+        most `limit`. A local user reads a page in place in shared memory; a remote
+        one is sent only the page. Raises ValueError for a bad filter."""
+        if (host, system, kind, payload, name, offset, limit) == (None,) * 5 + (0, None):
+            return [Service._of(d) for d in self._native.list()]
+        return self.page(host=host, system=system, kind=kind, payload=payload,
+                         name=name, offset=offset, limit=limit)[1]
 
-    def watch(self, timeout: Optional[float] = None) -> Iterator[List[Service]]:
-        """The list now, then again at every change (until `timeout` passes without
-        one, if given)."""
+    def page(self, *, host: Optional[str] = None, system: Optional[str] = None,
+             kind: Optional[str] = None, payload: Optional[str] = None,
+             name: Optional[str] = None, offset: int = 0,
+             limit: Optional[int] = None) -> Tuple[int, List[Service]]:
+        """`list` with how many services the filters let through in all."""
+        matching, page = self._native.list_page(host, system, kind, payload, name,
+                                                offset, limit)
+        return matching, [Service._of(d) for d in page]
+
+    def watch(self, timeout: Optional[float] = None, *, host: Optional[str] = None,
+              system: Optional[str] = None, kind: Optional[str] = None,
+              payload: Optional[str] = None,
+              name: Optional[str] = None) -> Iterator[List[Service]]:
+        """The list (or the part the filters let through) now, then again each time
+        it changes (until `timeout` passes without a change, if given). With filters,
+        the broker tells this user only of changes in that part."""
+        part = dict(host=host, system=system, kind=kind, payload=payload, name=name)
+        self._native.watch_part(**part)
         seen = self._list_changes
-        yield self.list()
+        shown = self.list(**part)
+        yield shown
         while True:
             deadline = None if timeout is None else time.monotonic() + timeout
-            while self._list_changes == seen:
-                left = None if deadline is None else deadline - time.monotonic()
-                if left is not None and left <= 0:
-                    return
-                self._pump(left)
-            seen = self._list_changes
-            yield self.list()
+            while True:
+                while self._list_changes == seen:
+                    left = None if deadline is None else deadline - time.monotonic()
+                    if left is not None and left <= 0:
+                        return
+                    self._pump(left)
+                seen = self._list_changes
+                now = self.list(**part)
+                if now != shown:
+                    break
+            shown = now
+            yield shown
 
     # Requests.
     def request(self, service: str, timeout: Optional[float] = 10.0,

@@ -152,6 +152,61 @@ impl NativeUser {
         })
     }
 
+    /// One page of the list: the services the filters let through (every one given
+    /// must hold; `name` is a glob), from the `offset`th, at most `limit`; returns how
+    /// many the filters let through in all, and the page as dicts.
+    #[pyo3(signature = (host=None, system=None, kind=None, payload=None, name=None, offset=0, limit=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn list_page<'py>(
+        &mut self,
+        py: Python<'py>,
+        host: Option<String>,
+        system: Option<String>,
+        kind: Option<&str>,
+        payload: Option<String>,
+        name: Option<String>,
+        offset: usize,
+        limit: Option<usize>,
+    ) -> PyResult<(usize, Bound<'py, PyList>)> {
+        guarded(|| {
+            let filter = list_filter(host, system, kind, payload, name)?;
+            let c = InPlace(self.client()?);
+            let limit = limit.unwrap_or(usize::MAX);
+            let page = py
+                .detach(move || {
+                    let c = c;
+                    c.0.list_page(&filter, offset, limit)
+                })
+                .map_err(|e| MusterError::new_err(e.to_string()))?;
+            let out = PyList::empty(py);
+            for v in &page.views() {
+                out.append(
+                    pythonize::pythonize(py, v).map_err(|e| MusterError::new_err(e.to_string()))?,
+                )?;
+            }
+            Ok((page.matching, out))
+        })
+    }
+
+    /// Watches only the part of the list the filters let through (none: all of it):
+    /// list changes are then told only when that part changes.
+    #[pyo3(signature = (host=None, system=None, kind=None, payload=None, name=None))]
+    fn watch_part(
+        &mut self,
+        host: Option<String>,
+        system: Option<String>,
+        kind: Option<&str>,
+        payload: Option<String>,
+        name: Option<String>,
+    ) -> PyResult<()> {
+        guarded(|| {
+            let filter = list_filter(host, system, kind, payload, name)?;
+            self.client()?
+                .watch_part(Some(filter))
+                .map_err(|e| MusterError::new_err(e.to_string()))
+        })
+    }
+
     /// Asks for service `id`; returns the request's number (its answer comes as an
     /// event: `queued`, `granted` or `refused`).
     fn request(&mut self, id: &str) -> PyResult<u64> {
@@ -488,4 +543,33 @@ pub fn rust_request_latencies(
         })
         .map_err(MusterError::new_err)
     })
+}
+
+/// A list filter from Python's keyword arguments.
+fn list_filter(
+    host: Option<String>,
+    system: Option<String>,
+    kind: Option<&str>,
+    payload: Option<String>,
+    name: Option<String>,
+) -> PyResult<muster_shared::snapshot::ListFilter> {
+    let kind = match kind {
+        None => None,
+        Some("data") => Some(muster_shared::types::ServiceKind::Data),
+        Some("command") => Some(muster_shared::types::ServiceKind::Command),
+        Some(other) => {
+            return Err(pyo3::exceptions::PyValueError::new_err(format!(
+                "kind must be \"data\" or \"command\", not {other:?}"
+            )))
+        }
+    };
+    let f = muster_shared::snapshot::ListFilter {
+        host,
+        system,
+        kind,
+        payload,
+        name,
+    };
+    f.check().map_err(pyo3::exceptions::PyValueError::new_err)?;
+    Ok(f)
 }

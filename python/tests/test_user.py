@@ -122,6 +122,31 @@ def test_the_list_is_watched(fed):
         assert seen[0].id == "t9/s0"
 
 
+def test_the_list_is_read_filtered_and_in_pages_and_a_part_of_it_watched(fed):
+    fed.broker()
+    fed.muster("system", "synthetic", "--name", "t1", "--services", "12")
+    fed.muster("system", "synthetic", "--name", "d1", "--kind", "command")
+    with muster.User(fed.inst) as me:
+        services(me, 13)
+        assert [s.id for s in me.list(kind="command")] == ["d1/s0"]
+        # t1's s1, s10, s11 by a glob; the second and third of them as a page.
+        assert [s.id for s in me.list(system="t1", name="s1*")] == ["t1/s1", "t1/s10", "t1/s11"]
+        matching, page = me.page(system="t1", name="s1*", offset=1, limit=2)
+        assert (matching, [s.id for s in page]) == (3, ["t1/s10", "t1/s11"])
+        assert [s.id for s in me.list(offset=12, limit=5)] == ["t1/s9"]
+        with pytest.raises(ValueError):
+            me.list(name="s[1")
+        with pytest.raises(ValueError):
+            me.list(kind="neither")
+        # Watching t2 only: t9 coming is not told; t2 coming is.
+        changes = me.watch(timeout=10, system="t2")
+        assert next(changes) == []
+        fed.muster("system", "synthetic", "--name", "t9")
+        wait_until(lambda: len(me.list()) == 14, what="t9 listed")
+        fed.muster("system", "synthetic", "--name", "t2")
+        assert [s.id for s in next(changes)] == ["t2/s0"]
+
+
 def test_asyncio_requests_and_iterates(fed):
     fed.broker()
     fed.muster("system", "synthetic", "--name", "t1", "--rate", "50")
