@@ -60,6 +60,24 @@ fn seq_pages(chunks: usize) -> usize {
     chunks.div_ceil(SEQS_PER_PAGE)
 }
 
+/// The handles of a `chunks`-chunk blackboard's chunks and seq pages, from a writer's
+/// or a reader's `entry` (the two sides open the same keys).
+fn board_entries<C, S, E: std::fmt::Debug>(
+    chunks: usize,
+    mut chunk: impl FnMut(&u64) -> Result<C, E>,
+    mut seqs: impl FnMut(&u64) -> Result<S, E>,
+) -> Result<(Vec<C>, Vec<S>), TransportError> {
+    let c = (0..chunks)
+        .map(|k| chunk(&chunk_key(k)))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| svc_err("service-list chunk", e))?;
+    let s = (0..seq_pages(chunks))
+        .map(|p| seqs(&seqs_key(chunks, p)))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| svc_err("service-list seqs", e))?;
+    Ok((c, s))
+}
+
 /// How many chunks hold `count` entries.
 fn chunks_for(count: usize) -> usize {
     count.div_ceil(CHUNK_ENTRIES)
@@ -128,14 +146,11 @@ impl Board {
             let header = writer
                 .entry::<ListHeader>(&HEADER_KEY)
                 .map_err(|e| svc_err("service-list header", e))?;
-            let seq_pages = (0..seq_pages(chunks))
-                .map(|p| writer.entry::<ListSeqs>(&seqs_key(chunks, p)))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(|e| svc_err("service-list seqs", e))?;
-            let chunk_handles = (0..chunks)
-                .map(|k| writer.entry::<ListChunk>(&chunk_key(k)))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(|e| svc_err("service-list chunk", e))?;
+            let (chunk_handles, seq_pages) = board_entries(
+                chunks,
+                |k| writer.entry::<ListChunk>(k),
+                |k| writer.entry::<ListSeqs>(k),
+            )?;
             return Ok(Board {
                 id,
                 header,
@@ -218,6 +233,9 @@ impl ListWriter {
         }
         self.seq += 1;
         let before = self.written.len();
+        // The chunks skipped below hold what `written` does; those written are copied
+        // into it as they are.
+        self.written.resize(count, ServiceListSnapshot::EMPTY_ENTRY);
         let mut chunk = ListChunk::empty();
         let mut pages_changed = vec![false; self.board.seq_pages.len()];
         // The chunks to look at: those of the rows that changed, or all.
@@ -241,7 +259,8 @@ impl ListWriter {
             }
             chunk.seq = self.seq;
             chunk.entries = [ServiceListSnapshot::EMPTY_ENTRY; CHUNK_ENTRIES];
-            chunk.entries[..range.len()].copy_from_slice(&entries[range]);
+            chunk.entries[..range.len()].copy_from_slice(&entries[range.clone()]);
+            self.written[range.clone()].copy_from_slice(&entries[range]);
             self.board.chunks[k].update_with_copy(chunk);
             self.board.seqs[k] = self.seq;
             pages_changed[k / SEQS_PER_PAGE] = true;
@@ -256,15 +275,6 @@ impl ListWriter {
             let n = seqs.len().min(SEQS_PER_PAGE);
             page.seqs[..n].copy_from_slice(&seqs[..n]);
             self.board.seq_pages[p].update_with_copy(page);
-        }
-        if before == count && rows.is_some() {
-            for k in rows.unwrap_or_default().iter().map(|r| r / CHUNK_ENTRIES) {
-                let range = chunk_range(k, count);
-                self.written[range.clone()].copy_from_slice(&entries[range]);
-            }
-        } else {
-            self.written.clear();
-            self.written.extend_from_slice(entries);
         }
         self.board.header.update_with_copy(ListHeader {
             seq: self.seq,
@@ -393,15 +403,11 @@ impl ListReader {
         let header = reader
             .entry::<ListHeader>(&HEADER_KEY)
             .map_err(|e| svc_err("service-list header", e))?;
-        let n = header.get().chunks as usize;
-        let chunks = (0..n)
-            .map(|k| reader.entry::<ListChunk>(&chunk_key(k)))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| svc_err("service-list chunk", e))?;
-        let seq_pages = (0..seq_pages(n))
-            .map(|p| reader.entry::<ListSeqs>(&seqs_key(n, p)))
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| svc_err("service-list seqs", e))?;
+        let (chunks, seq_pages) = board_entries(
+            header.get().chunks as usize,
+            |k| reader.entry::<ListChunk>(k),
+            |k| reader.entry::<ListSeqs>(k),
+        )?;
         self.current = Some(OpenList {
             id,
             header,
