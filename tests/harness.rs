@@ -875,7 +875,7 @@ fn remote_user_works(
     }));
     let (matching, list) = list.unwrap();
     assert_eq!(
-        (matching, list.count),
+        (matching, list.count()),
         (3, 3),
         "two data services and one command service"
     );
@@ -1029,7 +1029,7 @@ fn a_remote_user_gets_a_list_of_2000_services_whole_at_10_percent_loss() {
         net.ruser(&u).conn.stats()
     );
     let (matching, list) = list.unwrap();
-    assert_eq!((matching, list.count), (2000, 2000));
+    assert_eq!((matching, list.count()), (2000, 2000));
     let ids: Vec<String> = list.entries().iter().map(|e| e.id().0).collect();
     let want: Vec<String> = net.list().into_iter().map(|v| v.id).collect();
     assert_eq!(ids, want);

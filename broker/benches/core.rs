@@ -214,7 +214,7 @@ fn list_read(c: &mut Criterion) {
     let mut reader = ListReader::open(&node, &inst).expect("reader");
     let mut g = c.benchmark_group("list_read_80_services");
     g.bench_function("unchanged", |b| {
-        b.iter(|| black_box(reader.read_from(&node).expect("read").count))
+        b.iter(|| black_box(reader.read_from(&node).expect("read").count()))
     });
     g.bench_function("changed", |b| {
         b.iter_custom(|iters| {
@@ -223,7 +223,7 @@ fn list_read(c: &mut Criterion) {
                 snapshot.generation += 1;
                 writer.publish(&node, &snapshot, &fence).expect("publish");
                 let t = Instant::now();
-                black_box(reader.read_from(&node).expect("read").count);
+                black_box(reader.read_from(&node).expect("read").count());
                 spent += t.elapsed();
             }
             spent

@@ -23,7 +23,7 @@
 use crate::core::{Broker, Output};
 use crate::federation::FarGrant;
 use muster_shared::protocol::{LinkInfo, RemoteContact, ToBroker, ToSystem, ToUser};
-use muster_shared::snapshot::{ListFilter, ServiceView};
+use muster_shared::snapshot::{page_of, ListFilter, ServiceView};
 use muster_shared::types::{Refusal, ServiceId, UserId};
 use muster_shared::udp::access::{valid_user_name, AccessFile};
 use muster_shared::udp::crypto::{self, Channel, Cookies, HandshakeState, KeyPair};
@@ -801,18 +801,11 @@ impl UdpFront {
         let Some(c) = self.conns.get(&id) else { return };
         let policy = self.access.get(&c.name);
         let m = filter.matcher();
-        let mut matching = 0usize;
-        let mut views: Vec<ServiceView> = Vec::new();
-        for v in self
+        let visible = self
             .views
             .iter()
-            .filter(|v| policy.is_some_and(|p| p.allows(&v.id)) && m.matches_view(v))
-        {
-            if matching >= offset && views.len() < limit {
-                views.push(v.clone());
-            }
-            matching += 1;
-        }
+            .filter(|v| policy.is_some_and(|p| p.allows(&v.id)) && m.matches_view(v));
+        let (matching, views) = page_of(visible, offset, limit);
         let matching = u32::try_from(matching).unwrap_or(u32::MAX);
         for chunk in chunk_list(self.epoch, self.generation, (ask, matching), &views) {
             self.send(id, &chunk);

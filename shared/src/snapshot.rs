@@ -143,8 +143,6 @@ pub struct ServiceListSnapshot {
     pub generation: u64,
     /// The broker run that wrote it (0 = no broker has written yet).
     pub epoch: u64,
-    /// Number of entries.
-    pub count: u32,
     /// The entries, in id order.
     entries: Vec<ServiceEntry>,
 }
@@ -178,7 +176,6 @@ impl ServiceListSnapshot {
         ServiceListSnapshot {
             generation,
             epoch,
-            count: entries.len() as u32,
             entries,
         }
     }
@@ -186,8 +183,12 @@ impl ServiceListSnapshot {
     /// Makes the list `count` entries long (new ones empty) and gives them to be written.
     pub fn resize(&mut self, count: usize) -> &mut [ServiceEntry] {
         self.entries.resize(count, Self::EMPTY_ENTRY);
-        self.count = count as u32;
         &mut self.entries
+    }
+
+    /// How many entries it has.
+    pub fn count(&self) -> usize {
+        self.entries.len()
     }
 
     /// The entries.
@@ -207,20 +208,33 @@ impl ServiceListSnapshot {
 
     /// The entries `filter` lets through, from the `offset`th of them, at most `limit`.
     pub fn page(&self, filter: &ListFilter, offset: usize, limit: usize) -> ListPage {
-        let mut page = ListPage {
+        let m = filter.matcher();
+        let (matching, entries) =
+            page_of(self.entries.iter().filter(|e| m.matches(e)), offset, limit);
+        ListPage {
             generation: self.generation,
             epoch: self.epoch,
-            ..ListPage::default()
-        };
-        let m = filter.matcher();
-        for e in self.entries.iter().filter(|e| m.matches(e)) {
-            if page.matching >= offset && page.entries.len() < limit {
-                page.entries.push(*e);
-            }
-            page.matching += 1;
+            matching,
+            entries,
         }
-        page
     }
+}
+
+/// Of `items`, how many there are, and the ones from the `offset`th, at most `limit`.
+pub fn page_of<'a, T: Clone + 'a>(
+    items: impl Iterator<Item = &'a T>,
+    offset: usize,
+    limit: usize,
+) -> (usize, Vec<T>) {
+    let mut page = Vec::new();
+    let mut n = 0;
+    for item in items {
+        if n >= offset && page.len() < limit {
+            page.push(item.clone());
+        }
+        n += 1;
+    }
+    (n, page)
 }
 
 /// Which services a user wants to see: every condition given must hold.
@@ -294,12 +308,6 @@ impl ListFilter {
             }),
         }
     }
-
-    /// Whether `e` passes (compiles the glob each time: for many entries, use
-    /// [`Self::matcher`]).
-    pub fn matches(&self, e: &ServiceEntry) -> bool {
-        self.matcher().matches(e)
-    }
 }
 
 /// The part of the list a view shows: the services a filter lets through, from an
@@ -339,39 +347,84 @@ impl ListMatcher {
         &self.filter
     }
 
-    /// Whether `e` passes (only the fields the filter names are looked at).
+    /// Whether `e` passes.
     pub fn matches(&self, e: &ServiceEntry) -> bool {
-        let f = &self.filter;
-        let same = |want: &Option<String>, have: &[u8]| {
-            want.as_deref().is_none_or(|w| w.as_bytes() == have)
-        };
-        same(&f.system, e.system.as_bytes())
-            && same(&f.host, e.host.as_bytes())
-            && same(&f.payload, e.payload.as_bytes())
-            && f.kind.is_none_or(|k| k == e.kind())
-            && self.name_passes(|| e.name.as_bytes())
+        self.passes(e)
     }
 
     /// Whether `v` passes.
     pub fn matches_view(&self, v: &ServiceView) -> bool {
-        let f = &self.filter;
-        let same = |want: &Option<String>, have: &str| want.as_deref().is_none_or(|w| w == have);
-        same(&f.system, &v.system)
-            && same(&f.host, &v.host)
-            && same(&f.payload, &v.payload)
-            && f.kind.is_none_or(|k| k.as_str() == v.kind)
-            && self.name_passes(|| v.name.as_bytes())
+        self.passes(v)
     }
 
-    fn name_passes<'n>(&self, name: impl FnOnce() -> &'n [u8]) -> bool {
-        match &self.name {
-            None => true,
-            Some(None) => false,
-            Some(Some(g)) => {
-                let name = name();
-                name.starts_with(&self.prefix) && g.is_match(name)
+    /// Whether `row` passes; only the fields the filter names are looked at, and
+    /// bytes are compared as they are (nothing is checked as UTF-8).
+    fn passes(&self, row: &impl ListRow) -> bool {
+        let f = &self.filter;
+        let same = |want: &Option<String>, have: &[u8]| {
+            want.as_deref().is_none_or(|w| w.as_bytes() == have)
+        };
+        same(&f.system, row.system())
+            && same(&f.host, row.host())
+            && same(&f.payload, row.payload())
+            && f.kind.is_none_or(|k| k == row.kind())
+            && match &self.name {
+                None => true,
+                Some(None) => false,
+                Some(Some(g)) => {
+                    let name = row.name();
+                    name.starts_with(&self.prefix) && g.is_match(name)
+                }
             }
+    }
+}
+
+/// What a [`ListMatcher`] looks at in a row of the list, shared memory's or owned.
+trait ListRow {
+    fn system(&self) -> &[u8];
+    fn host(&self) -> &[u8];
+    fn payload(&self) -> &[u8];
+    fn kind(&self) -> ServiceKind;
+    fn name(&self) -> &[u8];
+}
+
+impl ListRow for ServiceEntry {
+    fn system(&self) -> &[u8] {
+        self.system.as_bytes()
+    }
+    fn host(&self) -> &[u8] {
+        self.host.as_bytes()
+    }
+    fn payload(&self) -> &[u8] {
+        self.payload.as_bytes()
+    }
+    fn kind(&self) -> ServiceKind {
+        ServiceEntry::kind(self)
+    }
+    fn name(&self) -> &[u8] {
+        self.name.as_bytes()
+    }
+}
+
+impl ListRow for ServiceView {
+    fn system(&self) -> &[u8] {
+        self.system.as_bytes()
+    }
+    fn host(&self) -> &[u8] {
+        self.host.as_bytes()
+    }
+    fn payload(&self) -> &[u8] {
+        self.payload.as_bytes()
+    }
+    fn kind(&self) -> ServiceKind {
+        if self.kind == ServiceKind::Command.as_str() {
+            ServiceKind::Command
+        } else {
+            ServiceKind::Data
         }
+    }
+    fn name(&self) -> &[u8] {
+        self.name.as_bytes()
     }
 }
 

@@ -207,7 +207,7 @@ pub fn connect_when_listed(
     };
     let mut client = UserClient::connect(inst, &opts)?;
     let deadline = Instant::now() + timeout;
-    while (client.list()?.count as usize) < services {
+    while client.list()?.count() < services {
         if Instant::now() > deadline {
             bail!("the systems did not register {services} services within {timeout:?}");
         }

@@ -233,7 +233,7 @@ pub(super) fn wait_for_services(
     wait: Duration,
 ) -> Result<(), UserError> {
     let deadline = Instant::now() + wait;
-    while client.list()?.count < n as u32 && Instant::now() < deadline {
+    while client.list()?.count() < n && Instant::now() < deadline {
         let _ = client.next_event(Instant::now() + Duration::from_millis(200))?;
     }
     Ok(())
@@ -266,7 +266,7 @@ pub(super) fn remote_list(g: &Guest) -> Result<(), UserError> {
     );
     out!(
         "the same list over UDP: {} services, generation {}",
-        list.count,
+        list.count(),
         list.generation
     );
     c.close();

@@ -397,18 +397,18 @@ mod tests {
         w.publish(&node, &stamped_list(1, 40), &fence).unwrap();
         let mut r = ListReader::open(&node, &inst).unwrap();
         let a = r.read().unwrap();
-        assert_eq!((a.generation, a.count, a.entries()[39].quota), (1, 40, 1));
+        assert_eq!((a.generation, a.count(), a.entries()[39].quota), (1, 40, 1));
         assert_eq!(a.entries()[39].name.as_str(), "s39");
         let b = r.read().unwrap();
         assert!(Arc::ptr_eq(&a, &b), "unchanged: the same copy");
         // Fewer entries, then more: the chunks left over from before are not read.
         w.publish(&node, &stamped_list(2, 3), &fence).unwrap();
         let c = r.read().unwrap();
-        assert_eq!((c.generation, c.count, c.entries().len()), (2, 3, 3));
+        assert_eq!((c.generation, c.count(), c.entries().len()), (2, 3, 3));
         assert!(c.entries().iter().all(|e| e.quota == 2));
         w.publish(&node, &stamped_list(3, 250), &fence).unwrap();
         let d = r.read().unwrap();
-        assert_eq!(d.count, 250);
+        assert_eq!(d.count(), 250);
         assert!(d.entries().iter().all(|e| e.quota == 3));
         assert_eq!(d.entries()[249].name.as_str(), "s249");
         drop((a, b, c, d));
@@ -430,7 +430,7 @@ mod tests {
                     // (Write 3, of 250 entries, above, if this thread read before the
                     // first write below.)
                     let count = if g == 3 { 250 } else { 1 + g % 200 };
-                    assert_eq!(s.count as u64, count, "count of write {g}");
+                    assert_eq!(s.count() as u64, count, "count of write {g}");
                     let stamp = (g % 60_000) as u16;
                     assert!(
                         s.entries().iter().all(|e| e.quota == stamp),
@@ -557,7 +557,7 @@ mod tests {
         w.publish(&node, &stamped_list(1, 40), &fence).unwrap();
         let first = fence.list();
         let mut r = ListReader::open(&node, &inst).unwrap();
-        assert_eq!(r.read_from(&node).unwrap().count, 40);
+        assert_eq!(r.read_from(&node).unwrap().count(), 40);
         // 10,000 entries: past the first blackboard's room, so a new one (named anew
         // in the fence) with room for them.
         assert!(w.capacity() == FIRST_LIST_CHUNKS * CHUNK_ENTRIES && w.capacity() < 10_000);
@@ -565,7 +565,7 @@ mod tests {
         assert!(w.capacity() >= 10_000);
         assert_ne!(fence.list(), first, "the fence names the new blackboard");
         let all = r.read_from(&node).unwrap();
-        assert_eq!((all.generation, all.count), (2, 10_000));
+        assert_eq!((all.generation, all.count()), (2, 10_000));
         assert!(all.entries().iter().all(|e| e.quota == 2));
         assert_eq!(all.entries()[9_999].name.as_str(), "s9999");
         // A page in place: entries 4,990..5,090, across chunk boundaries.
@@ -616,7 +616,7 @@ mod tests {
         w.publish(&node, &stamped_list(3, 17), &fence).unwrap();
         assert_eq!(fence.list(), id);
         let short = r.read_from(&node).unwrap();
-        assert_eq!((short.generation, short.count), (3, 17));
+        assert_eq!((short.generation, short.count()), (3, 17));
         drop((all, short));
         drop(r);
         drop(w);

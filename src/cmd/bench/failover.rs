@@ -295,10 +295,10 @@ pub fn run(inst: &Instance, a: FailoverArgs) -> anyhow::Result<ExitCode> {
             }
             if to_list.is_none() {
                 let l = client.list()?;
-                if (l.count as usize) < total {
+                if l.count() < total {
                     incomplete_lists += 1;
                 }
-                if l.epoch != epoch_before && l.count as usize == total {
+                if l.epoch != epoch_before && l.count() == total {
                     to_list = Some(monotonic_ns() - t_kill);
                 }
             }

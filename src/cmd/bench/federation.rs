@@ -487,7 +487,7 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
     };
     let mut on_a = UserClient::connect(&insts[0], &opts)?;
     let until = Instant::now() + timeout;
-    while on_a.list()?.count < 6 {
+    while on_a.list()?.count() < 6 {
         if Instant::now() > until {
             bail!("a did not see b's and c's services within {timeout:?}");
         }

@@ -114,13 +114,13 @@ pub fn run(inst: &Instance, a: LivenessArgs) -> anyhow::Result<ExitCode> {
         let epoch_before = client.list()?.epoch;
         loop {
             let l = client.list()?;
-            if l.epoch != epoch_before && l.count as usize == total {
+            if l.epoch != epoch_before && l.count() == total {
                 break;
             }
             if t.elapsed() > Duration::from_secs(30) {
                 bail!(
                     "the list was not complete within 30 s of the restart ({} of {total})",
-                    l.count
+                    l.count()
                 );
             }
             std::thread::sleep(Duration::from_millis(1));

@@ -136,7 +136,7 @@ fn lists(
         let t = Instant::now();
         let l = c.list()?;
         let _ = h.record(us(t.elapsed()));
-        entries = u64::from(l.count);
+        entries = l.count() as u64;
     }
     Ok((h, entries))
 }
