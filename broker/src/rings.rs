@@ -17,20 +17,26 @@ use std::collections::{HashMap, HashSet};
 pub const CHANGED_MAX: usize = 4096;
 
 /// What changed since the last ring, and the watchers' filters ready to match.
-#[derive(Default)]
 pub struct Rings {
     /// Each changed entry as it was and as it is; `None`: ring everyone.
     changed: Option<Vec<ServiceEntry>>,
     matchers: HashMap<UserId, ListMatcher>,
 }
 
-impl Rings {
+impl Default for Rings {
     /// Nothing changed yet.
-    pub fn new() -> Self {
+    fn default() -> Self {
         Rings {
             changed: Some(Vec::new()),
             matchers: HashMap::new(),
         }
+    }
+}
+
+impl Rings {
+    /// Nothing changed yet.
+    pub fn new() -> Self {
+        Self::default()
     }
 
     /// An entry changed from `old` to `new`.

@@ -210,7 +210,10 @@ fn watch(
         };
         if let Some(page) = page {
             let views = page.views();
-            if shown_views.as_ref() != Some(&(page.epoch, views.clone())) {
+            if shown_views
+                .as_ref()
+                .is_none_or(|(epoch, shown)| (*epoch, shown) != (page.epoch, &views))
+            {
                 emit(
                     as_json,
                     json!({"generation": page.generation, "matching": page.matching, "services": views}),
@@ -239,7 +242,7 @@ fn idle(
     duration: Option<Duration>,
     started: Instant,
 ) -> anyhow::Result<ExitCode> {
-    let services = client.list()?.count;
+    let services = client.list()?.count();
     let connect_us = started.elapsed().as_micros() as u64;
     out!(
         "{}",

@@ -420,11 +420,8 @@ impl UserCore {
             links,
             watch_list: self.watch_list,
         });
-        if self.watch_list && self.watch_filter.is_some() {
-            self.send_broker(ToBroker::WatchList {
-                user: self.id.clone(),
-                filter: self.watch_filter.clone(),
-            });
+        if self.watch_filter.is_some() {
+            self.say_watch();
         }
         self.resend_pending();
     }
@@ -438,6 +435,11 @@ impl UserCore {
             return;
         }
         self.watch_filter = filter;
+        self.say_watch();
+    }
+
+    /// Tells the broker the part of the list watched, if this user watches it.
+    fn say_watch(&mut self) {
         if self.watch_list {
             self.send_broker(ToBroker::WatchList {
                 user: self.id.clone(),

@@ -41,34 +41,9 @@ pub fn run(inst: &Instance, a: ListBenchArgs) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// The list: `n` services of systems `sys00000`.. with 100 each, every fourth a command
-/// service, in id order as the broker writes it.
-fn rows(n: usize) -> Vec<ServiceView> {
-    let mut rows: Vec<ServiceView> = (0..n)
-        .map(|i| {
-            let (system, name) = (
-                format!("sys{:05}", i / PER_SYSTEM),
-                format!("s{}", i % PER_SYSTEM),
-            );
-            let command = i % 4 == 3;
-            ServiceView {
-                id: format!("{system}/{name}"),
-                system,
-                name,
-                description: "a synthetic service of bench list".into(),
-                kind: if command { "command" } else { "data" }.into(),
-                quota: 10,
-                payload: if command { "goal2d" } else { "pose2d" }.into(),
-                ..ServiceView::default()
-            }
-        })
-        .collect();
-    rows.sort_by(|a, b| a.id.cmp(&b.id));
-    rows
-}
-
-/// A broker core with `n` services (systems of [`PER_SYSTEM`], as [`rows`] names
-/// them, quota 1000) and 1,000 users said hello.
+/// A broker core with `n` services (systems `sys00000`.. of [`PER_SYSTEM`] each, every
+/// fourth a command service, quota 1000) and 1,000 users said hello; its views are the
+/// list the other rows read.
 fn loaded_core(n: usize) -> anyhow::Result<(Broker, Vec<UserId>)> {
     let cfg = BrokerConfig {
         max_services: n.max(DEFAULT_MAX_SERVICES),
@@ -140,7 +115,8 @@ fn bench(
     a: &ListBenchArgs,
 ) -> anyhow::Result<Value> {
     let n = a.services;
-    let mut rows = rows(n);
+    let (mut core, users) = loaded_core(n)?;
+    let mut rows = core.views();
     let mut writer = ListWriter::open(node, inst, 1)?;
     let mut snapshot = ServiceListSnapshot::empty();
     snapshot.epoch = 1;
@@ -249,7 +225,6 @@ fn bench(
     // The broker's own path: a core of N services; each request puts an offer out
     // (one service's sessions in use change), and the list is taken (only the rows
     // whose counts changed), filled and written.
-    let (mut core, users) = loaded_core(n)?;
     let ids: Vec<ServiceId> = rows.iter().map(|v| ServiceId(v.id.clone())).collect();
     let (mut views, mut shape) = (Vec::new(), u64::MAX);
     let mut snap = ServiceListSnapshot::empty();
