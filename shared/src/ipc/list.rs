@@ -27,6 +27,9 @@ pub struct ListWriter {
     node_inst: Instance,
     /// Whether the fence names `board`.
     announced: bool,
+    /// The blackboard `board` replaced, kept until the fence names `board` (a reader
+    /// that read the old name from the fence meanwhile can still open it).
+    retired: Option<Board>,
 }
 
 /// One list blackboard as its writer holds it.
@@ -184,6 +187,7 @@ impl ListWriter {
             epoch,
             node_inst: inst.clone(),
             announced: false,
+            retired: None,
         })
     }
 
@@ -222,7 +226,8 @@ impl ListWriter {
                 chunks *= 2;
             }
             let id = next_board_id(self.board.id);
-            self.board = Board::create(node, &self.node_inst, id, self.epoch, chunks)?;
+            let bigger = Board::create(node, &self.node_inst, id, self.epoch, chunks)?;
+            self.retired = Some(std::mem::replace(&mut self.board, bigger));
             self.written.clear();
             self.announced = false;
             tracing::info!(
@@ -286,6 +291,8 @@ impl ListWriter {
         if !self.announced {
             fence.set_list(self.board.id);
             self.announced = true;
+            // Readers now find the new one; the old one goes when its last reader does.
+            self.retired = None;
         }
         Ok(())
     }
@@ -313,6 +320,10 @@ struct OpenList {
     // Dropped last: the handles above hold the reader's state.
     _reader: Reader<Ipc, u64>,
 }
+
+/// Most times a reader follows the fence again because the list it named was replaced
+/// while the reader opened it.
+const FOLLOW_TRIES: usize = 16;
 
 /// Most times a reader takes the list again because the broker wrote it meanwhile.
 const LIST_READ_TRIES: usize = 1000;
@@ -373,8 +384,26 @@ impl ListReader {
         Ok(r)
     }
 
-    /// Moves to the list the fence names, if it is another one.
+    /// Moves to the list the fence names, if it is another one. A blackboard that
+    /// cannot be opened because the broker moved to another meanwhile (a list grown
+    /// into a bigger one, a new broker run) is followed to the one the fence names
+    /// now, a bounded number of times.
     fn follow(&mut self, node: &Node<Ipc>) -> Result<(), TransportError> {
+        let mut tries = 0;
+        loop {
+            let id = self.fence.list();
+            match self.follow_once(node) {
+                Err(e) if tries < FOLLOW_TRIES && id != 0 && self.fence.list() != id => {
+                    tracing::debug!("the list moved while opening it ({e}); following");
+                    tries += 1;
+                }
+                r => return r,
+            }
+        }
+    }
+
+    /// [`ListReader::follow`], once: opens the list the fence names now.
+    fn follow_once(&mut self, node: &Node<Ipc>) -> Result<(), TransportError> {
         let mut id = self.fence.list();
         if id == 0 {
             // The broker stopped on purpose and removed the fence; a new one may have

@@ -547,6 +547,72 @@ mod tests {
         fence.remove();
     }
 
+    /// The CI failure of 2026-11-27: a user opening the list while the broker moved it
+    /// to a bigger blackboard found the name the fence gave it gone, and said the broker
+    /// was unreachable. A reader opening while lists grow, over and over, always opens.
+    #[test]
+    fn a_reader_opening_while_the_list_grows_always_finds_it() {
+        use std::sync::atomic::{AtomicBool, Ordering};
+        let inst = Instance::new(&format!("list-race-{}", std::process::id())).unwrap();
+        let fence = crate::fence::Fence::open(&inst).unwrap();
+        let done = Arc::new(AtomicBool::new(false));
+        let read_all = Arc::new(AtomicBool::new(false));
+        // The broker's side: each round a writer (a broker run) names its small list,
+        // the last round's goes, and the list then grows into a bigger blackboard.
+        let writer = {
+            let (inst, done, read_all) = (inst.clone(), Arc::clone(&done), Arc::clone(&read_all));
+            std::thread::spawn(move || {
+                let (small, big) = (stamped_list(1, 40), stamped_list(2, 300));
+                let node = create_node("list-race-w", false).unwrap();
+                let fence = crate::fence::Fence::open_existing(&inst).unwrap();
+                let mut last: Option<ListWriter> = None;
+                for round in 0..150u64 {
+                    let mut w = ListWriter::open(&node, &inst, 1 + round).unwrap();
+                    w.publish(&node, &small, &fence).unwrap();
+                    drop(last.take());
+                    // Readers get a moment on each list (a broker grows its list
+                    // far less often than this), at varying points of their opening.
+                    std::thread::sleep(Duration::from_micros(200 * (round % 7)));
+                    w.publish(&node, &big, &fence).unwrap();
+                    last = Some(w);
+                    std::thread::sleep(Duration::from_micros(300 * (round % 5)));
+                }
+                done.store(true, Ordering::SeqCst);
+                // The last list stays until the reader is through with it.
+                while !read_all.load(Ordering::SeqCst) {
+                    std::thread::sleep(Duration::from_millis(1));
+                }
+                drop(last);
+            })
+        };
+        let node = create_node("list-race-r", false).unwrap();
+        let (mut opened, mut failed) = (0, Vec::new());
+        // From the first list on (before it, no broker: unreachable, rightly).
+        while fence.list() == 0 {
+            std::thread::sleep(Duration::from_micros(100));
+        }
+        while !done.load(Ordering::SeqCst) {
+            match ListReader::open(&node, &inst).and_then(|mut r| r.read_from(&node)) {
+                Ok(l) => {
+                    assert!(l.count() == 40 || l.count() == 300, "{}", l.count());
+                    opened += 1;
+                }
+                Err(e) => failed.push(e.to_string()),
+            }
+        }
+        read_all.store(true, Ordering::SeqCst);
+        writer.join().unwrap();
+        assert!(opened > 0);
+        assert!(
+            failed.is_empty(),
+            "{} of {} opens failed: {:?}",
+            failed.len(),
+            opened + failed.len(),
+            &failed[..failed.len().min(3)]
+        );
+        fence.remove();
+    }
+
     #[test]
     fn a_list_outgrowing_its_blackboard_moves_to_a_bigger_one_and_reads_in_pages() {
         use crate::snapshot::{ListFilter, FIRST_LIST_CHUNKS};
