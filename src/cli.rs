@@ -714,9 +714,23 @@ pub struct FederationBenchArgs {
     /// and until they are back.
     #[arg(long, default_value_t = 5)]
     pub losses: usize,
-    /// The brokers' Zenoh lease (`muster broker --lease`): a silent host is gone after it.
-    #[arg(long, default_value = "500ms", value_parser = duration)]
-    pub lease: Duration,
+    /// The brokers' Zenoh lease (`muster broker --lease`): a silent host is gone after
+    /// it (three hosts: 500 ms unless given; `--hosts`: Zenoh's default, 10 s).
+    #[arg(long, value_parser = duration)]
+    pub lease: Option<Duration>,
+    /// Many hosts instead of three: N light hosts (a broker and a system of
+    /// `--services-per-host` services each), every list read in place: the first start,
+    /// the join of the Nth host, idle CPU, memory and loopback traffic, list changes
+    /// until every host has them (`--list-changes`), host losses (`--losses`), and a
+    /// restart of every broker at once.
+    #[arg(long)]
+    pub hosts: Option<usize>,
+    /// With `--hosts`: services of each host's system.
+    #[arg(long, default_value_t = 100)]
+    pub services_per_host: usize,
+    /// With `--hosts`: how long idle CPU and traffic are measured.
+    #[arg(long, default_value = "10s", value_parser = duration)]
+    pub idle: Duration,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     pub json: bool,

@@ -265,7 +265,7 @@ impl crate::cli::LoadArgs {
 /// free loopback port per host for its broker's Zenoh.
 pub struct LoopbackHosts {
     /// The hosts' names.
-    pub names: Vec<&'static str>,
+    pub names: Vec<String>,
     /// Their instances.
     pub insts: Vec<Instance>,
     /// Their brokers' Zenoh ports.
@@ -276,7 +276,7 @@ pub struct LoopbackHosts {
 
 impl LoopbackHosts {
     /// Hosts `names` under `inst`, in a federation named `prefix` plus this process's id.
-    pub fn new(inst: &Instance, names: &[&'static str], prefix: &str) -> anyhow::Result<Self> {
+    pub fn new(inst: &Instance, names: &[&str], prefix: &str) -> anyhow::Result<Self> {
         let insts = names
             .iter()
             .map(|h| {
@@ -290,7 +290,7 @@ impl LoopbackHosts {
             .map(|_| free_tcp_port())
             .collect::<anyhow::Result<_>>()?;
         Ok(LoopbackHosts {
-            names: names.to_vec(),
+            names: names.iter().map(|n| n.to_string()).collect(),
             insts,
             ports,
             federation: format!("{prefix}{}", std::process::id()),
@@ -325,7 +325,7 @@ impl LoopbackHosts {
             "--federate",
             "--insecure-no-tls",
             "--host",
-            self.names[i],
+            &self.names[i],
             "--federation",
             &self.federation,
         ]

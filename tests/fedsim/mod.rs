@@ -158,6 +158,9 @@ pub struct World {
     pub duplicated: u64,
     /// Frames lost with a link that went down.
     pub lost: u64,
+    /// Hosts that miss every list published whole (as a host does whose subscription
+    /// the publisher's network did not know yet); queries still reach them.
+    pub deaf_to_lists: BTreeSet<usize>,
     next_pid: u32,
 }
 
@@ -189,6 +192,7 @@ impl World {
             carried: 0,
             duplicated: 0,
             lost: 0,
+            deaf_to_lists: BTreeSet::new(),
             next_pid: 1000,
         };
         for (idx, name) in names.iter().enumerate() {
@@ -782,6 +786,14 @@ impl World {
                         };
                         sends.push((String::new(), Wire::Input(input)));
                     }
+                    FedOutput::AnnounceList { version } => {
+                        let input = FedInput::List {
+                            host: host.name.clone(),
+                            version,
+                            body: Vec::new(),
+                        };
+                        sends.push((String::new(), Wire::Input(input)));
+                    }
                     FedOutput::QueryList(to) => sends.push((to, Wire::Query(h))),
                     FedOutput::SystemUp(_) | FedOutput::SystemDown(_) => {}
                     FedOutput::Deliver(Delivery::Msg(u, m)) => {
@@ -846,8 +858,11 @@ impl World {
         for (to, w) in sends {
             if to.is_empty() {
                 // A publication: to every host whose session sees this one.
+                let whole_list =
+                    matches!(&w, Wire::Input(FedInput::List { body, .. }) if !body.is_empty());
                 let peers: Vec<usize> = (0..self.hosts.len())
                     .filter(|x| *x != h && self.seen.contains(&(*x, h)))
+                    .filter(|x| !(whole_list && self.deaf_to_lists.contains(x)))
                     .collect();
                 for x in peers {
                     self.send(h, x, w.clone());

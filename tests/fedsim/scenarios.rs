@@ -4,7 +4,7 @@
 
 use super::{LinkFaults, World};
 use crate::secs;
-use muster_broker::federation::HOST_GRACE;
+use muster_broker::federation::{HOST_GRACE, LIST_REFRESH};
 use muster_shared::types::{EndReason, SessionId, UserId};
 use muster_systems::synthetic::SyntheticOptions;
 use muster_users::core::UserEvent;
@@ -209,6 +209,34 @@ fn a_host_with_a_standby_is_waited_for_then_given_up() {
     assert_eq!(w.list_ids(a), sorted(&["ta/s0", "dc@c/s0"]));
     assert_eq!(ended(&w.take_events(a, &ua)), [(sa, EndReason::PeerGone)]);
     assert_eq!(w.fed(a).unwrap().stats().hosts_lost, 1);
+}
+
+/// Lists go out whole only when they change; every [`LIST_REFRESH`] each host says only
+/// the version it is at. A host that missed a change (its subscription not yet known
+/// where the list was put) sees from that it is behind and asks; one that is up to date
+/// asks nothing.
+#[test]
+fn a_host_that_missed_a_list_change_catches_up_from_the_versions_announced() {
+    let mut w = three_hosts(11);
+    let (a, b, c) = (0, 1, 2);
+    w.run_for(LIST_REFRESH * 3);
+    let missed = |w: &World, h: usize| w.fed(h).unwrap().stats().lists_missed;
+    assert_eq!((missed(&w, a), missed(&w, b)), (0, 0), "up to date: nothing asked");
+    // b's list changes while a hears no list put whole.
+    w.deaf_to_lists.insert(a);
+    w.add_system(b, &data("tb2", 1));
+    w.run_for(secs(0.1));
+    assert!(w.list_ids(b).contains(&"tb2/s0".to_string()));
+    assert!(w.list_ids(c).contains(&"tb2@b/s0".to_string()));
+    assert!(!w.list_ids(a).contains(&"tb2@b/s0".to_string()), "a missed it");
+    // At b's next announcement a asks, and has it.
+    w.run_for(LIST_REFRESH + secs(0.1));
+    assert!(w.list_ids(a).contains(&"tb2@b/s0".to_string()));
+    assert_eq!(missed(&w, a), 1);
+    assert_eq!(missed(&w, c), 0, "c heard the change itself");
+    // Caught up: later announcements ask nothing more.
+    w.run_for(LIST_REFRESH * 5);
+    assert_eq!(missed(&w, a), 1);
 }
 
 #[test]

@@ -660,6 +660,17 @@ impl Federation {
                         tracing::warn!("federation: cannot publish the list: {e}");
                     }
                 }
+                FedOutput::AnnounceList { version } => {
+                    let key = format!("{}{}/list", self.prefix, self.core.host());
+                    // No body: only the version, which peers compare with theirs.
+                    let put = self
+                        .session
+                        .put(&key, Vec::<u8>::new())
+                        .attachment(version.to_le_bytes().to_vec());
+                    if let Err(e) = put.wait() {
+                        tracing::debug!("federation: cannot announce the list: {e}");
+                    }
+                }
                 FedOutput::QueryList(host) => self.query_list(&host),
                 FedOutput::SystemUp(s) => {
                     let key = format!("{}{}/system/{s}", self.prefix, self.core.host());

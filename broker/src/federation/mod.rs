@@ -584,6 +584,9 @@ pub struct FedStats {
     pub sessions_lost: u64,
     /// Requests sent to other hosts again, having had no answer.
     pub requests_resent: u64,
+    /// Other hosts' lists found missed (an announced version newer than the one held)
+    /// and asked for.
+    pub lists_missed: u64,
 }
 
 /// Largest frame taken from another host (a session update is under 4 KiB); bigger ones

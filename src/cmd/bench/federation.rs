@@ -448,13 +448,17 @@ fn print_rows(title: &str, r: &Rows) {
 }
 
 pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> {
+    if let Some(n) = a.hosts {
+        return super::hosts::run(inst, &a, n);
+    }
+    let lease_d = a.lease.unwrap_or(Duration::from_millis(500));
     if a.requests == 0 || a.round_trips == 0 || a.list_changes == 0 {
         bail!("--requests, --round-trips and --list-changes must be at least 1");
     }
     let hosts = LoopbackHosts::new(inst, &HOSTS, "bench")?;
     let insts = &hosts.insts;
     let mut kids = Children::default();
-    let lease = vec!["--lease".to_string(), format!("{}ms", a.lease.as_millis())];
+    let lease = vec!["--lease".to_string(), format!("{}ms", lease_d.as_millis())];
     hosts.spawn_brokers(&mut kids, &lease, Stdio::null)?;
     let quota = (a.users * 3 + 100).min(1000).to_string();
     for (i, name, kind) in [(1, "t1", "data"), (1, "d1", "command"), (2, "t2", "data")] {
@@ -518,7 +522,7 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
         if !a.json {
             println!(
                 "\nhost b lost and back ({} times each; lease {:?}), ms from the signal",
-                a.losses, a.lease
+                a.losses, lease_d
             );
             println!(
                 "{:<28} {:>7} {:>10} {:>10} {:>10}",
@@ -546,7 +550,7 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
             })
             .collect::<serde_json::Map<_, _>>()
             .into();
-        out["lease_ms"] = json!(a.lease.as_millis() as u64);
+        out["lease_ms"] = json!(lease_d.as_millis() as u64);
         // On with the loaded rows once b's services are back and b's user is reconnected.
         on_b.close();
         on_b = connect_when_listed(&insts[1], 6, timeout).context("host b again")?;

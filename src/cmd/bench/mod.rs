@@ -2,6 +2,7 @@
 
 mod failover;
 mod federation;
+mod hosts;
 pub mod floor;
 mod leftovers;
 mod list;
