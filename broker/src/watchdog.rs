@@ -58,8 +58,9 @@ pub struct Stall {
     /// The loop thread's state when the stall was noticed (`R` running or runnable,
     /// `S` asleep, `D` in uninterruptible sleep, ...), from `/proc`.
     pub state: char,
-    /// Of the stall's time so far when noticed: ms on a core, ms runnable but waiting
-    /// for one (`/proc/.../schedstat`).
+    /// Of the stall's time so far when noticed (from the first look that found the loop
+    /// not moving): ms on a core, ms runnable but waiting for one
+    /// (`/proc/.../schedstat`).
     pub on_cpu_ms: u64,
     /// See [`Stall::on_cpu_ms`].
     pub waiting_for_cpu_ms: u64,
@@ -80,8 +81,10 @@ pub struct Watchdog {
 
 /// Most stalls kept for [`Watchdog::stalls`].
 const KEPT: usize = 64;
-/// How often the watchdog looks.
-const LOOK_EVERY: Duration = Duration::from_millis(50);
+/// How often the watchdog looks, as a part of the threshold: a stall is seen at most
+/// an eighth of the threshold late. (It looked every 50 ms, and read the loop thread's
+/// `/proc` files each time the loop had moved: 0.2 % of a core of an idle broker.)
+const LOOKS_PER_THRESHOLD: u32 = 8;
 
 /// The calling thread's kernel id.
 fn tid() -> i64 {
@@ -191,16 +194,20 @@ impl Drop for Watchdog {
 }
 
 fn watch(s: &Shared, lt: LoopThread, threshold: Duration) {
+    let look_every = (threshold / LOOKS_PER_THRESHOLD).max(Duration::from_millis(1));
     let mut seen = s.progress.load(Ordering::Acquire);
     let mut since = Instant::now();
     // A stall noticed and not over: where, the thread's state, and its schedstat then.
     let mut open: Option<(Phase, char, u64, u64)> = None;
-    let (_, mut cpu0, mut wait0) = lt.now();
+    // The loop thread's CPU and wait for a core when a look first found it not moving
+    // outside its wait (read then, not at every move: the stall's figures count from
+    // there, at most a look after it began).
+    let mut base: Option<(Instant, u64, u64)> = None;
     let mut last_look = Instant::now();
     while !s.stop.load(Ordering::Acquire) {
-        std::thread::sleep(LOOK_EVERY);
+        std::thread::sleep(look_every);
         let now = Instant::now();
-        let overslept = now.duration_since(last_look).saturating_sub(LOOK_EVERY);
+        let overslept = now.duration_since(last_look).saturating_sub(look_every);
         last_look = now;
         if overslept >= threshold {
             tracing::warn!(
@@ -232,14 +239,21 @@ fn watch(s: &Shared, lt: LoopThread, threshold: Duration) {
             }
             seen = progress;
             since = now;
-            (_, cpu0, wait0) = lt.now();
+            base = None;
             continue;
         }
         let phase = PHASES
             .get(s.phase.load(Ordering::Relaxed))
             .copied()
             .unwrap_or(Phase::Waiting);
-        if open.is_none() && phase != Phase::Waiting && now.duration_since(since) >= threshold {
+        if phase == Phase::Waiting {
+            continue;
+        }
+        let (t0, cpu0, wait0) = *base.get_or_insert_with(|| {
+            let (_, cpu, wait) = lt.now();
+            (now, cpu, wait)
+        });
+        if open.is_none() && now.duration_since(since) >= threshold {
             let (state, cpu, wait) = lt.now();
             let (on_cpu, waiting) = (cpu.saturating_sub(cpu0), wait.saturating_sub(wait0));
             let wchan = std::fs::read_to_string(format!("/proc/self/task/{}/wchan", lt.tid))
@@ -248,7 +262,9 @@ fn watch(s: &Shared, lt: LoopThread, threshold: Duration) {
             // clock is exact: one that is runnable and ran little in the stall is starved.
             let stalled = now.duration_since(since);
             let what = match state {
-                'R' if waiting > on_cpu || Duration::from_nanos(on_cpu) < stalled / 2 => {
+                'R' if waiting > on_cpu
+                    || Duration::from_nanos(on_cpu) < now.duration_since(t0) / 2 =>
+                {
                     "runnable, waiting for a core (starved)"
                 }
                 'R' => "running (busy)",
