@@ -725,6 +725,10 @@ pub struct FederationBenchArgs {
     /// restart of every broker at once.
     #[arg(long)]
     pub hosts: Option<usize>,
+    /// With `--hosts`: how many hosts' brokers are Zenoh routers, the others their
+    /// clients (0: every host a peer, as `muster up --hosts` runs them).
+    #[arg(long, default_value_t = 0)]
+    pub routers: usize,
     /// With `--hosts`: services of each host's system.
     #[arg(long, default_value_t = 100)]
     pub services_per_host: usize,
@@ -955,6 +959,11 @@ pub struct BrokerArgs {
     /// name them with --connect).
     #[arg(long, requires = "federate")]
     pub multicast: bool,
+    /// How this broker joins Zenoh: `peer` (default: a link to every other host), or,
+    /// for many hosts, `router` on a few (meshed among themselves) and `client` on the
+    /// rest (one link to a router; --connect every router, no --listen).
+    #[arg(long, requires = "federate")]
+    pub zenoh_mode: Option<muster_broker::federation::ZenohMode>,
     /// Mutual TLS with the certificates in DIR (from `muster certs`): ca.pem, HOST.pem,
     /// HOST.key. Endpoints given as tcp/ are used as tls/; a host whose certificate the
     /// authority did not sign joins nothing.

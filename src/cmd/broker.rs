@@ -55,6 +55,7 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
         listen: a.listen.clone(),
         lease: a.lease,
         multicast: a.multicast,
+        mode: a.zenoh_mode,
         tls: a.tls.clone(),
         acl,
         insecure: a.insecure_no_tls,

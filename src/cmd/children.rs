@@ -272,6 +272,9 @@ pub struct LoopbackHosts {
     pub ports: Vec<u16>,
     /// The federation's name (unique to this process).
     pub federation: String,
+    /// How many of the hosts (the first ones) are Zenoh routers, the rest their clients
+    /// (0: every host a peer, dialling the ones before it).
+    pub routers: usize,
 }
 
 impl LoopbackHosts {
@@ -294,6 +297,7 @@ impl LoopbackHosts {
             insts,
             ports,
             federation: format!("{prefix}{}", std::process::id()),
+            routers: 0,
         })
     }
 
@@ -302,15 +306,29 @@ impl LoopbackHosts {
     /// again when the link drops); `extra` is appended. Both sides dialling each other
     /// raced when one restarted: a refused handshake ("close ... in response to an
     /// OpenSyn") left the two apart for good, about one restart in 40.
+    ///
+    /// With [`LoopbackHosts::routers`], the first hosts are routers (each listening, and
+    /// dialling the routers before it) and the rest clients, each dialling every router,
+    /// its own share of them first.
     pub fn broker_args(&self, i: usize, extra: &[String]) -> Vec<String> {
         let mut args = self.federated(i);
-        args.push("--listen".into());
-        args.push(format!("tcp/127.0.0.1:{}", self.ports[i]));
-        for (j, p) in self.ports.iter().enumerate() {
-            if j < i {
-                args.push("--connect".into());
-                args.push(format!("tcp/127.0.0.1:{p}"));
-            }
+        let r = self.routers;
+        let dial: Vec<usize> = if r == 0 || i < r {
+            (0..i).collect()
+        } else {
+            (0..r).map(|k| (i + k) % r).collect()
+        };
+        if r > 0 {
+            args.push("--zenoh-mode".into());
+            args.push(if i < r { "router" } else { "client" }.into());
+        }
+        if r == 0 || i < r {
+            args.push("--listen".into());
+            args.push(format!("tcp/127.0.0.1:{}", self.ports[i]));
+        }
+        for j in dial {
+            args.push("--connect".into());
+            args.push(format!("tcp/127.0.0.1:{}", self.ports[j]));
         }
         args.extend(extra.iter().cloned());
         args

@@ -763,7 +763,7 @@ impl World {
             let local = b.take_list_change_into(&mut host.core_views).is_some();
             if local || f.take_links_change() {
                 let systems: Vec<&str> = b.systems().collect();
-                host.local_views = f.publish_list(now, wall(now), &host.core_views, &systems);
+                host.local_views = f.publish_list(wall(now), &host.core_views, &systems);
             }
             f.take_list_change();
             while let Some(o) = f.poll_output() {

@@ -211,24 +211,31 @@ fn a_host_with_a_standby_is_waited_for_then_given_up() {
     assert_eq!(w.fed(a).unwrap().stats().hosts_lost, 1);
 }
 
-/// Lists go out whole only when they change; every [`LIST_REFRESH`] each host says only
-/// the version it is at. A host that missed a change (its subscription not yet known
-/// where the list was put) sees from that it is behind and asks; one that is up to date
-/// asks nothing.
+/// Lists go out whole only when they change; each host says only the version it is at,
+/// soon after another host joins and then every [`LIST_REFRESH`]. A host that missed a
+/// change (its subscription not yet known where the list was put) sees from that it is
+/// behind and asks; one that is up to date asks nothing.
 #[test]
 fn a_host_that_missed_a_list_change_catches_up_from_the_versions_announced() {
     let mut w = three_hosts(11);
     let (a, b, c) = (0, 1, 2);
     w.run_for(LIST_REFRESH * 3);
     let missed = |w: &World, h: usize| w.fed(h).unwrap().stats().lists_missed;
-    assert_eq!((missed(&w, a), missed(&w, b)), (0, 0), "up to date: nothing asked");
+    assert_eq!(
+        (missed(&w, a), missed(&w, b)),
+        (0, 0),
+        "up to date: nothing asked"
+    );
     // b's list changes while a hears no list put whole.
     w.deaf_to_lists.insert(a);
     w.add_system(b, &data("tb2", 1));
     w.run_for(secs(0.1));
     assert!(w.list_ids(b).contains(&"tb2/s0".to_string()));
     assert!(w.list_ids(c).contains(&"tb2@b/s0".to_string()));
-    assert!(!w.list_ids(a).contains(&"tb2@b/s0".to_string()), "a missed it");
+    assert!(
+        !w.list_ids(a).contains(&"tb2@b/s0".to_string()),
+        "a missed it"
+    );
     // At b's next announcement a asks, and has it.
     w.run_for(LIST_REFRESH + secs(0.1));
     assert!(w.list_ids(a).contains(&"tb2@b/s0".to_string()));
@@ -236,6 +243,26 @@ fn a_host_that_missed_a_list_change_catches_up_from_the_versions_announced() {
     assert_eq!(missed(&w, c), 0, "c heard the change itself");
     // Caught up: later announcements ask nothing more.
     w.run_for(LIST_REFRESH * 5);
+    assert_eq!(missed(&w, a), 1);
+    // A host that (re)joins is announced to soon: a change it missed just after its
+    // start is caught up within a second, not at the next steady announcement (half a
+    // period away).
+    w.run_for(LIST_REFRESH / 2);
+    w.restart_broker(a);
+    w.run_for(secs(0.2));
+    assert!(
+        w.list_ids(a).contains(&"tb2@b/s0".to_string()),
+        "queried at its start"
+    );
+    assert_eq!(missed(&w, a), 0, "a new core counts anew");
+    w.add_system(b, &data("tb3", 1));
+    w.run_for(secs(0.1));
+    assert!(
+        !w.list_ids(a).contains(&"tb3@b/s0".to_string()),
+        "a missed it"
+    );
+    w.run_for(secs(1.0));
+    assert!(w.list_ids(a).contains(&"tb3@b/s0".to_string()));
     assert_eq!(missed(&w, a), 1);
 }
 

@@ -42,13 +42,18 @@ const MAX_LINKS_IN: usize = 16 * 1024;
 /// up to [`LIST_RETRY_MAX`].
 const LIST_RETRY_FIRST: Duration = Duration::from_millis(250);
 const LIST_RETRY_MAX: Duration = Duration::from_secs(4);
-/// Each broker says this often which version its list is at ([`FedOutput::AnnounceList`],
-/// a few bytes): a peer that missed a publication (made before the peer's subscription
-/// was known there, so it went nowhere) sees it is behind and asks for the list. The
-/// list itself goes out only when it changes: publishing it whole again on every
-/// refresh cost a federation of N hosts N² lists every 2 s (30 hosts of 100 services:
-/// 10.8 MB/s on loopback while idle).
-pub const LIST_REFRESH: Duration = Duration::from_secs(2);
+/// Each broker says which version its list is at ([`FedOutput::AnnounceList`], a few
+/// bytes), at least this often: a peer that missed a publication (made before the
+/// peer's subscription was known there, so it went nowhere) sees it is behind and asks
+/// for the list. Such misses come when hosts join, so a host that sees another join
+/// announces [`LIST_ANNOUNCE_FIRST`] later, then ever more rarely, back to this. The
+/// list itself goes out only when it changes: publishing it whole every 2 s cost a
+/// federation of N hosts N² lists every 2 s (30 hosts of 100 services: 10.8 MB/s on
+/// loopback while idle), and announcing every 2 s N² messages.
+pub const LIST_REFRESH: Duration = Duration::from_secs(30);
+/// The first announcement after a host joined; each next one twice as late, up to
+/// [`LIST_REFRESH`].
+pub const LIST_ANNOUNCE_FIRST: Duration = Duration::from_millis(500);
 /// A request out on another host that has had no answer (queued, granted or refused)
 /// this long is sent again, the wait doubling up to [`REQUEST_RETRY_MAX`]: a put made
 /// before the network knew the peer's subscription went nowhere, and so did its answer
@@ -232,8 +237,10 @@ pub struct FedCore {
     pid: u32,
     /// This host's list as last published: its version and body.
     my_list: (u64, Vec<u8>),
-    /// When this host's list is published again unchanged ([`LIST_REFRESH`]).
+    /// When this host next announces its list's version, and the wait after that
+    /// ([`LIST_ANNOUNCE_FIRST`] doubling to [`LIST_REFRESH`]).
     next_refresh: Duration,
+    announce_wait: Duration,
     /// The version of each host's list taken.
     list_versions: HashMap<String, u64>,
     alive: BTreeSet<String>,
@@ -301,7 +308,8 @@ impl FedCore {
             host: host.to_string(),
             pid,
             my_list: (0, b"[]".to_vec()),
-            next_refresh: now + LIST_REFRESH,
+            next_refresh: now + LIST_ANNOUNCE_FIRST,
+            announce_wait: LIST_ANNOUNCE_FIRST,
             list_versions: HashMap::new(),
             alive: BTreeSet::new(),
             lists: BTreeMap::new(),
@@ -397,7 +405,8 @@ impl FedCore {
             self.send(&host, msg);
         }
         if now >= self.next_refresh {
-            self.next_refresh = now + LIST_REFRESH;
+            self.announce_wait = (self.announce_wait * 2).min(LIST_REFRESH);
+            self.next_refresh = now + self.announce_wait;
             if self.my_list.0 > 0 && self.may(&self.host, Role::Offer) {
                 self.out.push_back(FedOutput::AnnounceList {
                     version: self.my_list.0,
@@ -470,7 +479,6 @@ impl FedCore {
     /// list's version, kept rising.
     pub fn publish_list(
         &mut self,
-        now: Duration,
         wall_ns: u64,
         views: &[ServiceView],
         systems: &[&str],
@@ -498,7 +506,6 @@ impl FedCore {
         let body = serde_json::to_vec(&published).unwrap_or_else(|_| b"[]".to_vec());
         let version = wall_ns.max(self.my_list.0 + 1);
         self.my_list = (version, body.clone());
-        self.next_refresh = now + LIST_REFRESH;
         self.out.push_back(FedOutput::PutList { version, body });
         let want: BTreeSet<&str> = systems.iter().copied().collect();
         let gone: Vec<String> = self
@@ -881,6 +888,10 @@ impl FedCore {
                         tracing::info!(host = %host, "federation: host joined");
                         self.list_changed = true;
                     }
+                    // What this host put before the newcomer's subscription was known
+                    // here went nowhere for it: say the version soon, and again.
+                    self.announce_wait = LIST_ANNOUNCE_FIRST;
+                    self.next_refresh = self.next_refresh.min(now + LIST_ANNOUNCE_FIRST);
                     self.out.push_back(FedOutput::QueryList(host.clone()));
                     self.list_asked
                         .insert(host.clone(), (now + LIST_RETRY_FIRST, LIST_RETRY_FIRST));
@@ -1000,7 +1011,11 @@ impl FedCore {
             && !self.list_asked.contains_key(host)
         {
             self.stats.lists_missed += 1;
-            tracing::debug!(host, version, "federation: behind a host's list; asking for it");
+            tracing::debug!(
+                host,
+                version,
+                "federation: behind a host's list; asking for it"
+            );
             self.out.push_back(FedOutput::QueryList(host.to_string()));
             self.list_asked
                 .insert(host.to_string(), (now + LIST_RETRY_FIRST, LIST_RETRY_FIRST));

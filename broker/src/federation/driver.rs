@@ -538,7 +538,7 @@ impl Federation {
         let unix_ns = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
-        let mine = self.core.publish_list(now(), unix_ns, views, systems);
+        let mine = self.core.publish_list(unix_ns, views, systems);
         self.carry_out();
         mine
     }

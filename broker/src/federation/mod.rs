@@ -98,6 +98,8 @@ pub struct FedConfig {
     pub lease: Option<Duration>,
     /// Zenoh's multicast scouting (finding peers on the LAN without `--connect`).
     pub multicast: bool,
+    /// How this broker joins the Zenoh network (`None`: the file's mode, else a peer).
+    pub mode: Option<ZenohMode>,
     /// Mutual TLS with the certificates in this folder (`muster certs`): `ca.pem`,
     /// `HOST.pem`, `HOST.key`. TCP endpoints are used as TLS ones.
     pub tls: Option<PathBuf>,
@@ -108,6 +110,48 @@ pub struct FedConfig {
     /// Federate without TLS: no authentication at all, anyone who reaches the endpoint
     /// acts as any host (`--insecure-no-tls`; refused otherwise).
     pub insecure: bool,
+}
+
+/// How a broker joins the Zenoh network: the topology of a federation.
+///
+/// Peers (the default) connect to each other: every host keeps a link to every other
+/// (Zenoh's gossip finds the rest from one `--connect`), so links, keep-alives and idle
+/// CPU grow with the square of the number of hosts. For many hosts, a few brokers are
+/// routers (meshed among themselves) and the rest clients, each with one link to a
+/// router (`--connect` every router: a client whose router goes reconnects to another,
+/// its host unseen by the others meanwhile).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ZenohMode {
+    /// Links to every other peer.
+    Peer,
+    /// One link to a router; cannot be dialled.
+    Client,
+    /// Routes between its clients and the other routers; a host as any other too.
+    Router,
+}
+
+impl std::str::FromStr for ZenohMode {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "peer" => Ok(ZenohMode::Peer),
+            "client" => Ok(ZenohMode::Client),
+            "router" => Ok(ZenohMode::Router),
+            _ => Err(format!("{s:?}: one of peer, client, router")),
+        }
+    }
+}
+
+impl ZenohMode {
+    /// Its name in Zenoh's configuration (and on the command line).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ZenohMode::Peer => "peer",
+            ZenohMode::Client => "client",
+            ZenohMode::Router => "router",
+        }
+    }
 }
 
 /// The access file `muster certs` writes beside the certificates.
@@ -297,9 +341,25 @@ impl FedConfig {
                 })
                 .collect()
         };
+        if let Some(m) = self.mode {
+            set(&mut c, "mode", &format!("\"{}\"", m.as_str()))?;
+        }
+        let client = self.mode == Some(ZenohMode::Client);
+        if client && !self.listen.is_empty() {
+            return Err(FedError::Config(
+                "--zenoh-mode client cannot --listen: a client is not dialled (it connects \
+                 to a router)"
+                    .into(),
+            ));
+        }
+        if client && self.connect.is_empty() && !self.multicast && self.zenoh_config.is_none() {
+            return Err(FedError::Config(
+                "--zenoh-mode client needs --connect ROUTER (or --multicast to find one)".into(),
+            ));
+        }
         if !self.listen.is_empty() {
             set(&mut c, "listen/endpoints", &json_list(&tls(&self.listen)))?;
-        } else if self.zenoh_config.is_none() {
+        } else if self.zenoh_config.is_none() && !client {
             // Zenoh's own default is every interface: here, only this machine's.
             set(
                 &mut c,

@@ -248,7 +248,11 @@ pub fn run(inst: &Instance, a: &FederationBenchArgs, n: usize) -> anyhow::Result
     }
     let names: Vec<String> = (0..n).map(|i| format!("h{i:03}")).collect();
     let names: Vec<&str> = names.iter().map(String::as_str).collect();
-    let hosts = LoopbackHosts::new(inst, &names, "hosts")?;
+    if a.routers >= n {
+        bail!("--routers must be fewer than --hosts");
+    }
+    let mut hosts = LoopbackHosts::new(inst, &names, "hosts")?;
+    hosts.routers = a.routers;
     let k = a.services_per_host;
     let mut extra = Vec::new();
     if let Some(lease) = a.lease {
@@ -272,12 +276,17 @@ pub fn run(inst: &Instance, a: &FederationBenchArgs, n: usize) -> anyhow::Result
             println!("{s}");
         }
     };
+    let topology = match a.routers {
+        0 => "Zenoh peers over TCP, each host dialling the ones before it".to_string(),
+        r => format!("{r} of them Zenoh routers, the rest their clients, over TCP"),
+    };
     say(format!(
-        "{n} hosts on loopback (Zenoh peers over TCP, each host dialling the ones before \
-         it), each a broker and a system of {k} services; lease {}",
+        "{n} hosts on loopback ({topology}), each a broker and a system of {k} services; \
+         lease {}",
         a.lease
             .map_or("Zenoh's default (10 s)".to_string(), |l| format!("{l:?}"))
     ));
+    out["routers"] = json!(a.routers);
 
     // The first N-1 hosts, started together.
     let t = Instant::now();

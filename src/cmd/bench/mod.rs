@@ -2,8 +2,8 @@
 
 mod failover;
 mod federation;
-mod hosts;
 pub mod floor;
+mod hosts;
 mod leftovers;
 mod list;
 mod liveness;
