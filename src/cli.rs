@@ -729,6 +729,10 @@ pub struct FederationBenchArgs {
     /// clients (0: every host a peer, as `muster up --hosts` runs them).
     #[arg(long, default_value_t = 0)]
     pub routers: usize,
+    /// With `--hosts`: write each broker's log (its standard error) to
+    /// `DIR/broker-HOST.log` (set `RUST_LOG` for more than warnings).
+    #[arg(long)]
+    pub logs: Option<std::path::PathBuf>,
     /// With `--hosts`: services of each host's system.
     #[arg(long, default_value_t = 100)]
     pub services_per_host: usize,

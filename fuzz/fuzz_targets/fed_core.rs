@@ -331,7 +331,7 @@ fuzz_target!(|data: &[u8]| {
             }
         }
         if broker.take_list_change_into(&mut views).is_some() || fed.take_links_change() {
-            local = fed.publish_list(now.as_nanos() as u64, &views, &["t"]);
+            local = fed.publish_list(now, now.as_nanos() as u64, &views, &["t"]);
         }
         assert!(fed.merged_views(&local, DEFAULT_MAX_SERVICES).len() <= DEFAULT_MAX_SERVICES);
         while let Some(o) = fed.poll_output() {

@@ -614,9 +614,16 @@ impl World {
                             body: body.to_vec(),
                         }
                     });
+                    let answered = reply.is_some();
                     if let Some(r) = reply {
                         self.send(to, asker, Wire::Input(r));
                     }
+                    // The query ends as Zenoh's does: after its replies.
+                    let ended = FedInput::ListQueryEnded {
+                        host: self.hosts[to].name.clone(),
+                        answered,
+                    };
+                    self.send(to, asker, Wire::Input(ended));
                 }
                 Wire::Input(input) => {
                     let _ = from;
@@ -763,7 +770,7 @@ impl World {
             let local = b.take_list_change_into(&mut host.core_views).is_some();
             if local || f.take_links_change() {
                 let systems: Vec<&str> = b.systems().collect();
-                host.local_views = f.publish_list(wall(now), &host.core_views, &systems);
+                host.local_views = f.publish_list(now, wall(now), &host.core_views, &systems);
             }
             f.take_list_change();
             while let Some(o) = f.poll_output() {

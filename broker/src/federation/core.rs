@@ -38,10 +38,16 @@ const MAX_CONTACTS_PER_HOST: usize = MAX_CONTACTS / 2;
 pub const MAX_SERVICES_PER_HOST: usize = DEFAULT_MAX_SERVICES;
 /// Most links of other hosts' users over this host's services counted at once.
 const MAX_LINKS_IN: usize = 16 * 1024;
-/// A host's list not come this long after asking is asked for again, the wait doubling
-/// up to [`LIST_RETRY_MAX`].
+/// A query for a host's list that ended unanswered ([`FedInput::ListQueryEnded`]) is
+/// made again this long after, the wait doubling up to [`LIST_RETRY_MAX`]. A query is
+/// never made again while one is out: under load a reply takes long, and asking again
+/// on a timer (every 250 ms, as it once did) piled up copies of every list, until a
+/// hundred hosts starting together never got theirs.
 const LIST_RETRY_FIRST: Duration = Duration::from_millis(250);
 const LIST_RETRY_MAX: Duration = Duration::from_secs(4);
+/// A query out this long with no end heard (its driver lost it) is taken to have ended
+/// unanswered (Zenoh ends an unanswered query after 10 s).
+const LIST_QUERY_OUT: Duration = Duration::from_secs(12);
 /// Each broker says which version its list is at ([`FedOutput::AnnounceList`], a few
 /// bytes), at least this often: a peer that missed a publication (made before the
 /// peer's subscription was known there, so it went nowhere) sees it is behind and asks
@@ -54,6 +60,12 @@ pub const LIST_REFRESH: Duration = Duration::from_secs(30);
 /// The first announcement after a host joined; each next one twice as late, up to
 /// [`LIST_REFRESH`].
 pub const LIST_ANNOUNCE_FIRST: Duration = Duration::from_millis(500);
+/// A host announces soon after another joined only if its own list was put within this
+/// long of the join (before or after): only such a put can have gone nowhere for the
+/// newcomer, whose query at its start got the list as it was. (When a hundred hosts
+/// start together, announcing after every join would keep every host announcing twice
+/// a second the whole time.)
+const LIST_ANNOUNCE_WINDOW: Duration = Duration::from_secs(5);
 /// A request out on another host that has had no answer (queued, granted or refused)
 /// this long is sent again, the wait doubling up to [`REQUEST_RETRY_MAX`]: a put made
 /// before the network knew the peer's subscription went nowhere, and so did its answer
@@ -91,6 +103,14 @@ pub enum FedInput {
         version: u64,
         /// A JSON array of [`ServiceView`], or nothing.
         body: Vec<u8>,
+    },
+    /// A query for a host's list ([`FedOutput::QueryList`]) ended, with the list
+    /// (`answered`) or without it (the host's queryable not known yet, or it timed out).
+    ListQueryEnded {
+        /// The host asked.
+        host: String,
+        /// Whether a list came.
+        answered: bool,
     },
     /// A frame from a host, as it came: on its users' key (`req`, `users_side`) or on
     /// its systems' (`in`).
@@ -241,6 +261,9 @@ pub struct FedCore {
     /// ([`LIST_ANNOUNCE_FIRST`] doubling to [`LIST_REFRESH`]).
     next_refresh: Duration,
     announce_wait: Duration,
+    /// When this host last put its list, and last saw another host join.
+    last_put: Option<Duration>,
+    last_join: Option<Duration>,
     /// The version of each host's list taken.
     list_versions: HashMap<String, u64>,
     alive: BTreeSet<String>,
@@ -269,9 +292,10 @@ pub struct FedCore {
     /// The address other hosts' remote users reach this host's systems at, for a
     /// system listening on every address (from `--listen`).
     advertise: Option<IpAddr>,
-    /// Hosts whose list was asked for and has not come: when to ask again, and the
-    /// wait after that. (A query made as a host's token arrives can reach it before
-    /// its list's queryable is known here, and go unanswered.)
+    /// Hosts whose list was asked for and has not come: when to ask again (while a
+    /// query is out, when to give it up: [`LIST_QUERY_OUT`]), and the wait after an
+    /// unanswered one. (A query made as a host's token arrives can reach it before its
+    /// list's queryable is known here, and go unanswered.)
     list_asked: BTreeMap<String, (Duration, Duration)>,
     /// Systems whose token is declared.
     system_tokens: BTreeSet<String>,
@@ -310,6 +334,8 @@ impl FedCore {
             my_list: (0, b"[]".to_vec()),
             next_refresh: now + LIST_ANNOUNCE_FIRST,
             announce_wait: LIST_ANNOUNCE_FIRST,
+            last_put: None,
+            last_join: None,
             list_versions: HashMap::new(),
             alive: BTreeSet::new(),
             lists: BTreeMap::new(),
@@ -431,9 +457,8 @@ impl FedCore {
         self.list_asked.retain(|h, _| self.alive.contains(h));
         for host in due {
             self.out.push_back(FedOutput::QueryList(host.clone()));
-            if let Some((t, wait)) = self.list_asked.get_mut(&host) {
-                *wait = (*wait * 2).min(LIST_RETRY_MAX);
-                *t = now + *wait;
+            if let Some((t, _)) = self.list_asked.get_mut(&host) {
+                *t = now + LIST_QUERY_OUT;
             }
         }
     }
@@ -479,6 +504,7 @@ impl FedCore {
     /// list's version, kept rising.
     pub fn publish_list(
         &mut self,
+        now: Duration,
         wall_ns: u64,
         views: &[ServiceView],
         systems: &[&str],
@@ -507,6 +533,14 @@ impl FedCore {
         let version = wall_ns.max(self.my_list.0 + 1);
         self.my_list = (version, body.clone());
         self.out.push_back(FedOutput::PutList { version, body });
+        // A host that joined just before may not have been subscribed yet.
+        self.last_put = Some(now);
+        if self
+            .last_join
+            .is_some_and(|t| now <= t + LIST_ANNOUNCE_WINDOW)
+        {
+            self.announce_soon(now);
+        }
         let want: BTreeSet<&str> = systems.iter().copied().collect();
         let gone: Vec<String> = self
             .system_tokens
@@ -890,11 +924,16 @@ impl FedCore {
                     }
                     // What this host put before the newcomer's subscription was known
                     // here went nowhere for it: say the version soon, and again.
-                    self.announce_wait = LIST_ANNOUNCE_FIRST;
-                    self.next_refresh = self.next_refresh.min(now + LIST_ANNOUNCE_FIRST);
+                    self.last_join = Some(now);
+                    if self
+                        .last_put
+                        .is_some_and(|t| now <= t + LIST_ANNOUNCE_WINDOW)
+                    {
+                        self.announce_soon(now);
+                    }
                     self.out.push_back(FedOutput::QueryList(host.clone()));
                     self.list_asked
-                        .insert(host.clone(), (now + LIST_RETRY_FIRST, LIST_RETRY_FIRST));
+                        .insert(host.clone(), (now + LIST_QUERY_OUT, LIST_RETRY_FIRST));
                     self.restate_links(&host);
                     // Which sessions of this host's users does it hold (its broker may
                     // be new, or this one)?
@@ -930,6 +969,13 @@ impl FedCore {
                 }
                 self.list_asked.remove(&host);
                 self.take_list(&host, version, &body)
+            }
+            FedInput::ListQueryEnded { host, answered } => {
+                // Unanswered while still wanted: asked again after a wait, doubling.
+                if let Some((t, wait)) = self.list_asked.get_mut(&host).filter(|_| !answered) {
+                    *t = now + *wait;
+                    *wait = (*wait * 2).min(LIST_RETRY_MAX);
+                }
             }
             FedInput::Frame {
                 from,
@@ -1001,6 +1047,13 @@ impl FedCore {
         }
     }
 
+    /// Announces this host's list's version [`LIST_ANNOUNCE_FIRST`] from now, then ever
+    /// more rarely.
+    fn announce_soon(&mut self, now: Duration) {
+        self.announce_wait = LIST_ANNOUNCE_FIRST;
+        self.next_refresh = self.next_refresh.min(now + LIST_ANNOUNCE_FIRST);
+    }
+
     /// Host `host` says its list is at `version`: asked for if this one has an older one
     /// (and is not asking already). Hosts not (yet) seen alive are asked when they are.
     fn list_announced(&mut self, host: &str, version: u64, now: Duration) {
@@ -1018,7 +1071,7 @@ impl FedCore {
             );
             self.out.push_back(FedOutput::QueryList(host.to_string()));
             self.list_asked
-                .insert(host.to_string(), (now + LIST_RETRY_FIRST, LIST_RETRY_FIRST));
+                .insert(host.to_string(), (now + LIST_QUERY_OUT, LIST_RETRY_FIRST));
         }
     }
 

@@ -21,7 +21,7 @@ use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::io::{Read, Write};
 use std::os::fd::AsRawFd;
 use std::os::unix::net::UnixStream;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -93,9 +93,26 @@ fn list_version(sample: &zenoh::sample::Sample) -> u64 {
 
 fn input_bytes(ev: &FedInput) -> usize {
     match ev {
-        FedInput::Alive(..) | FedInput::Standby(..) => 0,
+        FedInput::Alive(..) | FedInput::Standby(..) | FedInput::ListQueryEnded { .. } => 0,
         FedInput::List { body, .. } => body.len(),
         FedInput::Frame { bytes, .. } => bytes.len(),
+    }
+}
+
+/// Held by a list query's callback: when Zenoh drops it (the query ended), the core
+/// hears whether a list came ([`FedInput::ListQueryEnded`]).
+struct QueryEnded {
+    notify: Arc<Inflow>,
+    host: String,
+    answered: AtomicBool,
+}
+
+impl Drop for QueryEnded {
+    fn drop(&mut self) {
+        self.notify.push(FedInput::ListQueryEnded {
+            host: std::mem::take(&mut self.host),
+            answered: self.answered.load(Ordering::Relaxed),
+        });
     }
 }
 
@@ -538,7 +555,7 @@ impl Federation {
         let unix_ns = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
-        let mine = self.core.publish_list(unix_ns, views, systems);
+        let mine = self.core.publish_list(now(), unix_ns, views, systems);
         self.carry_out();
         mine
     }
@@ -741,6 +758,13 @@ impl Federation {
         let key = format!("{}{host}/list", self.prefix);
         let h = host.to_string();
         let n = self.notify.clone();
+        // Zenoh drops the callback when the query ends (its last reply, or its
+        // timeout): the core hears then whether a list came.
+        let ended = QueryEnded {
+            notify: n.clone(),
+            host: host.to_string(),
+            answered: AtomicBool::new(false),
+        };
         let r = self
             .session
             .get(&key)
@@ -748,6 +772,7 @@ impl Federation {
             .callback(move |reply| {
                 if let Some(body) = reply.result().ok().and_then(|s| n.payload(s, MAX_FED_LIST)) {
                     let version = reply.result().map_or(0, list_version);
+                    ended.answered.store(true, Ordering::Relaxed);
                     n.push(FedInput::List {
                         host: h.clone(),
                         version,

@@ -94,12 +94,19 @@ impl Lists {
                 return Ok(at.into_iter().flatten().collect());
             }
             if since.elapsed() > limit {
-                let late: Vec<&str> = which
+                let late: Vec<usize> = which
                     .iter()
                     .zip(&at)
                     .filter(|(_, t)| t.is_none())
-                    .map(|(i, _)| self.insts[*i].as_str())
+                    .map(|(i, _)| *i)
                     .take(5)
+                    .collect();
+                let late: Vec<String> = late
+                    .into_iter()
+                    .map(|i| {
+                        let listed = self.read(i).map_or(0, |l| l.count());
+                        format!("{} ({listed} listed)", self.insts[i])
+                    })
                     .collect();
                 bail!(
                     "{what}: {} of {} hosts not there after {limit:?} (e.g. {late:?})",
@@ -131,6 +138,7 @@ struct Fleet {
     hosts: LoopbackHosts,
     kids: Children,
     extra: Vec<String>,
+    logs: Option<std::path::PathBuf>,
     stdin: Vec<Option<ChildStdin>>,
     services: usize,
 }
@@ -144,15 +152,17 @@ impl Fleet {
         let args = self.hosts.broker_args(i, &self.extra);
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
         let label = self.broker_label(i);
+        let stderr = match &self.logs {
+            Some(dir) => std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(dir.join(format!("{label}.log")))?
+                .into(),
+            None => Stdio::null(),
+        };
         Ok(self
             .kids
-            .spawn_with(
-                &self.hosts.insts[i],
-                &label,
-                &args,
-                Stdio::null(),
-                Stdio::null(),
-            )?
+            .spawn_with(&self.hosts.insts[i], &label, &args, Stdio::null(), stderr)?
             .id())
     }
 
@@ -258,11 +268,15 @@ pub fn run(inst: &Instance, a: &FederationBenchArgs, n: usize) -> anyhow::Result
     if let Some(lease) = a.lease {
         extra.extend(["--lease".to_string(), format!("{}ms", lease.as_millis())]);
     }
+    if let Some(dir) = &a.logs {
+        std::fs::create_dir_all(dir)?;
+    }
     let mut lists = Lists::new(&hosts.insts)?;
     let mut fleet = Fleet {
         hosts,
         kids: Children::default(),
         extra,
+        logs: a.logs.clone(),
         stdin: (0..n).map(|_| None).collect(),
         services: k,
     };
