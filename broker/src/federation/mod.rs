@@ -345,6 +345,17 @@ impl FedConfig {
             set(&mut c, "mode", &format!("\"{}\"", m.as_str()))?;
         }
         let client = self.mode == Some(ZenohMode::Client);
+        if self.tls.is_some() && matches!(self.mode, Some(ZenohMode::Client | ZenohMode::Router)) {
+            // A router's relayed messages reach the others on the router's link, with its
+            // certificate: the access rules, which know a host by the certificate of the
+            // link a message came on, could not tell the hosts behind it apart.
+            return Err(FedError::Config(
+                "--zenoh-mode client or router cannot be used with --tls yet: the access rules \
+                 know a host by its own link's certificate, and behind a router every host \
+                 would be the router (use peers, the default)"
+                    .into(),
+            ));
+        }
         if client && !self.listen.is_empty() {
             return Err(FedError::Config(
                 "--zenoh-mode client cannot --listen: a client is not dialled (it connects \
@@ -817,6 +828,68 @@ mod tests {
         assert!(!ended.droppable());
         let cancel = FedMsg::Cancel { user, req: 1 };
         assert!(!cancel.droppable());
+    }
+
+    #[test]
+    fn zenoh_modes_set_the_topology_and_refuse_what_cannot_work() {
+        let base = FedConfig {
+            host: "a".into(),
+            federation: "f".into(),
+            insecure: true,
+            ..FedConfig::default()
+        };
+        let mode = |c: &FedConfig| -> Result<String, String> {
+            let z = c.zenoh_config().map_err(|e| e.to_string())?;
+            Ok(format!(
+                "{} {}",
+                z.get_json("mode").unwrap(),
+                z.get_json("listen/endpoints").unwrap()
+            ))
+        };
+        // A peer by default, listening on loopback.
+        assert_eq!(mode(&base).unwrap(), "\"peer\" [\"tcp/127.0.0.1:0\"]");
+        let router = FedConfig {
+            mode: Some(ZenohMode::Router),
+            listen: vec!["tcp/127.0.0.1:7447".into()],
+            ..base.clone()
+        };
+        assert_eq!(
+            mode(&router).unwrap(),
+            "\"router\" [\"tcp/127.0.0.1:7447\"]"
+        );
+        // A client dials its routers and listens on nothing.
+        let client = FedConfig {
+            mode: Some(ZenohMode::Client),
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            ..base.clone()
+        };
+        // (Zenoh's own default names listen endpoints for routers and peers only.)
+        let m = mode(&client).unwrap();
+        assert!(
+            m.starts_with("\"client\" ") && !m.contains("127.0.0.1"),
+            "{m}"
+        );
+        let no_router = FedConfig {
+            connect: vec![],
+            ..client.clone()
+        };
+        assert!(mode(&no_router).unwrap_err().contains("--connect ROUTER"));
+        let listening = FedConfig {
+            listen: vec!["tcp/127.0.0.1:7448".into()],
+            ..client.clone()
+        };
+        assert!(mode(&listening).unwrap_err().contains("cannot --listen"));
+        // Not with TLS: the access rules would see every host behind a router as it.
+        let tls = FedConfig {
+            tls: Some("/nonexistent".into()),
+            insecure: false,
+            ..client
+        };
+        assert!(mode(&tls)
+            .unwrap_err()
+            .contains("cannot be used with --tls"));
+        assert_eq!("router".parse::<ZenohMode>(), Ok(ZenohMode::Router));
+        assert!("hub".parse::<ZenohMode>().is_err());
     }
 
     #[test]
