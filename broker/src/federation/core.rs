@@ -931,9 +931,7 @@ impl FedCore {
                     {
                         self.announce_soon(now);
                     }
-                    self.out.push_back(FedOutput::QueryList(host.clone()));
-                    self.list_asked
-                        .insert(host.clone(), (now + LIST_QUERY_OUT, LIST_RETRY_FIRST));
+                    self.ask_list(&host, now);
                     self.restate_links(&host);
                     // Which sessions of this host's users does it hold (its broker may
                     // be new, or this one)?
@@ -1069,10 +1067,16 @@ impl FedCore {
                 version,
                 "federation: behind a host's list; asking for it"
             );
-            self.out.push_back(FedOutput::QueryList(host.to_string()));
-            self.list_asked
-                .insert(host.to_string(), (now + LIST_QUERY_OUT, LIST_RETRY_FIRST));
+            self.ask_list(host, now);
         }
+    }
+
+    /// Asks `host` for its list, as anew: given up on after [`LIST_QUERY_OUT`], asked
+    /// again [`LIST_RETRY_FIRST`] after it ends unanswered.
+    fn ask_list(&mut self, host: &str, now: Duration) {
+        self.out.push_back(FedOutput::QueryList(host.to_string()));
+        self.list_asked
+            .insert(host.to_string(), (now + LIST_QUERY_OUT, LIST_RETRY_FIRST));
     }
 
     fn take_list(&mut self, host: &str, version: u64, body: &[u8]) {
