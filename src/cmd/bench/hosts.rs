@@ -148,7 +148,7 @@ impl Fleet {
         format!("broker-{}", self.hosts.names[i])
     }
 
-    fn start_broker(&mut self, i: usize) -> anyhow::Result<u32> {
+    fn start_broker(&mut self, i: usize) -> anyhow::Result<()> {
         let args = self.hosts.broker_args(i, &self.extra);
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
         let label = self.broker_label(i);
@@ -160,10 +160,9 @@ impl Fleet {
                 .into(),
             None => Stdio::null(),
         };
-        Ok(self
-            .kids
-            .spawn_with(&self.hosts.insts[i], &label, &args, Stdio::null(), stderr)?
-            .id())
+        self.kids
+            .spawn_with(&self.hosts.insts[i], &label, &args, Stdio::null(), stderr)?;
+        Ok(())
     }
 
     fn start_system(&mut self, i: usize) -> anyhow::Result<()> {
@@ -229,11 +228,16 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1000.0
 }
 
+/// Records `d` in `h`, in µs.
+fn record(h: &mut Histogram<u64>, d: Duration) {
+    let _ = h.record(d.as_micros().max(1) as u64);
+}
+
 /// A histogram (µs) of `times`.
 fn hist_of(times: &[Duration]) -> Histogram<u64> {
     let mut h = histogram();
     for t in times {
-        let _ = h.record(t.as_micros().max(1) as u64);
+        record(&mut h, *t);
     }
     h
 }
@@ -405,9 +409,9 @@ pub fn run(inst: &Instance, a: &FederationBenchArgs, n: usize) -> anyhow::Result
                 .is_some_and(|e| (e.withdrawn == 1) == withdraw)
         })?;
         for d in &times {
-            let _ = each.record(d.as_micros().max(1) as u64);
+            record(&mut each, *d);
         }
-        let _ = converged.record(last(&times).as_micros().max(1) as u64);
+        record(&mut converged, last(&times));
     }
     if a.list_changes > 0 {
         say(format!(
@@ -434,11 +438,11 @@ pub fn run(inst: &Instance, a: &FederationBenchArgs, n: usize) -> anyhow::Result
         let t = Instant::now();
         fleet.kids.kill(&label);
         let gone = lists.wait_count(&others, (n - 1) * k, t, limit, "a lost host")?;
-        let _ = gone_h.record(last(&gone).as_micros().max(1) as u64);
+        record(&mut gone_h, last(&gone));
         let t = Instant::now();
         fleet.start_broker(i)?;
         let back = lists.wait_count(&all, n * k, t, limit, "a host back")?;
-        let _ = back_h.record(last(&back).as_micros().max(1) as u64);
+        record(&mut back_h, last(&back));
     }
     if a.losses > 0 {
         say(format!(
