@@ -368,6 +368,12 @@ impl FedConfig {
                 "--zenoh-mode client needs --connect ROUTER (or --multicast to find one)".into(),
             ));
         }
+        if client {
+            // Zenoh's default for a client is to give up at once when no router answers:
+            // a client started before its router (a whole federation restarting) would
+            // exit. It waits for one instead.
+            set(&mut c, "connect/timeout_ms", "-1")?;
+        }
         if !self.listen.is_empty() {
             set(&mut c, "listen/endpoints", &json_list(&tls(&self.listen)))?;
         } else if self.zenoh_config.is_none() && !client {
@@ -869,6 +875,9 @@ mod tests {
             m.starts_with("\"client\" ") && !m.contains("127.0.0.1"),
             "{m}"
         );
+        // It waits for a router rather than giving up when none answers yet.
+        let z = client.zenoh_config().unwrap();
+        assert_eq!(z.get_json("connect/timeout_ms").unwrap(), "-1");
         let no_router = FedConfig {
             connect: vec![],
             ..client.clone()
