@@ -15,6 +15,22 @@ pub enum Address {
     System(String),
     /// A user, by id.
     User(UserId),
+    /// The inbox at which a federated broker takes the frames for every user of another
+    /// host (by that host's name): a frame for the user `alice@a` is written there, in an
+    /// envelope naming its user ([`Address::relay`]). One inbox and one bell per host,
+    /// not per user: a system's burst to 300 users of `a` rings once and is read once.
+    Relay(String),
+}
+
+impl Address {
+    /// The relay through which frames for this address go, if any: a user of another
+    /// host (`user@host`, [`UserId::is_foreign`]) is reached through its host's relay.
+    pub fn relay(&self) -> Option<Address> {
+        match self {
+            Address::User(u) => u.0.rsplit_once('@').map(|(_, h)| Address::Relay(h.into())),
+            _ => None,
+        }
+    }
 }
 
 impl fmt::Display for Address {
@@ -23,6 +39,7 @@ impl fmt::Display for Address {
             Address::Broker => f.write_str("broker"),
             Address::System(s) => write!(f, "system {s}"),
             Address::User(u) => write!(f, "user {u}"),
+            Address::Relay(h) => write!(f, "relay for host {h}"),
         }
     }
 }
@@ -61,6 +78,7 @@ impl Instance {
             Address::Broker => format!("muster/{}/broker", self.0),
             Address::System(s) => format!("muster/{}/system/{s}", self.0),
             Address::User(u) => format!("muster/{}/user/{u}", self.0),
+            Address::Relay(h) => format!("muster/{}/relay/{h}", self.0),
         }
     }
 
@@ -179,5 +197,15 @@ mod tests {
             i.inbox(&Address::User(UserId("u9".into()))),
             "muster/t1/user/u9/inbox"
         );
+        assert_eq!(
+            i.inbox(&Address::Relay("a".into())),
+            "muster/t1/relay/a/inbox"
+        );
+        assert_eq!(
+            Address::User(UserId("alice@a".into())).relay(),
+            Some(Address::Relay("a".into()))
+        );
+        assert_eq!(Address::User(UserId("alice".into())).relay(), None);
+        assert_eq!(Address::System("t1@b".into()).relay(), None);
     }
 }

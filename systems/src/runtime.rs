@@ -457,6 +457,9 @@ fn deliver<A: SystemApp>(
 
 impl Shell {
     fn flush(&mut self, core: &mut SystemCore) {
+        // A burst of frames to other hosts' users (an update to each of a service's
+        // sessions) rings each host's relay once, at its end.
+        self.endpoint.quiet_relays();
         let mut dead_users = Vec::new();
         self.flush_outputs(core, &mut dead_users);
         while !dead_users.is_empty() {
@@ -466,6 +469,7 @@ impl Shell {
             }
             self.flush_outputs(core, &mut dead_users);
         }
+        self.endpoint.ring_pending();
     }
 
     fn flush_outputs(&mut self, core: &mut SystemCore, dead_users: &mut Vec<UserId>) {

@@ -569,7 +569,7 @@ impl World {
                         f.local_user_gone(&u);
                         b.user_died(self.now, &u);
                     }
-                    Address::Broker => {}
+                    Address::Broker | Address::Relay(_) => {}
                 }
             }
         }

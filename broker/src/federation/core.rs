@@ -160,7 +160,10 @@ pub enum FedOutput {
 /// The shared-memory inboxes the core keeps for peers on other hosts: for each user of
 /// another host served here (`Address::User("alice@a")`), and for each system of
 /// another host that local users hold sessions with (`Address::System("t1@b")`). What
-/// local processes write into one comes back through [`FedCore::inbox_frame`].
+/// local processes write into one comes back through [`FedCore::inbox_frame`]. (The
+/// driver keeps one inbox for all the users of a host, that host's relay
+/// ([`Address::Relay`]), and hands back each frame with the user it names; the core
+/// opens and closes per user all the same.)
 pub trait Inboxes {
     /// Opens the inbox of `peer`.
     fn open(&mut self, peer: &Address) -> Result<(), String>;
@@ -1685,7 +1688,7 @@ impl FedCore {
                 Ok(m) => self.user_frame(far, m, sender, core),
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),
             },
-            Address::Broker => {}
+            Address::Broker | Address::Relay(_) => {}
         }
     }
 

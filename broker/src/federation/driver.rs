@@ -11,13 +11,13 @@ use super::{
     MAX_FED_FRAME,
 };
 use crate::core::{Broker, Output};
-use muster_shared::ipc::{create_node, Endpoint};
+use muster_shared::ipc::{create_node, open_envelope, Endpoint};
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{encode, monotonic_ns, RemoteContact, ToBroker, ToSystem};
 use muster_shared::reactor::Reactor;
 use muster_shared::snapshot::ServiceView;
 use muster_shared::types::UserId;
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::io::{Read, Write};
 use std::os::fd::AsRawFd;
 use std::os::unix::net::UnixStream;
@@ -196,13 +196,24 @@ impl Inflow {
     }
 }
 
-/// A shared-memory inbox the broker keeps for a peer on another host.
+/// A shared-memory inbox the broker keeps for peers on other hosts: a far system's
+/// (`system@host`, written to by local users), or a host's relay (written to by local
+/// systems for every user of that host, each frame in an envelope naming its user).
 struct Proxy {
     endpoint: Endpoint,
     token: usize,
+    /// The peers it is open for: the far system, or the host's users.
+    peers: HashSet<Address>,
 }
 
-/// The inboxes of peers on other hosts, each an endpoint in the reactor.
+/// The inbox a peer on another host is reached through here: a user's host's relay, or
+/// the far system's own.
+fn proxy_of(peer: &Address) -> Address {
+    peer.relay().unwrap_or_else(|| peer.clone())
+}
+
+/// The inboxes of peers on other hosts, each an endpoint in the reactor, by the address
+/// they are opened as ([`proxy_of`]).
 struct ShmInboxes {
     inst: Instance,
     open: HashMap<Address, Proxy>,
@@ -221,52 +232,72 @@ struct ShmIo<'a> {
 impl Inboxes for ShmIo<'_> {
     fn open(&mut self, peer: &Address) -> Result<(), String> {
         let shm = &mut *self.shm;
-        if shm.open.contains_key(peer) {
+        let key = proxy_of(peer);
+        if let Some(p) = shm.open.get_mut(&key) {
+            p.peers.insert(peer.clone());
             return Ok(());
         }
         // One closed a moment ago (its peer's host left and came back): taken again.
-        let proxy = match shm.lingering.iter().position(|(_, a, _)| a == peer) {
+        let mut proxy = match shm.lingering.iter().position(|(_, a, _)| *a == key) {
             Some(i) => shm.lingering.swap_remove(i).2,
             None => {
-                let name = match peer {
+                let name = match &key {
                     Address::System(s) => format!("muster-fed-system-{s}"),
+                    Address::Relay(h) => format!("muster-fed-relay-{h}"),
                     Address::User(u) => format!("muster-fed-user-{u}"),
                     Address::Broker => "muster-fed".to_string(),
                 };
                 let node = create_node(&name, false).map_err(|e| e.to_string())?;
                 let endpoint =
-                    Endpoint::open(&shm.inst, peer.clone(), node).map_err(|e| e.to_string())?;
+                    Endpoint::open(&shm.inst, key.clone(), node).map_err(|e| e.to_string())?;
                 let token = shm.next_token;
                 shm.next_token += 1;
-                Proxy { endpoint, token }
+                Proxy {
+                    endpoint,
+                    token,
+                    peers: HashSet::new(),
+                }
             }
         };
         self.reactor
             .add(proxy.endpoint.bell_fd(), proxy.token)
             .map_err(|e| e.to_string())?;
-        shm.by_token.insert(proxy.token, peer.clone());
-        shm.open.insert(peer.clone(), proxy);
+        proxy.peers.insert(peer.clone());
+        shm.by_token.insert(proxy.token, key.clone());
+        shm.open.insert(key, proxy);
         Ok(())
     }
 
     fn close(&mut self, peer: &Address) {
-        if let Some(p) = self.shm.open.remove(peer) {
+        let key = proxy_of(peer);
+        let Some(p) = self.shm.open.get_mut(&key) else {
+            return;
+        };
+        p.peers.remove(peer);
+        if !p.peers.is_empty() {
+            return;
+        }
+        if let Some(p) = self.shm.open.remove(&key) {
             self.reactor.remove(p.endpoint.bell_fd());
             self.shm.by_token.remove(&p.token);
             self.shm
                 .lingering
-                .push((Instant::now() + PROXY_LINGER, peer.clone(), p));
+                .push((Instant::now() + PROXY_LINGER, key, p));
         }
     }
 
     fn send(&mut self, peer: &Address, to: &Address, msg: &ToSystem) {
-        if let Some(p) = self.shm.open.get_mut(peer) {
+        if let Some(p) = self.shm.open.get_mut(&proxy_of(peer)) {
             p.endpoint.send_control(to, msg);
         }
     }
 
     fn owner_pid(&mut self, peer: &Address, of: &Address) -> Option<u32> {
-        self.shm.open.get_mut(peer)?.endpoint.owner_pid(of)
+        self.shm
+            .open
+            .get_mut(&proxy_of(peer))?
+            .endpoint
+            .owner_pid(of)
     }
 }
 
@@ -636,11 +667,11 @@ impl Federation {
     /// Frames in a proxy inbox: a system's for a user of another host, or a local
     /// user's for a system of another host. Handed to the core, which relays them.
     pub fn on_proxy(&mut self, token: usize, core: &Broker, reactor: &Reactor) {
-        let Some(peer) = self.shm.by_token.get(&token).cloned() else {
+        let Some(key) = self.shm.by_token.get(&token).cloned() else {
             return;
         };
         let mut frames = Vec::new();
-        if let Some(p) = self.shm.open.get_mut(&peer) {
+        if let Some(p) = self.shm.open.get_mut(&key) {
             p.endpoint.drain_bell();
             while let Some(f) = p.endpoint.recv_from() {
                 frames.push(f);
@@ -651,7 +682,22 @@ impl Federation {
             reactor,
         };
         for (frame, sender) in frames {
-            self.core.inbox_frame(&peer, &frame, sender, core, &mut io);
+            match &key {
+                // A relay's frame names its user, who must be of the relay's host.
+                Address::Relay(host) => {
+                    let Some((user, frame)) = open_envelope(&frame) else {
+                        tracing::debug!(%host, "a frame in a relay that is not an envelope");
+                        continue;
+                    };
+                    let peer = Address::User(user);
+                    if peer.relay().as_ref() != Some(&key) {
+                        tracing::debug!(%peer, %host, "a frame in a relay for another host's user");
+                        continue;
+                    }
+                    self.core.inbox_frame(&peer, frame, sender, core, &mut io);
+                }
+                _ => self.core.inbox_frame(&key, &frame, sender, core, &mut io),
+            }
         }
         self.carry_out();
     }

@@ -29,10 +29,13 @@
 //!
 //! **Requests and sessions across hosts.** A user asks its own broker for
 //! `tracking@b/red`; the broker passes the request to host `b`, where the broker
-//! arbitrates it (quota, queue) for the user `alice@a` as for any user. For each such
-//! foreign user the system's host keeps an inbox in shared memory (a proxy owned by its
-//! broker), so the system grants and streams to it as to a local user; the broker
-//! relays those frames to the user's host, which delivers them to the user. The user's
+//! arbitrates it (quota, queue) for the user `alice@a` as for any user. For the users of
+//! each other host the system's host keeps one inbox in shared memory, that host's relay
+//! (owned by its broker), so the system grants and streams to `alice@a` as to a local
+//! user, its frames written into `a`'s relay in an envelope naming the user; the broker
+//! relays those frames to the user's host, which delivers them to the user. One relay
+//! per host, not an inbox per user: a system's update to 300 users of `a` costs it one
+//! port and two bells, and the broker one inbox to read. The user's
 //! host keeps an inbox for the system (`tracking@b`), so the user's task input and end go
 //! back the same way. A session's frames travel between the user's host and the
 //! system's host only, in order (one Zenoh link, reliable), with the system's sequence

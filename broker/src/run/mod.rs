@@ -1305,7 +1305,7 @@ fn died_in(core: &mut Broker, fed: Option<&mut Federation>, now: Duration, who: 
             }
             core.user_died(now, u)
         }
-        Address::Broker => {}
+        Address::Broker | Address::Relay(_) => {}
     }
 }
 

@@ -3,9 +3,62 @@
 
 #[allow(unused_imports)]
 use super::*;
+use std::borrow::Cow;
 use std::cell::RefCell;
 use std::collections::HashSet;
 use std::rc::Rc;
+
+/// Where frames for `to` are written: its own inbox, or, for a user of another host, the
+/// relay inbox of that host ([`Address::relay`]).
+fn inbox_of(to: &Address) -> Cow<'_, Address> {
+    match to.relay() {
+        Some(r) => Cow::Owned(r),
+        None => Cow::Borrowed(to),
+    }
+}
+
+/// A frame as written for `to`: in a relay inbox, in an envelope naming its user (its
+/// id's length in a byte, the id, the frame; see [`open_envelope`]).
+fn for_inbox(to: &Address, frame: Vec<u8>) -> Result<Vec<u8>, TransportError> {
+    let Address::User(u) = to else {
+        return Ok(frame);
+    };
+    if !u.is_foreign() {
+        return Ok(frame);
+    }
+    if frame.len() > SMALL_FRAME {
+        return Err(TransportError::Send {
+            peer: to.clone(),
+            detail: format!(
+                "frame of {} bytes exceeds the {SMALL_FRAME}-byte limit of this path",
+                frame.len()
+            ),
+        });
+    }
+    let id = u.0.as_bytes();
+    let len = u8::try_from(id.len()).map_err(|_| TransportError::Send {
+        peer: to.clone(),
+        detail: format!("a user id of {} bytes cannot be relayed", id.len()),
+    })?;
+    let mut out = Vec::with_capacity(1 + id.len() + frame.len());
+    out.push(len);
+    out.extend_from_slice(id);
+    out.extend_from_slice(&frame);
+    Ok(out)
+}
+
+/// A frame read from a relay inbox: the user it is for and the frame, or `None` if the
+/// bytes are not an envelope.
+pub fn open_envelope(bytes: &[u8]) -> Option<(crate::types::UserId, &[u8])> {
+    let (&len, rest) = bytes.split_first()?;
+    let len = usize::from(len);
+    if rest.len() < len {
+        return None;
+    }
+    let (id, frame) = rest.split_at(len);
+    let id = std::str::from_utf8(id).ok()?;
+    Some((crate::types::UserId(id.to_string()), frame))
+}
 
 /// Empties a listener; returns the event ids rung as bits (bit i = id i).
 pub(super) fn drain_ids(listener: &Listener<Ipc>) -> u64 {
@@ -46,6 +99,8 @@ struct Ports {
     /// Peers sent frames by [`Endpoint::send_control_quiet`] whose bells
     /// [`Endpoint::ring_pending`] rings.
     pending_bells: Vec<Address>,
+    /// Relays' bells wait for [`Endpoint::ring_pending`] ([`Endpoint::quiet_relays`]).
+    quiet_relays: bool,
 }
 
 /// Ports to peers shared by several endpoints of one thread, and their iceoryx2 node:
@@ -91,7 +146,7 @@ impl Drop for Endpoint {
     fn drop(&mut self) {
         let mut ports = self.ports.borrow_mut();
         for to in self.held.drain() {
-            ports.unhold(&to);
+            ports.unhold(&inbox_of(&to));
         }
     }
 }
@@ -358,6 +413,7 @@ impl Endpoint {
 
     /// The pids of the processes reading `of`'s inbox.
     pub fn reader_pids(&mut self, of: &Address) -> Vec<u32> {
+        let of = &*inbox_of(of);
         fn pids(
             svc: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
         ) -> Vec<u32> {
@@ -392,10 +448,12 @@ impl Endpoint {
     }
 
     /// Marks `to`'s ports as held by this endpoint (it is sending to it).
+    /// Marks the ports `to`'s frames go through as held by this endpoint (it is sending
+    /// to it): a relay's once for each of its users held.
     fn hold(&mut self, ports: &mut Ports, to: &Address) {
         if !self.held.contains(to) {
             self.held.insert(to.clone());
-            *ports.holders.entry(to.clone()).or_default() += 1;
+            *ports.holders.entry(inbox_of(to).into_owned()).or_default() += 1;
         }
     }
 
@@ -443,10 +501,14 @@ impl Endpoint {
                 return tracing::error!("{e}");
             }
         };
+        let frame = match for_inbox(to, frame) {
+            Ok(f) => f,
+            Err(e) => return tracing::error!("{e}"),
+        };
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        ports.control(to, frame, ring);
+        ports.control(&inbox_of(to), frame, ring);
     }
 
     /// [`Endpoint::send_control`], but the frame is only written: `to`'s bell rings at
@@ -474,9 +536,19 @@ impl Endpoint {
         !self.ports.borrow().pending_bells.is_empty()
     }
 
-    /// Rings the bells [`Endpoint::send_control_quiet`] left, once per peer.
+    /// From now until the next [`Endpoint::ring_pending`], a relay inbox
+    /// ([`Address::Relay`]: for users of other hosts) is rung for the first frame written
+    /// into it and then only by that call: a burst of updates to 300 users of a host
+    /// rings its relay twice, not 300 times, and its reader starts on the burst's head.
+    pub fn quiet_relays(&mut self) {
+        self.ports.borrow_mut().quiet_relays = true;
+    }
+
+    /// Rings the bells [`Endpoint::send_control_quiet`] (and [`Endpoint::quiet_relays`])
+    /// left, once per peer.
     pub fn ring_pending(&mut self) {
         let mut ports = self.ports.borrow_mut();
+        ports.quiet_relays = false;
         for to in std::mem::take(&mut ports.pending_bells) {
             if let Err(e) = ports.ring(&to, bell::MESSAGE) {
                 tracing::debug!("{e}");
@@ -501,6 +573,10 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
+        if to.relay().is_some() {
+            let frame = for_inbox(to, frame.to_vec())?;
+            return ports.send_ringing(&inbox_of(to), &frame, true);
+        }
         ports.send_ringing(to, frame, true)
     }
 
@@ -509,12 +585,17 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        ports.ring(to, id)
+        ports.ring(&inbox_of(to), id)
     }
 
     /// Forgets the cached ports to `to` at once (it died), releasing their shared memory,
     /// for every endpoint sharing them.
+    /// A user of another host is let go of as by [`Endpoint::release`]: its host's
+    /// relay, which others' frames go through, stays.
     pub fn forget(&mut self, to: &Address) {
+        if to.relay().is_some() {
+            return self.release(to);
+        }
         self.held.remove(to);
         let mut ports = self.ports.borrow_mut();
         ports.peers.remove(to);
@@ -527,7 +608,7 @@ impl Endpoint {
     /// sharing them that has not released them.
     pub fn release(&mut self, to: &Address) {
         if self.held.remove(to) {
-            self.ports.borrow_mut().unhold(to);
+            self.ports.borrow_mut().unhold(&inbox_of(to));
         }
     }
 
@@ -543,12 +624,12 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        ports.peer(to).map(|_| ())
+        ports.peer(&inbox_of(to)).map(|_| ())
     }
 
     /// Whether the ports to `to` are open (a send to it costs no first contact).
     pub fn has_ports(&self, to: &Address) -> bool {
-        self.ports.borrow().peers.contains_key(to)
+        self.ports.borrow().peers.contains_key(&*inbox_of(to))
     }
 
     /// Peers with open ports (including lingering ones).
@@ -574,6 +655,7 @@ impl Ports {
             dropped_sends: 0,
             backlog: HashMap::new(),
             pending_bells: Vec::new(),
+            quiet_relays: false,
         }
     }
 
@@ -615,6 +697,7 @@ impl Ports {
         let (len, strategy) = match to {
             // Only a system writes large frames to the broker (its registration).
             Address::Broker if self.large => (INITIAL_LARGE_FRAME, AllocationStrategy::PowerOfTwo),
+            Address::Relay(_) => (SMALL_FRAME + MAX_ENVELOPE, AllocationStrategy::Static),
             _ => (SMALL_FRAME, AllocationStrategy::Static),
         };
         let publisher = svc
@@ -715,7 +798,11 @@ impl Ports {
         }
         // Only a system's frames to the broker may be large (its registration).
         let large = self.large && *to == Address::Broker;
-        let result = if !large && frame.len() > SMALL_FRAME {
+        let limit = match to {
+            Address::Relay(_) => SMALL_FRAME + MAX_ENVELOPE,
+            _ => SMALL_FRAME,
+        };
+        let result = if !large && frame.len() > limit {
             Err(TransportError::Send {
                 peer: to.clone(),
                 detail: format!(
@@ -739,6 +826,10 @@ impl Ports {
     }
 
     fn try_send(&mut self, to: &Address, frame: &[u8], ring: bool) -> Result<(), TransportError> {
+        // A relay's bell rings for the first frame of the writer's burst (its reader
+        // starts on it while the writer goes on), then waits for the burst's end.
+        let quiet = self.quiet_relays && matches!(to, Address::Relay(_));
+        let ring = ring && !(quiet && self.pending_bells.contains(to));
         let peer = self.peer(to)?;
         let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
             peer: to.clone(),
@@ -766,7 +857,8 @@ impl Ports {
             peer.notifier
                 .notify_with_custom_event_id(EventId::new(bell::MESSAGE))
                 .map_err(|e| send_err(&e))?;
-        } else if !self.pending_bells.contains(to) {
+        }
+        if (!ring || quiet) && !self.pending_bells.contains(to) {
             self.pending_bells.push(to.clone());
         }
         Ok(())
@@ -870,5 +962,103 @@ mod tests {
         b.send(&s, b"last").unwrap();
         b.forget(&s);
         assert_eq!(share.open_peers(), 0);
+    }
+
+    #[test]
+    fn envelopes_name_their_user_and_refuse_what_is_not_one() {
+        let to = Address::User(UserId("alice@a".into()));
+        let framed = for_inbox(&to, b"frame".to_vec()).unwrap();
+        assert_eq!(framed, b"\x07alice@aframe");
+        assert_eq!(
+            open_envelope(&framed),
+            Some((UserId("alice@a".into()), &b"frame"[..]))
+        );
+        // A local user's frame goes as it is.
+        let local = Address::User(UserId("alice".into()));
+        assert_eq!(for_inbox(&local, b"frame".to_vec()).unwrap(), b"frame");
+        // Too short for its length byte, not UTF-8, empty.
+        assert_eq!(open_envelope(b"\x09alice@a"), None);
+        assert_eq!(open_envelope(b"\x02\xff\xfex"), None);
+        assert_eq!(open_envelope(b""), None);
+        // A user id too long to name, and a frame over the path's limit, are refused.
+        let long = Address::User(UserId(format!("{}@a", "u".repeat(300))));
+        assert!(for_inbox(&long, b"x".to_vec()).is_err());
+        assert!(for_inbox(&to, vec![0; SMALL_FRAME + 1]).is_err());
+    }
+
+    #[test]
+    fn a_hosts_users_are_written_to_through_one_relay_that_rings_once_a_burst() {
+        let inst = Instance::new(&format!("relay-test-{}", std::process::id())).unwrap();
+        let relay_a = Address::Relay("a".into());
+        let mut relay = Endpoint::open(
+            &inst,
+            relay_a.clone(),
+            create_node("relay-test-r", false).unwrap(),
+        )
+        .unwrap();
+        let mut system = Endpoint::open(
+            &inst,
+            Address::System("s".into()),
+            create_node("relay-test-s", false).unwrap(),
+        )
+        .unwrap();
+        let users: Vec<Address> = (0..5)
+            .map(|i| Address::User(UserId(format!("u{i}@a"))))
+            .collect();
+        // A burst, quiet: every frame in the one relay, its bell rung for the first
+        // frame and again at the end, not for each.
+        system.quiet_relays();
+        system.send(&users[0], b"update 0").unwrap();
+        assert_eq!(
+            relay.drain_bell(),
+            1 << bell::MESSAGE,
+            "the first frame rings"
+        );
+        for (i, u) in users.iter().enumerate().skip(1) {
+            system.send(u, format!("update {i}").as_bytes()).unwrap();
+        }
+        system.send_control(&users[0], &7u32);
+        assert_eq!(
+            relay.drain_bell(),
+            0,
+            "no bell for the rest before the burst's end"
+        );
+        system.ring_pending();
+        assert_eq!(relay.drain_bell(), 1 << bell::MESSAGE);
+        assert_eq!(
+            system.open_peers(),
+            1,
+            "one pair of ports for the host's users"
+        );
+        assert_eq!(writers(&relay), 1);
+        let pid = Some(std::process::id());
+        for (i, u) in users.iter().enumerate() {
+            let (bytes, from) = relay.recv_from().unwrap();
+            assert_eq!(from, pid);
+            let (user, frame) = open_envelope(&bytes).unwrap();
+            assert_eq!(Address::User(user), *u);
+            assert_eq!(frame, format!("update {i}").as_bytes());
+        }
+        let (bytes, _) = relay.recv_from().unwrap();
+        let (user, frame) = open_envelope(&bytes).unwrap();
+        assert_eq!(Address::User(user), users[0]);
+        assert_eq!(frame, crate::protocol::encode(&7u32).unwrap());
+        assert_eq!(relay.recv(), None);
+        // Not quiet: a frame rings at once.
+        system.send(&users[1], b"now").unwrap();
+        assert_eq!(relay.drain_bell(), 1 << bell::MESSAGE);
+        assert!(relay.recv().is_some());
+        // The relay's reader is the owner of every one of its users' inboxes.
+        assert_eq!(system.owner_pid(&users[3]), Some(std::process::id()));
+        // One user gone (the system forgets it): the others' ports stay.
+        system.forget(&users[0]);
+        assert!(system.has_ports(&users[1]));
+        system.send(&users[1], b"still").unwrap();
+        assert!(relay.recv().is_some());
+        // Every user let go: the ports linger, then go.
+        for u in &users[1..] {
+            system.release(u);
+        }
+        assert!(system.ports.borrow().lingering.contains_key(&relay_a));
     }
 }

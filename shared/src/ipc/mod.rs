@@ -44,6 +44,12 @@ pub const MAX_SYSTEM_PEERS: usize = 256;
 /// segments: a growable (dynamic) segment makes every reader preallocate ~290 KiB of
 /// bookkeeping per writer, which at 900 users is most of the broker's memory.
 pub const SMALL_FRAME: usize = 4096;
+/// Most bytes an envelope adds to a frame written into a relay inbox
+/// ([`crate::names::Address::Relay`]): a length byte and the user's id.
+pub const MAX_ENVELOPE: usize = 1 + u8::MAX as usize;
+/// Frames queued per writer in a relay inbox: a system's burst to all of a host's users
+/// at once (a 10 Hz service streamed to 300 of them) waits there for one read.
+pub const RELAY_BUFFER: usize = 1024;
 /// Initial frame size of the system → broker path, which grows (power of two) up to
 /// [`crate::protocol::MAX_FRAME`] for large registrations.
 const INITIAL_LARGE_FRAME: usize = 4096;
@@ -156,6 +162,12 @@ impl InboxLimits {
                 readers: 1,
                 inbox_readers: 1,
                 buffer: 32,
+            },
+            Address::Relay(_) => InboxLimits {
+                max_publishers: MAX_PARTICIPANTS,
+                readers: 1,
+                inbox_readers: 1,
+                buffer: RELAY_BUFFER,
             },
             Address::User(_) => InboxLimits {
                 max_publishers: MAX_USER_PEERS,
