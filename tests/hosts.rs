@@ -1703,3 +1703,120 @@ fn a_peer_is_dialled_only_at_a_name_its_certificate_bears() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A local process of host b writes into b's relay for host a's users: bytes that are
+/// no envelope, an envelope naming a user of another host, and an update for a's user's
+/// real session forged under its id. The user on a gets none of it, and its session's
+/// own updates go on in order, with no gap.
+#[test]
+fn forged_frames_in_a_relay_reach_no_user_of_another_host() {
+    use muster_shared::ipc::{create_node, Endpoint};
+    use muster_shared::protocol::{encode, ToUser};
+    use muster_shared::types::{Payload, ServiceId, UserId};
+    use muster_shared::{Address, Instance};
+    use muster_users::{ConnectOptions, UserClient, UserEvent};
+
+    let mut h = Hosts::new("frl", &["a", "b"]);
+    h.host(1).system("robo", &["--rate", "20"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 1);
+    let opts = ConnectOptions {
+        wait_for_broker: 20 * SEC,
+        handle_signals: false,
+        watch_list: false,
+    };
+    let mut user = UserClient::connect(&Instance::new(&h.host(0).inst).unwrap(), &opts).unwrap();
+    let req = user.request(&ServiceId("robo@b/s0".into())).unwrap();
+    let deadline = Instant::now() + 20 * SEC;
+    let session = loop {
+        match user.next_event(deadline).unwrap() {
+            Some(UserEvent::Granted {
+                req: r, session, ..
+            }) if r == req => break session,
+            Some(UserEvent::Refused { reason, .. }) => panic!("refused: {reason}"),
+            Some(_) => {}
+            None => panic!("no grant within 20 s"),
+        }
+    };
+    // Updates flow before the forger writes.
+    let mut seqs = Vec::new();
+    let mut gaps = 0;
+    let mut forged_seen = Vec::new();
+    let mut take = |user: &mut UserClient, until: Instant, seqs: &mut Vec<u64>| {
+        while let Some(ev) = user.next_event(until).unwrap() {
+            if let UserEvent::Update {
+                session: s,
+                seq,
+                gap,
+                payload,
+                ..
+            } = ev
+            {
+                assert_eq!(s, session);
+                if seq >= 1_000_000 || payload == Payload::Text("forged".into()) {
+                    forged_seen.push(seq);
+                }
+                seqs.push(seq);
+                gaps += gap;
+            }
+        }
+    };
+    take(&mut user, Instant::now() + SEC, &mut seqs);
+    assert!(seqs.len() >= 5, "updates flow: {seqs:?}");
+
+    let b = Instance::new(&h.host(1).inst).unwrap();
+    let node = create_node(&format!("frl-forger-{}", std::process::id()), false).unwrap();
+    let mut forger = Endpoint::open(&b, Address::User(UserId("forger".into())), node).unwrap();
+    let relay = Address::Relay("a".into());
+    let forged = |seq: u64| {
+        encode(&ToUser::Update {
+            session,
+            seq,
+            sent_ns: 0,
+            payload: Payload::Text("forged".into()),
+        })
+        .unwrap()
+    };
+    let envelope = |user: &str, frame: &[u8]| {
+        let mut e = vec![user.len() as u8];
+        e.extend_from_slice(user.as_bytes());
+        e.extend_from_slice(frame);
+        e
+    };
+    let me = format!("{}@a", user.id());
+    for i in 0..20u64 {
+        // Not an envelope: a length past the end, not UTF-8, empty.
+        forger.send(&relay, &[200, b'x']).unwrap();
+        forger.send(&relay, &[2, 0xff, 0xfe, 1]).unwrap();
+        forger.send(&relay, &[]).unwrap();
+        // A user of host c in a's relay.
+        forger
+            .send(
+                &relay,
+                &envelope(&format!("{}@c", user.id()), &forged(1_000_000 + i)),
+            )
+            .unwrap();
+        // a's user's own session, by a process that is not its system; in the envelope
+        // written by hand and as the library writes it.
+        forger
+            .send(&relay, &envelope(&me, &forged(2_000_000 + i)))
+            .unwrap();
+        forger
+            .send(&Address::User(UserId(me.clone())), &forged(3_000_000 + i))
+            .unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let before = seqs.len();
+    take(&mut user, Instant::now() + 2 * SEC, &mut seqs);
+    assert!(seqs.len() > before + 20, "the session goes on: {seqs:?}");
+    assert!(
+        forged_seen.is_empty(),
+        "forged updates delivered: {forged_seen:?}"
+    );
+    assert!(
+        seqs.windows(2).all(|p| p[1] == p[0] + 1),
+        "in order: {seqs:?}"
+    );
+    assert_eq!(gaps, 0);
+    drop(forger);
+    user.close();
+}
