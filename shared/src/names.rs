@@ -18,7 +18,8 @@ pub enum Address {
     /// The inbox at which a federated broker takes the frames for every user of another
     /// host (by that host's name): a frame for the user `alice@a` is written there, in an
     /// envelope naming its user ([`Address::relay`]). One inbox and one bell per host,
-    /// not per user: a system's burst to 300 users of `a` rings once and is read once.
+    /// not per user: a system's burst to 300 users of `a` is one inbox for the broker to
+    /// read, its bell rung for the burst's first frame and at its end.
     Relay(String),
 }
 
@@ -29,6 +30,15 @@ impl Address {
         match self {
             Address::User(u) => u.0.rsplit_once('@').map(|(_, h)| Address::Relay(h.into())),
             _ => None,
+        }
+    }
+
+    /// The address whose inbox frames for this one are written into: its own, or, for
+    /// a user of another host, that host's relay ([`Address::relay`]).
+    pub fn inbox_owner(&self) -> std::borrow::Cow<'_, Address> {
+        match self.relay() {
+            Some(r) => std::borrow::Cow::Owned(r),
+            None => std::borrow::Cow::Borrowed(self),
         }
     }
 }
@@ -207,5 +217,10 @@ mod tests {
         );
         assert_eq!(Address::User(UserId("alice".into())).relay(), None);
         assert_eq!(Address::System("t1@b".into()).relay(), None);
+        assert_eq!(
+            *Address::User(UserId("alice@a".into())).inbox_owner(),
+            Address::Relay("a".into())
+        );
+        assert_eq!(*Address::Broker.inbox_owner(), Address::Broker);
     }
 }

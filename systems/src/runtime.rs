@@ -458,7 +458,7 @@ fn deliver<A: SystemApp>(
 impl Shell {
     fn flush(&mut self, core: &mut SystemCore) {
         // A burst of frames to other hosts' users (an update to each of a service's
-        // sessions) rings each host's relay once, at its end.
+        // sessions) rings each host's relay for its first frame and at its end.
         self.endpoint.quiet_relays();
         let mut dead_users = Vec::new();
         self.flush_outputs(core, &mut dead_users);

@@ -206,14 +206,9 @@ struct Proxy {
     peers: HashSet<Address>,
 }
 
-/// The inbox a peer on another host is reached through here: a user's host's relay, or
-/// the far system's own.
-fn proxy_of(peer: &Address) -> Address {
-    peer.relay().unwrap_or_else(|| peer.clone())
-}
-
 /// The inboxes of peers on other hosts, each an endpoint in the reactor, by the address
-/// they are opened as ([`proxy_of`]).
+/// they are opened as ([`Address::inbox_owner`]: a user's host's relay, or the far
+/// system's own).
 struct ShmInboxes {
     inst: Instance,
     open: HashMap<Address, Proxy>,
@@ -232,7 +227,7 @@ struct ShmIo<'a> {
 impl Inboxes for ShmIo<'_> {
     fn open(&mut self, peer: &Address) -> Result<(), String> {
         let shm = &mut *self.shm;
-        let key = proxy_of(peer);
+        let key = peer.inbox_owner().into_owned();
         if let Some(p) = shm.open.get_mut(&key) {
             p.peers.insert(peer.clone());
             return Ok(());
@@ -269,7 +264,7 @@ impl Inboxes for ShmIo<'_> {
     }
 
     fn close(&mut self, peer: &Address) {
-        let key = proxy_of(peer);
+        let key = peer.inbox_owner().into_owned();
         let Some(p) = self.shm.open.get_mut(&key) else {
             return;
         };
@@ -287,7 +282,7 @@ impl Inboxes for ShmIo<'_> {
     }
 
     fn send(&mut self, peer: &Address, to: &Address, msg: &ToSystem) {
-        if let Some(p) = self.shm.open.get_mut(&proxy_of(peer)) {
+        if let Some(p) = self.shm.open.get_mut(&*peer.inbox_owner()) {
             p.endpoint.send_control(to, msg);
         }
     }
@@ -295,7 +290,7 @@ impl Inboxes for ShmIo<'_> {
     fn owner_pid(&mut self, peer: &Address, of: &Address) -> Option<u32> {
         self.shm
             .open
-            .get_mut(&proxy_of(peer))?
+            .get_mut(&*peer.inbox_owner())?
             .endpoint
             .owner_pid(of)
     }

@@ -3,17 +3,15 @@
 
 #[allow(unused_imports)]
 use super::*;
-use std::borrow::Cow;
 use std::cell::RefCell;
 use std::collections::HashSet;
 use std::rc::Rc;
 
-/// Where frames for `to` are written: its own inbox, or, for a user of another host, the
-/// relay inbox of that host ([`Address::relay`]).
-fn inbox_of(to: &Address) -> Cow<'_, Address> {
-    match to.relay() {
-        Some(r) => Cow::Owned(r),
-        None => Cow::Borrowed(to),
+/// The error of a frame of `len` bytes over the `limit` of the path to `to`.
+fn too_large(to: &Address, len: usize, limit: usize) -> TransportError {
+    TransportError::Send {
+        peer: to.clone(),
+        detail: format!("frame of {len} bytes exceeds the {limit}-byte limit of this path"),
     }
 }
 
@@ -27,13 +25,7 @@ fn for_inbox(to: &Address, frame: Vec<u8>) -> Result<Vec<u8>, TransportError> {
         return Ok(frame);
     }
     if frame.len() > SMALL_FRAME {
-        return Err(TransportError::Send {
-            peer: to.clone(),
-            detail: format!(
-                "frame of {} bytes exceeds the {SMALL_FRAME}-byte limit of this path",
-                frame.len()
-            ),
-        });
+        return Err(too_large(to, frame.len(), SMALL_FRAME));
     }
     let id = u.0.as_bytes();
     let len = u8::try_from(id.len()).map_err(|_| TransportError::Send {
@@ -146,7 +138,7 @@ impl Drop for Endpoint {
     fn drop(&mut self) {
         let mut ports = self.ports.borrow_mut();
         for to in self.held.drain() {
-            ports.unhold(&inbox_of(&to));
+            ports.unhold(&to.inbox_owner());
         }
     }
 }
@@ -413,7 +405,7 @@ impl Endpoint {
 
     /// The pids of the processes reading `of`'s inbox.
     pub fn reader_pids(&mut self, of: &Address) -> Vec<u32> {
-        let of = &*inbox_of(of);
+        let of = &*of.inbox_owner();
         fn pids(
             svc: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
         ) -> Vec<u32> {
@@ -447,13 +439,15 @@ impl Endpoint {
         self.recv_errors
     }
 
-    /// Marks `to`'s ports as held by this endpoint (it is sending to it).
     /// Marks the ports `to`'s frames go through as held by this endpoint (it is sending
     /// to it): a relay's once for each of its users held.
     fn hold(&mut self, ports: &mut Ports, to: &Address) {
         if !self.held.contains(to) {
             self.held.insert(to.clone());
-            *ports.holders.entry(inbox_of(to).into_owned()).or_default() += 1;
+            *ports
+                .holders
+                .entry(to.inbox_owner().into_owned())
+                .or_default() += 1;
         }
     }
 
@@ -508,7 +502,7 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        ports.control(&inbox_of(to), frame, ring);
+        ports.control(&to.inbox_owner(), frame, ring);
     }
 
     /// [`Endpoint::send_control`], but the frame is only written: `to`'s bell rings at
@@ -575,7 +569,7 @@ impl Endpoint {
         self.hold(&mut ports, to);
         if to.relay().is_some() {
             let frame = for_inbox(to, frame.to_vec())?;
-            return ports.send_ringing(&inbox_of(to), &frame, true);
+            return ports.send_ringing(&to.inbox_owner(), &frame, true);
         }
         ports.send_ringing(to, frame, true)
     }
@@ -585,13 +579,13 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        ports.ring(&inbox_of(to), id)
+        ports.ring(&to.inbox_owner(), id)
     }
 
     /// Forgets the cached ports to `to` at once (it died), releasing their shared memory,
-    /// for every endpoint sharing them.
-    /// A user of another host is let go of as by [`Endpoint::release`]: its host's
-    /// relay, which others' frames go through, stays.
+    /// for every endpoint sharing them. A user of another host is let go of as by
+    /// [`Endpoint::release`] instead: its host's relay, which others' frames go
+    /// through, stays.
     pub fn forget(&mut self, to: &Address) {
         if to.relay().is_some() {
             return self.release(to);
@@ -608,7 +602,7 @@ impl Endpoint {
     /// sharing them that has not released them.
     pub fn release(&mut self, to: &Address) {
         if self.held.remove(to) {
-            self.ports.borrow_mut().unhold(&inbox_of(to));
+            self.ports.borrow_mut().unhold(&to.inbox_owner());
         }
     }
 
@@ -624,12 +618,12 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        ports.peer(&inbox_of(to)).map(|_| ())
+        ports.peer(&to.inbox_owner()).map(|_| ())
     }
 
     /// Whether the ports to `to` are open (a send to it costs no first contact).
     pub fn has_ports(&self, to: &Address) -> bool {
-        self.ports.borrow().peers.contains_key(&*inbox_of(to))
+        self.ports.borrow().peers.contains_key(&*to.inbox_owner())
     }
 
     /// Peers with open ports (including lingering ones).
@@ -803,13 +797,7 @@ impl Ports {
             _ => SMALL_FRAME,
         };
         let result = if !large && frame.len() > limit {
-            Err(TransportError::Send {
-                peer: to.clone(),
-                detail: format!(
-                    "frame of {} bytes exceeds the {SMALL_FRAME}-byte limit of this path",
-                    frame.len()
-                ),
-            })
+            Err(too_large(to, frame.len(), limit))
         } else {
             self.try_send(to, frame, ring)
         };
