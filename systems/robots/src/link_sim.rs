@@ -239,11 +239,20 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
         if p.trace && ((t * 10.0).round() as u64).is_multiple_of(10) {
             let (px, py) = person(&world);
             let d1p = world.robots()[d1].pose;
-            let t3p = world.robots()[idx[2]].pose;
+            let t3 = &world.robots()[idx[2]];
+            let t3p = t3.pose;
+            // Whether T3 could see her (no wall between) and how far off its camera's
+            // axis she is, degrees.
+            let (bearing, d3) = (
+                (py - t3p.y).atan2(px - t3p.x),
+                (t3p.x - px).hypot(t3p.y - py),
+            );
+            let sight = map.raycast(t3p.x, t3p.y, bearing, d3).is_none();
+            let off = wrap(bearing - t3p.theta - t3.ptz.pan).to_degrees();
             let tr = tracking.payload(Colour::Red);
             eprintln!(
-                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {:4.1} D1 ({:5.1},{:5.1}) d {:4.1} track {}",
-                t3p.x, t3p.y, (t3p.x - px).hypot(t3p.y - py),
+                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {}",
+                t3p.x, t3p.y,
                 d1p.x, d1p.y, (d1p.x - px).hypot(d1p.y - py),
                 tr.map_or("none".to_string(), |tr| format!("({:5.1},{:5.1}) lost {} age {:.1}", tr.x, tr.y, tr.lost, tr.age)),
             );

@@ -117,6 +117,9 @@ pub struct Navigator {
     /// Time from a reading to the robot acting on the command made from it, beyond the
     /// sensor period (a process's wake-up, scheduling, the simulator's step), s.
     latency: f64,
+    /// Getting clear keeps this map point within this angle of the heading, if it can
+    /// ([`Navigator::keep_in_view`]).
+    keep_in_view: Option<((f64, f64), f64)>,
 }
 
 /// The laser's period: a body moves this long between two looks at it, s.
@@ -145,6 +148,7 @@ impl Navigator {
             error: None,
             escape: None,
             latency: 0.0,
+            keep_in_view: None,
         }
     }
 
@@ -203,6 +207,22 @@ impl Navigator {
         self.escape = escape;
     }
 
+    /// While getting clear ([`Navigator::give_way`], [`Navigator::make_room`]), keep the
+    /// map point `at` within `within` rad of the heading when a free heading allows it
+    /// (a tracker's camera pans only so far: turning its back on the person it follows
+    /// loses her). `None`: any heading.
+    pub fn keep_in_view(&mut self, at: Option<(f64, f64)>, within: f64) {
+        self.keep_in_view = at.map(|a| (a, within));
+    }
+
+    /// The robot-frame headings getting clear may take at `pose`, as [`Navigator::keep_in_view`] says.
+    fn in_view(&self, pose: Pose) -> impl Fn(f64) -> bool {
+        let keep = self
+            .keep_in_view
+            .map(|((x, y), within)| (wrap((y - pose.y).atan2(x - pose.x) - pose.theta), within));
+        move |a| keep.is_none_or(|(bearing, within)| wrap(a - bearing).abs() <= within)
+    }
+
     fn replan(&mut self, pose: Pose, obstacles: &[(f64, f64, f64)]) -> Result<(), PlanError> {
         let Some(goal) = self.goal else { return Ok(()) };
         self.planned_for = Some(goal);
@@ -254,7 +274,9 @@ impl Navigator {
             return None;
         }
         let away = wrap(toward + std::f64::consts::PI);
-        let a = escape_heading(p.footprint, obstacles, away, 0.4)?;
+        // Pressed on, it gets clear even if it must turn its back.
+        let a = escape_heading(p.footprint, obstacles, away, 0.4, self.in_view(pose))
+            .or_else(|| escape_heading(p.footprint, obstacles, away, 0.4, |_| true))?;
         self.escape = Some((wrap(pose.theta + a), now + 3.0));
         Some((0.0, 0.0))
     }
@@ -273,7 +295,13 @@ impl Navigator {
     ) -> Option<(f64, f64)> {
         if self.escape.is_none_or(|(_, until)| now >= until) {
             let away = wrap(toward + std::f64::consts::PI);
-            let a = escape_heading(self.params.footprint, obstacles, away, 0.4)?;
+            let a = escape_heading(
+                self.params.footprint,
+                obstacles,
+                away,
+                0.4,
+                self.in_view(pose),
+            )?;
             self.escape = Some((wrap(pose.theta + a), now + 3.0));
         }
         self.give_way(now, pose, obstacles)
@@ -541,7 +569,8 @@ impl Navigator {
         {
             // Something presses on the robot where it wants to go: find the free heading
             // nearest to the wanted one and get clear along it first.
-            if let Some(a) = escape_heading(p.footprint, obstacles, err, p.stop_gap + 0.4) {
+            if let Some(a) = escape_heading(p.footprint, obstacles, err, p.stop_gap + 0.4, |_| true)
+            {
                 self.escape = Some((wrap(pose.theta + a), now + 2.0));
             }
         }
@@ -575,7 +604,13 @@ impl Navigator {
 /// Against something in contact, only headings that move away from it count: a body
 /// pressed on the robot side-on lets it neither pass nor slide along (nor, in the
 /// simulator, lets it move past itself).
-fn escape_heading(radius: f64, pts: &[(f64, f64)], wanted: f64, need: f64) -> Option<f64> {
+fn escape_heading(
+    radius: f64,
+    pts: &[(f64, f64)],
+    wanted: f64,
+    need: f64,
+    allowed: impl Fn(f64) -> bool,
+) -> Option<f64> {
     let nearest = pts
         .iter()
         .map(|&(x, y)| (x.hypot(y), y.atan2(x)))
@@ -583,7 +618,7 @@ fn escape_heading(radius: f64, pts: &[(f64, f64)], wanted: f64, need: f64) -> Op
     let touching = nearest.filter(|(d, _)| *d < radius + 0.05).map(|(_, a)| a);
     (0..24)
         .map(|k| wrap(f64::from(k) * std::f64::consts::PI / 12.0))
-        .filter(|a| touching.is_none_or(|t| (a - t).cos() < -0.3))
+        .filter(|a| touching.is_none_or(|t| (a - t).cos() < -0.3) && allowed(*a))
         .filter(|a| {
             let (s, c) = (-a).sin_cos();
             let turned: Vec<(f64, f64)> = pts

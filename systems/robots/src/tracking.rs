@@ -51,6 +51,10 @@ impl Budget {
 /// A mobile tracker searches where its target was last seen for this long, s.
 const SEARCH_FOR: f64 = 60.0;
 
+/// A followed target unseen this long (but not lost) is looked for where it was last
+/// seen, s.
+const UNSEEN_GO_LOOK: f64 = 1.0;
+
 /// How far a mobile tracker looks ahead of where it lost its target, in seconds of the
 /// target's last velocity.
 const SEARCH_AHEAD: f64 = 4.0;
@@ -70,6 +74,25 @@ fn search_point(map: &OccupancyMap, t: &crate::tracker::Track) -> (f64, f64) {
         .map_or(ahead, |hit| (hit - 0.5).min(ahead))
         .max(0.0);
     (x + go * heading.cos(), y + go * heading.sin())
+}
+
+/// Narrower than this, a passage is a doorway (the office's doors are 1 m wide, its
+/// corridors 2 m and more), m.
+const DOORWAY: f64 = 1.4;
+
+/// The width of the narrowest passage through (x, y): the least, over directions, of the
+/// free distance to the walls one way plus the other, capped at `cap`, m.
+fn passage_width(map: &OccupancyMap, x: f64, y: f64, cap: f64) -> f64 {
+    (0..12)
+        .map(|k| {
+            let a = f64::from(k) * std::f64::consts::PI / 12.0;
+            let one = map.raycast(x, y, a, cap).unwrap_or(cap);
+            let other = map
+                .raycast(x, y, a + std::f64::consts::PI, cap)
+                .unwrap_or(cap);
+            (one + other).min(cap)
+        })
+        .fold(cap, f64::min)
 }
 
 /// One tracking robot, as configured.
@@ -359,6 +382,14 @@ impl TrackingCore {
             .iter()
             .find(|c| self.tracker.is_tracked(**c, now))
             .and_then(|c| Some((*c, self.tracker.predicted(*c, now)?)));
+        // Unseen for a moment while still tracked: where it was last seen (a person who
+        // turned into a door is seen from there; one who went on is seen down the way).
+        let unseen_at = follow.iter().find_map(|c| {
+            let t = self.tracker.track(*c)?;
+            let unseen = now - t.last_seen;
+            (self.tracker.is_tracked(*c, now) && unseen > UNSEEN_GO_LOOK)
+                .then_some((t.state[0], t.state[1]))
+        });
         // Lost a while ago: search where it was going (once), then patrol.
         let search = follow.iter().find_map(|c| {
             let t = self.tracker.track(*c)?;
@@ -373,6 +404,12 @@ impl TrackingCore {
         };
         let obstacles = r.cfg.geometry.obstacle_points(s, 3.5);
         match target {
+            Some(_) if unseen_at.is_some() => {
+                let at = unseen_at.unwrap_or_default();
+                if nav.goal() != Some(at) {
+                    let _ = nav.set_goal(r.pose, at, 0.3);
+                }
+            }
             Some((_, (tx, ty))) => {
                 r.searched = None;
                 let (dx, dy) = (tx - r.pose.x, ty - r.pose.y);
@@ -383,6 +420,13 @@ impl TrackingCore {
                     // to anyone (the target included) who walks into the robot. Halted
                     // anew at every step, it must not forget that it is getting clear.
                     nav.halt();
+                    // Getting clear, it keeps the target within its camera's reach.
+                    let reach = r
+                        .cfg
+                        .geometry
+                        .camera
+                        .map_or(std::f64::consts::PI, |(fov, _, pan)| pan + fov / 2.0 - 0.2);
+                    nav.keep_in_view(Some((tx, ty)), reach);
                     if let Some(v) = nav.give_way(now, r.pose, &obstacles) {
                         return v;
                     }
@@ -390,7 +434,7 @@ impl TrackingCore {
                     // Much closer than it keeps (the target came back towards the
                     // robot), or standing in a doorway (walls close on both sides): it
                     // may be where she must pass, so it makes room rather than trap her.
-                    let narrow = map.clearance(r.pose.x, r.pose.y, 1.0) < 0.6;
+                    let narrow = passage_width(map, r.pose.x, r.pose.y, 2.0) < DOORWAY;
                     if d < 0.6 * follow_distance || narrow {
                         if let Some(v) = nav.make_room(now, r.pose, &obstacles, err) {
                             return v;
