@@ -55,6 +55,10 @@ const SEARCH_FOR: f64 = 60.0;
 /// seen, s.
 const UNSEEN_GO_LOOK: f64 = 1.0;
 
+/// Looking for a followed target where it was last seen, a mobile tracker stops this
+/// close to that place, m.
+const UNSEEN_ARRIVED: f64 = 1.0;
+
 /// How far a mobile tracker looks ahead of where it lost its target, in seconds of the
 /// target's last velocity.
 const SEARCH_AHEAD: f64 = 4.0;
@@ -378,18 +382,21 @@ impl TrackingCore {
             Some(c) => vec![c],
             None => wanted.to_vec(),
         };
+        // The target followed: where it is predicted to be, or, unseen for a moment while
+        // still tracked, where it was last seen (a person who turned into a door is seen
+        // from there, one who went on is seen down the way; a prediction runs on through
+        // walls).
         let target = follow
             .iter()
             .find(|c| self.tracker.is_tracked(**c, now))
-            .and_then(|c| Some((*c, self.tracker.predicted(*c, now)?)));
-        // Unseen for a moment while still tracked: where it was last seen (a person who
-        // turned into a door is seen from there; one who went on is seen down the way).
-        let unseen_at = follow.iter().find_map(|c| {
-            let t = self.tracker.track(*c)?;
-            let unseen = now - t.last_seen;
-            (self.tracker.is_tracked(*c, now) && unseen > UNSEEN_GO_LOOK)
-                .then_some((t.state[0], t.state[1]))
-        });
+            .and_then(|c| {
+                let t = self.tracker.track(*c)?;
+                if now - t.last_seen > UNSEEN_GO_LOOK {
+                    Some((true, (t.state[0], t.state[1])))
+                } else {
+                    Some((false, self.tracker.predicted(*c, now)?))
+                }
+            });
         // Lost a while ago: search where it was going (once), then patrol.
         let search = follow.iter().find_map(|c| {
             let t = self.tracker.track(*c)?;
@@ -404,18 +411,20 @@ impl TrackingCore {
         };
         let obstacles = r.cfg.geometry.obstacle_points(s, 3.5);
         match target {
-            Some(_) if unseen_at.is_some() => {
-                let at = unseen_at.unwrap_or_default();
-                if nav.goal() != Some(at) {
-                    let _ = nav.set_goal(r.pose, at, 0.3);
-                }
-            }
-            Some((_, (tx, ty))) => {
+            Some((unseen, (tx, ty))) => {
                 r.searched = None;
                 let (dx, dy) = (tx - r.pose.x, ty - r.pose.y);
                 let d = dx.hypot(dy);
                 let in_sight = map.raycast(r.pose.x, r.pose.y, dy.atan2(dx), d).is_none();
-                if d <= follow_distance + 0.3 && in_sight {
+                // Close enough: in sight at the distance kept, or, looking for it, about
+                // where it was last seen (not onto it: it may be there, hidden from the
+                // camera, in a doorway).
+                let close = if unseen {
+                    d <= UNSEEN_ARRIVED
+                } else {
+                    d <= follow_distance + 0.3 && in_sight
+                };
+                if close {
                     // Close enough and in sight: hold, facing the target, and give way
                     // to anyone (the target included) who walks into the robot. Halted
                     // anew at every step, it must not forget that it is getting clear.
