@@ -396,9 +396,11 @@ fn delivery_follows_a_walking_person_without_contact_despite_latency() {
 /// people walking about, no robot touches anything either. Runs are chaotic, so the
 /// figures are pooled over the seeds. Before T3 followed along the way she went and walls
 /// stopped passing for people, D1's distance while tracked was p50 14 m over seeds 1-3;
-/// pooled over seeds 1-8 it is 5.9 m now (4.7-5.1 m over seeds 11-20 and 21-30), and red
-/// is tracked 56 % of the time. The goals set for them (p50 ≤ 3 m, p90 ≤ 6 m, tracked
-/// ≥ 85 %) are not met yet; this holds what is.
+/// pooled over seeds 1-8 it was 5.9 m before T3 kept her in view (doorways told from
+/// corridors, looking where she was last seen, getting clear without turning its back on
+/// her) and is 4.1-4.5 m now (pooled over seeds 1-4 and 5-8), with red tracked 42-81 % of
+/// the time per seed (56 % overall before). The goals set for them (p50 ≤ 3 m, p90 ≤ 6 m,
+/// tracked ≥ 85 %) are not met yet; this holds what is.
 #[test]
 fn experiment_two_in_process_follows_the_person_without_contact() {
     use muster_robots::link_sim::{run, LinkSimParams};
@@ -428,9 +430,9 @@ fn experiment_two_in_process_follows_the_person_without_contact() {
         with_her += f.red_tracked;
     }
     let fraction = with_her as f64 / updates as f64;
-    assert!(fraction > 0.5, "red tracked {fraction:.2} of the time");
+    assert!(fraction > 0.55, "red tracked {fraction:.2} of the time");
     let p50 = muster_robots::percentile(&tracked, 0.5).unwrap();
-    assert!(p50 < 6.0, "D1 to the person while tracked, p50 {p50:.2} m");
+    assert!(p50 < 5.0, "D1 to the person while tracked, p50 {p50:.2} m");
     // And in a crowd: ten more people walking from office to office across the robots'
     // ways.
     let f = run(&LinkSimParams {
