@@ -424,11 +424,19 @@ fn ended_by_an_operator(f: &mut Fed, holder: usize) {
 /// A tmux session running a command, killed (by name, ours) on drop.
 struct Tmux(String);
 
+/// `tmux` on the server of session `name` alone (`-L`): tests that start sessions at once
+/// on one default server raced its start ("server exited unexpectedly").
+fn tmux_on(name: &str) -> std::process::Command {
+    let mut c = std::process::Command::new("tmux");
+    c.args(["-L", name]);
+    c
+}
+
 impl Tmux {
     /// `None` (the test skips, saying so) if tmux is missing, unless
     /// `MUSTER_REQUIRE_TMUX` is set (as .ci/run does).
     fn start(name: &str, cmd: &str) -> Option<Self> {
-        let ok = std::process::Command::new("tmux")
+        let ok = tmux_on(name)
             .args([
                 "new-session",
                 "-d",
@@ -454,7 +462,7 @@ impl Tmux {
     }
 
     fn screen(&self) -> String {
-        let out = std::process::Command::new("tmux")
+        let out = tmux_on(&self.0)
             .args(["capture-pane", "-p", "-t", &self.0])
             .output()
             .unwrap();
@@ -480,17 +488,13 @@ impl Tmux {
     fn keys(&self, keys: &[&str]) {
         let mut a = vec!["send-keys", "-t", &self.0];
         a.extend_from_slice(keys);
-        assert!(std::process::Command::new("tmux")
-            .args(&a)
-            .status()
-            .unwrap()
-            .success());
+        assert!(tmux_on(&self.0).args(&a).status().unwrap().success());
     }
 
     /// What a stuck view is doing: its screen, and the state and kernel wait channel
     /// of each of its process's threads.
     fn diagnose(&self) -> String {
-        let pane = std::process::Command::new("tmux")
+        let pane = tmux_on(&self.0)
             .args([
                 "list-panes",
                 "-t",
@@ -534,7 +538,7 @@ impl Tmux {
     }
 
     fn alive(&self) -> bool {
-        std::process::Command::new("tmux")
+        tmux_on(&self.0)
             .args(["has-session", "-t", &self.0])
             .status()
             .is_ok_and(|s| s.success())
@@ -543,9 +547,7 @@ impl Tmux {
 
 impl Drop for Tmux {
     fn drop(&mut self) {
-        let _ = std::process::Command::new("tmux")
-            .args(["kill-session", "-t", &self.0])
-            .status();
+        let _ = tmux_on(&self.0).args(["kill-server"]).status();
     }
 }
 
