@@ -422,7 +422,8 @@ fn ended_by_an_operator(f: &mut Fed, holder: usize) {
 }
 
 /// A tmux session running a command, killed (by name, ours) on drop.
-struct Tmux(String);
+/// A tmux session (its name) and its own server's socket.
+struct Tmux(String, String);
 
 /// `tmux` on the server of session `name` alone (`-L`): tests that start sessions at once
 /// on one default server raced its start ("server exited unexpectedly").
@@ -458,7 +459,12 @@ impl Tmux {
             common::skip("no tmux (the console tests)");
             return None;
         }
-        Some(Tmux(name.to_string()))
+        let socket = tmux_on(name)
+            .args(["display-message", "-p", "-t", name, "#{socket_path}"])
+            .output()
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+            .unwrap_or_default();
+        Some(Tmux(name.to_string(), socket))
     }
 
     fn screen(&self) -> String {
@@ -548,6 +554,10 @@ impl Tmux {
 impl Drop for Tmux {
     fn drop(&mut self) {
         let _ = tmux_on(&self.0).args(["kill-server"]).status();
+        // Its own server's socket goes with it.
+        if !self.1.is_empty() {
+            let _ = std::fs::remove_file(&self.1);
+        }
     }
 }
 
