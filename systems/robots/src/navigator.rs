@@ -799,6 +799,30 @@ mod tests {
     }
 
     #[test]
+    fn making_room_keeps_the_point_in_view_when_a_free_heading_allows() {
+        let map = OccupancyMap::office();
+        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let pose = Pose {
+            x: 20.0,
+            y: 3.0,
+            theta: 0.0,
+        };
+        // Someone 0.6 m ahead needs to pass; the followed person is 3 m ahead.
+        let body = [(0.6, 0.0)];
+        let escape_of = |keep: Option<(f64, f64)>| {
+            let mut nav = Navigator::new(planner.clone(), NavParams::default());
+            nav.keep_in_view(keep, 2.0);
+            nav.make_room(0.0, pose, &body, 0.0).unwrap();
+            wrap(nav.escape.unwrap().0 - pose.theta)
+        };
+        // Free to turn: straight away from her, its back to the person.
+        assert!(escape_of(None).abs() > 2.5, "{}", escape_of(None));
+        // Keeping her in view: the free heading nearest to away, within 2 rad of her.
+        let a = escape_of(Some((23.0, 3.0)));
+        assert!(a.abs() <= 2.0 + 1e-9 && a.abs() > 1.5, "{a}");
+    }
+
+    #[test]
     fn a_lone_point_in_the_lasers_field_is_noise_and_latency_grows_the_fields_uncapped() {
         let map = OccupancyMap::office();
         let planner = Arc::new(Planner::new(&map, PlannerParams::default()));

@@ -425,7 +425,7 @@ impl TrackingCore {
                     d <= follow_distance + 0.3 && in_sight
                 };
                 if close {
-                    // Close enough and in sight: hold, facing the target, and give way
+                    // Close enough: hold, facing the target, and give way
                     // to anyone (the target included) who walks into the robot. Halted
                     // anew at every step, it must not forget that it is getting clear.
                     nav.halt();
@@ -512,6 +512,16 @@ impl TrackingCore {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_doorway_is_narrower_than_a_corridor() {
+        let map = OccupancyMap::office();
+        // A south office's door on the middle corridor (x 9.5-10.5 at y 9) and the 2 m
+        // middle corridor off its centre line, where T3 once made room as in a door.
+        assert!(passage_width(&map, 10.0, 8.95, 2.0) < DOORWAY);
+        assert!(passage_width(&map, 20.0, 10.4, 2.0) > DOORWAY);
+        assert!(passage_width(&map, 20.0, 3.0, 2.0) > DOORWAY);
+    }
 
     #[test]
     fn the_budget_gives_ten_sessions_idle_and_eight_tracking_three_targets() {
