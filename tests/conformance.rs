@@ -421,8 +421,8 @@ fn ended_by_an_operator(f: &mut Fed, holder: usize) {
     assert!(reason.contains("ended by an operator"), "{ended}");
 }
 
-/// A tmux session running a command, killed (by name, ours) on drop.
-/// A tmux session (its name) and its own server's socket.
+/// A tmux session running a command (its name, ours) on a server of its own (the socket's
+/// path), killed with the server on drop.
 struct Tmux(String, String);
 
 /// `tmux` on the server of session `name` alone (`-L`): tests that start sessions at once
