@@ -21,14 +21,15 @@ pub fn cleanup_after(pid: Option<u32>) -> usize {
     // and iceoryx2 0.10 waits forever to open an empty one (its cleanup of a dead
     // node's connections among others): such segments go first, and again while the
     // cleanup runs.
-    remove_stillborn_segments();
+    let mut scan = StillbornScan::default();
+    scan.run();
     let running = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
     let watch = {
         let running = running.clone();
         std::thread::spawn(move || {
             while running.load(std::sync::atomic::Ordering::Relaxed) {
                 std::thread::sleep(Duration::from_millis(250));
-                remove_stillborn_segments();
+                scan.run();
             }
         })
     };
@@ -45,25 +46,56 @@ const STILLBORN_AFTER: Duration = Duration::from_secs(1);
 /// Removes iceoryx2 segments in /dev/shm that are empty and were made more than
 /// [`STILLBORN_AFTER`] ago: their creator died before sizing them. Returns how many.
 pub fn remove_stillborn_segments() -> usize {
-    let Ok(dir) = std::fs::read_dir("/dev/shm") else {
-        return 0;
-    };
-    let mut n = 0;
-    for entry in dir.flatten() {
-        if !entry.file_name().to_string_lossy().starts_with("iox2_") {
-            continue;
+    StillbornScan::default().run()
+}
+
+/// Looks for stillborn segments again and again, and asks the size of each file only
+/// until it is seen sized: a segment never shrinks back to nothing, so one seen sized
+/// is skipped after (known by its name and inode, so a new file under an old name is
+/// looked at anew). On a machine with many instances /dev/shm holds thousands of
+/// segments, and a cleanup that asked each one's size four times a second for as long
+/// as it ran (beside a hundred brokers starting, a cleanup each) took more of the
+/// machine than the brokers did.
+#[derive(Default)]
+struct StillbornScan {
+    sized: std::collections::HashSet<(std::ffi::OsString, u64)>,
+}
+
+impl StillbornScan {
+    /// One look: returns how many stillborn segments it removed.
+    fn run(&mut self) -> usize {
+        use std::os::unix::fs::DirEntryExt;
+        let Ok(dir) = std::fs::read_dir("/dev/shm") else {
+            return 0;
+        };
+        let mut n = 0;
+        let mut present = std::collections::HashSet::new();
+        for entry in dir.flatten() {
+            let name = entry.file_name();
+            if !name.to_string_lossy().starts_with("iox2_") {
+                continue;
+            }
+            let key = (name, entry.ino());
+            if self.sized.contains(&key) {
+                present.insert(key);
+                continue;
+            }
+            let Ok(meta) = entry.metadata() else { continue };
+            if !meta.is_file() {
+                continue;
+            }
+            if meta.len() > 0 {
+                present.insert(key.clone());
+                self.sized.insert(key);
+            } else if old(&meta) && std::fs::remove_file(entry.path()).is_ok() {
+                tracing::info!(segment = %key.0.to_string_lossy(), "removed an empty segment its dead creator never sized");
+                n += 1;
+            }
         }
-        let Ok(meta) = entry.metadata() else { continue };
-        if meta.is_file()
-            && meta.len() == 0
-            && old(&meta)
-            && std::fs::remove_file(entry.path()).is_ok()
-        {
-            tracing::info!(segment = %entry.file_name().to_string_lossy(), "removed an empty segment its dead creator never sized");
-            n += 1;
-        }
+        // Forget the files that are gone, so the set holds only what is there.
+        self.sized.retain(|k| present.contains(k));
+        n
     }
-    n
 }
 
 /// Whether a file was last written at least [`STILLBORN_AFTER`] ago: what a live
@@ -275,4 +307,45 @@ pub(super) fn node_pid(node: &iceoryx2::identifiers::UniqueNodeId) -> Option<u32
     node.pid::<Ipc>()
         .ok()
         .and_then(|p| u32::try_from(p.value()).ok())
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_repeated_scan_skips_what_it_saw_sized_and_still_finds_new_stillborn_segments() {
+        let name = |what: &str| format!("/dev/shm/iox2_muster_scan_{}_{what}", std::process::id());
+        let long_ago = std::time::SystemTime::now() - Duration::from_secs(5);
+        let make = |path: &str, bytes: &[u8]| {
+            let f = std::fs::File::create(path).unwrap();
+            std::io::Write::write_all(&mut &f, bytes).unwrap();
+            f.set_modified(long_ago).unwrap();
+            f
+        };
+        let exists = |p: &str| std::path::Path::new(p).exists();
+        let (sized, later) = (name("sized"), name("later"));
+        let f = make(&sized, b"data");
+        let mut scan = StillbornScan::default();
+        scan.run();
+        assert!(exists(&sized), "a sized segment stays");
+        // The same file emptied (which a segment never is): the scan does not ask its
+        // size again, so it stays.
+        f.set_len(0).unwrap();
+        f.set_modified(long_ago).unwrap();
+        make(&later, b"");
+        assert_eq!(scan.run(), 1, "the new stillborn one is found");
+        assert!(!exists(&later));
+        assert!(exists(&sized), "what was seen sized is not looked at again");
+        // A new file under the old name is looked at anew.
+        std::fs::remove_file(&sized).unwrap();
+        drop(f);
+        make(&sized, b"");
+        assert_eq!(scan.run(), 1);
+        assert!(
+            !exists(&sized),
+            "a new empty file under a known name is taken"
+        );
+    }
 }
