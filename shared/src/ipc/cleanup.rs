@@ -27,9 +27,19 @@ pub fn cleanup_after(pid: Option<u32>) -> usize {
     let watch = {
         let running = running.clone();
         std::thread::spawn(move || {
-            while running.load(std::sync::atomic::Ordering::Relaxed) {
-                std::thread::sleep(Duration::from_millis(250));
+            // Soon at first (a takeover's cleanup of the old primary is waited for),
+            // then ever more rarely: each look reads the whole of /dev/shm.
+            let mut wait = STILLBORN_LOOK_FIRST;
+            loop {
+                let until = std::time::Instant::now() + wait;
+                while std::time::Instant::now() < until {
+                    if !running.load(std::sync::atomic::Ordering::Relaxed) {
+                        return;
+                    }
+                    std::thread::sleep(STILLBORN_LOOK_FIRST.min(until - std::time::Instant::now()));
+                }
                 scan.run();
+                wait = (wait * 2).min(STILLBORN_LOOK_MAX);
             }
         })
     };
@@ -38,6 +48,11 @@ pub fn cleanup_after(pid: Option<u32>) -> usize {
     let _ = watch.join();
     n
 }
+
+/// While a cleanup runs, stillborn segments are looked for again this long after it
+/// began, then twice as late each time, up to [`STILLBORN_LOOK_MAX`].
+const STILLBORN_LOOK_FIRST: Duration = Duration::from_millis(250);
+const STILLBORN_LOOK_MAX: Duration = Duration::from_secs(4);
 
 /// How long an empty segment must have stayed empty to be taken for stillborn (its
 /// creator sizes it microseconds after creating it).
@@ -51,49 +66,55 @@ pub fn remove_stillborn_segments() -> usize {
 
 /// Looks for stillborn segments again and again, and asks the size of each file only
 /// until it is seen sized: a segment never shrinks back to nothing, so one seen sized
-/// is skipped after (known by its name and inode, so a new file under an old name is
+/// is skipped after (known by its inode and name, so a new file under an old name is
 /// looked at anew). On a machine with many instances /dev/shm holds thousands of
 /// segments, and a cleanup that asked each one's size four times a second for as long
 /// as it ran (beside a hundred brokers starting, a cleanup each) took more of the
 /// machine than the brokers did.
 #[derive(Default)]
 struct StillbornScan {
-    sized: std::collections::HashSet<(std::ffi::OsString, u64)>,
+    /// The segments seen sized, by inode: their name, and the look they were last
+    /// seen in.
+    sized: std::collections::HashMap<u64, (std::ffi::OsString, u64)>,
+    looks: u64,
 }
 
 impl StillbornScan {
     /// One look: returns how many stillborn segments it removed.
     fn run(&mut self) -> usize {
+        use std::os::unix::ffi::OsStrExt;
         use std::os::unix::fs::DirEntryExt;
         let Ok(dir) = std::fs::read_dir("/dev/shm") else {
             return 0;
         };
+        self.looks += 1;
         let mut n = 0;
-        let mut present = std::collections::HashSet::new();
         for entry in dir.flatten() {
             let name = entry.file_name();
-            if !name.to_string_lossy().starts_with("iox2_") {
+            if !name.as_bytes().starts_with(b"iox2_") {
                 continue;
             }
-            let key = (name, entry.ino());
-            if self.sized.contains(&key) {
-                present.insert(key);
-                continue;
+            let ino = entry.ino();
+            if let Some((known, seen)) = self.sized.get_mut(&ino) {
+                if *known == name {
+                    *seen = self.looks;
+                    continue;
+                }
             }
             let Ok(meta) = entry.metadata() else { continue };
             if !meta.is_file() {
                 continue;
             }
             if meta.len() > 0 {
-                present.insert(key.clone());
-                self.sized.insert(key);
+                self.sized.insert(ino, (name, self.looks));
             } else if old(&meta) && std::fs::remove_file(entry.path()).is_ok() {
-                tracing::info!(segment = %key.0.to_string_lossy(), "removed an empty segment its dead creator never sized");
+                tracing::info!(segment = %name.to_string_lossy(), "removed an empty segment its dead creator never sized");
                 n += 1;
             }
         }
-        // Forget the files that are gone, so the set holds only what is there.
-        self.sized.retain(|k| present.contains(k));
+        // Forget the files that are gone, so the map holds only what is there.
+        let look = self.looks;
+        self.sized.retain(|_, (_, seen)| *seen == look);
         n
     }
 }
