@@ -5,7 +5,7 @@
 //! and carries out the core's outputs (puts, queries, tokens) and inboxes (shared-memory
 //! endpoints the broker owns for peers on other hosts). Nothing here decides anything.
 
-use super::core::{FedCore, FedInput, FedOutput, Inboxes};
+use super::core::{FedCore, FedInput, FedOutput, Inboxes, LIST_QUERY_TIMEOUT};
 use super::{
     split_batch, Batch, Delivery, FedConfig, FedError, FedMsg, FedStats, Role, MAX_FED_BATCH,
     MAX_FED_FRAME,
@@ -810,6 +810,7 @@ impl Federation {
             .session
             .get(&key)
             .target(zenoh::query::QueryTarget::All)
+            .timeout(LIST_QUERY_TIMEOUT)
             .callback(move |reply| {
                 if let Some(body) = reply.result().ok().and_then(|s| n.payload(s, MAX_FED_LIST)) {
                     let version = reply.result().map_or(0, list_version);

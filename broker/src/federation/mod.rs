@@ -993,6 +993,46 @@ mod tests {
     }
 
     #[test]
+    fn a_list_is_put_when_what_other_hosts_see_of_it_changed_and_not_otherwise() {
+        use super::core::{FedCore, FedOutput};
+        let t = Duration::from_secs(1);
+        let mut core = FedCore::new("a", 1, None, None, t);
+        let view = |name: &str, in_use: u16| ServiceView {
+            id: format!("t1/{name}"),
+            system: "t1".into(),
+            name: name.into(),
+            kind: "data".into(),
+            quota: 2,
+            in_use,
+            payload: "pose2d".into(),
+            ..ServiceView::default()
+        };
+        let puts = |core: &mut FedCore, views: &[ServiceView], wall: u64| {
+            core.publish_list(t, wall, views, &["t1"]);
+            std::iter::from_fn(|| core.poll_output())
+                .filter_map(|o| match o {
+                    FedOutput::PutList { version, body } => Some((version, body)),
+                    _ => None,
+                })
+                .collect::<Vec<_>>()
+        };
+        // The first list is put even if empty.
+        assert_eq!(puts(&mut core, &[], 10).len(), 1);
+        let first = puts(&mut core, &[view("s0", 0)], 20);
+        assert_eq!(first.len(), 1);
+        assert_eq!(first[0].0, 20);
+        // The same again: nothing put, the version kept (hosts that have it are not
+        // sent it again, and do not read it again).
+        assert!(puts(&mut core, &[view("s0", 0)], 30).is_empty());
+        assert_eq!(core.my_list().0, 20);
+        // A count other hosts see changed: put, with a newer version.
+        let next = puts(&mut core, &[view("s0", 1)], 25);
+        assert_eq!(next.len(), 1);
+        assert_eq!(next[0].0, 25);
+        assert_ne!(next[0].1, first[0].1);
+    }
+
+    #[test]
     fn unanswered_messages_are_sent_again_with_doubling_waits_until_answered() {
         let ms = Duration::from_millis;
         let t0 = Duration::from_secs(100);
