@@ -30,7 +30,7 @@ pub fn die_with_parent(cmd: &mut Command) {
 
 /// The children we started; stopped (SIGTERM, then SIGKILL) on drop.
 #[derive(Default)]
-pub struct Children(Vec<(String, Child)>);
+pub struct Children(Vec<(String, Instance, Child)>);
 
 impl Children {
     /// Starts `muster --instance INST ARGS...`.
@@ -78,19 +78,22 @@ impl Children {
             .stderr(stderr)
             .spawn()
             .with_context(|| format!("starting {label}"))?;
-        self.0.push((label.to_string(), child));
-        Ok(&mut self.0.last_mut().expect("pushed").1)
+        self.0.push((label.to_string(), inst.clone(), child));
+        Ok(&mut self.0.last_mut().expect("pushed").2)
     }
 
     /// The child labelled `label`, if we started it and have not stopped it.
     pub fn child_mut(&mut self, label: &str) -> Option<&mut Child> {
-        self.0.iter_mut().find(|(l, _)| l == label).map(|(_, c)| c)
+        self.0
+            .iter_mut()
+            .find(|(l, _, _)| l == label)
+            .map(|(_, _, c)| c)
     }
 
     /// SIGKILLs the child labelled `label` (one we started) and reaps it.
     pub fn kill(&mut self, label: &str) {
-        if let Some(i) = self.0.iter().position(|(l, _)| l == label) {
-            let (_, mut c) = self.0.remove(i);
+        if let Some(i) = self.0.iter().position(|(l, _, _)| l == label) {
+            let (_, _, mut c) = self.0.remove(i);
             let _ = c.kill();
             let _ = c.wait();
         }
@@ -98,10 +101,10 @@ impl Children {
 
     /// SIGTERMs the child labelled `label` and waits for it (up to 5 s, then SIGKILL).
     pub fn stop_one(&mut self, label: &str) {
-        let Some(i) = self.0.iter().position(|(l, _)| l == label) else {
+        let Some(i) = self.0.iter().position(|(l, _, _)| l == label) else {
             return;
         };
-        let (label, mut c) = self.0.remove(i);
+        let (label, inst, mut c) = self.0.remove(i);
         if let Ok(pid) = libc::pid_t::try_from(c.id()) {
             // SAFETY: signalling a child we spawned and have not reaped.
             unsafe { libc::kill(pid, libc::SIGTERM) };
@@ -117,7 +120,7 @@ impl Children {
                     eprintln!("muster: {label} did not stop; killing it");
                     let _ = c.kill();
                     let _ = c.wait();
-                    return;
+                    return clean_after_killed(&[inst]);
                 }
             }
         }
@@ -125,7 +128,7 @@ impl Children {
 
     /// SIGKILLs every child we started and reaps them.
     pub fn kill_all(&mut self) {
-        for (_, mut c) in self.0.drain(..) {
+        for (_, _, mut c) in self.0.drain(..) {
             let _ = c.kill();
             let _ = c.wait();
         }
@@ -133,19 +136,20 @@ impl Children {
 
     /// Process ids, in start order.
     pub fn pids(&self) -> impl Iterator<Item = u32> + '_ {
-        self.0.iter().map(|(_, c)| c.id())
+        self.0.iter().map(|(_, _, c)| c.id())
     }
 
     /// SIGTERM every child we started (by PID, last first), wait up to 5 s, then SIGKILL.
     pub fn stop(&mut self) {
-        for (_, c) in self.0.iter().rev() {
+        for (_, _, c) in self.0.iter().rev() {
             if let Ok(pid) = libc::pid_t::try_from(c.id()) {
                 // SAFETY: signalling a child we spawned and have not reaped.
                 unsafe { libc::kill(pid, libc::SIGTERM) };
             }
         }
         let deadline = Instant::now() + Duration::from_secs(5);
-        for (label, c) in self.0.iter_mut().rev() {
+        let mut killed = Vec::new();
+        for (label, inst, c) in self.0.iter_mut().rev() {
             loop {
                 match c.try_wait() {
                     Ok(Some(_)) => break,
@@ -156,12 +160,29 @@ impl Children {
                         eprintln!("muster: {label} did not stop; killing it");
                         let _ = c.kill();
                         let _ = c.wait();
+                        killed.push(inst.clone());
                         break;
                     }
                 }
             }
         }
         self.0.clear();
+        clean_after_killed(&killed);
+    }
+}
+
+/// Removes what children SIGKILLed because they did not stop left in shared memory:
+/// their iceoryx2 nodes, and the fence of an instance none of whose brokers is left (a
+/// command leaves nothing of its children behind, however they ended).
+fn clean_after_killed(insts: &[Instance]) {
+    if insts.is_empty() {
+        return;
+    }
+    muster_shared::ipc::cleanup_dead_nodes(None);
+    for inst in insts {
+        if muster_shared::ipc::live_brokers(inst) == 0 {
+            muster_shared::fence::remove_if_orphaned(inst);
+        }
     }
 }
 

@@ -396,6 +396,11 @@ impl FedConfig {
                 "transport/link/tx/queue/size/data",
                 &ZENOH_DATA_QUEUE.to_string(),
             )?;
+            // Each batch on a link LZ4-compressed when both ends say so (a client that
+            // does not, such as Zenoh's Python one by default, gets them plain). The
+            // lists are JSON and say the same keys a hundred times: when a hundred
+            // hosts start together, every host fetches every other's.
+            set(&mut c, "transport/unicast/compression/enabled", "true")?;
         }
         if self.acl.is_some() && self.tls.is_none() {
             return Err(FedError::Config(
