@@ -109,20 +109,8 @@ impl Children {
             // SAFETY: signalling a child we spawned and have not reaped.
             unsafe { libc::kill(pid, libc::SIGTERM) };
         }
-        let deadline = Instant::now() + Duration::from_secs(5);
-        loop {
-            match c.try_wait() {
-                Ok(Some(_)) => return,
-                Ok(None) if Instant::now() < deadline => {
-                    std::thread::sleep(Duration::from_millis(5))
-                }
-                _ => {
-                    eprintln!("muster: {label} did not stop; killing it");
-                    let _ = c.kill();
-                    let _ = c.wait();
-                    return clean_after_killed(&[inst]);
-                }
-            }
+        if !exits_by(&label, &mut c, Instant::now() + Duration::from_secs(5)) {
+            clean_after_killed(&[inst]);
         }
     }
 
@@ -150,24 +138,29 @@ impl Children {
         let deadline = Instant::now() + Duration::from_secs(5);
         let mut killed = Vec::new();
         for (label, inst, c) in self.0.iter_mut().rev() {
-            loop {
-                match c.try_wait() {
-                    Ok(Some(_)) => break,
-                    Ok(None) if Instant::now() < deadline => {
-                        std::thread::sleep(Duration::from_millis(5))
-                    }
-                    _ => {
-                        eprintln!("muster: {label} did not stop; killing it");
-                        let _ = c.kill();
-                        let _ = c.wait();
-                        killed.push(inst.clone());
-                        break;
-                    }
-                }
+            if !exits_by(label, c, deadline) {
+                killed.push(inst.clone());
             }
         }
         self.0.clear();
         clean_after_killed(&killed);
+    }
+}
+
+/// Waits until `deadline` for the signalled child `c` to exit; SIGKILLs and reaps it
+/// if it has not (saying so). Whether it exited by itself.
+fn exits_by(label: &str, c: &mut Child, deadline: Instant) -> bool {
+    loop {
+        match c.try_wait() {
+            Ok(Some(_)) => return true,
+            Ok(None) if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(5)),
+            _ => {
+                eprintln!("muster: {label} did not stop; killing it");
+                let _ = c.kill();
+                let _ = c.wait();
+                return false;
+            }
+        }
     }
 }
 

@@ -28,15 +28,13 @@ pub fn cleanup_after(pid: Option<u32>) -> usize {
         let running = running.clone();
         std::thread::spawn(move || {
             // Soon at first (a takeover's cleanup of the old primary is waited for),
-            // then ever more rarely: each look reads the whole of /dev/shm.
+            // then ever more rarely: each look reads the whole of /dev/shm. Woken
+            // (unparked) when the cleanup ends.
             let mut wait = STILLBORN_LOOK_FIRST;
             loop {
-                let until = std::time::Instant::now() + wait;
-                while std::time::Instant::now() < until {
-                    if !running.load(std::sync::atomic::Ordering::Relaxed) {
-                        return;
-                    }
-                    std::thread::sleep(STILLBORN_LOOK_FIRST.min(until - std::time::Instant::now()));
+                std::thread::park_timeout(wait);
+                if !running.load(std::sync::atomic::Ordering::Relaxed) {
+                    return;
                 }
                 scan.run();
                 wait = (wait * 2).min(STILLBORN_LOOK_MAX);
@@ -45,6 +43,7 @@ pub fn cleanup_after(pid: Option<u32>) -> usize {
     };
     let n = cleanup_after_inner(pid);
     running.store(false, std::sync::atomic::Ordering::Relaxed);
+    watch.thread().unpark();
     let _ = watch.join();
     n
 }
