@@ -921,6 +921,10 @@ pub struct BrokerArgs {
     /// dropped and counted.
     #[arg(long, default_value_t = 2000.0, requires = "udp")]
     pub udp_conn_rate: f64,
+    /// Most remote users connected at once (a connection costs the broker a few KiB);
+    /// the next handshake is refused until one leaves.
+    #[arg(long, default_value_t = muster_broker::udp::DEFAULT_MAX_REMOTE_USERS, requires = "udp")]
+    pub udp_max_users: usize,
     /// Run as a standby: follow the running broker's state and take over when it dies,
     /// hangs past --takeover-deadline or steps down. Any number may run.
     #[arg(long)]

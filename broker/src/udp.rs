@@ -40,6 +40,9 @@ use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+/// Most remote users connected at once unless told (`--udp-max-users`).
+pub const DEFAULT_MAX_REMOTE_USERS: usize = 16_384;
+
 /// Limits of the UDP front.
 #[derive(Clone, Debug)]
 pub struct UdpLimits {
@@ -66,7 +69,7 @@ impl Default for UdpLimits {
         UdpLimits {
             max_pending: 1024,
             handshake_timeout: Duration::from_secs(5),
-            max_conns: 4096,
+            max_conns: DEFAULT_MAX_REMOTE_USERS,
             idle_timeout: Duration::from_secs(30),
             conn_rate: (2000.0, 4000.0),
             source_rate: (1000.0, 2000.0),

@@ -205,8 +205,10 @@ pub fn set_nice(nice: i32) -> io::Result<()> {
     Ok(())
 }
 
-/// Raises the soft RLIMIT_NOFILE to the hard limit (the broker holds a few fds per peer).
-/// Returns the new soft limit.
+/// Raises this process's descriptor limit as far as it may (the broker, a system and the
+/// web console hold a few descriptors per peer): with the privilege to (root,
+/// CAP_SYS_RESOURCE), the hard limit too, up to the kernel's `nr_open` (at most 2^20);
+/// otherwise the soft limit to the hard one. Returns the new soft limit.
 pub fn raise_fd_limit() -> io::Result<u64> {
     let mut lim = libc::rlimit {
         rlim_cur: 0,
@@ -215,6 +217,21 @@ pub fn raise_fd_limit() -> io::Result<u64> {
     // SAFETY: valid out-pointer.
     if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } != 0 {
         return Err(io::Error::last_os_error());
+    }
+    let nr_open = std::fs::read_to_string("/proc/sys/fs/nr_open")
+        .ok()
+        .and_then(|s| s.trim().parse::<u64>().ok())
+        .unwrap_or(1 << 20)
+        .min(1 << 20);
+    if lim.rlim_max < nr_open {
+        let want = libc::rlimit {
+            rlim_cur: nr_open,
+            rlim_max: nr_open,
+        };
+        // SAFETY: a valid in-pointer; the kernel refuses a raise without the privilege.
+        if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &want) } == 0 {
+            return Ok(nr_open);
+        }
     }
     if lim.rlim_cur < lim.rlim_max {
         lim.rlim_cur = lim.rlim_max;

@@ -38,6 +38,7 @@ pub fn run(inst: &Instance, a: BrokerArgs) -> anyhow::Result<ExitCode> {
                 access_path: a.access.clone(),
                 limits: UdpLimits {
                     conn_rate: (a.udp_conn_rate, 2.0 * a.udp_conn_rate),
+                    max_conns: a.udp_max_users,
                     ..UdpLimits::default()
                 },
             })

@@ -122,6 +122,20 @@ impl Children {
         }
     }
 
+    /// The children labelled `label` that have exited since the last look, reaped and
+    /// forgotten: their process ids.
+    pub fn exited(&mut self, label: &str) -> Vec<u32> {
+        let mut gone = Vec::new();
+        self.0.retain_mut(|(l, _, c)| {
+            if l != label || !matches!(c.try_wait(), Ok(Some(_))) {
+                return true;
+            }
+            gone.push(c.id());
+            false
+        });
+        gone
+    }
+
     /// Process ids, in start order.
     pub fn pids(&self) -> impl Iterator<Item = u32> + '_ {
         self.0.iter().map(|(_, _, c)| c.id())
@@ -251,7 +265,7 @@ impl crate::cli::LoadArgs {
             bail!("at most {DEFAULT_MAX_SERVICES} services, {MAX_SERVICES_PER_SYSTEM} per system");
         }
         let cap = if remote {
-            4096
+            muster_broker::udp::DEFAULT_MAX_REMOTE_USERS
         } else {
             MAX_PARTICIPANTS - self.systems - 8
         };
@@ -264,6 +278,15 @@ impl crate::cli::LoadArgs {
             bail!(
                 "file-descriptor limit {fds} is too low for {} users (raise `ulimit -Hn`)",
                 self.users
+            );
+        }
+        let broker_fds = muster_broker::run::FDS_PER_LOCAL_USER;
+        if !remote && self.users as u64 * broker_fds + 256 > fds {
+            tracing::warn!(
+                "the broker gets this limit ({fds} descriptors) and holds about {broker_fds} per local user: \
+                 beyond about {} users, the next are refused (\"no broker\"); raising it needs \
+                 root with CAP_SYS_RESOURCE (`ulimit -Hn`), or use remote users (--remote)",
+                (fds - 256) / broker_fds
             );
         }
         Ok(())

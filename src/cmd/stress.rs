@@ -13,9 +13,8 @@ use muster_shared::trace::Stage;
 use muster_shared::Instance;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashMap};
-use std::io::{BufRead, BufReader, Read};
+use std::io::Read;
 use std::process::{ChildStdout, ExitCode, Stdio};
-use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 fn histogram() -> Histogram<u64> {
@@ -294,33 +293,64 @@ fn memory(setup: &Setup, users: &[u32]) -> Value {
 }
 
 /// Idle mode: users connect and stay idle; CPU over `--duration`, and memory.
+/// The users' standard outputs, a file each in a directory of the run's (removed after).
+struct UserOutputs(std::path::PathBuf);
+
+impl UserOutputs {
+    fn new() -> anyhow::Result<Self> {
+        let dir =
+            std::env::temp_dir().join(format!("muster-stress-out-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        Ok(UserOutputs(dir))
+    }
+
+    /// User `i`'s standard output.
+    fn stdout(&self, i: usize) -> anyhow::Result<Stdio> {
+        let path = self.0.join(i.to_string());
+        let f = std::fs::File::create(&path)
+            .with_context(|| format!("creating {}", path.display()))?;
+        Ok(Stdio::from(f))
+    }
+
+    /// What user `i` has written so far.
+    fn read(&self, i: usize) -> String {
+        std::fs::read_to_string(self.0.join(i.to_string())).unwrap_or_default()
+    }
+}
+
+impl Drop for UserOutputs {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result<ExitCode> {
-    let (tx, rx) = mpsc::channel::<bool>();
     let stay = format!("{}ms", (a.duration + Duration::from_secs(120)).as_millis());
     let prefix = setup.user_prefix();
+    let outs = UserOutputs::new()?;
     let mut users = Vec::new();
-    for _ in 0..a.load.users {
+    for i in 0..a.load.users {
         let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
         args.extend(["idle", "--duration", &stay]);
-        let child = setup.children.spawn(inst, "user", &args, Stdio::piped())?;
+        let child = setup.children.spawn(inst, "user", &args, outs.stdout(i)?)?;
         users.push(child.id());
-        let out = child.stdout.take().context("user stdout")?;
-        let tx = tx.clone();
-        std::thread::spawn(move || {
-            let first = BufReader::new(out).lines().map_while(Result::ok).next();
-            let _ = tx.send(first.is_some_and(|l| l.contains("\"connected\":true")));
-        });
     }
-    drop(tx);
+    // Each says it is connected in its first line (in its own file: the harness holds
+    // no descriptor per user, so that 10,000 fit the limit it has).
     let t0 = Instant::now();
-    let mut connected = 0;
-    while connected < a.load.users && t0.elapsed() < Duration::from_secs(180) {
-        match rx.recv_timeout(Duration::from_millis(100)) {
-            Ok(true) => connected += 1,
-            Ok(false) | Err(mpsc::RecvTimeoutError::Timeout) => {}
-            Err(mpsc::RecvTimeoutError::Disconnected) => break,
-        }
+    let mut waiting: Vec<usize> = (0..a.load.users).collect();
+    while !waiting.is_empty() && t0.elapsed() < Duration::from_secs(180) {
+        waiting.retain(|&i| {
+            !outs
+                .read(i)
+                .lines()
+                .next()
+                .is_some_and(|l| l.contains("\"connected\":true"))
+        });
+        std::thread::sleep(Duration::from_millis(100));
     }
+    let connected = a.load.users - waiting.len();
     let setup_s = t0.elapsed().as_secs_f64();
     std::thread::sleep(Duration::from_secs(2)); // let the connection storm settle
     let (b0, s0) = setup.cpu_ticks();
@@ -505,7 +535,7 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
 }
 
 pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
-    a.load.check_for(3, a.remote)?;
+    a.load.check_for(0, a.remote)?;
     // Every process on a request's path stamps it (per-hop breakdown below); the
     // variable is set before any thread starts, and the children inherit it.
     let trace_dir =
@@ -527,15 +557,24 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let prefix = setup.user_prefix();
     let (b0, s0) = setup.cpu_ticks();
 
-    // Users.
-    let (tx, rx) = mpsc::channel::<(usize, Option<Value>)>();
+    // Users. Each writes its report to its own file, and with --together all wait on
+    // one pipe: the harness holds no descriptor per user.
+    let outs = UserOutputs::new()?;
     let duration = format!("{}ms", a.duration.as_millis());
     let think = format!("{}ms", a.think.as_millis().max(1));
     let mut start = Instant::now();
     let mut start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
     let mut user_pids = Vec::new();
-    // With --together, each user's standard input: closing them all lets them go.
-    let mut gates = Vec::new();
+    let mut index_of = HashMap::new();
+    // With --together, the users' standard input: closing it lets them all go.
+    let mut gate = None;
+    let gate_read = if a.together {
+        let (r, w) = std::io::pipe().context("the start gate")?;
+        gate = Some(w);
+        Some(r)
+    } else {
+        None
+    };
     for i in 0..a.load.users {
         let seed = i.to_string();
         let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
@@ -548,28 +587,23 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             "--seed",
             &seed,
         ]);
-        let stdin = if a.together {
-            args.push("--start-on-stdin");
-            Stdio::piped()
-        } else {
-            Stdio::null()
+        let stdin = match &gate_read {
+            Some(r) => {
+                args.push("--start-on-stdin");
+                Stdio::from(r.try_clone().context("the start gate")?)
+            }
+            None => Stdio::null(),
         };
         let child = setup.children.spawn_io(
             inst,
             "user",
             &args,
-            [stdin, Stdio::piped(), Stdio::inherit()],
+            [stdin, outs.stdout(i)?, Stdio::inherit()],
         )?;
         user_pids.push(child.id());
-        gates.extend(child.stdin.take());
-        let out = child.stdout.take().context("user stdout")?;
-        let tx = tx.clone();
-        std::thread::spawn(move || {
-            let last = BufReader::new(out).lines().map_while(Result::ok).last();
-            let _ = tx.send((i, last.and_then(|l| serde_json::from_str(&l).ok())));
-        });
+        index_of.insert(child.id(), i);
     }
-    drop(tx);
+    drop(gate_read);
     let mut waiting_at_start = None;
     if a.together {
         // Every user started and waiting on its input, then all let go at once.
@@ -595,7 +629,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         );
         start = Instant::now();
         start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
-        gates.clear();
+        drop(gate.take());
     }
     // While they behave, the floor, every 20 ms, under the same load.
     let mut floor = histogram();
@@ -617,10 +651,17 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             let ticks: u64 = user_pids.iter().filter_map(|p| procfs::cpu_ticks(*p)).sum();
             users_cpu = cpu_percent(ticks, start.elapsed().as_secs_f64());
         }
-        while let Ok((i, r)) = rx.recv_timeout(Duration::from_millis(20)) {
-            reports[i] = r;
-            done += 1;
+        for pid in setup.children.exited("user") {
+            if let Some(&i) = index_of.get(&pid) {
+                reports[i] = outs
+                    .read(i)
+                    .lines()
+                    .last()
+                    .and_then(|l| serde_json::from_str(l).ok());
+                done += 1;
+            }
         }
+        std::thread::sleep(Duration::from_millis(20));
     }
     let run_time = start.elapsed();
     let (b1, s1) = setup.cpu_ticks();

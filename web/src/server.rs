@@ -55,23 +55,8 @@ const FDS_PER_USER: u64 = 26;
 /// users at once): as many as the machine has cores, up to four.
 const HUB_THREADS_MAX: usize = 4;
 
-/// Raises this process's descriptor limit as far as it may: with the privilege to
-/// (root, CAP_SYS_RESOURCE), the hard limit too, up to the kernel's `nr_open`;
-/// otherwise the soft limit to the hard one. Returns the soft limit.
+/// Raises this process's descriptor limit as far as it may; returns the soft limit.
 fn raise_descriptor_limit() -> u64 {
-    let nr_open = std::fs::read_to_string("/proc/sys/fs/nr_open")
-        .ok()
-        .and_then(|s| s.trim().parse::<u64>().ok())
-        .unwrap_or(1 << 20)
-        .min(1 << 20);
-    let want = libc::rlimit {
-        rlim_cur: nr_open as libc::rlim_t,
-        rlim_max: nr_open as libc::rlim_t,
-    };
-    // SAFETY: a valid in-pointer; the kernel refuses a raise without the privilege.
-    if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &want) } == 0 {
-        return nr_open;
-    }
     match muster_shared::reactor::raise_fd_limit() {
         Ok(n) => n,
         Err(e) => {

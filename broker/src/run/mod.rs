@@ -283,14 +283,18 @@ fn claim_fence(fence: &Fence) -> Holder {
     }
 }
 
+/// Descriptors the broker holds per local user process (measured: 13 at 300 users):
+/// iceoryx2 keeps each port's static config, port tag, dynamic config and connection or
+/// socket open, for the inbox and bell it writes to and the user's writer it reads, and
+/// the user's pidfd. Remote users cost one connection entry and no descriptor.
+pub const FDS_PER_LOCAL_USER: u64 = 14;
+
 fn raise_fds() {
     match raise_fd_limit() {
-        Ok(n) if n < 4096 => {
-            tracing::warn!(
-                "file-descriptor limit is {n}: at most about {} users",
-                n / 4
-            )
-        }
+        Ok(n) if n / FDS_PER_LOCAL_USER < 2048 => tracing::warn!(
+            "file-descriptor limit is {n}: at most about {} local user processes (remote users need none)",
+            n / FDS_PER_LOCAL_USER
+        ),
         Ok(n) => tracing::debug!("file-descriptor limit {n}"),
         Err(e) => tracing::warn!("cannot raise the file-descriptor limit: {e}"),
     }
