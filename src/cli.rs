@@ -1275,6 +1275,13 @@ pub struct UserArgs {
     /// when standard input or output is not a terminal, or TERM is dumb).
     #[arg(long)]
     pub plain: bool,
+    /// `idle` and `behave` only: run this many users in this process, each its own
+    /// connection (its own UDP socket and key exchange with `--remote`) on its own
+    /// thread, each printing its own line (`behave`: seeds SEED, SEED+1, ...). A
+    /// harness's way to many users without a process each; local users are capped per
+    /// process by the broker (16 unless it says more).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub count: u32,
     /// Without a verb: the menu shows this part of the list.
     #[command(flatten)]
     pub list: ListFilterArgs,
@@ -1620,6 +1627,12 @@ pub struct StressArgs {
     /// of departures). The run's seconds count from that moment.
     #[arg(long, conflicts_with = "idle")]
     pub together: bool,
+    /// Run the users this many to a process (`muster user --count`), each still its
+    /// own connection; 1 (default): a process each. Remote users, whose processes would
+    /// otherwise cost more memory than the broker (about 2.3 MiB each), take up to
+    /// 1,000; local ones up to 16 (the broker's cap per process).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub users_per_process: u32,
 }
 
 /// The size of a load run: how many user processes, services and systems.

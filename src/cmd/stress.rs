@@ -278,21 +278,34 @@ fn cpu_percent(ticks: u64, secs: f64) -> f64 {
 }
 
 /// Memory of the federation at one moment: broker, systems, users (PSS), shared memory.
-fn memory(setup: &Setup, users: &[u32]) -> Value {
+/// Memory at one moment; `users`: the user processes, each running `per_process` users.
+fn memory(setup: &Setup, users: &[u32], per_process: u32) -> Value {
     let pss: Vec<u64> = users.iter().filter_map(|p| procfs::pss_kib(*p)).collect();
     let mean = pss.iter().sum::<u64>() as f64 / pss.len().max(1) as f64;
     json!({
         "broker_rss_kib": procfs::rss_kib(setup.broker_pid),
         "broker_pss_kib": procfs::pss_kib(setup.broker_pid),
         "systems_pss_kib": setup.system_pids.iter().filter_map(|p| procfs::pss_kib(*p)).sum::<u64>(),
-        "user_pss_kib_mean": mean,
-        "user_pss_kib_max": pss.iter().max(),
-        "users_measured": pss.len(),
+        "user_pss_kib_mean": mean / f64::from(per_process),
+        "user_process_pss_kib_max": pss.iter().max(),
+        "users_per_process": per_process,
+        "processes_measured": pss.len(),
         "shm_allocated_bytes": procfs::shm_allocated_bytes(),
     })
 }
 
 /// Idle mode: users connect and stay idle; CPU over `--duration`, and memory.
+impl StressArgs {
+    /// The user processes: each one's first user (its index) and how many it runs.
+    fn groups(&self) -> Vec<(usize, usize)> {
+        let k = self.users_per_process as usize;
+        (0..self.load.users)
+            .step_by(k)
+            .map(|first| (first, k.min(self.load.users - first)))
+            .collect()
+    }
+}
+
 /// The users' standard outputs, a file each in a directory of the run's (removed after).
 struct UserOutputs(std::path::PathBuf);
 
@@ -329,28 +342,36 @@ fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result
     let stay = format!("{}ms", (a.duration + Duration::from_secs(120)).as_millis());
     let prefix = setup.user_prefix();
     let outs = UserOutputs::new()?;
+    let groups = a.groups();
     let mut users = Vec::new();
-    for i in 0..a.load.users {
+    for (p, &(_, n)) in groups.iter().enumerate() {
+        let count = n.to_string();
         let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
-        args.extend(["idle", "--duration", &stay]);
-        let child = setup.children.spawn(inst, "user", &args, outs.stdout(i)?)?;
+        args.extend(["--count", &count, "idle", "--duration", &stay]);
+        let child = setup.children.spawn(inst, "user", &args, outs.stdout(p)?)?;
         users.push(child.id());
     }
-    // Each says it is connected in its first line (in its own file: the harness holds
+    // Each user says it is connected in a line of its process's file (the harness holds
     // no descriptor per user, so that 10,000 fit the limit it has).
     let t0 = Instant::now();
-    let mut waiting: Vec<usize> = (0..a.load.users).collect();
-    while !waiting.is_empty() && t0.elapsed() < Duration::from_secs(180) {
-        waiting.retain(|&i| {
-            !outs
-                .read(i)
-                .lines()
-                .next()
-                .is_some_and(|l| l.contains("\"connected\":true"))
-        });
+    let said = |p: usize| {
+        outs.read(p)
+            .lines()
+            .filter(|l| l.contains("\"connected\":true"))
+            .count()
+    };
+    let mut connected_of = vec![0; groups.len()];
+    while connected_of.iter().sum::<usize>() < a.load.users
+        && t0.elapsed() < Duration::from_secs(180)
+    {
+        for (p, &(_, n)) in groups.iter().enumerate() {
+            if connected_of[p] < n {
+                connected_of[p] = said(p);
+            }
+        }
         std::thread::sleep(Duration::from_millis(100));
     }
-    let connected = a.load.users - waiting.len();
+    let connected = connected_of.iter().sum::<usize>();
     let setup_s = t0.elapsed().as_secs_f64();
     std::thread::sleep(Duration::from_secs(2)); // let the connection storm settle
     let (b0, s0) = setup.cpu_ticks();
@@ -360,7 +381,7 @@ fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result
     let secs = t.elapsed().as_secs_f64();
     let (b1, s1) = setup.cpu_ticks();
     let u1: u64 = users.iter().filter_map(|p| procfs::cpu_ticks(*p)).sum();
-    let mem = memory(&setup, &users);
+    let mem = memory(&setup, &users, a.users_per_process);
     setup.children.stop();
     let report = json!({
         "mode": "idle", "transport": if a.remote { "udp" } else { "shm" },
@@ -536,6 +557,10 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
 
 pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     a.load.check_for(0, a.remote)?;
+    let per_process = muster_broker::core::MAX_USERS_PER_PROCESS;
+    if !a.remote && a.users_per_process as usize > per_process {
+        anyhow::bail!("--users-per-process: at most {per_process} local users a process (the broker's cap)");
+    }
     // Every process on a request's path stamps it (per-hop breakdown below); the
     // variable is set before any thread starts, and the children inherit it.
     let trace_dir =
@@ -565,7 +590,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let mut start = Instant::now();
     let mut start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
     let mut user_pids = Vec::new();
-    let mut index_of = HashMap::new();
+    let mut group_of = HashMap::new();
+    let groups = a.groups();
     // With --together, the users' standard input: closing it lets them all go.
     let mut gate = None;
     let gate_read = if a.together {
@@ -575,10 +601,13 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     } else {
         None
     };
-    for i in 0..a.load.users {
-        let seed = i.to_string();
+    for (p, &(first, n)) in groups.iter().enumerate() {
+        let seed = first.to_string();
+        let count = n.to_string();
         let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
         args.extend([
+            "--count",
+            &count,
             "behave",
             "--duration",
             &duration,
@@ -598,10 +627,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             inst,
             "user",
             &args,
-            [stdin, outs.stdout(i)?, Stdio::inherit()],
+            [stdin, outs.stdout(p)?, Stdio::inherit()],
         )?;
         user_pids.push(child.id());
-        index_of.insert(child.id(), i);
+        group_of.insert(child.id(), p);
     }
     drop(gate_read);
     let mut waiting_at_start = None;
@@ -637,9 +666,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let mut mem = Value::Null;
     let mut users_cpu = 0.0;
     let mut reports: Vec<Option<Value>> = vec![None; a.load.users];
-    let mut done = 0;
+    let mut groups_done = 0;
     let give_up = start + a.duration + Duration::from_secs(120);
-    while done < a.load.users && Instant::now() < give_up {
+    while groups_done < groups.len() && Instant::now() < give_up {
         floor.record((probe.round_trip()?.as_micros() as u64).max(1))?;
         if let Some(p) = udp_probe.as_mut() {
             if let Some(d) = p.round_trip()? {
@@ -647,18 +676,25 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             }
         }
         if mem.is_null() && start.elapsed() >= a.duration / 2 {
-            mem = memory(&setup, &user_pids);
+            mem = memory(&setup, &user_pids, a.users_per_process);
             let ticks: u64 = user_pids.iter().filter_map(|p| procfs::cpu_ticks(*p)).sum();
             users_cpu = cpu_percent(ticks, start.elapsed().as_secs_f64());
         }
         for pid in setup.children.exited("user") {
-            if let Some(&i) = index_of.get(&pid) {
-                reports[i] = outs
-                    .read(i)
+            if let Some(&p) = group_of.get(&pid) {
+                // Its users' reports, one line each (a user that failed has none).
+                let (first, n) = groups[p];
+                let mine = outs
+                    .read(p)
                     .lines()
-                    .last()
-                    .and_then(|l| serde_json::from_str(l).ok());
-                done += 1;
+                    .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+                    .filter(Value::is_object)
+                    .take(n)
+                    .collect::<Vec<_>>();
+                for (k, r) in mine.into_iter().enumerate() {
+                    reports[first + k] = Some(r);
+                }
+                groups_done += 1;
             }
         }
         std::thread::sleep(Duration::from_millis(20));

@@ -17,6 +17,9 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
         handle_signals: true,
         watch_list,
     };
+    if a.count > 1 {
+        return run_many(inst, a, opts);
+    }
     if let Some(UserVerb::Behave(b)) = &a.verb {
         if b.start_on_stdin {
             // Until the harness lets every user go at once (a line, or the end).
@@ -84,6 +87,66 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
             json,
         ),
     }
+}
+
+/// `--count N`: N users of `idle` or `behave`, a thread and a connection each.
+fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Result<ExitCode> {
+    let behave = match &a.verb {
+        Some(UserVerb::Idle { .. }) => None,
+        Some(UserVerb::Behave(b)) => Some(b.clone()),
+        _ => anyhow::bail!("--count is for `idle` and `behave`"),
+    };
+    if behave.as_ref().is_some_and(|b| b.start_on_stdin) {
+        let mut line = String::new();
+        let _ = std::io::stdin().read_line(&mut line);
+    }
+    let idle_for = match &a.verb {
+        Some(UserVerb::Idle { duration }) => *duration,
+        _ => None,
+    };
+    let threads: Vec<_> = (0..a.count)
+        .map(|k| {
+            let (inst, remote, opts, behave) =
+                (inst.clone(), a.remote.clone(), opts.clone(), behave.clone());
+            std::thread::Builder::new()
+                .name(format!("user-{k}"))
+                .stack_size(256 << 10)
+                .spawn(move || -> anyhow::Result<()> {
+                    let started = Instant::now();
+                    let client = connect(&inst, &remote, &opts)?;
+                    match behave {
+                        Some(b) => {
+                            let b = crate::cli::BehaveArgs {
+                                seed: b.seed.wrapping_add(u64::from(k)),
+                                ..b
+                            };
+                            super::behave::run(client, &b)?;
+                        }
+                        None => {
+                            idle(client, idle_for, started)?;
+                        }
+                    }
+                    Ok(())
+                })
+        })
+        .collect::<Result<_, _>>()
+        .context("starting the users' threads")?;
+    let mut failed = 0;
+    for t in threads {
+        match t.join() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => {
+                eprintln!("muster: {e:#}");
+                failed += 1;
+            }
+            Err(_) => failed += 1,
+        }
+    }
+    Ok(if failed == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
 }
 
 /// Connects over shared memory, or over UDP with `--remote`.

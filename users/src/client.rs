@@ -77,7 +77,7 @@ const TOKEN_UDP: usize = 5;
 /// died, and for how long.
 const SUCCESSOR_POLL: Duration = Duration::from_millis(2);
 const SUCCESSOR_WAIT: Duration = Duration::from_secs(5);
-/// How long a remote list request may take, retries included.
+/// How long a remote list request may take, retries included, at least.
 const LIST_WAIT: Duration = Duration::from_secs(5);
 const FIRST_SYSTEM_TOKEN: usize = 16;
 
@@ -121,6 +121,10 @@ pub struct UserClient {
     /// The extra fd was seen readable by a turn and not yet reported by `wait`.
     extra_seen: bool,
     closed: bool,
+    /// How long a remote list may take: [`LIST_WAIT`], or as long as the caller would
+    /// wait for a broker (a list asked for in a storm of thousands connecting at once
+    /// waits its turn as the connection did).
+    list_wait: Duration,
 }
 
 /// How to connect.
@@ -225,6 +229,7 @@ impl UserClient {
             extra: None,
             extra_seen: false,
             closed: false,
+            list_wait: LIST_WAIT.max(opts.wait_for_broker),
         })
     }
 
@@ -246,6 +251,7 @@ impl UserClient {
             extra: None,
             extra_seen: false,
             closed: false,
+            list_wait: LIST_WAIT.max(opts.wait_for_broker),
         };
         client.greet(opts, || UserError::NoRemoteBroker {
             addr: broker.to_string(),
@@ -373,7 +379,7 @@ impl UserClient {
         if let Transport::Remote(r) = &mut self.transport {
             r.ask_list(filter, offset, limit);
         }
-        let deadline = Instant::now() + LIST_WAIT;
+        let deadline = Instant::now() + self.list_wait;
         loop {
             if let Transport::Remote(r) = &mut self.transport {
                 if let Some(l) = r.take_list() {
@@ -381,7 +387,7 @@ impl UserClient {
                 }
             }
             if Instant::now() >= deadline {
-                return Err(UserError::ListTimeout(LIST_WAIT));
+                return Err(UserError::ListTimeout(self.list_wait));
             }
             self.turn(deadline)?;
         }
