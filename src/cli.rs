@@ -1608,6 +1608,9 @@ pub struct StressArgs {
     /// Mean pause between a user's interactions.
     #[arg(long, default_value = "2s", value_parser = duration)]
     pub think: Duration,
+    /// Mean time between a user's list refreshes.
+    #[arg(long, default_value = "5s", value_parser = duration)]
+    pub refresh: Duration,
     /// Write report.json into this folder.
     #[arg(long)]
     pub report: Option<std::path::PathBuf>,

@@ -295,3 +295,83 @@ fn users_let_go_together_all_connect_and_every_request_is_answered() {
     assert!(t["requests"].as_u64().unwrap() >= 100, "{t}");
     assert!(r["service_request_first_10s"]["count"].as_u64().unwrap() >= 100);
 }
+
+/// A `--together` run of `users` users, `per_process` to a process; its report.
+fn grouped_run(f: &Fed, users: usize, per_process: usize, remote: bool) -> (i32, Value) {
+    let (users, per_process) = (users.to_string(), per_process.to_string());
+    let mut args = vec![
+        "stress",
+        "--users",
+        &users,
+        "--users-per-process",
+        &per_process,
+        "--services",
+        "10",
+        "--systems",
+        "4",
+        "--duration",
+        "6s",
+        "--think",
+        "300ms",
+        "--together",
+        "--json",
+    ];
+    if remote {
+        args.push("--remote");
+    }
+    let (code, out) = f.run(&args, 240 * SEC);
+    let r: Value = serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
+    (code, r)
+}
+
+#[test]
+fn users_run_several_to_a_process_each_its_own_connection_and_report() {
+    // `--users-per-process`: 23 remote users in processes of 7, 7, 7 and 2 (`muster
+    // user --count`), each its own UDP connection and thread; 11 local ones in 5, 5, 1.
+    // Every one of them is counted as a user: waiting at the gate, online at once,
+    // listing, requesting, reporting.
+    for (name, users, per, remote) in [("stressgr", 23, 7, true), ("stressgl", 11, 5, false)] {
+        let f = Fed::new(name);
+        let (code, r) = grouped_run(&f, users, per, remote);
+        assert_eq!(code, 0, "{r:#}");
+        assert_eq!(r["users"], users as u64);
+        assert_eq!(r["users_per_process"], per as u64);
+        assert_eq!(r["users_waiting_at_start"], users as u64, "{r:#}");
+        assert_eq!(r["missing_user_reports"], 0, "{r:#}");
+        assert_eq!(r["errors"], 0, "{r:#}");
+        assert_eq!(r["users_requesting"], users as u64, "{r:#}");
+        assert_eq!(r["checks"]["every_user_got_a_list"], true);
+        assert_eq!(r["checks"]["every_request_answered"], true);
+        let most_online = r["timeline"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| t["online"].as_i64().unwrap())
+            .max()
+            .unwrap();
+        assert_eq!(most_online, users as i64, "{:#}", r["timeline"]);
+        // Each user its own connection: the broker said hello to every one.
+        let hellos = r["broker"]["handling"]["hello"]["count"].as_u64().unwrap();
+        assert!(hellos >= users as u64, "{hellos} hellos for {users} users");
+    }
+}
+
+#[test]
+fn more_local_users_to_a_process_than_the_broker_takes_are_refused_before_anything_starts() {
+    let f = Fed::new("stressg17");
+    let (code, _, err) = f.run_full(
+        &[
+            "stress",
+            "--users",
+            "40",
+            "--users-per-process",
+            "17",
+            "--duration",
+            "2s",
+        ],
+        30 * SEC,
+    );
+    assert_ne!(code, 0);
+    assert!(err.contains("at most 16 local users a process"), "{err}");
+    assert!(!err.contains("broker up"), "nothing started: {err}");
+}

@@ -311,8 +311,7 @@ struct UserOutputs(std::path::PathBuf);
 
 impl UserOutputs {
     fn new() -> anyhow::Result<Self> {
-        let dir =
-            std::env::temp_dir().join(format!("muster-stress-out-{}", std::process::id()));
+        let dir = std::env::temp_dir().join(format!("muster-stress-out-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         Ok(UserOutputs(dir))
@@ -321,8 +320,8 @@ impl UserOutputs {
     /// User `i`'s standard output.
     fn stdout(&self, i: usize) -> anyhow::Result<Stdio> {
         let path = self.0.join(i.to_string());
-        let f = std::fs::File::create(&path)
-            .with_context(|| format!("creating {}", path.display()))?;
+        let f =
+            std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
         Ok(Stdio::from(f))
     }
 
@@ -559,7 +558,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     a.load.check_for(0, a.remote)?;
     let per_process = muster_broker::core::MAX_USERS_PER_PROCESS;
     if !a.remote && a.users_per_process as usize > per_process {
-        anyhow::bail!("--users-per-process: at most {per_process} local users a process (the broker's cap)");
+        anyhow::bail!(
+            "--users-per-process: at most {per_process} local users a process (the broker's cap)"
+        );
     }
     // Every process on a request's path stamps it (per-hop breakdown below); the
     // variable is set before any thread starts, and the children inherit it.
@@ -587,6 +588,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let outs = UserOutputs::new()?;
     let duration = format!("{}ms", a.duration.as_millis());
     let think = format!("{}ms", a.think.as_millis().max(1));
+    let refresh = format!("{}ms", a.refresh.as_millis().max(1));
     let mut start = Instant::now();
     let mut start_ms = muster_shared::protocol::monotonic_ns() / 1_000_000;
     let mut user_pids = Vec::new();
@@ -613,6 +615,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             &duration,
             "--think",
             &think,
+            "--refresh",
+            &refresh,
             "--seed",
             &seed,
         ]);
@@ -637,23 +641,25 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     if a.together {
         // Every user started and waiting on its input, then all let go at once.
         let until = Instant::now() + Duration::from_secs(120);
-        let waiting = |pids: &[u32]| {
+        // The users of the processes blocked reading the gate.
+        let waiting = |pids: &[u32]| -> usize {
             pids.iter()
                 .filter(|p| {
                     std::fs::read_to_string(format!("/proc/{p}/wchan"))
                         .is_ok_and(|w| w.contains("pipe_read"))
                 })
-                .count()
+                .map(|p| group_of.get(p).map_or(0, |&g| groups[g].1))
+                .sum()
         };
         let mut n = waiting(&user_pids);
-        while n < user_pids.len() && Instant::now() < until {
+        while n < a.load.users && Instant::now() < until {
             std::thread::sleep(Duration::from_millis(50));
             n = waiting(&user_pids);
         }
         waiting_at_start = Some(n);
         tracing::info!(
             waiting = n,
-            users = user_pids.len(),
+            users = a.load.users,
             "stress: every user let go at once"
         );
         start = Instant::now();
@@ -730,6 +736,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     let mut totals: BTreeMap<&str, u64> = BTreeMap::new();
     let mut refusals: BTreeMap<String, u64> = BTreeMap::new();
     let mut users_with_list = 0;
+    let mut users_requesting = 0;
     let mut missing = 0;
     for r in &reports {
         let Some(r) = r else {
@@ -759,6 +766,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         }
         if r["lists"].as_u64().unwrap_or(0) > 0 {
             users_with_list += 1;
+        }
+        if r["requests"].as_u64().unwrap_or(0) > 0 {
+            users_requesting += 1;
         }
     }
     let refused: u64 = refusals.values().sum();
@@ -792,8 +802,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .max(1) as f64;
     let (early, late) = timeline.split_requests(10);
     let leaving = timeline.leaving_requests();
-    let report = json!({
-        "users": a.load.users, "services": a.load.services, "systems": a.load.systems,
+    let mut report = json!({
+        "users": a.load.users,
+        "services": a.load.services, "systems": a.load.systems,
         "duration_s": a.duration.as_secs_f64(), "run_s": run_time.as_secs_f64(),
         "errors": errors, "missing_user_reports": missing,
         "totals": totals, "system_grants": system_grants, "refusals": refusals, "over_quota": over_quota, "checks": checks,
@@ -825,6 +836,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "per_hop_first_10s": hops_json(&GRANT_HOPS, &early_hops.grant),
         "per_hop_whole_first_10s": summary(&early_hops.whole),
     });
+    report["users_per_process"] = a.users_per_process.into();
+    report["users_requesting"] = users_requesting.into();
     if let Some(dir) = &a.report {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         std::fs::write(
@@ -842,8 +855,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{report}");
     } else {
         println!(
-            "muster stress: {} user processes, {} services on {} systems, {:.0} s",
+            "muster stress: {} users ({} a process; {} requested at least once), {} services on {} systems, {:.0} s",
             a.load.users,
+            a.users_per_process,
+            users_requesting,
             a.load.services,
             a.load.systems,
             a.duration.as_secs_f64()

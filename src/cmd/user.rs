@@ -108,10 +108,8 @@ fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Resul
         .map(|k| {
             let (inst, remote, opts, behave) =
                 (inst.clone(), a.remote.clone(), opts.clone(), behave.clone());
-            std::thread::Builder::new()
-                .name(format!("user-{k}"))
-                .stack_size(256 << 10)
-                .spawn(move || -> anyhow::Result<()> {
+            std::thread::Builder::new().name(format!("user-{k}")).spawn(
+                move || -> anyhow::Result<()> {
                     let started = Instant::now();
                     let client = connect(&inst, &remote, &opts)?;
                     match behave {
@@ -127,7 +125,8 @@ fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Resul
                         }
                     }
                     Ok(())
-                })
+                },
+            )
         })
         .collect::<Result<_, _>>()
         .context("starting the users' threads")?;
