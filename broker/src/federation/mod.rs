@@ -672,6 +672,9 @@ pub struct FedStats {
     /// Other hosts' lists found missed (an announced version newer than the one held)
     /// and asked for.
     pub lists_missed: u64,
+    /// Updates (and list announcements) not put because 1,024 puts already waited
+    /// for room on the put thread.
+    pub puts_dropped: u64,
 }
 
 /// Largest frame taken from another host (a session update is under 4 KiB); bigger ones

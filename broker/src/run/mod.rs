@@ -650,7 +650,7 @@ fn serve(
                             stats: core.stats().clone(),
                             handling: shell.handling,
                             udp: shell.udp.as_ref().map(|d| d.front.stats().clone()),
-                            federation: shell.fed.as_ref().map(|f| f.stats().clone()),
+                            federation: shell.fed.as_ref().map(|f| f.stats()),
                         });
                     }
                 }
