@@ -291,11 +291,14 @@ pub const FDS_PER_LOCAL_USER: u64 = 14;
 
 fn raise_fds() {
     match raise_fd_limit() {
-        Ok(n) if n / FDS_PER_LOCAL_USER < 2048 => tracing::warn!(
-            "file-descriptor limit is {n}: at most about {} local user processes (remote users need none)",
+        Ok(n) if n / FDS_PER_LOCAL_USER < 256 => tracing::warn!(
+            "file-descriptor limit is {n}: at most about {} local users (remote users need none)",
             n / FDS_PER_LOCAL_USER
         ),
-        Ok(n) => tracing::debug!("file-descriptor limit {n}"),
+        Ok(n) => tracing::debug!(
+            "file-descriptor limit {n}: at most about {} local users",
+            n / FDS_PER_LOCAL_USER
+        ),
         Err(e) => tracing::warn!("cannot raise the file-descriptor limit: {e}"),
     }
 }
