@@ -252,25 +252,7 @@ fn users_let_go_together_all_connect_and_every_request_is_answered() {
     // for services: each peer's frames must still come in order (its welcome before
     // its grants), and nobody is left unanswered.
     let f = Fed::new("stresstg");
-    let (code, out) = f.run(
-        &[
-            "stress",
-            "--users",
-            "100",
-            "--services",
-            "10",
-            "--systems",
-            "4",
-            "--duration",
-            "6s",
-            "--think",
-            "300ms",
-            "--together",
-            "--json",
-        ],
-        240 * SEC,
-    );
-    let r: Value = serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
+    let (code, r) = grouped_run(&f, 100, 1, false);
     assert_eq!(code, 0, "{r:#}");
     assert_eq!(r["together"], true);
     assert_eq!(
@@ -283,17 +265,21 @@ fn users_let_go_together_all_connect_and_every_request_is_answered() {
     assert_eq!(r["checks"]["every_request_answered"], true);
     assert_eq!(r["checks"]["quota_never_exceeded"], true);
     // All of them were online at once, counted from the moment they were let go.
-    let most_online = r["timeline"]
+    assert_eq!(most_online(&r), 100, "{:#}", r["timeline"]);
+    let t = &r["totals"];
+    assert!(t["requests"].as_u64().unwrap() >= 100, "{t}");
+    assert!(r["service_request_first_10s"]["count"].as_u64().unwrap() >= 100);
+}
+
+/// The most users a report's timeline saw online in one second.
+fn most_online(r: &Value) -> i64 {
+    r["timeline"]
         .as_array()
         .unwrap()
         .iter()
         .map(|t| t["online"].as_i64().unwrap())
         .max()
-        .unwrap();
-    assert_eq!(most_online, 100, "{:#}", r["timeline"]);
-    let t = &r["totals"];
-    assert!(t["requests"].as_u64().unwrap() >= 100, "{t}");
-    assert!(r["service_request_first_10s"]["count"].as_u64().unwrap() >= 100);
+        .unwrap()
 }
 
 /// A `--together` run of `users` users, `per_process` to a process; its report.
@@ -342,14 +328,7 @@ fn users_run_several_to_a_process_each_its_own_connection_and_report() {
         assert_eq!(r["users_requesting"], users as u64, "{r:#}");
         assert_eq!(r["checks"]["every_user_got_a_list"], true);
         assert_eq!(r["checks"]["every_request_answered"], true);
-        let most_online = r["timeline"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|t| t["online"].as_i64().unwrap())
-            .max()
-            .unwrap();
-        assert_eq!(most_online, users as i64, "{:#}", r["timeline"]);
+        assert_eq!(most_online(&r), users as i64, "{:#}", r["timeline"]);
         // Each user its own connection: the broker said hello to every one.
         let hellos = r["broker"]["handling"]["hello"]["count"].as_u64().unwrap();
         assert!(hellos >= users as u64, "{hellos} hellos for {users} users");
