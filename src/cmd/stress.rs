@@ -277,8 +277,8 @@ fn cpu_percent(ticks: u64, secs: f64) -> f64 {
     100.0 * ticks as f64 / procfs::ticks_per_second() as f64 / secs.max(1e-9)
 }
 
-/// Memory of the federation at one moment: broker, systems, users (PSS), shared memory.
-/// Memory at one moment; `users`: the user processes, each running `per_process` users.
+/// Memory of the federation at one moment: broker, systems, users (PSS), shared memory;
+/// `users`: the user processes, each running `per_process` users.
 fn memory(setup: &Setup, users: &[u32], per_process: u32) -> Value {
     let pss: Vec<u64> = users.iter().filter_map(|p| procfs::pss_kib(*p)).collect();
     let mean = pss.iter().sum::<u64>() as f64 / pss.len().max(1) as f64;
@@ -294,7 +294,6 @@ fn memory(setup: &Setup, users: &[u32], per_process: u32) -> Value {
     })
 }
 
-/// Idle mode: users connect and stay idle; CPU over `--duration`, and memory.
 impl StressArgs {
     /// The user processes: each one's first user (its index) and how many it runs.
     fn groups(&self) -> Vec<(usize, usize)> {
@@ -337,6 +336,7 @@ impl Drop for UserOutputs {
     }
 }
 
+/// Idle mode: users connect and stay idle; CPU over `--duration`, and memory.
 fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result<ExitCode> {
     let stay = format!("{}ms", (a.duration + Duration::from_secs(120)).as_millis());
     let prefix = setup.user_prefix();

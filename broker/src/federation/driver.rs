@@ -73,7 +73,7 @@ struct Putter {
     tx: Option<mpsc::SyncSender<Put>>,
     thread: Option<std::thread::JoinHandle<()>>,
     /// Droppable puts dropped because the queue was full.
-    dropped: Arc<AtomicU64>,
+    dropped: AtomicU64,
 }
 
 impl Putter {
@@ -101,7 +101,7 @@ impl Putter {
         Ok(Putter {
             tx: Some(tx),
             thread: Some(thread),
-            dropped: Arc::new(AtomicU64::new(0)),
+            dropped: AtomicU64::new(0),
         })
     }
 
