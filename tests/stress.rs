@@ -325,7 +325,14 @@ fn users_run_several_to_a_process_each_its_own_connection_and_report() {
         assert_eq!(r["users_waiting_at_start"], users as u64, "{r:#}");
         assert_eq!(r["missing_user_reports"], 0, "{r:#}");
         assert_eq!(r["errors"], 0, "{r:#}");
-        assert_eq!(r["users_requesting"], users as u64, "{r:#}");
+        // Counted by user, not by process (4 or 3 processes here). Not all of them: in
+        // 6 s a user makes two or three interactions, holding each session 1-5 s, and
+        // one whose interactions were all links (one in ten is) sent no request.
+        let requesting = r["users_requesting"].as_u64().unwrap();
+        assert!(
+            requesting > users as u64 / 2 && requesting <= users as u64,
+            "{requesting} of {users} requested: {r:#}"
+        );
         assert_eq!(r["checks"]["every_user_got_a_list"], true);
         assert_eq!(r["checks"]["every_request_answered"], true);
         assert_eq!(most_online(&r), users as i64, "{:#}", r["timeline"]);
