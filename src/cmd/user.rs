@@ -17,15 +17,15 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
         handle_signals: true,
         watch_list,
     };
-    if a.count > 1 {
-        return run_many(inst, a, opts);
-    }
     if let Some(UserVerb::Behave(b)) = &a.verb {
         if b.start_on_stdin {
             // Until the harness lets every user go at once (a line, or the end).
             let mut line = String::new();
             let _ = std::io::stdin().read_line(&mut line);
         }
+    }
+    if a.count > 1 {
+        return run_many(inst, a, opts);
     }
     let started = Instant::now();
     let mut client = connect(inst, &a.remote, &opts)?;
@@ -96,10 +96,6 @@ fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Resul
         Some(UserVerb::Behave(b)) => Some(b.clone()),
         _ => anyhow::bail!("--count is for `idle` and `behave`"),
     };
-    if behave.as_ref().is_some_and(|b| b.start_on_stdin) {
-        let mut line = String::new();
-        let _ = std::io::stdin().read_line(&mut line);
-    }
     let idle_for = match &a.verb {
         Some(UserVerb::Idle { duration }) => *duration,
         _ => None,
