@@ -137,6 +137,14 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
         "{:#}",
         r["per_hop_whole_first_10s"]
     );
+    // And those sent while users leave, on the same hops too: some, not all (the users
+    // leave about 10 s in).
+    assert_eq!(names("per_hop_leaving"), names("per_hop"));
+    let leaving_stamped = count(&r["per_hop_leaving"]);
+    assert!(
+        leaving_stamped > 0 && leaving_stamped < stamped,
+        "{leaving_stamped} of {stamped}"
+    );
     // (Histograms keep 3 significant digits: a little room.)
     let whole_max = whole["max_us"].as_u64().unwrap() as f64;
     assert!(

@@ -181,6 +181,20 @@ impl SignalPipe {
     }
 }
 
+/// Makes the calling thread's remaining work (a leaving user's teardown: unmapping
+/// its shared memory, closing ports, exiting) wait for every other runnable thread on
+/// the machine: `SCHED_IDLE` (no privilege needed to lower one's own priority), or
+/// niceness 19 where that is refused. When hundreds of users leave in the same second
+/// their teardowns otherwise compete, at the broker's own priority, with the broker
+/// and with the users still asking it something.
+pub fn yield_for_exit() {
+    let param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: sched_setscheduler(2) on the calling thread (pid 0) with a valid param.
+    if unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) } != 0 {
+        let _ = set_nice(19);
+    }
+}
+
 /// Sets the calling thread's niceness (-20 first to 19 last); threads it starts later
 /// take it too (Linux keeps one per thread). Lowering it needs root, CAP_SYS_NICE or
 /// RLIMIT_NICE: without, the error says so and nothing changes.
@@ -266,6 +280,30 @@ mod tests {
         let e = set_nice(20).unwrap_err();
         assert_eq!(e.kind(), io::ErrorKind::InvalidInput, "{e}");
         assert!(e.to_string().contains("-20..=19"), "{e}");
+    }
+
+    #[test]
+    fn a_thread_yielding_for_exit_runs_only_when_nothing_else_would_and_alone() {
+        // SAFETY: sched_getscheduler(2) and getpriority(2) on the calling thread.
+        let class = || unsafe {
+            (
+                libc::sched_getscheduler(0),
+                libc::getpriority(libc::PRIO_PROCESS, 0),
+            )
+        };
+        let before = class();
+        let yielded = std::thread::spawn(move || {
+            yield_for_exit();
+            class()
+        })
+        .join()
+        .unwrap();
+        // SCHED_IDLE, or niceness 19 where a kernel refuses it.
+        assert!(
+            yielded.0 == libc::SCHED_IDLE || yielded.1 == 19,
+            "{yielded:?}"
+        );
+        assert_eq!(class(), before, "other threads keep their class");
     }
 
     #[test]

@@ -196,8 +196,12 @@ pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
     }
     r.report.ended_ms = monotonic_ns() / 1_000_000;
     r.report.unwanted_grants = r.client.core().unwanted_grants();
-    let Run { client, report, .. } = r;
-    client.close();
+    let Run {
+        mut client, report, ..
+    } = r;
+    muster_shared::reactor::yield_for_exit();
+    client.leave();
+    drop(client);
     println!("{}", serde_json::to_string(&report)?);
     Ok(ExitCode::SUCCESS)
 }

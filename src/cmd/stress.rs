@@ -78,18 +78,24 @@ impl Timeline {
         (early, late)
     }
 
-    /// The requests sent from the second before the first user left to the end: the
-    /// leaving storm's (empty if nobody left).
-    fn leaving_requests(&self) -> Histogram<u64> {
-        let mut h = histogram();
+    /// The second of the run from which requests count as the leaving storm's: the
+    /// second before the first user left (`None` if nobody left).
+    fn leaving_from(&self) -> Option<u64> {
         let first_gone = self
             .online
             .iter()
             .find(|(_, delta)| **delta < 0)
-            .map(|(s, _)| *s);
-        if let Some(gone) = first_gone {
-            // (A departure counts from the second after the user's last; see `add`.)
-            for (_, r) in self.request.range(gone.saturating_sub(2)..) {
+            .map(|(s, _)| *s)?;
+        // (A departure counts from the second after the user's last; see `add`.)
+        Some(first_gone.saturating_sub(2))
+    }
+
+    /// The requests sent from [`Timeline::leaving_from`] to the end: the leaving
+    /// storm's (empty if nobody left).
+    fn leaving_requests(&self) -> Histogram<u64> {
+        let mut h = histogram();
+        if let Some(from) = self.leaving_from() {
+            for (_, r) in self.request.range(from..) {
                 let _ = h.add(r);
             }
         }
@@ -728,8 +734,6 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     // The start-up storm's: requests sent in the first 10 s.
     let early_end = (start_ms + 10_000) * 1_000_000;
     let early_hops = per_hop(&stamps, |ns| ns < early_end);
-    drop(stamps);
-    let _ = std::fs::remove_dir_all(&trace_dir);
     let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
     let mut termination = histogram();
     let mut timeline = Timeline::default();
@@ -802,6 +806,13 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         .max(1) as f64;
     let (early, late) = timeline.split_requests(10);
     let leaving = timeline.leaving_requests();
+    // The leaving storm's requests, hop by hop: where they waited.
+    let leaving_hops = timeline.leaving_from().map(|from| {
+        let from_ns = (start_ms + from * 1000) * 1_000_000;
+        per_hop(&stamps, |ns| ns >= from_ns)
+    });
+    drop(stamps);
+    let _ = std::fs::remove_dir_all(&trace_dir);
     let mut report = json!({
         "users": a.load.users,
         "services": a.load.services, "systems": a.load.systems,
@@ -835,6 +846,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             / if a.remote { &floor_udp } else { &floor }.value_at_quantile(0.5).max(1) as f64,
         "per_hop_first_10s": hops_json(&GRANT_HOPS, &early_hops.grant),
         "per_hop_whole_first_10s": summary(&early_hops.whole),
+        "per_hop_leaving": leaving_hops.as_ref().map_or(Value::Null, |h| hops_json(&GRANT_HOPS, &h.grant).into()),
     });
     report["users_per_process"] = a.users_per_process.into();
     report["users_requesting"] = users_requesting.into();
@@ -926,6 +938,16 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             line,
         ) {
             println!("{}", line("    whole path (stamped)", &early_hops.whole));
+        }
+        if let Some(h) = &leaving_hops {
+            if print_hops(
+                "requests sent while users leave, to the user",
+                &GRANT_HOPS,
+                &h.grant,
+                line,
+            ) {
+                println!("{}", line("    whole path (stamped)", &h.whole));
+            }
         }
         if let Some(h) = broker["handling"].as_object() {
             println!("\nbroker, time to handle (us):");

@@ -137,6 +137,8 @@ fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Resul
             Err(_) => failed += 1,
         }
     }
+    // Every user has said goodbye: the process's own teardown waits its turn.
+    muster_shared::reactor::yield_for_exit();
     Ok(if failed == 0 {
         ExitCode::SUCCESS
     } else {
@@ -291,7 +293,9 @@ fn watch(
             Err(e) => return Err(e.into()),
         }
     }
-    client.close();
+    muster_shared::reactor::yield_for_exit();
+    client.leave();
+    drop(client);
     Ok(ExitCode::SUCCESS)
 }
 
@@ -314,7 +318,9 @@ fn idle(
             Err(e) => return Err(e.into()),
         }
     }
-    client.close();
+    muster_shared::reactor::yield_for_exit();
+    client.leave();
+    drop(client);
     Ok(ExitCode::SUCCESS)
 }
 

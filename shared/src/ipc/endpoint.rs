@@ -93,7 +93,25 @@ struct Ports {
     pending_bells: Vec<Address>,
     /// Relays' bells wait for [`Endpoint::ring_pending`] ([`Endpoint::quiet_relays`]).
     quiet_relays: bool,
+    /// No lingering ports are dropped before this: the last drop was slow
+    /// ([`SLOW_DROP`]).
+    drops_paused_until: Option<Instant>,
 }
+
+/// Most time one sweep spends dropping lingering ports; the rest wait for the next.
+const DROP_BUDGET: Duration = Duration::from_millis(1);
+/// A lingering peer's ports taking longer than this to drop say that `/dev/shm` is
+/// contended: dropping them unlinks files there, and each unlink waits for the
+/// directory's lock, which hundreds of processes exiting at once (their own files
+/// going) hold in turn, for up to about 0.1 s each. Then drops pause for
+/// [`DROP_PAUSE`], so that the loop serves its inbox in between rather than sitting in
+/// `unlink` (measured: the broker blocked there for a third of a second while 900
+/// users left together).
+const SLOW_DROP: Duration = Duration::from_millis(2);
+/// How long drops pause after a slow one.
+const DROP_PAUSE: Duration = Duration::from_millis(100);
+/// How soon a sweep that left due drops behind comes again.
+const DROP_AGAIN: Duration = Duration::from_millis(1);
 
 /// Ports to peers shared by several endpoints of one thread, and their iceoryx2 node:
 /// see [`Endpoint::open_shared`]. Cloning shares them.
@@ -638,6 +656,34 @@ impl Endpoint {
 }
 
 impl Ports {
+    /// Drops the lingering ports whose time is up, oldest first, for at most
+    /// [`DROP_BUDGET`], and none for [`DROP_PAUSE`] after one slower than
+    /// [`SLOW_DROP`].
+    fn drop_due(&mut self, now: Instant) {
+        let mut due: Vec<(Instant, Address)> = self
+            .lingering
+            .iter()
+            .filter(|(_, t)| **t <= now)
+            .map(|(a, t)| (*t, a.clone()))
+            .collect();
+        due.sort();
+        let started = Instant::now();
+        for (_, a) in due {
+            self.lingering.remove(&a);
+            let t = Instant::now();
+            self.peers.remove(&a);
+            let took = t.elapsed();
+            if took > SLOW_DROP {
+                tracing::debug!(peer = %a, ?took, "dropping a peer's ports was slow: pausing drops");
+                self.drops_paused_until = Some(Instant::now() + DROP_PAUSE);
+                return;
+            }
+            if started.elapsed() >= DROP_BUDGET {
+                return;
+            }
+        }
+    }
+
     fn new(inst: &Instance, node: Rc<Node<Ipc>>, large: bool) -> Self {
         Ports {
             inst: inst.clone(),
@@ -650,6 +696,7 @@ impl Ports {
             backlog: HashMap::new(),
             pending_bells: Vec::new(),
             quiet_relays: false,
+            drops_paused_until: None,
         }
     }
 
@@ -871,21 +918,20 @@ impl Ports {
     fn sweep(&mut self) -> Option<Duration> {
         self.flush_backlog();
         let now = Instant::now();
-        let due: Vec<Address> = self
-            .lingering
-            .iter()
-            .filter(|(_, t)| **t <= now)
-            .map(|(a, _)| a.clone())
-            .collect();
-        for a in due {
-            self.lingering.remove(&a);
-            self.peers.remove(&a);
+        let paused = self.drops_paused_until.filter(|t| *t > now);
+        self.drops_paused_until = paused;
+        if paused.is_none() {
+            self.drop_due(now);
         }
-        let linger = self
-            .lingering
-            .values()
-            .min()
-            .map(|t| t.saturating_duration_since(now));
+        let linger = self.lingering.values().min().map(|t| {
+            let due = (*t).max(paused.unwrap_or(now));
+            // Due ones left behind by the budget: soon again.
+            if due <= now {
+                DROP_AGAIN
+            } else {
+                due - now
+            }
+        });
         let retry = (!self.backlog.is_empty()).then_some(BACKLOG_RETRY);
         [linger, retry].into_iter().flatten().min()
     }
@@ -950,6 +996,57 @@ mod tests {
         b.send(&s, b"last").unwrap();
         b.forget(&s);
         assert_eq!(share.open_peers(), 0);
+    }
+
+    #[test]
+    fn lingering_ports_are_not_dropped_while_drops_are_paused_and_all_go_after() {
+        let inst = Instance::new(&format!("drop-test-{}", std::process::id())).unwrap();
+        let mut sender = Endpoint::open(
+            &inst,
+            Address::System("d".into()),
+            create_node("drop-test-s", false).unwrap(),
+        )
+        .unwrap();
+        let users: Vec<Endpoint> = (0..3)
+            .map(|k| {
+                let me = Address::User(UserId(format!("u{k}")));
+                Endpoint::open(
+                    &inst,
+                    me,
+                    create_node(&format!("drop-test-u{k}"), false).unwrap(),
+                )
+                .unwrap()
+            })
+            .collect();
+        for u in &users {
+            sender.send(u.me(), b"hello").unwrap();
+            sender.release(u.me());
+        }
+        assert_eq!(sender.open_peers(), 3);
+        // All three due now.
+        let now = Instant::now();
+        {
+            let mut ports = sender.ports.borrow_mut();
+            for (k, back) in [(0, 2), (1, 3), (2, 1)] {
+                let due = now.checked_sub(Duration::from_millis(back)).unwrap();
+                ports.lingering.insert(users[k].me().clone(), due);
+            }
+            // Paused (a drop was slow just now): none goes, and the next sweep is when
+            // the pause ends.
+            ports.drops_paused_until = Some(now + Duration::from_millis(80));
+        }
+        let next = sender.sweep().unwrap();
+        assert_eq!(sender.open_peers(), 3, "nothing dropped while paused");
+        assert!(
+            next > Duration::from_millis(40) && next <= Duration::from_millis(80),
+            "{next:?}"
+        );
+        // The pause over: all three go (fast drops, within one sweep's budget), and
+        // nothing is left to sweep for.
+        sender.ports.borrow_mut().drops_paused_until = None;
+        assert_eq!(sender.sweep(), None);
+        assert_eq!(sender.open_peers(), 0);
+        assert!(sender.ports.borrow().lingering.is_empty());
     }
 
     #[test]
