@@ -975,7 +975,7 @@ mod tests {
             let i = i as u32;
             assert_eq!(key, format!("putter-test/{}", i % 3));
             assert_eq!(body, i.to_le_bytes(), "in the order put");
-            assert_eq!(a, (i % 5 == 0).then(|| vec![i as u8]));
+            assert_eq!(a, i.is_multiple_of(5).then(|| vec![i as u8]));
         }
     }
 
