@@ -96,6 +96,9 @@ struct Ports {
     /// No lingering ports are dropped before this: the last drop was slow
     /// ([`SLOW_DROP`]).
     drops_paused_until: Option<Instant>,
+    /// Lingering peers past which drops go on through a pause
+    /// ([`MAX_LINGERING_PAUSED`]).
+    max_lingering_paused: usize,
 }
 
 /// Most time one sweep spends dropping lingering ports; the rest wait for the next.
@@ -112,6 +115,9 @@ const SLOW_DROP: Duration = Duration::from_millis(2);
 const DROP_PAUSE: Duration = Duration::from_millis(100);
 /// How soon a sweep that left due drops behind comes again.
 const DROP_AGAIN: Duration = Duration::from_millis(1);
+/// Lingering peers past which drops go on through a pause (a local user's ports hold
+/// about a dozen descriptors).
+const MAX_LINGERING_PAUSED: usize = 256;
 
 /// Ports to peers shared by several endpoints of one thread, and their iceoryx2 node:
 /// see [`Endpoint::open_shared`]. Cloning shares them.
@@ -657,9 +663,9 @@ impl Endpoint {
 
 impl Ports {
     /// Drops the lingering ports whose time is up, oldest first, for at most
-    /// [`DROP_BUDGET`], and none for [`DROP_PAUSE`] after one slower than
-    /// [`SLOW_DROP`].
-    fn drop_due(&mut self, now: Instant) {
+    /// [`DROP_BUDGET`] and until `down_to` peers linger, and none for [`DROP_PAUSE`]
+    /// after one slower than [`SLOW_DROP`].
+    fn drop_due(&mut self, now: Instant, down_to: usize) {
         let mut due: Vec<(Instant, Address)> = self
             .lingering
             .iter()
@@ -669,6 +675,9 @@ impl Ports {
         due.sort();
         let started = Instant::now();
         for (_, a) in due {
+            if self.lingering.len() <= down_to {
+                return;
+            }
             self.lingering.remove(&a);
             let t = Instant::now();
             self.peers.remove(&a);
@@ -697,6 +706,7 @@ impl Ports {
             pending_bells: Vec::new(),
             quiet_relays: false,
             drops_paused_until: None,
+            max_lingering_paused: MAX_LINGERING_PAUSED,
         }
     }
 
@@ -918,11 +928,16 @@ impl Ports {
     fn sweep(&mut self) -> Option<Duration> {
         self.flush_backlog();
         let now = Instant::now();
-        let paused = self.drops_paused_until.filter(|t| *t > now);
-        self.drops_paused_until = paused;
-        if paused.is_none() {
-            self.drop_due(now);
+        self.drops_paused_until = self.drops_paused_until.filter(|t| *t > now);
+        // A pause holds the ports' descriptors and memory: past a number of lingering
+        // peers they go anyway.
+        let crowded = |p: &Self| p.lingering.len() > p.max_lingering_paused;
+        if self.drops_paused_until.is_none() {
+            self.drop_due(now, 0);
+        } else if crowded(self) {
+            self.drop_due(now, self.max_lingering_paused);
         }
+        let paused = self.drops_paused_until.filter(|_| !crowded(self));
         let linger = self.lingering.values().min().map(|t| {
             let due = (*t).max(paused.unwrap_or(now));
             // Due ones left behind by the budget: soon again.
@@ -1037,11 +1052,24 @@ mod tests {
         }
         let next = sender.sweep().unwrap();
         assert_eq!(sender.open_peers(), 3, "nothing dropped while paused");
+        // Past the most lingering peers a pause holds, they go through it, down to
+        // that number.
+        sender.ports.borrow_mut().max_lingering_paused = 2;
+        for _ in 0..10 {
+            if sender.open_peers() <= 2 {
+                break;
+            }
+            sender.sweep();
+        }
+        assert_eq!(sender.open_peers(), 2, "down to the most a pause holds");
+        sender.sweep();
+        assert_eq!(sender.open_peers(), 2, "and no further while paused");
+        sender.ports.borrow_mut().max_lingering_paused = MAX_LINGERING_PAUSED;
         assert!(
             next > Duration::from_millis(40) && next <= Duration::from_millis(80),
             "{next:?}"
         );
-        // The pause over: all three go (fast drops, within one sweep's budget), and
+        // The pause over: the rest go (fast drops, within one sweep's budget), and
         // nothing is left to sweep for.
         sender.ports.borrow_mut().drops_paused_until = None;
         assert_eq!(sender.sweep(), None);
