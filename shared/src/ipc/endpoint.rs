@@ -115,9 +115,10 @@ const SLOW_DROP: Duration = Duration::from_millis(2);
 const DROP_PAUSE: Duration = Duration::from_millis(100);
 /// How soon a sweep that left due drops behind comes again.
 const DROP_AGAIN: Duration = Duration::from_millis(1);
-/// Lingering peers past which drops go on through a pause (a local user's ports hold
-/// about a dozen descriptors).
-const MAX_LINGERING_PAUSED: usize = 256;
+/// Lingering peers past which drops go on through a pause: a local user's ports hold
+/// about a dozen descriptors, and a thousand users leaving together linger this many
+/// for [`LINGER`] anyway.
+const MAX_LINGERING_PAUSED: usize = 1024;
 
 /// Ports to peers shared by several endpoints of one thread, and their iceoryx2 node:
 /// see [`Endpoint::open_shared`]. Cloning shares them.
