@@ -196,12 +196,8 @@ pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
     }
     r.report.ended_ms = monotonic_ns() / 1_000_000;
     r.report.unwanted_grants = r.client.core().unwanted_grants();
-    let Run {
-        mut client, report, ..
-    } = r;
-    muster_shared::reactor::yield_for_exit();
-    client.leave();
-    drop(client);
+    let Run { client, report, .. } = r;
+    super::user::leave(client);
     println!("{}", serde_json::to_string(&report)?);
     Ok(ExitCode::SUCCESS)
 }

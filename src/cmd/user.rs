@@ -89,6 +89,15 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
     }
 }
 
+/// Ends a user whose thread has nothing left to do: the thread yields
+/// ([`muster_shared::reactor::yield_for_exit`]) before the goodbye, so the goodbye and
+/// the teardown run when nothing else would (hundreds of users leaving together
+/// otherwise take the cores from the broker and from the users still asking it).
+pub fn leave(client: UserClient) {
+    muster_shared::reactor::yield_for_exit();
+    client.close();
+}
+
 /// `--count N`: N users of `idle` or `behave`, a thread and a connection each.
 fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Result<ExitCode> {
     let behave = match &a.verb {
@@ -293,9 +302,7 @@ fn watch(
             Err(e) => return Err(e.into()),
         }
     }
-    muster_shared::reactor::yield_for_exit();
-    client.leave();
-    drop(client);
+    leave(client);
     Ok(ExitCode::SUCCESS)
 }
 
@@ -318,9 +325,7 @@ fn idle(
             Err(e) => return Err(e.into()),
         }
     }
-    muster_shared::reactor::yield_for_exit();
-    client.leave();
-    drop(client);
+    leave(client);
     Ok(ExitCode::SUCCESS)
 }
 

@@ -783,18 +783,8 @@ impl UserClient {
 
     /// Ends everything and says goodbye (dropping the client does the same).
     pub fn close(mut self) {
-        self.leave();
-    }
-
-    /// Ends everything and says goodbye now, keeping the client's ports until it is
-    /// dropped: a program that exits next can make its own teardown wait for everyone
-    /// else in between (see `muster_shared::reactor::yield_for_exit`). The client is of
-    /// no further use.
-    pub fn leave(&mut self) {
-        if !self.closed {
-            self.shutdown();
-            self.closed = true;
-        }
+        self.shutdown();
+        self.closed = true;
     }
 
     fn shutdown(&mut self) {
