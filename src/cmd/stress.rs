@@ -931,23 +931,15 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             &hops.confirm,
             line,
         );
-        if print_hops(
-            "requests sent in the first 10 s, to the user",
-            &GRANT_HOPS,
-            &early_hops.grant,
-            line,
-        ) {
-            println!("{}", line("    whole path (stamped)", &early_hops.whole));
-        }
-        if let Some(h) = &leaving_hops {
-            if print_hops(
-                "requests sent while users leave, to the user",
-                &GRANT_HOPS,
-                &h.grant,
-                line,
-            ) {
+        // A part of the run's requests, hop by hop and whole.
+        let print_part = |title: &str, h: &PerHop| {
+            if print_hops(title, &GRANT_HOPS, &h.grant, line) {
                 println!("{}", line("    whole path (stamped)", &h.whole));
             }
+        };
+        print_part("requests sent in the first 10 s, to the user", &early_hops);
+        if let Some(h) = &leaving_hops {
+            print_part("requests sent while users leave, to the user", h);
         }
         if let Some(h) = broker["handling"].as_object() {
             println!("\nbroker, time to handle (us):");
