@@ -281,12 +281,12 @@ impl crate::cli::LoadArgs {
             );
         }
         let broker_fds = muster_broker::run::FDS_PER_LOCAL_USER;
-        if !remote && self.users as u64 * broker_fds + 256 > fds {
+        let most = muster_broker::run::max_local_users(fds);
+        if !remote && self.users as u64 > most {
             tracing::warn!(
-                "the broker gets this limit ({fds} descriptors) and holds about {broker_fds} per local user: \
-                 beyond about {} users, the next are refused (\"no broker\"); raising it needs \
-                 root with CAP_SYS_RESOURCE (`ulimit -Hn`), or use remote users (--remote)",
-                (fds - 256) / broker_fds
+                "the broker gets this limit ({fds} descriptors) and holds at least {broker_fds} per local user: \
+                 beyond about {most} users, the next are refused (\"no broker\"); raising it needs \
+                 root with CAP_SYS_RESOURCE (`ulimit -Hn`), or use remote users (--remote)"
             );
         }
         Ok(())

@@ -283,23 +283,84 @@ fn claim_fence(fence: &Fence) -> Holder {
     }
 }
 
-/// Descriptors the broker holds per local user process (measured: 13 at 300 users):
-/// iceoryx2 keeps each port's static config, port tag, dynamic config and connection or
-/// socket open, for the inbox and bell it writes to and the user's writer it reads, and
-/// the user's pidfd. Remote users cost one connection entry and no descriptor.
-pub const FDS_PER_LOCAL_USER: u64 = 14;
+/// Descriptors the broker holds for its ports to one peer's inbox and bell (measured:
+/// 10): iceoryx2 keeps each service's static config, dynamic config and port tag open,
+/// the publisher's data segment and connection, and the notifier's socket and event
+/// management. The broker closes them for idle peers when descriptors run short
+/// ([`max_open_peers`]).
+pub const FDS_PER_PEER_PORTS: u64 = 10;
+/// Descriptors a local user costs the broker whatever it does: the user's writer to the
+/// broker's inbox (its data segment and connection), and its process's pidfd. Remote
+/// users cost one connection entry and no descriptor.
+pub const FDS_PER_LOCAL_USER: u64 = 3;
+/// Descriptors left for everything else (systems' registrations, the lists, the event
+/// feed, replication, sockets, logs): an eighth of the limit, at most this many.
+const FDS_RESERVE: u64 = 1024;
+/// The fewest peers whose ports stay open however many users are connected.
+const MIN_OPEN_PEERS: u64 = 64;
+/// How often the most open peers is worked out again as users come and go.
+const OPEN_PEERS_EVERY: Duration = Duration::from_millis(250);
 
-fn raise_fds() {
+/// The most peers the broker keeps ports open to with `local_users` connected and a
+/// descriptor limit of `limit`: what the users' own costs leave, less a reserve, at
+/// [`FDS_PER_PEER_PORTS`] a peer. Past it, ports to peers idle for [`LINGER`] close, so
+/// that idle users cost [`FDS_PER_LOCAL_USER`] each, not 13: 5,000 local users fit a
+/// limit of 20,000.
+///
+/// [`LINGER`]: muster_shared::ipc::LINGER
+pub fn max_open_peers(limit: u64, local_users: usize) -> usize {
+    let fixed = reserve(limit) + FDS_PER_LOCAL_USER * local_users as u64;
+    let open = (limit.saturating_sub(fixed) / FDS_PER_PEER_PORTS).max(MIN_OPEN_PEERS);
+    usize::try_from(open).unwrap_or(usize::MAX)
+}
+
+/// About the most local users a broker with a descriptor limit of `limit` takes: each
+/// costs [`FDS_PER_LOCAL_USER`], and [`MIN_OPEN_PEERS`] peers keep their ports open.
+pub fn max_local_users(limit: u64) -> u64 {
+    limit.saturating_sub(reserve(limit) + MIN_OPEN_PEERS * FDS_PER_PEER_PORTS) / FDS_PER_LOCAL_USER
+}
+
+/// Descriptors kept back from peers' ports and users at a limit of `limit`.
+fn reserve(limit: u64) -> u64 {
+    (limit / 8).min(FDS_RESERVE)
+}
+
+/// Raises the descriptor limit as far as it may; returns it.
+fn raise_fds() -> u64 {
+    let most = max_local_users;
     match raise_fd_limit() {
-        Ok(n) if n / FDS_PER_LOCAL_USER < 256 => tracing::warn!(
-            "file-descriptor limit is {n}: at most about {} local users (remote users need none)",
-            n / FDS_PER_LOCAL_USER
-        ),
-        Ok(n) => tracing::debug!(
-            "file-descriptor limit {n}: at most about {} local users",
-            n / FDS_PER_LOCAL_USER
-        ),
-        Err(e) => tracing::warn!("cannot raise the file-descriptor limit: {e}"),
+        Ok(n) if most(n) < 256 => {
+            tracing::warn!(
+                "file-descriptor limit is {n}: at most about {} local users (remote users need none)",
+                most(n)
+            );
+            n
+        }
+        Ok(n) => {
+            tracing::debug!(
+                "file-descriptor limit {n}: at most about {} local users",
+                most(n)
+            );
+            n
+        }
+        Err(e) => {
+            tracing::warn!("cannot raise the file-descriptor limit: {e}");
+            fd_limit()
+        }
+    }
+}
+
+/// This process's descriptor limit (the soft one; 1,024 if it cannot be read).
+fn fd_limit() -> u64 {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: valid out-pointer.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } == 0 {
+        lim.rlim_cur
+    } else {
+        1024
     }
 }
 
@@ -530,6 +591,8 @@ fn serve(
     // broker's bell existed (a takeover, a restart) rang nobody.
     let mut inbox_rang = true;
     let mut passes = 0u64;
+    let fd_limit = fd_limit();
+    let mut open_peers_at: Option<Instant> = None;
     // Logs what the loop was doing if it makes no progress for a second outside its wait.
     let watchdog = crate::watchdog::Watchdog::start(STALL)
         .map_err(|e| tracing::warn!("no loop watchdog: {e}"))
@@ -541,6 +604,11 @@ fn serve(
     };
     loop {
         at(Phase::Waiting);
+        if open_peers_at.is_none_or(|t| t.elapsed() >= OPEN_PEERS_EVERY) {
+            open_peers_at = Some(Instant::now());
+            let most = max_open_peers(fd_limit, core.local_users());
+            shell.endpoint.set_max_open_peers(most);
+        }
         let now = host_now();
         let timeout = core.poll_timeout().map(|t| t.saturating_sub(now));
         let housekeeping = shell

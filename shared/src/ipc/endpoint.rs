@@ -68,6 +68,8 @@ struct Peer {
     publisher: Publisher<Ipc, [u8], ()>,
     notifier: Notifier<Ipc>,
     inbox: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+    /// When a frame was last written or the bell last rung through these ports.
+    used: Instant,
 }
 
 /// The ports to peers' inboxes (a publisher and a bell's notifier each), cached, with
@@ -99,6 +101,13 @@ struct Ports {
     /// Lingering peers past which drops go on through a pause
     /// ([`MAX_LINGERING_PAUSED`]).
     max_lingering_paused: usize,
+    /// Open peers past which the ports of held peers idle for [`LINGER`] are closed
+    /// ([`Endpoint::set_max_open_peers`]).
+    max_open: usize,
+    /// When idle held peers were last looked for to close ([`EVICT_EVERY`]).
+    evicted_at: Option<Instant>,
+    /// Held peers whose idle ports were closed so far.
+    evictions: u64,
 }
 
 /// Most time one sweep spends dropping lingering ports; the rest wait for the next.
@@ -119,6 +128,12 @@ const DROP_AGAIN: Duration = Duration::from_millis(1);
 /// about a dozen descriptors, and a thousand users leaving together linger this many
 /// for [`LINGER`] anyway.
 const MAX_LINGERING_PAUSED: usize = 1024;
+/// How often, at most, a sweep looks for idle held peers to close while more peers are
+/// open than [`Endpoint::set_max_open_peers`] allows.
+const EVICT_EVERY: Duration = Duration::from_millis(100);
+/// Idle held peers are closed down to this share of the most open (in percent), so that
+/// each look closes a batch, not one at a time.
+const EVICT_DOWN_TO_PCT: usize = 90;
 
 /// Ports to peers shared by several endpoints of one thread, and their iceoryx2 node:
 /// see [`Endpoint::open_shared`]. Cloning shares them.
@@ -656,6 +671,20 @@ impl Endpoint {
         self.ports.borrow().peers.len()
     }
 
+    /// Past `n` open peers, sweeps close the ports of held peers idle for [`LINGER`],
+    /// least recently used first: the ports to a peer hold about ten descriptors, and a
+    /// broker with thousands of users connected would otherwise run out of them
+    /// (`usize::MAX`, the default: never). Those peers stay held: a frame to one opens
+    /// its ports again.
+    pub fn set_max_open_peers(&mut self, n: usize) {
+        self.ports.borrow_mut().max_open = n;
+    }
+
+    /// Idle held peers whose ports were closed so far ([`Endpoint::set_max_open_peers`]).
+    pub fn evictions(&self) -> u64 {
+        self.ports.borrow().evictions
+    }
+
     /// Frames that could not be delivered so far (by every endpoint sharing the ports).
     pub fn dropped_sends(&self) -> u64 {
         self.ports.borrow().dropped_sends
@@ -708,6 +737,9 @@ impl Ports {
             quiet_relays: false,
             drops_paused_until: None,
             max_lingering_paused: MAX_LINGERING_PAUSED,
+            max_open: usize::MAX,
+            evicted_at: None,
+            evictions: 0,
         }
     }
 
@@ -727,6 +759,11 @@ impl Ports {
 
     fn peer(&mut self, to: &Address) -> Result<&mut Peer, TransportError> {
         if !self.peers.contains_key(to) {
+            if self.peers.len() >= self.max_open {
+                // No descriptors for more: a control frame waits in the backlog until
+                // an idle peer's ports close (see `evict_idle`).
+                return Err(TransportError::Full(to.clone()));
+            }
             let started = Instant::now();
             let opened = self.open_peer(to);
             let took = started.elapsed();
@@ -776,6 +813,7 @@ impl Ports {
                 publisher,
                 notifier,
                 inbox: svc,
+                used: Instant::now(),
             },
         );
         Ok(())
@@ -889,6 +927,7 @@ impl Ports {
             .write_from_slice(frame)
             .send()
             .map_err(|e| send_err(&e))?;
+        peer.used = Instant::now();
         if delivered == 0 {
             // Nobody read it: either nobody is there, or the reader's queue is full.
             return Err(
@@ -912,6 +951,7 @@ impl Ports {
 
     fn ring(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
         let result = self.peer(to).and_then(|p| {
+            p.used = Instant::now();
             p.notifier
                 .notify_with_custom_event_id(EventId::new(id))
                 .map(|_| ())
@@ -927,9 +967,10 @@ impl Ports {
     }
 
     fn sweep(&mut self) -> Option<Duration> {
-        self.flush_backlog();
         let now = Instant::now();
         self.drops_paused_until = self.drops_paused_until.filter(|t| *t > now);
+        let over = self.evict_idle(now);
+        self.flush_backlog();
         // A pause holds the ports' descriptors and memory: past a number of lingering
         // peers they go anyway.
         let crowded = |p: &Self| p.lingering.len() > p.max_lingering_paused;
@@ -949,7 +990,60 @@ impl Ports {
             }
         });
         let retry = (!self.backlog.is_empty()).then_some(BACKLOG_RETRY);
-        [linger, retry].into_iter().flatten().min()
+        let evict = over.then_some(EVICT_EVERY);
+        [linger, retry, evict].into_iter().flatten().min()
+    }
+
+    /// With as many peers open as [`Ports::max_open`] or more, closes the ports of held peers
+    /// idle for [`LINGER`] (their last frame read long since, as a lingering peer's),
+    /// least recently used first, down to [`EVICT_DOWN_TO_PCT`] of the most, within
+    /// [`DROP_BUDGET`] and not while drops pause. A held peer whose ports were closed
+    /// stays held: the next frame to it opens them again (a first contact, about
+    /// 0.1–0.6 ms). Peers with frames held back or a bell pending keep theirs. Returns
+    /// whether the most are open still (no more may open: see [`Ports::peer`]).
+    fn evict_idle(&mut self, now: Instant) -> bool {
+        if self.peers.len() < self.max_open {
+            return false;
+        }
+        if self.drops_paused_until.is_some()
+            || self.evicted_at.is_some_and(|t| now < t + EVICT_EVERY)
+        {
+            return true;
+        }
+        self.evicted_at = Some(now);
+        let Some(idle_since) = now.checked_sub(LINGER) else {
+            return true;
+        };
+        let mut idle: Vec<(Instant, Address)> = self
+            .peers
+            .iter()
+            .filter(|(a, p)| {
+                p.used <= idle_since
+                    && !self.lingering.contains_key(*a)
+                    && !self.backlog.contains_key(*a)
+                    && !self.pending_bells.contains(a)
+            })
+            .map(|(a, p)| (p.used, a.clone()))
+            .collect();
+        idle.sort();
+        let down_to = self.max_open.saturating_mul(EVICT_DOWN_TO_PCT) / 100;
+        let started = Instant::now();
+        for (_, a) in idle {
+            if self.peers.len() <= down_to {
+                break;
+            }
+            let t = Instant::now();
+            self.peers.remove(&a);
+            self.evictions += 1;
+            if t.elapsed() > SLOW_DROP {
+                self.drops_paused_until = Some(Instant::now() + DROP_PAUSE);
+                break;
+            }
+            if started.elapsed() >= DROP_BUDGET {
+                break;
+            }
+        }
+        self.peers.len() >= self.max_open
     }
 }
 
@@ -1076,6 +1170,85 @@ mod tests {
         assert_eq!(sender.sweep(), None);
         assert_eq!(sender.open_peers(), 0);
         assert!(sender.ports.borrow().lingering.is_empty());
+    }
+
+    #[test]
+    fn past_the_most_open_peers_idle_held_ones_close_oldest_first_and_reopen_on_the_next_frame(
+    ) {
+        let inst = Instance::new(&format!("evict-test-{}", std::process::id())).unwrap();
+        let mut sender = Endpoint::open(
+            &inst,
+            Address::Broker,
+            create_node("evict-test-b", false).unwrap(),
+        )
+        .unwrap();
+        let mut users: Vec<Endpoint> = (0..5)
+            .map(|k| {
+                let me = Address::User(UserId(format!("u{k}")));
+                Endpoint::open(
+                    &inst,
+                    me,
+                    create_node(&format!("evict-test-u{k}"), false).unwrap(),
+                )
+                .unwrap()
+            })
+            .collect();
+        for u in &mut users {
+            sender.send(u.me(), b"hello").unwrap();
+            assert_eq!(u.recv().as_deref(), Some(&b"hello"[..]));
+        }
+        // u0..u3 idle for longer than LINGER (u3 the longest), u4 just written to; u2
+        // has a frame whose bell waits (it keeps its ports whatever its age).
+        sender.send_control_quiet(users[2].me(), &"quiet");
+        let now = Instant::now();
+        {
+            let mut ports = sender.ports.borrow_mut();
+            for (k, idle) in [(0, 3), (1, 4), (2, 9), (3, 5)] {
+                let at = now.checked_sub(LINGER + Duration::from_secs(idle)).unwrap();
+                ports.peers.get_mut(users[k].me()).unwrap().used = at;
+            }
+        }
+        // Under the most: nothing closes.
+        sender.set_max_open_peers(6);
+        sender.sweep();
+        assert_eq!((sender.open_peers(), sender.evictions()), (5, 0));
+        // Over it (5 open, at most 4): idle ones close, oldest first, down to 90 % of
+        // the most (3): u3, then u1; u2 keeps its ports for its pending bell, u4 is
+        // busy, and u0 is not needed.
+        sender.set_max_open_peers(4);
+        sender.sweep();
+        assert_eq!((sender.open_peers(), sender.evictions()), (3, 2));
+        let open: Vec<bool> = users.iter().map(|u| sender.has_ports(u.me())).collect();
+        assert_eq!(open, [true, false, true, false, true]);
+        // A closed peer is still held: the next frame to it opens its ports again and
+        // arrives.
+        sender.send(users[3].me(), b"again").unwrap();
+        assert!(sender.has_ports(users[3].me()));
+        assert_eq!(users[3].recv().as_deref(), Some(&b"again"[..]));
+        sender.ring_pending();
+        assert!(users[2].recv().is_some(), "u2's quiet frame arrived");
+        // Under the most again: no more closes, and no sweep is asked for them.
+        sender.set_max_open_peers(5);
+        assert_eq!(sender.sweep(), None);
+        assert_eq!(sender.evictions(), 2);
+        // At the most, no more ports open: a control frame to a closed peer waits, and
+        // goes once an idle peer's ports close.
+        sender.set_max_open_peers(4);
+        sender.send(users[4].me(), b"busy").unwrap();
+        assert!(matches!(
+            sender.send(users[1].me(), b"data"),
+            Err(TransportError::Full(_))
+        ));
+        sender.send_control(users[1].me(), &"control");
+        assert_eq!(sender.backlog(), 1);
+        let idle = Instant::now().checked_sub(LINGER * 2).unwrap();
+        sender.ports.borrow_mut().peers.get_mut(users[0].me()).unwrap().used = idle;
+        sender.ports.borrow_mut().evicted_at = None;
+        sender.sweep(); // closes u0 (down to 3), then the held frame goes
+        assert_eq!(sender.backlog(), 0);
+        assert!(!sender.has_ports(users[0].me()));
+        assert!(users[1].recv().is_some(), "u1's held-back frame arrived");
+        assert!(users[1].recv().is_none(), "and only it: the data frame was dropped");
     }
 
     #[test]

@@ -101,9 +101,11 @@ pub enum TransportError {
         /// Why.
         source: crate::protocol::EncodeError,
     },
-    /// The peer's inbox is full (it reads slower than we write): this frame was dropped.
-    /// The peer is still there; session updates show the loss as a sequence gap.
-    #[error("{0}'s inbox is full: frame dropped")]
+    /// The peer's inbox is full (it reads slower than we write), or no more ports to
+    /// peers may be opened now ([`Endpoint::set_max_open_peers`]): this frame was
+    /// dropped (a control frame waits instead). The peer is still there; session
+    /// updates show the loss as a sequence gap.
+    #[error("{0}'s inbox is full, or no more peers' ports may open now: frame dropped")]
     Full(Address),
     /// The peer's inbox does not exist or nobody reads it: the peer is gone.
     #[error("{0} is unreachable (not running?)")]
