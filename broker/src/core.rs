@@ -515,11 +515,6 @@ impl Broker {
             .collect()
     }
 
-    /// Users on this host (over shared memory: each with its process's pid).
-    pub fn local_users(&self) -> usize {
-        self.users.values().filter(|u| u.pid != 0).count()
-    }
-
     /// Remote users (over UDP: no pid here; their front tracks their liveness).
     pub fn remote_users(&self) -> Vec<UserId> {
         self.users

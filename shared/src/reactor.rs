@@ -257,10 +257,70 @@ pub fn raise_fd_limit() -> io::Result<u64> {
     Ok(lim.rlim_cur)
 }
 
+/// This process's open file descriptors, counted every `every` by a thread of its own
+/// (reading `/proc/self/fd`, which takes milliseconds at tens of thousands: off the
+/// event loop). The count is `None` until first taken, and stays `None` if it cannot be.
+pub struct FdGauge {
+    open: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl FdGauge {
+    /// Starts counting, every `every` and 10 µs more per descriptor open (a count takes
+    /// about that long); the thread ends with the process.
+    pub fn start(every: Duration) -> io::Result<FdGauge> {
+        let open = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(u64::MAX));
+        let out = open.clone();
+        std::thread::Builder::new()
+            .name("fd-gauge".into())
+            .spawn(move || loop {
+                let n = std::fs::read_dir("/proc/self/fd").map(|d| d.count() as u64);
+                let n = match n {
+                    // The directory's own descriptor, open while it is read, is not counted.
+                    Ok(n) => n.saturating_sub(1),
+                    Err(_) => return,
+                };
+                out.store(n, std::sync::atomic::Ordering::Relaxed);
+                std::thread::sleep(every + Duration::from_micros(10).saturating_mul(n as u32));
+            })?;
+        Ok(FdGauge { open })
+    }
+
+    /// Descriptors open at the last count.
+    pub fn open(&self) -> Option<u64> {
+        match self.open.load(std::sync::atomic::Ordering::Relaxed) {
+            u64::MAX => None,
+            n => Some(n),
+        }
+    }
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_gauge_counts_descriptors_as_they_open_and_close() {
+        let gauge = FdGauge::start(Duration::from_millis(5)).unwrap();
+        let wait_for = |want: &dyn Fn(u64) -> bool| {
+            let until = std::time::Instant::now() + Duration::from_secs(5);
+            loop {
+                match gauge.open() {
+                    Some(n) if want(n) => return n,
+                    _ if std::time::Instant::now() > until => panic!("{:?}", gauge.open()),
+                    _ => std::thread::sleep(Duration::from_millis(5)),
+                }
+            }
+        };
+        let before = wait_for(&|n| n > 0);
+        // Other tests open and close descriptors meanwhile: look for a jump of 200.
+        let files: Vec<std::fs::File> = (0..200)
+            .map(|_| std::fs::File::open("/dev/null").unwrap())
+            .collect();
+        wait_for(&|n| n >= before + 150);
+        drop(files);
+        wait_for(&|n| n < before + 100);
+    }
 
     #[test]
     fn a_threads_niceness_is_set_and_its_new_threads_take_it() {

@@ -298,20 +298,24 @@ pub const FDS_PER_LOCAL_USER: u64 = 3;
 const FDS_RESERVE: u64 = 1024;
 /// The fewest peers whose ports stay open however many users are connected.
 const MIN_OPEN_PEERS: u64 = 64;
-/// How often the most open peers is worked out again as users come and go.
-const OPEN_PEERS_EVERY: Duration = Duration::from_millis(250);
+/// How often the broker's descriptors are counted, and the most open peers worked out
+/// again: this, and 10 µs more per descriptor open (0.25 s at 20,000), which is about
+/// what a count costs.
+const OPEN_PEERS_EVERY: Duration = Duration::from_millis(50);
 
-/// The most peers the broker keeps ports open to with `local_users` connected and a
-/// descriptor limit of `limit`: what the users' own costs leave, less a reserve, at
-/// [`FDS_PER_PEER_PORTS`] a peer. Past it, ports to peers idle for [`LINGER`] close, so
-/// that idle users cost [`FDS_PER_LOCAL_USER`] each, not 13: 5,000 local users fit a
-/// limit of 20,000.
+/// The most peers the broker keeps ports open to, its descriptor limit `limit`, with
+/// `open_fds` descriptors open when `open_peers` peers' ports were: those peers, and as
+/// many more as the descriptors left (less a reserve for what opens meanwhile and
+/// everything else) hold at [`FDS_PER_PEER_PORTS`]; fewer than are open when the
+/// reserve is eaten into (connecting users' own costs come first), and then ports to
+/// peers idle for [`LINGER`] close. Idle users then cost [`FDS_PER_LOCAL_USER`] each,
+/// not 13: 5,000 local users fit a limit of 20,000.
 ///
 /// [`LINGER`]: muster_shared::ipc::LINGER
-pub fn max_open_peers(limit: u64, local_users: usize) -> usize {
-    let fixed = reserve(limit) + FDS_PER_LOCAL_USER * local_users as u64;
-    let open = (limit.saturating_sub(fixed) / FDS_PER_PEER_PORTS).max(MIN_OPEN_PEERS);
-    usize::try_from(open).unwrap_or(usize::MAX)
+pub fn max_open_peers(limit: u64, open_fds: u64, open_peers: usize) -> usize {
+    let free = i128::from(limit) - i128::from(reserve(limit)) - i128::from(open_fds);
+    let most = open_peers as i128 + free / i128::from(FDS_PER_PEER_PORTS);
+    usize::try_from(most.max(i128::from(MIN_OPEN_PEERS))).unwrap_or(usize::MAX)
 }
 
 /// About the most local users a broker with a descriptor limit of `limit` takes: each
@@ -592,7 +596,10 @@ fn serve(
     let mut inbox_rang = true;
     let mut passes = 0u64;
     let fd_limit = fd_limit();
-    let mut open_peers_at: Option<Instant> = None;
+    let fd_gauge = muster_shared::reactor::FdGauge::start(OPEN_PEERS_EVERY)
+        .map_err(|e| tracing::warn!("descriptors not counted (ports to idle users stay open): {e}"))
+        .ok();
+    let mut fds_seen = None;
     // Logs what the loop was doing if it makes no progress for a second outside its wait.
     let watchdog = crate::watchdog::Watchdog::start(STALL)
         .map_err(|e| tracing::warn!("no loop watchdog: {e}"))
@@ -604,10 +611,14 @@ fn serve(
     };
     loop {
         at(Phase::Waiting);
-        if open_peers_at.is_none_or(|t| t.elapsed() >= OPEN_PEERS_EVERY) {
-            open_peers_at = Some(Instant::now());
-            let most = max_open_peers(fd_limit, core.local_users());
-            shell.endpoint.set_max_open_peers(most);
+        if let Some(open) = fd_gauge.as_ref().and_then(|g| g.open()) {
+            if fds_seen != Some(open) {
+                fds_seen = Some(open);
+                let peers = shell.endpoint.open_peers();
+                let most = max_open_peers(fd_limit, open, peers);
+                tracing::trace!(open, fd_limit, peers, most, evictions = shell.endpoint.evictions(), "descriptors");
+                shell.endpoint.set_max_open_peers(most);
+            }
         }
         let now = host_now();
         let timeout = core.poll_timeout().map(|t| t.saturating_sub(now));
@@ -1440,5 +1451,21 @@ mod tests {
         assert_eq!(status.handling[0].kind, "hello");
         assert_eq!(status.handling[0].count, 2);
         assert_eq!(status.handling[0].max_us, 40);
+    }
+
+    #[test]
+    fn open_peers_take_what_descriptors_the_users_leave_and_give_back_when_they_eat_the_reserve(
+    ) {
+        // 5,000 idle local users (3 each) and a hundred more descriptors, at 20,000:
+        // about 390 peers may keep their ports.
+        assert_eq!(max_open_peers(20_000, 15_100, 0), 387);
+        assert_eq!(max_open_peers(20_000, 15_100 + 10 * 300, 300), 387);
+        // Connecting users ate into the reserve: fewer than are open, so idle ones close.
+        assert_eq!(max_open_peers(1_500, 1_450, 100), 87);
+        // Never fewer than the floor, and the whole limit free is a lot of peers.
+        assert_eq!(max_open_peers(1_500, 5_000, 100), MIN_OPEN_PEERS as usize);
+        assert_eq!(max_open_peers(1 << 20, 100, 0), ((1 << 20) - 1_024 - 100) / 10);
+        // How many local users a limit takes, at 3 each past the reserve and the floor.
+        assert_eq!(max_local_users(20_000), (20_000 - 1_024 - 640) / 3);
     }
 }

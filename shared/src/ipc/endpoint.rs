@@ -52,6 +52,15 @@ pub fn open_envelope(bytes: &[u8]) -> Option<(crate::types::UserId, &[u8])> {
     Some((crate::types::UserId(id.to_string()), frame))
 }
 
+/// Whether the last failed call ran out of descriptors (iceoryx2's errors do not say;
+/// the OS's last error does).
+fn out_of_descriptors() -> bool {
+    matches!(
+        std::io::Error::last_os_error().raw_os_error(),
+        Some(libc::EMFILE | libc::ENFILE)
+    )
+}
+
 /// Empties a listener; returns the event ids rung as bits (bit i = id i).
 pub(super) fn drain_ids(listener: &Listener<Ipc>) -> u64 {
     let mut rung = 0u64;
@@ -769,6 +778,13 @@ impl Ports {
             let took = started.elapsed();
             if took > Duration::from_millis(50) {
                 tracing::debug!(peer = %to, ?took, ok = opened.is_ok(), "opening a peer's ports was slow");
+            }
+            if opened.is_err() && out_of_descriptors() {
+                // Not the peer's fault: as many as are open now is the most, until the
+                // process's owner says otherwise; a control frame waits meanwhile.
+                tracing::debug!(peer = %to, open = self.peers.len(), "out of descriptors opening a peer's ports");
+                self.max_open = self.peers.len();
+                return Err(TransportError::Full(to.clone()));
             }
             opened?;
         }
