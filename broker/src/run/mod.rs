@@ -27,7 +27,7 @@ use muster_shared::udp::access::AccessFile;
 use muster_shared::udp::wire::MAX_DATAGRAM;
 use muster_shared::udp::{recv_one, send_transmit, size_recv_buffer, RECV_BATCH};
 use rand::RngExt;
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::net::UdpSocket;
 use std::os::fd::AsRawFd;
 use std::path::PathBuf;
@@ -82,8 +82,11 @@ const TOKEN_EVENTS: usize = 5;
 const FIRST_WATCH_TOKEN: usize = 16;
 
 /// A watched process: a system or a user, by its address.
+/// A process watched for its death, and who speaks from it: one pidfd per process,
+/// however many users it hosts (16 a process would otherwise take 16 descriptors).
 struct Watch {
-    who: Address,
+    pid: u32,
+    who: HashSet<Address>,
     pidfd: PidFd,
 }
 
@@ -98,6 +101,20 @@ pub struct BrokerReport {
     pub udp: Option<crate::udp::UdpStats>,
     /// Counters of the federation, if the broker joined one.
     pub federation: Option<crate::federation::FedStats>,
+    /// Its descriptors: the limit, the most open at a count, and the peers whose
+    /// idle ports it closed to stay within it.
+    pub descriptors: Descriptors,
+}
+
+/// What a broker saw of its descriptors ([`BrokerReport::descriptors`]).
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct Descriptors {
+    /// Its limit (the soft one).
+    pub limit: u64,
+    /// The most open at any count (every [`OPEN_PEERS_EVERY`] and more).
+    pub most_open: u64,
+    /// Held peers whose idle ports were closed ([`max_open_peers`]).
+    pub idle_ports_closed: u64,
 }
 
 impl BrokerReport {
@@ -117,7 +134,7 @@ impl BrokerReport {
             })
             .collect();
         serde_json::json!({"stats": self.stats, "handling": handling, "udp": self.udp,
-                           "federation": self.federation})
+                           "federation": self.federation, "descriptors": self.descriptors})
     }
 }
 
@@ -131,6 +148,7 @@ struct Shell {
     reactor: Reactor,
     watches: HashMap<usize, Watch>,
     by_addr: HashMap<Address, usize>,
+    by_pid: HashMap<u32, usize>,
     next_token: usize,
     snapshot: Box<ServiceListSnapshot>,
     handling: Handling,
@@ -529,6 +547,7 @@ fn serve(
         reactor,
         watches: HashMap::new(),
         by_addr: HashMap::new(),
+        by_pid: HashMap::new(),
         next_token: FIRST_WATCH_TOKEN,
         snapshot: Box::new(ServiceListSnapshot::empty()),
         last_ring: None,
@@ -600,6 +619,10 @@ fn serve(
         .map_err(|e| tracing::warn!("descriptors not counted (ports to idle users stay open): {e}"))
         .ok();
     let mut fds_seen = None;
+    let mut descriptors = Descriptors {
+        limit: fd_limit,
+        ..Descriptors::default()
+    };
     // Logs what the loop was doing if it makes no progress for a second outside its wait.
     let watchdog = crate::watchdog::Watchdog::start(STALL)
         .map_err(|e| tracing::warn!("no loop watchdog: {e}"))
@@ -614,6 +637,7 @@ fn serve(
         if let Some(open) = fd_gauge.as_ref().and_then(|g| g.open()) {
             if fds_seen != Some(open) {
                 fds_seen = Some(open);
+                descriptors.most_open = descriptors.most_open.max(open);
                 let peers = shell.endpoint.open_peers();
                 let most = max_open_peers(fd_limit, open, peers);
                 tracing::trace!(open, fd_limit, peers, most, evictions = shell.endpoint.evictions(), "descriptors");
@@ -733,6 +757,10 @@ fn serve(
                             handling: shell.handling,
                             udp: shell.udp.as_ref().map(|d| d.front.stats().clone()),
                             federation: shell.fed.as_ref().map(|f| f.stats()),
+                            descriptors: Descriptors {
+                                idle_ports_closed: shell.endpoint.evictions(),
+                                ..descriptors
+                            },
                         });
                     }
                 }
@@ -767,12 +795,10 @@ fn serve(
                 }
                 t => {
                     at(Phase::Timers);
-                    if let Some(w) = shell.watches.get(&t) {
-                        if w.pidfd.exited() {
-                            let who = w.who.clone();
+                    if shell.watches.get(&t).is_some_and(|w| w.pidfd.exited()) {
+                        for who in shell.unwatch(t) {
                             died_in(&mut core, shell.fed.as_mut(), now, &who);
                             died.push(who);
-                            shell.unwatch(t);
                         }
                     }
                 }
@@ -1314,12 +1340,23 @@ impl Shell {
     /// Watches `who`'s process (replacing an older watch); a process already gone is
     /// reported in `dead` instead.
     fn watch(&mut self, who: Address, pid: u32, dead: &mut Vec<Address>) {
-        if let Some(t) = self.by_addr.remove(&who) {
-            self.unwatch(t);
-        }
+        self.stop_watching(&who);
         if !process_exists(pid) {
             dead.push(who);
             return;
+        }
+        if let Some(&token) = self.by_pid.get(&pid) {
+            match self.watches.get_mut(&token) {
+                // The process whose pid this was died, its death not yet read: a new
+                // one has the pid now.
+                Some(w) if w.pidfd.exited() => dead.extend(self.unwatch(token)),
+                Some(w) => {
+                    w.who.insert(who.clone());
+                    self.by_addr.insert(who, token);
+                    return;
+                }
+                None => {}
+            }
         }
         let pidfd = match PidFd::open(pid) {
             Ok(p) => p,
@@ -1335,24 +1372,54 @@ impl Shell {
             return;
         }
         self.by_addr.insert(who.clone(), token);
-        self.watches.insert(token, Watch { who, pidfd });
+        self.by_pid.insert(pid, token);
+        self.watches.insert(
+            token,
+            Watch {
+                pid,
+                who: HashSet::from([who]),
+                pidfd,
+            },
+        );
     }
 
     /// Stops watching `who`; its ports linger (a Delinquent notice may just have been sent).
     fn forget(&mut self, who: Address) {
-        if let Some(t) = self.by_addr.remove(&who) {
-            self.unwatch(t);
-        }
+        self.stop_watching(&who);
         self.endpoint.release(&who);
     }
 
-    fn unwatch(&mut self, token: usize) {
-        if let Some(w) = self.watches.remove(&token) {
-            self.reactor.remove(w.pidfd.raw());
-            if self.by_addr.get(&w.who) == Some(&token) {
-                self.by_addr.remove(&w.who);
-            }
+    /// Stops watching for `who`'s death; its process's pidfd closes with the last of
+    /// those it hosts.
+    fn stop_watching(&mut self, who: &Address) {
+        let Some(token) = self.by_addr.remove(who) else {
+            return;
+        };
+        let last = self.watches.get_mut(&token).is_none_or(|w| {
+            w.who.remove(who);
+            w.who.is_empty()
+        });
+        if last {
+            self.unwatch(token);
         }
+    }
+
+    /// Stops watching a process; returns who spoke from it.
+    fn unwatch(&mut self, token: usize) -> Vec<Address> {
+        let Some(w) = self.watches.remove(&token) else {
+            return Vec::new();
+        };
+        self.reactor.remove(w.pidfd.raw());
+        if self.by_pid.get(&w.pid) == Some(&token) {
+            self.by_pid.remove(&w.pid);
+        }
+        let mut who: Vec<Address> = w.who.into_iter().collect();
+        who.retain(|a| self.by_addr.get(a) == Some(&token));
+        for a in &who {
+            self.by_addr.remove(a);
+        }
+        who.sort();
+        who
     }
 }
 

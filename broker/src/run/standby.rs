@@ -24,6 +24,7 @@ pub fn run_standby(
             handling: Handling::new(false),
             udp: None,
             federation: None,
+            descriptors: Default::default(),
         });
     };
     let Followed {

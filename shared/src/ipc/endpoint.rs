@@ -117,6 +117,9 @@ struct Ports {
     evicted_at: Option<Instant>,
     /// Held peers whose idle ports were closed so far.
     evictions: u64,
+    /// A peer's ports could not open since the last look for idle ones, for want of
+    /// room ([`Ports::max_open`]): frames wait for them.
+    wanting: bool,
 }
 
 /// Most time one sweep spends dropping lingering ports; the rest wait for the next.
@@ -749,6 +752,7 @@ impl Ports {
             max_open: usize::MAX,
             evicted_at: None,
             evictions: 0,
+            wanting: false,
         }
     }
 
@@ -771,6 +775,7 @@ impl Ports {
             if self.peers.len() >= self.max_open {
                 // No descriptors for more: a control frame waits in the backlog until
                 // an idle peer's ports close (see `evict_idle`).
+                self.wanting = true;
                 return Err(TransportError::Full(to.clone()));
             }
             let started = Instant::now();
@@ -784,6 +789,7 @@ impl Ports {
                 // process's owner says otherwise; a control frame waits meanwhile.
                 tracing::debug!(peer = %to, open = self.peers.len(), "out of descriptors opening a peer's ports");
                 self.max_open = self.peers.len();
+                self.wanting = true;
                 return Err(TransportError::Full(to.clone()));
             }
             opened?;
@@ -1013,7 +1019,10 @@ impl Ports {
     /// With as many peers open as [`Ports::max_open`] or more, closes the ports of held peers
     /// idle for [`LINGER`] (their last frame read long since, as a lingering peer's),
     /// least recently used first, down to [`EVICT_DOWN_TO_PCT`] of the most, within
-    /// [`DROP_BUDGET`] and not while drops pause. A held peer whose ports were closed
+    /// [`DROP_BUDGET`], every [`EVICT_EVERY`] and not while drops pause; but while
+    /// frames wait for ports to open, at every sweep and at least one (on a machine so
+    /// busy that each close is slow, a pause would leave them waiting for minutes:
+    /// seen with 5,000 users starting at once). A held peer whose ports were closed
     /// stays held: the next frame to it opens them again (a first contact, about
     /// 0.1–0.6 ms). Peers with frames held back or a bell pending keep theirs. Returns
     /// whether the most are open still (no more may open: see [`Ports::peer`]).
@@ -1021,8 +1030,10 @@ impl Ports {
         if self.peers.len() < self.max_open {
             return false;
         }
-        if self.drops_paused_until.is_some()
-            || self.evicted_at.is_some_and(|t| now < t + EVICT_EVERY)
+        let wanting = std::mem::take(&mut self.wanting);
+        if !wanting
+            && (self.drops_paused_until.is_some()
+                || self.evicted_at.is_some_and(|t| now < t + EVICT_EVERY))
         {
             return true;
         }
@@ -1051,7 +1062,7 @@ impl Ports {
             let t = Instant::now();
             self.peers.remove(&a);
             self.evictions += 1;
-            if t.elapsed() > SLOW_DROP {
+            if t.elapsed() > SLOW_DROP && !wanting {
                 self.drops_paused_until = Some(Instant::now() + DROP_PAUSE);
                 break;
             }
