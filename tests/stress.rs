@@ -369,3 +369,62 @@ fn more_local_users_to_a_process_than_the_broker_takes_are_refused_before_anythi
     assert!(err.contains("at most 16 local users a process"), "{err}");
     assert!(!err.contains("broker up"), "nothing started: {err}");
 }
+
+#[test]
+fn under_a_low_descriptor_limit_the_broker_closes_idle_users_ports_and_serves_more_than_would_fit() {
+    // 60 local users, 6 a process, and every process of the run (harness, broker,
+    // systems, users) limited to 600 descriptors. Holding ports to every connected
+    // user, as the broker did, costs 13 descriptors each: 780, past the limit, and
+    // users were refused ("no broker"). Now an idle user costs 3, the broker closes the
+    // ports of users idle for 2 s when short, and holds frames to others until some
+    // close: all connect, every request is answered, nothing is lost.
+    use std::os::unix::process::CommandExt;
+    let f = Fed::new("stressfd");
+    let mut c = f.command(&[
+        "stress",
+        "--users",
+        "60",
+        "--users-per-process",
+        "6",
+        "--services",
+        "8",
+        "--systems",
+        "4",
+        "--duration",
+        "10s",
+        "--think",
+        "2s",
+        "--json",
+    ]);
+    // SAFETY: setrlimit(2) only, between fork and exec.
+    unsafe {
+        c.pre_exec(|| {
+            let lim = libc::rlimit {
+                rlim_cur: 600,
+                rlim_max: 600,
+            };
+            if libc::setrlimit(libc::RLIMIT_NOFILE, &lim) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let out = c
+        .stdin(std::process::Stdio::null())
+        .stderr(std::process::Stdio::inherit())
+        .output()
+        .expect("stress ran");
+    let text = String::from_utf8_lossy(&out.stdout);
+    let r: Value = serde_json::from_str(text.trim()).unwrap_or_else(|e| panic!("{e}: {text}"));
+    assert_eq!(out.status.code(), Some(0), "{r:#}");
+    assert_eq!(r["errors"], 0, "{r:#}");
+    assert_eq!(r["missing_user_reports"], 0, "{r:#}");
+    assert_eq!(r["checks"]["every_user_got_a_list"], true, "{r:#}");
+    assert_eq!(r["checks"]["every_request_answered"], true, "{r:#}");
+    assert_eq!(most_online(&r), 60, "{:#}", r["timeline"]);
+    let d = &r["broker"]["descriptors"];
+    assert_eq!(d["limit"], 600, "{d}");
+    let most = d["most_open"].as_u64().unwrap();
+    assert!(most > 100 && most < 600, "{d}");
+    assert!(d["idle_ports_closed"].as_u64().unwrap() > 0, "{d}");
+}

@@ -315,7 +315,7 @@ pub const FDS_PER_LOCAL_USER: u64 = 3;
 /// feed, replication, sockets, logs): an eighth of the limit, at most this many.
 const FDS_RESERVE: u64 = 1024;
 /// The fewest peers whose ports stay open however many users are connected.
-const MIN_OPEN_PEERS: u64 = 64;
+const MIN_OPEN_PEERS: u64 = 16;
 /// How often the broker's descriptors are counted, and the most open peers worked out
 /// again: this, and 10 µs more per descriptor open (0.25 s at 20,000), which is about
 /// what a count costs.
@@ -1533,6 +1533,6 @@ mod tests {
         assert_eq!(max_open_peers(1_500, 5_000, 100), MIN_OPEN_PEERS as usize);
         assert_eq!(max_open_peers(1 << 20, 100, 0), ((1 << 20) - 1_024 - 100) / 10);
         // How many local users a limit takes, at 3 each past the reserve and the floor.
-        assert_eq!(max_local_users(20_000), (20_000 - 1_024 - 640) / 3);
+        assert_eq!(max_local_users(20_000), (20_000 - 1_024 - 160) / 3);
     }
 }
