@@ -317,8 +317,8 @@ const FDS_RESERVE: u64 = 1024;
 /// The fewest peers whose ports stay open however many users are connected.
 const MIN_OPEN_PEERS: u64 = 16;
 /// How often the broker's descriptors are counted, and the most open peers worked out
-/// again: this, and 10 µs more per descriptor open (0.25 s at 20,000), which is about
-/// what a count costs.
+/// again: this, or a hundred times as long as a count takes (about 2–3 s at 20,000
+/// descriptors), whichever is longer.
 const OPEN_PEERS_EVERY: Duration = Duration::from_millis(50);
 
 /// The most peers the broker keeps ports open to, its descriptor limit `limit`, with
