@@ -120,6 +120,9 @@ struct Ports {
     /// A peer's ports could not open since the last look for idle ones, for want of
     /// room ([`Ports::max_open`]): frames wait for them.
     wanting: bool,
+    /// Bells (event ids as bits) that could not ring for want of room for their peers'
+    /// ports, rung by [`Endpoint::sweep`] once there is.
+    held_rings: HashMap<Address, u64>,
 }
 
 /// Most time one sweep spends dropping lingering ports; the rest wait for the next.
@@ -647,6 +650,7 @@ impl Endpoint {
         ports.peers.remove(to);
         ports.holders.remove(to);
         ports.lingering.remove(to);
+        ports.held_rings.remove(to);
     }
 
     /// Forgets the ports to `to` after [`LINGER`], so frames just sent still arrive.
@@ -753,6 +757,7 @@ impl Ports {
             evicted_at: None,
             evictions: 0,
             wanting: false,
+            held_rings: HashMap::new(),
         }
     }
 
@@ -971,7 +976,31 @@ impl Ports {
         Ok(())
     }
 
+    /// Rings `to`'s bell with `id`; with no room for `to`'s ports yet, the ring is held
+    /// for [`Ports::ring_held`] (a bell says "look": lost, a list watcher would miss a
+    /// change until it next read the list).
     fn ring(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
+        match self.ring_now(to, id) {
+            Err(TransportError::Full(_)) if !self.peers.contains_key(to) && id < 64 => {
+                *self.held_rings.entry(to.clone()).or_default() |= 1 << id;
+                Ok(())
+            }
+            other => other,
+        }
+    }
+
+    /// Rings the bells [`Ports::ring`] held, those whose peers' ports can open now.
+    fn ring_held(&mut self) {
+        for (to, ids) in std::mem::take(&mut self.held_rings) {
+            for id in (0..64).filter(|i| ids & (1 << i) != 0) {
+                if let Err(e) = self.ring(&to, id) {
+                    tracing::debug!("{e}");
+                }
+            }
+        }
+    }
+
+    fn ring_now(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
         let result = self.peer(to).and_then(|p| {
             p.used = Instant::now();
             p.notifier
@@ -993,6 +1022,7 @@ impl Ports {
         self.drops_paused_until = self.drops_paused_until.filter(|t| *t > now);
         let over = self.evict_idle(now);
         self.flush_backlog();
+        self.ring_held();
         // A pause holds the ports' descriptors and memory: past a number of lingering
         // peers they go anyway.
         let crowded = |p: &Self| p.lingering.len() > p.max_lingering_paused;
@@ -1011,7 +1041,8 @@ impl Ports {
                 due - now
             }
         });
-        let retry = (!self.backlog.is_empty()).then_some(BACKLOG_RETRY);
+        let retry = (!self.backlog.is_empty() || !self.held_rings.is_empty())
+            .then_some(BACKLOG_RETRY);
         let evict = over.then_some(EVICT_EVERY);
         [linger, retry, evict].into_iter().flatten().min()
     }
@@ -1276,6 +1307,19 @@ mod tests {
         assert!(!sender.has_ports(users[0].me()));
         assert!(users[1].recv().is_some(), "u1's held-back frame arrived");
         assert!(users[1].recv().is_none(), "and only it: the data frame was dropped");
+        // A bell for a closed peer at the most is held, not lost, and rings once an idle
+        // peer's ports close.
+        let open = sender.open_peers();
+        sender.set_max_open_peers(open);
+        users[3].drain_bell();
+        sender.ring(users[0].me(), bell::LIST_CHANGED).unwrap();
+        assert!(!sender.has_ports(users[0].me()));
+        assert_eq!(users[0].drain_bell() & (1 << bell::LIST_CHANGED), 0, "not yet");
+        sender.ports.borrow_mut().peers.get_mut(users[3].me()).unwrap().used = idle;
+        sender.sweep();
+        assert!(!sender.has_ports(users[3].me()), "u3 closed for it");
+        assert_ne!(users[0].drain_bell() & (1 << bell::LIST_CHANGED), 0, "rung");
+        assert!(sender.ports.borrow().held_rings.is_empty());
     }
 
     #[test]
