@@ -1166,6 +1166,17 @@ mod tests {
         assert_eq!(share.open_peers(), 0);
     }
 
+    /// `n` users `u0`, `u1`, ... of `inst`, each its own endpoint and node.
+    fn user_endpoints(inst: &Instance, tag: &str, n: usize) -> Vec<Endpoint> {
+        (0..n)
+            .map(|k| {
+                let me = Address::User(UserId(format!("u{k}")));
+                let node = create_node(&format!("{tag}-u{k}"), false).unwrap();
+                Endpoint::open(inst, me, node).unwrap()
+            })
+            .collect()
+    }
+
     #[test]
     fn lingering_ports_are_not_dropped_while_drops_are_paused_and_all_go_after() {
         let inst = Instance::new(&format!("drop-test-{}", std::process::id())).unwrap();
@@ -1175,17 +1186,7 @@ mod tests {
             create_node("drop-test-s", false).unwrap(),
         )
         .unwrap();
-        let users: Vec<Endpoint> = (0..3)
-            .map(|k| {
-                let me = Address::User(UserId(format!("u{k}")));
-                Endpoint::open(
-                    &inst,
-                    me,
-                    create_node(&format!("drop-test-u{k}"), false).unwrap(),
-                )
-                .unwrap()
-            })
-            .collect();
+        let users = user_endpoints(&inst, "drop-test", 3);
         for u in &users {
             sender.send(u.me(), b"hello").unwrap();
             sender.release(u.me());
@@ -1240,17 +1241,7 @@ mod tests {
             create_node("evict-test-b", false).unwrap(),
         )
         .unwrap();
-        let mut users: Vec<Endpoint> = (0..5)
-            .map(|k| {
-                let me = Address::User(UserId(format!("u{k}")));
-                Endpoint::open(
-                    &inst,
-                    me,
-                    create_node(&format!("evict-test-u{k}"), false).unwrap(),
-                )
-                .unwrap()
-            })
-            .collect();
+        let mut users = user_endpoints(&inst, "evict-test", 5);
         for u in &mut users {
             sender.send(u.me(), b"hello").unwrap();
             assert_eq!(u.recv().as_deref(), Some(&b"hello"[..]));
