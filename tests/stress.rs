@@ -371,7 +371,8 @@ fn more_local_users_to_a_process_than_the_broker_takes_are_refused_before_anythi
 }
 
 #[test]
-fn under_a_low_descriptor_limit_the_broker_closes_idle_users_ports_and_serves_more_than_would_fit() {
+fn under_a_low_descriptor_limit_the_broker_closes_idle_users_ports_and_serves_more_than_would_fit()
+{
     // 60 local users, 6 a process, and every process of the run (harness, broker,
     // systems, users) limited to 600 descriptors. Holding ports to every connected
     // user, as the broker did, costs 13 descriptors each: 780, past the limit, and

@@ -635,12 +635,21 @@ fn serve(
     loop {
         at(Phase::Waiting);
         if let Some(open) = fd_gauge.as_ref().and_then(|g| g.open()) {
+            // Only on a new count: a most the ports lowered when they ran out of
+            // descriptors stands until then.
             if fds_seen != Some(open) {
                 fds_seen = Some(open);
                 descriptors.most_open = descriptors.most_open.max(open);
                 let peers = shell.endpoint.open_peers();
                 let most = max_open_peers(fd_limit, open, peers);
-                tracing::trace!(open, fd_limit, peers, most, evictions = shell.endpoint.evictions(), "descriptors");
+                tracing::trace!(
+                    open,
+                    fd_limit,
+                    peers,
+                    most,
+                    evictions = shell.endpoint.evictions(),
+                    "descriptors"
+                );
                 shell.endpoint.set_max_open_peers(most);
             }
         }
@@ -1521,8 +1530,7 @@ mod tests {
     }
 
     #[test]
-    fn open_peers_take_what_descriptors_the_users_leave_and_give_back_when_they_eat_the_reserve(
-    ) {
+    fn open_peers_take_what_descriptors_the_users_leave_and_give_back_when_they_eat_the_reserve() {
         // 5,000 idle local users (3 each) and a hundred more descriptors, at 20,000:
         // about 390 peers may keep their ports.
         assert_eq!(max_open_peers(20_000, 15_100, 0), 387);
@@ -1531,7 +1539,10 @@ mod tests {
         assert_eq!(max_open_peers(1_500, 1_450, 100), 87);
         // Never fewer than the floor, and the whole limit free is a lot of peers.
         assert_eq!(max_open_peers(1_500, 5_000, 100), MIN_OPEN_PEERS as usize);
-        assert_eq!(max_open_peers(1 << 20, 100, 0), ((1 << 20) - 1_024 - 100) / 10);
+        assert_eq!(
+            max_open_peers(1 << 20, 100, 0),
+            ((1 << 20) - 1_024 - 100) / 10
+        );
         // How many local users a limit takes, at 3 each past the reserve and the floor.
         assert_eq!(max_local_users(20_000), (20_000 - 1_024 - 160) / 3);
     }

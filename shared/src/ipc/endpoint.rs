@@ -1041,8 +1041,8 @@ impl Ports {
                 due - now
             }
         });
-        let retry = (!self.backlog.is_empty() || !self.held_rings.is_empty())
-            .then_some(BACKLOG_RETRY);
+        let retry =
+            (!self.backlog.is_empty() || !self.held_rings.is_empty()).then_some(BACKLOG_RETRY);
         let evict = over.then_some(EVICT_EVERY);
         [linger, retry, evict].into_iter().flatten().min()
     }
@@ -1232,8 +1232,7 @@ mod tests {
     }
 
     #[test]
-    fn past_the_most_open_peers_idle_held_ones_close_oldest_first_and_reopen_on_the_next_frame(
-    ) {
+    fn past_the_most_open_peers_idle_held_ones_close_oldest_first_and_reopen_on_the_next_frame() {
         let inst = Instance::new(&format!("evict-test-{}", std::process::id())).unwrap();
         let mut sender = Endpoint::open(
             &inst,
@@ -1291,13 +1290,22 @@ mod tests {
         sender.send_control(users[1].me(), &"control");
         assert_eq!(sender.backlog(), 1);
         let idle = Instant::now().checked_sub(LINGER * 2).unwrap();
-        sender.ports.borrow_mut().peers.get_mut(users[0].me()).unwrap().used = idle;
+        sender
+            .ports
+            .borrow_mut()
+            .peers
+            .get_mut(users[0].me())
+            .unwrap()
+            .used = idle;
         sender.ports.borrow_mut().evicted_at = None;
         sender.sweep(); // closes u0 (down to 3), then the held frame goes
         assert_eq!(sender.backlog(), 0);
         assert!(!sender.has_ports(users[0].me()));
         assert!(users[1].recv().is_some(), "u1's held-back frame arrived");
-        assert!(users[1].recv().is_none(), "and only it: the data frame was dropped");
+        assert!(
+            users[1].recv().is_none(),
+            "and only it: the data frame was dropped"
+        );
         // A bell for a closed peer at the most is held, not lost, and rings once an idle
         // peer's ports close.
         let open = sender.open_peers();
@@ -1305,8 +1313,18 @@ mod tests {
         users[3].drain_bell();
         sender.ring(users[0].me(), bell::LIST_CHANGED).unwrap();
         assert!(!sender.has_ports(users[0].me()));
-        assert_eq!(users[0].drain_bell() & (1 << bell::LIST_CHANGED), 0, "not yet");
-        sender.ports.borrow_mut().peers.get_mut(users[3].me()).unwrap().used = idle;
+        assert_eq!(
+            users[0].drain_bell() & (1 << bell::LIST_CHANGED),
+            0,
+            "not yet"
+        );
+        sender
+            .ports
+            .borrow_mut()
+            .peers
+            .get_mut(users[3].me())
+            .unwrap()
+            .used = idle;
         sender.sweep();
         assert!(!sender.has_ports(users[3].me()), "u3 closed for it");
         assert_ne!(users[0].drain_bell() & (1 << bell::LIST_CHANGED), 0, "rung");
