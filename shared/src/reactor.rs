@@ -219,6 +219,20 @@ pub fn set_nice(nice: i32) -> io::Result<()> {
     Ok(())
 }
 
+/// This process's descriptor limit (the soft one; 1,024 if it cannot be read).
+pub fn fd_limit() -> u64 {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: valid out-pointer.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } == 0 {
+        lim.rlim_cur
+    } else {
+        1024
+    }
+}
+
 /// Raises this process's descriptor limit as far as it may (the broker, a system and the
 /// web console hold a few descriptors per peer): with the privilege to (root,
 /// CAP_SYS_RESOURCE), the hard limit too, up to the kernel's `nr_open` (at most 2^20);

@@ -349,40 +349,25 @@ fn reserve(limit: u64) -> u64 {
 
 /// Raises the descriptor limit as far as it may; returns it.
 fn raise_fds() -> u64 {
-    let most = max_local_users;
     match raise_fd_limit() {
-        Ok(n) if most(n) < 256 => {
+        Ok(n) if max_local_users(n) < 256 => {
             tracing::warn!(
                 "file-descriptor limit is {n}: at most about {} local users (remote users need none)",
-                most(n)
+                max_local_users(n)
             );
             n
         }
         Ok(n) => {
             tracing::debug!(
                 "file-descriptor limit {n}: at most about {} local users",
-                most(n)
+                max_local_users(n)
             );
             n
         }
         Err(e) => {
             tracing::warn!("cannot raise the file-descriptor limit: {e}");
-            fd_limit()
+            muster_shared::reactor::fd_limit()
         }
-    }
-}
-
-/// This process's descriptor limit (the soft one; 1,024 if it cannot be read).
-fn fd_limit() -> u64 {
-    let mut lim = libc::rlimit {
-        rlim_cur: 0,
-        rlim_max: 0,
-    };
-    // SAFETY: valid out-pointer.
-    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } == 0 {
-        lim.rlim_cur
-    } else {
-        1024
     }
 }
 
@@ -614,7 +599,7 @@ fn serve(
     // broker's bell existed (a takeover, a restart) rang nobody.
     let mut inbox_rang = true;
     let mut passes = 0u64;
-    let fd_limit = fd_limit();
+    let fd_limit = muster_shared::reactor::fd_limit();
     let fd_gauge = muster_shared::reactor::FdGauge::start(OPEN_PEERS_EVERY)
         .map_err(|e| tracing::warn!("descriptors not counted (ports to idle users stay open): {e}"))
         .ok();
