@@ -1166,6 +1166,11 @@ mod tests {
         assert_eq!(share.open_peers(), 0);
     }
 
+    /// Marks `to`'s ports in `e` as last used `at`.
+    fn set_used(e: &Endpoint, to: &Address, at: Instant) {
+        e.ports.borrow_mut().peers.get_mut(to).unwrap().used = at;
+    }
+
     /// `n` users `u0`, `u1`, ... of `inst`, each its own endpoint and node.
     fn user_endpoints(inst: &Instance, tag: &str, n: usize) -> Vec<Endpoint> {
         (0..n)
@@ -1290,13 +1295,7 @@ mod tests {
         sender.send_control(users[1].me(), &"control");
         assert_eq!(sender.backlog(), 1);
         let idle = Instant::now().checked_sub(LINGER * 2).unwrap();
-        sender
-            .ports
-            .borrow_mut()
-            .peers
-            .get_mut(users[0].me())
-            .unwrap()
-            .used = idle;
+        set_used(&sender, users[0].me(), idle);
         sender.ports.borrow_mut().evicted_at = None;
         sender.sweep(); // closes u0 (down to 3), then the held frame goes
         assert_eq!(sender.backlog(), 0);
@@ -1318,13 +1317,7 @@ mod tests {
             0,
             "not yet"
         );
-        sender
-            .ports
-            .borrow_mut()
-            .peers
-            .get_mut(users[3].me())
-            .unwrap()
-            .used = idle;
+        set_used(&sender, users[3].me(), idle);
         sender.sweep();
         assert!(!sender.has_ports(users[3].me()), "u3 closed for it");
         assert_ne!(users[0].drain_bell() & (1 << bell::LIST_CHANGED), 0, "rung");
