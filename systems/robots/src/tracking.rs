@@ -59,25 +59,133 @@ const UNSEEN_GO_LOOK: f64 = 1.0;
 /// close to that place, m.
 const UNSEEN_ARRIVED: f64 = 1.0;
 
-/// How far a mobile tracker looks ahead of where it lost its target, in seconds of the
-/// target's last velocity.
-const SEARCH_AHEAD: f64 = 4.0;
+/// A mobile tracker that searched where a lost target was supposed to be, in vain,
+/// turns on the spot this long, s, at [`LOOK_ROUND_TURN`] (a full turn).
+const LOOK_ROUND: f64 = 2.0 * std::f64::consts::PI / LOOK_ROUND_TURN;
 
-/// Where to look for a lost target: where it was last seen, carried on along its last
-/// velocity for [`SEARCH_AHEAD`] seconds, but short of any wall on the way (a person who
-/// walked off down a corridor is further down it, not where the camera lost her).
-fn search_point(map: &OccupancyMap, t: &crate::tracker::Track) -> (f64, f64) {
-    let (x, y, vx, vy) = (t.state[0], t.state[1], t.state[2], t.state[3]);
-    let ahead = vx.hypot(vy) * SEARCH_AHEAD;
-    if ahead < 0.5 {
-        return (x, y);
+/// ... at this turn rate, rad/s.
+const LOOK_ROUND_TURN: f64 = 0.8;
+
+/// A lost target is taken to walk on at least this fast, m/s, when it was moving at
+/// all (a filter's speed estimate lags a person's).
+const WALK_ON_SPEED: f64 = 0.6;
+
+/// Below this speed, m/s, a lost target is taken to stand where it was last seen.
+const STANDING: f64 = 0.2;
+
+/// The walk a lost target is taken to go on: from where it was last seen, along its
+/// heading at its speed, turning along corridors rather than through walls: each step
+/// of [`WALK_STEP`] goes the nearest way to its heading that is open for a metre or
+/// more (straight on first, then ever wider turns; at a corridor's end, the more open
+/// side), kept off the walls. Points every [`WALK_STEP`] of walking; the first is where
+/// it was last seen. A target standing (below [`STANDING`]) stays there.
+fn walk_on(map: &OccupancyMap, t: &crate::tracker::Track, duration: f64) -> Walk {
+    let (mut x, mut y, vx, vy) = (t.state[0], t.state[1], t.state[2], t.state[3]);
+    let speed = vx.hypot(vy);
+    let mut points = vec![(x, y)];
+    if speed < STANDING {
+        return Walk { points, step_time: f64::INFINITY, from: t.last_seen };
     }
-    let heading = vy.atan2(vx);
-    let go = map
-        .raycast(x, y, heading, ahead + 0.5)
-        .map_or(ahead, |hit| (hit - 0.5).min(ahead))
-        .max(0.0);
-    (x + go * heading.cos(), y + go * heading.sin())
+    let speed = speed.max(WALK_ON_SPEED);
+    let mut heading = vy.atan2(vx);
+    let steps = (duration * speed / WALK_STEP).ceil() as usize;
+    let open = |x: f64, y: f64, a: f64| map.raycast(x, y, a, 3.0).unwrap_or(3.0);
+    for _ in 0..steps {
+        let turns = (0..=6).flat_map(|k| {
+            let a = f64::from(k) * std::f64::consts::PI / 12.0;
+            if k == 0 { vec![0.0] } else { vec![a, -a] }
+        });
+        let mut best: Option<(f64, f64)> = None;
+        for turn in turns {
+            let free = open(x, y, heading + turn);
+            if free >= 1.0 {
+                // Of two turns as wide, the more open side.
+                match best {
+                    Some((b, f)) if (b.abs() - turn.abs()).abs() < 1e-9 && free > f => {
+                        best = Some((turn, free));
+                    }
+                    None => best = Some((turn, free)),
+                    _ => {}
+                }
+            }
+            if best.is_some_and(|(b, _)| turn.abs() > b.abs() + 1e-9) {
+                break;
+            }
+        }
+        let Some((turn, _)) = best else { break };
+        heading = wrap(heading + turn);
+        let (nx, ny) = (x + WALK_STEP * heading.cos(), y + WALK_STEP * heading.sin());
+        // Kept off the walls: drift towards the middle of the way.
+        let left = open(nx, ny, heading + std::f64::consts::FRAC_PI_2).min(1.5);
+        let right = open(nx, ny, heading - std::f64::consts::FRAC_PI_2).min(1.5);
+        let shift = (0.25 * (left - right)).clamp(-0.1, 0.1);
+        let (nx, ny) = (
+            nx + shift * (heading + std::f64::consts::FRAC_PI_2).cos(),
+            ny + shift * (heading + std::f64::consts::FRAC_PI_2).sin(),
+        );
+        if map.raycast(x, y, (ny - y).atan2(nx - x), (nx - x).hypot(ny - y)).is_some() {
+            break;
+        }
+        (x, y) = (nx, ny);
+        points.push((x, y));
+    }
+    Walk { points, step_time: WALK_STEP / speed, from: t.last_seen }
+}
+
+/// The length of one step of [`walk_on`], m.
+const WALK_STEP: f64 = 0.25;
+
+/// A lost target's supposed walk ([`walk_on`]).
+#[derive(Clone, Debug)]
+struct Walk {
+    points: Vec<(f64, f64)>,
+    /// Time per point, s.
+    step_time: f64,
+    /// The sighting it starts from (sim time).
+    from: f64,
+}
+
+impl Walk {
+    /// Where the target is supposed to be at `now`.
+    fn at(&self, now: f64) -> (f64, f64) {
+        let k = ((now - self.from).max(0.0) / self.step_time) as usize;
+        self.points[k.min(self.points.len() - 1)]
+    }
+
+    /// Whether the supposed walk has ended by `now` (nothing more to follow).
+    fn ended(&self, now: f64) -> bool {
+        (now - self.from).max(0.0) / self.step_time >= (self.points.len() - 1) as f64
+    }
+}
+
+/// The most the trackers zoom (the simulator's cameras reach 4; the range grows with the
+/// square root, the field of view shrinks with it).
+const MAX_ZOOM: f64 = 4.0;
+
+/// A sweeping camera zooms for where it will point this far ahead, s (a zoom takes
+/// time: the simulator's changes by 2 a second).
+const ZOOM_AHEAD: f64 = 0.5;
+
+/// A prediction stops this short of a wall it would run into, m (a person's radius and
+/// a little).
+const WALL_MARGIN: f64 = 0.4;
+
+/// The point `to` predicted from `from` by a straight walk, but short of the first wall
+/// on the way: a person does not walk through walls, and a prediction that does points
+/// the camera at a wall and sends a robot round to the far side of it.
+fn short_of_walls(map: &OccupancyMap, from: (f64, f64), to: (f64, f64)) -> (f64, f64) {
+    let (dx, dy) = (to.0 - from.0, to.1 - from.1);
+    let d = dx.hypot(dy);
+    if d < 1e-6 {
+        return to;
+    }
+    match map.raycast(from.0, from.1, dy.atan2(dx), d + WALL_MARGIN) {
+        Some(hit) => {
+            let go = (hit - WALL_MARGIN).clamp(0.0, d);
+            (from.0 + dx * go / d, from.1 + dy * go / d)
+        }
+        None => to,
+    }
 }
 
 /// Narrower than this, a passage is a doorway (the office's doors are 1 m wide, its
@@ -182,8 +290,10 @@ struct RobotState {
     cov: Matrix3<f64>,
     nav: Option<Navigator>,
     patrol_next: usize,
-    /// The last-seen place already searched.
-    searched: Option<(f64, f64)>,
+    /// The loss (the sim time its target was last seen) already searched.
+    searched: Option<f64>,
+    /// Turning on the spot to look round, until this sim time.
+    look_round_until: f64,
     last_camera: f64,
 }
 
@@ -195,6 +305,8 @@ pub struct TrackingCore {
     tracker: MultiTracker,
     next_publish: f64,
     now: f64,
+    /// The followed target's supposed walk since it was last seen ([`walk_on`]).
+    walk: Option<(Colour, Walk)>,
 }
 
 impl TrackingCore {
@@ -232,6 +344,7 @@ impl TrackingCore {
                 }),
                 patrol_next: 0,
                 searched: None,
+                look_round_until: f64::NEG_INFINITY,
                 last_camera: f64::NEG_INFINITY,
                 cfg,
             })
@@ -243,6 +356,7 @@ impl TrackingCore {
             robots,
             next_publish: 0.0,
             now: 0.0,
+            walk: None,
         }
     }
 
@@ -322,6 +436,7 @@ impl TrackingCore {
                 }
             }
         }
+        self.refresh_walk(s.time, wanted);
         let mut cmd = RobotCommands::default();
         if new_frame {
             cmd.camera = Some(self.point_camera(i, s.time, wanted));
@@ -330,6 +445,49 @@ impl TrackingCore {
             cmd.velocity = Some(self.drive(i, s, wanted));
         }
         cmd
+    }
+
+    /// The colours mobile trackers follow, most wanted first.
+    fn followed(&self, wanted: &[Colour]) -> Vec<Colour> {
+        match self.params.follow {
+            Some(c) => vec![c],
+            None => wanted.to_vec(),
+        }
+    }
+
+    /// Works out the supposed walk of the followed target once it is unseen for
+    /// [`UNSEEN_GO_LOOK`] (once per sighting it starts from).
+    fn refresh_walk(&mut self, now: f64, wanted: &[Colour]) {
+        if !self.robots.iter().any(|r| r.cfg.mobile) {
+            return;
+        }
+        let Some((c, t)) = self
+            .followed(wanted)
+            .into_iter()
+            .find_map(|c| self.tracker.track(c).map(|t| (c, t)))
+        else {
+            self.walk = None;
+            return;
+        };
+        if now - t.last_seen <= UNSEEN_GO_LOOK {
+            return;
+        }
+        if self
+            .walk
+            .as_ref()
+            .is_some_and(|(wc, w)| *wc == c && w.from == t.last_seen)
+        {
+            return;
+        }
+        self.walk = Some((c, walk_on(&self.map, t, SEARCH_FOR)));
+    }
+
+    /// Where the lost target `colour` is supposed to be at `now`, while it is searched
+    /// for ([`SEARCH_FOR`] after it was last seen): its supposed walk's point then, the
+    /// loss's time, and whether the walk has ended.
+    fn supposed(&self, colour: Colour, now: f64) -> Option<((f64, f64), f64, bool)> {
+        let (c, w) = self.walk.as_ref()?;
+        (*c == colour && now - w.from < SEARCH_FOR).then(|| (w.at(now), w.from, w.ended(now)))
     }
 
     /// Where robot `i` should look: at the most wanted target it can see (tracked,
@@ -347,7 +505,7 @@ impl TrackingCore {
             .chain(self.params.colours.iter())
             .filter(|c| self.tracker.is_tracked(**c, now));
         for &c in candidates {
-            let Some((x, y)) = self.tracker.predicted(c, now) else {
+            let Some((x, y)) = self.predicted(c, now) else {
                 continue;
             };
             let (dx, dy) = (x - r.pose.x, y - r.pose.y);
@@ -363,25 +521,51 @@ impl TrackingCore {
             {
                 continue;
             }
-            // Zoom in on far targets: the range grows with zoom.
-            let zoom = (d / (range * 0.8)).clamp(1.0, 2.0);
+            // Zoom in on far targets, with a margin: the range grows with the square
+            // root of the zoom.
+            let zoom = (d / (range * 0.8)).powi(2).clamp(1.0, MAX_ZOOM);
             return (bearing.clamp(-pan_limit, pan_limit), 0.0, zoom);
         }
-        // Nothing to look at: sweep, each robot at its own phase.
+        // Searching for the followed target: at where it is supposed to be, if in sight.
+        if let Some(((x, y), _, _)) = self
+            .params
+            .follow
+            .filter(|c| !self.tracker.is_tracked(*c, now))
+            .and_then(|c| self.supposed(c, now))
+        {
+            let (dx, dy) = (x - r.pose.x, y - r.pose.y);
+            let d = dx.hypot(dy);
+            let bearing = wrap(dy.atan2(dx) - r.pose.theta);
+            if d > 0.5
+                && d < range * MAX_ZOOM.sqrt()
+                && bearing.abs() < pan_limit + fov / 2.0
+                && self.map.raycast(r.pose.x, r.pose.y, dy.atan2(dx), d).is_none()
+            {
+                let zoom = (d / (range * 0.8)).powi(2).clamp(1.0, MAX_ZOOM);
+                return (bearing.clamp(-pan_limit, pan_limit), 0.0, zoom);
+            }
+        }
+        // Nothing to look at: sweep, each robot at its own phase, zoomed to see as far as
+        // the walls let it where the camera will point by the time the zoom is there (a
+        // corridor seen down its length, a wall close up).
         let phase = i as f64 * 1.3;
-        let pan =
-            pan_limit * (2.0 * std::f64::consts::PI * now / self.params.sweep_period + phase).sin();
-        (pan, 0.0, 1.0)
+        let sweep = |t: f64| {
+            pan_limit * (2.0 * std::f64::consts::PI * t / self.params.sweep_period + phase).sin()
+        };
+        let far = range * MAX_ZOOM.sqrt();
+        let free = self
+            .map
+            .raycast(r.pose.x, r.pose.y, r.pose.theta + sweep(now + ZOOM_AHEAD), far)
+            .unwrap_or(far);
+        let zoom = (free / (range * 0.9)).powi(2).clamp(1.0, MAX_ZOOM);
+        (sweep(now), 0.0, zoom)
     }
 
     /// A mobile tracker follows the most wanted tracked target at a distance, and
     /// patrols while there is none.
     fn drive(&mut self, i: usize, s: &SensorSample, wanted: &[Colour]) -> (f64, f64) {
         let now = s.time;
-        let follow: Vec<Colour> = match self.params.follow {
-            Some(c) => vec![c],
-            None => wanted.to_vec(),
-        };
+        let follow = self.followed(wanted);
         // The target followed: where it is predicted to be, or, unseen for a moment while
         // still tracked, where it was last seen (a person who turned into a door is seen
         // from there, one who went on is seen down the way; a prediction runs on through
@@ -394,14 +578,14 @@ impl TrackingCore {
                 if now - t.last_seen > UNSEEN_GO_LOOK {
                     Some((true, (t.state[0], t.state[1])))
                 } else {
-                    Some((false, self.tracker.predicted(*c, now)?))
+                    Some((false, self.predicted(*c, now)?))
                 }
             });
-        // Lost a while ago: search where it was going (once), then patrol.
-        let search = follow.iter().find_map(|c| {
-            let t = self.tracker.track(*c)?;
-            (now - t.last_seen < SEARCH_FOR).then(|| search_point(&self.map, t))
-        });
+        // Lost: follow where it is supposed to have walked on (once), then patrol.
+        let search = follow
+            .iter()
+            .filter(|c| !self.tracker.is_tracked(**c, now))
+            .find_map(|c| self.supposed(*c, now));
         let follow_distance = self.params.follow_distance;
         let patrol = &self.params.patrol;
         let map = &self.map;
@@ -456,18 +640,27 @@ impl TrackingCore {
                 // navigator's body fields keep the robot off the target itself.
                 let _ = nav.set_goal(r.pose, (tx, ty), 0.75);
             }
-            None if search.is_some_and(|(x, y)| {
-                (x - r.pose.x).hypot(y - r.pose.y) > 1.0 && r.searched != search
+            None if search.is_some_and(|((x, y), from, ended)| {
+                r.searched != Some(from) && !(ended && (x - r.pose.x).hypot(y - r.pose.y) <= 1.0)
             }) =>
             {
-                let at = search.unwrap_or_default();
-                if nav.goal() != Some(at) && nav.set_goal(r.pose, at, 0.0).is_err() {
-                    r.searched = search;
+                let ((x, y), from, _) = search.unwrap_or_default();
+                if nav.goal() != Some((x, y)) && nav.set_goal(r.pose, (x, y), 1.0).is_err() {
+                    r.searched = Some(from);
                 }
             }
             None => {
-                if search.is_some() {
-                    r.searched = search; // been there
+                if let Some((_, from, _)) = search {
+                    if r.searched != Some(from) {
+                        // Been there: look round once (a target right behind the robot,
+                        // out of its camera's reach, is seen so) before patrolling.
+                        r.searched = Some(from);
+                        r.look_round_until = now + LOOK_ROUND;
+                    }
+                }
+                if now < r.look_round_until {
+                    nav.halt();
+                    return (0.0, LOOK_ROUND_TURN);
                 }
                 if patrol.is_empty() {
                     nav.clear();
@@ -501,10 +694,24 @@ impl TrackingCore {
         }
     }
 
-    /// The track of `colour` now, as the service streams it (`None` if never seen).
+    /// Where `colour` is predicted at `now`: the filter's prediction, short of any wall
+    /// between it and where the target was last placed ([`short_of_walls`]).
+    fn predicted(&self, colour: Colour, now: f64) -> Option<(f64, f64)> {
+        let to = self.tracker.predicted(colour, now)?;
+        let t = self.tracker.track(colour)?;
+        Some(short_of_walls(&self.map, (t.state[0], t.state[1]), to))
+    }
+
+    /// The track of `colour` now, as the service streams it (`None` if never seen): the
+    /// position short of walls, as [`TrackingCore::predicted`].
     pub fn payload(&self, colour: Colour) -> Option<Track2d> {
-        self.tracker
-            .payload(colour, self.now, self.params.period.max(1.0))
+        let mut p = self
+            .tracker
+            .payload(colour, self.now, self.params.period.max(1.0))?;
+        if let Some(t) = self.tracker.track(colour) {
+            (p.x, p.y) = short_of_walls(&self.map, (t.state[0], t.state[1]), (p.x, p.y));
+        }
+        Some(p)
     }
 }
 
