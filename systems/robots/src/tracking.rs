@@ -84,7 +84,11 @@ fn walk_on(map: &OccupancyMap, t: &crate::tracker::Track, duration: f64) -> Walk
     let speed = vx.hypot(vy);
     let mut points = vec![(x, y)];
     if speed < STANDING {
-        return Walk { points, step_time: f64::INFINITY, from: t.last_seen };
+        return Walk {
+            points,
+            step_time: f64::INFINITY,
+            from: t.last_seen,
+        };
     }
     let speed = speed.max(WALK_ON_SPEED);
     let mut heading = vy.atan2(vx);
@@ -93,7 +97,11 @@ fn walk_on(map: &OccupancyMap, t: &crate::tracker::Track, duration: f64) -> Walk
     for _ in 0..steps {
         let turns = (0..=6).flat_map(|k| {
             let a = f64::from(k) * std::f64::consts::PI / 12.0;
-            if k == 0 { vec![0.0] } else { vec![a, -a] }
+            if k == 0 {
+                vec![0.0]
+            } else {
+                vec![a, -a]
+            }
         });
         let mut best: Option<(f64, f64)> = None;
         for turn in turns {
@@ -123,13 +131,20 @@ fn walk_on(map: &OccupancyMap, t: &crate::tracker::Track, duration: f64) -> Walk
             nx + shift * (heading + std::f64::consts::FRAC_PI_2).cos(),
             ny + shift * (heading + std::f64::consts::FRAC_PI_2).sin(),
         );
-        if map.raycast(x, y, (ny - y).atan2(nx - x), (nx - x).hypot(ny - y)).is_some() {
+        if map
+            .raycast(x, y, (ny - y).atan2(nx - x), (nx - x).hypot(ny - y))
+            .is_some()
+        {
             break;
         }
         (x, y) = (nx, ny);
         points.push((x, y));
     }
-    Walk { points, step_time: WALK_STEP / speed, from: t.last_seen }
+    Walk {
+        points,
+        step_time: WALK_STEP / speed,
+        from: t.last_seen,
+    }
 }
 
 /// The length of one step of [`walk_on`], m.
@@ -487,7 +502,13 @@ impl TrackingCore {
     /// loss's time, and whether the walk has ended.
     fn supposed(&self, colour: Colour, now: f64) -> Option<((f64, f64), f64, bool)> {
         let (c, w) = self.walk.as_ref()?;
-        (*c == colour && now - w.from < SEARCH_FOR).then(|| (w.at(now), w.from, w.ended(now)))
+        // Only the walk from the last sighting: seen since, it is not searched for.
+        let current = self
+            .tracker
+            .track(colour)
+            .is_some_and(|t| t.last_seen == w.from);
+        (*c == colour && current && now - w.from < SEARCH_FOR)
+            .then(|| (w.at(now), w.from, w.ended(now)))
     }
 
     /// Where robot `i` should look: at the most wanted target it can see (tracked,
@@ -526,11 +547,13 @@ impl TrackingCore {
             let zoom = (d / (range * 0.8)).powi(2).clamp(1.0, MAX_ZOOM);
             return (bearing.clamp(-pan_limit, pan_limit), 0.0, zoom);
         }
-        // Searching for the followed target: at where it is supposed to be, if in sight.
+        // Searching for the followed target: at where it is supposed to be, if in sight,
+        // every other half sweep (the other half sweeps round the robot).
+        let half = (now / (self.params.sweep_period / 2.0)).floor() as i64;
         if let Some(((x, y), _, _)) = self
             .params
             .follow
-            .filter(|c| !self.tracker.is_tracked(*c, now))
+            .filter(|_| half % 2 == 0)
             .and_then(|c| self.supposed(c, now))
         {
             let (dx, dy) = (x - r.pose.x, y - r.pose.y);
@@ -539,7 +562,10 @@ impl TrackingCore {
             if d > 0.5
                 && d < range * MAX_ZOOM.sqrt()
                 && bearing.abs() < pan_limit + fov / 2.0
-                && self.map.raycast(r.pose.x, r.pose.y, dy.atan2(dx), d).is_none()
+                && self
+                    .map
+                    .raycast(r.pose.x, r.pose.y, dy.atan2(dx), d)
+                    .is_none()
             {
                 let zoom = (d / (range * 0.8)).powi(2).clamp(1.0, MAX_ZOOM);
                 return (bearing.clamp(-pan_limit, pan_limit), 0.0, zoom);
@@ -555,7 +581,12 @@ impl TrackingCore {
         let far = range * MAX_ZOOM.sqrt();
         let free = self
             .map
-            .raycast(r.pose.x, r.pose.y, r.pose.theta + sweep(now + ZOOM_AHEAD), far)
+            .raycast(
+                r.pose.x,
+                r.pose.y,
+                r.pose.theta + sweep(now + ZOOM_AHEAD),
+                far,
+            )
             .unwrap_or(far);
         let zoom = (free / (range * 0.9)).powi(2).clamp(1.0, MAX_ZOOM);
         (sweep(now), 0.0, zoom)
@@ -567,16 +598,18 @@ impl TrackingCore {
         let now = s.time;
         let follow = self.followed(wanted);
         // The target followed: where it is predicted to be, or, unseen for a moment while
-        // still tracked, where it was last seen (a person who turned into a door is seen
-        // from there, one who went on is seen down the way; a prediction runs on through
-        // walls).
+        // still tracked, where it is supposed to have walked on from where it was last
+        // seen (a prediction runs on through walls; a person goes round corners).
         let target = follow
             .iter()
             .find(|c| self.tracker.is_tracked(**c, now))
             .and_then(|c| {
                 let t = self.tracker.track(*c)?;
                 if now - t.last_seen > UNSEEN_GO_LOOK {
-                    Some((true, (t.state[0], t.state[1])))
+                    let at = self
+                        .supposed(*c, now)
+                        .map_or((t.state[0], t.state[1]), |(at, _, _)| at);
+                    Some((true, at))
                 } else {
                     Some((false, self.predicted(*c, now)?))
                 }
@@ -719,6 +752,66 @@ impl TrackingCore {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    /// A track last seen at (x, y) at sim time 10, walking at (vx, vy).
+    fn track_at(x: f64, y: f64, vx: f64, vy: f64) -> crate::tracker::Track {
+        crate::tracker::Track {
+            state: nalgebra::Vector4::new(x, y, vx, vy),
+            covariance: nalgebra::Matrix4::identity(),
+            time: 10.0,
+            last_seen: 10.0,
+            seen_by: Default::default(),
+            sightings: 5,
+        }
+    }
+
+    #[test]
+    fn a_prediction_stops_short_of_the_wall_it_would_run_into() {
+        let map = OccupancyMap::office();
+        // Along the south corridor: as predicted.
+        assert_eq!(short_of_walls(&map, (20.0, 3.0), (25.0, 3.0)), (25.0, 3.0));
+        // Into the office block's wall at y 4: 0.4 m short of it, on the corridor's side.
+        let (x, y) = short_of_walls(&map, (20.0, 3.0), (20.0, 6.0));
+        assert!(
+            (x - 20.0).abs() < 1e-9 && (3.5..3.65).contains(&y),
+            "({x}, {y})"
+        );
+    }
+
+    #[test]
+    fn a_lost_person_walks_on_down_the_corridor_and_round_its_corner_never_through_a_wall() {
+        let map = OccupancyMap::office();
+        // Last seen in the middle corridor (y 9..11), walking east at 0.7 m/s.
+        let w = walk_on(&map, &track_at(26.0, 10.0, 0.7, 0.0), 60.0);
+        for pair in w.points.windows(2) {
+            let ((x0, y0), (x1, y1)) = (pair[0], pair[1]);
+            let d = (x1 - x0).hypot(y1 - y0);
+            assert!(map.raycast(x0, y0, (y1 - y0).atan2(x1 - x0), d).is_none());
+            assert!(
+                map.clearance(x1, y1, 0.3) >= 0.3,
+                "({x1}, {y1}) against a wall"
+            );
+        }
+        // 10 s on: 7 m down the corridor, still in it.
+        let (x, y) = w.at(20.0);
+        assert!(
+            (32.0..34.0).contains(&x) && (9.2..10.8).contains(&y),
+            "({x}, {y})"
+        );
+        // Past the corridor's end (the east corridor, x 36..38): turned north or south
+        // along it, not into the outer wall.
+        let (x, y) = w.at(40.0);
+        assert!(
+            (36.0..39.8).contains(&x) && !(8.5..11.5).contains(&y),
+            "({x}, {y})"
+        );
+        // Slow, it is taken to walk at a person's pace; standing, to stay.
+        let slow = walk_on(&map, &track_at(26.0, 10.0, 0.3, 0.0), 60.0);
+        assert!(slow.at(20.0).0 > 31.0, "{:?}", slow.at(20.0));
+        let standing = walk_on(&map, &track_at(26.0, 10.0, 0.1, 0.0), 60.0);
+        assert_eq!(standing.at(50.0), (26.0, 10.0));
+        assert!(standing.ended(10.5));
+    }
 
     #[test]
     fn a_doorway_is_narrower_than_a_corridor() {
