@@ -66,6 +66,9 @@ const LOOK_ROUND: f64 = 2.0 * std::f64::consts::PI / LOOK_ROUND_TURN;
 /// ... at this turn rate, rad/s.
 const LOOK_ROUND_TURN: f64 = 0.8;
 
+/// Searching or patrolling, a mobile tracker held up this long looks round, s.
+const BLOCKED_LOOK_ROUND: f64 = 3.0;
+
 /// A lost target is taken to walk on at least this fast, m/s, when it was moving at
 /// all (a filter's speed estimate lags a person's).
 const WALK_ON_SPEED: f64 = 0.6;
@@ -710,6 +713,16 @@ impl TrackingCore {
             }
         }
         let step = nav.step(now, r.pose, &obstacles);
+        // Searching or patrolling and held up (by people, by another robot): it looks
+        // round on the spot while it waits. What holds it up may be the target, beside
+        // or behind it where the camera does not reach, boxed in by the robots.
+        if target.is_none()
+            && step
+                .blocked_since
+                .is_some_and(|b| now - b >= BLOCKED_LOOK_ROUND)
+        {
+            return (0.0, LOOK_ROUND_TURN);
+        }
         // Belt and braces: never forward into something closer than the stop gap.
         if step.velocity.0 > 0.0 && step.free_ahead < 0.12 {
             return (0.0, step.velocity.1);
