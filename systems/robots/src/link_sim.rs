@@ -250,11 +250,14 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
             let sight = map.raycast(t3p.x, t3p.y, bearing, d3).is_none();
             let off = wrap(bearing - t3p.theta - t3.ptz.pan).to_degrees();
             let tr = tracking.payload(Colour::Red);
+            let (t3v, d1v) = (t3.velocity, world.robots()[d1].velocity);
             eprintln!(
-                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {}",
+                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2}",
                 t3p.x, t3p.y,
                 d1p.x, d1p.y, (d1p.x - px).hypot(d1p.y - py),
                 tr.map_or("none".to_string(), |tr| format!("({:5.1},{:5.1}) lost {} age {:.1}", tr.x, tr.y, tr.lost, tr.age)),
+                t3p.theta.to_degrees(), t3v.0, t3v.1,
+                d1p.theta.to_degrees(), d1v.0, d1v.1,
             );
         }
         if figures.linked_at.is_some() && t >= next_record {
