@@ -180,6 +180,12 @@ impl Walk {
 /// square root, the field of view shrinks with it).
 const MAX_ZOOM: f64 = 4.0;
 
+/// The zoom that sees a target `d` metres off, with a margin, for a camera reaching
+/// `range` at zoom 1: the range grows with the square root of the zoom.
+fn zoom_for(d: f64, range: f64) -> f64 {
+    (d / (range * 0.8)).powi(2).clamp(1.0, MAX_ZOOM)
+}
+
 /// A sweeping camera zooms for where it will point this far ahead, s (a zoom takes
 /// time: the simulator's changes by 2 a second).
 const ZOOM_AHEAD: f64 = 0.5;
@@ -545,10 +551,11 @@ impl TrackingCore {
             {
                 continue;
             }
-            // Zoom in on far targets, with a margin: the range grows with the square
-            // root of the zoom.
-            let zoom = (d / (range * 0.8)).powi(2).clamp(1.0, MAX_ZOOM);
-            return (bearing.clamp(-pan_limit, pan_limit), 0.0, zoom);
+            return (
+                bearing.clamp(-pan_limit, pan_limit),
+                0.0,
+                zoom_for(d, range),
+            );
         }
         // Searching for the followed target: at where it is supposed to be, if in sight,
         // every other half sweep (the other half sweeps round the robot).
@@ -570,8 +577,11 @@ impl TrackingCore {
                     .raycast(r.pose.x, r.pose.y, dy.atan2(dx), d)
                     .is_none()
             {
-                let zoom = (d / (range * 0.8)).powi(2).clamp(1.0, MAX_ZOOM);
-                return (bearing.clamp(-pan_limit, pan_limit), 0.0, zoom);
+                return (
+                    bearing.clamp(-pan_limit, pan_limit),
+                    0.0,
+                    zoom_for(d, range),
+                );
             }
         }
         // Nothing to look at: sweep, each robot at its own phase, zoomed to see as far as
