@@ -252,12 +252,21 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
             let tr = tracking.payload(Colour::Red);
             let (t3v, d1v) = (t3.velocity, world.robots()[d1].velocity);
             eprintln!(
-                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2}",
+                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2} | T3 zoom {:.1} sees {:?} others {}",
                 t3p.x, t3p.y,
                 d1p.x, d1p.y, (d1p.x - px).hypot(d1p.y - py),
                 tr.map_or("none".to_string(), |tr| format!("({:5.1},{:5.1}) lost {} age {:.1}", tr.x, tr.y, tr.lost, tr.age)),
                 t3p.theta.to_degrees(), t3v.0, t3v.1,
                 d1p.theta.to_degrees(), d1v.0, d1v.1,
+                t3.ptz.zoom,
+                t3.detections.iter().map(|d| d.colour).collect::<Vec<_>>(),
+                world
+                    .people()
+                    .iter()
+                    .filter(|q| q.beacon != Colour::Red && (q.pose.x - t3p.x).hypot(q.pose.y - t3p.y) < 3.0)
+                    .map(|q| format!("{:?} ({:.1},{:.1})", q.beacon, q.pose.x, q.pose.y))
+                    .collect::<Vec<_>>()
+                    .join(" "),
             );
         }
         if figures.linked_at.is_some() && t >= next_record {

@@ -640,6 +640,13 @@ impl TrackingCore {
             return (0.0, 0.0);
         };
         let obstacles = r.cfg.geometry.obstacle_points(s, 3.5);
+        // Looking round (searched in vain, or held up): a full turn on the spot, not
+        // cut short by the search's goal or an escape, so that the camera passes every
+        // bearing once (she may be right behind it, boxed in).
+        if target.is_none() && now < r.look_round_until {
+            nav.clear();
+            return (0.0, LOOK_ROUND_TURN);
+        }
         match target {
             Some((unseen, (tx, ty))) => {
                 r.searched = None;
@@ -705,7 +712,7 @@ impl TrackingCore {
                     }
                 }
                 if now < r.look_round_until {
-                    nav.halt();
+                    nav.clear();
                     return (0.0, LOOK_ROUND_TURN);
                 }
                 if patrol.is_empty() {
@@ -731,6 +738,7 @@ impl TrackingCore {
                 .blocked_since
                 .is_some_and(|b| now - b >= BLOCKED_LOOK_ROUND)
         {
+            r.look_round_until = now + LOOK_ROUND;
             return (0.0, LOOK_ROUND_TURN);
         }
         // Belt and braces: never forward into something closer than the stop gap.
@@ -834,6 +842,95 @@ mod tests {
         let standing = walk_on(&map, &track_at(26.0, 10.0, 0.1, 0.0), 60.0);
         assert_eq!(standing.at(50.0), (26.0, 10.0));
         assert!(standing.ended(10.5));
+    }
+
+    #[test]
+    fn held_up_while_patrolling_it_looks_round_a_whole_turn_on_the_spot_uncut() {
+        use std::f64::consts::{FRAC_PI_2, PI};
+        let map = Arc::new(OccupancyMap::office());
+        let field = Arc::new(LikelihoodField::new(&map, 1.0));
+        let planner = Arc::new(Planner::new(
+            &map,
+            crate::planner::PlannerParams {
+                radius: 0.25,
+                ..crate::planner::PlannerParams::default()
+            },
+        ));
+        let start = Pose {
+            x: 20.0,
+            y: 3.0,
+            theta: PI,
+        };
+        let robot = TrackerRobot {
+            name: "T3".into(),
+            start,
+            mobile: true,
+            geometry: SensorGeometry {
+                laser: Some((-FRAC_PI_2, PI / 180.0, 8.0)),
+                sonar: None,
+                camera: None,
+            },
+            max_speed: 0.8,
+        };
+        let params = TrackingParams {
+            ground_truth: true,
+            patrol: vec![(10.0, 3.0)],
+            ..TrackingParams::default()
+        };
+        let mut core = TrackingCore::new(map, field, planner, vec![robot], params, 1);
+        // Someone pressed against its front who does not step back: 0.42 m ahead,
+        // across 40 degrees, wherever it turns.
+        let laser: Vec<f32> = (0..181)
+            .map(|k| {
+                let b = -FRAC_PI_2 + f64::from(k) * PI / 180.0;
+                if b.abs() < 0.35 {
+                    (0.42 / b.cos()) as f32
+                } else {
+                    8.0
+                }
+            })
+            .collect();
+        let mut pose = start;
+        let mut commands = Vec::new();
+        for k in 0..400 {
+            let t = f64::from(k) * 0.1;
+            let s = SensorSample {
+                time: t,
+                truth: pose,
+                odom: pose,
+                laser_time: t,
+                laser: laser.clone(),
+                ..SensorSample::default()
+            };
+            let (v, w) = core.handle_sample(0, &s, &[Colour::Red]).velocity.unwrap();
+            assert!(v <= 0.0, "drove into the person at {t} s: {v}");
+            pose.theta = wrap(pose.theta + w * 0.1);
+            commands.push((v, w));
+        }
+        // Held up 3 s, it turns at the look-round rate for a whole turn, not cut short
+        // by attempts to get clear (which turned it back and forth on one side).
+        let mut longest = 0;
+        let mut run = 0;
+        for &c in &commands {
+            run = if c == (0.0, LOOK_ROUND_TURN) {
+                run + 1
+            } else {
+                0
+            };
+            longest = longest.max(run);
+        }
+        assert!(
+            f64::from(longest) * 0.1 >= LOOK_ROUND - 0.1,
+            "the longest look round was {longest} steps"
+        );
+        let first = commands
+            .iter()
+            .position(|&c| c == (0.0, LOOK_ROUND_TURN))
+            .unwrap();
+        assert!(
+            (25..=80).contains(&first),
+            "it looked round after {first} steps"
+        );
     }
 
     #[test]
