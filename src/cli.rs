@@ -709,6 +709,13 @@ pub struct FederationBenchArgs {
     /// loaded rows (0: no loaded rows).
     #[arg(long, default_value_t = 300)]
     pub users: usize,
+    /// In the loaded rows, host b's users hold `t1/s0` on their own host instead of a
+    /// session on c: the local update row is then one of as many subscribers of one
+    /// host, on the same service's ticks, as the cross-host row's (whose host a fans
+    /// each tick out to its users), like with like. Off: the local row's user is t1's
+    /// only local subscriber.
+    #[arg(long)]
+    pub local_fan_out: bool,
     /// Times host b is lost (its broker SIGKILLed, then, as many times, SIGSTOPped:
     /// silent, its connections open) and comes back: until b's services leave a's list
     /// and until they are back.

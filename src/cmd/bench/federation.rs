@@ -15,7 +15,9 @@
 //! - host loss: b's broker SIGKILLed (then restarted) and SIGSTOPped (then continued),
 //!   until b's services leave a's list and until they are back, with `--lease`;
 //! - the same rows again with `--users` processes per host each holding a 10 Hz
-//!   session on another host.
+//!   session on another host (with `--local-fan-out`, b's hold t1's on their own host,
+//!   so that the local update row shares its ticks with as many subscribers of one host
+//!   as the cross-host row does).
 
 use super::remote::{batch_json, hist, requests, us, Batch};
 use super::{row, summary};
@@ -188,6 +190,7 @@ fn interleaved(
                 a.granted += b.granted;
                 a.refused += b.refused;
                 a.abandoned += b.abandoned;
+                a.stray_grants += b.stray_grants;
                 for (k, v) in b.refusals {
                     *a.refusals.entry(k).or_default() += v;
                 }
@@ -213,7 +216,15 @@ fn list_propagation(
     let mut h = hist();
     // The sessions of the rows before have all ended first.
     let mut settle = hist();
-    wait_for(on_a, |c| Ok(in_use(c)? == 0), Instant::now(), &mut settle)?;
+    wait_for(on_a, |c| Ok(in_use(c)? == 0), Instant::now(), &mut settle).with_context(|| {
+        format!(
+            "{far} still in use ({:?} in a's list, {:?} in b's) after the request rows",
+            in_use(on_a).ok(),
+            on_b.list()
+                .ok()
+                .and_then(|l| l.find(&here).map(|e| e.in_use))
+        )
+    })?;
     let base = 0;
     for _ in 0..n {
         let t = Instant::now();
@@ -228,10 +239,10 @@ fn list_propagation(
             }
         };
         // a's list shows it (in use counts the request from the moment it is offered).
-        wait_for(on_a, |c| Ok(in_use(c)? > base), t, &mut h)?;
+        wait_for(on_a, |c| Ok(in_use(c)? > base), t, &mut h).context("a session begun on b")?;
         let t = Instant::now();
         on_b.end(session);
-        wait_for(on_a, |c| Ok(in_use(c)? == base), t, &mut h)?;
+        wait_for(on_a, |c| Ok(in_use(c)? == base), t, &mut h).context("a session ended on b")?;
     }
     Ok(h)
 }
@@ -389,6 +400,11 @@ fn measure(
     let local = ServiceId("t1/s1".into());
     let (far_request, floor) = interleaved(on_a, &far, a.requests, probe)?;
     let local_request = requests(on_b, &local, a.requests, deadline)?;
+    tracing::info!(
+        cross_host = far_request.stray_grants,
+        local = local_request.stray_grants,
+        "bench: grants of requests given up, ended"
+    );
     let list = list_propagation(on_a, on_b, a.list_changes)?;
     let far = ServiceId("t1@b/s0".into());
     let local = ServiceId("t1/s0".into());
@@ -437,13 +453,16 @@ fn print_rows(title: &str, r: &Rows) {
     println!("{}", row("update b -> a (cross-host)", &r.far_updates.0));
     println!("{}", row("update b -> b (local)", &r.local_updates.0));
     println!(
-        "gaps: cross-host {}, local {}; refused: cross-host {:?}, local {:?}; abandoned {}/{}",
+        "gaps: cross-host {}, local {}; refused: cross-host {:?}, local {:?}; abandoned {}/{}; \
+         granted after being given up (ended) {}/{}",
         r.far_updates.1,
         r.local_updates.1,
         r.far_request.refusals,
         r.local_request.refusals,
         r.far_request.abandoned,
-        r.local_request.abandoned
+        r.local_request.abandoned,
+        r.far_request.stray_grants,
+        r.local_request.stray_grants
     );
 }
 
@@ -556,8 +575,10 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
         on_b = connect_when_listed(&insts[1], 6, timeout).context("host b again")?;
     }
     if a.users > 0 {
-        // Each host's users hold 10 Hz sessions on another host's data service.
-        let targets = ["t1@b/s0", "t2@c/s0", "t1@b/s0"];
+        // Each host's users hold 10 Hz sessions on another host's data service (with
+        // `--local-fan-out`, b's on its own t1, beside the local row's user).
+        let b_target = if a.local_fan_out { "t1/s0" } else { "t2@c/s0" };
+        let targets = ["t1@b/s0", b_target, "t1@b/s0"];
         for (i, host) in HOSTS.iter().enumerate() {
             for k in 0..a.users {
                 kids.spawn(
@@ -603,12 +624,21 @@ pub fn run(inst: &Instance, a: FederationBenchArgs) -> anyhow::Result<ExitCode> 
         let loaded = measure(&a, &mut on_a, &mut on_b, &mut probe)?;
         out["loaded"] = rows_json(&loaded, &a);
         out["users_per_host"] = json!(a.users);
+        out["local_fan_out"] = json!(a.local_fan_out);
         if !a.json {
             print_rows(
-                &format!(
-                    "\n{} users per host, each holding a 10 Hz session on another host",
-                    a.users
-                ),
+                &if a.local_fan_out {
+                    format!(
+                        "\n{} users per host, each holding a 10 Hz session: a's and c's on \
+                         t1@b/s0, b's on t1/s0 (their own host's, as the local row's user)",
+                        a.users
+                    )
+                } else {
+                    format!(
+                        "\n{} users per host, each holding a 10 Hz session on another host",
+                        a.users
+                    )
+                },
                 &loaded,
             );
         }

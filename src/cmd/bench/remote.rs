@@ -47,6 +47,9 @@ pub(super) struct Batch {
     pub(super) refusals: std::collections::BTreeMap<&'static str, u64>,
     retransmissions: u64,
     duplicate_grants_heard: u64,
+    /// Grants of requests no longer waited for (an earlier, abandoned one): their
+    /// sessions were ended at once rather than left open.
+    pub(super) stray_grants: u64,
 }
 
 fn client(broker: SocketAddr, key: &KeyPair, faults: Option<Faults>) -> anyhow::Result<UserClient> {
@@ -81,6 +84,7 @@ pub(super) fn requests(
         refusals: std::collections::BTreeMap::new(),
         retransmissions: 0,
         duplicate_grants_heard: 0,
+        stray_grants: 0,
     };
     for _ in 0..n {
         let t = Instant::now();
@@ -101,6 +105,11 @@ pub(super) fn requests(
                     b.refused += 1;
                     *b.refusals.entry(reason.code()).or_default() += 1;
                     break;
+                }
+                // Granted after it was given up: not left open to hold the quota.
+                Some(UserEvent::Granted { session, .. }) => {
+                    b.stray_grants += 1;
+                    c.end(session);
                 }
                 Some(_) => {}
                 None => {
@@ -347,6 +356,7 @@ pub(super) fn batch_json(b: &Batch, n: usize) -> Value {
         "completion": (b.granted + b.refused) as f64 / n.max(1) as f64,
         "retransmissions": b.retransmissions,
         "duplicate_grants_heard": b.duplicate_grants_heard,
+        "stray_grants": b.stray_grants,
         "latency": summary(&b.latency),
     })
 }
