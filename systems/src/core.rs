@@ -151,6 +151,10 @@ struct Session {
 /// How many ended requests a system remembers, to refuse a repeated offer for one.
 pub const SERVED_MEMORY: usize = 4096;
 
+/// Most ends of sessions not open yet a system remembers
+/// ([`SystemCore::sender_allowed`]).
+pub const EARLY_ENDS: usize = 1024;
+
 /// One system's protocol state.
 #[derive(Debug)]
 pub struct SystemCore {
@@ -164,6 +168,13 @@ pub struct SystemCore {
     /// takeover) is refused, not granted a second time.
     served: VecDeque<(UserId, u64, String)>,
     served_set: HashSet<(UserId, u64, String)>,
+    /// Ends for sessions not open here yet, with the process that sent each, most
+    /// recent last (at most [`EARLY_ENDS`]): a user may end a session the broker
+    /// granted it before this system has read the broker's offer for it (frames from
+    /// two writers are not read in the order they were written). The offer that comes
+    /// after is declined, rather than open a session nobody holds, counted in use for
+    /// good.
+    ended_early: VecDeque<(SessionId, UserId, u32)>,
     state: BrokerState,
     /// The pid of the broker that registered us (from its `Registered`).
     broker_pid: Option<u32>,
@@ -199,6 +210,7 @@ impl SystemCore {
             sessions: BTreeMap::new(),
             served: VecDeque::new(),
             served_set: HashSet::new(),
+            ended_early: VecDeque::new(),
             state: BrokerState::Unregistered,
             broker_pid: None,
             impersonations: 0,
@@ -353,6 +365,14 @@ impl SystemCore {
             }
             // Another host's user's frames come from this host's broker (its relay),
             // whichever process that is now.
+            ToSystem::End { session, user } if !self.sessions.contains_key(session) => {
+                // Not open yet: remembered, with who sent it, for its offer.
+                if self.ended_early.len() >= EARLY_ENDS {
+                    self.ended_early.pop_front();
+                }
+                self.ended_early.push_back((*session, user.clone(), pid));
+                true
+            }
             ToSystem::Input { session, .. } | ToSystem::End { session, .. } => {
                 self.sessions.get(session).is_none_or(|s| {
                     s.user_pid == pid || (s.user.is_foreign() && self.broker_pid == Some(pid))
@@ -519,6 +539,18 @@ impl SystemCore {
                 answer,
             })
         };
+        // Ended by its user (the process the session is granted to, or for a user of
+        // another host this host's broker) before this offer was read: declined.
+        let broker_pid = self.broker_pid;
+        if let Some(k) = self.ended_early.iter().position(|(s, u, pid)| {
+            *s == session
+                && *u == user
+                && (*pid == user_pid || (user.is_foreign() && broker_pid == Some(*pid)))
+        }) {
+            self.ended_early.remove(k);
+            let reason = "ended by its user before it opened".to_string();
+            return answer(self, Err(reason));
+        }
         // The same request offered again (a retry that crossed a broker restart or
         // takeover): confirm the session it has, never open a second.
         if self
@@ -948,6 +980,53 @@ mod tests {
             SystemOutput::ToBroker(ToBroker::OfferAnswer { answer, .. }) => Some(answer.clone()),
             _ => None,
         })
+    }
+
+    #[test]
+    fn a_session_its_user_ended_before_the_offer_was_read_is_declined_not_left_open() {
+        let mut c = core();
+        let alice = UserId("alice".into());
+        // alice (process 40) ends the session of her request 1 before the offer is read.
+        let end = ToSystem::End {
+            user: alice.clone(),
+            session: sid("alice", 1, "a"),
+        };
+        assert!(c.sender_allowed(Some(40), &end, |_| None));
+        c.handle(end);
+        c.handle(ToSystem::Offer {
+            ticket: 1,
+            session: sid("alice", 1, "a"),
+            user: alice.clone(),
+            user_pid: 40,
+            req: 1,
+            service: "a".into(),
+            remote: None,
+        });
+        let out = outs(&mut c);
+        assert_eq!(
+            answer(&out),
+            Some(Err("ended by its user before it opened".to_string()))
+        );
+        assert!(!out.iter().any(|o| matches!(o, SystemOutput::ToUser(..))));
+        assert_eq!(c.sessions_of("a"), 0);
+        // Another process saying it ends her next session does not: it opens.
+        let forged = ToSystem::End {
+            user: alice.clone(),
+            session: sid("alice", 2, "a"),
+        };
+        assert!(c.sender_allowed(Some(41), &forged, |_| None));
+        c.handle(forged);
+        c.handle(ToSystem::Offer {
+            ticket: 2,
+            session: sid("alice", 2, "a"),
+            user: alice,
+            user_pid: 40,
+            req: 2,
+            service: "a".into(),
+            remote: None,
+        });
+        assert_eq!(answer(&outs(&mut c)), Some(Ok(sid("alice", 2, "a"))));
+        assert_eq!(c.sessions_of("a"), 1);
     }
 
     #[test]
