@@ -950,6 +950,17 @@ mod tests {
     /// Offers `service` to `user` (process `pid`; 0 a remote user) for its request
     /// `ticket`.
     fn offer_of(c: &mut SystemCore, ticket: u64, user: &str, pid: u32, service: &str) {
+        offered_to(c, ticket, user, pid, service);
+    }
+
+    /// [`offer_of`], and what the system said.
+    fn offered_to(
+        c: &mut SystemCore,
+        ticket: u64,
+        user: &str,
+        pid: u32,
+        service: &str,
+    ) -> Vec<SystemOutput> {
         c.handle(ToSystem::Offer {
             ticket,
             session: sid(user, ticket, service),
@@ -959,7 +970,7 @@ mod tests {
             service: service.into(),
             remote: None,
         });
-        outs(c);
+        outs(c)
     }
 
     fn offer(c: &mut SystemCore, ticket: u64, user: &str, service: &str) -> Vec<SystemOutput> {
@@ -993,16 +1004,7 @@ mod tests {
         };
         assert!(c.sender_allowed(Some(40), &end, |_| None));
         c.handle(end);
-        c.handle(ToSystem::Offer {
-            ticket: 1,
-            session: sid("alice", 1, "a"),
-            user: alice.clone(),
-            user_pid: 40,
-            req: 1,
-            service: "a".into(),
-            remote: None,
-        });
-        let out = outs(&mut c);
+        let out = offered_to(&mut c, 1, "alice", 40, "a");
         assert_eq!(
             answer(&out),
             Some(Err("ended by its user before it opened".to_string()))
@@ -1011,21 +1013,15 @@ mod tests {
         assert_eq!(c.sessions_of("a"), 0);
         // Another process saying it ends her next session does not: it opens.
         let forged = ToSystem::End {
-            user: alice.clone(),
+            user: alice,
             session: sid("alice", 2, "a"),
         };
         assert!(c.sender_allowed(Some(41), &forged, |_| None));
         c.handle(forged);
-        c.handle(ToSystem::Offer {
-            ticket: 2,
-            session: sid("alice", 2, "a"),
-            user: alice,
-            user_pid: 40,
-            req: 2,
-            service: "a".into(),
-            remote: None,
-        });
-        assert_eq!(answer(&outs(&mut c)), Some(Ok(sid("alice", 2, "a"))));
+        assert_eq!(
+            answer(&offered_to(&mut c, 2, "alice", 40, "a")),
+            Some(Ok(sid("alice", 2, "a")))
+        );
         assert_eq!(c.sessions_of("a"), 1);
     }
 
