@@ -172,8 +172,8 @@ pub struct SystemCore {
     /// recent last (at most [`EARLY_ENDS`]): a user may end a session the broker
     /// granted it before this system has read the broker's offer for it (frames from
     /// two writers are not read in the order they were written). The offer that comes
-    /// after is declined, rather than open a session nobody holds, counted in use for
-    /// good.
+    /// after is confirmed and the session ended at once, rather than opened for nobody,
+    /// counted in use for good.
     ended_early: VecDeque<(SessionId, UserId, u32)>,
     state: BrokerState,
     /// The pid of the broker that registered us (from its `Registered`).
@@ -540,7 +540,9 @@ impl SystemCore {
             })
         };
         // Ended by its user (the process the session is granted to, or for a user of
-        // another host this host's broker) before this offer was read: declined.
+        // another host this host's broker) before this offer was read: confirmed and
+        // ended at once, as if the end had come after it (the broker counts the grant
+        // until then); the user, who has let it go, hears nothing.
         let broker_pid = self.broker_pid;
         if let Some(k) = self.ended_early.iter().position(|(s, u, pid)| {
             *s == session
@@ -548,8 +550,11 @@ impl SystemCore {
                 && (*pid == user_pid || (user.is_foreign() && broker_pid == Some(*pid)))
         }) {
             self.ended_early.remove(k);
-            let reason = "ended by its user before it opened".to_string();
-            return answer(self, Err(reason));
+            muster_shared::trace::stamp(muster_shared::trace::Stage::SystemSend, &user, req);
+            answer(self, Ok(session));
+            self.remember_served((user, req, service));
+            let system = self.name.clone();
+            return self.send_broker(ToBroker::SessionEnded { system, session });
         }
         // The same request offered again (a retry that crossed a broker restart or
         // takeover): confirm the session it has, never open a second.
@@ -766,6 +771,18 @@ impl SystemCore {
         self.close(session, reason, true);
     }
 
+    /// A request whose session its user ended: a repeated offer for it is refused.
+    fn remember_served(&mut self, key: (UserId, u64, String)) {
+        if self.served_set.insert(key.clone()) {
+            self.served.push_back(key);
+            if self.served.len() > SERVED_MEMORY {
+                if let Some(old) = self.served.pop_front() {
+                    self.served_set.remove(&old);
+                }
+            }
+        }
+    }
+
     fn close(&mut self, session: SessionId, reason: EndReason, tell_user: bool) {
         let Some(s) = self.sessions.remove(&session) else {
             return;
@@ -773,14 +790,8 @@ impl SystemCore {
         // Only a session its user ended is surely known to the user: one ended for any
         // other reason may never have reached it (a remote user who never heard of its
         // grant goes silent), and its retried request deserves a grant.
-        let key = (s.user.clone(), s.req, s.service.clone());
-        if reason == EndReason::ByUser && self.served_set.insert(key.clone()) {
-            self.served.push_back(key);
-            if self.served.len() > SERVED_MEMORY {
-                if let Some(old) = self.served.pop_front() {
-                    self.served_set.remove(&old);
-                }
-            }
+        if reason == EndReason::ByUser {
+            self.remember_served((s.user.clone(), s.req, s.service.clone()));
         }
         if tell_user {
             self.out.push_back(SystemOutput::ToUser(
@@ -994,7 +1005,7 @@ mod tests {
     }
 
     #[test]
-    fn a_session_its_user_ended_before_the_offer_was_read_is_declined_not_left_open() {
+    fn a_session_its_user_ended_before_the_offer_was_read_is_confirmed_and_ended_not_left_open() {
         let mut c = core();
         let alice = UserId("alice".into());
         // alice (process 40) ends the session of her request 1 before the offer is read.
@@ -1005,12 +1016,22 @@ mod tests {
         assert!(c.sender_allowed(Some(40), &end, |_| None));
         c.handle(end);
         let out = offered_to(&mut c, 1, "alice", 40, "a");
-        assert_eq!(
-            answer(&out),
-            Some(Err("ended by its user before it opened".to_string()))
-        );
+        assert_eq!(answer(&out), Some(Ok(sid("alice", 1, "a"))));
+        let ended: Vec<_> = out
+            .iter()
+            .filter_map(|o| match o {
+                SystemOutput::ToBroker(ToBroker::SessionEnded { session, .. }) => Some(*session),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(ended, [sid("alice", 1, "a")]);
         assert!(!out.iter().any(|o| matches!(o, SystemOutput::ToUser(..))));
         assert_eq!(c.sessions_of("a"), 0);
+        // The same request offered again (a retry across a broker takeover): refused.
+        assert!(matches!(
+            answer(&offered_to(&mut c, 1, "alice", 40, "a")),
+            Some(Err(_))
+        ));
         // Another process saying it ends her next session does not: it opens.
         let forged = ToSystem::End {
             user: alice,
