@@ -363,8 +363,6 @@ impl SystemCore {
             ToSystem::Registered { broker_pid, .. } => {
                 *broker_pid == pid && owner(&Address::Broker) == Some(pid)
             }
-            // Another host's user's frames come from this host's broker (its relay),
-            // whichever process that is now.
             ToSystem::End { session, user } if !self.sessions.contains_key(session) => {
                 // Not open yet: remembered, with who sent it, for its offer.
                 if self.ended_early.len() >= EARLY_ENDS {
@@ -373,6 +371,8 @@ impl SystemCore {
                 self.ended_early.push_back((*session, user.clone(), pid));
                 true
             }
+            // Another host's user's frames come from this host's broker (its relay),
+            // whichever process that is now.
             ToSystem::Input { session, .. } | ToSystem::End { session, .. } => {
                 self.sessions.get(session).is_none_or(|s| {
                     s.user_pid == pid || (s.user.is_foreign() && self.broker_pid == Some(pid))
