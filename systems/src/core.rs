@@ -351,7 +351,8 @@ impl SystemCore {
     /// address's inbox: [`muster_shared::ipc::Endpoint::owner_pid`]); a session's input or end
     /// only from the process the session was granted to. `None` (the writer cannot be
     /// told) is let through. Refusals are counted ([`SystemCore::impersonations`]) and
-    /// logged.
+    /// logged. An end for a session not open yet is let through and remembered with its
+    /// sender, for the offer that may follow (see the offer's handling).
     pub fn sender_allowed(
         &mut self,
         pid: Option<u32>,
