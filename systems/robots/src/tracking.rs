@@ -707,13 +707,12 @@ impl TrackingCore {
                     if r.searched != Some(from) {
                         // Been there: look round once (a target right behind the robot,
                         // out of its camera's reach, is seen so) before patrolling.
+                        // The turn goes on from the check above the match.
                         r.searched = Some(from);
                         r.look_round_until = now + LOOK_ROUND;
+                        nav.clear();
+                        return (0.0, LOOK_ROUND_TURN);
                     }
-                }
-                if now < r.look_round_until {
-                    nav.clear();
-                    return (0.0, LOOK_ROUND_TURN);
                 }
                 if patrol.is_empty() {
                     nav.clear();
