@@ -1289,6 +1289,11 @@ pub struct UserArgs {
     /// process by the broker (16 unless it says more).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
     pub count: u32,
+    /// With `--count`, local users: give each user an inbox of its own instead of one
+    /// the process's users share (the default: the broker and the systems then hold
+    /// one pair of ports, about ten descriptors, for the process, not one per user).
+    #[arg(long)]
+    pub own_inboxes: bool,
     /// Without a verb: the menu shows this part of the list.
     #[command(flatten)]
     pub list: ListFilterArgs,

@@ -659,7 +659,8 @@ impl Broker {
     }
 
     /// Whether a local frame written by process `pid` may say `msg`: a process speaks
-    /// only as itself. It registers or says hello with its own pid, and speaks for a
+    /// only as itself. It registers or says hello with its own pid (and as a user whose
+    /// id names a process's shared inbox only if it is that process), and speaks for a
     /// system or user only if that system or user is its own (the registry's pid). A
     /// refused frame is counted and logged (1st, 2nd, 4th, ...); `None` (the transport
     /// could not tell the writer) is let through.
@@ -675,7 +676,9 @@ impl Broker {
                     .iter()
                     .filter(|(u, r)| r.pid == pid && *u != user)
                     .count();
+                // A user reached at a process's shared inbox is that process's.
                 *claimed == pid
+                    && user.process_inbox().is_none_or(|p| p == pid)
                     && self.users.get(user).is_none_or(|r| r.pid == pid)
                     && others_of_pid < self.cfg.max_users_per_process
             }

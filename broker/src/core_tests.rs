@@ -1454,3 +1454,22 @@ fn a_systems_own_limit_is_held_here_with_its_reason_and_queues_wait_it_out() {
     request(&mut b, S, 6, 2, "t/a");
     assert!(granted(&drain(&mut b), 6, 2).is_some());
 }
+
+#[test]
+fn a_user_reached_at_a_processs_shared_inbox_says_hello_only_from_that_process() {
+    let mut b = broker();
+    let hello = |user: &str, pid: u32| ToBroker::Hello {
+        user: UserId(user.into()),
+        pid,
+        links: vec![],
+        watch_list: false,
+    };
+    // Its own process: let through; so is a user with an inbox of its own.
+    assert!(b.sender_allowed(Some(4242), &hello("u1f2e3d~4242", 4242)));
+    assert!(b.sender_allowed(Some(4242), &hello("u4242-1f2e3d", 4242)));
+    // Another process claiming a user of 4242's inbox (its own pid, honestly): refused,
+    // or frames for that user would go to process 4242.
+    assert!(!b.sender_allowed(Some(77), &hello("u1f2e3d~4242", 77)));
+    assert!(!b.sender_allowed(Some(77), &hello("u1f2e3d~4242", 4242)));
+    assert_eq!(b.stats().impersonations, 2);
+}

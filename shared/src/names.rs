@@ -21,6 +21,12 @@ pub enum Address {
     /// not per user: a system's burst to 300 users of `a` is one inbox for the broker to
     /// read, its bell rung for the burst's first frame and at its end.
     Relay(String),
+    /// The inbox shared by the users of one local process (by its pid), for a process
+    /// that hosts many users (`muster user --count N`): a frame for the user
+    /// `u1f2e3d~4242` ([`UserId::process_inbox`]) is written into process 4242's inbox, in
+    /// an envelope naming its user, as for a relay. The broker and the systems then hold
+    /// one pair of ports (about ten descriptors) for the process, not one per user.
+    Process(u32),
 }
 
 impl Address {
@@ -33,10 +39,24 @@ impl Address {
         }
     }
 
-    /// The address whose inbox frames for this one are written into: its own, or, for
-    /// a user of another host, that host's relay ([`Address::relay`]).
+    /// The inbox shared with others that frames for this address are written into, in
+    /// envelopes naming their user: its host's relay for a user of another host
+    /// ([`Address::relay`]), or its process's inbox for a local user that shares it
+    /// ([`UserId::process_inbox`]); `None` for an address with an inbox of its own.
+    pub fn shared_inbox(&self) -> Option<Address> {
+        if let Some(r) = self.relay() {
+            return Some(r);
+        }
+        match self {
+            Address::User(u) => u.process_inbox().map(Address::Process),
+            _ => None,
+        }
+    }
+
+    /// The address whose inbox frames for this one are written into: its own, or a
+    /// shared one ([`Address::shared_inbox`]).
     pub fn inbox_owner(&self) -> std::borrow::Cow<'_, Address> {
-        match self.relay() {
+        match self.shared_inbox() {
             Some(r) => std::borrow::Cow::Owned(r),
             None => std::borrow::Cow::Borrowed(self),
         }
@@ -50,6 +70,7 @@ impl fmt::Display for Address {
             Address::System(s) => write!(f, "system {s}"),
             Address::User(u) => write!(f, "user {u}"),
             Address::Relay(h) => write!(f, "relay for host {h}"),
+            Address::Process(p) => write!(f, "users' inbox of process {p}"),
         }
     }
 }
@@ -89,6 +110,7 @@ impl Instance {
             Address::System(s) => format!("muster/{}/system/{s}", self.0),
             Address::User(u) => format!("muster/{}/user/{u}", self.0),
             Address::Relay(h) => format!("muster/{}/relay/{h}", self.0),
+            Address::Process(p) => format!("muster/{}/process/{p}", self.0),
         }
     }
 
@@ -222,5 +244,22 @@ mod tests {
             Address::Relay("a".into())
         );
         assert_eq!(*Address::Broker.inbox_owner(), Address::Broker);
+        // A user sharing its process's inbox, here and as another host sees it.
+        let shared = Address::User(UserId("u1f2e3d~4242".into()));
+        assert_eq!(*shared.inbox_owner(), Address::Process(4242));
+        assert_eq!(shared.relay(), None);
+        assert_eq!(
+            i.inbox(&Address::Process(4242)),
+            "muster/t1/process/4242/inbox"
+        );
+        assert_eq!(
+            *Address::User(UserId("u1f2e3d~4242@a".into())).inbox_owner(),
+            Address::Relay("a".into())
+        );
+        // Not a pid: an inbox of its own.
+        for own in ["u~", "u~42x", "u~-1", "~", "u~99999999999"] {
+            let a = Address::User(UserId(own.into()));
+            assert_eq!(*a.inbox_owner(), a, "{own}");
+        }
     }
 }

@@ -54,6 +54,32 @@ impl Reactor {
     }
 }
 
+/// A new non-blocking eventfd: one thread rings it ([`ring_eventfd`]) to wake another
+/// whose reactor watches it, which drains it ([`drain_eventfd`]) before looking for work.
+pub fn eventfd() -> io::Result<OwnedFd> {
+    // SAFETY: eventfd takes no pointers; a non-negative result is a new descriptor we own.
+    let fd = unsafe { libc::eventfd(0, libc::EFD_NONBLOCK | libc::EFD_CLOEXEC) };
+    if fd < 0 {
+        return Err(io::Error::last_os_error());
+    }
+    // SAFETY: fd was just created and is owned by nothing else.
+    Ok(unsafe { OwnedFd::from_raw_fd(fd) })
+}
+
+/// Makes an [`eventfd`] readable.
+pub fn ring_eventfd(fd: &OwnedFd) {
+    let one: u64 = 1;
+    // SAFETY: writes 8 bytes from a live u64 to an eventfd we own.
+    unsafe { libc::write(fd.as_raw_fd(), (&one as *const u64).cast(), 8) };
+}
+
+/// Empties an [`eventfd`] (non-blocking).
+pub fn drain_eventfd(fd: &OwnedFd) {
+    let mut n: u64 = 0;
+    // SAFETY: reads 8 bytes into a live u64 from an eventfd we own (non-blocking).
+    unsafe { libc::read(fd.as_raw_fd(), (&mut n as *mut u64).cast(), 8) };
+}
+
 /// A process-exit descriptor: readable once the process has exited.
 #[derive(Debug)]
 pub struct PidFd {

@@ -585,6 +585,23 @@ impl UserId {
     pub fn is_foreign(&self) -> bool {
         self.0.contains('@')
     }
+
+    /// The pid of the local process whose shared inbox this user is reached at, if it
+    /// shares one: its id ends in `~PID` (`u1f2e3d~4242`). A user id without it has an
+    /// inbox of its own. The broker takes such an id's hello only from that process.
+    pub fn process_inbox(&self) -> Option<u32> {
+        let (_, pid) = self.0.rsplit_once('~')?;
+        if pid.is_empty() || !pid.bytes().all(|b| b.is_ascii_digit()) {
+            return None;
+        }
+        pid.parse().ok()
+    }
+
+    /// An id for a user of process `pid` that shares its process's inbox
+    /// ([`UserId::process_inbox`]).
+    pub fn in_process_inbox(name: &str, pid: u32) -> UserId {
+        UserId(format!("{name}~{pid}"))
+    }
 }
 
 impl fmt::Display for UserId {

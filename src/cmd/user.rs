@@ -7,6 +7,7 @@ use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
 use serde_json::{json, Value};
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
@@ -109,14 +110,26 @@ fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Resul
         Some(UserVerb::Idle { duration }) => *duration,
         _ => None,
     };
+    // Local users share their process's inbox unless told otherwise.
+    let shared = match (&a.remote.remote, a.own_inboxes) {
+        (None, false) => Some(Arc::new(
+            muster_shared::ipc::ProcessInbox::start(inst)
+                .context("opening the inbox this process's users share")?,
+        )),
+        _ => None,
+    };
     let threads: Vec<_> = (0..a.count)
         .map(|k| {
             let (inst, remote, opts, behave) =
                 (inst.clone(), a.remote.clone(), opts.clone(), behave.clone());
+            let shared = shared.clone();
             std::thread::Builder::new().name(format!("user-{k}")).spawn(
                 move || -> anyhow::Result<()> {
                     let started = Instant::now();
-                    let client = connect(&inst, &remote, &opts)?;
+                    let client = match &shared {
+                        Some(inbox) => UserClient::connect_in(&inst, &opts, "u", inbox)?,
+                        None => connect(&inst, &remote, &opts)?,
+                    };
                     match behave {
                         Some(b) => {
                             let b = crate::cli::BehaveArgs {

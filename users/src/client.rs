@@ -4,7 +4,8 @@
 use crate::core::{UserCore, UserEvent, UserOutput};
 use crate::remote::{RemoteLink, RemoteOptions};
 use muster_shared::ipc::{
-    bell, create_node, Endpoint, ListReader, PortShare, Presence, TransportError,
+    bell, create_node, Endpoint, ListReader, PortShare, PortsOf, Presence, ProcessInbox,
+    TransportError,
 };
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToUser};
@@ -80,6 +81,21 @@ const SUCCESSOR_WAIT: Duration = Duration::from_secs(5);
 /// How long a remote list request may take, retries included, at least.
 const LIST_WAIT: Duration = Duration::from_secs(5);
 const FIRST_SYSTEM_TOKEN: usize = 16;
+
+/// 24 bits that differ from one start of a process to the next.
+fn nonce() -> u64 {
+    let nanos = Instant::now().elapsed().as_nanos() as u64
+        ^ std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos() as u64)
+            .unwrap_or(0);
+    nanos & 0xff_ffff
+}
+
+/// The id of a local user with an inbox of its own: `PREFIX<pid>-<nonce>`.
+fn own_id(prefix: &str) -> UserId {
+    UserId(format!("{prefix}{}-{:06x}", std::process::id(), nonce()))
+}
 
 /// The shared-memory side of a local user.
 struct Local {
@@ -162,7 +178,33 @@ impl UserClient {
         prefix: &str,
     ) -> Result<Self, UserError> {
         let node = create_node(&format!("muster-user-{}", std::process::id()), false)?;
-        let client = Self::local(inst, opts, prefix, |me| Endpoint::open(inst, me, node))?;
+        let client = Self::local(inst, opts, own_id(prefix), |me| {
+            Endpoint::open(inst, me, node)
+        })?;
+        client.greet(opts, || UserError::NoBroker(inst.to_string()))
+    }
+
+    /// [`UserClient::connect_as`] for a user reached at `inbox`, the inbox this
+    /// process's users share (see [`ProcessInbox`]): its id is
+    /// `PREFIX<n>-<nonce>~<pid>`, and the broker and the systems write to it, and to
+    /// the process's other users, through one pair of ports. For a process that hosts
+    /// many users (`muster user --count N`).
+    pub fn connect_in(
+        inst: &Instance,
+        opts: &ConnectOptions,
+        prefix: &str,
+        inbox: &ProcessInbox,
+    ) -> Result<Self, UserError> {
+        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let id = inbox.user_id(&format!("{prefix}{n}-{:06x}", nonce()));
+        let node = create_node(&format!("muster-user-{}", std::process::id()), false)?;
+        let client = Self::local(inst, opts, id, |me| {
+            let Address::User(user) = me else {
+                unreachable!("a user's address")
+            };
+            Endpoint::open_in_process_inbox(inst, user, inbox, PortsOf::Own(node))
+        })?;
         client.greet(opts, || UserError::NoBroker(inst.to_string()))
     }
 
@@ -178,7 +220,7 @@ impl UserClient {
         prefix: &str,
         share: &PortShare,
     ) -> Result<Self, UserError> {
-        let mut client = Self::local(inst, opts, prefix, |me| {
+        let mut client = Self::local(inst, opts, own_id(prefix), |me| {
             Endpoint::open_shared(inst, me, share)
         })?;
         client.core.hello();
@@ -186,20 +228,14 @@ impl UserClient {
         Ok(client)
     }
 
-    /// A local user, its endpoint made by `open`, not yet greeted.
+    /// A local user `id`, its endpoint made by `open`, not yet greeted.
     fn local(
         inst: &Instance,
         opts: &ConnectOptions,
-        prefix: &str,
+        id: UserId,
         open: impl FnOnce(Address) -> Result<Endpoint, TransportError>,
     ) -> Result<Self, UserError> {
         let pid = std::process::id();
-        let nonce = Instant::now().elapsed().as_nanos() as u64
-            ^ std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map(|d| d.as_nanos() as u64)
-                .unwrap_or(0);
-        let id = UserId(format!("{prefix}{pid}-{:06x}", nonce & 0xff_ffff));
         let endpoint = open(Address::User(id.clone()))?;
         let presence = Presence::listen(endpoint.node(), inst)?;
         let reactor = Reactor::new()?;

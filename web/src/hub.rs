@@ -16,7 +16,7 @@ use muster_shared::udp::access::Policy;
 use muster_users::{UserClient, UserError, UserEvent, Wake};
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashMap};
-use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+use std::os::fd::{AsRawFd, OwnedFd};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -159,27 +159,7 @@ impl Drop for Tab {
     }
 }
 
-pub(crate) fn eventfd() -> std::io::Result<OwnedFd> {
-    // SAFETY: eventfd takes no pointers; a non-negative result is a new descriptor we own.
-    let fd = unsafe { libc::eventfd(0, libc::EFD_NONBLOCK | libc::EFD_CLOEXEC) };
-    if fd < 0 {
-        return Err(std::io::Error::last_os_error());
-    }
-    // SAFETY: fd was just created and is owned by nothing else.
-    Ok(unsafe { OwnedFd::from_raw_fd(fd) })
-}
-
-pub(crate) fn ring(fd: &OwnedFd) {
-    let one: u64 = 1;
-    // SAFETY: writes 8 bytes from a live u64 to an eventfd we own.
-    unsafe { libc::write(fd.as_raw_fd(), (&one as *const u64).cast(), 8) };
-}
-
-pub(crate) fn drain(fd: &OwnedFd) {
-    let mut n: u64 = 0;
-    // SAFETY: reads 8 bytes into a live u64 from an eventfd we own (non-blocking).
-    unsafe { libc::read(fd.as_raw_fd(), (&mut n as *mut u64).cast(), 8) };
-}
+pub(crate) use muster_shared::reactor::{drain_eventfd as drain, eventfd, ring_eventfd as ring};
 
 impl Hub {
     /// Connects `user` to the broker (waiting up to `wait` for one) on one of

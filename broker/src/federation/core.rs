@@ -1703,7 +1703,7 @@ impl FedCore {
                 Ok(m) => self.user_frame(far, m, sender, core),
                 Err(e) => muster_shared::protocol::log_bad_frame(&e),
             },
-            Address::Broker | Address::Relay(_) => {}
+            Address::Broker | Address::Relay(_) | Address::Process(_) => {}
         }
     }
 

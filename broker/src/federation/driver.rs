@@ -320,6 +320,7 @@ impl Inboxes for ShmIo<'_> {
                     Address::System(s) => format!("muster-fed-system-{s}"),
                     Address::Relay(h) => format!("muster-fed-relay-{h}"),
                     Address::User(u) => format!("muster-fed-user-{u}"),
+                    Address::Process(p) => format!("muster-fed-process-{p}"),
                     Address::Broker => "muster-fed".to_string(),
                 };
                 let node = create_node(&name, false).map_err(|e| e.to_string())?;

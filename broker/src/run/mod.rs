@@ -1452,7 +1452,7 @@ fn died_in(core: &mut Broker, fed: Option<&mut Federation>, now: Duration, who: 
             }
             core.user_died(now, u)
         }
-        Address::Broker | Address::Relay(_) => {}
+        Address::Broker | Address::Relay(_) | Address::Process(_) => {}
     }
 }
 

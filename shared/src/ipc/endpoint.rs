@@ -15,13 +15,13 @@ fn too_large(to: &Address, len: usize, limit: usize) -> TransportError {
     }
 }
 
-/// A frame as written for `to`: in a relay inbox, in an envelope naming its user (its
+/// A frame as written for `to`: in a shared inbox (a relay, a process's), in an envelope naming its user (its
 /// id's length in a byte, the id, the frame; see [`open_envelope`]).
 fn for_inbox(to: &Address, frame: Vec<u8>) -> Result<Vec<u8>, TransportError> {
     let Address::User(u) = to else {
         return Ok(frame);
     };
-    if !u.is_foreign() {
+    if to.shared_inbox().is_none() {
         return Ok(frame);
     }
     if frame.len() > SMALL_FRAME {
@@ -171,22 +171,61 @@ impl PortShare {
     }
 }
 
+/// The ports an endpoint writes to peers through: its own, on a node, or a thread's
+/// shared ones.
+pub enum PortsOf<'a> {
+    /// Ports of its own, on this node.
+    Own(Node<Ipc>),
+    /// The thread's shared ports ([`Endpoint::open_shared`]).
+    Shared(&'a PortShare),
+}
+
 /// One process's inbox and bell, plus cached ports to its peers.
 pub struct Endpoint {
     inst: Instance,
     me: Address,
     node: Rc<Node<Ipc>>,
-    inbox: Subscriber<Ipc, [u8], ()>,
-    bell: Listener<Ipc>,
+    inbox: Inbox,
     ports: Rc<RefCell<Ports>>,
     /// The peers whose ports this endpoint holds (see [`Ports::holders`]).
     held: HashSet<Address>,
     recv_errors: u64,
-    /// This endpoint's own inbox service, to look up who is behind a publisher.
-    inbox_svc: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
+}
+
+/// Where an endpoint's frames arrive.
+enum Inbox {
+    /// An inbox and a bell of its own.
+    Own(Box<OwnInbox>),
+    /// Its mailbox in the inbox its process's users share ([`ProcessInbox`]).
+    Shared(Mailbox),
+}
+
+/// An endpoint's own inbox and bell.
+struct OwnInbox {
+    sub: Subscriber<Ipc, [u8], ()>,
+    bell: Listener<Ipc>,
+    /// The inbox service, to look up who is behind a publisher.
+    svc: iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
     /// The process behind each publisher writing to this inbox (iceoryx2 records the
     /// node, and the node id the pid of the process that created it).
     senders: HashMap<iceoryx2::identifiers::UniquePublisherId, Option<u32>>,
+}
+
+impl OwnInbox {
+    fn sender_pid(&mut self, publisher: iceoryx2::identifiers::UniquePublisherId) -> Option<u32> {
+        if let Some(pid) = self.senders.get(&publisher) {
+            return *pid;
+        }
+        if self.senders.len() > 4096 {
+            self.senders.clear(); // publishers come and go; rebuild from the live ones
+        }
+        let senders = &mut self.senders;
+        self.svc.dynamic_config().list_publishers(|d| {
+            senders.insert(d.publisher_id, node_pid(&d.node_id));
+            iceoryx2::prelude::CallbackProgression::Continue
+        });
+        self.senders.get(&publisher).copied().flatten()
+    }
 }
 
 impl Drop for Endpoint {
@@ -300,6 +339,35 @@ impl Endpoint {
         Self::open_with(inst, me, ports)
     }
 
+    /// The endpoint of `user`, a user of this process whose frames arrive in the inbox
+    /// its users share (`inbox`; the user's id names it, see
+    /// [`crate::types::UserId::process_inbox`]), writing to peers through ports of its
+    /// own on `node`, or through `share`'s. It owns no inbox nor bell: its bell is its
+    /// mailbox's.
+    pub fn open_in_process_inbox(
+        inst: &Instance,
+        user: crate::types::UserId,
+        inbox: &ProcessInbox,
+        ports: PortsOf<'_>,
+    ) -> Result<Self, TransportError> {
+        let me = Address::User(user.clone());
+        let mailbox = inbox.join(&user)?;
+        let ports = match ports {
+            PortsOf::Own(node) => Rc::new(RefCell::new(Ports::new(inst, Rc::new(node), false))),
+            PortsOf::Shared(share) => share.0.clone(),
+        };
+        let node = ports.borrow().node.clone();
+        Ok(Endpoint {
+            inst: inst.clone(),
+            me,
+            node,
+            inbox: Inbox::Shared(mailbox),
+            ports,
+            held: HashSet::new(),
+            recv_errors: 0,
+        })
+    }
+
     /// [`Endpoint::open`] on a thread's shared node, writing to peers through the
     /// thread's shared ports: the endpoint owns only its inbox and bell.
     pub fn open_shared(
@@ -358,13 +426,15 @@ impl Endpoint {
             inst: inst.clone(),
             me,
             node,
-            inbox,
-            bell,
+            inbox: Inbox::Own(Box::new(OwnInbox {
+                sub: inbox,
+                bell,
+                svc,
+                senders: HashMap::new(),
+            })),
             ports,
             held: HashSet::new(),
             recv_errors: 0,
-            inbox_svc: svc,
-            senders: HashMap::new(),
         })
     }
 
@@ -380,13 +450,19 @@ impl Endpoint {
 
     /// The bell's file descriptor, for the reactor.
     pub fn bell_fd(&self) -> RawFd {
-        // SAFETY: the descriptor stays owned by the listener; we only read its number.
-        unsafe { self.bell.file_descriptor().native_handle() }
+        match &self.inbox {
+            // SAFETY: the descriptor stays owned by the listener; we only read its number.
+            Inbox::Own(o) => unsafe { o.bell.file_descriptor().native_handle() },
+            Inbox::Shared(m) => m.fd(),
+        }
     }
 
     /// Empties the bell; returns the set of event ids rung (bit i = id i).
     pub fn drain_bell(&self) -> u64 {
-        drain_ids(&self.bell)
+        match &self.inbox {
+            Inbox::Own(o) => drain_ids(&o.bell),
+            Inbox::Shared(m) => m.drain(),
+        }
     }
 
     /// Takes the next frame from the inbox, copied out (it is decoded right away).
@@ -402,12 +478,16 @@ impl Endpoint {
     /// iceoryx2 publisher and node behind it; `None` if it cannot be told), so that a
     /// process can be held to speak only as itself.
     pub fn recv_from(&mut self) -> Option<(Vec<u8>, Option<u32>)> {
-        match self.inbox.receive() {
+        let own = match &mut self.inbox {
+            Inbox::Own(o) => o,
+            Inbox::Shared(m) => return m.take(),
+        };
+        match own.sub.receive() {
             Ok(Some(sample)) => {
                 let publisher = sample.header().publisher_id();
                 let frame = sample.payload().to_vec();
                 drop(sample);
-                Some((frame, self.sender_pid(publisher)))
+                Some((frame, own.sender_pid(publisher)))
             }
             Ok(None) => None,
             Err(e) => {
@@ -419,21 +499,6 @@ impl Endpoint {
                 None
             }
         }
-    }
-
-    fn sender_pid(&mut self, publisher: iceoryx2::identifiers::UniquePublisherId) -> Option<u32> {
-        if let Some(pid) = self.senders.get(&publisher) {
-            return *pid;
-        }
-        if self.senders.len() > 4096 {
-            self.senders.clear(); // publishers come and go; rebuild from the live ones
-        }
-        let senders = &mut self.senders;
-        self.inbox_svc.dynamic_config().list_publishers(|d| {
-            senders.insert(d.publisher_id, node_pid(&d.node_id));
-            iceoryx2::prelude::CallbackProgression::Continue
-        });
-        self.senders.get(&publisher).copied().flatten()
     }
 
     /// The pid of the process that owns `of`'s inbox (its one subscriber), or `None` if
@@ -474,8 +539,8 @@ impl Endpoint {
         if let Some(peer) = self.ports.borrow().peers.get(of) {
             return pids(&peer.inbox);
         }
-        if *of == self.me {
-            return pids(&self.inbox_svc);
+        if let (true, Inbox::Own(o)) = (*of == self.me, &self.inbox) {
+            return pids(&o.svc);
         }
         let Some(svc) = service_name(&self.inst.inbox(of)).ok().and_then(|name| {
             self.node
@@ -575,7 +640,10 @@ impl Endpoint {
     /// frame it waits for.
     pub fn update_connections(&self) {
         use iceoryx2::port::update_connections::UpdateConnections;
-        if let Err(e) = self.inbox.update_connections() {
+        let Inbox::Own(o) = &self.inbox else {
+            return; // the process's reader connects them
+        };
+        if let Err(e) = o.sub.update_connections() {
             tracing::debug!("inbox connections: {e:?}");
         }
     }
@@ -622,7 +690,7 @@ impl Endpoint {
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
-        if to.relay().is_some() {
+        if to.shared_inbox().is_some() {
             let frame = for_inbox(to, frame.to_vec())?;
             return ports.send_ringing(&to.inbox_owner(), &frame, true);
         }
@@ -642,7 +710,7 @@ impl Endpoint {
     /// [`Endpoint::release`] instead: its host's relay, which others' frames go
     /// through, stays.
     pub fn forget(&mut self, to: &Address) {
-        if to.relay().is_some() {
+        if to.shared_inbox().is_some() {
             return self.release(to);
         }
         self.held.remove(to);
@@ -813,7 +881,9 @@ impl Ports {
         let (len, strategy) = match to {
             // Only a system writes large frames to the broker (its registration).
             Address::Broker if self.large => (INITIAL_LARGE_FRAME, AllocationStrategy::PowerOfTwo),
-            Address::Relay(_) => (SMALL_FRAME + MAX_ENVELOPE, AllocationStrategy::Static),
+            Address::Relay(_) | Address::Process(_) => {
+                (SMALL_FRAME + MAX_ENVELOPE, AllocationStrategy::Static)
+            }
             _ => (SMALL_FRAME, AllocationStrategy::Static),
         };
         let publisher = svc
@@ -916,7 +986,7 @@ impl Ports {
         // Only a system's frames to the broker may be large (its registration).
         let large = self.large && *to == Address::Broker;
         let limit = match to {
-            Address::Relay(_) => SMALL_FRAME + MAX_ENVELOPE,
+            Address::Relay(_) | Address::Process(_) => SMALL_FRAME + MAX_ENVELOPE,
             _ => SMALL_FRAME,
         };
         let result = if !large && frame.len() > limit {
@@ -939,7 +1009,7 @@ impl Ports {
     fn try_send(&mut self, to: &Address, frame: &[u8], ring: bool) -> Result<(), TransportError> {
         // A relay's bell rings for the first frame of the writer's burst (its reader
         // starts on it while the writer goes on), then waits for the burst's end.
-        let quiet = self.quiet_relays && matches!(to, Address::Relay(_));
+        let quiet = self.quiet_relays && matches!(to, Address::Relay(_) | Address::Process(_));
         let ring = ring && !(quiet && self.pending_bells.contains(to));
         let peer = self.peer(to)?;
         let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
@@ -1113,7 +1183,10 @@ mod tests {
 
     fn writers(e: &Endpoint) -> usize {
         let mut n = 0;
-        e.inbox_svc.dynamic_config().list_publishers(|_| {
+        let Inbox::Own(o) = &e.inbox else {
+            panic!("an endpoint with an inbox of its own")
+        };
+        o.svc.dynamic_config().list_publishers(|_| {
             n += 1;
             CallbackProgression::Continue
         });

@@ -53,6 +53,13 @@ pub const MAX_ENVELOPE: usize = 1 + u8::MAX as usize;
 /// Frames queued per writer in a relay inbox: a system's burst to all of a host's users
 /// at once (a 10 Hz service streamed to 300 of them) waits there for one read.
 pub const RELAY_BUFFER: usize = 1024;
+/// Most peers that may write to the inbox a process's users share
+/// ([`crate::names::Address::Process`]): the broker and the systems any of them has
+/// sessions with. Each costs the reader about 21 KiB at [`PROCESS_INBOX_BUFFER`].
+pub const MAX_PROCESS_INBOX_PEERS: usize = 128;
+/// Frames queued per writer in a process's shared inbox: a system's update to every
+/// one of the process's users at once.
+pub const PROCESS_INBOX_BUFFER: usize = 256;
 /// Initial frame size of the system → broker path, which grows (power of two) up to
 /// [`crate::protocol::MAX_FRAME`] for large registrations.
 const INITIAL_LARGE_FRAME: usize = 4096;
@@ -174,6 +181,14 @@ impl InboxLimits {
                 inbox_readers: 1,
                 buffer: RELAY_BUFFER,
             },
+            // The broker and the systems in sessions with any of the process's users
+            // (lingering ones too); a burst to all of them from one writer waits here.
+            Address::Process(_) => InboxLimits {
+                max_publishers: MAX_PROCESS_INBOX_PEERS,
+                readers: 1,
+                inbox_readers: 1,
+                buffer: PROCESS_INBOX_BUFFER,
+            },
             Address::User(_) => InboxLimits {
                 max_publishers: MAX_USER_PEERS,
                 readers: 1,
@@ -219,6 +234,7 @@ mod endpoint;
 mod events;
 mod list;
 mod presence;
+mod process_inbox;
 mod replica;
 mod viz;
 
@@ -227,6 +243,7 @@ pub use self::endpoint::*;
 pub use self::events::*;
 pub use self::list::*;
 pub use self::presence::*;
+pub use self::process_inbox::*;
 pub use self::replica::*;
 pub use self::viz::*;
 
