@@ -1648,6 +1648,10 @@ pub struct StressArgs {
     /// 1,000; local ones up to 16 (the broker's cap per process).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
     pub users_per_process: u32,
+    /// With `--users-per-process`, local users: an inbox each, not one their process's
+    /// users share (`muster user --own-inboxes`), to compare the two.
+    #[arg(long)]
+    pub own_inboxes: bool,
 }
 
 /// The size of a load run: how many user processes, services and systems.

@@ -330,6 +330,8 @@ fn users_run_several_to_a_process_each_its_own_connection_and_report() {
         assert_eq!(code, 0, "{r:#}");
         assert_eq!(r["users"], users as u64);
         assert_eq!(r["users_per_process"], per as u64);
+        // Local users in one process share its inbox; remote ones have none.
+        assert_eq!(r["shared_inboxes"], !remote, "{r:#}");
         assert_eq!(r["users_waiting_at_start"], users as u64, "{r:#}");
         assert_eq!(r["missing_user_reports"], 0, "{r:#}");
         assert_eq!(r["errors"], 0, "{r:#}");
@@ -373,15 +375,42 @@ fn more_local_users_to_a_process_than_the_broker_takes_are_refused_before_anythi
 #[test]
 fn under_a_low_descriptor_limit_the_broker_closes_idle_users_ports_and_serves_more_than_would_fit()
 {
-    // 60 local users, 6 a process, and every process of the run (harness, broker,
-    // systems, users) limited to 600 descriptors. Holding ports to every connected
-    // user, as the broker did, costs 13 descriptors each: 780, past the limit, and
-    // users were refused ("no broker"). Now an idle user costs 3, the broker closes the
-    // ports of users idle for 2 s when short, and holds frames to others until some
-    // close: all connect, every request is answered, nothing is lost.
+    // 60 local users, 6 a process, each with an inbox of its own, and every process of
+    // the run (harness, broker, systems, users) limited to 600 descriptors. Holding
+    // ports to every connected user, as the broker did, costs 13 descriptors each: 780,
+    // past the limit, and users were refused ("no broker"). Now an idle user costs 3,
+    // the broker closes the ports of users idle for 2 s when short, and holds frames to
+    // others until some close: all connect, every request is answered, nothing is lost.
+    let r = sixty_users_under_600_descriptors("stressfd", true);
+    let d = &r["broker"]["descriptors"];
+    let most = d["most_open"].as_u64().unwrap();
+    assert!(most > 100 && most < 600, "{d}");
+    assert!(d["idle_ports_closed"].as_u64().unwrap() > 0, "{d}");
+}
+
+#[test]
+fn users_sharing_their_processs_inbox_cost_the_broker_one_pair_of_ports_a_process() {
+    // The same 60 users under 600 descriptors, sharing their process's inbox (the
+    // default for `muster user --count`): the broker holds ports to 10 inboxes, not
+    // 60, so it never runs short and closes nothing; and every frame still reaches its
+    // own user (every request answered, every user listed, no errors).
+    let r = sixty_users_under_600_descriptors("stressfs", false);
+    assert_eq!(r["shared_inboxes"], true, "{r:#}");
+    let d = &r["broker"]["descriptors"];
+    assert_eq!(d["idle_ports_closed"], 0, "{d}");
+    // 60 users' writers (3 each) and 10 processes' ports (about 10 each), with the
+    // systems' and the broker's own: far from the 525 the broker keeps free of.
+    let most = d["most_open"].as_u64().unwrap();
+    assert!(most < 450, "{d}");
+}
+
+/// A stress run of 60 local users, 6 a process, `own_inboxes` or sharing their
+/// process's, every process limited to 600 descriptors; its report, checked for what
+/// both must do (exit 0, no errors, every user online and answered).
+fn sixty_users_under_600_descriptors(name: &str, own_inboxes: bool) -> Value {
     use std::os::unix::process::CommandExt;
-    let f = Fed::new("stressfd");
-    let mut c = f.command(&[
+    let f = Fed::new(name);
+    let mut args = vec![
         "stress",
         "--users",
         "60",
@@ -396,7 +425,11 @@ fn under_a_low_descriptor_limit_the_broker_closes_idle_users_ports_and_serves_mo
         "--think",
         "2s",
         "--json",
-    ]);
+    ];
+    if own_inboxes {
+        args.push("--own-inboxes");
+    }
+    let mut c = f.command(&args);
     // SAFETY: setrlimit(2) only, between fork and exec.
     unsafe {
         c.pre_exec(|| {
@@ -423,9 +456,6 @@ fn under_a_low_descriptor_limit_the_broker_closes_idle_users_ports_and_serves_mo
     assert_eq!(r["checks"]["every_user_got_a_list"], true, "{r:#}");
     assert_eq!(r["checks"]["every_request_answered"], true, "{r:#}");
     assert_eq!(most_online(&r), 60, "{:#}", r["timeline"]);
-    let d = &r["broker"]["descriptors"];
-    assert_eq!(d["limit"], 600, "{d}");
-    let most = d["most_open"].as_u64().unwrap();
-    assert!(most > 100 && most < 600, "{d}");
-    assert!(d["idle_ports_closed"].as_u64().unwrap() > 0, "{d}");
+    assert_eq!(r["broker"]["descriptors"]["limit"], 600, "{r:#}");
+    r
 }

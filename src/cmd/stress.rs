@@ -352,6 +352,9 @@ fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result
     for (p, &(_, n)) in groups.iter().enumerate() {
         let count = n.to_string();
         let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
+        if a.own_inboxes {
+            args.push("--own-inboxes");
+        }
         args.extend(["--count", &count, "idle", "--duration", &stay]);
         let child = setup.children.spawn(inst, "user", &args, outs.stdout(p)?)?;
         users.push(child.id());
@@ -613,6 +616,9 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         let seed = first.to_string();
         let count = n.to_string();
         let mut args: Vec<&str> = prefix.iter().map(String::as_str).collect();
+        if a.own_inboxes {
+            args.push("--own-inboxes");
+        }
         args.extend([
             "--count",
             &count,
@@ -849,6 +855,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "per_hop_leaving": leaving_hops.as_ref().map_or(Value::Null, |h| hops_json(&GRANT_HOPS, &h.grant).into()),
     });
     report["users_per_process"] = a.users_per_process.into();
+    report["shared_inboxes"] = (a.users_per_process > 1 && !a.remote && !a.own_inboxes).into();
     report["users_requesting"] = users_requesting.into();
     if let Some(dir) = &a.report {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;

@@ -653,10 +653,11 @@ impl Endpoint {
         !self.ports.borrow().pending_bells.is_empty()
     }
 
-    /// From now until the next [`Endpoint::ring_pending`], a relay inbox
-    /// ([`Address::Relay`]: for users of other hosts) is rung for the first frame written
-    /// into it and then only by that call: a burst of updates to 300 users of a host
-    /// rings its relay twice, not 300 times, and its reader starts on the burst's head.
+    /// From now until the next [`Endpoint::ring_pending`], a shared inbox
+    /// ([`Address::Relay`] for users of other hosts, [`Address::Process`] for a local
+    /// process's users) is rung for the first frame written into it and then only by
+    /// that call: a burst of updates to 300 users of a host rings its relay twice, not
+    /// 300 times, and its reader starts on the burst's head.
     pub fn quiet_relays(&mut self) {
         self.ports.borrow_mut().quiet_relays = true;
     }

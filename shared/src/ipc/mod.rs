@@ -6,6 +6,11 @@
 //! (zero-copy: the peer reads it from shared memory) and ringing its bell. Peers' ports
 //! are opened lazily and cached. Nothing here polls: the bell's file descriptor goes
 //! into the process's [`crate::reactor::Reactor`].
+//!
+//! Some inboxes are shared, their frames in envelopes naming their user: a federated
+//! broker's relay for every user of another host, and a process's inbox for all the
+//! users it hosts ([`ProcessInbox`]), so that a writer holds one pair of ports for
+//! many users.
 
 use crate::names::{Address, Instance};
 use crate::snapshot::{
