@@ -7,7 +7,6 @@ use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, UserEvent};
 use serde_json::{json, Value};
 use std::process::ExitCode;
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
@@ -112,10 +111,10 @@ fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Resul
     };
     // Local users share their process's inbox unless told otherwise.
     let shared = match (&a.remote.remote, a.own_inboxes) {
-        (None, false) => Some(Arc::new(
-            muster_shared::ipc::ProcessInbox::start(inst)
+        (None, false) => Some(
+            muster_shared::ipc::ProcessInbox::of_this_process(inst)
                 .context("opening the inbox this process's users share")?,
-        )),
+        ),
         _ => None,
     };
     let threads: Vec<_> = (0..a.count)

@@ -97,6 +97,14 @@ fn own_id(prefix: &str) -> UserId {
     UserId(format!("{prefix}{}-{:06x}", std::process::id(), nonce()))
 }
 
+/// The id of a local user reached at its process's shared inbox:
+/// `PREFIX<n>-<nonce>~<pid>`, `n` counting this process's users.
+fn shared_id(prefix: &str, inbox: &ProcessInbox) -> UserId {
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    inbox.user_id(&format!("{prefix}{n}-{:06x}", nonce()))
+}
+
 /// The shared-memory side of a local user.
 struct Local {
     inst: Instance,
@@ -195,11 +203,8 @@ impl UserClient {
         prefix: &str,
         inbox: &ProcessInbox,
     ) -> Result<Self, UserError> {
-        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let id = inbox.user_id(&format!("{prefix}{n}-{:06x}", nonce()));
         let node = create_node(&format!("muster-user-{}", std::process::id()), false)?;
-        let client = Self::local(inst, opts, id, |me| {
+        let client = Self::local(inst, opts, shared_id(prefix, inbox), |me| {
             let Address::User(user) = me else {
                 unreachable!("a user's address")
             };
@@ -222,6 +227,28 @@ impl UserClient {
     ) -> Result<Self, UserError> {
         let mut client = Self::local(inst, opts, own_id(prefix), |me| {
             Endpoint::open_shared(inst, me, share)
+        })?;
+        client.core.hello();
+        client.flush();
+        Ok(client)
+    }
+
+    /// [`UserClient::start_shared`] for a user reached at `inbox`, the inbox this
+    /// process's users share ([`UserClient::connect_in`]): it keeps neither an inbox
+    /// nor a bell of its own, and the broker and the systems hold one pair of ports for
+    /// all of the process's users.
+    pub fn start_shared_in(
+        inst: &Instance,
+        opts: &ConnectOptions,
+        prefix: &str,
+        share: &PortShare,
+        inbox: &ProcessInbox,
+    ) -> Result<Self, UserError> {
+        let mut client = Self::local(inst, opts, shared_id(prefix, inbox), |me| {
+            let Address::User(user) = me else {
+                unreachable!("a user's address")
+            };
+            Endpoint::open_in_process_inbox(inst, user, inbox, PortsOf::Shared(share))
         })?;
         client.core.hello();
         client.flush();

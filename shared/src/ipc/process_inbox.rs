@@ -152,6 +152,25 @@ impl ProcessInbox {
         }
     }
 
+    /// This process's shared inbox on `inst`: the one already open, or a new one
+    /// ([`ProcessInbox::start`]). A process has one per instance (its name is the
+    /// pid's), however many parts of it host users.
+    pub fn of_this_process(inst: &Instance) -> Result<Arc<ProcessInbox>, TransportError> {
+        static OPEN: Mutex<Vec<(Instance, Weak<ProcessInbox>)>> = Mutex::new(Vec::new());
+        let mut open = lock(&OPEN);
+        open.retain(|(_, w)| w.strong_count() > 0);
+        if let Some(inbox) = open
+            .iter()
+            .find(|(i, _)| i == inst)
+            .and_then(|(_, w)| w.upgrade())
+        {
+            return Ok(inbox);
+        }
+        let inbox = Arc::new(ProcessInbox::start(inst)?);
+        open.push((inst.clone(), Arc::downgrade(&inbox)));
+        Ok(inbox)
+    }
+
     /// The address its writers write to.
     pub fn address(&self) -> Address {
         Address::Process(self.pid)
