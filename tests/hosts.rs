@@ -1820,3 +1820,52 @@ fn forged_frames_in_a_relay_reach_no_user_of_another_host() {
     drop(forger);
     user.close();
 }
+
+#[test]
+fn users_sharing_their_processs_inbox_are_served_by_another_hosts_system() {
+    // Three users of one process on a (`muster user --count 3`) share its inbox; b's
+    // system serves them across hosts: its updates go through b's relay, Zenoh and a's
+    // broker into that one inbox, and each user gets its own, in order, none lost.
+    let mut h = Hosts::new("fpi", &["a", "b"]);
+    h.host(1)
+        .system("robo", &["--services", "2", "--quota", "3", "--rate", "20"]);
+    h.host(0).wait_list(20 * SEC, |l| l.len() == 2);
+    let (code, out) = h.host(0).run(
+        &[
+            "user",
+            "--count",
+            "3",
+            "behave",
+            "--duration",
+            "6s",
+            "--think",
+            "300ms",
+            "--link-prob",
+            "0",
+            "--seed",
+            "7",
+        ],
+        60 * SEC,
+    );
+    assert_eq!(code, 0, "{out}");
+    let reports: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect();
+    assert_eq!(reports.len(), 3, "{out}");
+    let mut users: Vec<&str> = Vec::new();
+    for r in &reports {
+        let user = r["user"].as_str().unwrap();
+        // `u<n>-<nonce>~<pid>`: reached at the process's inbox.
+        let (_, pid) = user.rsplit_once('~').expect("a shared inbox's user");
+        assert!(pid.parse::<u32>().is_ok(), "{user}");
+        users.push(user);
+        assert!(r["grants"].as_u64().unwrap() > 0, "{r}");
+        assert!(r["updates"].as_u64().unwrap() > 10, "{r}");
+        assert_eq!(r["gaps"], 0, "{r}");
+        assert_eq!(r["errors"], 0, "{r}");
+    }
+    users.sort_unstable();
+    users.dedup();
+    assert_eq!(users.len(), 3, "three users: {users:?}");
+}
