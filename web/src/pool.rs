@@ -27,6 +27,9 @@ use std::time::{Duration, Instant};
 const HOUSEKEEPING: Duration = Duration::from_secs(1);
 /// The longest a worker spends starting new users before it looks at the others.
 const START_BUDGET: Duration = Duration::from_millis(2);
+/// Most writers to the inbox the web process's users share: the broker and every
+/// system they hold sessions with (about 21 KiB each, 10 MiB in all).
+const WEB_INBOX_WRITERS: usize = 512;
 /// The worker's own token in its reactor (new hubs, stop); hubs' tokens follow.
 const TOKEN_WORKER: usize = 0;
 
@@ -48,7 +51,8 @@ impl Pool {
     /// `threads` workers for the hubs of instance `inst`.
     pub fn new(inst: &Instance, threads: usize) -> Result<Pool, String> {
         let mut workers = Vec::new();
-        let inbox = ProcessInbox::of_this_process(inst)
+        // Its people may hold sessions with any of the instance's systems.
+        let inbox = ProcessInbox::of_this_process(inst, WEB_INBOX_WRITERS)
             .map_err(|e| format!("the inbox the users share: {e}"))?;
         for i in 0..threads.max(1) {
             let (tx, rx) = mpsc::channel();

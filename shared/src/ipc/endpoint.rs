@@ -336,7 +336,20 @@ impl Endpoint {
     pub fn open(inst: &Instance, me: Address, node: Node<Ipc>) -> Result<Self, TransportError> {
         let large = matches!(me, Address::System(_));
         let ports = Rc::new(RefCell::new(Ports::new(inst, Rc::new(node), large)));
-        Self::open_with(inst, me, ports)
+        let limits = InboxLimits::for_addr(&me);
+        Self::open_with(inst, me, ports, limits)
+    }
+
+    /// [`Endpoint::open`] with an inbox of other limits than its role's (a process's
+    /// shared inbox sized for its users).
+    pub(super) fn open_sized(
+        inst: &Instance,
+        me: Address,
+        node: Node<Ipc>,
+        limits: InboxLimits,
+    ) -> Result<Self, TransportError> {
+        let ports = Rc::new(RefCell::new(Ports::new(inst, Rc::new(node), false)));
+        Self::open_with(inst, me, ports, limits)
     }
 
     /// The endpoint of `user`, a user of this process whose frames arrive in the inbox
@@ -375,16 +388,17 @@ impl Endpoint {
         me: Address,
         share: &PortShare,
     ) -> Result<Self, TransportError> {
-        Self::open_with(inst, me, share.0.clone())
+        let limits = InboxLimits::for_addr(&me);
+        Self::open_with(inst, me, share.0.clone(), limits)
     }
 
     fn open_with(
         inst: &Instance,
         me: Address,
         ports: Rc<RefCell<Ports>>,
+        limits: InboxLimits,
     ) -> Result<Self, TransportError> {
         let node = ports.borrow().node.clone();
-        let limits = InboxLimits::for_addr(&me);
         let inbox_name = inst.inbox(&me);
         let svc = node
             .service_builder(&service_name(&inbox_name)?)

@@ -4,7 +4,7 @@
 //! the process (about ten descriptors at the broker), not one per user: at 5,000 local
 //! users, 16 a process, the broker's descriptors were the limit.
 
-use super::{create_node, open_envelope, Endpoint, TransportError};
+use super::{create_node, open_envelope, Endpoint, InboxLimits, TransportError};
 use crate::names::{Address, Instance};
 use crate::reactor::{drain_eventfd, eventfd, ring_eventfd, Reactor};
 use crate::types::UserId;
@@ -105,8 +105,15 @@ const TOKEN_BELL: usize = 0;
 const TOKEN_STOP: usize = 1;
 
 impl ProcessInbox {
-    /// Creates this process's shared inbox on `inst` and starts its reading thread.
-    pub fn start(inst: &Instance) -> Result<Self, TransportError> {
+    /// Creates this process's shared inbox on `inst`, open to at most `writers`
+    /// writers (the broker and the systems its users hold sessions with; each costs
+    /// the reader about 21 KiB; [`super::MAX_PROCESS_INBOX_PEERS`] suits a harness's process of
+    /// 16 users), and starts its reading thread.
+    pub fn start(inst: &Instance, writers: usize) -> Result<Self, TransportError> {
+        let limits = InboxLimits {
+            max_publishers: writers.max(2),
+            ..InboxLimits::for_addr(&Address::Process(0))
+        };
         let pid = std::process::id();
         let shared = Arc::new(Shared {
             mailboxes: Mutex::new(HashMap::new()),
@@ -119,8 +126,10 @@ impl ProcessInbox {
         let thread = std::thread::Builder::new()
             .name("process-inbox".into())
             .spawn(move || {
-                let endpoint = create_node(&format!("process-inbox-{pid}"), false)
-                    .and_then(|node| Endpoint::open(&inst, Address::Process(pid), node));
+                let endpoint =
+                    create_node(&format!("process-inbox-{pid}"), false).and_then(|node| {
+                        Endpoint::open_sized(&inst, Address::Process(pid), node, limits)
+                    });
                 let reactor = Reactor::new().map_err(|e| TransportError::Node(format!("{e}")));
                 match (endpoint, reactor) {
                     (Ok(endpoint), Ok(reactor)) => {
@@ -152,10 +161,13 @@ impl ProcessInbox {
         }
     }
 
-    /// This process's shared inbox on `inst`: the one already open, or a new one
-    /// ([`ProcessInbox::start`]). A process has one per instance (its name is the
-    /// pid's), however many parts of it host users.
-    pub fn of_this_process(inst: &Instance) -> Result<Arc<ProcessInbox>, TransportError> {
+    /// This process's shared inbox on `inst`: the one already open, or a new one for
+    /// `writers` ([`ProcessInbox::start`]). A process has one per instance (its name is
+    /// the pid's), however many parts of it host users.
+    pub fn of_this_process(
+        inst: &Instance,
+        writers: usize,
+    ) -> Result<Arc<ProcessInbox>, TransportError> {
         static OPEN: Mutex<Vec<(Instance, Weak<ProcessInbox>)>> = Mutex::new(Vec::new());
         let mut open = lock(&OPEN);
         open.retain(|(_, w)| w.strong_count() > 0);
@@ -166,7 +178,7 @@ impl ProcessInbox {
         {
             return Ok(inbox);
         }
-        let inbox = Arc::new(ProcessInbox::start(inst)?);
+        let inbox = Arc::new(ProcessInbox::start(inst, writers)?);
         open.push((inst.clone(), Arc::downgrade(&inbox)));
         Ok(inbox)
     }
@@ -324,7 +336,7 @@ mod tests {
     #[test]
     fn a_processs_users_share_one_inbox_each_getting_its_own_frames_in_order() {
         let inst = Instance::new(&format!("pinbox-test-{}", std::process::id())).unwrap();
-        let inbox = ProcessInbox::start(&inst).unwrap();
+        let inbox = ProcessInbox::start(&inst, crate::ipc::MAX_PROCESS_INBOX_PEERS).unwrap();
         let pid = std::process::id();
         assert_eq!(inbox.address(), Address::Process(pid));
         let ids: Vec<UserId> = (0..3).map(|i| inbox.user_id(&format!("u{i}"))).collect();
@@ -439,5 +451,35 @@ mod tests {
         assert_eq!(users[1].recv(), None);
         drop(users);
         drop(inbox);
+    }
+
+    #[test]
+    fn a_writer_past_the_shared_inboxs_size_gets_an_error_not_a_silent_loss() {
+        let inst = Instance::new(&format!("pinbox-cap-{}", std::process::id())).unwrap();
+        let inbox = ProcessInbox::start(&inst, 2).unwrap();
+        let user = inbox.user_id("u0");
+        let node = create_node("pinbox-cap-u", false).unwrap();
+        let mut me =
+            Endpoint::open_in_process_inbox(&inst, user.clone(), &inbox, PortsOf::Own(node))
+                .unwrap();
+        let to = Address::User(user);
+        let mut systems: Vec<Endpoint> = (0..3)
+            .map(|i| {
+                let node = create_node("pinbox-cap-s", false).unwrap();
+                Endpoint::open(&inst, Address::System(format!("s{i}")), node).unwrap()
+            })
+            .collect();
+        assert!(systems[0].send(&to, b"0").is_ok());
+        assert!(systems[1].send(&to, b"1").is_ok());
+        let third = systems[2].send(&to, b"2");
+        assert!(
+            matches!(
+                third,
+                Err(TransportError::Send { .. } | TransportError::Service { .. })
+            ),
+            "{third:?}"
+        );
+        let got: Vec<Vec<u8>> = frames(&mut me, 2).into_iter().map(|(f, _)| f).collect();
+        assert_eq!(got, [b"0".to_vec(), b"1".to_vec()]);
     }
 }
