@@ -569,7 +569,7 @@ impl World {
                         f.local_user_gone(&u);
                         b.user_died(self.now, &u);
                     }
-                    Address::Broker | Address::Relay(_) => {}
+                    Address::Broker | Address::Relay(_) | Address::Process(_) => {}
                 }
             }
         }
