@@ -1151,7 +1151,7 @@ impl FedCore {
         now: Duration,
     ) {
         self.stats.hosts_lost += 1;
-        tracing::info!(
+        tracing::warn!(
             host,
             "federation: host left; its services, requests and sessions end"
         );
@@ -1503,6 +1503,7 @@ impl FedCore {
             .map(|(k, _)| k.clone())
             .collect();
         for (user, session) in stale {
+            tracing::warn!(host = from, %user, %session, "federation: a host no longer holds a session of a user here: ended");
             self.far.remove(&(user.clone(), session));
             self.far_session_lost(user, session);
         }
