@@ -112,11 +112,8 @@ fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Resul
     // Local users share their process's inbox unless told otherwise.
     let shared = match (&a.remote.remote, a.own_inboxes) {
         (None, false) => Some(
-            muster_shared::ipc::ProcessInbox::of_this_process(
-                inst,
-                muster_shared::ipc::MAX_PROCESS_INBOX_PEERS,
-            )
-            .context("opening the inbox this process's users share")?,
+            muster_shared::ipc::ProcessInbox::of_this_process(inst, Default::default())
+                .context("opening the inbox this process's users share")?,
         ),
         _ => None,
     };

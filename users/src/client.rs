@@ -233,28 +233,6 @@ impl UserClient {
         Ok(client)
     }
 
-    /// [`UserClient::start_shared`] for a user reached at `inbox`, the inbox this
-    /// process's users share ([`UserClient::connect_in`]): it keeps neither an inbox
-    /// nor a bell of its own, and the broker and the systems hold one pair of ports for
-    /// all of the process's users.
-    pub fn start_shared_in(
-        inst: &Instance,
-        opts: &ConnectOptions,
-        prefix: &str,
-        share: &PortShare,
-        inbox: &ProcessInbox,
-    ) -> Result<Self, UserError> {
-        let mut client = Self::local(inst, opts, shared_id(prefix, inbox), |me| {
-            let Address::User(user) = me else {
-                unreachable!("a user's address")
-            };
-            Endpoint::open_in_process_inbox(inst, user, inbox, PortsOf::Shared(share))
-        })?;
-        client.core.hello();
-        client.flush();
-        Ok(client)
-    }
-
     /// A local user `id`, its endpoint made by `open`, not yet greeted.
     fn local(
         inst: &Instance,

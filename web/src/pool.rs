@@ -1,16 +1,14 @@
 //! The threads that drive the hubs. Each owns the broker connections of the hubs it
 //! was given: one iceoryx2 node and one set of ports to the broker and to each system,
-//! shared by its users (the broker and the systems tell users apart by the user ids in
-//! the frames and hold a process to its pid), and one epoll over every user's
-//! descriptor. Every user of the process is reached at one inbox the process's users
-//! share ([`ProcessInbox`]): the broker and the systems hold one pair of ports for the
-//! web server, not one per person signed in. A few hundred people signed in are then a few
+//! shared by its users (each keeps its own inbox and bell: the broker and the systems
+//! tell users apart by the user ids in the frames and hold a process to its pid), and one
+//! epoll over every user's descriptor. A few hundred people signed in are then a few
 //! threads and about 22–26 descriptors each, where a thread and a node per user took one
 //! thread and about 48 descriptors each: 500 people did not fit the descriptor limit,
 //! and their 500 threads queued for the cores behind everything else.
 
 use crate::hub::{eventfd, Run, Start};
-use muster_shared::ipc::{create_node, PortShare, ProcessInbox};
+use muster_shared::ipc::{create_node, PortShare};
 use muster_shared::reactor::Reactor;
 use muster_shared::Instance;
 use muster_users::{ConnectOptions, UserClient, UserError, Wake};
@@ -27,9 +25,6 @@ use std::time::{Duration, Instant};
 const HOUSEKEEPING: Duration = Duration::from_secs(1);
 /// The longest a worker spends starting new users before it looks at the others.
 const START_BUDGET: Duration = Duration::from_millis(2);
-/// Most writers to the inbox the web process's users share: the broker and every
-/// system they hold sessions with (about 21 KiB each, 10 MiB in all).
-const WEB_INBOX_WRITERS: usize = 512;
 /// The worker's own token in its reactor (new hubs, stop); hubs' tokens follow.
 const TOKEN_WORKER: usize = 0;
 
@@ -51,9 +46,6 @@ impl Pool {
     /// `threads` workers for the hubs of instance `inst`.
     pub fn new(inst: &Instance, threads: usize) -> Result<Pool, String> {
         let mut workers = Vec::new();
-        // Its people may hold sessions with any of the instance's systems.
-        let inbox = ProcessInbox::of_this_process(inst, WEB_INBOX_WRITERS)
-            .map_err(|e| format!("the inbox the users share: {e}"))?;
         for i in 0..threads.max(1) {
             let (tx, rx) = mpsc::channel();
             let wake = Arc::new(eventfd().map_err(|e| format!("eventfd: {e}"))?);
@@ -61,7 +53,6 @@ impl Pool {
             let stop = Arc::new(AtomicBool::new(false));
             let mut w = Work {
                 inst: inst.clone(),
-                inbox: inbox.clone(),
                 index: i,
                 rx,
                 wake: wake.clone(),
@@ -135,8 +126,6 @@ struct Slot {
 /// A worker thread's state.
 struct Work {
     inst: Instance,
-    /// The inbox every user of this process is reached at.
-    inbox: Arc<ProcessInbox>,
     index: usize,
     rx: mpsc::Receiver<Start>,
     wake: Arc<OwnedFd>,
@@ -307,7 +296,7 @@ impl Work {
             watch_list: false,
         };
         let prefix = format!("web-{}-", start.user);
-        let made = UserClient::start_shared_in(&self.inst, &opts, &prefix, share, &self.inbox)
+        let made = UserClient::start_shared(&self.inst, &opts, &prefix, share)
             .map_err(|e| e.to_string())
             .and_then(|client| {
                 reactor

@@ -90,6 +90,25 @@ pub struct ProcessInbox {
     thread: Option<JoinHandle<()>>,
 }
 
+/// How big a [`ProcessInbox`] is: each possible writer costs its reader about 80 bytes
+/// a frame it may have waiting (about 21 KiB at the default 256).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ProcessInboxSize {
+    /// Most writers at once.
+    pub writers: usize,
+    /// Most frames one writer may have waiting.
+    pub frames_per_writer: usize,
+}
+
+impl Default for ProcessInboxSize {
+    fn default() -> Self {
+        ProcessInboxSize {
+            writers: super::MAX_PROCESS_INBOX_PEERS,
+            frames_per_writer: super::PROCESS_INBOX_BUFFER,
+        }
+    }
+}
+
 /// Frames a [`ProcessInbox`] could not hand to a user, so far.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ProcessInboxStats {
@@ -105,13 +124,16 @@ const TOKEN_BELL: usize = 0;
 const TOKEN_STOP: usize = 1;
 
 impl ProcessInbox {
-    /// Creates this process's shared inbox on `inst`, open to at most `writers`
-    /// writers (the broker and the systems its users hold sessions with; each costs
-    /// the reader about 21 KiB; [`super::MAX_PROCESS_INBOX_PEERS`] suits a harness's process of
-    /// 16 users), and starts its reading thread.
-    pub fn start(inst: &Instance, writers: usize) -> Result<Self, TransportError> {
+    /// Creates this process's shared inbox on `inst` and starts its reading thread.
+    /// `size`: how many writers it takes (the broker and the systems its users hold
+    /// sessions with) and how many frames each may have waiting (a system's update to
+    /// every user of the process it serves comes in one burst; a frame past it is
+    /// refused as to a full inbox, and a data update lost). [`ProcessInboxSize::default`]
+    /// suits a harness's process of 16 users.
+    pub fn start(inst: &Instance, size: ProcessInboxSize) -> Result<Self, TransportError> {
         let limits = InboxLimits {
-            max_publishers: writers.max(2),
+            max_publishers: size.writers.max(2),
+            buffer: size.frames_per_writer.max(1),
             ..InboxLimits::for_addr(&Address::Process(0))
         };
         let pid = std::process::id();
@@ -161,12 +183,12 @@ impl ProcessInbox {
         }
     }
 
-    /// This process's shared inbox on `inst`: the one already open, or a new one for
-    /// `writers` ([`ProcessInbox::start`]). A process has one per instance (its name is
+    /// This process's shared inbox on `inst`: the one already open, or a new one of
+    /// `size` ([`ProcessInbox::start`]). A process has one per instance (its name is
     /// the pid's), however many parts of it host users.
     pub fn of_this_process(
         inst: &Instance,
-        writers: usize,
+        size: ProcessInboxSize,
     ) -> Result<Arc<ProcessInbox>, TransportError> {
         static OPEN: Mutex<Vec<(Instance, Weak<ProcessInbox>)>> = Mutex::new(Vec::new());
         let mut open = lock(&OPEN);
@@ -178,7 +200,7 @@ impl ProcessInbox {
         {
             return Ok(inbox);
         }
-        let inbox = Arc::new(ProcessInbox::start(inst, writers)?);
+        let inbox = Arc::new(ProcessInbox::start(inst, size)?);
         open.push((inst.clone(), Arc::downgrade(&inbox)));
         Ok(inbox)
     }
@@ -336,7 +358,7 @@ mod tests {
     #[test]
     fn a_processs_users_share_one_inbox_each_getting_its_own_frames_in_order() {
         let inst = Instance::new(&format!("pinbox-test-{}", std::process::id())).unwrap();
-        let inbox = ProcessInbox::start(&inst, crate::ipc::MAX_PROCESS_INBOX_PEERS).unwrap();
+        let inbox = ProcessInbox::start(&inst, ProcessInboxSize::default()).unwrap();
         let pid = std::process::id();
         assert_eq!(inbox.address(), Address::Process(pid));
         let ids: Vec<UserId> = (0..3).map(|i| inbox.user_id(&format!("u{i}"))).collect();
@@ -456,7 +478,11 @@ mod tests {
     #[test]
     fn a_writer_past_the_shared_inboxs_size_gets_an_error_not_a_silent_loss() {
         let inst = Instance::new(&format!("pinbox-cap-{}", std::process::id())).unwrap();
-        let inbox = ProcessInbox::start(&inst, 2).unwrap();
+        let size = ProcessInboxSize {
+            writers: 2,
+            ..ProcessInboxSize::default()
+        };
+        let inbox = ProcessInbox::start(&inst, size).unwrap();
         let user = inbox.user_id("u0");
         let node = create_node("pinbox-cap-u", false).unwrap();
         let mut me =
