@@ -109,11 +109,15 @@ fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Resul
         Some(UserVerb::Idle { duration }) => *duration,
         _ => None,
     };
-    // Local users share their process's inbox unless told otherwise.
+    // Local users share their process's inbox unless told otherwise, sized for a burst
+    // to all of them.
     let shared = match (&a.remote.remote, a.own_inboxes) {
         (None, false) => Some(
-            muster_shared::ipc::ProcessInbox::of_this_process(inst, Default::default())
-                .context("opening the inbox this process's users share")?,
+            muster_users::ProcessInbox::of_this_process(
+                inst,
+                muster_users::ProcessInboxSize::for_users(a.count as usize),
+            )
+            .context("opening the inbox this process's users share")?,
         ),
         _ => None,
     };

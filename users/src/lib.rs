@@ -12,4 +12,4 @@ pub use crate::client::{ConnectOptions, UserClient, UserError, Wake};
 pub use crate::conn::RemoteConn;
 pub use crate::core::{UserCore, UserEvent, UserOutput};
 pub use crate::remote::{Faults, RemoteOptions};
-pub use muster_shared::ipc::ProcessInbox;
+pub use muster_shared::ipc::{ProcessInbox, ProcessInboxSize};

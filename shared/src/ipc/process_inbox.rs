@@ -109,6 +109,26 @@ impl Default for ProcessInboxSize {
     }
 }
 
+impl ProcessInboxSize {
+    /// Frames waiting per writer for each user of the process, past the default's: a
+    /// system's tick to every session it serves there comes in one burst, and a user
+    /// may hold two sessions of one system (a link: a data service and a command one).
+    pub const FRAMES_PER_USER: usize = 2;
+
+    /// The size for a process of `users` users: the default, with room for a burst of
+    /// [`ProcessInboxSize::FRAMES_PER_USER`] frames to each of them from one writer
+    /// (more than the default's 256 frames past 128 users).
+    pub fn for_users(users: usize) -> Self {
+        let d = Self::default();
+        ProcessInboxSize {
+            frames_per_writer: d
+                .frames_per_writer
+                .max(users.saturating_mul(Self::FRAMES_PER_USER)),
+            ..d
+        }
+    }
+}
+
 /// Frames a [`ProcessInbox`] could not hand to a user, so far.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ProcessInboxStats {
@@ -507,5 +527,43 @@ mod tests {
         );
         let got: Vec<Vec<u8>> = frames(&mut me, 2).into_iter().map(|(f, _)| f).collect();
         assert_eq!(got, [b"0".to_vec(), b"1".to_vec()]);
+    }
+
+    #[test]
+    fn a_process_of_many_users_is_sized_for_a_burst_to_all_of_them_from_one_writer() {
+        let d = ProcessInboxSize::default();
+        assert_eq!(ProcessInboxSize::for_users(16), d);
+        assert_eq!(ProcessInboxSize::for_users(128), d);
+        let big = ProcessInboxSize::for_users(300);
+        assert_eq!((big.writers, big.frames_per_writer), (d.writers, 600));
+        // A burst of two frames to each of 300 users from one system, written while the
+        // reading thread cannot hand any over (as when it waits for a core), reaches
+        // every user whole and in order. At the default size 600 frames do not fit.
+        let inst = Instance::new(&format!("pinbox-burst-{}", std::process::id())).unwrap();
+        let inbox = ProcessInbox::start(&inst, big).unwrap();
+        let mut users: Vec<Endpoint> = (0..300)
+            .map(|i| {
+                let node = create_node(&format!("pinbox-burst-u{i}"), false).unwrap();
+                let id = inbox.user_id(&format!("u{i}"));
+                Endpoint::open_in_process_inbox(&inst, id, &inbox, PortsOf::Own(node)).unwrap()
+            })
+            .collect();
+        let node = create_node("pinbox-burst-s", false).unwrap();
+        let mut system = Endpoint::open(&inst, Address::System("s".into()), node).unwrap();
+        system.open_ports(users[0].me()).unwrap();
+        let held = lock(&inbox.shared.mailboxes);
+        let mut refused = 0;
+        for round in 0..2u8 {
+            for u in &users {
+                refused += usize::from(system.send(u.me(), &[round]).is_err());
+            }
+        }
+        drop(held);
+        assert_eq!(refused, 0);
+        for u in &mut users {
+            let got: Vec<Vec<u8>> = frames(u, 2).into_iter().map(|(f, _)| f).collect();
+            assert_eq!(got, [vec![0], vec![1]]);
+        }
+        assert_eq!(inbox.stats(), ProcessInboxStats::default());
     }
 }
