@@ -4,8 +4,7 @@
 use crate::core::{UserCore, UserEvent, UserOutput};
 use crate::remote::{RemoteLink, RemoteOptions};
 use muster_shared::ipc::{
-    bell, create_node, Endpoint, ListReader, PortShare, PortsOf, Presence, ProcessInbox,
-    TransportError,
+    bell, create_node, Endpoint, ListReader, PortShare, Presence, ProcessInbox, TransportError,
 };
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToUser};
@@ -204,11 +203,10 @@ impl UserClient {
         inbox: &ProcessInbox,
     ) -> Result<Self, UserError> {
         let node = create_node(&format!("muster-user-{}", std::process::id()), false)?;
-        let client = Self::local(inst, opts, shared_id(prefix, inbox), |me| {
-            let Address::User(user) = me else {
-                unreachable!("a user's address")
-            };
-            Endpoint::open_in_process_inbox(inst, user, inbox, PortsOf::Own(node))
+        let id = shared_id(prefix, inbox);
+        let user = id.clone();
+        let client = Self::local(inst, opts, id, |_| {
+            Endpoint::open_in_process_inbox(inst, user, inbox, node)
         })?;
         client.greet(opts, || UserError::NoBroker(inst.to_string()))
     }

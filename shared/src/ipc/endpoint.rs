@@ -171,15 +171,6 @@ impl PortShare {
     }
 }
 
-/// The ports an endpoint writes to peers through: its own, on a node, or a thread's
-/// shared ones.
-pub enum PortsOf<'a> {
-    /// Ports of its own, on this node.
-    Own(Node<Ipc>),
-    /// The thread's shared ports ([`Endpoint::open_shared`]).
-    Shared(&'a PortShare),
-}
-
 /// One process's inbox and bell, plus cached ports to its peers.
 pub struct Endpoint {
     inst: Instance,
@@ -355,21 +346,17 @@ impl Endpoint {
     /// The endpoint of `user`, a user of this process whose frames arrive in the inbox
     /// its users share (`inbox`; the user's id names it, see
     /// [`crate::types::UserId::process_inbox`]), writing to peers through ports of its
-    /// own on `node`, or through `share`'s. It owns no inbox nor bell: its bell is its
-    /// mailbox's.
+    /// own on `node`. It owns no inbox nor bell: its bell is its mailbox's.
     pub fn open_in_process_inbox(
         inst: &Instance,
         user: crate::types::UserId,
         inbox: &ProcessInbox,
-        ports: PortsOf<'_>,
+        node: Node<Ipc>,
     ) -> Result<Self, TransportError> {
         let me = Address::User(user.clone());
         let mailbox = inbox.join(&user)?;
-        let ports = match ports {
-            PortsOf::Own(node) => Rc::new(RefCell::new(Ports::new(inst, Rc::new(node), false))),
-            PortsOf::Shared(share) => share.0.clone(),
-        };
-        let node = ports.borrow().node.clone();
+        let node = Rc::new(node);
+        let ports = Rc::new(RefCell::new(Ports::new(inst, node.clone(), false)));
         Ok(Endpoint {
             inst: inst.clone(),
             me,

@@ -359,7 +359,7 @@ fn hand_over(shared: &Shared, bytes: &[u8], pid: Option<u32>) {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-    use crate::ipc::{bell, PortsOf};
+    use crate::ipc::bell;
     use std::time::{Duration, Instant};
 
     /// The next `n` frames `e` gets, waiting up to 5 s for them.
@@ -387,20 +387,19 @@ mod tests {
             .iter()
             .map(|id| {
                 let node = create_node("pinbox-test-u", false).unwrap();
-                Endpoint::open_in_process_inbox(&inst, id.clone(), &inbox, PortsOf::Own(node))
-                    .unwrap()
+                Endpoint::open_in_process_inbox(&inst, id.clone(), &inbox, node).unwrap()
             })
             .collect();
         assert_eq!(inbox.users(), 3);
         // A second mailbox for one user, and a user of another process's inbox: refused.
         let node = create_node("pinbox-test-x", false).unwrap();
         assert!(matches!(
-            Endpoint::open_in_process_inbox(&inst, ids[0].clone(), &inbox, PortsOf::Own(node)),
+            Endpoint::open_in_process_inbox(&inst, ids[0].clone(), &inbox, node),
             Err(TransportError::InUse(_))
         ));
         let node = create_node("pinbox-test-y", false).unwrap();
         let other = UserId::in_process_inbox("u9", pid + 1);
-        assert!(Endpoint::open_in_process_inbox(&inst, other, &inbox, PortsOf::Own(node)).is_err());
+        assert!(Endpoint::open_in_process_inbox(&inst, other, &inbox, node).is_err());
 
         let s = Address::System("s".into());
         let mut system = Endpoint::open(
@@ -505,9 +504,7 @@ mod tests {
         let inbox = ProcessInbox::start(&inst, size).unwrap();
         let user = inbox.user_id("u0");
         let node = create_node("pinbox-cap-u", false).unwrap();
-        let mut me =
-            Endpoint::open_in_process_inbox(&inst, user.clone(), &inbox, PortsOf::Own(node))
-                .unwrap();
+        let mut me = Endpoint::open_in_process_inbox(&inst, user.clone(), &inbox, node).unwrap();
         let to = Address::User(user);
         let mut systems: Vec<Endpoint> = (0..3)
             .map(|i| {
@@ -545,7 +542,7 @@ mod tests {
             .map(|i| {
                 let node = create_node(&format!("pinbox-burst-u{i}"), false).unwrap();
                 let id = inbox.user_id(&format!("u{i}"));
-                Endpoint::open_in_process_inbox(&inst, id, &inbox, PortsOf::Own(node)).unwrap()
+                Endpoint::open_in_process_inbox(&inst, id, &inbox, node).unwrap()
             })
             .collect();
         let node = create_node("pinbox-burst-s", false).unwrap();
