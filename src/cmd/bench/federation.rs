@@ -214,9 +214,25 @@ fn list_propagation(
         Ok(c.list()?.find(&far).map_or(u16::MAX, |e| e.in_use))
     };
     let mut h = hist();
-    // The sessions of the rows before have all ended first.
+    // The sessions of the rows before have all ended first. b's user is driven
+    // meanwhile: its last ends may be held back for `t1`'s full inbox (`t1` busy with
+    // the loaded rows' ticks), and go only when it next turns (they stayed held, and
+    // counted in use, while only a's user was polled here).
     let mut settle = hist();
-    wait_for(on_a, |c| Ok(in_use(c)? == 0), Instant::now(), &mut settle).with_context(|| {
+    let drive_b = |on_b: &mut UserClient| -> anyhow::Result<()> {
+        while !matches!(on_b.poll()?, muster_users::Wake::Timeout) {}
+        Ok(())
+    };
+    wait_for(
+        on_a,
+        |c| {
+            drive_b(on_b)?;
+            Ok(in_use(c)? == 0)
+        },
+        Instant::now(),
+        &mut settle,
+    )
+    .with_context(|| {
         format!(
             "{far} still in use ({:?} in a's list, {:?} in b's) after the request rows",
             in_use(on_a).ok(),
