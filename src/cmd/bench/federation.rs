@@ -219,14 +219,10 @@ fn list_propagation(
     // the loaded rows' ticks), and go only when it next turns (they stayed held, and
     // counted in use, while only a's user was polled here).
     let mut settle = hist();
-    let drive_b = |on_b: &mut UserClient| -> anyhow::Result<()> {
-        while !matches!(on_b.poll()?, muster_users::Wake::Timeout) {}
-        Ok(())
-    };
     wait_for(
         on_a,
         |c| {
-            drive_b(on_b)?;
+            while !matches!(on_b.poll()?, muster_users::Wake::Timeout) {}
             Ok(in_use(c)? == 0)
         },
         Instant::now(),
