@@ -22,18 +22,20 @@ fn standby(f: &mut Fed) -> usize {
     s
 }
 
-/// The standby's next event named `name` (it prints one JSON line per event).
+/// The standby's next event named `name` (it prints one JSON line per event); the
+/// events passed over on the way are named if it never comes.
 fn next_event(f: &mut Fed, proc: usize, name: &str) -> Value {
     let deadline = Instant::now() + 15 * SEC;
+    let mut passed = Vec::new();
     loop {
         let left = deadline.saturating_duration_since(Instant::now());
-        let v = f
-            .proc(proc)
-            .json(left)
-            .unwrap_or_else(|| panic!("no {name:?} event from the standby"));
+        let v = f.proc(proc).json(left).unwrap_or_else(|| {
+            panic!("no {name:?} event from the standby (it said before: {passed:?})")
+        });
         if v["event"] == name {
             return v;
         }
+        passed.push(v);
     }
 }
 
@@ -164,6 +166,41 @@ fn a_primary_whose_loop_hangs_while_its_process_lives_is_taken_over() {
     let (code, out) = f.run(&["user", "request", "t1/s0", "--json"], 20 * SEC);
     assert_eq!(code, 0, "the new primary grants: {out}");
     assert_unbroken(&f.proc(data).all_json(30 * SEC), 200);
+}
+
+#[test]
+fn a_standby_started_before_its_primary_follows_it_instead_of_starting_cold() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let mut f = Fed::new("fo-early");
+    // Started first, the standby sees no primary for longer than its 100 ms deadline
+    // (as on a loaded host, when `muster up` starts both at once): it waits for one.
+    let s = f.broker(&["--standby"]);
+    std::thread::sleep(Duration::from_millis(600));
+    let primary = f.broker(&[]);
+    let v = next_event(&mut f, s, "in_sync");
+    assert_eq!(v["primary"], f.proc(primary).pid(), "{v}");
+    // And it is a standby of that primary: it takes over when the primary dies.
+    f.system("t1", &["--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
+    f.proc(primary).signal(libc::SIGKILL);
+    let took = next_event(&mut f, s, "took_over");
+    assert_eq!(took["why"], "died", "{took}");
+    assert_eq!(took["replicated"], true, "{took}");
+    next_event(&mut f, s, "serving");
+    assert!(find(&f.list(), "t1/s0").is_some());
+}
+
+#[test]
+fn a_standby_with_no_broker_to_follow_serves_the_instance_itself() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let mut f = Fed::new("fo-alone");
+    let s = f.broker(&["--standby"]);
+    let took = next_event(&mut f, s, "took_over");
+    assert_eq!(took["why"], "noprimary", "{took}");
+    assert_eq!(took["replicated"], false, "{took}");
+    next_event(&mut f, s, "serving");
+    f.system("t1", &["--rate", "20"]);
+    f.wait_list(10 * SEC, |l| l.len() == 1);
 }
 
 #[test]

@@ -12,8 +12,8 @@ use crate::udp::{FrontEvent, UdpConfig, UdpError, UdpFront};
 use crate::watchdog::Phase;
 use muster_shared::fence::{Fence, Holder};
 use muster_shared::ipc::{
-    bell, create_node, BellRinger, Endpoint, EventWriter, ListWriter, Presence, ReplicaReader,
-    ReplicaWriter, TransportError,
+    bell, create_node, inbox_reader_pids, BellRinger, Endpoint, EventWriter, ListWriter, Presence,
+    ReplicaReader, ReplicaWriter, TransportError,
 };
 use muster_shared::names::{Address, Instance};
 use muster_shared::protocol::{decode, ToBroker, ToSystem, ToUser};

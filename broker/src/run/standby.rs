@@ -229,12 +229,58 @@ const PREPARE_EVERY: Duration = Duration::from_secs(1);
 /// How long a standby without a copy of the state waits on a silent primary.
 const UNSYNCED_PATIENCE: Duration = Duration::from_secs(2);
 
+/// How long a standby with no primary of record waits for a broker that reads the
+/// broker's inbox (starting) to claim the fence.
+const STARTING_PATIENCE: Duration = Duration::from_secs(10);
+
 /// How often an unsynchronized standby asks the primary for its state.
 const ASK_EVERY: Duration = Duration::from_millis(100);
 
 const STANDBY_REPLICA: usize = 0;
 const STANDBY_SIGNAL: usize = 1;
 const STANDBY_PRIMARY: usize = 2;
+
+/// What a standby that has no copy of its primary's state yet did to get one: told
+/// once, when it has waited [`UNSYNCED_REPORT`] (an image takes milliseconds).
+struct Unsynced {
+    since: Instant,
+    /// Asks rung on the primary's bell, and asks that found no bell to ring.
+    asks: u64,
+    unrung: u64,
+    /// The primary's record parts read meanwhile (heartbeats, journal, images).
+    records: u64,
+    told: bool,
+}
+
+/// How long a standby goes without the primary's state before it says so.
+const UNSYNCED_REPORT: Duration = Duration::from_secs(5);
+
+impl Unsynced {
+    fn new() -> Self {
+        Unsynced {
+            since: Instant::now(),
+            asks: 0,
+            unrung: 0,
+            records: 0,
+            told: false,
+        }
+    }
+
+    fn report(&mut self, primary: u32, refused: u64) {
+        if !self.told && self.since.elapsed() >= UNSYNCED_REPORT {
+            self.told = true;
+            tracing::warn!(
+                primary,
+                waited_ms = self.since.elapsed().as_millis() as u64,
+                asks = self.asks,
+                asks_with_no_bell = self.unrung,
+                records = self.records,
+                refused,
+                "standby still without the primary's state"
+            );
+        }
+    }
+}
 
 /// Follows the primary until this standby has taken its term (`Some`) or was told to
 /// stop (`None`).
@@ -263,6 +309,8 @@ fn follow(
     let mut queued_at_heard: Option<Duration> = None;
     let mut queued_read: Option<Instant> = None;
     let mut starved_logged = false;
+    let mut starting_logged = false;
+    let mut unsynced = Unsynced::new();
     tracing::info!(instance = %inst, deadline_ms = deadline.as_millis() as u64, "standby following");
     loop {
         // The primary of record: a new one (a cold start, or another standby's
@@ -288,6 +336,7 @@ fn follow(
             heard = Instant::now();
             asked = None;
             logged_sync = false;
+            unsynced = Unsynced::new();
         }
         let (holder, pidfd) = watched.as_ref().expect("set above");
         let holder = *holder;
@@ -301,7 +350,31 @@ fn follow(
             deadline.max(UNSYNCED_PATIENCE)
         };
         match pidfd {
-            None => why = Some(Why::NoPrimary).filter(|_| heard.elapsed() >= deadline),
+            // No live primary of record. A standby started beside its primary (as `muster
+            // up` starts them) may look before the primary has claimed the fence: one
+            // that is starting already reads the broker's inbox, and is followed once it
+            // claims. Only with no broker process, for as long as a standby without a
+            // copy waits on a silent primary, does this one start cold; a broker that
+            // has not claimed the fence within [`STARTING_PATIENCE`] is not waited for.
+            None if heard.elapsed() >= patience => {
+                let me = std::process::id();
+                let starting = inbox_reader_pids(node, inst, &Address::Broker)
+                    .into_iter()
+                    .find(|p| *p != me && muster_shared::reactor::process_alive(*p))
+                    .filter(|_| heard.elapsed() < STARTING_PATIENCE);
+                match starting {
+                    Some(pid) if !starting_logged => {
+                        starting_logged = true;
+                        tracing::info!(
+                            pid,
+                            "a broker is starting: waiting for it to claim the fence"
+                        );
+                    }
+                    Some(_) => {}
+                    None => why = Some(Why::NoPrimary),
+                }
+            }
+            None => {}
             Some(p) if p.exited() => why = Some(Why::Died),
             Some(p)
                 if heard.elapsed() >= patience
@@ -358,7 +431,10 @@ fn follow(
         }
         if why.is_none() && !follower.synced() && asked.is_none_or(|t| t.elapsed() >= ASK_EVERY) {
             asker.reconnect(node);
-            let _ = asker.ring(bell::STANDBY);
+            match asker.ring(bell::STANDBY) {
+                Ok(()) => unsynced.asks += 1,
+                Err(_) => unsynced.unrung += 1,
+            }
             asked = Some(Instant::now());
         }
         let mut stepped_down = false;
@@ -372,6 +448,10 @@ fn follow(
             Ok(_) => {}
             Err(e) => tracing::warn!("{e}"),
         });
+        unsynced.records += got as u64;
+        if !follower.synced() {
+            unsynced.report(holder.pid, reader.refused());
+        }
         // Any record (a heartbeat at least) means the primary is not hung.
         if got > 0 {
             heard = Instant::now();

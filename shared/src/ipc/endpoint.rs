@@ -306,6 +306,20 @@ pub(super) fn subscriber_pids(
     pids
 }
 
+/// The pids of the processes reading `of`'s inbox, for a process without an endpoint
+/// (a standby looking for a primary that is starting); none if the inbox does not exist.
+pub fn inbox_reader_pids(node: &Node<Ipc>, inst: &Instance, of: &Address) -> Vec<u32> {
+    service_name(&inst.inbox(&of.inbox_owner()))
+        .ok()
+        .and_then(|name| {
+            node.service_builder(&name)
+                .publish_subscribe::<[u8]>()
+                .open()
+                .ok()
+        })
+        .map_or_else(Vec::new, |svc| subscriber_pids(&svc))
+}
+
 /// The pids behind an event service's listeners.
 pub(super) fn listener_pids(
     svc: &iceoryx2::service::port_factory::event::PortFactory<Ipc>,
@@ -527,32 +541,13 @@ impl Endpoint {
     /// The pids of the processes reading `of`'s inbox.
     pub fn reader_pids(&mut self, of: &Address) -> Vec<u32> {
         let of = &*of.inbox_owner();
-        fn pids(
-            svc: &iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, [u8], ()>,
-        ) -> Vec<u32> {
-            let mut out = Vec::new();
-            svc.dynamic_config().list_subscribers(|d| {
-                out.extend(node_pid(&d.node_id));
-                iceoryx2::prelude::CallbackProgression::Continue
-            });
-            out
-        }
         if let Some(peer) = self.ports.borrow().peers.get(of) {
-            return pids(&peer.inbox);
+            return subscriber_pids(&peer.inbox);
         }
         if let (true, Inbox::Own(o)) = (*of == self.me, &self.inbox) {
-            return pids(&o.svc);
+            return subscriber_pids(&o.svc);
         }
-        let Some(svc) = service_name(&self.inst.inbox(of)).ok().and_then(|name| {
-            self.node
-                .service_builder(&name)
-                .publish_subscribe::<[u8]>()
-                .open()
-                .ok()
-        }) else {
-            return Vec::new();
-        };
-        pids(&svc)
+        inbox_reader_pids(&self.node, &self.inst, of)
     }
 
     /// Receive errors so far (see [`Endpoint::recv`]).
