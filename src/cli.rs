@@ -1262,6 +1262,11 @@ pub struct SyntheticArgs {
     /// Update rate, Hz of scenario time (see `--time-scale`).
     #[arg(long, default_value_t = 10.0)]
     pub rate: f64,
+    /// Latch the data services (ROS 2's transient-local durability): they update at
+    /// their rate even with no session, the broker keeps each one's newest value, and a
+    /// new session gets it with its grant, as its update 0.
+    #[arg(long)]
+    pub latched: bool,
     /// On stopping, print one JSON line per service: quota, most sessions at once,
     /// grants and refusals.
     #[arg(long)]
@@ -1652,6 +1657,10 @@ pub struct StressArgs {
     /// users share (`muster user --own-inboxes`), to compare the two.
     #[arg(long)]
     pub own_inboxes: bool,
+    /// The data systems latch their services (`muster system synthetic --latched`): a
+    /// new session gets its service's newest value from the broker with its grant.
+    #[arg(long)]
+    pub latched: bool,
 }
 
 /// The size of a load run: how many user processes, services and systems.

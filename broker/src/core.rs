@@ -692,6 +692,10 @@ impl Broker {
             | ToBroker::Sessions { system, .. } => {
                 self.systems.get(system).is_none_or(|s| s.pid == pid)
             }
+            // A value kept for the system's new sessions: from the system registered.
+            ToBroker::Latest { system, .. } => {
+                self.systems.get(system).is_some_and(|s| s.pid == pid)
+            }
             ToBroker::Request { user, .. }
             | ToBroker::Cancel { user, .. }
             | ToBroker::LinkOpened { user, .. }
@@ -710,6 +714,10 @@ impl Broker {
 
     /// Handles one message.
     pub fn handle(&mut self, now: Duration, msg: ToBroker) {
+        if matches!(msg, ToBroker::Latest { .. }) {
+            // A latched value is the shell's to keep (`run::latched`), not state.
+            return;
+        }
         self.journal(now, || Op::Handle(msg.clone()));
         match msg {
             ToBroker::Register {
@@ -738,6 +746,7 @@ impl Broker {
                 self.dispatch_queue(now, &id);
             }
             ToBroker::Limit { system, limit } => self.set_limit(now, &system, limit),
+            ToBroker::Latest { .. } => {}
             ToBroker::Unregister { system } => {
                 if self.systems.contains_key(&system) {
                     self.remove_system(&system, Removal::Unregistered);

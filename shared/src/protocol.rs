@@ -406,6 +406,21 @@ mod to_broker {
             /// The action.
             op: Operation,
         },
+        /// A latched data service's newest update, sent by its system as it publishes
+        /// it: the broker keeps the last one and hands it to each new session of the
+        /// service with its grant, as its update 0 (ROS 2's transient-local durability).
+        /// Kept by the broker's shell, never by its core (not replicated: a standby
+        /// that takes over has it again at the service's next update).
+        Latest {
+            /// System name.
+            system: String,
+            /// Service name.
+            service: String,
+            /// When the system published it (CLOCK_MONOTONIC ns).
+            sent_ns: u64,
+            /// The update's [`Payload`], encoded as in a frame.
+            payload: Vec<u8>,
+        },
     }
 
     /// What an operator can do.
@@ -599,6 +614,7 @@ impl ToBroker {
             ToBroker::Restore { .. } => "restore",
             ToBroker::Limit { .. } => "limit",
             ToBroker::Unregister { .. } => "unregister",
+            ToBroker::Latest { .. } => "latest",
             ToBroker::Hello { .. } => "hello",
             ToBroker::Request { .. } => "request",
             ToBroker::Cancel { .. } => "cancel",

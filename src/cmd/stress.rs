@@ -216,6 +216,9 @@ impl Setup {
             if i % 3 == 2 {
                 args.push("--queue");
             }
+            if a.latched && kind == "data" {
+                args.push("--latched");
+            }
             if remote.is_some() {
                 args.extend(["--udp", "127.0.0.1:0"]);
             }

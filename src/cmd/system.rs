@@ -37,7 +37,15 @@ pub fn run(inst: &Instance, cmd: SystemCommand) -> anyhow::Result<ExitCode> {
             }
             let specs = opts.specs();
             validate_registration(&opts.name, &specs)?;
-            let core = SystemCore::new(&opts.name, std::process::id(), specs);
+            let mut core = SystemCore::new(&opts.name, std::process::id(), specs);
+            if a.latched {
+                if opts.kind != muster_shared::types::ServiceKind::Data {
+                    anyhow::bail!("--latched is for data services");
+                }
+                for s in opts.specs() {
+                    core.latch(&s.name);
+                }
+            }
             let run = muster_systems::RunOptions {
                 udp: a.udp,
                 ..Default::default()

@@ -175,6 +175,9 @@ pub struct SystemCore {
     /// after is confirmed and the session ended at once, rather than opened for nobody,
     /// counted in use for good.
     ended_early: VecDeque<(SessionId, UserId, u32)>,
+    /// Data services whose newest update the broker keeps for new sessions
+    /// ([`SystemCore::latch`]).
+    latched: BTreeSet<String>,
     state: BrokerState,
     /// The pid of the broker that registered us (from its `Registered`).
     broker_pid: Option<u32>,
@@ -211,6 +214,7 @@ impl SystemCore {
             served: VecDeque::new(),
             served_set: HashSet::new(),
             ended_early: VecDeque::new(),
+            latched: BTreeSet::new(),
             state: BrokerState::Unregistered,
             broker_pid: None,
             impersonations: 0,
@@ -639,6 +643,27 @@ impl SystemCore {
         });
     }
 
+    /// Latches data service `service` (ROS 2's transient-local durability): each update
+    /// [`SystemCore::publish`] streams also goes to the broker, which keeps the newest
+    /// and hands it to every new session of the service with its grant, as its update 0
+    /// (so a user has the service's value at once, not at this system's next turn).
+    /// `false` if there is no such data service.
+    pub fn latch(&mut self, service: &str) -> bool {
+        let data = self
+            .specs
+            .iter()
+            .any(|s| s.name == service && s.kind == ServiceKind::Data);
+        if data {
+            self.latched.insert(service.to_string());
+        }
+        data
+    }
+
+    /// Whether `service` is latched ([`SystemCore::latch`]).
+    pub fn latched(&self, service: &str) -> bool {
+        self.latched.contains(service)
+    }
+
     /// Streams one data update to every session of `service`. Returns how many got it;
     /// an update too large for a user's path goes to none of those users, and says so
     /// ([`SendError::TooLarge`], counted in [`SystemCore::too_large`]): it is never
@@ -652,6 +677,18 @@ impl SystemCore {
         payload: &Payload,
         sent_ns: u64,
     ) -> Result<usize, SendError> {
+        if self.latched.contains(service) && matches!(self.state, BrokerState::Registered { .. }) {
+            match muster_shared::protocol::encode(payload) {
+                Ok(payload) => self.out.push_back(SystemOutput::ToBroker(ToBroker::Latest {
+                    system: self.name.clone(),
+                    service: service.to_string(),
+                    sent_ns,
+                    payload,
+                })),
+                // Too large for a frame: its sessions' updates will say so below.
+                Err(e) => tracing::debug!(system = %self.name, service, "not latched: {e}"),
+            }
+        }
         self.publish_where(payload, sent_ns, |_, s| s.service == service)
     }
 

@@ -485,6 +485,13 @@ impl Shell {
                 None => out,
             };
             match out {
+                SystemOutput::ToBroker(msg @ ToBroker::Latest { .. }) => {
+                    // The broker wants it only at a grant: written, never rung, and
+                    // dropped like an update when its inbox is full.
+                    if let Err(e) = self.endpoint.send_silent(&Address::Broker, &msg) {
+                        tracing::debug!("latched value not sent: {e}");
+                    }
+                }
                 SystemOutput::ToBroker(msg) => {
                     if !matches!(msg, ToBroker::Register { .. }) {
                         // Session ended, offer answers, withdraw, pong...: held back

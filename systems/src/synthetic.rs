@@ -202,7 +202,9 @@ impl SystemApp for Synthetic {
             ServiceKind::Data => {
                 let names: Vec<String> = core.specs().iter().map(|s| s.name.clone()).collect();
                 for (i, name) in names.iter().enumerate() {
-                    if core.sessions_of(name) > 0 {
+                    // A latched service updates with no session too: its newest value
+                    // waits at the broker for the next one.
+                    if core.sessions_of(name) > 0 || core.latched(name) {
                         for _ in 0..due {
                             // A pose always fits every path.
                             let sent = core.publish(
@@ -253,7 +255,9 @@ impl SystemApp for Synthetic {
     }
 
     fn next_tick(&self, core: &SystemCore) -> Option<Duration> {
-        // Idle costs nothing: tick only while someone holds a session.
-        (core.sessions().next().is_some()).then_some(self.next)
+        // Idle costs nothing: tick only while someone holds a session, or while a
+        // latched service's newest value is kept at the broker.
+        let latched = core.specs().iter().any(|s| core.latched(&s.name));
+        (latched || core.sessions().next().is_some()).then_some(self.next)
     }
 }

@@ -163,6 +163,8 @@ struct SessionInfo {
     /// with its schema, or another host's (whose schema does not cross).
     open: bool,
     last_seq: u64,
+    /// Its update 0 (a latched service's value) came.
+    had_latched: bool,
     gaps: u64,
     /// Of `gaps`, those the system's `Ended` showed (its last frames never came).
     lost_at_end: u64,
@@ -357,6 +359,13 @@ impl UserCore {
             }
             // Another host's system's frames come from this host's broker (its relay),
             // whichever process that is now.
+            // A latched service's update 0 comes from the broker, with the grant.
+            ToUser::Update {
+                session, seq: 0, ..
+            } => self
+                .sessions
+                .get(session)
+                .is_none_or(|s| s.system_pid == pid || from_broker(&mut owner)),
             ToUser::Update { session, .. } | ToUser::Status { session, .. } => {
                 self.sessions.get(session).is_none_or(|s| {
                     s.system_pid == pid || (s.service.remote().is_some() && from_broker(&mut owner))
@@ -890,6 +899,7 @@ impl UserCore {
                 payload: payload.clone(),
                 open: schema.is_some() || service.remote().is_some(),
                 last_seq: 0,
+                had_latched: false,
                 gaps: 0,
                 lost_at_end: 0,
                 link: p.link,
@@ -941,16 +951,25 @@ impl UserCore {
 
     /// Checks a session frame's sequence number: frames for no session, repeated or out
     /// of order are dropped (counted as stale); a jump counts the lost ones as a gap.
-    /// Returns the session's service, the gap and its link.
+    /// Update 0 (a latched service's value, from the broker with the grant) is taken
+    /// once, before any other. Returns the session's service, the gap and its link.
     fn accept_seq(
         &mut self,
         session: SessionId,
         seq: u64,
     ) -> Option<(ServiceId, u64, Option<u64>)> {
-        let Some(s) = self.sessions.get_mut(&session).filter(|s| seq > s.last_seq) else {
+        let Some(s) = self
+            .sessions
+            .get_mut(&session)
+            .filter(|s| seq > s.last_seq || (seq == 0 && s.last_seq == 0 && !s.had_latched))
+        else {
             self.stale_frames += 1;
             return None;
         };
+        if seq == 0 {
+            s.had_latched = true;
+            return Some((s.service.clone(), 0, s.link));
+        }
         let gap = seq - s.last_seq - 1;
         s.gaps += gap;
         s.last_seq = seq;
@@ -961,7 +980,7 @@ impl UserCore {
         let first = self
             .sessions
             .get(&session)
-            .filter(|s| s.last_seq == 0)
+            .filter(|s| s.last_seq == 0 && !s.had_latched)
             .map(|s| s.req);
         let Some((service, gap, link)) = self.accept_seq(session, seq) else {
             return;

@@ -35,6 +35,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 mod cleanup;
 mod handling;
+mod latched;
 mod replication;
 mod standby;
 mod udp_driver;
@@ -171,6 +172,8 @@ struct Shell {
     fed: Option<Federation>,
     /// The event feed, if it could be opened.
     events: Option<EventWriter>,
+    /// The newest value of each latched data service, for its next grant.
+    latched: latched::Latched,
     /// This host's services as listed: the core's list as last taken, with (in a
     /// federation) other hosts' users' links counted (other hosts' lists change the
     /// merged one on their own).
@@ -523,6 +526,7 @@ fn serve(
     };
     let mut shell = Shell {
         events: None,
+        latched: latched::Latched::default(),
         fed,
         local_views: Vec::new(),
         core_views: Vec::new(),
@@ -960,6 +964,15 @@ impl Shell {
                     };
                     self.endpoint.send_control(&Address::User(user), &m);
                 }
+                // A latched value: the shell's to keep, never the core's. Written
+                // unrung, it is not what woke the broker: it does not count as the
+                // frame answered first.
+                Ok(msg @ ToBroker::Latest { .. }) => {
+                    read -= 1;
+                    if core.sender_allowed(pid, &msg) {
+                        self.latched.keep(core, pid, msg);
+                    }
+                }
                 Ok(msg) if core.sender_allowed(pid, &msg) => {
                     if let ToBroker::Request { user, req, .. } = &msg {
                         muster_shared::trace::stamp(Stage::BrokerRecv, user, *req);
@@ -1016,8 +1029,18 @@ impl Shell {
                     return;
                 }
                 muster_shared::trace::stamp(Stage::BrokerRelay, &g.user, g.req);
-                self.endpoint
-                    .send_control(&Address::User(g.user.clone()), &g.message());
+                let to = Address::User(g.user.clone());
+                match self.latched.update_zero(&g) {
+                    // A latched service's newest value goes with the grant, as the
+                    // session's update 0: both written, then one bell, so that the user
+                    // woken reads them together.
+                    Some(zero) => {
+                        self.endpoint.send_control_quiet(&to, &g.message());
+                        self.endpoint.send_control_quiet(&to, &zero);
+                        self.endpoint.ring_now(&to);
+                    }
+                    None => self.endpoint.send_control(&to, &g.message()),
+                }
             }
             // An offer is written at once and its bell rung a moment after the grant
             // that follows it: the user's wake-up does not wait behind the system's

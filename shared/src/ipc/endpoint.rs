@@ -644,6 +644,19 @@ impl Endpoint {
         }
     }
 
+    /// Rings `to`'s bell now for what [`Endpoint::send_control_quiet`] wrote into its
+    /// inbox, instead of at the next [`Endpoint::ring_pending`].
+    pub fn ring_now(&mut self, to: &Address) {
+        let owner = to.inbox_owner().into_owned();
+        let mut ports = self.ports.borrow_mut();
+        if let Some(i) = ports.pending_bells.iter().position(|p| *p == owner) {
+            ports.pending_bells.remove(i);
+            if let Err(e) = ports.ring(&owner, bell::MESSAGE) {
+                tracing::debug!("{e}");
+            }
+        }
+    }
+
     /// Whether [`Endpoint::send_control_quiet`] left bells to ring.
     pub fn bells_pending(&self) -> bool {
         !self.ports.borrow().pending_bells.is_empty()
@@ -692,6 +705,32 @@ impl Endpoint {
             return ports.send_ringing(&to.inbox_owner(), &frame, true);
         }
         ports.send_ringing(to, frame, true)
+    }
+
+    /// Encodes `msg` and writes it into `to`'s inbox without ringing its bell, now or
+    /// later: its reader finds it when it next reads the inbox for any other reason (a
+    /// system's latched value for the broker, which wants it only at a grant). Dropped
+    /// like an update when the inbox is full.
+    pub fn send_silent<T: serde::Serialize>(
+        &mut self,
+        to: &Address,
+        msg: &T,
+    ) -> Result<(), TransportError> {
+        let frame = crate::protocol::encode(msg).map_err(|source| TransportError::Encode {
+            peer: to.clone(),
+            source,
+        })?;
+        let frame = for_inbox(to, frame)?;
+        let ports = self.ports.clone();
+        let mut ports = ports.borrow_mut();
+        self.hold(&mut ports, to);
+        let owner = to.inbox_owner().into_owned();
+        let pending = ports.pending_bells.contains(&owner);
+        let sent = ports.send_ringing(&owner, &frame, false);
+        if !pending {
+            ports.pending_bells.retain(|p| *p != owner);
+        }
+        sent
     }
 
     /// Rings `to`'s bell with `id` without sending a frame.

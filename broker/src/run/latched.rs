@@ -1,0 +1,88 @@
+//! Latched data services: the newest update of each, kept for the next session's grant.
+//!
+//! A system that latches a data service ([`muster_systems`'s `SystemCore::latch`])
+//! writes each update it streams into the broker's inbox too, unrung
+//! ([`ToBroker::Latest`]). The broker keeps the newest per service and, granting a
+//! local user a session of it, sends the user that value right behind the grant as the
+//! session's update 0: the user has the service's value with its grant, instead of at
+//! the system's next turn (its offer is read a moment later, and its first contact
+//! with a new user's inbox costs a few tenths of a millisecond). The value is the
+//! shell's, not the core's: it is neither journaled nor replicated (a standby that takes
+//! over has it again at the service's next update).
+
+use muster_shared::protocol::{decode, ToBroker, ToUser};
+use muster_shared::types::{Payload, ServiceId, ServiceKind};
+use std::collections::HashMap;
+
+use crate::core::{Broker, Grant};
+
+/// One service's newest update.
+struct Kept {
+    /// The system process that sent it: only a session that process granted gets it.
+    pid: u32,
+    sent_ns: u64,
+    /// Its [`Payload`] as a frame: decoded at a grant, not at each update (a service
+    /// updates far more often than it is granted).
+    payload: Vec<u8>,
+}
+
+/// The newest update of each latched service.
+#[derive(Default)]
+pub(super) struct Latched {
+    kept: HashMap<ServiceId, Kept>,
+}
+
+impl Latched {
+    /// Keeps `msg` (a [`ToBroker::Latest`] the core let through from process `pid`)
+    /// if it is the value of a data service its system offers.
+    pub(super) fn keep(&mut self, core: &Broker, pid: Option<u32>, msg: ToBroker) {
+        let ToBroker::Latest {
+            system,
+            service,
+            sent_ns,
+            payload,
+        } = msg
+        else {
+            return;
+        };
+        let id = ServiceId::new(&system, &service);
+        // From a process that cannot be told (no check possible), or for no listed data
+        // service: nothing to keep.
+        let (Some(pid), Some(ServiceKind::Data)) = (pid, core.kind_of(&id)) else {
+            return;
+        };
+        // At most one per listed service: those no longer listed go first.
+        if !self.kept.contains_key(&id) && self.kept.len() >= core.config().max_services {
+            self.kept.retain(|id, _| core.kind_of(id).is_some());
+        }
+        self.kept.insert(
+            id,
+            Kept {
+                pid,
+                sent_ns,
+                payload,
+            },
+        );
+    }
+
+    /// The update 0 that goes with grant `g` (of a local user), if its service is a
+    /// latched data service whose value came from the process that granted it.
+    pub(super) fn update_zero(&self, g: &Grant) -> Option<ToUser> {
+        if g.kind != ServiceKind::Data {
+            return None;
+        }
+        let kept = self
+            .kept
+            .get(&g.service)
+            .filter(|k| k.pid == g.system_pid)?;
+        let payload = decode::<Payload>(&kept.payload)
+            .map_err(|e| tracing::debug!(service = %g.service, "a latched value that does not decode: {e}"))
+            .ok()?;
+        Some(ToUser::Update {
+            session: g.session,
+            seq: 0,
+            sent_ns: kept.sent_ns,
+            payload,
+        })
+    }
+}
