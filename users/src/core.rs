@@ -1312,6 +1312,72 @@ mod tests {
     }
 
     #[test]
+    fn a_latched_services_update_0_is_taken_once_before_the_stream_and_never_after() {
+        let mut u = user();
+        let seen = |u: &mut UserCore| -> Vec<(u64, u64)> {
+            events(u)
+                .into_iter()
+                .filter_map(|e| match e {
+                    UserEvent::Update { seq, gap, .. } => Some((seq, gap)),
+                    _ => None,
+                })
+                .collect()
+        };
+        // With the grant: update 0, then the system's stream from 1, no gap counted.
+        let req = u.request(ServiceId::new("t", "a"));
+        grant(&mut u, req, 9, "t/a", ServiceKind::Data, "pose2d");
+        for seq in [0, 0, 1, 2] {
+            update(&mut u, 9, seq);
+        }
+        assert_eq!(seen(&mut u), vec![(0, 0), (1, 0), (2, 0)], "one update 0");
+        assert_eq!(
+            u.counters(SessionId(9)),
+            Some(SessionCounters {
+                last_seq: 2,
+                gaps: 0
+            })
+        );
+        assert_eq!(u.stale_frames(), 1);
+        // The system's update 1 read first (two writers): update 0, older, is dropped.
+        let req = u.request(ServiceId::new("t", "b"));
+        grant(&mut u, req, 10, "t/b", ServiceKind::Data, "pose2d");
+        update(&mut u, 10, 1);
+        update(&mut u, 10, 0);
+        assert_eq!(seen(&mut u), vec![(1, 0)]);
+        assert_eq!(u.stale_frames(), 2);
+    }
+
+    #[test]
+    fn an_update_0_is_believed_from_the_broker_and_the_granting_system_only() {
+        let mut u = user();
+        let owner = |a: &Address| match a {
+            Address::Broker => Some(3),
+            Address::System(s) if s == "s" => Some(50),
+            _ => None,
+        };
+        let req = u.request(ServiceId::new("s", "a"));
+        u.handle(data_grant(req, 7, "s/a", 50, true));
+        let zero = ToUser::Update {
+            session: SessionId(7),
+            seq: 0,
+            sent_ns: 0,
+            payload: Payload::Text("x".into()),
+        };
+        assert!(u.sender_allowed(Some(3), &zero, owner), "the broker's");
+        assert!(u.sender_allowed(Some(50), &zero, owner), "the system's");
+        assert!(!u.sender_allowed(Some(66), &zero, owner), "nobody else's");
+        // Any other update of a local system's session, from the system only.
+        let one = ToUser::Update {
+            session: SessionId(7),
+            seq: 1,
+            sent_ns: 0,
+            payload: Payload::Text("x".into()),
+        };
+        assert!(!u.sender_allowed(Some(3), &one, owner));
+        assert!(u.sender_allowed(Some(50), &one, owner));
+    }
+
+    #[test]
     fn the_systems_confirmation_of_our_end_is_its_own_event() {
         let mut u = user();
         let req = u.request(ServiceId::new("t", "a"));

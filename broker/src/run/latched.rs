@@ -86,3 +86,120 @@ impl Latched {
         })
     }
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::core::BrokerConfig;
+    use muster_shared::protocol::encode;
+    use muster_shared::types::{ServiceSpec, SessionId, UserId};
+    use std::time::Duration;
+
+    fn spec(name: &str, kind: ServiceKind) -> ServiceSpec {
+        ServiceSpec {
+            name: name.into(),
+            description: format!("{name} service"),
+            kind,
+            queue: false,
+            quota: 5,
+            payload: if kind == ServiceKind::Data {
+                "pose2d"
+            } else {
+                "goal2d"
+            }
+            .into(),
+            schema: None,
+        }
+    }
+
+    /// A broker with system `t` (pid 50) offering data service `d` and command `c`.
+    fn broker() -> Broker {
+        let mut b = Broker::new(BrokerConfig::default(), 42, 1000);
+        b.handle(
+            Duration::ZERO,
+            ToBroker::Register {
+                system: "t".into(),
+                pid: 50,
+                services: vec![
+                    spec("d", ServiceKind::Data),
+                    spec("c", ServiceKind::Command),
+                ],
+                sessions: vec![],
+                udp: None,
+            },
+        );
+        b
+    }
+
+    fn latest(service: &str, x: f64) -> ToBroker {
+        ToBroker::Latest {
+            system: "t".into(),
+            service: service.into(),
+            sent_ns: 7,
+            payload: encode(&Payload::Pose2d {
+                x,
+                y: 0.0,
+                theta: 0.0,
+            })
+            .unwrap(),
+        }
+    }
+
+    fn grant(service: &str, kind: ServiceKind, system_pid: u32) -> Grant {
+        Grant {
+            user: UserId("u1".into()),
+            req: 1,
+            session: SessionId(9),
+            service: ServiceId::new("t", service),
+            kind,
+            payload: "pose2d".into(),
+            schema: None,
+            system_pid,
+        }
+    }
+
+    #[test]
+    fn the_newest_value_of_a_data_service_goes_with_a_grant_by_its_sender() {
+        let core = broker();
+        let mut l = Latched::default();
+        l.keep(&core, Some(50), latest("d", 1.0));
+        l.keep(&core, Some(50), latest("d", 2.0));
+        let zero = l.update_zero(&grant("d", ServiceKind::Data, 50)).unwrap();
+        assert_eq!(
+            zero,
+            ToUser::Update {
+                session: SessionId(9),
+                seq: 0,
+                sent_ns: 7,
+                payload: Payload::Pose2d {
+                    x: 2.0,
+                    y: 0.0,
+                    theta: 0.0
+                },
+            },
+            "the newest, as update 0 of the granted session"
+        );
+        // Granted by another process (the system restarted since): not its value.
+        assert_eq!(l.update_zero(&grant("d", ServiceKind::Data, 51)), None);
+    }
+
+    #[test]
+    fn values_for_no_listed_data_service_or_from_an_unknown_process_are_not_kept() {
+        let core = broker();
+        let mut l = Latched::default();
+        l.keep(&core, Some(50), latest("c", 1.0));
+        l.keep(&core, Some(50), latest("nosuch", 1.0));
+        l.keep(&core, None, latest("d", 1.0));
+        assert_eq!(l.kept.len(), 0);
+        assert_eq!(l.update_zero(&grant("c", ServiceKind::Command, 50)), None);
+        assert_eq!(l.update_zero(&grant("d", ServiceKind::Data, 50)), None);
+        // A value whose payload does not decode gives no update 0.
+        let mut bad = latest("d", 1.0);
+        if let ToBroker::Latest { payload, .. } = &mut bad {
+            payload.truncate(3);
+        }
+        l.keep(&core, Some(50), bad);
+        assert_eq!(l.update_zero(&grant("d", ServiceKind::Data, 50)), None);
+    }
+}
