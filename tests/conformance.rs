@@ -172,7 +172,7 @@ fn a_data_session_streams_in_order_and_frees_its_quota(via: Via) {
 }
 both!(a_data_session_streams_in_order_and_frees_its_quota);
 
-fn a_latched_service_gives_a_new_local_session_its_newest_value_with_the_grant(via: Via) {
+fn a_latched_service_gives_a_new_session_its_newest_value_with_the_grant(via: Via) {
     let mut c = Conf::new("latched", via);
     c.system("t1", &["--rate", "5", "--latched"]);
     c.system("t2", &["--rate", "5"]);
@@ -186,21 +186,15 @@ fn a_latched_service_gives_a_new_local_session_its_newest_value_with_the_grant(v
         (0, &Value::Bool(true)),
         "{lines:?}"
     );
+    // Update 0, from the broker with the grant (through its UDP front for a remote
+    // user), then the system's stream from 1, nothing counted lost.
     let s = seqs(&lines);
-    match via {
-        // A local user: update 0, from the broker with the grant, then the system's
-        // stream from 1, nothing counted lost.
-        Via::Shm => {
-            assert_eq!(
-                lines[1]["seq"], 0,
-                "update 0 right behind the grant: {lines:?}"
-            );
-            assert_eq!(lines[1]["payload"]["type"], "pose2d");
-            assert_eq!(&s[..2], &[0, 1], "{s:?}");
-        }
-        // A remote user's session starts at the system's own update 1.
-        Via::Udp => assert_eq!(s[0], 1, "{s:?}"),
-    }
+    assert_eq!(
+        lines[1]["seq"], 0,
+        "update 0 right behind the grant: {lines:?}"
+    );
+    assert_eq!(lines[1]["payload"]["type"], "pose2d");
+    assert_eq!(&s[..2], &[0, 1], "{s:?}");
     assert!(s.windows(2).all(|w| w[1] == w[0] + 1), "in order: {s:?}");
     let last = lines.last().unwrap();
     assert_eq!(last["gaps"], 0, "{last}");
@@ -209,7 +203,7 @@ fn a_latched_service_gives_a_new_local_session_its_newest_value_with_the_grant(v
     assert_eq!(code, 0);
     assert_eq!(seqs(&lines)[0], 1, "{lines:?}");
 }
-both!(a_latched_service_gives_a_new_local_session_its_newest_value_with_the_grant);
+both!(a_latched_service_gives_a_new_session_its_newest_value_with_the_grant);
 
 fn the_system_ends_a_session_and_the_user_is_told(via: Via) {
     let mut c = Conf::new("sysend", via);

@@ -182,7 +182,15 @@ struct Shell {
     user_tokens: HashMap<UserId, usize>,
     next_token: usize,
     waiting_logged: bool,
+    /// When a latched value last rang the broker's bell (see [`LATEST_RING_EVERY`]).
+    latest_rung: Option<Instant>,
 }
+
+/// A latched value is written into the broker's inbox unrung, for the broker to read
+/// as it next reads its inbox for anything else; but it rings at most this often, so
+/// that a broker whose inbox nothing else rings (its users all remote) has read a
+/// value this recent at a grant.
+const LATEST_RING_EVERY: Duration = Duration::from_millis(250);
 
 /// How a system runs, beyond its core and app.
 #[derive(Clone, Debug)]
@@ -264,6 +272,7 @@ pub fn run_system_with<A: SystemApp>(
         user_tokens: HashMap::new(),
         next_token: FIRST_USER_TOKEN,
         waiting_logged: false,
+        latest_rung: None,
     };
     let start = Instant::now();
     core.register();
@@ -486,10 +495,20 @@ impl Shell {
             };
             match out {
                 SystemOutput::ToBroker(msg @ ToBroker::Latest { .. }) => {
-                    // The broker wants it only at a grant: written, never rung, and
-                    // dropped like an update when its inbox is full.
-                    if let Err(e) = self.endpoint.send_silent(&Address::Broker, &msg) {
-                        tracing::debug!("latched value not sent: {e}");
+                    // The broker wants it only at a grant: written, rung at most every
+                    // LATEST_RING_EVERY, and dropped like an update when its inbox is
+                    // full.
+                    let ring = self
+                        .latest_rung
+                        .is_none_or(|t| t.elapsed() >= LATEST_RING_EVERY);
+                    let sent = match ring {
+                        true => self.endpoint.send_msg(&Address::Broker, &msg),
+                        false => self.endpoint.send_silent(&Address::Broker, &msg),
+                    };
+                    match sent {
+                        Ok(()) if ring => self.latest_rung = Some(Instant::now()),
+                        Ok(()) => {}
+                        Err(e) => tracing::debug!("latched value not sent: {e}"),
                     }
                 }
                 SystemOutput::ToBroker(msg) => {

@@ -1,8 +1,9 @@
 //! Latched data services: the newest update of each, kept for the next session's grant.
 //!
 //! A system that latches a data service ([`muster_systems`'s `SystemCore::latch`])
-//! writes each update it streams into the broker's inbox too, unrung
-//! ([`ToBroker::Latest`]). The broker keeps the newest per service and, granting a
+//! writes each update it streams into the broker's inbox too ([`ToBroker::Latest`]),
+//! ringing the broker's bell for one at most every 250 ms (the broker reads the rest
+//! as it reads its inbox for anything else). The broker keeps the newest per service and, granting a
 //! local user a session of it, sends the user that value right behind the grant as the
 //! session's update 0: the user has the service's value with its grant, instead of at
 //! the system's next turn (its offer is read a moment later, and its first contact

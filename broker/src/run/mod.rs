@@ -964,9 +964,9 @@ impl Shell {
                     };
                     self.endpoint.send_control(&Address::User(user), &m);
                 }
-                // A latched value: the shell's to keep, never the core's. Written
-                // unrung, it is not what woke the broker: it does not count as the
-                // frame answered first.
+                // A latched value: the shell's to keep, never the core's. Mostly
+                // written unrung, it is not what the broker was woken to answer: it
+                // does not count as the frame answered first.
                 Ok(msg @ ToBroker::Latest { .. }) => {
                     read -= 1;
                     if core.sender_allowed(pid, &msg) {
@@ -1091,13 +1091,27 @@ impl Shell {
                 fit_status(status);
             }
             let out = match self.udp.as_mut() {
-                Some(d) => match d.front.route(core, out) {
-                    Some(o) => o,
-                    None => {
-                        d.transmit();
-                        continue;
+                Some(d) => {
+                    // A remote user's grant of a latched service: its update 0 follows
+                    // the grant's datagram through the front.
+                    let zero = match &out {
+                        Output::Granted(g) if d.front.is_remote(&g.user) => self
+                            .latched
+                            .update_zero(g)
+                            .map(|z| Output::ToUser(g.user.clone(), z)),
+                        _ => None,
+                    };
+                    match d.front.route(core, out) {
+                        Some(o) => o,
+                        None => {
+                            if let Some(z) = zero {
+                                let _ = d.front.route(core, z);
+                            }
+                            d.transmit();
+                            continue;
+                        }
                     }
-                },
+                }
                 None => out,
             };
             let out = match self.fed.as_mut() {
