@@ -254,10 +254,15 @@ impl Run<'_> {
                 self.report.end_us.push(us(t.elapsed()));
             }
         }
-        if let UserEvent::Update { gap, sent_ns, .. } = e {
+        if let UserEvent::Update {
+            gap, sent_ns, seq, ..
+        } = e
+        {
             self.report.updates += 1;
             self.report.gaps += gap;
-            if *sent_ns > 0 && self.report.update_us.len() < MAX_UPDATE_SAMPLES {
+            // Update 0 (a latched service's, with the grant) was sent before the session
+            // opened: its age is not a delivery time.
+            if *seq > 0 && *sent_ns > 0 && self.report.update_us.len() < MAX_UPDATE_SAMPLES {
                 self.report
                     .update_us
                     .push((monotonic_ns().saturating_sub(*sent_ns) / 1000).max(1));

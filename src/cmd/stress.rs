@@ -472,6 +472,9 @@ struct PerHop {
     session_open: Histogram<u64>,
     /// User send to the session's first update taken (data sessions).
     first_update: Histogram<u64>,
+    /// Grant taken to the session's first update taken: what the first update adds to
+    /// the grant, whatever the request waited for in a queue.
+    grant_to_first_update: Histogram<u64>,
 }
 
 /// Each stamped request's stamps (CLOCK_MONOTONIC ns), by stage in [`Stage::ALL`]'s
@@ -531,6 +534,7 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
         whole: histogram(),
         session_open: histogram(),
         first_update: histogram(),
+        grant_to_first_update: histogram(),
     };
     let us = |from: u64, to: u64| ((to - from) / 1000).max(1);
     // A path's stamps, if all came in order.
@@ -549,6 +553,9 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
             if let Some(t) = path(stamps, &[Stage::UserSend, to]) {
                 let _ = h.record(us(t[0], t[1]));
             }
+        }
+        if let Some(t) = path(stamps, &[Stage::UserRecv, Stage::FirstUpdate]) {
+            let _ = out.grant_to_first_update.record(us(t[0], t[1]));
         }
         if let Some(t) = path(stamps, &CONFIRM_PATH) {
             for (h, w) in out.confirm.iter_mut().zip(t.windows(2)) {
@@ -857,6 +864,8 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "per_hop_whole_first_10s": summary(&early_hops.whole),
         "per_hop_leaving": leaving_hops.as_ref().map_or(Value::Null, |h| hops_json(&GRANT_HOPS, &h.grant).into()),
     });
+    report["grant_to_first_update"] = summary(&hops.grant_to_first_update);
+    report["latched"] = a.latched.into();
     report["users_per_process"] = a.users_per_process.into();
     report["shared_inboxes"] = (a.users_per_process > 1 && !a.remote && !a.own_inboxes).into();
     report["users_requesting"] = users_requesting.into();
@@ -935,6 +944,10 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", line("  whole path (stamped)", &hops.whole));
         println!("{}", line("  request → session open", &hops.session_open));
         println!("{}", line("  request → first update", &hops.first_update));
+        println!(
+            "{}",
+            line("  grant → first update", &hops.grant_to_first_update)
+        );
         print_hops(
             "the system, off the user's path",
             &CONFIRM_HOPS,
