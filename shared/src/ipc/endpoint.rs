@@ -15,6 +15,14 @@ fn too_large(to: &Address, len: usize, limit: usize) -> TransportError {
     }
 }
 
+/// `msg` encoded as a frame for `to`; an error names `to`.
+fn encode_for<T: serde::Serialize>(to: &Address, msg: &T) -> Result<Vec<u8>, TransportError> {
+    crate::protocol::encode(msg).map_err(|source| TransportError::Encode {
+        peer: to.clone(),
+        source,
+    })
+}
+
 /// A frame as written for `to`: in a shared inbox (a relay, a process's), in an envelope naming its user (its
 /// id's length in a byte, the id, the frame; see [`open_envelope`]).
 fn for_inbox(to: &Address, frame: Vec<u8>) -> Result<Vec<u8>, TransportError> {
@@ -573,10 +581,7 @@ impl Endpoint {
         to: &Address,
         msg: &T,
     ) -> Result<(), TransportError> {
-        let frame = crate::protocol::encode(msg).map_err(|source| TransportError::Encode {
-            peer: to.clone(),
-            source,
-        })?;
+        let frame = encode_for(to, msg)?;
         self.send(to, &frame)
     }
 
@@ -601,17 +606,7 @@ impl Endpoint {
     /// [`Endpoint::send_control`], ringing `to`'s bell now if `ring`, else leaving it
     /// for [`Endpoint::ring_pending`].
     fn control<T: serde::Serialize>(&mut self, to: &Address, msg: &T, ring: bool) {
-        let frame = match crate::protocol::encode(msg) {
-            Ok(f) => f,
-            Err(source) => {
-                let e = TransportError::Encode {
-                    peer: to.clone(),
-                    source,
-                };
-                return tracing::error!("{e}");
-            }
-        };
-        let frame = match for_inbox(to, frame) {
+        let frame = match encode_for(to, msg).and_then(|f| for_inbox(to, f)) {
             Ok(f) => f,
             Err(e) => return tracing::error!("{e}"),
         };
@@ -716,11 +711,7 @@ impl Endpoint {
         to: &Address,
         msg: &T,
     ) -> Result<(), TransportError> {
-        let frame = crate::protocol::encode(msg).map_err(|source| TransportError::Encode {
-            peer: to.clone(),
-            source,
-        })?;
-        let frame = for_inbox(to, frame)?;
+        let frame = for_inbox(to, encode_for(to, msg)?)?;
         let ports = self.ports.clone();
         let mut ports = ports.borrow_mut();
         self.hold(&mut ports, to);
