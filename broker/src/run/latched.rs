@@ -3,9 +3,10 @@
 //! A system that latches a data service ([`muster_systems`'s `SystemCore::latch`])
 //! writes each update it streams into the broker's inbox too ([`ToBroker::Latest`]),
 //! ringing the broker's bell for one at most every 250 ms (the broker reads the rest
-//! as it reads its inbox for anything else). The broker keeps the newest per service and, granting a
-//! local user a session of it, sends the user that value right behind the grant as the
-//! session's update 0: the user has the service's value with its grant, instead of at
+//! as it reads its inbox for anything else). The broker keeps the newest per service and,
+//! granting a session of it to a user of this host (over shared memory, or remote through
+//! the UDP front), sends the user that value right behind the grant as the session's
+//! update 0: the user has the service's value with its grant, instead of at
 //! the system's next turn (its offer is read a moment later, and its first contact
 //! with a new user's inbox costs a few tenths of a millisecond). The value is the
 //! shell's, not the core's: it is neither journaled nor replicated (a standby that takes
@@ -66,8 +67,8 @@ impl Latched {
         );
     }
 
-    /// The update 0 that goes with grant `g` (of a local user), if its service is a
-    /// latched data service whose value came from the process that granted it.
+    /// The update 0 that goes with grant `g`, if its service is a latched data service
+    /// whose value came from the process that granted it.
     pub(super) fn update_zero(&self, g: &Grant) -> Option<ToUser> {
         if g.kind != ServiceKind::Data {
             return None;
