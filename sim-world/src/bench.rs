@@ -67,6 +67,7 @@ pub fn world(n: usize, seed: u64) -> World {
             beacon: Some(Colour::ALL[k % Colour::ALL.len()]),
             wander: true,
             home: None,
+            fixed: false,
         });
     }
     let scenario = Scenario {

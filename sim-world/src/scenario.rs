@@ -171,6 +171,10 @@ pub struct RobotSpec {
     /// A named place that is this robot's home (e.g. the delivery robot's office).
     #[serde(default)]
     pub home: Option<String>,
+    /// Never drives (a stationary tracker): a fixture, which the other robots' maps
+    /// show as they show walls. The simulator ignores its velocity commands.
+    #[serde(default)]
+    pub fixed: bool,
 }
 
 /// A person wandering between places with a coloured beacon.
@@ -276,6 +280,9 @@ impl Scenario {
                     r.name
                 ));
             }
+            if r.fixed && r.wander {
+                return bad(format!("robot {}: a fixed robot cannot wander", r.name));
+            }
             let d = &r.drive;
             if !(d.radius > 0.0
                 && d.max_speed >= 0.0
@@ -366,6 +373,11 @@ impl Scenario {
             beacon: None,
             wander: false,
             home: None,
+            fixed: false,
+        };
+        let fixed = |name: &str, pose: [f64; 3]| RobotSpec {
+            fixed: true,
+            ..tracker(name, pose)
         };
         let mut d1 = tracker("D1", [30.0, 3.0, 180.0]);
         d1.camera = None;
@@ -375,8 +387,8 @@ impl Scenario {
             seed: 1,
             dt: 0.01,
             robots: vec![
-                tracker("T1", [3.0, 3.0, 0.0]),
-                tracker("T2", [37.0, 17.0, 180.0]),
+                fixed("T1", [3.0, 3.0, 0.0]),
+                fixed("T2", [37.0, 17.0, 180.0]),
                 // Against the middle corridor's south wall, so robots can pass it.
                 tracker("T3", [20.0, 9.4, 0.0]),
                 d1,

@@ -352,7 +352,7 @@ impl World {
                 wander(r, map, now);
             }
             let d = r.spec.drive.clone();
-            let target = if now - r.command_time > d.command_timeout {
+            let target = if r.spec.fixed || now - r.command_time > d.command_timeout {
                 (0.0, 0.0)
             } else {
                 r.command

@@ -14,6 +14,7 @@ fn robot(name: &str, x: f64, y: f64, deg: f64) -> RobotSpec {
         beacon: None,
         wander: false,
         home: None,
+        fixed: false,
     }
 }
 
@@ -84,6 +85,25 @@ fn robots_never_overlap_head_on_at_any_step() {
             "dt {dt}: they did meet"
         );
     }
+}
+
+#[test]
+fn a_fixed_robot_ignores_velocity_commands_and_cannot_wander() {
+    let mut s = scenario(vec![
+        robot("still", 10.0, 10.0, 0.0),
+        robot("free", 5.0, 5.0, 0.0),
+    ]);
+    s.robots[0].fixed = true;
+    let big = OccupancyMap::from_grid(400, 400, 0.05, (0.0, 0.0), vec![false; 400 * 400]);
+    let mut w = World::new(&s, Some(big)).unwrap();
+    w.command_velocity(0, 0.5, 0.25);
+    w.command_velocity(1, 0.5, 0.0);
+    w.step(2.0);
+    let (still, free) = (w.robots()[0].pose, w.robots()[1].pose);
+    assert_eq!((still.x, still.y, still.theta), (10.0, 10.0, 0.0));
+    assert!(free.x > 5.1, "the other robot drove: {free:?}");
+    s.robots[0].wander = true;
+    assert!(s.validate().is_err());
 }
 
 #[test]

@@ -284,6 +284,36 @@ impl OccupancyMap {
         Self::from_grid(w, h, res, (0.0, 0.0), g.cells)
     }
 
+    /// This map with discs `(x, y, radius)` (m) marked occupied: fixtures that are
+    /// not walls, such as robots that never move.
+    pub fn with_discs(&self, discs: &[(f64, f64, f64)]) -> Self {
+        let mut cells = self.occupied.clone();
+        let res = self.resolution;
+        for &(x, y, r) in discs {
+            if !(x.is_finite() && y.is_finite() && r.is_finite() && r > 0.0) {
+                continue;
+            }
+            let cells_r = (r / res).ceil() as i64 + 1;
+            let ci = ((x - self.origin.0) / res).floor() as i64;
+            let cj = ((y - self.origin.1) / res).floor() as i64;
+            for j in (cj - cells_r)..=(cj + cells_r) {
+                for i in (ci - cells_r)..=(ci + cells_r) {
+                    if i < 0 || j < 0 || i as usize >= self.width || j as usize >= self.height {
+                        continue;
+                    }
+                    let (cx, cy) = (
+                        self.origin.0 + (i as f64 + 0.5) * res,
+                        self.origin.1 + (j as f64 + 0.5) * res,
+                    );
+                    if (cx - x).hypot(cy - y) <= r {
+                        cells[j as usize * self.width + i as usize] = true;
+                    }
+                }
+            }
+        }
+        Self::from_grid(self.width, self.height, res, self.origin, cells)
+    }
+
     /// Tiles this map `nx` × `ny` times (for large benchmark worlds at the same density).
     pub fn tiled(&self, nx: usize, ny: usize) -> Self {
         let (w, h) = (self.width * nx, self.height * ny);

@@ -321,6 +321,7 @@ impl Ros2Port {
             max_speed: 0.0,
             home: None,
             map: Arc::new(OccupancyMap::from_grid(1, 1, 1.0, (0.0, 0.0), vec![true])),
+            fixtures: Vec::new(),
         };
         let mut port = Ros2Port {
             scan,
@@ -479,6 +480,8 @@ impl Ros2Port {
             max_speed: p.max_speed.unwrap_or(DEFAULT_MAX_SPEED),
             home: p.home.map(|[x, y]| (x, y)),
             map,
+            // A real robot's map shows what stands still.
+            fixtures: Vec::new(),
         })
     }
 

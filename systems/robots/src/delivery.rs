@@ -130,7 +130,7 @@ impl DeliveryCore {
             params.home = d.home;
         }
         let planner = Arc::new(Planner::new(
-            &d.map,
+            &d.map_with_fixtures(),
             PlannerParams {
                 radius: d.radius,
                 ..PlannerParams::default()

@@ -123,6 +123,7 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
         .iter()
         .map(|&i| world.robots()[i].spec.drive.radius)
         .fold(0.0, f64::max);
+    let fixtures = crate::sim::fixtures(&scenario, None);
     let robots: Vec<TrackerRobot> = names
         .iter()
         .zip(&idx)
@@ -141,7 +142,8 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
         map.clone(),
         field.clone(),
         Arc::new(Planner::new(
-            &map,
+            // The mobile tracker plans round the stationary ones, as the system does.
+            &crate::port::with_fixtures(&map, &fixtures),
             PlannerParams {
                 radius,
                 ..PlannerParams::default()
@@ -153,7 +155,12 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
     );
     let d1_robot = crate::sim::describe(&scenario, &map, "D1").map_err(|e| e.to_string())?;
     let d1_geometry = d1_robot.sensors.clone();
-    let mut localizer = Localizer::new(field, d1_robot.start, LocalizerParams::default(), p.seed);
+    let mut localizer = Localizer::new(
+        Arc::new(LikelihoodField::new(&d1_robot.map_with_fixtures(), 1.0)),
+        d1_robot.start,
+        LocalizerParams::default(),
+        p.seed,
+    );
     let mut delivery = DeliveryCore::for_robot(&d1_robot, DeliveryParams::default());
     delivery.set_latency(p.latency);
     for i in 0..idx.len() {
@@ -252,7 +259,7 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
             let tr = tracking.payload(Colour::Red);
             let (t3v, d1v) = (t3.velocity, world.robots()[d1].velocity);
             eprintln!(
-                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2} | T3 zoom {:.1} sees {:?} others {}",
+                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2} | T3 zoom {:.1} sees {:?} others {} | D1 est ({:.2},{:.2}) err {:.2}",
                 t3p.x, t3p.y,
                 d1p.x, d1p.y, (d1p.x - px).hypot(d1p.y - py),
                 tr.map_or("none".to_string(), |tr| format!("({:5.1},{:5.1}) lost {} age {:.1}", tr.x, tr.y, tr.lost, tr.age)),
@@ -263,10 +270,11 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
                 world
                     .people()
                     .iter()
-                    .filter(|q| q.beacon != Colour::Red && (q.pose.x - t3p.x).hypot(q.pose.y - t3p.y) < 3.0)
+                    .filter(|q| q.beacon != Colour::Red && ((q.pose.x - t3p.x).hypot(q.pose.y - t3p.y) < 3.0 || (q.pose.x - d1p.x).hypot(q.pose.y - d1p.y) < 2.0))
                     .map(|q| format!("{:?} ({:.1},{:.1})", q.beacon, q.pose.x, q.pose.y))
                     .collect::<Vec<_>>()
                     .join(" "),
+                d1_pose.x, d1_pose.y, (d1_pose.x - d1p.x).hypot(d1_pose.y - d1p.y),
             );
         }
         if figures.linked_at.is_some() && t >= next_record {

@@ -31,6 +31,11 @@ pub struct RobotDescription {
     pub home: Option<(f64, f64)>,
     /// The map it drives on.
     pub map: Arc<OccupancyMap>,
+    /// Fixtures the map does not show: other robots that never move (x, y, radius; m).
+    /// A robot plans round them and localizes against them as against walls, and does
+    /// not take them for people who may walk into it (which held a robot beside a
+    /// stationary tracker in a corridor junction for minutes).
+    pub fixtures: Vec<(f64, f64, f64)>,
 }
 
 /// One robot's sensors and commands.
@@ -54,6 +59,11 @@ pub trait RobotPort {
 }
 
 impl RobotDescription {
+    /// The map with the fixtures drawn in ([`RobotDescription::fixtures`]).
+    pub fn map_with_fixtures(&self) -> Arc<OccupancyMap> {
+        with_fixtures(&self.map, &self.fixtures)
+    }
+
     /// What the robot was taken to be, for reports (`--stats-json`): start pose, laser
     /// beams and field of view, sonar transducers, camera, size, speed, map size.
     pub fn summary(&self) -> serde_json::Value {
@@ -77,5 +87,15 @@ impl RobotDescription {
             "radius_m": self.radius, "max_speed": self.max_speed, "home": self.home,
             "map_m": [w, h],
         })
+    }
+}
+
+/// `map` with `fixtures` (x, y, radius) drawn in as occupied; the map itself if there
+/// are none.
+pub fn with_fixtures(map: &Arc<OccupancyMap>, fixtures: &[(f64, f64, f64)]) -> Arc<OccupancyMap> {
+    if fixtures.is_empty() {
+        Arc::clone(map)
+    } else {
+        Arc::new(map.with_discs(fixtures))
     }
 }

@@ -168,6 +168,17 @@ impl Viz {
     }
 }
 
+/// Every fixture the ports' descriptions name, once each.
+fn fixtures_of(links: &[Box<dyn RobotPort>]) -> Vec<(f64, f64, f64)> {
+    let mut all: Vec<(f64, f64, f64)> = Vec::new();
+    for f in links.iter().flat_map(|l| l.description().fixtures.iter()) {
+        if !all.contains(f) {
+            all.push(*f);
+        }
+    }
+    all
+}
+
 impl TrackingApp {
     /// Builds the system for `opts`, driving the robots behind `links` (opened to
     /// `opts.robots` in that order, all on one map: the first's).
@@ -213,8 +224,11 @@ impl TrackingApp {
             )));
         }
         let field = Arc::new(LikelihoodField::new(&map, 1.0));
+        // The mobile robots plan round every fixture any robot's description names
+        // (the system's own stationary trackers among them). Sight lines and the
+        // localizers keep the bare map: a stationary robot stands inside its own disc.
         let planner = Arc::new(Planner::new(
-            &map,
+            &crate::port::with_fixtures(&map, &fixtures_of(&links)),
             PlannerParams {
                 radius,
                 ..PlannerParams::default()
@@ -486,7 +500,7 @@ impl DeliveryDriver {
             return Err(RobotSystemError::MissingSensor(robot.to_string(), "laser"));
         }
         let core = DeliveryCore::for_robot(&d, params);
-        let (start, map) = (d.start, d.map);
+        let (start, map) = (d.start, d.map_with_fixtures());
         let localizer = (!ground_truth).then(|| {
             Localizer::new(
                 Arc::new(LikelihoodField::new(&map, 1.0)),

@@ -49,7 +49,19 @@ pub fn describe(
                 .map(|p| (p.at[0], p.at[1]))
         }),
         map: Arc::clone(map),
+        fixtures: fixtures(scenario, Some(name)),
     })
+}
+
+/// The scenario's fixed robots (x, y, radius) but `except`: fixtures for the others'
+/// maps ([`RobotDescription::fixtures`]).
+pub fn fixtures(scenario: &Scenario, except: Option<&str>) -> Vec<(f64, f64, f64)> {
+    scenario
+        .robots
+        .iter()
+        .filter(|r| r.fixed && Some(r.name.as_str()) != except)
+        .map(|r| (r.pose[0], r.pose[1], r.drive.radius))
+        .collect()
 }
 
 /// Opens the ports to the scenario's `robots` on instance `inst`, retrying until the

@@ -215,6 +215,77 @@ fn delivery_arrives_across_the_office_among_people_without_contact() {
     assert!(p95 < 0.15, "localization p95 {p95:.3} m");
 }
 
+/// D1 started where `pose` says, its description (map, fixtures) from the scenario as
+/// the delivery system takes it.
+fn delivery_from(pose: [f64; 3], seed: u64) -> Delivery {
+    let mut scenario = Scenario::paper();
+    scenario.seed = seed;
+    scenario.people.clear();
+    if let Some(r) = scenario.robots.iter_mut().find(|r| r.name == "D1") {
+        r.pose = pose;
+    }
+    let map = OccupancyMap::office();
+    let world = World::new(&scenario, Some(map.clone())).unwrap();
+    let d = muster_robots::sim::describe(&scenario, &Arc::new(map), "D1").unwrap();
+    let d1 = world.robot_index("D1").unwrap();
+    Delivery {
+        d1,
+        geometry: d.sensors.clone(),
+        loc: Localizer::new(
+            Arc::new(LikelihoodField::new(&d.map_with_fixtures(), 1.0)),
+            d.start,
+            LocalizerParams::default(),
+            seed,
+        ),
+        core: DeliveryCore::for_robot(&d, DeliveryParams::default()),
+        pose: d.start,
+        world,
+        t: 0.0,
+        errors: Vec::new(),
+        latency: 0.0,
+        pending: std::collections::VecDeque::new(),
+    }
+}
+
+#[test]
+fn a_stationary_tracker_in_a_junction_is_on_the_delivery_robots_map_and_passed() {
+    // T1 never moves: the scenario says so, and D1's map shows it. Taken for a person
+    // who might walk into it, it held D1 just south of it, wanting north into the west
+    // corridor, for minutes: each way round came within its body fields.
+    let scenario = Scenario::paper();
+    let map = Arc::new(OccupancyMap::office());
+    let of = |name| {
+        muster_robots::sim::describe(&scenario, &map, name)
+            .unwrap()
+            .fixtures
+    };
+    assert_eq!(of("D1"), vec![(3.0, 3.0, 0.25), (37.0, 17.0, 0.25)]);
+    assert_eq!(of("T1"), vec![(37.0, 17.0, 0.25)]);
+    let mut d = delivery_from([2.98, 2.32, 150.0], 4);
+    let t1 = {
+        let r = &d.world.robots()[d.world.robot_index("T1").unwrap()];
+        (r.pose.x, r.pose.y)
+    };
+    let goal = (3.5, 9.0);
+    let mut once = Some(goal);
+    let ev = d.run(60.0, true, |_| once.take());
+    let truth = d.truth();
+    assert!(
+        ev.iter()
+            .any(|e| matches!(e, DeliveryEvent::Arrived { .. })),
+        "not arrived within 60 s: at {truth:?}, last events {:?}",
+        &ev[ev.len().saturating_sub(3)..]
+    );
+    assert!(
+        (truth.x - goal.0).hypot(truth.y - goal.1) <= 1.1,
+        "truly at {truth:?}"
+    );
+    assert_eq!(d.contacts(), 0, "contacts");
+    // T1 stood where it was all along.
+    let r = &d.world.robots()[d.world.robot_index("T1").unwrap()];
+    assert_eq!((r.pose.x, r.pose.y), t1);
+}
+
 #[test]
 fn localization_converges_from_an_offset_start_while_driving() {
     // D1's filter starts 0.25 m and 4° off the truth; driving down the corridor it must
