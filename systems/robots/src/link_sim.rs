@@ -153,10 +153,12 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
         p.tracking.clone(),
         p.seed,
     );
-    let d1_robot = crate::sim::describe(&scenario, &map, "D1").map_err(|e| e.to_string())?;
+    let d1_robot = crate::sim::describe(&scenario, &map, "D1")
+        .map_err(|e| e.to_string())?
+        .fixtures_drawn();
     let d1_geometry = d1_robot.sensors.clone();
     let mut localizer = Localizer::new(
-        Arc::new(LikelihoodField::new(&d1_robot.map_with_fixtures(), 1.0)),
+        Arc::new(LikelihoodField::new(&d1_robot.map, 1.0)),
         d1_robot.start,
         LocalizerParams::default(),
         p.seed,

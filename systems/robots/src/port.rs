@@ -64,6 +64,16 @@ impl RobotDescription {
         with_fixtures(&self.map, &self.fixtures)
     }
 
+    /// This description with its fixtures drawn into its map (and none left beside
+    /// it), so that the planner and the localizer built from it share one map.
+    pub fn fixtures_drawn(&self) -> RobotDescription {
+        RobotDescription {
+            map: self.map_with_fixtures(),
+            fixtures: Vec::new(),
+            ..self.clone()
+        }
+    }
+
     /// What the robot was taken to be, for reports (`--stats-json`): start pose, laser
     /// beams and field of view, sonar transducers, camera, size, speed, map size.
     pub fn summary(&self) -> serde_json::Value {

@@ -499,8 +499,9 @@ impl DeliveryDriver {
         if geometry.laser.is_none() {
             return Err(RobotSystemError::MissingSensor(robot.to_string(), "laser"));
         }
+        let d = d.fixtures_drawn();
         let core = DeliveryCore::for_robot(&d, params);
-        let (start, map) = (d.start, d.map_with_fixtures());
+        let (start, map) = (d.start, d.map);
         let localizer = (!ground_truth).then(|| {
             Localizer::new(
                 Arc::new(LikelihoodField::new(&map, 1.0)),

@@ -226,13 +226,15 @@ fn delivery_from(pose: [f64; 3], seed: u64) -> Delivery {
     }
     let map = OccupancyMap::office();
     let world = World::new(&scenario, Some(map.clone())).unwrap();
-    let d = muster_robots::sim::describe(&scenario, &Arc::new(map), "D1").unwrap();
+    let d = muster_robots::sim::describe(&scenario, &Arc::new(map), "D1")
+        .unwrap()
+        .fixtures_drawn();
     let d1 = world.robot_index("D1").unwrap();
     Delivery {
         d1,
         geometry: d.sensors.clone(),
         loc: Localizer::new(
-            Arc::new(LikelihoodField::new(&d.map_with_fixtures(), 1.0)),
+            Arc::new(LikelihoodField::new(&d.map, 1.0)),
             d.start,
             LocalizerParams::default(),
             seed,
