@@ -420,11 +420,14 @@ impl Navigator {
 
     /// Whether a point (robot frame) lies where driving on closes on it: within ±70° of
     /// the heading, widened on the side the robot turns to by the angle it turns
-    /// before a command made now has stopped it (turn rate `w` times the body reaction
-    /// time and the latency).
-    fn ahead_of_motion(&self, x: f64, y: f64, w: f64) -> bool {
+    /// before a command made now has stopped it: turn rate `w` times the body reaction
+    /// time, the latency and the time to brake from `v` (it still rolls forward while it
+    /// brakes, and a body behind its shoulder comes round to its side meanwhile).
+    fn ahead_of_motion(&self, x: f64, y: f64, v: f64, w: f64) -> bool {
+        let p = &self.params;
         let bearing = y.atan2(x);
-        let turn = w.abs() * (self.params.body_reaction + self.latency);
+        let turn = (w.abs() * (p.body_reaction + self.latency + v.max(0.0) / p.brake))
+            .min(std::f64::consts::PI - STOP_CONE);
         bearing.abs() < STOP_CONE || (bearing * w > 0.0 && bearing.abs() < STOP_CONE + turn)
     }
 
@@ -432,7 +435,7 @@ impl Navigator {
     /// in its lane ahead or where its driving closes on it ([`Self::ahead_of_motion`]),
     /// could reach it walking straight at it: gap g > vb·(T + v/a) +
     /// v·T + v²/2a, with T the body reaction time plus the latency and a the braking.
-    fn body_speed_limit(&self, obstacles: &[(f64, f64)], bodies: &[bool], w: f64) -> f64 {
+    fn body_speed_limit(&self, obstacles: &[(f64, f64)], bodies: &[bool], v: f64, w: f64) -> f64 {
         let p = &self.params;
         let gap = obstacles
             .iter()
@@ -441,7 +444,7 @@ impl Navigator {
             .map(|(&(x, y), _)| (x, y, x.hypot(y)))
             .filter(|&(x, y, d)| {
                 d < p.footprint + LOOK
-                    && (y.abs() < p.footprint + p.body_lane || self.ahead_of_motion(x, y, w))
+                    && (y.abs() < p.footprint + p.body_lane || self.ahead_of_motion(x, y, v, w))
             })
             .map(|(_, _, d)| d - p.footprint)
             .fold(f64::INFINITY, f64::min);
@@ -518,24 +521,31 @@ impl Navigator {
         let body_near = |reach: f64| Self::body_within(obstacles, &bodies, p.footprint + reach);
         // A body walks this far towards the robot before a command acts.
         let late = p.body_speed * self.latency;
-        // Stopped only by bodies its driving would close on: ahead, within ±70°, and
-        // beside it on the side it turns to. A body right beside a robot driving straight
-        // is not approached, and stopping for it held two robots side by side in a
-        // corridor, each for the other, for minutes.
-        let body_stop = obstacles.iter().zip(&bodies).any(|(&(x, y), &body)| {
-            let d = x.hypot(y);
-            body && d < p.footprint + p.body_protective + late && self.ahead_of_motion(x, y, w)
-        });
         let body_slow = body_near(p.body_warning + late);
         let in_protective = inside(p.protective_field, 0.05, false);
         // The warning field's side margin is for what may step into the lane (people,
         // robots); a wall alongside never does, and a robot may drive close along one.
         let in_warning = inside(p.warning_field, 0.05, false) || inside(p.warning_field, 0.2, true);
         let lane_limit = self
-            .body_speed_limit(obstacles, &bodies, w)
+            .body_speed_limit(obstacles, &bodies, v, w)
             .max(p.warning_speed);
         let creep_blocked = Self::body_within(obstacles, &bodies, self.creep_reach());
         v = v.min(lane_limit);
+        // Stopped only by bodies its driving would close on: ahead, within ±70°, and
+        // beside or behind it on the side it turns to, as far round as it turns before
+        // it has stopped from the speed it would drive at. A body right beside a robot
+        // driving straight is not approached, and stopping for it held two robots side
+        // by side in a corridor, each for the other, for minutes.
+        let going = if in_warning || body_slow {
+            v.min(p.warning_speed)
+        } else {
+            v
+        };
+        let body_stop = obstacles.iter().zip(&bodies).any(|(&(x, y), &body)| {
+            let d = x.hypot(y);
+            body && d < p.footprint + p.body_protective + late
+                && self.ahead_of_motion(x, y, going, w)
+        });
         // Getting clear: turn to the escape heading and creep out along it.
         if let Some(velocity) = self.escaping(now, pose, || {
             // Getting clear never runs into someone else: the lane limit and the body
@@ -940,5 +950,48 @@ mod tests {
         let s = nav.step(0.2, away, &side);
         assert!(s.velocity.1 > 0.5, "turns left: {:?}", s.velocity);
         assert!(s.velocity.0 > 0.0, "{:?}", s.velocity);
+    }
+
+    #[test]
+    fn a_robot_turning_towards_a_body_behind_its_shoulder_stops_rolling_forward() {
+        let map = OccupancyMap::office();
+        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        // Facing 0.5 rad left of its path east: it turns right at 1 rad/s, and would
+        // drive on at 0.6 m/s meanwhile.
+        let pose = Pose {
+            x: 20.0,
+            y: 10.0,
+            theta: 0.5,
+        };
+        // A person 0.5 m from its centre, 125° off its heading (behind its shoulder),
+        // on one side or the other: out of the ±70° cone, and behind the robot, so no
+        // field slows it for her.
+        let behind = |side: f64| -> Vec<(f64, f64)> {
+            (-2..=2)
+                .map(|k| {
+                    let a = (side * 125.0 + 4.0 * f64::from(k)).to_radians();
+                    (0.5 * a.cos(), 0.5 * a.sin())
+                })
+                .collect()
+        };
+        for latency in [0.0, 0.25] {
+            let step = |pts: &[(f64, f64)]| {
+                let mut nav = Navigator::new(planner.clone(), NavParams::default());
+                nav.set_goal(pose, (30.0, 10.0), 0.5).unwrap();
+                nav.set_latency(latency);
+                nav.step(0.0, pose, pts).velocity
+            };
+            let (v, w) = step(&[]);
+            assert!(v > 0.5 && w < -0.5, "free, latency {latency}: {v}, {w}");
+            // Behind its left shoulder, away from the turn: it drives on as if free.
+            assert_eq!(step(&behind(1.0)), (v, w), "latency {latency}");
+            // Behind its right shoulder: in the time it takes to brake from 0.6 m/s it
+            // turns her round to its side and would roll into her (seen with commands
+            // 0.25 s late: a person walking behind a tracker that slowed to turn). It
+            // stops rolling forward and goes on turning.
+            let (v, w) = step(&behind(-1.0));
+            assert_eq!(v, 0.0, "latency {latency}");
+            assert!(w < -0.5, "latency {latency}: {w}");
+        }
     }
 }
