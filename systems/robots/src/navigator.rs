@@ -756,6 +756,14 @@ mod tests {
     use crate::planner::PlannerParams;
     use muster_world_model::map::OccupancyMap;
 
+    /// A planner on the built-in office floor, with the default parameters.
+    fn office_planner() -> Arc<Planner> {
+        Arc::new(Planner::new(
+            &OccupancyMap::office(),
+            PlannerParams::default(),
+        ))
+    }
+
     #[test]
     fn free_distance_sees_walls_between_beams_and_single_echoes() {
         // A wall 2 m ahead made of points 0.3 m apart: the footprint cannot pass.
@@ -773,8 +781,7 @@ mod tests {
 
     #[test]
     fn a_halted_robot_gives_way_to_a_body_pressing_on_it() {
-        let map = OccupancyMap::office();
-        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let planner = office_planner();
         let mut nav = Navigator::new(planner, NavParams::default());
         let mut pose = Pose {
             x: 20.0,
@@ -810,8 +817,7 @@ mod tests {
 
     #[test]
     fn making_room_keeps_the_point_in_view_when_a_free_heading_allows() {
-        let map = OccupancyMap::office();
-        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let planner = office_planner();
         let pose = Pose {
             x: 20.0,
             y: 3.0,
@@ -834,8 +840,7 @@ mod tests {
 
     #[test]
     fn a_lone_point_in_the_lasers_field_is_noise_and_latency_grows_the_fields_uncapped() {
-        let map = OccupancyMap::office();
-        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let planner = office_planner();
         let pose = Pose {
             x: 10.0,
             y: 3.0,
@@ -871,8 +876,7 @@ mod tests {
 
     #[test]
     fn follows_a_path_and_stops_short_of_a_body_in_the_way() {
-        let map = OccupancyMap::office();
-        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let planner = office_planner();
         let mut nav = Navigator::new(planner, NavParams::default());
         let mut pose = Pose {
             x: 5.0,
@@ -916,8 +920,7 @@ mod tests {
 
     #[test]
     fn a_body_beside_a_robot_driving_straight_slows_it_but_one_it_turns_towards_stops_it() {
-        let map = OccupancyMap::office();
-        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let planner = office_planner();
         let mut nav = Navigator::new(planner, NavParams::default());
         let pose = Pose {
             x: 20.0,
@@ -954,8 +957,7 @@ mod tests {
 
     #[test]
     fn a_robot_turning_towards_a_body_behind_its_shoulder_stops_rolling_forward() {
-        let map = OccupancyMap::office();
-        let planner = Arc::new(Planner::new(&map, PlannerParams::default()));
+        let planner = office_planner();
         // Facing 0.5 rad left of its path east: it turns right at 1 rad/s, and would
         // drive on at 0.6 m/s meanwhile.
         let pose = Pose {
