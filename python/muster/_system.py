@@ -55,11 +55,14 @@ class Service:
     and end (`on_start`, `on_end` decorators)."""
 
     def __init__(self, system: "System", name: str, kind: str, payload: str,
-                 handler: Optional[Callable[..., Any]], rate: Optional[float]):
+                 handler: Optional[Callable[..., Any]], rate: Optional[float],
+                 latched: bool = False):
         self._system = system
         self.name = name
         self.kind = kind
         self.payload = payload
+        #: Whether the broker keeps its newest value for each new session (data).
+        self.latched = latched
         self._handler = handler
         self._rate = rate
         self._on_start: Optional[Callable[[SystemSession], Any]] = None
@@ -127,25 +130,32 @@ class System:
     # Declaring.
     def _declare(self, name: str, kind: str, payload: str, quota: int, queue: bool,
                  description: str, schema: Optional[str], encoding: Optional[str],
-                 handler: Optional[Callable[..., Any]], rate: Optional[float]) -> Service:
+                 handler: Optional[Callable[..., Any]], rate: Optional[float],
+                 latched: bool = False) -> Service:
         if rate is not None and not rate > 0:
             raise MusterError("rate is updates a second, > 0")
         self._native.add_service(name, kind, payload, quota, queue, description,
-                                 encoding, schema)
-        s = Service(self, name, kind, payload, handler, rate)
+                                 encoding, schema, latched)
+        s = Service(self, name, kind, payload, handler, rate, latched)
         self._services[name] = s
         return s
 
     def data_service(self, name: str, *, payload: str = "pose2d", quota: int = 10,
                      queue: bool = False, description: str = "", rate: Optional[float] = None,
-                     schema: Optional[str] = None, encoding: Optional[str] = None
-                     ) -> Callable[[Callable[[], Any]], Service]:
+                     schema: Optional[str] = None, encoding: Optional[str] = None,
+                     latched: bool = False) -> Callable[[Callable[[], Any]], Service]:
         """Decorator: a data service. With `rate` (Hz), the function is called that
         often while the service has sessions and what it returns is published (None
-        publishes nothing); without, publish with `service.publish(value)`."""
+        publishes nothing); without, publish with `service.publish(value)`.
+
+        `latched=True` (ROS 2's transient-local durability): every update published
+        also goes to the broker, which keeps the newest and gives it to each new
+        session with its grant, as its update 0, so a user has the value at once. With
+        `rate`, a latched service's function is called at that rate with no session
+        too, so the broker's value stays fresh."""
         def wrap(fn: Callable[[], Any]) -> Service:
             return self._declare(name, "data", payload, quota, queue, description, schema,
-                                 encoding, fn, rate)
+                                 encoding, fn, rate, latched)
         return wrap
 
     def command_service(self, name: str, *, payload: str = "goal2d", quota: int = 1,
@@ -249,7 +259,7 @@ class System:
 
     def _streamer(self, s: Service) -> Callable[[], None]:
         def tick() -> None:
-            if not s.sessions or s._handler is None:
+            if s._handler is None or not (s.latched or s.sessions):
                 return
             value = s._handler()
             if value is not None:

@@ -46,6 +46,8 @@ pub struct NativeSystem {
     instance: String,
     udp: Option<std::net::SocketAddr>,
     specs: Mutex<Vec<ServiceSpec>>,
+    /// The data services declared latched, latched when `run` makes the core.
+    latched: Mutex<Vec<String>>,
     inbox: Arc<Inbox>,
 }
 
@@ -75,6 +77,7 @@ impl NativeSystem {
                 instance: instance.to_string(),
                 udp,
                 specs: Mutex::new(Vec::new()),
+                latched: Mutex::new(Vec::new()),
                 inbox: Arc::new(Inbox {
                     calls: Mutex::new(VecDeque::new()),
                     stop: AtomicBool::new(false),
@@ -95,7 +98,9 @@ impl NativeSystem {
     /// Declares a service (before `run`). `kind` is `data` or `command`; `payload` a
     /// built-in type (`pose2d`, `goal2d`, `scalar`, `text`, `track2d`, `twist`) or an
     /// open type's name with its `schema` (`encoding` `jsonschema` or `ros2msg`).
-    #[pyo3(signature = (name, kind, payload, quota=1, queue=false, description="", encoding=None, schema=None))]
+    /// A `latched` data service's updates also go to the broker, which hands the newest
+    /// to each new session with its grant, as its update 0 (`SystemCore::latch`).
+    #[pyo3(signature = (name, kind, payload, quota=1, queue=false, description="", encoding=None, schema=None, latched=false))]
     #[allow(clippy::too_many_arguments)]
     fn add_service(
         &self,
@@ -107,6 +112,7 @@ impl NativeSystem {
         description: &str,
         encoding: Option<&str>,
         schema: Option<&str>,
+        latched: bool,
     ) -> PyResult<()> {
         guarded(|| {
             if self.inbox.running.load(Ordering::Relaxed) {
@@ -119,6 +125,11 @@ impl NativeSystem {
                 "command" => ServiceKind::Command,
                 k => return Err(MusterError::new_err(format!("kind {k:?}: data or command"))),
             };
+            if latched && kind != ServiceKind::Data {
+                return Err(MusterError::new_err(format!(
+                    "service {name:?}: only a data service can be latched"
+                )));
+            }
             let schema = match (encoding, schema) {
                 (None, None) => None,
                 (Some(e), Some(text)) => {
@@ -164,6 +175,12 @@ impl NativeSystem {
             all.push(spec.clone());
             // The broker's own checks, now, with the reason.
             SystemCore::create(&self.name, all).map_err(|e| MusterError::new_err(e.to_string()))?;
+            if latched {
+                self.latched
+                    .lock()
+                    .map_err(|_| MusterError::new_err("poisoned"))?
+                    .push(spec.name.clone());
+            }
             specs.push(spec);
             Ok(())
         })
@@ -190,8 +207,16 @@ impl NativeSystem {
                         "no services: declare one (System.data_service, command_service)",
                     ));
                 }
-                let core = SystemCore::create(&self.name, specs)
+                let mut core = SystemCore::create(&self.name, specs)
                     .map_err(|e| MusterError::new_err(e.to_string()))?;
+                for name in self
+                    .latched
+                    .lock()
+                    .map_err(|_| MusterError::new_err("poisoned"))?
+                    .iter()
+                {
+                    core.latch(name);
+                }
                 let inst = Instance::new(&self.instance)
                     .map_err(|e| MusterError::new_err(e.to_string()))?;
                 let opts = muster_systems::RunOptions {

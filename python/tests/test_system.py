@@ -172,8 +172,54 @@ def test_bad_declarations_are_refused_with_the_reason():
         muster.System("no/slash")
     with pytest.raises(muster.MusterError, match="rate"):
         s.data_service("b", rate=0)(lambda: None)
+    with pytest.raises(muster.MusterError, match="only a data service can be latched"):
+        s._native.add_service("c", "command", "goal2d", 1, False, "", None, None, True)
     with pytest.raises(muster.MusterError, match="not running"):
         s.publish("a", muster.Pose2d(0, 0, 0))
+
+
+LATCHED = textwrap.dedent('''
+    import itertools, sys, muster
+    s = muster.System("py2", instance=sys.argv[1])
+    n = itertools.count(1)
+    m = itertools.count(1)
+
+    @s.data_service("pos", rate=5, latched=True)
+    def pos():
+        return muster.Pose2d(next(n), 0.0)
+
+    @s.data_service("plain", rate=5)
+    def plain():
+        return muster.Pose2d(next(m), 0.0)
+
+    s.run()
+''')
+
+
+def test_a_latched_python_service_gives_a_new_session_its_newest_value_with_the_grant(
+        fed, tmp_path):
+    fed.broker()
+    script = tmp_path / "latched.py"
+    script.write_text(LATCHED)
+    fed.python(str(script), fed.inst)
+    with muster.User(fed.inst) as me:
+        services(me, 2)
+        # Nobody holds a session, yet the latched service updates at its rate (5 Hz)
+        # and the broker keeps the newest.
+        time.sleep(1.0)
+        with me.request("py2/pos") as p:
+            ups = [u for u, _ in zip(p.updates(timeout=5), range(3))]
+        # Update 0 comes from the broker with the grant: a value published with no
+        # session (the counter had passed 1), then the system's own stream from 1,
+        # newer, nothing lost.
+        assert [u.seq for u in ups] == [0, 1, 2], ups
+        assert ups[0].value.x >= 3, ups
+        assert ups[1].value.x > ups[0].value.x and ups[2].value.x == ups[1].value.x + 1, ups
+        assert p.lost == 0
+        # A service not latched starts at update 1, its function not called before.
+        with me.request("py2/plain") as q:
+            u = next(q.updates(timeout=5))
+        assert (u.seq, u.value.x) == (1, 1), u
 
 
 def test_a_python_system_keeps_its_sessions_across_a_broker_restart(fed):
