@@ -282,9 +282,10 @@ fn robot(python: &str, domain: u16, namespace: &str, start: &str, extra: &[&str]
 }
 
 /// The services of the README's example.
-const TURTLE_SERVICES: [&str; 7] = [
+const TURTLE_SERVICES: [&str; 8] = [
     "turtle/pose",
     "turtle/say",
+    "turtle/status",
     "turtle/goal",
     "turtle/drive",
     "turtle/scan",
@@ -419,6 +420,19 @@ fn a_ros2_robot_becomes_a_muster_system() {
     let out = request_json(&fed, "turtle/say", "2s");
     assert!(
         out.lines().any(|l| l.contains("\"text\":\"hello ")),
+        "{out}"
+    );
+    // A transient-local topic the robot sent once, long before this user came: latched,
+    // so the user gets it with its grant (update 0), and nothing after.
+    let out = request_json(&fed, "turtle/status", "1s");
+    let updates: Vec<(u64, Value)> = out
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter_map(|v| Some((v["seq"].as_u64()?, v["payload"].clone())))
+        .collect();
+    assert_eq!(
+        updates,
+        vec![(0, serde_json::json!({"type": "text", "text": "ready"}))],
         "{out}"
     );
 

@@ -110,7 +110,9 @@ fn ros2_domain(a: &RobotSystemArgs) -> u16 {
 }
 
 fn ros2(inst: &Instance, a: Ros2SystemArgs) -> anyhow::Result<ExitCode> {
-    use muster_ros2::system::{config::Ros2SystemConfig, Ros2System, Ros2SystemOptions};
+    use muster_ros2::system::{
+        config::Ros2SystemConfig, system_core, Ros2System, Ros2SystemOptions,
+    };
     anyhow::ensure!(!a.deadman.is_zero(), "--deadman must be > 0");
     let cfg = Ros2SystemConfig::load(&a.config)?;
     let opts = Ros2SystemOptions {
@@ -118,7 +120,7 @@ fn ros2(inst: &Instance, a: Ros2SystemArgs) -> anyhow::Result<ExitCode> {
         deadman: a.deadman,
     };
     let app = Ros2System::new(&cfg, &opts)?;
-    let core = SystemCore::new(&cfg.system, std::process::id(), cfg.specs());
+    let core = system_core(&cfg);
     let run = muster_systems::RunOptions {
         udp: a.udp,
         ..Default::default()

@@ -176,8 +176,11 @@ pub struct SystemCore {
     /// counted in use for good.
     ended_early: VecDeque<(SessionId, UserId, u32)>,
     /// Data services whose newest update the broker keeps for new sessions
-    /// ([`SystemCore::latch`]).
-    latched: BTreeSet<String>,
+    /// ([`SystemCore::latch`]), each with its newest update (`sent_ns` and the encoded
+    /// payload), sent again with every registration: a broker that restarted or took
+    /// over, or one this system registered with after the update, has it too (a latched
+    /// ROS topic may be sent once).
+    latched: BTreeMap<String, Option<(u64, Vec<u8>)>>,
     state: BrokerState,
     /// The pid of the broker that registered us (from its `Registered`).
     broker_pid: Option<u32>,
@@ -214,7 +217,7 @@ impl SystemCore {
             served: VecDeque::new(),
             served_set: HashSet::new(),
             ended_early: VecDeque::new(),
-            latched: BTreeSet::new(),
+            latched: BTreeMap::new(),
             state: BrokerState::Unregistered,
             broker_pid: None,
             impersonations: 0,
@@ -428,6 +431,17 @@ impl SystemCore {
                         system: self.name.clone(),
                         limit: Some(limit),
                     });
+                }
+                // The newest value of each latched service, for this broker to keep.
+                for (service, newest) in &self.latched {
+                    if let Some((sent_ns, payload)) = newest {
+                        self.out.push_back(SystemOutput::ToBroker(ToBroker::Latest {
+                            system: self.name.clone(),
+                            service: service.clone(),
+                            sent_ns: *sent_ns,
+                            payload: payload.clone(),
+                        }));
+                    }
                 }
                 self.events.push_back(SystemEvent::Registered);
             }
@@ -654,14 +668,14 @@ impl SystemCore {
             .iter()
             .any(|s| s.name == service && s.kind == ServiceKind::Data);
         if data {
-            self.latched.insert(service.to_string());
+            self.latched.entry(service.to_string()).or_default();
         }
         data
     }
 
     /// Whether `service` is latched ([`SystemCore::latch`]).
     pub fn latched(&self, service: &str) -> bool {
-        self.latched.contains(service)
+        self.latched.contains_key(service)
     }
 
     /// Streams one data update to every session of `service`. Returns how many got it;
@@ -677,14 +691,19 @@ impl SystemCore {
         payload: &Payload,
         sent_ns: u64,
     ) -> Result<usize, SendError> {
-        if self.latched.contains(service) && matches!(self.state, BrokerState::Registered { .. }) {
+        if let Some(newest) = self.latched.get_mut(service) {
             match muster_shared::protocol::encode(payload) {
-                Ok(payload) => self.out.push_back(SystemOutput::ToBroker(ToBroker::Latest {
-                    system: self.name.clone(),
-                    service: service.to_string(),
-                    sent_ns,
-                    payload,
-                })),
+                Ok(payload) => {
+                    *newest = Some((sent_ns, payload.clone()));
+                    if matches!(self.state, BrokerState::Registered { .. }) {
+                        self.out.push_back(SystemOutput::ToBroker(ToBroker::Latest {
+                            system: self.name.clone(),
+                            service: service.to_string(),
+                            sent_ns,
+                            payload,
+                        }));
+                    }
+                }
                 // Too large for a frame: its sessions' updates will say so below.
                 Err(e) => tracing::debug!(system = %self.name, service, "not latched: {e}"),
             }
@@ -1295,6 +1314,52 @@ mod tests {
         let second = answer(&offer(&mut c, 6, "u1", "c")).unwrap().unwrap();
         assert_ne!(first, second);
         assert_eq!(c.sessions_of("c"), 2);
+    }
+
+    #[test]
+    fn a_latched_services_newest_value_goes_to_every_broker_it_registers_with() {
+        let mut c = core();
+        assert!(c.latch("a"));
+        assert!(!c.latch("c"), "a command service is not latched");
+        let latest = |out: &[SystemOutput]| -> Vec<(String, u64, Vec<u8>)> {
+            out.iter()
+                .filter_map(|o| match o {
+                    SystemOutput::ToBroker(ToBroker::Latest {
+                        service,
+                        sent_ns,
+                        payload,
+                        ..
+                    }) => Some((service.clone(), *sent_ns, payload.clone())),
+                    _ => None,
+                })
+                .collect()
+        };
+        let enc = |x: f64| muster_shared::protocol::encode(&Payload::Scalar(x)).unwrap();
+        // Published before any broker: kept, sent to none.
+        c.publish("a", &Payload::Scalar(1.0), 10).unwrap();
+        assert_eq!(latest(&outs(&mut c)), vec![]);
+        c.handle(ToSystem::Registered {
+            epoch: 1,
+            broker_pid: 9,
+        });
+        assert_eq!(latest(&outs(&mut c)), vec![("a".into(), 10, enc(1.0))]);
+        // Registered: each update goes at once.
+        c.publish("a", &Payload::Scalar(2.0), 20).unwrap();
+        c.publish("a", &Payload::Scalar(3.0), 30).unwrap();
+        assert_eq!(
+            latest(&outs(&mut c)),
+            vec![("a".into(), 20, enc(2.0)), ("a".into(), 30, enc(3.0))]
+        );
+        // The broker lost, another (a restart, a standby taking over): it gets the newest
+        // at once, not at the service's next update.
+        c.broker_lost();
+        c.publish("a", &Payload::Scalar(4.0), 40).unwrap();
+        assert_eq!(latest(&outs(&mut c)), vec![]);
+        c.handle(ToSystem::Registered {
+            epoch: 2,
+            broker_pid: 11,
+        });
+        assert_eq!(latest(&outs(&mut c)), vec![("a".into(), 40, enc(4.0))]);
     }
 
     #[test]

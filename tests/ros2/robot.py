@@ -1,6 +1,7 @@
 """A ROS 2 robot written in rclpy, nobody's muster code: a differential-drive integrator
-that publishes `odom` (nav_msgs/Odometry, 20 Hz), `chatter` (std_msgs/String, 2 Hz) and
-`scan` (sensor_msgs/LaserScan, 2 Hz: four beams reading 1, 2, no return, 4.5 m) in its
+that publishes `odom` (nav_msgs/Odometry, 20 Hz), `chatter` (std_msgs/String, 2 Hz),
+`scan` (sensor_msgs/LaserScan, 2 Hz: four beams reading 1, 2, no return, 4.5 m) and, once
+at its start, `status` (std_msgs/String "ready", transient-local: latched) in its
 namespace, obeys `cmd_vel` (geometry_msgs/Twist), and, like a navigation stack,
 drives itself at 0.5 m/s towards each `goal_pose` (geometry_msgs/PoseStamped) it gets,
 and reports each LaserScan it is sent on `scan_relay`.
@@ -25,6 +26,7 @@ from geometry_msgs.msg import PoseStamped, Twist
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
@@ -69,6 +71,11 @@ chatter = node.create_publisher(String, "chatter", 10)
 scan_pub = node.create_publisher(LaserScan, "scan", 10)
 battery = node.create_publisher(String, "battery", 10) if a.wrong_type else None
 bigscan = node.create_publisher(LaserScan, "bigscan", 10) if a.oversized else None
+# Sent once, kept for late subscribers (as a map or a robot's description is).
+status = node.create_publisher(String, "status", QoSProfile(
+    depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    reliability=ReliabilityPolicy.RELIABLE))
+status.publish(String(data="ready"))
 cmd = {"v": 0.0, "w": 0.0, "at": -1.0}
 goal = {"xy": None}
 

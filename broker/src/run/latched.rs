@@ -9,8 +9,9 @@
 //! update 0: the user has the service's value with its grant, instead of at
 //! the system's next turn (its offer is read a moment later, and its first contact
 //! with a new user's inbox costs a few tenths of a millisecond). The value is the
-//! shell's, not the core's: it is neither journaled nor replicated (a standby that takes
-//! over has it again at the service's next update).
+//! shell's, not the core's: it is neither journaled nor replicated (the system sends
+//! its newest value of each again every time it registers, so a standby that takes
+//! over has it as soon as the system registers with it).
 
 use muster_shared::protocol::{decode, ToBroker, ToUser};
 use muster_shared::types::{Payload, ServiceId, ServiceKind};

@@ -10,7 +10,7 @@
 //! name = "pose"
 //! topic = "odom"
 //! type = "nav_msgs/msg/Odometry"
-//! quota = 10                 # default 10; also description, queue, qos
+//! quota = 10                 # default 10; also description, queue, qos, latched
 //!
 //! [[command]]                # a goal published for the robot's navigation
 //! name = "goal"
@@ -104,6 +104,22 @@ pub struct DataService {
     /// The subscription's QoS.
     #[serde(default)]
     pub qos: TopicQos,
+    /// Whether the service is latched (`SystemCore::latch`): every sample goes to the
+    /// broker, with or without sessions, and a new session gets the newest with its
+    /// grant. Default: when the topic is `transient_local` (a ROS topic sent once or on
+    /// change, such as a map or a status, which a late subscriber gets at once: so does
+    /// a late muster user). A latched topic is not watched for liveness unless `watch`
+    /// names it: it is quiet by nature.
+    #[serde(default)]
+    pub latched: Option<bool>,
+}
+
+impl DataService {
+    /// Whether the service is latched: as set, else when its topic is transient-local.
+    pub fn is_latched(&self) -> bool {
+        self.latched
+            .unwrap_or(self.qos.durability.as_deref() == Some("transient_local"))
+    }
 }
 
 /// What a command service takes and publishes.
@@ -191,7 +207,8 @@ pub struct Ros2SystemConfig {
     /// again (default 2 s).
     #[serde(default, with = "opt_duration")]
     pub silent_after: Option<Duration>,
-    /// Topics watched for liveness (default: every subscribed topic).
+    /// Topics watched for liveness (default: every subscribed topic but those only
+    /// latched services take).
     #[serde(default)]
     pub watch: Option<Vec<String>>,
     /// Data services.
@@ -579,6 +596,50 @@ name = "drive"
 payload = "twist"
 deadman = "300ms"
 "#;
+
+    #[test]
+    fn a_transient_local_topic_is_latched_unless_the_file_says_otherwise() {
+        let c = Ros2SystemConfig::parse(
+            r#"
+system = "x"
+[[data]]
+name = "map"
+topic = "map"
+type = "std_msgs/msg/String"
+qos = { durability = "transient_local", depth = 1 }
+[[data]]
+name = "map_live"
+topic = "map"
+type = "std_msgs/msg/String"
+qos = { durability = "transient_local" }
+latched = false
+[[data]]
+name = "pose"
+topic = "odom"
+type = "nav_msgs/msg/Odometry"
+[[data]]
+name = "pose_latched"
+topic = "odom"
+type = "nav_msgs/msg/Odometry"
+latched = true
+"#,
+        )
+        .unwrap();
+        let latched: Vec<(&str, bool)> = c
+            .data
+            .iter()
+            .map(|d| (d.name.as_str(), d.is_latched()))
+            .collect();
+        assert_eq!(
+            latched,
+            vec![
+                ("map", true),
+                ("map_live", false),
+                ("pose", false),
+                ("pose_latched", true)
+            ]
+        );
+    }
 
     #[test]
     fn a_config_becomes_services() {

@@ -146,6 +146,15 @@ fn qos_of(q: &TopicQos, publisher: bool) -> QosProfile {
     p
 }
 
+/// The system core for `cfg`: its services, the latched ones latched.
+pub fn system_core(cfg: &Ros2SystemConfig) -> SystemCore {
+    let mut core = SystemCore::new(&cfg.system, std::process::id(), cfg.specs());
+    for d in cfg.data.iter().filter(|d| d.is_latched()) {
+        core.latch(&d.name);
+    }
+    core
+}
+
 impl Ros2System {
     /// Joins ROS domain `opts.domain` as node `/muster/<system>` with the file's topics.
     pub fn new(cfg: &Ros2SystemConfig, opts: &Ros2SystemOptions) -> Result<Self, Ros2Error> {
@@ -174,6 +183,8 @@ impl Ros2System {
             Ok(inputs.len() - 1)
         };
         let mut data = Vec::new();
+        // Inputs some service needs heard all the time (not only latched ones).
+        let mut lively = Vec::new();
         for d in &cfg.data {
             let raw = match cfg.data_payload(d) {
                 Ok(DataPayload::Ros(schema)) => Some(Arc::new(
@@ -185,6 +196,9 @@ impl Ros2System {
             };
             let k = input(&mut node, &d.topic, &d.ros_type, &d.qos, raw)?;
             data.push((d.name.clone(), k));
+            if !d.is_latched() {
+                lively.push(k);
+            }
         }
         let (mut goals, mut twists, mut raws) = (Vec::new(), Vec::new(), Vec::new());
         for c in &cfg.command {
@@ -197,6 +211,7 @@ impl Ros2System {
                         &TopicQos::default(),
                         None,
                     )?;
+                    lively.push(pose_input);
                     let topic = resolve(&ns, c.topic.as_deref().unwrap_or("goal_pose"));
                     goals.push(GoalService {
                         name: c.name.clone(),
@@ -265,7 +280,18 @@ impl Ros2System {
                         })
                 })
                 .collect::<Result<Vec<_>, _>>()?,
-            None => (0..inputs.len()).collect(),
+            // Every subscribed topic, but one only latched services take: a latched
+            // topic is sent once or on change, and its silence says nothing of the robot.
+            None => {
+                let latched_only: Vec<usize> = data
+                    .iter()
+                    .map(|(_, k)| *k)
+                    .filter(|k| !lively.contains(k))
+                    .collect();
+                (0..inputs.len())
+                    .filter(|k| !latched_only.contains(k))
+                    .collect()
+            }
         };
         let poll = mio1::Poll::new().map_err(|e| Ros2Error::create("epoll", e))?;
         for (k, i) in inputs.iter_mut().enumerate() {
@@ -311,7 +337,8 @@ impl Ros2System {
                 continue;
             }
             for (service, _) in self.data.iter().filter(|(_, i)| *i == k) {
-                if core.sessions_of(service) == 0 {
+                // A latched service's samples go to the broker with no session too.
+                if core.sessions_of(service) == 0 && !core.latched(service) {
                     continue;
                 }
                 for p in &self.scratch {
