@@ -205,6 +205,33 @@ fn a_latched_service_gives_a_new_session_its_newest_value_with_the_grant(via: Vi
 }
 both!(a_latched_service_gives_a_new_session_its_newest_value_with_the_grant);
 
+fn a_latched_value_outlives_a_broker_crash(via: Via) {
+    let mut c = Conf::new("latchcrash", via);
+    // One update every 20 s: the first, at the system's start, is all there is for the
+    // length of this test.
+    c.system("t1", &["--rate", "0.05", "--latched"]);
+    c.wait_list(|l| l.len() == 1);
+    std::thread::sleep(Duration::from_millis(500));
+    let b = c.broker;
+    c.f.proc(b).signal(libc::SIGKILL);
+    assert!(c.f.proc(b).wait(5 * SEC).is_some());
+    c.broker = c.f.remote_broker(&c.r);
+    c.wait_list(|l| l.len() == 1);
+    // The new broker has the value from the system's registration, not from an update
+    // (the next comes 20 s on): the first one, at the circle's start (5, 0), as update
+    // 0; then the system's own first update to the session.
+    let (code, lines) = c.run(&["user", "request", "t1/s0", "--duration", "500ms", "--json"]);
+    assert_eq!(code, 0, "{lines:?}");
+    assert_eq!(lines[0]["granted"], true, "{lines:?}");
+    assert_eq!(seqs(&lines), vec![0, 1], "{lines:?}");
+    let p = &lines[1]["payload"];
+    assert!(
+        (p["x"].as_f64().unwrap() - 5.0).abs() < 0.01 && p["y"].as_f64().unwrap().abs() < 0.1,
+        "update 0 is the value sent before the crash: {p}"
+    );
+}
+both!(a_latched_value_outlives_a_broker_crash);
+
 fn the_system_ends_a_session_and_the_user_is_told(via: Via) {
     let mut c = Conf::new("sysend", via);
     let t1 = c.system("t1", &[]);
