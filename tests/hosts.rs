@@ -374,6 +374,27 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
 }
 
 #[test]
+fn a_latched_service_gives_a_user_of_another_host_its_value_with_the_grant() {
+    let mut h = Hosts::new("fz", &["a", "b"]);
+    // One update every 20 s: the first, at the system's start, is the latched value.
+    h.host(1).system("lat", &["--rate", "0.05", "--latched"]);
+    h.host(0)
+        .wait_list(20 * SEC, |l| find(l, "lat@b/s0").is_some());
+    let (code, lines) = request_json(&mut h, 0, "lat@b/s0", "1s");
+    assert_eq!(code, 0, "{lines:?}");
+    assert_eq!(lines[0]["granted"], true, "{lines:?}");
+    // Update 0 from b's broker behind the grant (the circle's start, (5, 0)), then the
+    // system's own first update to the session; no gap.
+    assert_eq!(seqs(&lines), vec![0, 1], "{lines:?}");
+    let p = &lines[1]["payload"];
+    assert!(
+        (p["x"].as_f64().unwrap() - 5.0).abs() < 0.01 && p["y"].as_f64().unwrap().abs() < 0.1,
+        "update 0 is the system's first value: {p}"
+    );
+    assert_eq!(lines.last().unwrap()["gaps"], 0, "{lines:?}");
+}
+
+#[test]
 fn a_federations_list_holds_more_than_256_services_and_filters_by_host() {
     let mut h = Hosts::new("fbig", &["a", "b"]);
     for s in ["t1", "t2", "t3"] {

@@ -849,6 +849,21 @@ impl FedCore {
         }
     }
 
+    /// A frame that goes right behind grant `session` to `user`, a user of another
+    /// host (a latched service's update 0): on the same way as the grant, so it comes
+    /// after it. Nothing if no grant of that session went to that host.
+    pub fn follow_grant(&mut self, user: &UserId, session: SessionId, msg: ToUser) {
+        let Some(f) = self.foreign.get(user) else {
+            return;
+        };
+        if !f.sessions.contains_key(&session) {
+            return;
+        }
+        let host = f.host.clone();
+        let user = local_part(user);
+        self.send(&host, FedMsg::ToUser { user, msg });
+    }
+
     /// A system's UDP address as other hosts' users reach it: a system listening on
     /// every address is reached at the address this broker listens on, if it names one.
     fn reachable(&self, addr: &str) -> String {

@@ -13,10 +13,10 @@ use super::{
 use crate::core::{Broker, Output};
 use muster_shared::ipc::{create_node, open_envelope, Endpoint};
 use muster_shared::names::{Address, Instance};
-use muster_shared::protocol::{encode, monotonic_ns, RemoteContact, ToBroker, ToSystem};
+use muster_shared::protocol::{encode, monotonic_ns, RemoteContact, ToBroker, ToSystem, ToUser};
 use muster_shared::reactor::Reactor;
 use muster_shared::snapshot::ServiceView;
-use muster_shared::types::UserId;
+use muster_shared::types::{SessionId, UserId};
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::io::{Read, Write};
 use std::os::fd::AsRawFd;
@@ -709,6 +709,12 @@ impl Federation {
         let out = self.core.route(core, out);
         self.carry_out();
         out
+    }
+
+    /// See [`FedCore::follow_grant`].
+    pub fn follow_grant(&mut self, user: &UserId, session: SessionId, msg: ToUser) {
+        self.core.follow_grant(user, session, msg);
+        self.carry_out();
     }
 
     /// The next frame for a local user.

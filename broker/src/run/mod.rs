@@ -1119,10 +1119,26 @@ impl Shell {
                 None => out,
             };
             let out = match self.fed.as_mut() {
-                Some(f) => match f.route(core, out) {
-                    Some(o) => o,
-                    None => continue,
-                },
+                Some(f) => {
+                    // A grant of a latched service to a user of another host: its update
+                    // 0 follows the grant to that host.
+                    let zero = match &out {
+                        Output::Granted(g) if g.user.is_foreign() => self
+                            .latched
+                            .update_zero(g)
+                            .map(|z| (g.user.clone(), g.session, z)),
+                        _ => None,
+                    };
+                    match f.route(core, out) {
+                        Some(o) => o,
+                        None => {
+                            if let Some((user, session, z)) = zero {
+                                f.follow_grant(&user, session, z);
+                            }
+                            continue;
+                        }
+                    }
+                }
                 None => out,
             };
             // Behind what waits for its peer, or waiting itself for ports to open.
