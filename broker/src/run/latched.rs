@@ -5,7 +5,8 @@
 //! ringing the broker's bell for one at most every 250 ms (the broker reads the rest
 //! as it reads its inbox for anything else). The broker keeps the newest per service and,
 //! granting a session of it to a user of this host (over shared memory, or remote through
-//! the UDP front), sends the user that value right behind the grant as the session's
+//! the UDP front) or of another host (through the federation), sends the user that value
+//! right behind the grant as the session's
 //! update 0: the user has the service's value with its grant, instead of at
 //! the system's next turn (its offer is read a moment later, and its first contact
 //! with a new user's inbox costs a few tenths of a millisecond). The value is the
