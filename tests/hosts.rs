@@ -145,6 +145,25 @@ impl Hosts {
     }
 }
 
+/// Hosts `names` of test `test`, the first taking remote users on UDP (`alice`, allowed
+/// everything): the keys' instance (kept for the test's length), the remote setup and
+/// the hosts.
+fn hosts_with_remote_front(test: &str, names: &[&str]) -> (Fed, common::RemoteSetup, Hosts) {
+    let keys = Fed::new(&format!("{test}-keys"));
+    let r = keys.remote_setup(&[("alice", &["*"])]);
+    let (addr, access) = (r.addr.clone(), r.access.display().to_string());
+    let h = Hosts::with(test, names, |i| match i {
+        0 => vec![
+            "--udp".into(),
+            addr.clone(),
+            "--access".into(),
+            access.clone(),
+        ],
+        _ => Vec::new(),
+    });
+    (keys, r, h)
+}
+
 /// `muster user request ID --duration D --json` on host `i`: its exit code and lines.
 fn request_json(h: &mut Hosts, i: usize, id: &str, duration: &str) -> (i32, Vec<Value>) {
     let (code, out) = h.host(i).run(
@@ -375,18 +394,7 @@ fn three_hosts_share_one_list_and_serve_requests_across_hosts() {
 
 #[test]
 fn a_latched_service_gives_a_user_of_another_host_its_value_with_the_grant() {
-    let keys = Fed::new("fz-keys");
-    let r = keys.remote_setup(&[("alice", &["*"])]);
-    let (addr, access) = (r.addr.clone(), r.access.display().to_string());
-    let mut h = Hosts::with("fz", &["a", "b"], |i| match i {
-        0 => vec![
-            "--udp".into(),
-            addr.clone(),
-            "--access".into(),
-            access.clone(),
-        ],
-        _ => Vec::new(),
-    });
+    let (_keys, r, mut h) = hosts_with_remote_front("fz", &["a", "b"]);
     // One update every 20 s: the first, at the system's start, is the latched value.
     h.host(1).system(
         "lat",
@@ -1178,18 +1186,7 @@ fn remote_json(h: &Hosts, r: &common::RemoteSetup, args: &[&str]) -> (i32, Vec<V
 
 #[test]
 fn a_remote_user_of_one_host_is_served_by_other_hosts_systems() {
-    let keys = Fed::new("fu-keys");
-    let r = keys.remote_setup(&[("alice", &["*"])]);
-    let (addr, access) = (r.addr.clone(), r.access.display().to_string());
-    let mut h = Hosts::with("fu", &["a", "b", "c"], |i| match i {
-        0 => vec![
-            "--udp".into(),
-            addr.clone(),
-            "--access".into(),
-            access.clone(),
-        ],
-        _ => Vec::new(),
-    });
+    let (_keys, r, mut h) = hosts_with_remote_front("fu", &["a", "b", "c"]);
     h.host(1)
         .system("robo", &["--rate", "20", "--udp", "127.0.0.1:0"]);
     h.host(1).system("shm", &[]);
@@ -1261,7 +1258,7 @@ fn a_remote_user_of_one_host_is_served_by_other_hosts_systems() {
         "30s",
         "--json",
         "--remote",
-        &addr,
+        &r.addr,
         "--key",
         &key,
     ]);
