@@ -183,7 +183,8 @@ impl Ros2System {
             Ok(inputs.len() - 1)
         };
         let mut data = Vec::new();
-        // Inputs some service needs heard all the time (not only latched ones).
+        // The inputs some service needs heard all the time: every one but those only
+        // latched data services take.
         let mut lively = Vec::new();
         for d in &cfg.data {
             let raw = match cfg.data_payload(d) {
@@ -283,14 +284,9 @@ impl Ros2System {
             // Every subscribed topic, but one only latched services take: a latched
             // topic is sent once or on change, and its silence says nothing of the robot.
             None => {
-                let latched_only: Vec<usize> = data
-                    .iter()
-                    .map(|(_, k)| *k)
-                    .filter(|k| !lively.contains(k))
-                    .collect();
-                (0..inputs.len())
-                    .filter(|k| !latched_only.contains(k))
-                    .collect()
+                lively.sort_unstable();
+                lively.dedup();
+                lively
             }
         };
         let poll = mio1::Poll::new().map_err(|e| Ros2Error::create("epoll", e))?;
