@@ -69,6 +69,15 @@ const LOOK_ROUND_TURN: f64 = 0.8;
 /// Searching or patrolling, a mobile tracker held up this long looks round, s.
 const BLOCKED_LOOK_ROUND: f64 = 3.0;
 
+/// Searching where a lost target was supposed to go, a mobile tracker held up this long,
+/// s, within [`SPOT_IN_VIEW`] of that place and in sight of it, has been there: what
+/// holds it up may be parked on the spot (the delivery robot waits where the target was
+/// last seen), and the camera sees the spot from here.
+const HELD_UP_THERE: f64 = 2.0;
+
+/// ... that distance, m.
+const SPOT_IN_VIEW: f64 = 2.5;
+
 /// A lost target is taken to walk on at least this fast, m/s, when it was moving at
 /// all (a filter's speed estimate lags a person's).
 const WALK_ON_SPEED: f64 = 0.6;
@@ -319,6 +328,8 @@ struct RobotState {
     /// Turning on the spot to look round, until this sim time.
     look_round_until: f64,
     last_camera: f64,
+    /// Held up since this sim time (its navigator's last step).
+    held_up_since: Option<f64>,
 }
 
 /// The tracking system's logic over all its robots.
@@ -370,6 +381,7 @@ impl TrackingCore {
                 searched: None,
                 look_round_until: f64::NEG_INFINITY,
                 last_camera: f64::NEG_INFINITY,
+                held_up_since: None,
                 cfg,
             })
             .collect();
@@ -640,6 +652,10 @@ impl TrackingCore {
             return (0.0, 0.0);
         };
         let obstacles = r.cfg.geometry.obstacle_points(s, 3.5);
+        let held_up_there = r
+            .held_up_since
+            .take()
+            .is_some_and(|since| now - since >= HELD_UP_THERE);
         // Looking round (searched in vain, or held up): a full turn on the spot, not
         // cut short by the search's goal or an escape, so that the camera passes every
         // bearing once (she may be right behind it, boxed in).
@@ -694,7 +710,14 @@ impl TrackingCore {
                 let _ = nav.set_goal(r.pose, (tx, ty), 0.75);
             }
             None if search.is_some_and(|((x, y), from, ended)| {
-                r.searched != Some(from) && !(ended && (x - r.pose.x).hypot(y - r.pose.y) <= 1.0)
+                let d = (x - r.pose.x).hypot(y - r.pose.y);
+                let there = d <= 1.0
+                    || (held_up_there
+                        && d <= SPOT_IN_VIEW
+                        && map
+                            .raycast(r.pose.x, r.pose.y, (y - r.pose.y).atan2(x - r.pose.x), d)
+                            .is_none());
+                r.searched != Some(from) && !(ended && there)
             }) =>
             {
                 let ((x, y), from, _) = search.unwrap_or_default();
@@ -729,6 +752,7 @@ impl TrackingCore {
             }
         }
         let step = nav.step(now, r.pose, &obstacles);
+        r.held_up_since = step.blocked_since;
         // Searching or patrolling and held up (by people, by another robot): it looks
         // round on the spot while it waits. What holds it up may be the target, beside
         // or behind it where the camera does not reach, boxed in by the robots.
@@ -843,8 +867,10 @@ mod tests {
         assert!(standing.ended(10.5));
     }
 
-    #[test]
-    fn held_up_while_patrolling_it_looks_round_a_whole_turn_on_the_spot_uncut() {
+    /// A mobile tracker on the office at `start`, with a laser (a half circle ahead, 1
+    /// degree apart, 8 m) and no camera, on ground truth, patrolling to (10, 3) and
+    /// following `follow`.
+    fn mobile_tracker(start: Pose, follow: Option<Colour>) -> TrackingCore {
         use std::f64::consts::{FRAC_PI_2, PI};
         let map = Arc::new(OccupancyMap::office());
         let field = Arc::new(LikelihoodField::new(&map, 1.0));
@@ -855,11 +881,6 @@ mod tests {
                 ..crate::planner::PlannerParams::default()
             },
         ));
-        let start = Pose {
-            x: 20.0,
-            y: 3.0,
-            theta: PI,
-        };
         let robot = TrackerRobot {
             name: "T3".into(),
             start,
@@ -874,9 +895,21 @@ mod tests {
         let params = TrackingParams {
             ground_truth: true,
             patrol: vec![(10.0, 3.0)],
+            follow,
             ..TrackingParams::default()
         };
-        let mut core = TrackingCore::new(map, field, planner, vec![robot], params, 1);
+        TrackingCore::new(map, field, planner, vec![robot], params, 1)
+    }
+
+    #[test]
+    fn held_up_while_patrolling_it_looks_round_a_whole_turn_on_the_spot_uncut() {
+        use std::f64::consts::{FRAC_PI_2, PI};
+        let start = Pose {
+            x: 20.0,
+            y: 3.0,
+            theta: PI,
+        };
+        let mut core = mobile_tracker(start, None);
         // Someone pressed against its front who does not step back: 0.42 m ahead,
         // across 40 degrees, wherever it turns.
         let laser: Vec<f32> = (0..181)
@@ -929,6 +962,82 @@ mod tests {
         assert!(
             (25..=80).contains(&first),
             "it looked round after {first} steps"
+        );
+    }
+
+    #[test]
+    fn a_robot_parked_where_a_lost_person_stood_ends_the_search_there_and_it_patrols_on() {
+        use std::f64::consts::{FRAC_PI_2, PI};
+        // She stands at (20, 3), seen for 2 s, then never again; the delivery robot is
+        // parked in front of the spot (at 19.5, 3), as it parks where she was last seen.
+        let (her, parked, radius) = ((20.0, 3.0), (19.5, 3.0), 0.25);
+        let mut pose = Pose {
+            x: 16.0,
+            y: 3.0,
+            theta: 0.0,
+        };
+        let mut core = mobile_tracker(pose, Some(Colour::Red));
+        let mut looked_round_at = None;
+        let mut west_most = pose.x;
+        for k in 0..400 {
+            let t = f64::from(k) * 0.1;
+            // The parked robot as the laser sees it (walls are not drawn: 8 m is clear).
+            let laser: Vec<f32> = (0..181)
+                .map(|b| {
+                    let a = pose.theta - FRAC_PI_2 + f64::from(b) * PI / 180.0;
+                    let (dx, dy) = (parked.0 - pose.x, parked.1 - pose.y);
+                    let along = dx * a.cos() + dy * a.sin();
+                    let off2 = dx * dx + dy * dy - along * along;
+                    if along > 0.0 && off2 < radius * radius {
+                        (along - (radius * radius - off2).sqrt()) as f32
+                    } else {
+                        8.0
+                    }
+                })
+                .collect();
+            let (dx, dy) = (her.0 - pose.x, her.1 - pose.y);
+            let sightings = if t < 2.0 {
+                vec![crate::sensing::Sighting {
+                    colour: Colour::Red,
+                    bearing: wrap(dy.atan2(dx) - pose.theta),
+                    range: dx.hypot(dy),
+                }]
+            } else {
+                Vec::new()
+            };
+            let s = SensorSample {
+                time: t,
+                truth: pose,
+                odom: pose,
+                laser_time: t,
+                laser,
+                camera_time: t,
+                sightings,
+                ..SensorSample::default()
+            };
+            let (v, w) = core.handle_sample(0, &s, &[Colour::Red]).velocity.unwrap();
+            if (v, w) == (0.0, LOOK_ROUND_TURN) && looked_round_at.is_none() {
+                looked_round_at = Some(t);
+            }
+            pose.x += v * pose.theta.cos() * 0.1;
+            pose.y += v * pose.theta.sin() * 0.1;
+            pose.theta = wrap(pose.theta + w * 0.1);
+            let gap = (parked.0 - pose.x).hypot(parked.1 - pose.y) - radius;
+            assert!(gap > 0.25, "ran into the parked robot at {t} s: {gap:.2} m");
+            west_most = west_most.min(pose.x);
+        }
+        // Lost at 7 s (5 s unseen), held up short of the spot, with the spot in sight:
+        // it looks round there once (she may be beside it) ...
+        let looked = looked_round_at.expect("it never looked round");
+        assert!(
+            (7.0..12.0).contains(&looked),
+            "it looked round at {looked} s"
+        );
+        // ... and goes on to patrol (to x = 10) well before the search's 60 s are up,
+        // rather than be held up by the parked robot, looking round again and again.
+        assert!(
+            west_most < 11.0,
+            "it got no further west than x = {west_most:.1}"
         );
     }
 
