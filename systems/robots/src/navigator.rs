@@ -167,6 +167,12 @@ impl Navigator {
         &self.path
     }
 
+    /// Held up since this sim time, as its last step said ([`NavStep::blocked_since`]);
+    /// `None` once it is cleared or halted.
+    pub fn blocked_since(&self) -> Option<f64> {
+        self.blocked_since
+    }
+
     /// Drive to `goal` from `pose`. Plans at once unless the goal moved less than
     /// `replan_within` metres from the one planned for (a followed target's small
     /// moves just shift the path's end).

@@ -328,8 +328,6 @@ struct RobotState {
     /// Turning on the spot to look round, until this sim time.
     look_round_until: f64,
     last_camera: f64,
-    /// Held up since this sim time (its navigator's last step).
-    held_up_since: Option<f64>,
 }
 
 /// The tracking system's logic over all its robots.
@@ -381,7 +379,6 @@ impl TrackingCore {
                 searched: None,
                 look_round_until: f64::NEG_INFINITY,
                 last_camera: f64::NEG_INFINITY,
-                held_up_since: None,
                 cfg,
             })
             .collect();
@@ -652,9 +649,8 @@ impl TrackingCore {
             return (0.0, 0.0);
         };
         let obstacles = r.cfg.geometry.obstacle_points(s, 3.5);
-        let held_up_there = r
-            .held_up_since
-            .take()
+        let held_up_there = nav
+            .blocked_since()
             .is_some_and(|since| now - since >= HELD_UP_THERE);
         // Looking round (searched in vain, or held up): a full turn on the spot, not
         // cut short by the search's goal or an escape, so that the camera passes every
@@ -752,7 +748,6 @@ impl TrackingCore {
             }
         }
         let step = nav.step(now, r.pose, &obstacles);
-        r.held_up_since = step.blocked_since;
         // Searching or patrolling and held up (by people, by another robot): it looks
         // round on the spot while it waits. What holds it up may be the target, beside
         // or behind it where the camera does not reach, boxed in by the robots.
