@@ -571,18 +571,11 @@ impl Tmux {
             .output()
             .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
             .unwrap_or_default();
-        let mut threads = String::new();
-        if let Some(pid) = pane.split_whitespace().nth(1) {
-            if let Ok(dir) = std::fs::read_dir(format!("/proc/{pid}/task")) {
-                for t in dir.flatten() {
-                    let p = t.path();
-                    let stat = std::fs::read_to_string(p.join("stat")).unwrap_or_default();
-                    let wchan = std::fs::read_to_string(p.join("wchan")).unwrap_or_default();
-                    let state = stat.rsplit(") ").next().unwrap_or("").chars().next();
-                    threads += &format!(" [{:?} {state:?} {wchan}]", t.file_name());
-                }
-            }
-        }
+        let threads = pane
+            .split_whitespace()
+            .nth(1)
+            .map(common::threads_of)
+            .unwrap_or_default();
         format!(
             "pane (dead, pid): {pane}; threads:{threads}\nscreen:\n{}",
             self.screen()

@@ -268,6 +268,22 @@ pub fn cleanup_dead_nodes() {
     muster_shared::ipc::cleanup_dead_nodes(None);
 }
 
+/// What process `pid`'s threads are doing, for a test's failure message: each
+/// thread's id, state (R, S, D, ...) and kernel wait channel, as `[tid state wchan]`.
+pub fn threads_of(pid: impl std::fmt::Display) -> String {
+    let mut threads = String::new();
+    if let Ok(dir) = std::fs::read_dir(format!("/proc/{pid}/task")) {
+        for t in dir.flatten() {
+            let p = t.path();
+            let stat = std::fs::read_to_string(p.join("stat")).unwrap_or_default();
+            let wchan = std::fs::read_to_string(p.join("wchan")).unwrap_or_default();
+            let state = stat.rsplit(") ").next().unwrap_or("").chars().next();
+            threads += &format!(" [{:?} {state:?} {wchan}]", t.file_name());
+        }
+    }
+    threads
+}
+
 pub fn ids(list: &[Value]) -> Vec<String> {
     list.iter()
         .map(|v| v["id"].as_str().unwrap_or_default().to_string())
