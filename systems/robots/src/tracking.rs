@@ -221,6 +221,13 @@ fn short_of_walls(map: &OccupancyMap, from: (f64, f64), to: (f64, f64)) -> (f64,
     }
 }
 
+/// Whether nothing on the map stands between `from` and `to`.
+fn in_sight(map: &OccupancyMap, from: (f64, f64), to: (f64, f64)) -> bool {
+    let (dx, dy) = (to.0 - from.0, to.1 - from.1);
+    map.raycast(from.0, from.1, dy.atan2(dx), dx.hypot(dy))
+        .is_none()
+}
+
 /// Narrower than this, a passage is a doorway (the office's doors are 1 m wide, its
 /// corridors 2 m and more), m.
 const DOORWAY: f64 = 1.4;
@@ -581,10 +588,7 @@ impl TrackingCore {
             if d > 0.5
                 && d < range * MAX_ZOOM.sqrt()
                 && bearing.abs() < pan_limit + fov / 2.0
-                && self
-                    .map
-                    .raycast(r.pose.x, r.pose.y, dy.atan2(dx), d)
-                    .is_none()
+                && in_sight(&self.map, (r.pose.x, r.pose.y), (x, y))
             {
                 return (
                     bearing.clamp(-pan_limit, pan_limit),
@@ -664,7 +668,7 @@ impl TrackingCore {
                 r.searched = None;
                 let (dx, dy) = (tx - r.pose.x, ty - r.pose.y);
                 let d = dx.hypot(dy);
-                let in_sight = map.raycast(r.pose.x, r.pose.y, dy.atan2(dx), d).is_none();
+                let in_sight = in_sight(map, (r.pose.x, r.pose.y), (tx, ty));
                 // Close enough: in sight at the distance kept, or, looking for it, about
                 // where it was last seen (not onto it: it may be there, hidden from the
                 // camera, in a doorway).
@@ -710,9 +714,7 @@ impl TrackingCore {
                 let there = d <= 1.0
                     || (held_up_there
                         && d <= SPOT_IN_VIEW
-                        && map
-                            .raycast(r.pose.x, r.pose.y, (y - r.pose.y).atan2(x - r.pose.x), d)
-                            .is_none());
+                        && in_sight(map, (r.pose.x, r.pose.y), (x, y)));
                 r.searched != Some(from) && !(ended && there)
             }) =>
             {
@@ -1014,9 +1016,7 @@ mod tests {
             if (v, w) == (0.0, LOOK_ROUND_TURN) && looked_round_at.is_none() {
                 looked_round_at = Some(t);
             }
-            pose.x += v * pose.theta.cos() * 0.1;
-            pose.y += v * pose.theta.sin() * 0.1;
-            pose.theta = wrap(pose.theta + w * 0.1);
+            pose = muster_world_model::kinematics::integrate(pose, v, w, 0.1);
             let gap = (parked.0 - pose.x).hypot(parked.1 - pose.y) - radius;
             assert!(gap > 0.25, "ran into the parked robot at {t} s: {gap:.2} m");
             west_most = west_most.min(pose.x);
