@@ -499,6 +499,71 @@ fn a_hundred_user_processes_connect_at_once() {
     assert_eq!(code, 0, "{out}");
 }
 
+/// Regression: an event that came before the broker's welcome (a list bell rung early)
+/// was put back where `wait` takes events from, so `connect` took it again at once, for
+/// ever, at 100 % CPU, and never heard the welcome (the hundred-users test caught it
+/// about once in 20 runs). Now it is kept and comes after the welcome.
+#[test]
+fn a_list_bell_rung_before_the_welcome_comes_after_it_and_connect_returns() {
+    use iceoryx2::prelude::*;
+    use muster_shared::ipc::{bell, config, create_node, BellRinger};
+    use muster_shared::types::UserId;
+    use muster_shared::{Address, Instance};
+    use muster_users::{ConnectOptions, UserClient, UserEvent, Wake};
+    let mut f = Fed::new("earlybell");
+    let inst = Instance::new(&f.inst).unwrap();
+    // A user that waits for a broker, with none yet.
+    let (tx, rx) = std::sync::mpsc::channel();
+    let user_inst = inst.clone();
+    std::thread::spawn(move || {
+        let opts = ConnectOptions {
+            handle_signals: false,
+            watch_list: true,
+            wait_for_broker: 30 * SEC,
+        };
+        let said = match UserClient::connect(&user_inst, &opts) {
+            Err(e) => format!("connect failed: {e}"),
+            Ok(mut c) => match c.wait(Instant::now() + 5 * SEC) {
+                Ok(Wake::Event(UserEvent::ListChanged)) => "list changed".to_string(),
+                other => format!("first wake after connecting: {other:?}"),
+            },
+        };
+        let _ = tx.send(said);
+    });
+    // Its bell, found by name, is rung before any broker could welcome it.
+    let prefix = format!("muster/{}/user/", f.inst);
+    let deadline = Instant::now() + 10 * SEC;
+    let user = loop {
+        let mut found = None;
+        ipc::Service::list(&config(false), |s| {
+            let name = s.static_details.name().to_string();
+            if let Some(id) = name
+                .strip_prefix(&prefix)
+                .and_then(|r| r.strip_suffix("/bell"))
+            {
+                found = Some(id.to_string());
+            }
+            CallbackProgression::Continue
+        })
+        .unwrap();
+        if let Some(id) = found {
+            break id;
+        }
+        assert!(Instant::now() < deadline, "the user's bell never appeared");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let node = create_node("earlybell-ringer", false).unwrap();
+    let mut ringer = BellRinger::open(&node, &inst, &Address::User(UserId(user))).unwrap();
+    ringer.ring(bell::LIST_CHANGED).unwrap();
+    // Time for the user to take the ring while it has no broker.
+    std::thread::sleep(Duration::from_millis(300));
+    f.broker(&[]);
+    let said = rx
+        .recv_timeout(20 * SEC)
+        .expect("connect did not return within 20 s of the broker starting");
+    assert_eq!(said, "list changed");
+}
+
 /// Regression: the `End` of a user's only session with a system went through a fresh
 /// publisher that was dropped at once, so iceoryx2 lost it and the quota leaked.
 #[test]

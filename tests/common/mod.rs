@@ -278,7 +278,32 @@ pub fn threads_of(pid: impl std::fmt::Display) -> String {
             let stat = std::fs::read_to_string(p.join("stat")).unwrap_or_default();
             let wchan = std::fs::read_to_string(p.join("wchan")).unwrap_or_default();
             let state = stat.rsplit(") ").next().unwrap_or("").chars().next();
-            threads += &format!(" [{:?} {state:?} {wchan}]", t.file_name());
+            // utime and stime (fields 14 and 15, after the name): a thread that spins
+            // gains them between two looks; one blocked does not.
+            let cpu: Vec<&str> = stat.rsplit(") ").next().unwrap_or("").split(' ').collect();
+            let (user, sys) = (cpu.get(11).copied(), cpu.get(12).copied());
+            threads += &format!(
+                " [{:?} {state:?} {wchan} cpu ticks user {} sys {}]",
+                t.file_name(),
+                user.unwrap_or("?"),
+                sys.unwrap_or("?")
+            );
+        }
+    }
+    // Where gdb is installed (CI installs it), each thread's stack too: a thread
+    // running (R) with no wait channel is busy somewhere in user space.
+    let gdb = std::process::Command::new("timeout")
+        .args(["30", "gdb", "-p", &pid.to_string(), "-batch", "-nx"])
+        .args(["-ex", "thread apply all bt 40"])
+        .output();
+    if let Ok(out) = gdb {
+        let text = String::from_utf8_lossy(&out.stdout);
+        let stacks: Vec<&str> = text
+            .lines()
+            .filter(|l| l.starts_with('#') || l.starts_with("Thread "))
+            .collect();
+        if !stacks.is_empty() {
+            threads += &format!("\nits stacks (gdb):\n{}", stacks.join("\n"));
         }
     }
     threads

@@ -306,6 +306,11 @@ impl UserClient {
         self.core.hello();
         self.flush();
         let deadline = Instant::now() + opts.wait_for_broker;
+        // What comes before the welcome (a list bell, say) is kept aside and handed
+        // to the caller after it, in order. Put back into `events` at once, `wait`
+        // would hand the same event back at once, for ever (seen: a user spinning at
+        // 100 % CPU, never connected, its queue growing).
+        let mut before = Vec::new();
         while self.core.connected().is_none() {
             match self.wait(deadline)? {
                 Wake::Timeout => {
@@ -314,9 +319,12 @@ impl UserClient {
                     return Err(no_broker());
                 }
                 Wake::Event(UserEvent::Connected { .. }) => {}
-                Wake::Event(other) => self.events.push_back(other),
+                Wake::Event(other) => before.push(other),
                 Wake::Extra => {}
             }
+        }
+        for e in before.into_iter().rev() {
+            self.events.push_front(e);
         }
         Ok(self)
     }
