@@ -67,6 +67,8 @@ fn mosquitto(f: &mut Fed) -> String {
         );
         std::thread::sleep(Duration::from_millis(50));
     }
+    // Read once at start: nothing of it need stay in the temporary directory.
+    let _ = std::fs::remove_dir_all(&dir);
     addr
 }
 

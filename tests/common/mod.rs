@@ -254,6 +254,17 @@ impl Fed {
         }
         self.procs.clear();
         cleanup_dead_nodes();
+        // What `muster up` of this instance leaves in the temporary directory: its
+        // picture where no `--picture` was given, and its keys' folder when it was
+        // killed before it could remove it.
+        let tmp = std::env::temp_dir();
+        let _ = std::fs::remove_file(tmp.join(format!("muster-up-{}.png", self.inst)));
+        let keys = format!("muster-up-{}-", self.inst);
+        for e in std::fs::read_dir(&tmp).into_iter().flatten().flatten() {
+            if e.file_name().to_string_lossy().starts_with(&keys) {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
     }
 }
 
