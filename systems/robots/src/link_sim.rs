@@ -63,6 +63,11 @@ pub struct LinkSimFigures {
     pub t3_person: Vec<f64>,
     /// D1's distance to T3, every 0.25 s from the link on, m.
     pub d1_t3: Vec<f64>,
+    /// T3's localization error (its estimate against the truth), every 0.25 s from the
+    /// link on, m.
+    pub t3_localization: Vec<f64>,
+    /// D1's localization error, every 0.25 s from the link on, m.
+    pub d1_localization: Vec<f64>,
     /// The red track's updates (1 Hz) from the first sighting on, and those not lost.
     pub red_updates: u64,
     /// Of those, the ones with the person tracked.
@@ -261,7 +266,7 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
             let tr = tracking.payload(Colour::Red);
             let (t3v, d1v) = (t3.velocity, world.robots()[d1].velocity);
             eprintln!(
-                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2} | T3 zoom {:.1} sees {:?} others {} | D1 est ({:.2},{:.2}) err {:.2}",
+                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2} | T3 zoom {:.1} sees {:?} others {} | D1 est ({:.2},{:.2}) err {:.2} | T3 est err {:.2}",
                 t3p.x, t3p.y,
                 d1p.x, d1p.y, (d1p.x - px).hypot(d1p.y - py),
                 tr.map_or("none".to_string(), |tr| format!("({:5.1},{:5.1}) lost {} age {:.1}", tr.x, tr.y, tr.lost, tr.age)),
@@ -277,6 +282,7 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
                     .collect::<Vec<_>>()
                     .join(" "),
                 d1_pose.x, d1_pose.y, (d1_pose.x - d1p.x).hypot(d1_pose.y - d1p.y),
+                tracking.pose(2).map_or(f64::NAN, |e| (e.x - t3p.x).hypot(e.y - t3p.y)),
             );
         }
         if figures.linked_at.is_some() && t >= next_record {
@@ -291,6 +297,14 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
             }
             figures.t3_person.push((t3p.x - px).hypot(t3p.y - py));
             figures.d1_t3.push((d1p.x - t3p.x).hypot(d1p.y - t3p.y));
+            figures
+                .d1_localization
+                .push((d1_pose.x - d1p.x).hypot(d1_pose.y - d1p.y));
+            if let Some(e) = tracking.pose(2) {
+                figures
+                    .t3_localization
+                    .push((e.x - t3p.x).hypot(e.y - t3p.y));
+            }
         }
     }
     figures.contacts = world
