@@ -288,11 +288,11 @@ pub fn threads_of(pid: impl std::fmt::Display) -> String {
             let p = t.path();
             let stat = std::fs::read_to_string(p.join("stat")).unwrap_or_default();
             let wchan = std::fs::read_to_string(p.join("wchan")).unwrap_or_default();
-            let state = stat.rsplit(") ").next().unwrap_or("").chars().next();
-            // utime and stime (fields 14 and 15, after the name): a thread that spins
-            // gains them between two looks; one blocked does not.
-            let cpu: Vec<&str> = stat.rsplit(") ").next().unwrap_or("").split(' ').collect();
-            let (user, sys) = (cpu.get(11).copied(), cpu.get(12).copied());
+            // After the name: the state (R, S, D, ...), then utime and stime as fields
+            // 12 and 13 (a thread that spins gains them between two looks).
+            let fields: Vec<&str> = stat.rsplit(") ").next().unwrap_or("").split(' ').collect();
+            let state = fields.first().and_then(|f| f.chars().next());
+            let (user, sys) = (fields.get(11).copied(), fields.get(12).copied());
             threads += &format!(
                 " [{:?} {state:?} {wchan} cpu ticks user {} sys {}]",
                 t.file_name(),

@@ -94,6 +94,11 @@ impl LinkSimFigures {
     }
 }
 
+/// How far apart two poses are, m (a pose estimate and the truth).
+fn apart(a: Pose, b: Pose) -> f64 {
+    (a.x - b.x).hypot(a.y - b.y)
+}
+
 /// A robot's commands made at one time, acting `latency` later.
 struct Pending {
     at: f64,
@@ -281,8 +286,8 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
                     .map(|q| format!("{:?} ({:.1},{:.1})", q.beacon, q.pose.x, q.pose.y))
                     .collect::<Vec<_>>()
                     .join(" "),
-                d1_pose.x, d1_pose.y, (d1_pose.x - d1p.x).hypot(d1_pose.y - d1p.y),
-                tracking.pose(2).map_or(f64::NAN, |e| (e.x - t3p.x).hypot(e.y - t3p.y)),
+                d1_pose.x, d1_pose.y, apart(d1_pose, d1p),
+                tracking.pose(2).map_or(f64::NAN, |e| apart(e, t3p)),
             );
         }
         if figures.linked_at.is_some() && t >= next_record {
@@ -297,13 +302,9 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
             }
             figures.t3_person.push((t3p.x - px).hypot(t3p.y - py));
             figures.d1_t3.push((d1p.x - t3p.x).hypot(d1p.y - t3p.y));
-            figures
-                .d1_localization
-                .push((d1_pose.x - d1p.x).hypot(d1_pose.y - d1p.y));
+            figures.d1_localization.push(apart(d1_pose, d1p));
             if let Some(e) = tracking.pose(2) {
-                figures
-                    .t3_localization
-                    .push((e.x - t3p.x).hypot(e.y - t3p.y));
+                figures.t3_localization.push(apart(e, t3p));
             }
         }
     }
