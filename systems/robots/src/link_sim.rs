@@ -301,7 +301,7 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
                 figures.d1_person_tracked.push(d);
             }
             figures.t3_person.push((t3p.x - px).hypot(t3p.y - py));
-            figures.d1_t3.push((d1p.x - t3p.x).hypot(d1p.y - t3p.y));
+            figures.d1_t3.push(apart(d1p, t3p));
             figures.d1_localization.push(apart(d1_pose, d1p));
             if let Some(e) = tracking.pose(2) {
                 figures.t3_localization.push(apart(e, t3p));
