@@ -654,6 +654,9 @@ conf = zenoh.Config()
 conf.insert_json5("mode", '"client"')
 conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
 conf.insert_json5("scouting/multicast/enabled", "false")
+# Zenoh's Python client keeps a shared-memory segment (/dev/shm/N.zenoh) while its
+# shared-memory transport is on, and once left it behind in CI; muster's hosts talk TCP.
+conf.insert_json5("transport/shared_memory/enabled", "false")
 lists = {}
 with zenoh.open(conf) as s:
     def on_list(sample):
