@@ -97,12 +97,19 @@ enum Task {
     Home { arrived: bool },
 }
 
+/// A goal renewed within this long comes from a link to a person seen (a tracker sends
+/// one a second while she is tracked), s.
+const FRESH_GOAL: f64 = 2.0;
+
 /// The delivery robot's logic.
 pub struct DeliveryCore {
     params: DeliveryParams,
     nav: Navigator,
     task: Task,
     idle_since: f64,
+    /// When the goal was last set: a goal renewed within [`FRESH_GOAL`] is a person
+    /// followed and seen.
+    goal_at: f64,
     next_status: f64,
     blocked_reported: bool,
     arrivals: u64,
@@ -116,6 +123,7 @@ impl DeliveryCore {
             nav: Navigator::new(planner, nav),
             task: Task::None,
             idle_since: 0.0,
+            goal_at: f64::NEG_INFINITY,
             next_status: 0.0,
             blocked_reported: false,
             arrivals: 0,
@@ -171,6 +179,7 @@ impl DeliveryCore {
             _ => None,
         };
         self.idle_since = now;
+        self.goal_at = now;
         // A goal within reach of where it halted: stay, already there.
         if let Some((_, true)) = previous {
             let d = (goal.0 - pose.x).hypot(goal.1 - pose.y);
@@ -297,6 +306,9 @@ impl DeliveryCore {
             }
             return ((0.0, 0.0), events);
         }
+        // Catching up with a person followed and seen, it may sprint; on the way to
+        // where she was last seen, or to a goal given once, it does not.
+        self.nav.allow_sprint(now - self.goal_at <= FRESH_GOAL);
         let s = self.nav.step(now, pose, obstacles);
         match s.blocked_since {
             Some(since) if now - since >= 1.0 => {

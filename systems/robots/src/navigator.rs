@@ -20,6 +20,14 @@ use std::sync::Arc;
 pub struct NavParams {
     /// Top speed, m/s.
     pub max_speed: f64,
+    /// Top speed with more than `sprint_beyond` of path left, m/s: a robot fallen
+    /// behind a person it follows (who walks at up to 0.7 m/s) catches up at the
+    /// difference, so at `max_speed` alone a gap of a few metres takes a minute to
+    /// close. Every other limit (free distance, fields, bodies) holds as at any speed.
+    /// Never below `max_speed`.
+    pub sprint_speed: f64,
+    /// Path left beyond which `sprint_speed` applies, m.
+    pub sprint_beyond: f64,
     /// Top turn rate, rad/s.
     pub max_turn: f64,
     /// Braking the speed limit assumes, m/s² (below the robot's own limit).
@@ -66,6 +74,8 @@ impl Default for NavParams {
     fn default() -> Self {
         NavParams {
             max_speed: 0.8,
+            sprint_speed: 0.8,
+            sprint_beyond: 3.0,
             max_turn: 1.5,
             brake: 0.6,
             reaction: 0.25,
@@ -120,6 +130,8 @@ pub struct Navigator {
     /// Getting clear keeps this map point within this angle of the heading, if it can
     /// ([`Navigator::keep_in_view`]).
     keep_in_view: Option<((f64, f64), f64)>,
+    /// Whether `sprint_speed` may apply ([`Navigator::allow_sprint`]).
+    sprint: bool,
 }
 
 /// The laser's period: a body moves this long between two looks at it, s.
@@ -149,6 +161,7 @@ impl Navigator {
             escape: None,
             latency: 0.0,
             keep_in_view: None,
+            sprint: false,
         }
     }
 
@@ -383,6 +396,13 @@ impl Navigator {
         }
     }
 
+    /// Whether the robot may drive faster than `max_speed` on a long way (up to
+    /// `sprint_speed`): the caller allows it while catching up with a person it sees,
+    /// not on the way to where one was last seen (she may stand there, out of sight).
+    pub fn allow_sprint(&mut self, on: bool) {
+        self.sprint = on;
+    }
+
     /// Tells the navigator how late its commands act (measured by its shell): the
     /// reaction time of the speed limit and the body fields grow with it, so that a
     /// slower controller keeps the same margins. Not capped: a latency of seconds (seen
@@ -492,10 +512,15 @@ impl Navigator {
         let p = &self.params;
         let w = (p.turn_gain * err).clamp(-p.max_turn, p.max_turn);
         let align = err.cos().max(0.0);
+        let top = if self.sprint && remaining > p.sprint_beyond {
+            p.sprint_speed.max(p.max_speed)
+        } else {
+            p.max_speed
+        };
         let mut v = if err.abs() > 1.0 {
             0.0
         } else {
-            p.max_speed * align * align
+            top * align * align
         };
         // Slow down towards the end of the path.
         v = v.min((2.0 * p.brake * remaining).sqrt());
@@ -528,6 +553,11 @@ impl Navigator {
         // A body walks this far towards the robot before a command acts.
         let late = p.body_speed * self.latency;
         let body_slow = body_near(p.body_warning + late);
+        // Faster than `max_speed` only with no body ahead or beside within the look
+        // distance: near people and robots it keeps to its cruising speed.
+        if v > p.max_speed && body_near(LOOK) {
+            v = p.max_speed;
+        }
         let in_protective = inside(p.protective_field, 0.05, false);
         // The warning field's side margin is for what may step into the lane (people,
         // robots); a wall alongside never does, and a robot may drive close along one.
@@ -921,6 +951,50 @@ mod tests {
         assert!(
             (pose.x - 15.0).hypot(pose.y - 3.0) < 0.5,
             "ended at {pose:?}"
+        );
+    }
+
+    #[test]
+    fn a_robot_sprints_only_when_allowed_far_from_its_goal_and_with_no_body_near() {
+        let planner = office_planner();
+        let params = NavParams {
+            sprint_speed: 1.2,
+            ..NavParams::default()
+        };
+        let mut nav = Navigator::new(planner, params);
+        // The path keeps to grid cells' centres: the heading is a little off, and the
+        // speed a little under the top.
+        let cruising = |v: f64| v > 0.75 && v <= 0.8 + 1e-9;
+        // The middle corridor, heading east, the goal 10 m on.
+        let pose = Pose {
+            x: 20.0,
+            y: 10.0,
+            theta: 0.0,
+        };
+        nav.set_goal(pose, (30.0, 10.0), 0.5).unwrap();
+        // Not allowed: the cruising speed.
+        let s = nav.step(0.0, pose, &[]);
+        assert!(cruising(s.velocity.0), "{:?}", s.velocity);
+        // Allowed, a clear way and 10 m to go: the sprint speed.
+        nav.allow_sprint(true);
+        let s = nav.step(0.1, pose, &[]);
+        assert!(s.velocity.0 > 1.1, "{:?}", s.velocity);
+        // A body (a person's front, points 5 cm apart) 2.5 m ahead and 0.7 m to the left,
+        // out of its lane: it keeps to the cruising speed.
+        let body: Vec<(f64, f64)> = (-2..=2).map(|k| (2.5, 0.7 + 0.05 * f64::from(k))).collect();
+        let s = nav.step(0.2, pose, &body);
+        assert!(cruising(s.velocity.0), "{:?}", s.velocity);
+        // The same body behind it does not hold it back.
+        let behind: Vec<(f64, f64)> = body.iter().map(|&(x, y)| (-x, y)).collect();
+        let s = nav.step(0.3, pose, &behind);
+        assert!(s.velocity.0 > 1.1, "{:?}", s.velocity);
+        // Within 3 m of its goal: the cruising speed at most.
+        let near = Pose { x: 27.5, ..pose };
+        let s = nav.step(0.4, near, &[]);
+        assert!(
+            s.velocity.0 <= 0.8 + 1e-9 && s.velocity.0 > 0.0,
+            "{:?}",
+            s.velocity
         );
     }
 

@@ -652,6 +652,8 @@ impl TrackingCore {
         let Some(nav) = r.nav.as_mut() else {
             return (0.0, 0.0);
         };
+        // It may sprint catching up with the target in sight, not searching or patrolling.
+        nav.allow_sprint(matches!(target, Some((false, _))));
         let obstacles = r.cfg.geometry.obstacle_points(s, 3.5);
         let held_up_there = nav
             .blocked_since()
