@@ -145,6 +145,17 @@ const STOP_CONE: f64 = 70.0 * std::f64::consts::PI / 180.0;
 /// How far ahead the footprint is cast, m.
 const LOOK: f64 = 3.0;
 
+/// Distances from the path, m, at which a sprinting robot looks for places a person
+/// could stand in unseen ([`Navigator::hidden_beside_way`]): from just beside its lane
+/// to a step and a half away.
+const SIDE_REACH: [f64; 3] = [0.5, 0.9, 1.3];
+
+/// Spacing along the path of those looks, m.
+const SIDE_STEP: f64 = 0.25;
+
+/// A place a person fits in is this far from any wall, m.
+const PERSON_RADIUS: f64 = 0.2;
+
 impl Navigator {
     /// A navigator planning on `planner`.
     pub fn new(planner: Arc<Planner>, params: NavParams) -> Self {
@@ -403,6 +414,43 @@ impl Navigator {
         self.sprint = on;
     }
 
+    /// Whether someone could stand beside the way ahead out of the robot's sight: a place
+    /// a person fits in, within [`SIDE_REACH`] of the path's next [`LOOK`] metres and
+    /// joined to the path by a straight line the walls leave open, that the map hides
+    /// from the robot where it is (a doorway's recess, a corridor coming in from the
+    /// side, the far side of a corner). People step out of such places into the way,
+    /// and a robot faster than its cruising speed could not stop for them (seen in
+    /// simulation: a person stepping out of a doorway, another round a junction's
+    /// corner). The laser cannot see past walls, so this asks the map.
+    fn hidden_beside_way(&self, pose: Pose, here: (f64, f64), rest: &[(f64, f64)]) -> bool {
+        let me = (pose.x, pose.y);
+        let mut s = 0.0;
+        while s <= LOOK {
+            let a = along(here, rest, s);
+            let b = along(here, rest, s + 0.1);
+            let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+            let len = dx.hypot(dy);
+            if len < 1e-6 {
+                // The path ends here.
+                break;
+            }
+            let (nx, ny) = (-dy / len, dx / len);
+            for side in [-1.0, 1.0] {
+                for off in SIDE_REACH {
+                    let q = (a.0 + side * nx * off, a.1 + side * ny * off);
+                    if self.planner.wall_distance(q.0, q.1) >= PERSON_RADIUS
+                        && self.planner.in_sight(a, q)
+                        && !self.planner.in_sight(me, q)
+                    {
+                        return true;
+                    }
+                }
+            }
+            s += SIDE_STEP;
+        }
+        false
+    }
+
     /// Tells the navigator how late its commands act (measured by its shell): the
     /// reaction time of the speed limit and the body fields grow with it, so that a
     /// slower controller keeps the same margins. Not capped: a latency of seconds (seen
@@ -554,8 +602,9 @@ impl Navigator {
         let late = p.body_speed * self.latency;
         let body_slow = body_near(p.body_warning + late);
         // Faster than `max_speed` only with no body ahead or beside within the look
-        // distance: near people and robots it keeps to its cruising speed.
-        if v > p.max_speed && body_near(LOOK) {
+        // distance, and nowhere beside the way ahead that one could step out of unseen:
+        // near people and robots, doorways and corners it keeps to its cruising speed.
+        if v > p.max_speed && (body_near(LOOK) || self.hidden_beside_way(pose, here, rest)) {
             v = p.max_speed;
         }
         let in_protective = inside(p.protective_field, 0.05, false);
@@ -965,13 +1014,13 @@ mod tests {
         // The path keeps to grid cells' centres: the heading is a little off, and the
         // speed a little under the top.
         let cruising = |v: f64| v > 0.75 && v <= 0.8 + 1e-9;
-        // The middle corridor, heading east, the goal 10 m on.
+        // The south corridor, heading east, the goal 10 m on, no doorway near.
         let pose = Pose {
-            x: 20.0,
-            y: 10.0,
+            x: 15.0,
+            y: 3.0,
             theta: 0.0,
         };
-        nav.set_goal(pose, (30.0, 10.0), 0.5).unwrap();
+        nav.set_goal(pose, (25.0, 3.0), 0.5).unwrap();
         // Not allowed: the cruising speed.
         let s = nav.step(0.0, pose, &[]);
         assert!(cruising(s.velocity.0), "{:?}", s.velocity);
@@ -989,13 +1038,46 @@ mod tests {
         let s = nav.step(0.3, pose, &behind);
         assert!(s.velocity.0 > 1.1, "{:?}", s.velocity);
         // Within 3 m of its goal: the cruising speed at most.
-        let near = Pose { x: 27.5, ..pose };
+        let near = Pose { x: 22.5, ..pose };
         let s = nav.step(0.4, near, &[]);
         assert!(
             s.velocity.0 <= 0.8 + 1e-9 && s.velocity.0 > 0.0,
             "{:?}",
             s.velocity
         );
+    }
+
+    #[test]
+    fn a_robot_keeps_to_its_cruising_speed_nearing_a_doorway_it_cannot_see_into() {
+        let planner = office_planner();
+        let params = NavParams {
+            sprint_speed: 1.2,
+            ..NavParams::default()
+        };
+        let mut nav = Navigator::new(planner, params);
+        nav.allow_sprint(true);
+        // The south corridor (y 0.2-4), heading east; an office door in its north wall at
+        // x 21.5-22.5, the next ones 8 m either way.
+        let at = |x: f64| Pose {
+            x,
+            y: 3.0,
+            theta: 0.0,
+        };
+        nav.set_goal(at(15.0), (30.0, 3.0), 0.5).unwrap();
+        let v = |nav: &mut Navigator, x: f64| nav.step(x, at(x), &[]).velocity.0;
+        // 6.5 m short of it: the way is in full view, it sprints.
+        assert!(v(&mut nav, 15.0) > 1.1);
+        // 2-3 m short of it: someone standing just inside the office, beside the way,
+        // is hidden by the wall; it cruises.
+        let near = v(&mut nav, 19.5);
+        assert!(near > 0.7 && near <= 0.8 + 1e-9, "{near}");
+        // Level with the door, it sees into the office: it sprints again.
+        assert!(v(&mut nav, 21.7) > 1.1);
+        // The east corridor (x 36-38) comes in 2.5 m ahead, round the corner of an
+        // office block: heading for it, it cruises.
+        nav.set_goal(at(33.5), (37.0, 10.0), 0.5).unwrap();
+        let corner = v(&mut nav, 33.5);
+        assert!(corner <= 0.8 + 1e-9, "{corner}");
     }
 
     #[test]

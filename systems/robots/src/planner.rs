@@ -67,6 +67,8 @@ pub struct Planner {
     cost: Vec<Option<u32>>,
     /// Distance from each cell's centre to the nearest wall (capped), m.
     wall: Vec<f32>,
+    /// The map itself, for lines of sight.
+    map: OccupancyMap,
 }
 
 /// Cost of one straight step.
@@ -107,6 +109,7 @@ impl Planner {
             origin,
             cost,
             wall,
+            map: map.clone(),
         }
     }
 
@@ -147,6 +150,17 @@ impl Planner {
         self.cell_of(x, y).map_or(0.0, |c| {
             f64::from(self.wall[c.1 as usize * self.w + c.0 as usize])
         })
+    }
+
+    /// Whether nothing on the map lies on the straight line from `a` to `b`: what a laser
+    /// at `a` could see at `b`, or a walk from one to the other the walls leave open.
+    pub fn in_sight(&self, a: (f64, f64), b: (f64, f64)) -> bool {
+        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+        let d = dx.hypot(dy);
+        if d < 1e-9 {
+            return !self.map.blocked(a.0, a.1);
+        }
+        self.map.raycast_dir(a.0, a.1, dx / d, dy / d, d).is_none()
     }
 
     /// Whether the robot's body fits at (x, y) with its margin (walls only).
