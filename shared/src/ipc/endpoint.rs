@@ -1298,34 +1298,41 @@ mod tests {
             .collect()
     }
 
-    #[test]
-    fn lingering_ports_are_not_dropped_while_drops_are_paused_and_all_go_after() {
-        let inst = Instance::new(&format!("drop-test-{}", std::process::id())).unwrap();
+    /// A system `d`'s endpoint ([`unhurried`]) that wrote to three users and let
+    /// go of them, their ports lingering, due 2, 3 and 1 ms ago (u1 the oldest).
+    fn three_lingering(tag: &str) -> (Endpoint, Vec<Endpoint>) {
+        let inst = Instance::new(&format!("{tag}-{}", std::process::id())).unwrap();
         let mut sender = Endpoint::open(
             &inst,
             Address::System("d".into()),
-            create_node("drop-test-s", false).unwrap(),
+            create_node(&format!("{tag}-s"), false).unwrap(),
         )
         .unwrap();
         unhurried(&sender);
-        let users = user_endpoints(&inst, "drop-test", 3);
+        let users = user_endpoints(&inst, tag, 3);
         for u in &users {
             sender.send(u.me(), b"hello").unwrap();
             sender.release(u.me());
         }
         assert_eq!(sender.open_peers(), 3);
-        // All three due now.
         let now = Instant::now();
-        {
-            let mut ports = sender.ports.borrow_mut();
-            for (k, back) in [(0, 2), (1, 3), (2, 1)] {
-                let due = now.checked_sub(Duration::from_millis(back)).unwrap();
-                ports.lingering.insert(users[k].me().clone(), due);
-            }
-            // Paused (a drop was slow just now): none goes, and the next sweep is when
-            // the pause ends.
-            ports.drops_paused_until = Some(now + Duration::from_secs(1));
+        let mut ports = sender.ports.borrow_mut();
+        for (k, back) in [(0, 2), (1, 3), (2, 1)] {
+            let due = now.checked_sub(Duration::from_millis(back)).unwrap();
+            ports.lingering.insert(users[k].me().clone(), due);
         }
+        drop(ports);
+        (sender, users)
+    }
+
+    #[test]
+    fn lingering_ports_are_not_dropped_while_drops_are_paused_and_all_go_after() {
+        // All three due now.
+        let (mut sender, _users) = three_lingering("drop-test");
+        // Paused (a drop was slow just now): none goes, and the next sweep is when the
+        // pause ends.
+        sender.ports.borrow_mut().drops_paused_until =
+            Some(Instant::now() + Duration::from_secs(1));
         let next = sender.sweep().unwrap();
         assert_eq!(sender.open_peers(), 3, "nothing dropped while paused");
         assert!(
@@ -1355,29 +1362,9 @@ mod tests {
 
     #[test]
     fn a_slow_close_pauses_drops_and_the_sweep_comes_back_when_the_pause_ends() {
-        let inst = Instance::new(&format!("slow-drop-test-{}", std::process::id())).unwrap();
-        let mut sender = Endpoint::open(
-            &inst,
-            Address::System("d".into()),
-            create_node("slow-drop-test-s", false).unwrap(),
-        )
-        .unwrap();
-        unhurried(&sender);
-        let users = user_endpoints(&inst, "slow-drop-test", 3);
-        for u in &users {
-            sender.send(u.me(), b"hello").unwrap();
-            sender.release(u.me());
-        }
-        let now = Instant::now();
-        {
-            let mut ports = sender.ports.borrow_mut();
-            for (k, back) in [(0, 2), (1, 3), (2, 1)] {
-                let due = now.checked_sub(Duration::from_millis(back)).unwrap();
-                ports.lingering.insert(users[k].me().clone(), due);
-            }
-            // Every close counts as slow.
-            ports.slow_drop = Duration::ZERO;
-        }
+        let (mut sender, users) = three_lingering("slow-drop-test");
+        // Every close counts as slow.
+        sender.ports.borrow_mut().slow_drop = Duration::ZERO;
         // The oldest due (u1) closes, is slow, and the others wait for the pause.
         let next = sender.sweep().unwrap();
         assert_eq!(sender.open_peers(), 2);
