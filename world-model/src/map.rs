@@ -411,6 +411,15 @@ impl OccupancyMap {
         (self.walls.clearance(px, py, limit * inv_res) * self.resolution).min(limit)
     }
 
+    /// Whether nothing on the map stands on the straight line from `from` to `to`: what
+    /// a laser or camera at `from` could see at `to`, or a walk from one to the other
+    /// the walls leave open.
+    pub fn in_sight(&self, from: (f64, f64), to: (f64, f64)) -> bool {
+        let (dx, dy) = (to.0 - from.0, to.1 - from.1);
+        self.raycast(from.0, from.1, dy.atan2(dx), dx.hypot(dy))
+            .is_none()
+    }
+
     /// Casts a ray from (x, y) along `angle`; the distance to the first occupied square,
     /// or `None` if there is none within `max` metres.
     pub fn raycast(&self, x: f64, y: f64, angle: f64, max: f64) -> Option<f64> {

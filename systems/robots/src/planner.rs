@@ -152,15 +152,10 @@ impl Planner {
         })
     }
 
-    /// Whether nothing on the map lies on the straight line from `a` to `b`: what a laser
-    /// at `a` could see at `b`, or a walk from one to the other the walls leave open.
+    /// Whether nothing on the map lies on the straight line from `a` to `b`
+    /// ([`OccupancyMap::in_sight`]).
     pub fn in_sight(&self, a: (f64, f64), b: (f64, f64)) -> bool {
-        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
-        let d = dx.hypot(dy);
-        if d < 1e-9 {
-            return !self.map.blocked(a.0, a.1);
-        }
-        self.map.raycast_dir(a.0, a.1, dx / d, dy / d, d).is_none()
+        self.map.in_sight(a, b)
     }
 
     /// Whether the robot's body fits at (x, y) with its margin (walls only).

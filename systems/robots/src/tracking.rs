@@ -221,13 +221,6 @@ fn short_of_walls(map: &OccupancyMap, from: (f64, f64), to: (f64, f64)) -> (f64,
     }
 }
 
-/// Whether nothing on the map stands between `from` and `to`.
-fn in_sight(map: &OccupancyMap, from: (f64, f64), to: (f64, f64)) -> bool {
-    let (dx, dy) = (to.0 - from.0, to.1 - from.1);
-    map.raycast(from.0, from.1, dy.atan2(dx), dx.hypot(dy))
-        .is_none()
-}
-
 /// Narrower than this, a passage is a doorway (the office's doors are 1 m wide, its
 /// corridors 2 m and more), m.
 const DOORWAY: f64 = 1.4;
@@ -588,7 +581,7 @@ impl TrackingCore {
             if d > 0.5
                 && d < range * MAX_ZOOM.sqrt()
                 && bearing.abs() < pan_limit + fov / 2.0
-                && in_sight(&self.map, (r.pose.x, r.pose.y), (x, y))
+                && self.map.in_sight((r.pose.x, r.pose.y), (x, y))
             {
                 return (
                     bearing.clamp(-pan_limit, pan_limit),
@@ -670,7 +663,7 @@ impl TrackingCore {
                 r.searched = None;
                 let (dx, dy) = (tx - r.pose.x, ty - r.pose.y);
                 let d = dx.hypot(dy);
-                let in_sight = in_sight(map, (r.pose.x, r.pose.y), (tx, ty));
+                let in_sight = map.in_sight((r.pose.x, r.pose.y), (tx, ty));
                 // Close enough: in sight at the distance kept, or, looking for it, about
                 // where it was last seen (not onto it: it may be there, hidden from the
                 // camera, in a doorway).
@@ -716,7 +709,7 @@ impl TrackingCore {
                 let there = d <= 1.0
                     || (held_up_there
                         && d <= SPOT_IN_VIEW
-                        && in_sight(map, (r.pose.x, r.pose.y), (x, y)));
+                        && map.in_sight((r.pose.x, r.pose.y), (x, y)));
                 r.searched != Some(from) && !(ended && there)
             }) =>
             {
