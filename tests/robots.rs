@@ -170,6 +170,13 @@ fn the_link_experiment_tracks_follows_arrives_and_touches_nothing() {
     // loaded machine. The in-process closed-loop tests hold it to 0 deterministically,
     // with and without command latency.)
     assert_eq!(r["contacts_total"].as_u64().unwrap(), 0, "{r:#}");
+    // How long she was held up, boxed in (by the robots following her), is reported,
+    // and is part of the run.
+    let held = r["person"]["held_up_s"].as_f64().unwrap();
+    assert!(
+        (0.0..=r["sim_seconds"].as_f64().unwrap()).contains(&held),
+        "{r:#}"
+    );
     // Tracking error against ground truth, while tracked, within a metre at the median.
     assert!(
         r["tracking"]["red"]["error_p50_m"].as_f64().unwrap() < 1.0,

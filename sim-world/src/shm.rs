@@ -108,6 +108,8 @@ pub struct PersonBrief {
     pub beacon: u8,
     /// Position and heading.
     pub pose: PoseC,
+    /// Sim seconds held up so far (see [`crate::world::Person::held_up`]).
+    pub held_up: f64,
 }
 
 /// The world at one instant.
@@ -251,6 +253,7 @@ fn empty_world() -> WorldState {
             name: Name::new(""),
             beacon: 0,
             pose: PoseC::default(),
+            held_up: 0.0,
         }; MAX_PEOPLE],
     }
 }
@@ -480,6 +483,7 @@ fn fill_world(out: &mut WorldState, world: &World) {
         name: Name::new(""),
         beacon: 0,
         pose: PoseC::default(),
+        held_up: 0.0,
     };
     for (k, o) in out.people.iter_mut().enumerate() {
         *o = world
@@ -490,6 +494,7 @@ fn fill_world(out: &mut WorldState, world: &World) {
                 name: Name::new(&p.name),
                 beacon: p.beacon.code(),
                 pose: p.pose.into(),
+                held_up: p.held_up,
             });
     }
 }

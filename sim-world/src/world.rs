@@ -104,6 +104,9 @@ pub struct Person {
     pub pause_until: f64,
     /// Where and when the person last made progress (0.3 m) while walking.
     pub progress: (f64, f64, f64),
+    /// Sim seconds this person wanted to walk on but had not got 0.3 m further for
+    /// [`HELD_UP_AFTER`]: boxed in by robots or other people (in a doorway, a corner).
+    pub held_up: f64,
     rng: Pcg64,
 }
 
@@ -206,6 +209,7 @@ impl World {
                 target,
                 pause_until: 0.0,
                 progress: (p.start[0], p.start[1], 0.0),
+                held_up: 0.0,
                 rng,
             });
         }
@@ -664,7 +668,10 @@ fn walk(
     // somewhere else instead.
     if (p.pose.x - p.progress.0).hypot(p.pose.y - p.progress.1) > 0.3 {
         p.progress = (p.pose.x, p.pose.y, now);
-    } else if now - p.progress.2 > STUCK_GIVE_UP {
+    } else if now - p.progress.2 >= HELD_UP_AFTER {
+        p.held_up += h;
+    }
+    if now - p.progress.2 > STUCK_GIVE_UP {
         p.progress = (p.pose.x, p.pose.y, now);
         let places = nav.places();
         p.target = (p.target + 1 + p.rng.random_range(0..places.max(2) - 1)) % places;
@@ -701,6 +708,10 @@ fn walk(
         }
     }
 }
+
+/// A person walking who has not got 0.3 m further for this long is held up, s (free,
+/// she walks it in under half a second).
+pub const HELD_UP_AFTER: f64 = 1.0;
 
 /// A person who cannot move on for this long picks another place, s.
 pub const STUCK_GIVE_UP: f64 = 5.0;

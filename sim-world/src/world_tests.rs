@@ -269,6 +269,45 @@ fn people_walk_between_places_and_never_touch_walls() {
 }
 
 #[test]
+fn a_person_boxed_in_by_a_robot_in_her_doorway_counts_the_time_held_up() {
+    // The office south-0 (x 4-8, y 4-9) opens on the south corridor through a 1 m door
+    // at x 5.5-6.5; she walks between the office and the corridor outside it.
+    let run = |robots: Vec<RobotSpec>| {
+        let mut s = scenario(robots);
+        s.people.push(PersonSpec {
+            name: "alice".into(),
+            beacon: Colour::Red,
+            start: [6.0, 6.5],
+            speed: 0.7,
+        });
+        s.places = vec![
+            crate::scenario::Place {
+                name: "office".into(),
+                at: [6.0, 6.5],
+            },
+            crate::scenario::Place {
+                name: "corridor".into(),
+                at: [6.0, 3.0],
+            },
+        ];
+        let mut w = World::new(&s, Some(OccupancyMap::office())).unwrap();
+        for _ in 0..1200 {
+            w.step(0.1);
+        }
+        w.people()[0].held_up
+    };
+    // Free to come and go: never held up.
+    let free = run(vec![]);
+    assert!(free < 0.5, "{free}");
+    // A robot standing in the doorway: every time she makes for the corridor she is
+    // held up there (until she gives up and turns back, and tries again).
+    let mut blocker = robot("T3", 6.0, 4.05, 90.0);
+    blocker.fixed = true;
+    let held = run(vec![blocker]);
+    assert!(held > 20.0, "{held}");
+}
+
+#[test]
 fn a_tracker_sees_a_person_walking_in_front_of_it() {
     let mut s = scenario(vec![robot("T1", 3.0, 3.0, 0.0)]);
     s.robots[0].camera = Some(CameraParams::default());

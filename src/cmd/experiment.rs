@@ -237,6 +237,11 @@ pub fn link(inst: &Instance, a: ExperimentLinkArgs) -> anyhow::Result<ExitCode> 
             "d1_distance_to_t3_p50_m": pct(&d1_t3, 0.5),
             "fraction_both_within_5m": convoy,
         },
+        "person": {
+            "held_up_s": rec.held_up[0],
+            "held_up_fraction": rec.held_up[0] / sim_seconds.max(1e-9),
+            "note": "sim seconds the red person wanted to walk on and could not, boxed in (by the robots following her, in a doorway)",
+        },
         "contacts": contacts,
         "contacts_total": rec.total_contacts(),
         "systems": {"tracking": stats.tracking, "delivery": stats.delivery},

@@ -188,6 +188,8 @@ pub struct Recorder {
     pub samples: Vec<TruthSample>,
     /// Contacts per robot at the last sample.
     pub contacts: Vec<(String, u64)>,
+    /// Sim seconds each beacon's person was held up, boxed in, at the last sample.
+    pub held_up: [f64; 3],
     /// Newest sim time seen.
     pub now: f64,
 }
@@ -214,6 +216,7 @@ impl Recorder {
             period,
             samples: Vec::new(),
             contacts: Vec::new(),
+            held_up: [0.0; 3],
             now: 0.0,
         }
     }
@@ -235,12 +238,19 @@ impl Recorder {
                 .iter()
                 .map(|r| (r.name.as_str().to_string(), r.contacts))
                 .collect::<Vec<_>>();
-            (s, contacts)
+            let held_up = BEACONS.map(|c| {
+                w.people[..(w.n_people as usize).min(w.people.len())]
+                    .iter()
+                    .find(|p| p.beacon == c.code())
+                    .map_or(0.0, |p| p.held_up)
+            });
+            (s, contacts, held_up)
         });
-        if let Ok(Some((s, contacts))) = taken {
+        if let Ok(Some((s, contacts, held_up))) = taken {
             self.now = s.t;
             self.samples.push(s);
             self.contacts = contacts;
+            self.held_up = held_up;
         }
     }
 

@@ -27,7 +27,7 @@ fn main() {
     let crowd: usize = args.get(3).and_then(|x| x.parse().ok()).unwrap_or(0);
     let mut all_tracked = Vec::new();
     let mut contacts = 0;
-    println!("seed  d1-person tracked p50/p90  all p50/p90  tracked%  t3-person p50  d1-t3 p50  arrivals(≤1m)  contacts  T3 loc p95/max  D1 loc p95/max");
+    println!("seed  d1-person tracked p50/p90  all p50/p90  tracked%  t3-person p50  d1-t3 p50  arrivals(≤1m)  contacts  T3 loc p95/max  D1 loc p95/max  [wall]  red held up");
     for seed in seeds {
         let started = std::time::Instant::now();
         let f = match run(&LinkSimParams {
@@ -47,7 +47,7 @@ fn main() {
         let q = |v: &[f64], x| pct(v, x).unwrap_or(f64::NAN);
         let near = f.arrivals.iter().filter(|d| **d <= 1.0).count();
         println!(
-            "{seed:4}  {:5.2} / {:5.2}  {:5.2} / {:5.2}  {:5.1}  {:5.2}  {:5.2}  {}({near})  {:?}  {:.2}/{:.2}  {:.2}/{:.2}  [{:.1} s]",
+            "{seed:4}  {:5.2} / {:5.2}  {:5.2} / {:5.2}  {:5.1}  {:5.2}  {:5.2}  {}({near})  {:?}  {:.2}/{:.2}  {:.2}/{:.2}  [{:.1} s]  {:.1} %",
             q(&f.d1_person_tracked, 0.5),
             q(&f.d1_person_tracked, 0.9),
             q(&f.d1_person_all, 0.5),
@@ -61,7 +61,8 @@ fn main() {
             q(&f.t3_localization, 1.0),
             q(&f.d1_localization, 0.95),
             q(&f.d1_localization, 1.0),
-            started.elapsed().as_secs_f64()
+            started.elapsed().as_secs_f64(),
+            100.0 * f.held_up_fraction()
         );
         contacts += f.total_contacts();
         all_tracked.extend(f.d1_person_tracked);

@@ -80,12 +80,22 @@ pub struct LinkSimFigures {
     pub arrivals: Vec<f64>,
     /// Contacts per robot (the simulator's count).
     pub contacts: BTreeMap<String, u64>,
+    /// Sim seconds the red person wanted to walk on and could not, boxed in (by the
+    /// robots following her, in a doorway), s.
+    pub red_held_up: f64,
+    /// The run's length, s.
+    pub duration: f64,
 }
 
 impl LinkSimFigures {
     /// Contacts of all robots.
     pub fn total_contacts(&self) -> u64 {
         self.contacts.values().sum()
+    }
+
+    /// Share of the run the red person was held up, boxed in.
+    pub fn held_up_fraction(&self) -> f64 {
+        self.red_held_up / self.duration.max(1e-9)
     }
 
     /// Share of red's updates with the person tracked.
@@ -271,13 +281,14 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
             let tr = tracking.payload(Colour::Red);
             let (t3v, d1v) = (t3.velocity, world.robots()[d1].velocity);
             eprintln!(
-                "t {t:6.1} person ({px:5.1},{py:5.1}) T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2} | T3 zoom {:.1} sees {:?} others {} | D1 est ({:.2},{:.2}) err {:.2} | T3 est err {:.2}",
+                "t {t:6.1} person ({px:5.1},{py:5.1}) held {:5.1} T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2} | T3 pan {:4.0} zoom {:.1} sees {:?} others {} | D1 est ({:.2},{:.2}) err {:.2} | T3 est err {:.2}",
+                world.people().iter().find(|q| q.beacon == Colour::Red).map_or(0.0, |q| q.held_up),
                 t3p.x, t3p.y,
                 d1p.x, d1p.y, (d1p.x - px).hypot(d1p.y - py),
                 tr.map_or("none".to_string(), |tr| format!("({:5.1},{:5.1}) lost {} age {:.1}", tr.x, tr.y, tr.lost, tr.age)),
                 t3p.theta.to_degrees(), t3v.0, t3v.1,
                 d1p.theta.to_degrees(), d1v.0, d1v.1,
-                t3.ptz.zoom,
+                t3.ptz.pan.to_degrees(), t3.ptz.zoom,
                 t3.detections.iter().map(|d| d.colour).collect::<Vec<_>>(),
                 world
                     .people()
@@ -313,5 +324,11 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
         .iter()
         .map(|r| (r.spec.name.clone(), r.contacts))
         .collect();
+    figures.red_held_up = world
+        .people()
+        .iter()
+        .find(|q| q.beacon == Colour::Red)
+        .map_or(0.0, |q| q.held_up);
+    figures.duration = p.duration;
     Ok(figures)
 }

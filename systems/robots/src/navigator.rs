@@ -142,6 +142,12 @@ const SENSOR_PERIOD: f64 = 0.1;
 /// beside it otherwise, only the warning field's speed holds.
 const STOP_CONE: f64 = 70.0 * std::f64::consts::PI / 180.0;
 
+/// How fast a robot creeps clear giving way or making room, m/s.
+const CREEP: f64 = 0.2;
+
+/// The most a robot stuck on its way drives while it gets clear, m/s.
+const ESCAPE_SPEED: f64 = 0.3;
+
 /// How far ahead the footprint is cast, m.
 const LOOK: f64 = 3.0;
 
@@ -282,12 +288,12 @@ impl Navigator {
     ) -> Option<(f64, f64)> {
         let (footprint, stop_gap) = (self.params.footprint, self.params.stop_gap);
         // Creeping clear never runs into someone else: not with a body in the protective
-        // field (grown by the latency) ahead or beside it.
-        let body_near = self.escape.is_some()
-            && Self::body_within(obstacles, &self.bodies(pose, obstacles), self.creep_reach());
-        let creep = || {
+        // field (grown by the latency) where its creeping closes on it.
+        let creep_blocked = self.creep_check(obstacles, &self.bodies(pose, obstacles));
+        let creep = |w: f64| {
+            let body_near = creep_blocked(CREEP, w);
             if !body_near && free_distance(footprint, obstacles, 1.0) > stop_gap {
-                0.2
+                CREEP
             } else {
                 0.0
             }
@@ -363,7 +369,7 @@ impl Navigator {
         &mut self,
         now: f64,
         pose: Pose,
-        speed: impl FnOnce() -> f64,
+        speed: impl FnOnce(f64) -> f64,
     ) -> Option<(f64, f64)> {
         let (heading, until) = self.escape?;
         if now >= until {
@@ -373,7 +379,7 @@ impl Navigator {
         let p = &self.params;
         let e = wrap(heading - pose.theta);
         let w = (p.turn_gain * e).clamp(-p.max_turn, p.max_turn);
-        let v = if e.abs() < 0.3 { speed() } else { 0.0 };
+        let v = if e.abs() < 0.3 { speed(w) } else { 0.0 };
         Some((v, w))
     }
 
@@ -492,6 +498,27 @@ impl Navigator {
         body
     }
 
+    /// The bodies creeping clear (at `v`, turning at `w`) would close on, able to reach
+    /// the footprint before the next command acts: within [`Self::creep_reach`] and where
+    /// the creeping closes on them ([`Self::ahead_of_motion`]). A body beside or behind,
+    /// which creeping moves away from, does not hold it: that held two robots each
+    /// waiting for the other to creep clear first (a tracker in a doorway, its target
+    /// boxed in behind it, and a follower just outside).
+    fn creep_check(&self, obstacles: &[(f64, f64)], bodies: &[bool]) -> impl Fn(f64, f64) -> bool {
+        let reach = self.creep_reach();
+        let near: Vec<(f64, f64)> = obstacles
+            .iter()
+            .zip(bodies)
+            .filter(|&(&(x, y), &body)| body && x.hypot(y) < reach)
+            .map(|(&o, _)| o)
+            .collect();
+        let (reaction, brake) = (self.params.body_reaction + self.latency, self.params.brake);
+        move |v, w| {
+            near.iter()
+                .any(|&(x, y)| closes_on(x, y, v, w, reaction, brake))
+        }
+    }
+
     /// Whether a point (robot frame) lies where driving on closes on it: within ±70° of
     /// the heading, widened on the side the robot turns to by the angle it turns
     /// before a command made now has stopped it: turn rate `w` times the body reaction
@@ -499,10 +526,7 @@ impl Navigator {
     /// brakes, and a body behind its shoulder comes round to its side meanwhile).
     fn ahead_of_motion(&self, x: f64, y: f64, v: f64, w: f64) -> bool {
         let p = &self.params;
-        let bearing = y.atan2(x);
-        let turn = (w.abs() * (p.body_reaction + self.latency + v.max(0.0) / p.brake))
-            .min(std::f64::consts::PI - STOP_CONE);
-        bearing.abs() < STOP_CONE || (bearing * w > 0.0 && bearing.abs() < STOP_CONE + turn)
+        closes_on(x, y, v, w, p.body_reaction + self.latency, p.brake)
     }
 
     /// The speed at which the robot can still stop before any body the map does not know,
@@ -614,7 +638,7 @@ impl Navigator {
         let lane_limit = self
             .body_speed_limit(obstacles, &bodies, v, w)
             .max(p.warning_speed);
-        let creep_blocked = Self::body_within(obstacles, &bodies, self.creep_reach());
+        let creep_blocked = self.creep_check(obstacles, &bodies);
         v = v.min(lane_limit);
         // Stopped only by bodies its driving would close on: ahead, within ±70°, and
         // beside or behind it on the side it turns to, as far round as it turns before
@@ -632,13 +656,13 @@ impl Navigator {
                 && self.ahead_of_motion(x, y, going, w)
         });
         // Getting clear: turn to the escape heading and creep out along it.
-        if let Some(velocity) = self.escaping(now, pose, || {
+        if let Some(velocity) = self.escaping(now, pose, |w| {
             // Getting clear never runs into someone else: the lane limit and the body
             // protective field hold here too.
-            if creep_blocked {
+            if creep_blocked(ESCAPE_SPEED, w) {
                 0.0
             } else {
-                v_safe.clamp(0.0, 0.3).min(lane_limit)
+                v_safe.clamp(0.0, ESCAPE_SPEED).min(lane_limit)
             }
         }) {
             return NavStep {
@@ -723,6 +747,15 @@ fn escape_heading(
             free_distance(radius, &turned, 1.0) >= need
         })
         .min_by(|a, b| wrap(a - wanted).abs().total_cmp(&wrap(b - wanted).abs()))
+}
+
+/// Whether driving at `v` and turning at `w` closes on a point (robot frame): within
+/// ±70° of the heading ([`STOP_CONE`]), widened on the side the robot turns to by the
+/// angle it turns in `reaction` s and while braking (at `brake`) to a stop.
+fn closes_on(x: f64, y: f64, v: f64, w: f64, reaction: f64, brake: f64) -> bool {
+    let bearing = y.atan2(x);
+    let turn = (w.abs() * (reaction + v.max(0.0) / brake)).min(std::f64::consts::PI - STOP_CONE);
+    bearing.abs() < STOP_CONE || (bearing * w > 0.0 && bearing.abs() < STOP_CONE + turn)
 }
 
 /// The point `distance` metres along the polyline `from` → `path`.
@@ -921,6 +954,71 @@ mod tests {
         // Keeping her in view: the free heading nearest to away, within 2 rad of her.
         let a = escape_of(Some((23.0, 3.0)));
         assert!(a.abs() <= 2.0 + 1e-9 && a.abs() > 1.5, "{a}");
+    }
+
+    /// Body points (two, 0.1 m apart across the bearing: a body, not a lone echo) at
+    /// world positions, as the robot at `pose` sees them.
+    fn seen_from(pose: Pose, bodies: &[(f64, f64)]) -> Vec<(f64, f64)> {
+        let (s, c) = pose.theta.sin_cos();
+        bodies
+            .iter()
+            .flat_map(|&(bx, by)| {
+                let (dx, dy) = (bx - pose.x, by - pose.y);
+                let (x, y) = (c * dx + s * dy, -s * dx + c * dy);
+                let d = x.hypot(y);
+                let (ux, uy) = (-y / d * 0.05, x / d * 0.05);
+                [(x + ux, y + uy), (x - ux, y - uy)]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn making_room_it_creeps_clear_past_a_body_beside_it_but_never_towards_one() {
+        let planner = office_planner();
+        // The middle corridor (y 9-11), facing east; someone 0.5 m ahead needs to pass.
+        let start = Pose {
+            x: 20.0,
+            y: 10.0,
+            theta: 0.0,
+        };
+        let person = (20.5, 10.0);
+        // Makes room for 4 s; returns where it got to and whether it ever moved.
+        let run = |others: &[(f64, f64)]| {
+            let mut nav = Navigator::new(planner.clone(), NavParams::default());
+            let (mut pose, mut t, mut moved) = (start, 0.0, false);
+            for _ in 0..40 {
+                let mut all = vec![person];
+                all.extend_from_slice(others);
+                let pts = seen_from(pose, &all);
+                let toward = {
+                    let (dx, dy) = (person.0 - pose.x, person.1 - pose.y);
+                    wrap(dy.atan2(dx) - pose.theta)
+                };
+                let Some((v, w)) = nav.make_room(t, pose, &pts, toward) else {
+                    break;
+                };
+                moved |= v > 0.0;
+                pose = muster_world_model::kinematics::integrate(pose, v, w, 0.1);
+                t += 0.1;
+            }
+            (pose, moved)
+        };
+        // Alone: it turns its back on her and creeps west.
+        let (alone, _) = run(&[]);
+        assert!(alone.x < 19.7, "{alone:?}");
+        // Another robot's flank right beside it (0.42 m north of its centre, within the
+        // reach a body could close before its next command): creeping west moves away
+        // from it, so it creeps clear all the same. (It used to wait for the other to
+        // move first, and the other, a tracker in a doorway with her behind it, waited
+        // for it: she stood boxed in for minutes.)
+        let (beside, _) = run(&[(20.0, 10.42)]);
+        assert!(beside.x < 19.7, "{beside:?}");
+        // A body where its creeping closes on it (60° off the way west, 0.45 m off):
+        // it turns to its way out but does not move.
+        let a = (180.0f64 - 60.0).to_radians();
+        let ahead = (20.0 + 0.45 * a.cos(), 10.0 + 0.45 * a.sin());
+        let (held, moved) = run(&[ahead]);
+        assert!(!moved, "{held:?}");
     }
 
     #[test]
