@@ -509,11 +509,12 @@ fn processed(p: &mut Proc, id: &str, timeout: Duration) -> (Vec<String>, Value) 
 }
 
 fn connection_state(p: &mut Proc, state: &str, timeout: Duration) -> Value {
-    wait_for(p, timeout, |v| {
-        v["event"] == "connection"
-            && v["serial"] == "D1"
-            && v["message"]["connectionState"] == state
-    })
+    wait_for(p, timeout, |v| says_connection(v, state))
+}
+
+/// Whether a line of the peer is D1's connection message saying `state`.
+fn says_connection(v: &Value, state: &str) -> bool {
+    v["event"] == "connection" && v["serial"] == "D1" && v["message"]["connectionState"] == state
 }
 
 #[test]
@@ -540,9 +541,19 @@ fn a_simulated_robot_is_a_vda5050_vehicle_that_vda_5050_libs_master_control_driv
     let agv = f.spawn(&agv_args);
     let master = master_control(&mut f, &mqtt, &iface);
     let p = f.proc(master);
-    // The retained connection says ONLINE (whether it came before the master or after).
-    connection_state(p, "ONLINE", 30 * SEC);
-    wait_event(p, "ready", 20 * SEC);
+    // The retained connection says ONLINE (whether it came before the master or after),
+    // and the master says it is ready: in either order. (Waiting for one skips the
+    // other's line: when `muster agv` connected after the master was ready, waiting for
+    // ONLINE first passed over "ready", and the test then waited for it in vain.)
+    let online = |v: &Value| says_connection(v, "ONLINE");
+    let (mut is_online, mut is_ready) = (false, false);
+    let deadline = Instant::now() + 30 * SEC;
+    while !(is_online && is_ready) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let v = wait_for(p, left, |v| online(v) || v["event"] == "ready");
+        is_online |= online(&v);
+        is_ready |= v["event"] == "ready";
+    }
 
     // An order along the corridor from where D1 stands: every node traversed, in order,
     // and processed without error within the deviation of the last node.
