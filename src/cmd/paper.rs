@@ -6,7 +6,7 @@
 use super::children::Children;
 use muster_shared::Instance;
 use muster_sim_world::scenario::Colour;
-use muster_sim_world::shm::{WorldState, WorldView};
+use muster_sim_world::shm::{PersonBrief, WorldState, WorldView};
 use serde_json::Value;
 use std::io::Read;
 use std::process::{ChildStdout, Stdio};
@@ -201,12 +201,16 @@ fn find(w: &WorldState, robot: &str) -> Option<(f64, f64)> {
         .map(|r| (r.pose.x, r.pose.y))
 }
 
-/// Where the person wearing `colour` is in the world sample.
-pub fn person(w: &WorldState, colour: Colour) -> Option<(f64, f64)> {
+/// The person wearing `colour` in the world sample.
+fn wearing(w: &WorldState, colour: Colour) -> Option<&PersonBrief> {
     w.people[..(w.n_people as usize).min(w.people.len())]
         .iter()
         .find(|p| p.beacon == colour.code())
-        .map(|p| (p.pose.x, p.pose.y))
+}
+
+/// Where the person wearing `colour` is in the world sample.
+pub fn person(w: &WorldState, colour: Colour) -> Option<(f64, f64)> {
+    wearing(w, colour).map(|p| (p.pose.x, p.pose.y))
 }
 
 impl Recorder {
@@ -238,12 +242,7 @@ impl Recorder {
                 .iter()
                 .map(|r| (r.name.as_str().to_string(), r.contacts))
                 .collect::<Vec<_>>();
-            let held_up = BEACONS.map(|c| {
-                w.people[..(w.n_people as usize).min(w.people.len())]
-                    .iter()
-                    .find(|p| p.beacon == c.code())
-                    .map_or(0.0, |p| p.held_up)
-            });
+            let held_up = BEACONS.map(|c| wearing(w, c).map_or(0.0, |p| p.held_up));
             (s, contacts, held_up)
         });
         if let Ok(Some((s, contacts, held_up))) = taken {

@@ -188,12 +188,14 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
     for i in 0..idx.len() {
         tracking.set_latency(i, p.latency);
     }
-    let person = |w: &World| {
+    // The red person: where she is, and how long she has been held up.
+    let red = |w: &World| {
         w.people()
             .iter()
             .find(|q| q.beacon == Colour::Red)
-            .map_or((0.0, 0.0), |q| (q.pose.x, q.pose.y))
+            .map_or(((0.0, 0.0), 0.0), |q| ((q.pose.x, q.pose.y), q.held_up))
     };
+    let person = |w: &World| red(w).0;
     let wanted = [Colour::Red, Colour::Green, Colour::Blue];
     let mut figures = LinkSimFigures::default();
     let mut pending: VecDeque<Pending> = VecDeque::new();
@@ -282,7 +284,7 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
             let (t3v, d1v) = (t3.velocity, world.robots()[d1].velocity);
             eprintln!(
                 "t {t:6.1} person ({px:5.1},{py:5.1}) held {:5.1} T3 ({:5.1},{:5.1}) d {d3:4.1} sight {sight} off {off:4.0} D1 ({:5.1},{:5.1}) d {:4.1} track {} | T3 hdg {:4.0} v {:4.2} w {:5.2} D1 hdg {:4.0} v {:4.2} w {:5.2} | T3 pan {:4.0} zoom {:.1} sees {:?} others {} | D1 est ({:.2},{:.2}) err {:.2} | T3 est err {:.2}",
-                world.people().iter().find(|q| q.beacon == Colour::Red).map_or(0.0, |q| q.held_up),
+                red(&world).1,
                 t3p.x, t3p.y,
                 d1p.x, d1p.y, (d1p.x - px).hypot(d1p.y - py),
                 tr.map_or("none".to_string(), |tr| format!("({:5.1},{:5.1}) lost {} age {:.1}", tr.x, tr.y, tr.lost, tr.age)),
@@ -324,11 +326,7 @@ pub fn run(p: &LinkSimParams) -> Result<LinkSimFigures, String> {
         .iter()
         .map(|r| (r.spec.name.clone(), r.contacts))
         .collect();
-    figures.red_held_up = world
-        .people()
-        .iter()
-        .find(|q| q.beacon == Colour::Red)
-        .map_or(0.0, |q| q.held_up);
+    figures.red_held_up = red(&world).1;
     figures.duration = p.duration;
     Ok(figures)
 }
