@@ -289,7 +289,8 @@ impl Navigator {
         let (footprint, stop_gap) = (self.params.footprint, self.params.stop_gap);
         // Creeping clear never runs into someone else: not with a body in the protective
         // field (grown by the latency) where its creeping closes on it.
-        let creep_blocked = self.creep_check(obstacles, &self.bodies(pose, obstacles));
+        let bodies = self.bodies(pose, obstacles);
+        let creep_blocked = self.creep_check(obstacles, &bodies);
         let creep = |w: f64| {
             let body_near = creep_blocked(CREEP, w);
             if !body_near && free_distance(footprint, obstacles, 1.0) > stop_gap {
@@ -504,18 +505,17 @@ impl Navigator {
     /// which creeping moves away from, does not hold it: that held two robots each
     /// waiting for the other to creep clear first (a tracker in a doorway, its target
     /// boxed in behind it, and a follower just outside).
-    fn creep_check(&self, obstacles: &[(f64, f64)], bodies: &[bool]) -> impl Fn(f64, f64) -> bool {
+    fn creep_check<'a>(
+        &self,
+        obstacles: &'a [(f64, f64)],
+        bodies: &'a [bool],
+    ) -> impl Fn(f64, f64) -> bool + 'a {
         let reach = self.creep_reach();
-        let near: Vec<(f64, f64)> = obstacles
-            .iter()
-            .zip(bodies)
-            .filter(|&(&(x, y), &body)| body && x.hypot(y) < reach)
-            .map(|(&o, _)| o)
-            .collect();
         let (reaction, brake) = (self.params.body_reaction + self.latency, self.params.brake);
         move |v, w| {
-            near.iter()
-                .any(|&(x, y)| closes_on(x, y, v, w, reaction, brake))
+            obstacles.iter().zip(bodies).any(|(&(x, y), &body)| {
+                body && x.hypot(y) < reach && closes_on(x, y, v, w, reaction, brake)
+            })
         }
     }
 
@@ -916,9 +916,7 @@ mod tests {
         let mut t = 0.0;
         let mut moved_away = false;
         for _ in 0..40 {
-            let (s, c) = pose.theta.sin_cos();
-            let (dx, dy) = (body_at.0 - pose.x, body_at.1 - pose.y);
-            let local = (c * dx + s * dy, -s * dx + c * dy);
+            let local = in_robot_frame(pose, body_at);
             let Some((v, w)) = nav.give_way(t, pose, &[local]) else {
                 break;
             };
@@ -956,15 +954,20 @@ mod tests {
         assert!(a.abs() <= 2.0 + 1e-9 && a.abs() > 1.5, "{a}");
     }
 
+    /// A world point in the frame of the robot at `pose` (x ahead, y left).
+    fn in_robot_frame(pose: Pose, (px, py): (f64, f64)) -> (f64, f64) {
+        let (s, c) = pose.theta.sin_cos();
+        let (dx, dy) = (px - pose.x, py - pose.y);
+        (c * dx + s * dy, -s * dx + c * dy)
+    }
+
     /// Body points (two, 0.1 m apart across the bearing: a body, not a lone echo) at
     /// world positions, as the robot at `pose` sees them.
     fn seen_from(pose: Pose, bodies: &[(f64, f64)]) -> Vec<(f64, f64)> {
-        let (s, c) = pose.theta.sin_cos();
         bodies
             .iter()
-            .flat_map(|&(bx, by)| {
-                let (dx, dy) = (bx - pose.x, by - pose.y);
-                let (x, y) = (c * dx + s * dy, -s * dx + c * dy);
+            .flat_map(|&b| {
+                let (x, y) = in_robot_frame(pose, b);
                 let d = x.hypot(y);
                 let (ux, uy) = (-y / d * 0.05, x / d * 0.05);
                 [(x + ux, y + uy), (x - ux, y - uy)]
@@ -991,8 +994,8 @@ mod tests {
                 all.extend_from_slice(others);
                 let pts = seen_from(pose, &all);
                 let toward = {
-                    let (dx, dy) = (person.0 - pose.x, person.1 - pose.y);
-                    wrap(dy.atan2(dx) - pose.theta)
+                    let (x, y) = in_robot_frame(pose, person);
+                    y.atan2(x)
                 };
                 let Some((v, w)) = nav.make_room(t, pose, &pts, toward) else {
                     break;
