@@ -145,6 +145,17 @@ fn fifty_users_all_get_lists_every_request_is_answered_and_no_quota_is_exceeded(
         leaving_stamped > 0 && leaving_stamped < stamped,
         "{leaving_stamped} of {stamped}"
     );
+    // Request → first update is of data sessions granted at once; those queued first
+    // (waiting for a place) are counted apart: together, at most one a session made.
+    let at_once = r["request_to_first_update"]["count"].as_u64().unwrap();
+    let queued_first = r["request_to_first_update_queued"]["count"]
+        .as_u64()
+        .unwrap();
+    assert!(at_once > 0, "{r:#}");
+    assert!(
+        at_once + queued_first <= system_grants,
+        "{at_once} + {queued_first} of {system_grants}"
+    );
     // (Histograms keep 3 significant digits: a little room.)
     let whole_max = whole["max_us"].as_u64().unwrap() as f64;
     assert!(

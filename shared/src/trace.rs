@@ -5,7 +5,8 @@
 //! and its request number: the user sending it, the broker receiving it, sending the
 //! offer and then the grant, the user receiving the grant; and off the user's path, the
 //! system receiving the offer and confirming it, the broker taking the confirmation;
-//! and the user taking the session's first update.
+//! the user taking the session's first update, and the user hearing its request was
+//! queued (it waits for a free place).
 //! Each process writes its stamps to `DIR/trace-PID.csv` when it exits; the stress
 //! harness joins them. Without the variable a stamp costs one load.
 
@@ -42,11 +43,14 @@ pub enum Stage {
     /// The user took the session's first update (a data session: its system sends one
     /// as the session opens).
     FirstUpdate,
+    /// The user heard its request was queued: it waits for a free place, and its grant
+    /// comes when one frees (its path's figures then hold that wait).
+    UserQueued,
 }
 
 impl Stage {
     /// Every stage.
-    pub const ALL: [Stage; 9] = [
+    pub const ALL: [Stage; 10] = [
         Stage::UserSend,
         Stage::BrokerRecv,
         Stage::BrokerSend,
@@ -56,6 +60,7 @@ impl Stage {
         Stage::BrokerRelay,
         Stage::UserRecv,
         Stage::FirstUpdate,
+        Stage::UserQueued,
     ];
 
     /// Its name in the files.
@@ -70,6 +75,7 @@ impl Stage {
             Stage::BrokerRelay => "broker_relay",
             Stage::UserRecv => "user_recv",
             Stage::FirstUpdate => "first_update",
+            Stage::UserQueued => "user_queued",
         }
     }
 

@@ -468,10 +468,13 @@ struct PerHop {
     confirm: Vec<Histogram<u64>>,
     /// The whole path, user send to grant taken.
     whole: Histogram<u64>,
-    /// User send to the system's confirmation: the session open where it runs.
+    /// User send to the system's confirmation: the session open where it runs (requests
+    /// granted at once, as the users' own request figure counts them).
     session_open: Histogram<u64>,
-    /// User send to the session's first update taken (data sessions).
+    /// User send to the session's first update taken (data sessions granted at once).
     first_update: Histogram<u64>,
+    /// The same, of requests that were queued first: their wait for a free place.
+    first_update_queued: Histogram<u64>,
     /// Grant taken to the session's first update taken: what the first update adds to
     /// the grant, whatever the request waited for in a queue.
     grant_to_first_update: Histogram<u64>,
@@ -534,6 +537,7 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
         whole: histogram(),
         session_open: histogram(),
         first_update: histogram(),
+        first_update_queued: histogram(),
         grant_to_first_update: histogram(),
     };
     let us = |from: u64, to: u64| ((to - from) / 1000).max(1);
@@ -546,13 +550,19 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
         if !at(stamps, &Stage::UserSend).is_some_and(&sent_at) {
             continue;
         }
-        for (to, h) in [
-            (Stage::SystemSend, &mut out.session_open),
-            (Stage::FirstUpdate, &mut out.first_update),
-        ] {
-            if let Some(t) = path(stamps, &[Stage::UserSend, to]) {
-                let _ = h.record(us(t[0], t[1]));
-            }
+        // A request queued first waited for a place to free: not the path's latency
+        // (the users' request figure leaves those out too), but counted apart.
+        let queued = at(stamps, &Stage::UserQueued).is_some();
+        let to_first_update = if queued {
+            &mut out.first_update_queued
+        } else {
+            &mut out.first_update
+        };
+        if let Some(t) = path(stamps, &[Stage::UserSend, Stage::FirstUpdate]) {
+            let _ = to_first_update.record(us(t[0], t[1]));
+        }
+        if let Some(t) = path(stamps, &[Stage::UserSend, Stage::SystemSend]).filter(|_| !queued) {
+            let _ = out.session_open.record(us(t[0], t[1]));
         }
         if let Some(t) = path(stamps, &[Stage::UserRecv, Stage::FirstUpdate]) {
             let _ = out.grant_to_first_update.record(us(t[0], t[1]));
@@ -865,6 +875,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         "per_hop_leaving": leaving_hops.as_ref().map_or(Value::Null, |h| hops_json(&GRANT_HOPS, &h.grant).into()),
     });
     report["grant_to_first_update"] = summary(&hops.grant_to_first_update);
+    report["request_to_first_update_queued"] = summary(&hops.first_update_queued);
     report["latched"] = a.latched.into();
     report["users_per_process"] = a.users_per_process.into();
     report["shared_inboxes"] = (a.users_per_process > 1 && !a.remote && !a.own_inboxes).into();
@@ -942,8 +953,26 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
         print_hops("to the user", &GRANT_HOPS, &hops.grant, line);
         println!("{}", line("  whole path (stamped)", &hops.whole));
-        println!("{}", line("  request → session open", &hops.session_open));
-        println!("{}", line("  request → first update", &hops.first_update));
+        println!(
+            "{}",
+            line(
+                "  request → session open (granted at once)",
+                &hops.session_open
+            )
+        );
+        println!(
+            "{}",
+            line(
+                "  request → first update (granted at once)",
+                &hops.first_update
+            )
+        );
+        if !hops.first_update_queued.is_empty() {
+            println!(
+                "{}",
+                line("  ... queued first (waiting)", &hops.first_update_queued)
+            );
+        }
         println!(
             "{}",
             line("  grant → first update", &hops.grant_to_first_update)
@@ -985,4 +1014,54 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     } else {
         ExitCode::from(1)
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Stamps of one request: `(stage, µs after 0)` each.
+    fn request(paths: &mut Stamps, user: &str, req: u64, stamps: &[(Stage, u64)]) {
+        let slots = paths.entry((user.to_string(), req)).or_default();
+        for (stage, us) in stamps {
+            let i = Stage::ALL.iter().position(|s| s == stage).unwrap();
+            slots[i] = Some(us * 1000);
+        }
+    }
+
+    #[test]
+    fn a_request_queued_first_counts_apart_from_those_granted_at_once() {
+        let mut paths = Stamps::new();
+        let granted = |sent: u64, waited: u64| {
+            let t = sent + waited;
+            [
+                (Stage::UserSend, sent),
+                (Stage::BrokerRecv, sent + 50),
+                (Stage::BrokerSend, t + 70),
+                (Stage::SystemRecv, t + 500),
+                (Stage::SystemSend, t + 520),
+                (Stage::BrokerAnswer, t + 600),
+                (Stage::BrokerRelay, t + 90),
+                (Stage::UserRecv, t + 130),
+                (Stage::FirstUpdate, t + 135),
+            ]
+        };
+        // Two granted at once, one queued for 40 ms first.
+        request(&mut paths, "a", 1, &granted(1_000, 0));
+        request(&mut paths, "b", 1, &granted(2_000, 0));
+        let mut queued = granted(3_000, 40_000).to_vec();
+        queued.push((Stage::UserQueued, 3_080));
+        request(&mut paths, "c", 1, &queued);
+        let h = per_hop(&paths, |_| true);
+        assert_eq!(h.first_update.len(), 2);
+        assert_eq!(h.first_update.max(), 135);
+        assert_eq!(h.first_update_queued.len(), 1);
+        // (3 significant digits: the histogram's bucket of 40,135.)
+        let q = &h.first_update_queued;
+        assert_eq!(q.max(), q.highest_equivalent(40_135));
+        assert_eq!((h.session_open.len(), h.session_open.max()), (2, 520));
+        // What the first update adds to the grant counts every request.
+        assert_eq!(h.grant_to_first_update.len(), 3);
+        assert_eq!(h.grant_to_first_update.max(), 5);
+    }
 }

@@ -746,6 +746,11 @@ impl UserCore {
             }
             ToUser::Queued { req, position } => {
                 if let Some(p) = self.pending.get(&req) {
+                    muster_shared::trace::stamp(
+                        muster_shared::trace::Stage::UserQueued,
+                        &self.id,
+                        req,
+                    );
                     let service = p.service.clone();
                     self.events.push_back(UserEvent::Queued {
                         req,
