@@ -13,7 +13,20 @@ use std::time::Duration;
 pub struct Reactor {
     poll: Poll,
     events: Events,
+    /// A timer for short waits that epoll's whole milliseconds would stretch (made on
+    /// first need, watched under [`TIMER_TOKEN`]), and whether it is armed.
+    timer: Option<OwnedFd>,
+    timer_armed: bool,
 }
+
+/// The token of a reactor's own timer (never handed to callers).
+const TIMER_TOKEN: usize = usize::MAX;
+
+/// Waits shorter than this that are not whole milliseconds end on a timer of the
+/// reactor's own, to the microsecond: epoll counts in whole milliseconds, rounded up,
+/// so a wait of 0.5 ms (a deferred bell) would last 1 ms and more. Longer waits keep
+/// epoll's rounding (at most 1 ms on 5 ms or more) and cost no timer call.
+pub const PRECISE_BELOW: Duration = Duration::from_millis(5);
 
 impl Reactor {
     /// A new, empty reactor.
@@ -21,7 +34,50 @@ impl Reactor {
         Ok(Reactor {
             poll: Poll::new()?,
             events: Events::with_capacity(256),
+            timer: None,
+            timer_armed: false,
         })
+    }
+
+    /// Arms the reactor's timer to fire once after `after` (0: disarms it), making and
+    /// watching it first if need be.
+    fn arm_timer(&mut self, after: Duration) -> io::Result<()> {
+        if self.timer.is_none() {
+            // SAFETY: timerfd_create takes no pointers; a non-negative result is a new
+            // descriptor we own.
+            let fd = unsafe {
+                libc::timerfd_create(
+                    libc::CLOCK_MONOTONIC,
+                    libc::TFD_NONBLOCK | libc::TFD_CLOEXEC,
+                )
+            };
+            if fd < 0 {
+                return Err(io::Error::last_os_error());
+            }
+            // SAFETY: fd was just created and is owned by nothing else.
+            let fd = unsafe { OwnedFd::from_raw_fd(fd) };
+            self.add(fd.as_raw_fd(), TIMER_TOKEN)?;
+            self.timer = Some(fd);
+        }
+        let Some(fd) = &self.timer else {
+            return Ok(());
+        };
+        let spec = libc::itimerspec {
+            it_interval: libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            },
+            it_value: libc::timespec {
+                tv_sec: after.as_secs() as libc::time_t,
+                tv_nsec: after.subsec_nanos() as libc::c_long,
+            },
+        };
+        // SAFETY: a valid itimerspec, no old value asked for, on a timerfd we own.
+        if unsafe { libc::timerfd_settime(fd.as_raw_fd(), 0, &spec, std::ptr::null_mut()) } != 0 {
+            return Err(io::Error::last_os_error());
+        }
+        self.timer_armed = !after.is_zero();
+        Ok(())
     }
 
     /// Watches `fd` for readability under `token`. The fd must outlive its registration.
@@ -45,9 +101,38 @@ impl Reactor {
 
     /// Waits until a watched fd is readable or `timeout` passes; returns the ready tokens.
     /// An interrupted wait returns no tokens.
+    /// A wait shorter than [`PRECISE_BELOW`] ends within microseconds of `timeout`, not
+    /// at epoll's next whole millisecond.
     pub fn wait(&mut self, timeout: Option<Duration>) -> io::Result<Vec<usize>> {
+        let precise = timeout
+            .filter(|t| !t.is_zero() && *t < PRECISE_BELOW && t.subsec_nanos() % 1_000_000 != 0);
+        let timeout = match precise {
+            // The timer ends the wait; epoll's own deadline (rounded up) backs it.
+            Some(t) if self.arm_timer(t).is_ok() => Some(t),
+            _ => {
+                if self.timer_armed {
+                    let _ = self.arm_timer(Duration::ZERO);
+                }
+                timeout
+            }
+        };
         match self.poll.poll(&mut self.events, timeout) {
-            Ok(()) => Ok(self.events.iter().map(|e| e.token().0).collect()),
+            Ok(()) => {
+                let mut tokens = Vec::with_capacity(self.events.iter().count());
+                for e in self.events.iter() {
+                    match e.token().0 {
+                        TIMER_TOKEN => {
+                            // (A timerfd reads as an eventfd does: a count, 8 bytes.)
+                            if let Some(fd) = &self.timer {
+                                drain_eventfd(fd);
+                            }
+                            self.timer_armed = false;
+                        }
+                        t => tokens.push(t),
+                    }
+                }
+                Ok(tokens)
+            }
             Err(e) if e.kind() == io::ErrorKind::Interrupted => Ok(Vec::new()),
             Err(e) => Err(e),
         }
@@ -341,6 +426,65 @@ impl FdGauge {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_short_wait_ends_on_the_reactors_own_timer_which_never_wakes_a_later_wait() {
+        use std::time::Instant;
+        let mut r = Reactor::new().unwrap();
+        let bell = eventfd().unwrap();
+        r.add(bell.as_raw_fd(), 7).unwrap();
+        // Nothing ready: a wait of 0.3 ms lasts at least that, and the timer's own token
+        // is never handed out.
+        for _ in 0..20 {
+            let t = Instant::now();
+            assert_eq!(
+                r.wait(Some(Duration::from_micros(300))).unwrap(),
+                Vec::<usize>::new()
+            );
+            assert!(
+                t.elapsed() >= Duration::from_micros(300),
+                "{:?}",
+                t.elapsed()
+            );
+        }
+        // A ready descriptor still ends a short wait, under its token.
+        ring_eventfd(&bell);
+        assert_eq!(r.wait(Some(Duration::from_micros(300))).unwrap(), vec![7]);
+        drain_eventfd(&bell);
+        // That wait left the timer armed; a longer wait after it is not ended by it.
+        ring_eventfd(&bell);
+        assert_eq!(r.wait(Some(Duration::from_micros(2_500))).unwrap(), vec![7]);
+        drain_eventfd(&bell);
+        let t = Instant::now();
+        assert_eq!(
+            r.wait(Some(Duration::from_millis(30))).unwrap(),
+            Vec::<usize>::new()
+        );
+        assert!(
+            t.elapsed() >= Duration::from_millis(30),
+            "{:?}",
+            t.elapsed()
+        );
+        // Nor is a wait for ever: the bell, rung 20 ms on, is what ends it.
+        ring_eventfd(&bell);
+        assert_eq!(r.wait(Some(Duration::from_micros(700))).unwrap(), vec![7]);
+        drain_eventfd(&bell);
+        let ringer = std::thread::spawn({
+            let bell = bell.try_clone().unwrap();
+            move || {
+                std::thread::sleep(Duration::from_millis(20));
+                ring_eventfd(&bell);
+            }
+        });
+        let t = Instant::now();
+        assert_eq!(r.wait(None).unwrap(), vec![7]);
+        assert!(
+            t.elapsed() >= Duration::from_millis(20),
+            "{:?}",
+            t.elapsed()
+        );
+        ringer.join().unwrap();
+    }
 
     #[test]
     fn the_gauge_counts_descriptors_as_they_open_and_close() {

@@ -184,7 +184,8 @@ impl SystemApp for Synthetic {
         let dt = now.saturating_sub(self.last).as_secs_f64();
         self.last = now;
         // The updates due since the last tick, on the grid of the rate: a rate above
-        // what one wake-up per period gives (the reactor sleeps in whole milliseconds)
+        // what one wake-up per period gives (a wake-up is late by its own cost, and the
+        // reactor rounds sleeps of 5 ms or more to whole milliseconds)
         // is kept by sending the due ones together. A system far behind (stopped, or a
         // session just started) starts again from now.
         let due = if now.saturating_sub(self.next) > MAX_CATCH_UP {

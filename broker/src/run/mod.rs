@@ -190,8 +190,9 @@ type Fed<'a> = &'a mut Option<Federation>;
 const RING_EVERY: Duration = Duration::from_millis(100);
 /// How long after a flush the bells of systems sent offers ring and a change of the
 /// list's counts in use is written: the user told of its grant runs first (a user's
-/// first frame to the system rings it at once anyway). The reactor waits in whole
-/// milliseconds.
+/// first frame to the system rings it at once anyway). The reactor ends so short a
+/// wait on a timer of its own ([`muster_shared::reactor::PRECISE_BELOW`]): epoll's
+/// whole milliseconds made it 1 ms and more.
 const AFTER_WAKING: Duration = Duration::from_micros(500);
 /// How long one flush spends opening ports to peers it has not written to yet (a
 /// welcome to a new user, its first grant): hundreds of µs each, and when hundreds of
