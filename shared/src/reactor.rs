@@ -433,42 +433,29 @@ mod tests {
         let mut r = Reactor::new().unwrap();
         let bell = eventfd().unwrap();
         r.add(bell.as_raw_fd(), 7).unwrap();
-        // Nothing ready: a wait of 0.3 ms lasts at least that, and the timer's own token
-        // is never handed out.
-        for _ in 0..20 {
+        // Nothing ready: a wait lasts at least what it was asked, and the timer's own
+        // token is never handed out.
+        let waits_out = |r: &mut Reactor, d: Duration| {
             let t = Instant::now();
-            assert_eq!(
-                r.wait(Some(Duration::from_micros(300))).unwrap(),
-                Vec::<usize>::new()
-            );
-            assert!(
-                t.elapsed() >= Duration::from_micros(300),
-                "{:?}",
-                t.elapsed()
-            );
+            assert_eq!(r.wait(Some(d)).unwrap(), Vec::<usize>::new());
+            assert!(t.elapsed() >= d, "{:?} of {d:?}", t.elapsed());
+        };
+        // The bell rung: a wait of `d` ends at once, under the bell's token (leaving the
+        // timer armed, for a short one).
+        let cut_short = |r: &mut Reactor, d: Duration| {
+            ring_eventfd(&bell);
+            assert_eq!(r.wait(Some(d)).unwrap(), vec![7]);
+            drain_eventfd(&bell);
+        };
+        for _ in 0..20 {
+            waits_out(&mut r, Duration::from_micros(300));
         }
-        // A ready descriptor still ends a short wait, under its token.
-        ring_eventfd(&bell);
-        assert_eq!(r.wait(Some(Duration::from_micros(300))).unwrap(), vec![7]);
-        drain_eventfd(&bell);
-        // That wait left the timer armed; a longer wait after it is not ended by it.
-        ring_eventfd(&bell);
-        assert_eq!(r.wait(Some(Duration::from_micros(2_500))).unwrap(), vec![7]);
-        drain_eventfd(&bell);
-        let t = Instant::now();
-        assert_eq!(
-            r.wait(Some(Duration::from_millis(30))).unwrap(),
-            Vec::<usize>::new()
-        );
-        assert!(
-            t.elapsed() >= Duration::from_millis(30),
-            "{:?}",
-            t.elapsed()
-        );
+        cut_short(&mut r, Duration::from_micros(300));
+        // A longer wait after one cut short is not ended by the timer left armed.
+        cut_short(&mut r, Duration::from_micros(2_500));
+        waits_out(&mut r, Duration::from_millis(30));
         // Nor is a wait for ever: the bell, rung 20 ms on, is what ends it.
-        ring_eventfd(&bell);
-        assert_eq!(r.wait(Some(Duration::from_micros(700))).unwrap(), vec![7]);
-        drain_eventfd(&bell);
+        cut_short(&mut r, Duration::from_micros(700));
         let ringer = std::thread::spawn({
             let bell = bell.try_clone().unwrap();
             move || {
