@@ -19,8 +19,9 @@ pub struct Reactor {
     timer_armed: bool,
 }
 
-/// The token of a reactor's own timer (never handed to callers).
-const TIMER_TOKEN: usize = usize::MAX;
+/// The token of a reactor's own timer: never handed to callers, and refused to them
+/// ([`Reactor::add`]). Not `usize::MAX`, which callers take for a token of their own.
+pub const TIMER_TOKEN: usize = usize::MAX - 0xfe11;
 
 /// Waits shorter than this that are not whole milliseconds end on a timer of the
 /// reactor's own, to the microsecond: epoll counts in whole milliseconds, rounded up,
@@ -56,7 +57,7 @@ impl Reactor {
             }
             // SAFETY: fd was just created and is owned by nothing else.
             let fd = unsafe { OwnedFd::from_raw_fd(fd) };
-            self.add(fd.as_raw_fd(), TIMER_TOKEN)?;
+            self.add_any(fd.as_raw_fd(), TIMER_TOKEN)?;
             self.timer = Some(fd);
         }
         let Some(fd) = &self.timer else {
@@ -80,8 +81,19 @@ impl Reactor {
         Ok(())
     }
 
-    /// Watches `fd` for readability under `token`. The fd must outlive its registration.
+    /// Watches `fd` for readability under `token` (any but [`TIMER_TOKEN`]). The fd must
+    /// outlive its registration.
     pub fn add(&self, fd: RawFd, token: usize) -> io::Result<()> {
+        if token == TIMER_TOKEN {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!("token {TIMER_TOKEN} is the reactor's own timer's"),
+            ));
+        }
+        self.add_any(fd, token)
+    }
+
+    fn add_any(&self, fd: RawFd, token: usize) -> io::Result<()> {
         self.poll
             .registry()
             .register(&mut SourceFd(&fd), Token(token), Interest::READABLE)
@@ -433,6 +445,18 @@ mod tests {
         let mut r = Reactor::new().unwrap();
         let bell = eventfd().unwrap();
         r.add(bell.as_raw_fd(), 7).unwrap();
+        // The timer's token is refused to a caller; `usize::MAX` (a token some take for
+        // their signals) is theirs, and rung during a short wait it comes back.
+        let e = r.add(bell.as_raw_fd(), TIMER_TOKEN).unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::InvalidInput, "{e}");
+        let signal = eventfd().unwrap();
+        r.add(signal.as_raw_fd(), usize::MAX).unwrap();
+        ring_eventfd(&signal);
+        assert_eq!(
+            r.wait(Some(Duration::from_micros(300))).unwrap(),
+            vec![usize::MAX]
+        );
+        drain_eventfd(&signal);
         // Nothing ready: a wait lasts at least what it was asked, and the timer's own
         // token is never handed out.
         let waits_out = |r: &mut Reactor, d: Duration| {
