@@ -118,30 +118,33 @@ impl Reactor {
     pub fn wait(&mut self, timeout: Option<Duration>) -> io::Result<Vec<usize>> {
         let precise = timeout
             .filter(|t| !t.is_zero() && *t < PRECISE_BELOW && t.subsec_nanos() % 1_000_000 != 0);
-        let timeout = match precise {
+        match precise {
             // The timer ends the wait; epoll's own deadline (rounded up) backs it.
-            Some(t) if self.arm_timer(t).is_ok() => Some(t),
-            _ => {
-                if self.timer_armed {
-                    let _ = self.arm_timer(Duration::ZERO);
-                }
-                timeout
+            Some(t) if self.arm_timer(t).is_ok() => {}
+            // A timer left armed by a wait cut short must not end this one.
+            _ if self.timer_armed => {
+                let _ = self.arm_timer(Duration::ZERO);
             }
-        };
+            _ => {}
+        }
         match self.poll.poll(&mut self.events, timeout) {
             Ok(()) => {
-                let mut tokens = Vec::with_capacity(self.events.iter().count());
-                for e in self.events.iter() {
-                    match e.token().0 {
-                        TIMER_TOKEN => {
-                            // (A timerfd reads as an eventfd does: a count, 8 bytes.)
-                            if let Some(fd) = &self.timer {
-                                drain_eventfd(fd);
-                            }
-                            self.timer_armed = false;
-                        }
-                        t => tokens.push(t),
+                let mut fired = false;
+                let tokens = self
+                    .events
+                    .iter()
+                    .map(|e| e.token().0)
+                    .filter(|&t| {
+                        fired |= t == TIMER_TOKEN;
+                        t != TIMER_TOKEN
+                    })
+                    .collect();
+                if fired {
+                    // (A timerfd reads as an eventfd does: a count, 8 bytes.)
+                    if let Some(fd) = &self.timer {
+                        drain_eventfd(fd);
                     }
+                    self.timer_armed = false;
                 }
                 Ok(tokens)
             }
