@@ -702,7 +702,9 @@ pub struct FederationBenchArgs {
     /// List changes timed between hosts.
     #[arg(long, default_value_t = 100)]
     pub list_changes: usize,
-    /// How long session updates (10 Hz) are timed, per row.
+    /// How long session updates (10 Hz) are timed, per row (16 sessions a row, held
+    /// at once: under load one session's latency is mostly its random turn in its
+    /// system's fan-out).
     #[arg(long, default_value = "10s", value_parser = duration)]
     pub updates_for: Duration,
     /// Users per host (one process each) holding a session on another host for the
