@@ -148,6 +148,13 @@ struct Session {
     user_pid: u32,
 }
 
+impl Session {
+    /// Whether its user is of another host, reached through that host's relay here.
+    fn of_another_host(&self) -> bool {
+        self.user_pid != 0 && self.user.0.contains('@')
+    }
+}
+
 /// How many ended requests a system remembers, to refuse a repeated offer for one.
 pub const SERVED_MEMORY: usize = 4096;
 
@@ -730,22 +737,31 @@ impl SystemCore {
         on: impl Fn(&SessionId, &Session) -> bool,
     ) -> Result<usize, SendError> {
         let (mut sent, mut refused, mut why) = (0, 0, None);
-        for (id, s) in self.sessions.iter_mut().filter(|(id, s)| on(id, s)) {
-            s.seq += 1;
-            let msg = ToUser::Update {
-                session: *id,
-                seq: s.seq,
-                sent_ns,
-                payload: payload.clone(),
-            };
-            if let Some(big) = oversized(&msg, s.user_pid == 0) {
-                refused += 1;
-                why = Some(big);
-                continue;
+        // Users of other hosts first: theirs is the longer way (this host's broker,
+        // Zenoh, theirs), and their relay's reader takes them on while the rest are
+        // written.
+        for far in [true, false] {
+            let mine = self
+                .sessions
+                .iter_mut()
+                .filter(|(id, s)| s.of_another_host() == far && on(id, s));
+            for (id, s) in mine {
+                s.seq += 1;
+                let msg = ToUser::Update {
+                    session: *id,
+                    seq: s.seq,
+                    sent_ns,
+                    payload: payload.clone(),
+                };
+                if let Some(big) = oversized(&msg, s.user_pid == 0) {
+                    refused += 1;
+                    why = Some(big);
+                    continue;
+                }
+                self.out
+                    .push_back(SystemOutput::ToUser(s.user.clone(), msg));
+                sent += 1;
             }
-            self.out
-                .push_back(SystemOutput::ToUser(s.user.clone(), msg));
-            sent += 1;
         }
         self.too_large += refused as u64;
         match why {
@@ -1438,6 +1454,40 @@ mod tests {
             })
             .collect();
         assert_eq!(seqs, vec![(s1, 1), (s1, 2), (s2, 1)]);
+    }
+
+    #[test]
+    fn a_tick_goes_to_the_users_of_other_hosts_first_then_to_this_hosts() {
+        let mut c = SystemCore::new("t1", 7, vec![spec("d", ServiceKind::Data, 10)]);
+        // Local users (a process each, and one over UDP) and users of host a (reached
+        // through a's relay, read by this host's broker, process 3), offered in no
+        // particular order; the session numbers are hashes.
+        let users = [
+            ("u1", 11),
+            ("x@a", 3),
+            ("u2", 12),
+            ("u3", 13),
+            ("udp", 0),
+            ("y@a", 3),
+            ("u4", 14),
+            ("z@a", 3),
+        ];
+        for (t, (u, pid)) in (1..).zip(users) {
+            assert!(answer(&offered_to(&mut c, t, u, pid, "d")).unwrap().is_ok());
+        }
+        let p = Payload::Text("tick".into());
+        assert_eq!(c.publish("d", &p, 8).unwrap(), users.len());
+        let order: Vec<String> = outs(&mut c)
+            .into_iter()
+            .filter_map(|o| match o {
+                SystemOutput::ToUser(u, ToUser::Update { seq: 1, .. }) => Some(u.0),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(order.len(), users.len());
+        let (far, near) = order.split_at(3);
+        assert!(far.iter().all(|u| u.contains('@')), "{order:?}");
+        assert!(near.iter().all(|u| !u.contains('@')), "{order:?}");
     }
 
     #[test]
