@@ -150,8 +150,8 @@ struct Session {
 
 impl Session {
     /// Whether its user is of another host, reached through that host's relay here.
-    fn of_another_host(&self) -> bool {
-        self.user_pid != 0 && self.user.0.contains('@')
+    fn relayed(&self) -> bool {
+        self.user.is_foreign() && self.user_pid != 0
     }
 }
 
@@ -341,7 +341,7 @@ impl SystemCore {
                 session: *id,
                 service: s.service.clone(),
                 user: s.user.clone(),
-                relayed: s.user.is_foreign() && s.user_pid != 0,
+                relayed: s.relayed(),
             })
             .collect()
     }
@@ -744,7 +744,7 @@ impl SystemCore {
             let mine = self
                 .sessions
                 .iter_mut()
-                .filter(|(id, s)| s.of_another_host() == far && on(id, s));
+                .filter(|(id, s)| s.relayed() == far && on(id, s));
             for (id, s) in mine {
                 s.seq += 1;
                 let msg = ToUser::Update {
