@@ -1059,12 +1059,12 @@ impl Ports {
 
     fn try_send(&mut self, to: &Address, frame: &[u8], ring: bool) -> Result<(), TransportError> {
         // A relay's bell rings for the first frame of the writer's burst (its reader
-        // starts on it while the writer goes on), then waits for the burst's end.
+        // starts on it while the writer goes on), again once `every` has passed since
+        // it last rang, and at the burst's end.
         let quiet = self.quiet_relays && matches!(to, Address::Relay(_) | Address::Process(_));
         let every = self.quiet_ring_every;
         let held = quiet && self.pending_bells.contains(to);
         let peer = self.peer(to)?;
-        // Rung for the burst's first frame, then again each time `every` has passed.
         let ring = ring && !(held && peer.rung.is_some_and(|t| t.elapsed() < every));
         let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
             peer: to.clone(),
