@@ -359,6 +359,25 @@ pub fn fd_limit() -> u64 {
     }
 }
 
+/// Whether `n` more descriptors can be opened now (opened and closed again to find out:
+/// a few microseconds; for a failure path, not a loop).
+pub fn descriptors_free(n: usize) -> bool {
+    let mut held = Vec::with_capacity(n);
+    for _ in 0..n {
+        // SAFETY: no pointers; the descriptor, if any, is owned at once.
+        let fd = unsafe { libc::eventfd(0, libc::EFD_CLOEXEC) };
+        if fd < 0 {
+            return !matches!(
+                io::Error::last_os_error().raw_os_error(),
+                Some(libc::EMFILE | libc::ENFILE)
+            );
+        }
+        // SAFETY: a new descriptor nothing else owns.
+        held.push(unsafe { OwnedFd::from_raw_fd(fd) });
+    }
+    true
+}
+
 /// Raises this process's descriptor limit as far as it may (the broker, a system and the
 /// web console hold a few descriptors per peer): with the privilege to (root,
 /// CAP_SYS_RESOURCE), the hard limit too, up to the kernel's `nr_open` (at most 2^20);
@@ -420,6 +439,10 @@ impl FdGauge {
                 let n = match n {
                     // The directory's own descriptor, open while it is read, is not counted.
                     Ok(n) => n.saturating_sub(1),
+                    // Not one descriptor left to count them with: all are open.
+                    Err(e) if matches!(e.raw_os_error(), Some(libc::EMFILE | libc::ENFILE)) => {
+                        fd_limit()
+                    }
                     Err(_) => return,
                 };
                 out.store(n, std::sync::atomic::Ordering::Relaxed);

@@ -60,14 +60,22 @@ pub fn open_envelope(bytes: &[u8]) -> Option<(crate::types::UserId, &[u8])> {
     Some((crate::types::UserId(id.to_string()), frame))
 }
 
-/// Whether the last failed call ran out of descriptors (iceoryx2's errors do not say;
-/// the OS's last error does).
+/// Whether opening a peer's ports just failed for want of descriptors rather than for
+/// the peer: the OS's last error says so, or fewer than [`PEER_PORTS_FDS_PROBE`]
+/// descriptors can be had now. The last error alone is not enough: iceoryx2 closes what
+/// it had opened and may make other calls after the one that failed (seen: a broker at
+/// 599 of 600 descriptors took a user's welcome for undeliverable and dropped it, and
+/// the user waited a minute for a broker).
 fn out_of_descriptors() -> bool {
     matches!(
         std::io::Error::last_os_error().raw_os_error(),
         Some(libc::EMFILE | libc::ENFILE)
-    )
+    ) || !crate::reactor::descriptors_free(PEER_PORTS_FDS_PROBE)
 }
+
+/// Descriptors one peer's ports take (10, measured), with a margin: fewer free than this,
+/// and a failure to open them is the process's, not the peer's.
+const PEER_PORTS_FDS_PROBE: usize = 16;
 
 /// Empties a listener; returns the event ids rung as bits (bit i = id i).
 pub(super) fn drain_ids(listener: &Listener<Ipc>) -> u64 {
@@ -1491,6 +1499,94 @@ mod tests {
         assert!(!sender.has_ports(users[3].me()), "u3 closed for it");
         assert_ne!(users[0].drain_bell() & (1 << bell::LIST_CHANGED), 0, "rung");
         assert!(sender.ports.borrow().held_rings.is_empty());
+    }
+
+    /// Set in the child process that runs
+    /// [`short_of_descriptors_a_control_frame_waits_for_them_and_is_not_dropped`]'s
+    /// body under a descriptor limit of its own.
+    const FD_CHILD: &str = "MUSTER_TEST_FD_LIMIT_CHILD";
+
+    #[test]
+    fn short_of_descriptors_a_control_frame_waits_for_them_and_is_not_dropped() {
+        // Lowering the descriptor limit would starve the tests running beside this one:
+        // the body runs in a child, this test alone, under a limit of its own.
+        if std::env::var_os(FD_CHILD).is_none() {
+            let out = std::process::Command::new(std::env::current_exe().unwrap())
+                .args([
+                    "--exact",
+                    "ipc::endpoint::tests::short_of_descriptors_a_control_frame_waits_for_them_and_is_not_dropped",
+                    "--test-threads=1",
+                    "--nocapture",
+                ])
+                .env(FD_CHILD, "1")
+                .output()
+                .unwrap();
+            let text = String::from_utf8_lossy(&out.stdout);
+            assert!(
+                out.status.success(),
+                "{text}{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            assert!(text.contains("1 passed"), "the child ran the body: {text}");
+            return;
+        }
+        let lim = libc::rlimit {
+            rlim_cur: 256,
+            rlim_max: 256,
+        };
+        // SAFETY: a valid in-pointer; this process runs this test alone.
+        assert_eq!(unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &lim) }, 0);
+        let inst = Instance::new(&format!("fdshort-test-{}", std::process::id())).unwrap();
+        let mut sender = Endpoint::open(
+            &inst,
+            Address::Broker,
+            create_node("fdshort-test-b", false).unwrap(),
+        )
+        .unwrap();
+        let mut users = user_endpoints(&inst, "fdshort-test", 1);
+        // Every descriptor taken but `free`, from none to more than a peer's ports need
+        // (10): iceoryx2 fails at a different step each time, and whatever the OS's last
+        // error then says, the frame is held until descriptors come back, not dropped.
+        for free in 0..PEER_PORTS_FDS_PROBE {
+            let mut hog = Vec::new();
+            while let Ok(fd) = crate::reactor::eventfd() {
+                hog.push(fd);
+            }
+            hog.truncate(hog.len() - free);
+            assert!(crate::reactor::descriptors_free(free));
+            assert!(!crate::reactor::descriptors_free(free + 1));
+            assert!(!crate::reactor::descriptors_free(PEER_PORTS_FDS_PROBE));
+            sender.send_control(users[0].me(), &format!("welcome {free}"));
+            if sender.open_peers() == 1 {
+                // Enough for the ports after all: the frame went.
+                assert!(free >= 5, "{free}");
+                assert_eq!(sender.backlog(), 0);
+            } else {
+                // Short: held, and no more ports open until the owner says how many
+                // may.
+                assert_eq!((sender.backlog(), sender.dropped_sends()), (1, 0), "{free}");
+                sender.sweep();
+                assert_eq!(sender.backlog(), 1, "still short: still held");
+                // Descriptors come back, the owner counts them: the frame goes.
+                hog.clear();
+                sender.set_max_open_peers(usize::MAX);
+                sender.sweep();
+                assert_eq!(sender.backlog(), 0);
+            }
+            hog.clear();
+            let got: Vec<String> = std::iter::from_fn(|| users[0].recv())
+                .map(|f| crate::protocol::decode::<String>(&f).unwrap())
+                .collect();
+            assert_eq!(got, [format!("welcome {free}")]);
+            // Closed again for the next round, which must open them anew.
+            sender.forget(users[0].me());
+        }
+        // And a peer that is not there at all is still told apart: unreachable, dropped,
+        // nothing held.
+        let gone = Address::User(UserId("nobody".into()));
+        sender.send_control(&gone, &"lost");
+        assert_eq!(sender.backlog(), 0);
+        assert_eq!(sender.dropped_sends(), 1);
     }
 
     #[test]
