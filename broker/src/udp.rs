@@ -810,7 +810,7 @@ impl UdpFront {
             .filter(|v| policy.is_some_and(|p| p.allows(&v.id)) && m.matches_view(v));
         let (matching, views) = page_of(visible, offset, limit);
         let matching = u32::try_from(matching).unwrap_or(u32::MAX);
-        for chunk in chunk_list(self.epoch, self.generation, (ask, matching), &views) {
+        for chunk in chunk_list(self.epoch, self.generation, (ask, matching), views) {
             self.send(id, &chunk);
         }
     }

@@ -242,20 +242,20 @@ pub fn chunk_list(
     epoch: u64,
     generation: u64,
     (ask, matching): (u32, u32),
-    views: &[ServiceView],
+    views: Vec<ServiceView>,
 ) -> Vec<Down> {
     // Room for the chunk's own fields and postcard's length prefixes.
     const BUDGET: usize = MAX_PLAINTEXT - 40;
     let mut groups: Vec<Vec<ServiceView>> = vec![Vec::new()];
     let mut used = 0;
     for v in views {
-        let size = postcard::to_stdvec(v).map(|b| b.len()).unwrap_or(BUDGET);
+        let size = postcard::experimental::serialized_size(&v).unwrap_or(BUDGET);
         if used + size > BUDGET && !groups.last().is_some_and(Vec::is_empty) {
             groups.push(Vec::new());
             used = 0;
         }
         used += size;
-        groups.last_mut().expect("never empty").push(v.clone());
+        groups.last_mut().expect("never empty").push(v);
     }
     // A chunk's number is 16 bits: a longer answer is cut there (about half a million
     // services), and `matching` still says how many there are, for pages.
@@ -410,7 +410,7 @@ mod tests {
     #[test]
     fn lists_split_into_datagrams_and_reassemble_in_order() {
         let views: Vec<ServiceView> = (0..256).map(view).collect();
-        let chunks = chunk_list(1, 9, (1, 256), &views);
+        let chunks = chunk_list(1, 9, (1, 256), views.clone());
         assert!(chunks.len() > 10, "256 long entries need many datagrams");
         let mut back = Vec::new();
         for (i, c) in chunks.iter().enumerate() {
@@ -435,7 +435,7 @@ mod tests {
         }
         assert_eq!(back, views);
         assert_eq!(
-            chunk_list(1, 1, (1, 0), &[]).len(),
+            chunk_list(1, 1, (1, 0), Vec::new()).len(),
             1,
             "an empty list is one empty chunk"
         );
