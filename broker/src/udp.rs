@@ -578,7 +578,7 @@ impl UdpFront {
             debug_assert!(bytes.len() * 3 <= len, "a retry never amplifies");
             self.stats.retries += 1;
             self.stats.unvalidated_bytes_out += bytes.len() as u64;
-            return self.send_raw(&bytes, from);
+            return self.send_raw(bytes, from);
         }
         // The address is validated: it received our token.
         let (rate, burst) = self.limits.source_rate;
@@ -596,7 +596,7 @@ impl UdpFront {
             // A retransmitted INITIAL: answer with the same reply.
             if let Some(p) = self.pending.get(id) {
                 let reply = p.reply.clone();
-                return self.send_raw(&reply, from);
+                return self.send_raw(reply, from);
             }
         }
         let src = source_of(&from);
@@ -630,7 +630,7 @@ impl UdpFront {
         .encode() else {
             return;
         };
-        self.send_raw(&reply, from);
+        self.send_raw(reply.clone(), from);
         self.pending_by.insert((from, client), conn);
         self.pending_of.entry(src).or_default().push_back(conn);
         self.pending.insert(
@@ -738,7 +738,7 @@ impl UdpFront {
                 };
                 if let Ok(bytes) = reset.encode() {
                     self.stats.resets_sent += 1;
-                    self.send_raw(&bytes, from);
+                    self.send_raw(bytes, from);
                 }
             }
             return;
@@ -1166,17 +1166,14 @@ impl UdpFront {
             return;
         };
         match seal_channel(&mut c.chan, id, d) {
-            Ok(dg) => self.send_raw(&dg, addr),
+            Ok(dg) => self.send_raw(dg, addr),
             Err(e) => tracing::error!("cannot send to a remote user: {e}"),
         }
     }
 
-    fn send_raw(&mut self, bytes: &[u8], to: SocketAddr) {
+    fn send_raw(&mut self, bytes: Vec<u8>, to: SocketAddr) {
         self.stats.datagrams_out += 1;
-        self.out.push_back(Transmit {
-            to,
-            bytes: bytes.to_vec(),
-        });
+        self.out.push_back(Transmit { to, bytes });
     }
 }
 
