@@ -63,9 +63,9 @@ pub fn open_envelope(bytes: &[u8]) -> Option<(crate::types::UserId, &[u8])> {
 /// Whether opening a peer's ports just failed for want of descriptors rather than for
 /// the peer: the OS's last error says so, or fewer than [`PEER_PORTS_FDS_PROBE`]
 /// descriptors can be had now. The last error alone is not enough: iceoryx2 closes what
-/// it had opened and may make other calls after the one that failed (seen: a broker at
-/// 599 of 600 descriptors took a user's welcome for undeliverable and dropped it, and
-/// the user waited a minute for a broker).
+/// it had opened and may make other calls after the one that failed. (A CI run: a broker
+/// at 599 of 600 descriptors never sent a user its welcome, and the user waited a minute
+/// for a broker; with the last error lost on purpose, welcomes were dropped just so.)
 fn out_of_descriptors() -> bool {
     matches!(
         std::io::Error::last_os_error().raw_os_error(),
