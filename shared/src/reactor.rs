@@ -359,6 +359,11 @@ pub fn fd_limit() -> u64 {
     }
 }
 
+/// Whether `e` says the process (EMFILE) or the system (ENFILE) has no descriptor left.
+pub fn is_out_of_descriptors(e: &io::Error) -> bool {
+    matches!(e.raw_os_error(), Some(libc::EMFILE | libc::ENFILE))
+}
+
 /// Whether `n` more descriptors can be opened now (opened and closed again to find out:
 /// a few microseconds; for a failure path, not a loop).
 pub fn descriptors_free(n: usize) -> bool {
@@ -367,10 +372,7 @@ pub fn descriptors_free(n: usize) -> bool {
         // SAFETY: no pointers; the descriptor, if any, is owned at once.
         let fd = unsafe { libc::eventfd(0, libc::EFD_CLOEXEC) };
         if fd < 0 {
-            return !matches!(
-                io::Error::last_os_error().raw_os_error(),
-                Some(libc::EMFILE | libc::ENFILE)
-            );
+            return !is_out_of_descriptors(&io::Error::last_os_error());
         }
         // SAFETY: a new descriptor nothing else owns.
         held.push(unsafe { OwnedFd::from_raw_fd(fd) });
@@ -440,9 +442,7 @@ impl FdGauge {
                     // The directory's own descriptor, open while it is read, is not counted.
                     Ok(n) => n.saturating_sub(1),
                     // Not one descriptor left to count them with: all are open.
-                    Err(e) if matches!(e.raw_os_error(), Some(libc::EMFILE | libc::ENFILE)) => {
-                        fd_limit()
-                    }
+                    Err(e) if is_out_of_descriptors(&e) => fd_limit(),
                     Err(_) => return,
                 };
                 out.store(n, std::sync::atomic::Ordering::Relaxed);

@@ -67,10 +67,8 @@ pub fn open_envelope(bytes: &[u8]) -> Option<(crate::types::UserId, &[u8])> {
 /// at 599 of 600 descriptors never sent a user its welcome, and the user waited a minute
 /// for a broker; with the last error lost on purpose, welcomes were dropped just so.)
 fn out_of_descriptors() -> bool {
-    matches!(
-        std::io::Error::last_os_error().raw_os_error(),
-        Some(libc::EMFILE | libc::ENFILE)
-    ) || !crate::reactor::descriptors_free(PEER_PORTS_FDS_PROBE)
+    crate::reactor::is_out_of_descriptors(&std::io::Error::last_os_error())
+        || !crate::reactor::descriptors_free(PEER_PORTS_FDS_PROBE)
 }
 
 /// Descriptors one peer's ports take (10, measured), with a margin: fewer free than this,
