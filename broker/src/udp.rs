@@ -35,7 +35,7 @@ use muster_shared::udp::wire::{Datagram, WireError};
 use muster_shared::udp::{DropCounters, PathProbe, Transmit};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -196,8 +196,6 @@ struct Conn {
     /// An operator's latest actions: `None` while the core works on one, then its
     /// answer in pieces, sent again whole if the action comes again.
     ops: BTreeMap<u64, Option<Vec<Down>>>,
-    /// An operator that has acted: the event feed's records are sent to it.
-    follows: bool,
 }
 
 /// What the front hands the core (through the broker shell, `run/`).
@@ -258,6 +256,10 @@ pub struct UdpFront {
     retry_bucket: Bucket,
     reset_budget: Bucket,
     views: Vec<ServiceView>,
+    /// Connections of operators that have acted: the event feed's records go to them
+    /// (a set, so that a record does not look through every connection: it is made
+    /// for every grant and end, hundreds a second at 900 users).
+    following: BTreeSet<u64>,
     epoch: u64,
     generation: u64,
     stats: UdpStats,
@@ -314,6 +316,7 @@ impl UdpFront {
             retry_bucket,
             reset_budget: Bucket::new(now, RESETS_PER_SEC),
             views: Vec::new(),
+            following: BTreeSet::new(),
             epoch,
             generation: 0,
             stats: UdpStats::default(),
@@ -700,7 +703,6 @@ impl UdpFront {
                 keys: HashMap::new(),
                 probe: PathProbe::default(),
                 ops: BTreeMap::new(),
-                follows: false,
             },
         );
     }
@@ -810,8 +812,19 @@ impl UdpFront {
             .filter(|v| policy.is_some_and(|p| p.allows(&v.id)) && m.matches_view(v));
         let (matching, views) = page_of(visible, offset, limit);
         let matching = u32::try_from(matching).unwrap_or(u32::MAX);
+        // The chunks borrow the views: sealed here, field by field, not through
+        // `send` (which borrows the whole front).
+        let Some(c) = self.conns.get_mut(&id) else {
+            return;
+        };
         for chunk in chunk_list(self.epoch, self.generation, (ask, matching), views) {
-            self.send(id, &chunk);
+            match seal_channel(&mut c.chan, id, &chunk) {
+                Ok(bytes) => {
+                    self.stats.datagrams_out += 1;
+                    self.out.push_back(Transmit { to: c.addr, bytes });
+                }
+                Err(e) => tracing::error!("cannot send a list to a remote user: {e}"),
+            }
         }
     }
 
@@ -913,7 +926,7 @@ impl UdpFront {
                     while c.ops.len() > KEPT_OPS {
                         c.ops.pop_first();
                     }
-                    c.follows = true;
+                    self.following.insert(id);
                     self.events.push_back(FrontEvent::ToCore(ToBroker::Operate {
                         user,
                         id: op,
@@ -1081,15 +1094,22 @@ impl UdpFront {
     /// A record of the broker's event feed (its JSON): sent to every operator that has
     /// acted, if it fits a datagram.
     pub fn feed(&mut self, json: &str) {
+        if self.following.is_empty() {
+            return;
+        }
         // Operators now: one the access file no longer calls so (SIGHUP) gets no more.
+        let conns = &self.conns;
+        self.following.retain(|id| conns.contains_key(id));
         let access = &self.access;
         let ids: Vec<u64> = self
-            .conns
+            .following
             .iter()
-            .filter(|(_, c)| {
-                c.follows && c.user.is_some() && access.get(&c.name).is_some_and(|p| p.operator)
+            .copied()
+            .filter(|id| {
+                conns.get(id).is_some_and(|c| {
+                    c.user.is_some() && access.get(&c.name).is_some_and(|p| p.operator)
+                })
             })
-            .map(|(id, _)| *id)
             .collect();
         // Room for the variant's tag and the length prefix.
         if ids.is_empty() || json.len() > muster_shared::udp::wire::MAX_PLAINTEXT - 8 {
@@ -1171,6 +1191,7 @@ impl UdpFront {
         }
     }
 
+    /// Queues a datagram (as [`UdpFront::send_list`] does by hand).
     fn send_raw(&mut self, bytes: Vec<u8>, to: SocketAddr) {
         self.stats.datagrams_out += 1;
         self.out.push_back(Transmit { to, bytes });

@@ -209,28 +209,24 @@ impl ServiceListSnapshot {
     /// The entries `filter` lets through, from the `offset`th of them, at most `limit`.
     pub fn page(&self, filter: &ListFilter, offset: usize, limit: usize) -> ListPage {
         let m = filter.matcher();
-        let (matching, entries) =
-            page_of(self.entries.iter().filter(|e| m.matches(e)), offset, limit);
+        let (matching, page) = page_of(self.entries.iter().filter(|e| m.matches(e)), offset, limit);
         ListPage {
             generation: self.generation,
             epoch: self.epoch,
             matching,
-            entries,
+            entries: page.into_iter().copied().collect(),
         }
     }
 }
 
-/// Of `items`, how many there are, and the ones from the `offset`th, at most `limit`.
-pub fn page_of<'a, T: Clone + 'a>(
-    items: impl Iterator<Item = &'a T>,
-    offset: usize,
-    limit: usize,
-) -> (usize, Vec<T>) {
+/// Of `items`, how many there are, and the ones from the `offset`th, at most `limit`
+/// (references stay references: nothing is cloned here).
+pub fn page_of<T>(items: impl Iterator<Item = T>, offset: usize, limit: usize) -> (usize, Vec<T>) {
     let mut page = Vec::new();
     let mut n = 0;
     for item in items {
         if n >= offset && page.len() < limit {
-            page.push(item.clone());
+            page.push(item);
         }
         n += 1;
     }

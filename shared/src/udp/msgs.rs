@@ -237,16 +237,56 @@ pub fn seal_session<T: Serialize>(
     .map_err(|e| MsgError::Malformed(e.to_string()))
 }
 
+/// [`Down::ListChunk`] over borrowed entries, as [`chunk_list`] makes them: encodes to
+/// the same bytes (the variant's index, then its fields in order), so a list answer
+/// serializes the broker's own views instead of copies of them.
+#[derive(Debug, PartialEq)]
+pub struct ListChunkRef<'a> {
+    /// Broker run.
+    pub epoch: u64,
+    /// List generation.
+    pub generation: u64,
+    /// Index of this chunk, from 0.
+    pub index: u16,
+    /// Number of chunks.
+    pub total: u16,
+    /// The ask this answers.
+    pub ask: u32,
+    /// How many services the asked filter lets through.
+    pub matching: u32,
+    /// The services in it.
+    pub entries: Vec<&'a ServiceView>,
+}
+
+/// [`Down::ListChunk`]'s place among `Down`'s variants (its serialized tag); a test
+/// holds it to the enum.
+const LIST_CHUNK_VARIANT: u32 = 3;
+
+impl Serialize for ListChunkRef<'_> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeStructVariant;
+        let mut v = s.serialize_struct_variant("Down", LIST_CHUNK_VARIANT, "ListChunk", 7)?;
+        v.serialize_field("epoch", &self.epoch)?;
+        v.serialize_field("generation", &self.generation)?;
+        v.serialize_field("index", &self.index)?;
+        v.serialize_field("total", &self.total)?;
+        v.serialize_field("ask", &self.ask)?;
+        v.serialize_field("matching", &self.matching)?;
+        v.serialize_field("entries", &self.entries)?;
+        v.end()
+    }
+}
+
 /// Splits a list into `ListChunk`s that each fit one datagram.
-pub fn chunk_list(
+pub fn chunk_list<'a>(
     epoch: u64,
     generation: u64,
     (ask, matching): (u32, u32),
-    views: Vec<ServiceView>,
-) -> Vec<Down> {
+    views: Vec<&'a ServiceView>,
+) -> Vec<ListChunkRef<'a>> {
     // Room for the chunk's own fields and postcard's length prefixes.
     const BUDGET: usize = MAX_PLAINTEXT - 40;
-    let mut groups: Vec<Vec<ServiceView>> = vec![Vec::new()];
+    let mut groups: Vec<Vec<&ServiceView>> = vec![Vec::new()];
     let mut used = 0;
     for v in views {
         let size = postcard::experimental::serialized_size(&v).unwrap_or(BUDGET);
@@ -264,7 +304,7 @@ pub fn chunk_list(
     groups
         .into_iter()
         .enumerate()
-        .map(|(i, entries)| Down::ListChunk {
+        .map(|(i, entries)| ListChunkRef {
             epoch,
             generation,
             index: i as u16,
@@ -410,7 +450,7 @@ mod tests {
     #[test]
     fn lists_split_into_datagrams_and_reassemble_in_order() {
         let views: Vec<ServiceView> = (0..256).map(view).collect();
-        let chunks = chunk_list(1, 9, (1, 256), views.clone());
+        let chunks = chunk_list(1, 9, (1, 256), views.iter().collect());
         assert!(chunks.len() > 10, "256 long entries need many datagrams");
         let mut back = Vec::new();
         for (i, c) in chunks.iter().enumerate() {
@@ -434,6 +474,18 @@ mod tests {
             }
         }
         assert_eq!(back, views);
+        // The borrowed chunk is the owned one, byte for byte.
+        let c = &chunks[1];
+        let owned = Down::ListChunk {
+            epoch: c.epoch,
+            generation: c.generation,
+            index: c.index,
+            total: c.total,
+            ask: c.ask,
+            matching: c.matching,
+            entries: c.entries.iter().map(|v| (*v).clone()).collect(),
+        };
+        assert_eq!(to_bytes(c).unwrap(), to_bytes(&owned).unwrap());
         assert_eq!(
             chunk_list(1, 1, (1, 0), Vec::new()).len(),
             1,
