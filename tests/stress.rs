@@ -360,6 +360,35 @@ fn users_run_several_to_a_process_each_its_own_connection_and_report() {
         // Each user its own connection: the broker said hello to every one.
         let hellos = r["broker"]["handling"]["hello"]["count"].as_u64().unwrap();
         assert!(hellos >= users as u64, "{hellos} hellos for {users} users");
+        // A granted request hop by hop: a remote user's grant goes out before the
+        // broker writes its system the offer, a local user's after.
+        let hops: Vec<&str> = r["per_hop"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|h| h["hop"].as_str().unwrap())
+            .collect();
+        let expected: &[&str] = if remote {
+            &[
+                "user → broker",
+                "broker (handling, queue, the grant sent)",
+                "broker → user",
+            ]
+        } else {
+            &[
+                "user → broker",
+                "broker (handling, queue, the offer sent)",
+                "broker (the grant sent)",
+                "broker → user",
+            ]
+        };
+        assert_eq!(hops, expected);
+        let stamped = r["per_hop_whole"]["count"].as_u64().unwrap();
+        assert!(
+            stamped > 0,
+            "no granted request came with its stamps in order: {r:#}"
+        );
+        assert_eq!(r["per_hop"][0]["latency"]["count"].as_u64(), Some(stamped));
     }
 }
 

@@ -431,21 +431,44 @@ fn run_idle(inst: &Instance, a: &StressArgs, mut setup: Setup) -> anyhow::Result
     })
 }
 
-/// A granted request's path to its user, and the hop between each two stamps: the
-/// broker sends the offer to the system, then the grant to the user.
-const GRANT_PATH: [Stage; 5] = [
-    Stage::UserSend,
-    Stage::BrokerRecv,
-    Stage::BrokerSend,
-    Stage::BrokerRelay,
-    Stage::UserRecv,
-];
-const GRANT_HOPS: [&str; 4] = [
-    "user → broker",
-    "broker (handling, queue, the offer sent)",
-    "broker (the grant sent)",
-    "broker → user",
-];
+/// A granted request's path to its user: its stamps in order, and the hop between
+/// each two.
+struct GrantPath {
+    stages: &'static [Stage],
+    hops: &'static [&'static str],
+}
+
+/// A local user's: the broker sends the offer to the system, then the grant to the user.
+const LOCAL_GRANT: GrantPath = GrantPath {
+    stages: &[
+        Stage::UserSend,
+        Stage::BrokerRecv,
+        Stage::BrokerSend,
+        Stage::BrokerRelay,
+        Stage::UserRecv,
+    ],
+    hops: &[
+        "user → broker",
+        "broker (handling, queue, the offer sent)",
+        "broker (the grant sent)",
+        "broker → user",
+    ],
+};
+
+/// A remote user's: the broker sends the grant's datagrams first, the offer after them.
+const REMOTE_GRANT: GrantPath = GrantPath {
+    stages: &[
+        Stage::UserSend,
+        Stage::BrokerRecv,
+        Stage::BrokerRelay,
+        Stage::UserRecv,
+    ],
+    hops: &[
+        "user → broker",
+        "broker (handling, queue, the grant sent)",
+        "broker → user",
+    ],
+};
 
 /// The system's side, off the user's path: it opens the session and confirms it.
 const CONFIRM_PATH: [Stage; 4] = [
@@ -462,7 +485,7 @@ const CONFIRM_HOPS: [&str; 3] = [
 
 /// Per-hop latency (µs) of granted requests whose stamps all came.
 struct PerHop {
-    /// The hops of [`GRANT_PATH`].
+    /// The hops of the [`GrantPath`] asked for.
     grant: Vec<Histogram<u64>>,
     /// The hops of [`CONFIRM_PATH`].
     confirm: Vec<Histogram<u64>>,
@@ -527,12 +550,12 @@ fn print_hops(
 
 /// Per hop, of the requests whose user sent them at a time (CLOCK_MONOTONIC ns) that
 /// `sent_at` keeps.
-fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
+fn per_hop(paths: &Stamps, grant: &GrantPath, sent_at: impl Fn(u64) -> bool) -> PerHop {
     let at = |stamps: &[Option<u64>; Stage::ALL.len()], s: &Stage| {
         stamps[Stage::ALL.iter().position(|x| x == s).unwrap_or(0)]
     };
     let mut out = PerHop {
-        grant: GRANT_HOPS.iter().map(|_| histogram()).collect(),
+        grant: grant.hops.iter().map(|_| histogram()).collect(),
         confirm: CONFIRM_HOPS.iter().map(|_| histogram()).collect(),
         whole: histogram(),
         session_open: histogram(),
@@ -572,7 +595,7 @@ fn per_hop(paths: &Stamps, sent_at: impl Fn(u64) -> bool) -> PerHop {
                 let _ = h.record(us(w[0], w[1]));
             }
         }
-        let Some(t) = path(stamps, &GRANT_PATH) else {
+        let Some(t) = path(stamps, grant.stages) else {
             continue;
         };
         for (h, w) in out.grant.iter_mut().zip(t.windows(2)) {
@@ -756,10 +779,15 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
 
     // Aggregate.
     let stamps = read_stamps(&trace_dir);
-    let hops = per_hop(&stamps, |_| true);
+    let grant = if a.remote {
+        &REMOTE_GRANT
+    } else {
+        &LOCAL_GRANT
+    };
+    let hops = per_hop(&stamps, grant, |_| true);
     // The start-up storm's: requests sent in the first 10 s.
     let early_end = (start_ms + 10_000) * 1_000_000;
-    let early_hops = per_hop(&stamps, |ns| ns < early_end);
+    let early_hops = per_hop(&stamps, grant, |ns| ns < early_end);
     let (mut list, mut request, mut update) = (histogram(), histogram(), histogram());
     let mut termination = histogram();
     let mut timeline = Timeline::default();
@@ -835,7 +863,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
     // The leaving storm's requests, hop by hop: where they waited.
     let leaving_hops = timeline.leaving_from().map(|from| {
         let from_ns = (start_ms + from * 1000) * 1_000_000;
-        per_hop(&stamps, |ns| ns >= from_ns)
+        per_hop(&stamps, grant, |ns| ns >= from_ns)
     });
     drop(stamps);
     let _ = std::fs::remove_dir_all(&trace_dir);
@@ -863,16 +891,16 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
             "termination": termination.value_at_quantile(0.5) as f64 / floor_base_p50,
         },
         "broker": broker,
-        "per_hop": hops_json(&GRANT_HOPS, &hops.grant),
+        "per_hop": hops_json(grant.hops, &hops.grant),
         "per_hop_confirm": hops_json(&CONFIRM_HOPS, &hops.confirm),
         "per_hop_whole": summary(&hops.whole),
         "request_to_session_open": summary(&hops.session_open),
         "request_to_first_update": summary(&hops.first_update),
         "request_to_first_update_p50_over_floor_p50": hops.first_update.value_at_quantile(0.5) as f64
             / if a.remote { &floor_udp } else { &floor }.value_at_quantile(0.5).max(1) as f64,
-        "per_hop_first_10s": hops_json(&GRANT_HOPS, &early_hops.grant),
+        "per_hop_first_10s": hops_json(grant.hops, &early_hops.grant),
         "per_hop_whole_first_10s": summary(&early_hops.whole),
-        "per_hop_leaving": leaving_hops.as_ref().map_or(Value::Null, |h| hops_json(&GRANT_HOPS, &h.grant).into()),
+        "per_hop_leaving": leaving_hops.as_ref().map_or(Value::Null, |h| hops_json(grant.hops, &h.grant).into()),
     });
     report["grant_to_first_update"] = summary(&hops.grant_to_first_update);
     report["request_to_first_update_queued"] = summary(&hops.first_update_queued);
@@ -951,7 +979,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         println!("{}", line("service request, after 10 s", &late));
         println!("{}", line("service request, users leaving", &leaving));
         println!("\nper hop of a granted request (stamps at each process, CLOCK_MONOTONIC):");
-        print_hops("to the user", &GRANT_HOPS, &hops.grant, line);
+        print_hops("to the user", grant.hops, &hops.grant, line);
         println!("{}", line("  whole path (stamped)", &hops.whole));
         println!(
             "{}",
@@ -985,7 +1013,7 @@ pub fn run(inst: &Instance, a: StressArgs) -> anyhow::Result<ExitCode> {
         );
         // A part of the run's requests, hop by hop and whole.
         let print_part = |title: &str, h: &PerHop| {
-            if print_hops(title, &GRANT_HOPS, &h.grant, line) {
+            if print_hops(title, grant.hops, &h.grant, line) {
                 println!("{}", line("    whole path (stamped)", &h.whole));
             }
         };
@@ -1052,7 +1080,7 @@ mod tests {
         let mut queued = granted(3_000, 40_000).to_vec();
         queued.push((Stage::UserQueued, 3_080));
         request(&mut paths, "c", 1, &queued);
-        let h = per_hop(&paths, |_| true);
+        let h = per_hop(&paths, &LOCAL_GRANT, |_| true);
         assert_eq!(h.first_update.len(), 2);
         assert_eq!(h.first_update.max(), 135);
         assert_eq!(h.first_update_queued.len(), 1);
@@ -1063,5 +1091,34 @@ mod tests {
         // What the first update adds to the grant counts every request.
         assert_eq!(h.grant_to_first_update.len(), 3);
         assert_eq!(h.grant_to_first_update.max(), 5);
+    }
+
+    #[test]
+    fn a_remote_users_grant_goes_before_its_offer_and_is_counted_hop_by_hop() {
+        let mut paths = Stamps::new();
+        // The grant's datagram at 90 µs, the offer written after it at 110.
+        let remote = [
+            (Stage::UserSend, 0),
+            (Stage::BrokerRecv, 40),
+            (Stage::BrokerRelay, 90),
+            (Stage::BrokerSend, 110),
+            (Stage::SystemRecv, 400),
+            (Stage::SystemSend, 420),
+            (Stage::BrokerAnswer, 500),
+            (Stage::UserRecv, 150),
+            (Stage::FirstUpdate, 160),
+        ];
+        request(&mut paths, "r", 1, &remote);
+        let h = per_hop(&paths, &REMOTE_GRANT, |_| true);
+        let p50s: Vec<u64> = h.grant.iter().map(|x| x.value_at_quantile(0.5)).collect();
+        assert_eq!(p50s, [40, 50, 60]);
+        assert_eq!((h.whole.len(), h.whole.max()), (1, 150));
+        assert_eq!(h.first_update.max(), 160);
+        // The offer's path to the system is counted from when it was sent.
+        assert_eq!(h.confirm[0].max(), 290);
+        // Taken for a local path (offer first), its stamps are out of order: not counted.
+        let local = per_hop(&paths, &LOCAL_GRANT, |_| true);
+        assert_eq!(local.whole.len(), 0);
+        assert_eq!(local.first_update.len(), 1);
     }
 }

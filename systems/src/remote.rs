@@ -17,6 +17,7 @@ use crate::core::{SystemCore, SystemOutput};
 use muster_shared::protocol::{RemoteContact, ToSystem, ToUser};
 use muster_shared::types::{EndReason, SessionId, UserId};
 use muster_shared::udp::crypto::{SessionCipher, Side};
+use muster_shared::udp::early::Early;
 use muster_shared::udp::msgs::{from_bytes, seal_session, SessionDown, SessionUp};
 use muster_shared::udp::wire::{Datagram, MAX_DATAGRAM};
 use muster_shared::udp::{
@@ -70,6 +71,11 @@ pub struct RemoteSessions {
     next_housekeeping: Option<Instant>,
     offers: HashMap<(UserId, u64), RemoteContact>,
     sessions: HashMap<u64, Remote>,
+    /// Datagrams of sessions not offered yet: the broker sends a remote user its grant
+    /// before it writes us the offer (the grant is on the user's path, the offer is not),
+    /// so a user's first keepalive or input may come first. Replayed, in order, when the
+    /// session opens.
+    early: Early,
     stats: RemoteStats,
 }
 
@@ -140,6 +146,10 @@ impl RemoteSessions {
                             Some(_) => {}
                             None => {
                                 self.sessions.insert(session.0, fresh());
+                                // Its early datagrams, at the next turn of the loop.
+                                if self.early.holds(session.0) {
+                                    self.next_housekeeping = Some(now);
+                                }
                             }
                         }
                     }
@@ -185,6 +195,26 @@ impl RemoteSessions {
     /// One datagram from `from` at `now`: its messages go to `core`.
     pub fn handle(&mut self, now: Instant, from: SocketAddr, bytes: &[u8], core: &mut SystemCore) {
         self.stats.datagrams_in += 1;
+        self.on_datagram(now, from, bytes, core);
+    }
+
+    /// Hands the core the early datagrams of sessions now open, in the order they came.
+    fn replay_early(&mut self, now: Instant, session: Option<u64>, core: &mut SystemCore) {
+        if self.early.is_empty() {
+            return;
+        }
+        let open: Vec<u64> = match session {
+            Some(s) => vec![s],
+            None => self.sessions.keys().copied().collect(),
+        };
+        for s in open {
+            for (bytes, from) in self.early.take(now, s) {
+                self.on_datagram(now, from, &bytes, core);
+            }
+        }
+    }
+
+    fn on_datagram(&mut self, now: Instant, from: SocketAddr, bytes: &[u8], core: &mut SystemCore) {
         let (session, nonce, sealed) = match Datagram::decode(bytes) {
             Ok(Datagram::Session {
                 session,
@@ -194,8 +224,18 @@ impl RemoteSessions {
             Ok(_) => return self.stats.drops.drop("unexpected_kind", &from),
             Err(_) => return self.stats.drops.drop("malformed", &from),
         };
+        if !self.sessions.contains_key(&session) {
+            if self.early.keep(now, bytes.to_vec(), from) {
+                self.stats.drops.drop("unknown_session", &from);
+            }
+            return;
+        }
+        // What came before it, first.
+        if self.early.holds(session) {
+            self.replay_early(now, Some(session), core);
+        }
         let Some(r) = self.sessions.get_mut(&session) else {
-            return self.stats.drops.drop("unknown_session", &from);
+            return;
         };
         let Ok(plain) = r.cipher.open(session, nonce, sealed) else {
             return self.stats.drops.drop("forged_or_replayed", &from);
@@ -276,6 +316,7 @@ impl RemoteSessions {
         if self.poll_timeout().is_none_or(|t| now < t) {
             return;
         }
+        self.replay_early(now, None, core);
         self.next_housekeeping = Some(now + HOUSEKEEPING);
         let silent: Vec<u64> = self
             .sessions
@@ -408,6 +449,23 @@ mod tests {
         }
     }
 
+    /// System t1 with one service, s0, and its remote endpoint.
+    fn system(kind: ServiceKind, payload: &str) -> (SystemCore, RemoteSessions) {
+        let spec = ServiceSpec {
+            name: "s0".into(),
+            description: String::new(),
+            kind,
+            queue: false,
+            quota: 5,
+            payload: payload.into(),
+            schema: None,
+        };
+        (
+            SystemCore::new("t1", 1, vec![spec]),
+            RemoteSessions::default(),
+        )
+    }
+
     /// A keepalive from the user under cipher `c`: whether the endpoint answers it.
     fn alive(
         core: &mut SystemCore,
@@ -424,17 +482,7 @@ mod tests {
 
     #[test]
     fn a_repeated_offer_with_a_new_key_moves_the_session_to_it() {
-        let spec = ServiceSpec {
-            name: "s0".into(),
-            description: String::new(),
-            kind: ServiceKind::Data,
-            queue: false,
-            quota: 5,
-            payload: "pose2d".into(),
-            schema: None,
-        };
-        let mut core = SystemCore::new("t1", 1, vec![spec]);
-        let mut r = RemoteSessions::default();
+        let (mut core, mut r) = system(ServiceKind::Data, "pose2d");
         let now = Instant::now();
         let mut k1 = SessionCipher::new(&[1; 32], Side::User);
         let mut k2 = SessionCipher::new(&[2; 32], Side::User);
@@ -459,5 +507,84 @@ mod tests {
             !alive(&mut core, &mut r, now, &mut replay),
             "nonce 0 again is a replay"
         );
+    }
+
+    #[test]
+    fn a_users_datagrams_that_come_before_the_offer_are_kept_and_taken_in_order() {
+        let (mut core, mut r) = system(ServiceKind::Command, "scalar");
+        let now = Instant::now();
+        let user = UserId("alice.x".into());
+        let id = SessionId::for_request(&ServiceId::new("t1", "s0"), &user, 1);
+        let from: SocketAddr = "10.0.2.1:5000".parse().unwrap();
+        // The user heard of its grant first: a keepalive and two inputs, before the
+        // broker wrote us the offer.
+        let mut c = SessionCipher::new(&[1; 32], Side::User);
+        let input = |x: f64| {
+            SessionUp::Msg(ToSystem::Input {
+                user: user.clone(),
+                session: id,
+                payload: muster_shared::types::Payload::Scalar(x),
+            })
+        };
+        for m in [SessionUp::Keepalive, input(1.0), input(2.0)] {
+            let d = seal_session(&mut c, id.0, &m).unwrap();
+            r.handle(now, from, &d, &mut core);
+        }
+        assert_eq!(r.poll_transmit(), None, "nothing to answer yet");
+        assert_eq!(r.stats().drops.total(), 0, "kept, not dropped");
+        // A third input after the offer: the early ones go first.
+        offer(&mut core, &mut r, now, 1, 1);
+        assert_eq!(
+            r.poll_timeout(),
+            Some(now),
+            "the early ones are due at once"
+        );
+        let d = seal_session(&mut c, id.0, &input(3.0)).unwrap();
+        r.handle(now, from, &d, &mut core);
+        let inputs: Vec<f64> = std::iter::from_fn(|| core.poll_event())
+            .filter_map(|e| match e {
+                crate::core::SystemEvent::Input {
+                    payload: muster_shared::types::Payload::Scalar(x),
+                    ..
+                } => Some(x),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(inputs, [1.0, 2.0, 3.0]);
+        // The keepalive was answered.
+        assert_eq!(std::iter::from_fn(|| r.poll_transmit()).count(), 1);
+        assert_eq!(r.stats().drops.total(), 0);
+        // Nothing left to replay: a later housekeeping hands the core nothing again.
+        r.handle_timeout(now, &mut core);
+        assert!(std::iter::from_fn(|| core.poll_event())
+            .all(|e| !matches!(e, crate::core::SystemEvent::Input { .. })));
+    }
+
+    #[test]
+    fn early_datagrams_with_no_more_coming_are_taken_at_the_next_turn() {
+        let (mut core, mut r) = system(ServiceKind::Data, "pose2d");
+        let now = Instant::now();
+        let id = SessionId::for_request(&ServiceId::new("t1", "s0"), &UserId("alice.x".into()), 1);
+        let from: SocketAddr = "10.0.2.1:5000".parse().unwrap();
+        let mut c = SessionCipher::new(&[1; 32], Side::User);
+        let d = seal_session(&mut c, id.0, &SessionUp::Keepalive).unwrap();
+        r.handle(now, from, &d, &mut core);
+        // A session of someone else's, never offered: it only expires.
+        let mut other = SessionCipher::new(&[9; 32], Side::User);
+        let junk = seal_session(&mut other, 77, &SessionUp::Keepalive).unwrap();
+        r.handle(now, from, &junk, &mut core);
+        offer(&mut core, &mut r, now, 1, 1);
+        r.handle_timeout(now, &mut core);
+        assert_eq!(
+            std::iter::from_fn(|| r.poll_transmit()).count(),
+            1,
+            "the keepalive is answered"
+        );
+        assert_eq!(
+            r.early.len(),
+            1,
+            "the other session's stays until it expires"
+        );
+        assert!(r.stats().drops.total() == 0);
     }
 }

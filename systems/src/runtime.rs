@@ -385,8 +385,9 @@ pub fn run_system_with<A: SystemApp>(
             core.handle(msg)
         }
         // A remote user's first datagram of a session comes after its grant, which the
-        // broker sent after the offer read above: the session is open (its key known)
-        // once the offer's outputs are routed.
+        // broker sent just before it wrote the offer: the offers read above open their
+        // sessions (their keys known) once their outputs are routed, and a datagram
+        // that came before its offer is kept until then (`RemoteSessions`).
         if udp_readable && shell.remote.is_some() {
             shell.flush(&mut core);
             if let Some(r) = shell.remote.as_mut() {

@@ -16,6 +16,7 @@ use muster_shared::protocol::{EventRecord, ToBroker, ToSystem, ToUser};
 use muster_shared::snapshot::{ListFilter, ServiceListSnapshot, ServiceView};
 use muster_shared::types::{SessionId, UserId};
 use muster_shared::udp::crypto::{self, Channel, HandshakeState, SessionCipher, Side};
+use muster_shared::udp::early::Early;
 use muster_shared::udp::msgs::{
     from_bytes, seal_channel, seal_session, to_bytes, Down, Hs3, OperatedAssembly, SessionDown,
     SessionUp, Up,
@@ -179,7 +180,7 @@ pub struct RemoteConn {
     born: Instant,
     /// Session datagrams that arrived before their grant (the system streams as soon as
     /// it grants; the grant comes through the broker): replayed when the grant arrives.
-    early: Vec<(Instant, Vec<u8>, SocketAddr)>,
+    early: Early,
     /// Sessions ended lately, oldest first.
     retired: HashSet<u64>,
     retired_order: VecDeque<u64>,
@@ -197,11 +198,8 @@ struct Operation {
 /// none.
 const OPERATE_PATIENCE: Duration = Duration::from_secs(20);
 
-/// Most early session datagrams kept, and for how long.
-const EARLY_MAX: usize = 64;
 /// Most ended session ids remembered (a duplicate grant can lag by a few round trips).
 const RETIRED_MAX: usize = 4096;
-const EARLY_AGE: Duration = Duration::from_secs(2);
 
 impl RemoteConn {
     /// A connection for `opts` (its `faults` are the driver's business) that starts its
@@ -232,7 +230,7 @@ impl RemoteConn {
             generation: 0,
             stats: LinkStats::default(),
             ever_connected: false,
-            early: Vec::new(),
+            early: Early::default(),
             retired: HashSet::new(),
             retired_order: VecDeque::new(),
             srtt: None,
@@ -889,15 +887,7 @@ impl RemoteConn {
                     system_pid: 0,
                     relayed: true,
                 });
-                let early = std::mem::take(&mut self.early);
-                let (mine, rest): (Vec<_>, Vec<_>) = early
-                    .into_iter()
-                    .filter(|(t, _, _)| now.duration_since(*t) < EARLY_AGE)
-                    .partition(|(_, b, _)| {
-                        matches!(Datagram::decode(b), Ok(Datagram::Session { session: s, .. }) if s == session.0)
-                    });
-                self.early = rest;
-                for (_, b, f) in mine {
+                for (b, f) in self.early.take(now, session.0) {
                     self.handle(now, f, &b, core);
                 }
             }
@@ -1026,32 +1016,11 @@ impl RemoteConn {
         }
     }
 
-    /// Keeps a session datagram that came before its grant. It cannot be authenticated
-    /// yet, so junk may fill the buffer: old entries expire, and when it is full the
-    /// source holding the most entries loses its oldest (if it holds more than `from`
-    /// would), so junk from a few addresses cannot push out a system's stream.
+    /// Keeps a session datagram that came before its grant ([`Early::keep`]).
     fn keep_early(&mut self, now: Instant, bytes: Vec<u8>, from: SocketAddr) {
-        self.early
-            .retain(|(t, _, _)| now.saturating_duration_since(*t) < EARLY_AGE);
-        if self.early.len() >= EARLY_MAX {
-            let mut by_source: HashMap<SocketAddr, usize> = HashMap::new();
-            for (_, _, f) in &self.early {
-                *by_source.entry(*f).or_default() += 1;
-            }
-            let mine = by_source.get(&from).copied().unwrap_or(0);
-            let top = by_source
-                .into_iter()
-                .filter(|(_, n)| *n > mine + 1)
-                .max_by_key(|(a, n)| (*n, *a));
-            let Some((victim, _)) = top else {
-                return self.stats.drops.count("unknown_session");
-            };
-            if let Some(i) = self.early.iter().position(|(_, _, f)| *f == victim) {
-                self.early.remove(i);
-            }
+        if self.early.keep(now, bytes, from) {
             self.stats.drops.count("unknown_session");
         }
-        self.early.push((now, bytes, from));
     }
 
     /// Forgets a session; its id stays retired, so a late duplicate grant of it never

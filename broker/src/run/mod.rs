@@ -909,6 +909,15 @@ impl PeerQueue {
     }
 }
 
+/// Whether `out` is the grant that offer `offer` goes with.
+fn grant_of(offer: &Output, out: &Output) -> bool {
+    matches!(
+        (offer, out),
+        (Output::ToSystem(_, ToSystem::Offer { user, req, .. }), Output::Granted(g))
+            if g.user == *user && g.req == *req
+    )
+}
+
 /// The peer an output is for (sent to, watched or forgotten), if any: its outputs keep
 /// their order.
 fn output_peer(out: &Output) -> Option<Address> {
@@ -1068,6 +1077,44 @@ impl Shell {
         }
     }
 
+    /// Sends an output the UDP front did not take: through the federation, or to a
+    /// local peer (held while its ports wait to open).
+    fn pass_on(&mut self, core: &mut Broker, out: Output, dead: &mut Vec<Address>) {
+        let out = match self.fed.as_mut() {
+            Some(f) => {
+                // A grant of a latched service to a user of another host: its update
+                // 0 follows the grant to that host.
+                let zero = match &out {
+                    Output::Granted(g) if g.user.is_foreign() => self
+                        .latched
+                        .update_zero(g)
+                        .map(|z| (g.user.clone(), g.session, z)),
+                    _ => None,
+                };
+                match f.route(core, out) {
+                    Some(o) => o,
+                    None => {
+                        if let Some((user, session, z)) = zero {
+                            f.follow_grant(&user, session, z);
+                        }
+                        return;
+                    }
+                }
+            }
+            None => out,
+        };
+        // Behind what waits for its peer, or waiting itself for ports to open.
+        match output_peer(&out) {
+            Some(p)
+                if self.unopened.holds(&p)
+                    || (opens_ports(&out) && !self.endpoint.has_ports(&p)) =>
+            {
+                self.unopened.push(p, out)
+            }
+            _ => self.send_output(out, dead),
+        }
+    }
+
     fn flush_outputs(
         &mut self,
         core: &mut Broker,
@@ -1082,7 +1129,19 @@ impl Shell {
             self.write_list(core);
         }
         self.deliver_federation(core);
+        // A remote user's offer, held until its grant's datagrams are sent: the grant is
+        // on the user's path, the offer is not (writing it takes 10-20 µs), and the
+        // system keeps a user datagram that comes before its offer
+        // (`muster_systems::remote`). Anything else that comes between goes after it.
+        let mut offer_after: Option<Output> = None;
         while let Some(mut out) = core.poll_output() {
+            if let Some(o) = offer_after.take() {
+                if grant_of(&o, &out) {
+                    offer_after = Some(o);
+                } else {
+                    self.pass_on(core, o, dead);
+                }
+            }
             // An operator's status gets the shell's own figures.
             if let Output::ToUser(
                 _,
@@ -1095,7 +1154,7 @@ impl Shell {
                 status.handling = self.handling.figures();
                 fit_status(status);
             }
-            let out = match self.udp.as_mut() {
+            let routed = match self.udp.as_mut() {
                 Some(d) => {
                     // A remote user's grant of a latched service: its update 0 follows
                     // the grant's datagram through the front.
@@ -1106,52 +1165,38 @@ impl Shell {
                             .map(|z| Output::ToUser(g.user.clone(), z)),
                         _ => None,
                     };
-                    match d.front.route(core, out) {
-                        Some(o) => o,
-                        None => {
-                            if let Some(z) = zero {
-                                let _ = d.front.route(core, z);
-                            }
-                            d.transmit();
-                            continue;
+                    let routed = d.front.route(core, out);
+                    if routed.is_none() {
+                        if let Some(z) = zero {
+                            let _ = d.front.route(core, z);
                         }
+                        d.transmit();
+                    }
+                    routed
+                }
+                None => Some(out),
+            };
+            match routed {
+                // Given the remote user's contact by the front.
+                Some(
+                    o @ Output::ToSystem(
+                        _,
+                        ToSystem::Offer {
+                            remote: Some(_), ..
+                        },
+                    ),
+                ) => offer_after = Some(o),
+                Some(o) => self.pass_on(core, o, dead),
+                // Sent by the front: the offer held for it (if this was its grant) now.
+                None => {
+                    if let Some(o) = offer_after.take() {
+                        self.pass_on(core, o, dead);
                     }
                 }
-                None => out,
-            };
-            let out = match self.fed.as_mut() {
-                Some(f) => {
-                    // A grant of a latched service to a user of another host: its update
-                    // 0 follows the grant to that host.
-                    let zero = match &out {
-                        Output::Granted(g) if g.user.is_foreign() => self
-                            .latched
-                            .update_zero(g)
-                            .map(|z| (g.user.clone(), g.session, z)),
-                        _ => None,
-                    };
-                    match f.route(core, out) {
-                        Some(o) => o,
-                        None => {
-                            if let Some((user, session, z)) = zero {
-                                f.follow_grant(&user, session, z);
-                            }
-                            continue;
-                        }
-                    }
-                }
-                None => out,
-            };
-            // Behind what waits for its peer, or waiting itself for ports to open.
-            match output_peer(&out) {
-                Some(p)
-                    if self.unopened.holds(&p)
-                        || (opens_ports(&out) && !self.endpoint.has_ports(&p)) =>
-                {
-                    self.unopened.push(p, out)
-                }
-                _ => self.send_output(out, dead),
             }
+        }
+        if let Some(o) = offer_after.take() {
+            self.pass_on(core, o, dead);
         }
         // Peers met for the first time, within the budget; the rest on the next pass.
         let opening = Instant::now();

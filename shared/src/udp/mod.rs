@@ -4,6 +4,7 @@
 
 pub mod access;
 pub mod crypto;
+pub mod early;
 pub mod msgs;
 pub mod wire;
 
