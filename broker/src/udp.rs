@@ -819,10 +819,7 @@ impl UdpFront {
         };
         for chunk in chunk_list(self.epoch, self.generation, (ask, matching), views) {
             match seal_channel(&mut c.chan, id, &chunk) {
-                Ok(bytes) => {
-                    self.stats.datagrams_out += 1;
-                    self.out.push_back(Transmit { to: c.addr, bytes });
-                }
+                Ok(bytes) => queue(&mut self.out, &mut self.stats, c.addr, bytes),
                 Err(e) => tracing::error!("cannot send a list to a remote user: {e}"),
             }
         }
@@ -1191,11 +1188,16 @@ impl UdpFront {
         }
     }
 
-    /// Queues a datagram (as [`UdpFront::send_list`] does by hand).
     fn send_raw(&mut self, bytes: Vec<u8>, to: SocketAddr) {
-        self.stats.datagrams_out += 1;
-        self.out.push_back(Transmit { to, bytes });
+        queue(&mut self.out, &mut self.stats, to, bytes);
     }
+}
+
+/// Queues a datagram for [`UdpFront::poll_transmit`], counted (a function of the two
+/// fields, for callers that hold a borrow of another).
+fn queue(out: &mut VecDeque<Transmit>, stats: &mut UdpStats, to: SocketAddr, bytes: Vec<u8>) {
+    stats.datagrams_out += 1;
+    out.push_back(Transmit { to, bytes });
 }
 
 impl Conn {
