@@ -424,7 +424,11 @@ fn under_a_low_descriptor_limit_the_broker_closes_idle_users_ports_and_serves_mo
     let r = sixty_users_under_600_descriptors("stressfd", true);
     let d = &r["broker"]["descriptors"];
     let most = d["most_open"].as_u64().unwrap();
-    assert!(most > 100 && most < 600, "{d}");
+    // Many held, at most the limit: the gauge counts the limit itself when it finds no
+    // descriptor free to count with (EMFILE), which the broker rides out by holding
+    // frames (`short_of_descriptors_a_control_frame_waits_for_them_and_is_not_dropped`).
+    // Until 232a428 the gauge stopped there and kept its last count, below 600.
+    assert!(most > 100 && most <= 600, "{d}");
     assert!(d["idle_ports_closed"].as_u64().unwrap() > 0, "{d}");
 }
 
