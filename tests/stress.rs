@@ -423,12 +423,17 @@ fn under_a_low_descriptor_limit_the_broker_closes_idle_users_ports_and_serves_mo
     // others until some close: all connect, every request is answered, nothing is lost.
     let r = sixty_users_under_600_descriptors("stressfd", true);
     let d = &r["broker"]["descriptors"];
+    // Many held, and counted below the limit; a count that finds no descriptor free
+    // (the broker at its limit: frames to users whose ports it closed wait, and so
+    // does a new user's welcome, which the user waits for) is counted apart. In 14
+    // runs on 2026-12-01: 0 to 25 of 230–280 counts; never for most of the run.
     let most = d["most_open"].as_u64().unwrap();
-    // Many held, at most the limit: the gauge counts the limit itself when it finds no
-    // descriptor free to count with (EMFILE), which the broker rides out by holding
-    // frames (`short_of_descriptors_a_control_frame_waits_for_them_and_is_not_dropped`).
-    // Until 232a428 the gauge stopped there and kept its last count, below 600.
-    assert!(most > 100 && most <= 600, "{d}");
+    assert!(most > 100 && most < 600, "{d}");
+    let (counts, at_limit) = (
+        d["counts"].as_u64().unwrap(),
+        d["at_limit"].as_u64().unwrap(),
+    );
+    assert!(counts > 0 && at_limit * 2 < counts, "{d}");
     assert!(d["idle_ports_closed"].as_u64().unwrap() > 0, "{d}");
 }
 

@@ -421,8 +421,34 @@ pub fn raise_fd_limit() -> io::Result<u64> {
 /// This process's open file descriptors, counted every `every` by a thread of its own
 /// (reading `/proc/self/fd`, which takes milliseconds at tens of thousands: off the
 /// event loop). The count is `None` until first taken, and stays `None` if it cannot be.
+///
+/// A count that finds no descriptor free to count with (`EMFILE`) reads as the limit
+/// ([`FdGauge::open`], for a caller sizing what it holds), but is kept apart in its
+/// [`FdGauge::seen`]: the most actually counted, and how many counts found none free.
 pub struct FdGauge {
-    open: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    shared: std::sync::Arc<GaugeShared>,
+}
+
+#[derive(Default)]
+struct GaugeShared {
+    /// The last count, `u64::MAX` before the first.
+    open: std::sync::atomic::AtomicU64,
+    /// The most descriptors counted (counts at the limit aside).
+    most: std::sync::atomic::AtomicU64,
+    /// Counts taken, and those that found every descriptor open.
+    counts: std::sync::atomic::AtomicU64,
+    at_limit: std::sync::atomic::AtomicU64,
+}
+
+/// What an [`FdGauge`] saw since it started.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct FdSeen {
+    /// The most descriptors open at a count that could count them.
+    pub most_counted: u64,
+    /// Counts taken.
+    pub counts: u64,
+    /// Counts that found no descriptor free (`EMFILE`): the process was at its limit.
+    pub at_limit: u64,
 }
 
 impl FdGauge {
@@ -430,8 +456,12 @@ impl FdGauge {
     /// whichever is longer (at most 1 % of a core: a count of 19,000 takes about 20–30
     /// ms); the thread ends with the process.
     pub fn start(every: Duration) -> io::Result<FdGauge> {
-        let open = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(u64::MAX));
-        let out = open.clone();
+        use std::sync::atomic::Ordering::Relaxed;
+        let shared = std::sync::Arc::new(GaugeShared {
+            open: std::sync::atomic::AtomicU64::new(u64::MAX),
+            ..GaugeShared::default()
+        });
+        let out = shared.clone();
         std::thread::Builder::new()
             .name("fd-gauge".into())
             .spawn(move || loop {
@@ -440,22 +470,40 @@ impl FdGauge {
                 let took = started.elapsed();
                 let n = match n {
                     // The directory's own descriptor, open while it is read, is not counted.
-                    Ok(n) => n.saturating_sub(1),
+                    Ok(n) => {
+                        let n = n.saturating_sub(1);
+                        out.most.fetch_max(n, Relaxed);
+                        n
+                    }
                     // Not one descriptor left to count them with: all are open.
-                    Err(e) if is_out_of_descriptors(&e) => fd_limit(),
+                    Err(e) if is_out_of_descriptors(&e) => {
+                        out.at_limit.fetch_add(1, Relaxed);
+                        fd_limit()
+                    }
                     Err(_) => return,
                 };
-                out.store(n, std::sync::atomic::Ordering::Relaxed);
+                out.counts.fetch_add(1, Relaxed);
+                out.open.store(n, Relaxed);
                 std::thread::sleep(every.max(took.saturating_mul(100)));
             })?;
-        Ok(FdGauge { open })
+        Ok(FdGauge { shared })
     }
 
-    /// Descriptors open at the last count.
+    /// Descriptors open at the last count (the limit if it found none free).
     pub fn open(&self) -> Option<u64> {
-        match self.open.load(std::sync::atomic::Ordering::Relaxed) {
+        match self.shared.open.load(std::sync::atomic::Ordering::Relaxed) {
             u64::MAX => None,
             n => Some(n),
+        }
+    }
+
+    /// What the counts saw so far.
+    pub fn seen(&self) -> FdSeen {
+        use std::sync::atomic::Ordering::Relaxed;
+        FdSeen {
+            most_counted: self.shared.most.load(Relaxed),
+            counts: self.shared.counts.load(Relaxed),
+            at_limit: self.shared.at_limit.load(Relaxed),
         }
     }
 }
@@ -544,6 +592,11 @@ mod tests {
         wait_for(&|n| n >= before + 150);
         drop(files);
         wait_for(&|n| n < before + 100);
+        // The most it counted holds the 200, and none of its counts found the limit.
+        let seen = gauge.seen();
+        assert!(seen.most_counted >= before + 150, "{seen:?}");
+        assert!(seen.counts >= 3, "{seen:?}");
+        assert_eq!(seen.at_limit, 0, "{seen:?}");
     }
 
     #[test]

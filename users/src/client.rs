@@ -28,6 +28,17 @@ pub enum UserError {
     /// No broker answered before the deadline; start one with `muster broker`.
     #[error("no broker on instance {0:?} (start one with `muster broker --instance {0}`)")]
     NoBroker(String),
+    /// A broker reads the instance's inbox but did not welcome this user before the
+    /// longer deadline ([`BUSY_BROKER_WAIT`]): it is stopped or overloaded.
+    #[error("the broker of instance {inst:?} (pid {pid}) is running but did not welcome this user within {waited:?}")]
+    BrokerBusy {
+        /// The instance.
+        inst: String,
+        /// The broker's process.
+        pid: u32,
+        /// How long this user waited.
+        waited: Duration,
+    },
     /// The service id is not in the list.
     #[error("unknown service {0:?} (see `muster user list`)")]
     UnknownService(String),
@@ -150,10 +161,17 @@ pub struct UserClient {
     list_wait: Duration,
 }
 
+/// How long, at least, a local user waits for its welcome from a broker that is running
+/// (it reads the instance's inbox) but has not answered within
+/// [`ConnectOptions::wait_for_broker`]: short of descriptors a broker holds a new user's
+/// welcome until some of its idle users' ports close.
+pub const BUSY_BROKER_WAIT: Duration = Duration::from_secs(30);
+
 /// How to connect.
 #[derive(Clone, Debug)]
 pub struct ConnectOptions {
-    /// How long to wait for a broker before giving up.
+    /// How long to wait for a broker before giving up (a running broker that has not
+    /// welcomed yet: at least [`BUSY_BROKER_WAIT`]).
     pub wait_for_broker: Duration,
     /// Turn SIGINT/SIGTERM into [`UserError::Interrupted`] (for command-line programs).
     pub handle_signals: bool,
@@ -305,7 +323,9 @@ impl UserClient {
     ) -> Result<Self, UserError> {
         self.core.hello();
         self.flush();
-        let deadline = Instant::now() + opts.wait_for_broker;
+        let started = Instant::now();
+        let mut deadline = started + opts.wait_for_broker;
+        let mut busy = None;
         // What comes before the welcome (a list bell, say) is kept aside and handed
         // to the caller after it, in order. Put back into `events` at once, `wait`
         // would hand the same event back at once, for ever (seen: a user spinning at
@@ -314,9 +334,35 @@ impl UserClient {
         while self.core.connected().is_none() {
             match self.wait(deadline)? {
                 Wake::Timeout => {
-                    // Nobody to say goodbye to.
-                    self.closed = true;
-                    return Err(no_broker());
+                    // A broker that reads its inbox has the hello: it is there but has
+                    // not welcomed yet (short of descriptors, it holds the welcome until
+                    // some close; or it is stopped and a standby may take over). Such a
+                    // broker is waited for longer, as a busy server's accept would be.
+                    let longer = started + opts.wait_for_broker.max(BUSY_BROKER_WAIT);
+                    match (busy, self.broker_pid()) {
+                        (None, Some(pid)) if Instant::now() < longer => {
+                            tracing::info!(
+                                pid,
+                                "the broker is running but has not welcomed this user yet; waiting"
+                            );
+                            busy = Some(pid);
+                            deadline = longer;
+                            continue;
+                        }
+                        (Some(pid), _) => {
+                            self.closed = true;
+                            return Err(UserError::BrokerBusy {
+                                inst: self.instance_name(),
+                                pid,
+                                waited: started.elapsed(),
+                            });
+                        }
+                        // Nobody to say goodbye to.
+                        _ => {
+                            self.closed = true;
+                            return Err(no_broker());
+                        }
+                    }
                 }
                 Wake::Event(UserEvent::Connected { .. }) => {}
                 Wake::Event(other) => before.push(other),
@@ -327,6 +373,21 @@ impl UserClient {
             self.events.push_front(e);
         }
         Ok(self)
+    }
+
+    /// The pid of the broker reading the instance's inbox (local users only).
+    fn broker_pid(&mut self) -> Option<u32> {
+        match &mut self.transport {
+            Transport::Local(l) => l.endpoint.owner_pid(&Address::Broker),
+            Transport::Remote(_) => None,
+        }
+    }
+
+    fn instance_name(&self) -> String {
+        match &self.transport {
+            Transport::Local(l) => l.inst.to_string(),
+            Transport::Remote(_) => String::new(),
+        }
     }
 
     /// Counters of the UDP link (remote users only).

@@ -112,8 +112,14 @@ pub struct BrokerReport {
 pub struct Descriptors {
     /// Its limit (the soft one).
     pub limit: u64,
-    /// The most open at any count (every [`OPEN_PEERS_EVERY`] and more).
+    /// The most open at any count (every [`OPEN_PEERS_EVERY`] and more) that found a
+    /// descriptor free to count with.
     pub most_open: u64,
+    /// Counts taken.
+    pub counts: u64,
+    /// Counts that found every descriptor open: the broker at its limit (frames to
+    /// peers whose ports it closed wait until some close).
+    pub at_limit: u64,
     /// Held peers whose idle ports were closed ([`max_open_peers`]).
     pub idle_ports_closed: u64,
 }
@@ -609,10 +615,6 @@ fn serve(
         .map_err(|e| tracing::warn!("descriptors not counted (ports to idle users stay open): {e}"))
         .ok();
     let mut fds_seen = None;
-    let mut descriptors = Descriptors {
-        limit: fd_limit,
-        ..Descriptors::default()
-    };
     // Logs what the loop was doing if it makes no progress for a second outside its wait.
     let watchdog = crate::watchdog::Watchdog::start(STALL)
         .map_err(|e| tracing::warn!("no loop watchdog: {e}"))
@@ -629,7 +631,6 @@ fn serve(
             // descriptors stands until then.
             if fds_seen != Some(open) {
                 fds_seen = Some(open);
-                descriptors.most_open = descriptors.most_open.max(open);
                 let peers = shell.endpoint.open_peers();
                 let most = max_open_peers(fd_limit, open, peers);
                 tracing::trace!(
@@ -753,9 +754,15 @@ fn serve(
                             handling: shell.handling,
                             udp: shell.udp.as_ref().map(|d| d.front.stats().clone()),
                             federation: shell.fed.as_ref().map(|f| f.stats()),
-                            descriptors: Descriptors {
-                                idle_ports_closed: shell.endpoint.evictions(),
-                                ..descriptors
+                            descriptors: {
+                                let seen = fd_gauge.as_ref().map(|g| g.seen()).unwrap_or_default();
+                                Descriptors {
+                                    limit: fd_limit,
+                                    most_open: seen.most_counted,
+                                    counts: seen.counts,
+                                    at_limit: seen.at_limit,
+                                    idle_ports_closed: shell.endpoint.evictions(),
+                                }
                             },
                         });
                     }
