@@ -441,7 +441,7 @@ struct GaugeShared {
 }
 
 /// What an [`FdGauge`] saw since it started.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, Default)]
 pub struct FdSeen {
     /// The most descriptors open at a count that could count them.
     pub most_counted: u64,

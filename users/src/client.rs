@@ -349,7 +349,9 @@ impl UserClient {
                             deadline = longer;
                             continue;
                         }
-                        (Some(pid), _) => {
+                        // Waited for as long as a running broker is: it is there, but
+                        // has not answered.
+                        (Some(pid), _) | (None, Some(pid)) => {
                             self.closed = true;
                             return Err(UserError::BrokerBusy {
                                 inst: self.instance_name(),
@@ -358,7 +360,7 @@ impl UserClient {
                             });
                         }
                         // Nobody to say goodbye to.
-                        _ => {
+                        (None, None) => {
                             self.closed = true;
                             return Err(no_broker());
                         }
