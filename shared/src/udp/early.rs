@@ -21,7 +21,18 @@ pub const EARLY_AGE: Duration = Duration::from_secs(2);
 /// The early datagrams of an endpoint, oldest first.
 #[derive(Debug, Default)]
 pub struct Early {
-    held: Vec<(Instant, Vec<u8>, SocketAddr)>,
+    held: Vec<Held>,
+}
+
+/// One early datagram: when it came, its bytes, its sender, and its session (read from
+/// its header once, as it is kept: [`Early::holds`] is asked for every datagram of an
+/// open session while any is held).
+#[derive(Debug)]
+struct Held {
+    at: Instant,
+    bytes: Vec<u8>,
+    from: SocketAddr,
+    session: Option<u64>,
 }
 
 impl Early {
@@ -32,12 +43,12 @@ impl Early {
     /// dropped for room (this one or another).
     pub fn keep(&mut self, now: Instant, bytes: Vec<u8>, from: SocketAddr) -> bool {
         self.held
-            .retain(|(t, _, _)| now.saturating_duration_since(*t) < EARLY_AGE);
+            .retain(|h| now.saturating_duration_since(h.at) < EARLY_AGE);
         let mut dropped = false;
         if self.held.len() >= EARLY_MAX {
             let mut by_source: HashMap<SocketAddr, usize> = HashMap::new();
-            for (_, _, f) in &self.held {
-                *by_source.entry(*f).or_default() += 1;
+            for h in &self.held {
+                *by_source.entry(h.from).or_default() += 1;
             }
             let mine = by_source.get(&from).copied().unwrap_or(0);
             let top = by_source
@@ -47,12 +58,18 @@ impl Early {
             let Some((victim, _)) = top else {
                 return true;
             };
-            if let Some(i) = self.held.iter().position(|(_, _, f)| *f == victim) {
+            if let Some(i) = self.held.iter().position(|h| h.from == victim) {
                 self.held.remove(i);
             }
             dropped = true;
         }
-        self.held.push((now, bytes, from));
+        let session = session_of(&bytes);
+        self.held.push(Held {
+            at: now,
+            bytes,
+            from,
+            session,
+        });
         dropped
     }
 
@@ -61,17 +78,15 @@ impl Early {
     pub fn take(&mut self, now: Instant, session: u64) -> Vec<(Vec<u8>, SocketAddr)> {
         let (mine, rest): (Vec<_>, Vec<_>) = std::mem::take(&mut self.held)
             .into_iter()
-            .filter(|(t, _, _)| now.saturating_duration_since(*t) < EARLY_AGE)
-            .partition(|(_, b, _)| session_of(b) == Some(session));
+            .filter(|h| now.saturating_duration_since(h.at) < EARLY_AGE)
+            .partition(|h| h.session == Some(session));
         self.held = rest;
-        mine.into_iter().map(|(_, b, f)| (b, f)).collect()
+        mine.into_iter().map(|h| (h.bytes, h.from)).collect()
     }
 
     /// Whether a datagram of session `session` is held.
     pub fn holds(&self, session: u64) -> bool {
-        self.held
-            .iter()
-            .any(|(_, b, _)| session_of(b) == Some(session))
+        self.held.iter().any(|h| h.session == Some(session))
     }
 
     /// How many are held.
