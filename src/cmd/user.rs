@@ -89,14 +89,23 @@ pub fn run(inst: &Instance, a: UserArgs) -> anyhow::Result<ExitCode> {
     }
 }
 
-/// Ends a user whose thread has nothing left to do: the thread yields
-/// ([`muster_shared::reactor::yield_for_exit`]) before the goodbye, so the goodbye and
-/// the teardown run when nothing else would (hundreds of users leaving together
-/// otherwise take the cores from the broker and from the users still asking it).
-pub fn leave(client: UserClient) {
+/// Ends a user whose thread has nothing left to do: it says goodbye, removes its shared
+/// memory in its turn ([`muster_shared::ipc::TeardownTurn`]: one process at a time,
+/// the others asleep, so a broker removing files of its own waits for one removal at
+/// most), and then yields ([`muster_shared::reactor::yield_for_exit`]): the rest of
+/// its exit runs when nothing else would (hundreds of users leaving together otherwise
+/// take the cores from the broker and from the users still asking it).
+pub fn leave(mut client: UserClient) {
+    client.goodbye();
+    let turn = muster_shared::ipc::TeardownTurn::wait(TEARDOWN_PATIENCE);
+    drop(client);
+    drop(turn);
     muster_shared::reactor::yield_for_exit();
-    client.close();
 }
+
+/// How long a leaving user waits for its turn to remove its shared memory before it
+/// goes on without it (one process's removal takes a few ms).
+const TEARDOWN_PATIENCE: Duration = Duration::from_secs(2);
 
 /// `--count N`: N users of `idle` or `behave`, a thread and a connection each.
 fn run_many(inst: &Instance, a: UserArgs, opts: ConnectOptions) -> anyhow::Result<ExitCode> {

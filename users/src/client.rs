@@ -897,6 +897,16 @@ impl UserClient {
         self.closed = true;
     }
 
+    /// Ends everything and says goodbye, keeping the client (its ports and shared
+    /// memory) until it is dropped: for a process that removes its files at a time of
+    /// its choosing (`muster user` waits for a [`muster_shared::ipc::TeardownTurn`]).
+    pub fn goodbye(&mut self) {
+        if !self.closed {
+            self.shutdown();
+            self.closed = true;
+        }
+    }
+
     fn shutdown(&mut self) {
         self.core.shutdown();
         self.flush();

@@ -241,6 +241,7 @@ mod list;
 mod presence;
 mod process_inbox;
 mod replica;
+mod turn;
 mod viz;
 
 pub use self::cleanup::*;
@@ -250,6 +251,7 @@ pub use self::list::*;
 pub use self::presence::*;
 pub use self::process_inbox::*;
 pub use self::replica::*;
+pub use self::turn::*;
 pub use self::viz::*;
 
 #[cfg(test)]
