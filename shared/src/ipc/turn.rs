@@ -14,7 +14,7 @@ use std::os::fd::AsRawFd;
 /// This machine's one turn to remove shared memory, held until dropped: an exclusive
 /// `flock` on the iceoryx2 root directory (no file of its own to leave behind).
 pub struct TeardownTurn {
-    _held: Option<std::fs::File>,
+    dir: Option<std::fs::File>,
 }
 
 impl TeardownTurn {
@@ -45,16 +45,16 @@ impl TeardownTurn {
                 }
             });
         if spawned.is_err() {
-            return TeardownTurn { _held: None };
+            return TeardownTurn { dir: None };
         }
         TeardownTurn {
-            _held: rx.recv_timeout(patience).ok().flatten(),
+            dir: rx.recv_timeout(patience).ok().flatten(),
         }
     }
 
     /// Whether the turn is held (not gone on without it).
     pub fn held(&self) -> bool {
-        self._held.is_some()
+        self.dir.is_some()
     }
 }
 
