@@ -339,22 +339,22 @@ impl UserClient {
                     // some close; or it is stopped and a standby may take over). Such a
                     // broker is waited for longer, as a busy server's accept would be.
                     let longer = started + opts.wait_for_broker.max(BUSY_BROKER_WAIT);
-                    match (busy, self.broker_pid()) {
-                        (None, Some(pid)) if Instant::now() < longer => {
+                    match (busy.take(), self.running_broker()) {
+                        (None, Some((inst, pid))) if Instant::now() < longer => {
                             tracing::info!(
                                 pid,
                                 "the broker is running but has not welcomed this user yet; waiting"
                             );
-                            busy = Some(pid);
+                            busy = Some((inst, pid));
                             deadline = longer;
                             continue;
                         }
                         // Waited for as long as a running broker is: it is there, but
                         // has not answered.
-                        (Some(pid), _) | (None, Some(pid)) => {
+                        (Some((inst, pid)), _) | (None, Some((inst, pid))) => {
                             self.closed = true;
                             return Err(UserError::BrokerBusy {
-                                inst: self.instance_name(),
+                                inst,
                                 pid,
                                 waited: started.elapsed(),
                             });
@@ -377,18 +377,15 @@ impl UserClient {
         Ok(self)
     }
 
-    /// The pid of the broker reading the instance's inbox (local users only).
-    fn broker_pid(&mut self) -> Option<u32> {
+    /// The instance and pid of the broker reading the instance's inbox (local users
+    /// only).
+    fn running_broker(&mut self) -> Option<(String, u32)> {
         match &mut self.transport {
-            Transport::Local(l) => l.endpoint.owner_pid(&Address::Broker),
+            Transport::Local(l) => {
+                let pid = l.endpoint.owner_pid(&Address::Broker)?;
+                Some((l.inst.to_string(), pid))
+            }
             Transport::Remote(_) => None,
-        }
-    }
-
-    fn instance_name(&self) -> String {
-        match &self.transport {
-            Transport::Local(l) => l.inst.to_string(),
-            Transport::Remote(_) => String::new(),
         }
     }
 
@@ -893,8 +890,7 @@ impl UserClient {
 
     /// Ends everything and says goodbye (dropping the client does the same).
     pub fn close(mut self) {
-        self.shutdown();
-        self.closed = true;
+        self.goodbye();
     }
 
     /// Ends everything and says goodbye, keeping the client (its ports and shared
@@ -1047,8 +1043,6 @@ impl Local {
 
 impl Drop for UserClient {
     fn drop(&mut self) {
-        if !self.closed {
-            self.shutdown();
-        }
+        self.goodbye();
     }
 }
