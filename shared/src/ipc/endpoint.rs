@@ -3,9 +3,12 @@
 
 #[allow(unused_imports)]
 use super::*;
+use iceoryx2::port::{DegradationAction, DegradationCause};
 use std::cell::RefCell;
 use std::collections::HashSet;
 use std::rc::Rc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 
 /// The error of a frame of `len` bytes over the `limit` of the path to `to`.
 fn too_large(to: &Address, len: usize, limit: usize) -> TransportError {
@@ -96,6 +99,10 @@ struct Peer {
     /// When the bell was last rung (a quiet shared inbox rings again mid-burst once
     /// [`QUIET_RING_EVERY`] has passed).
     rung: Option<Instant>,
+    /// The publisher could not make its line to a reader (iceoryx2 says so to its
+    /// degradation handler only, and tries again only when the readers change): a
+    /// frame that reached nobody then is not the reader's full queue.
+    unconnected: Arc<AtomicBool>,
 }
 
 impl Peer {
@@ -167,6 +174,11 @@ struct Ports {
     unheard_until: HashMap<Address, (Instant, u32)>,
     /// Bells not heard, so rung again through a new notifier, so far.
     unheard: u64,
+    /// Publishers closed for want of a line to their reader, so far.
+    unconnected: u64,
+    /// Since when each peer with frames held back has had them: the oldest go first
+    /// when room comes, and waiting past [`WANT_PATIENCE`] closes busy peers' ports too.
+    waiting_since: HashMap<Address, Instant>,
 }
 
 /// How soon a bell that was not heard is rung again through a new notifier, the first
@@ -205,6 +217,13 @@ const MAX_LINGERING_PAUSED: usize = 1024;
 /// How often, at most, a sweep looks for idle held peers to close while more peers are
 /// open than [`Endpoint::set_max_open_peers`] allows.
 const EVICT_EVERY: Duration = Duration::from_millis(100);
+/// Frames waiting this long for room for their peer's ports close the ports of peers
+/// idle for [`BUSY_IDLE`], not only of those idle for [`LINGER`].
+const WANT_PATIENCE: Duration = Duration::from_millis(250);
+/// How long a peer must have been left alone for its ports to close for frames past
+/// [`WANT_PATIENCE`]: its reader has had its last frame's bell and read it (a reader
+/// that has not yet taken in a publisher loses what it wrote when it closes).
+const BUSY_IDLE: Duration = Duration::from_millis(100);
 /// Idle held peers are closed down to this share of the most open (in percent), so that
 /// each look closes a batch, not one at a time.
 const EVICT_DOWN_TO_PCT: usize = 90;
@@ -912,6 +931,8 @@ impl Ports {
             held_rings: HashMap::new(),
             unheard_until: HashMap::new(),
             unheard: 0,
+            unconnected: 0,
+            waiting_since: HashMap::new(),
         }
     }
 
@@ -973,12 +994,20 @@ impl Ports {
             }
             _ => (SMALL_FRAME, AllocationStrategy::Static),
         };
+        let unconnected = Arc::new(AtomicBool::new(false));
+        let seen = unconnected.clone();
         let publisher = svc
             .publisher_builder()
             .initial_max_slice_len(len)
             .allocation_strategy(strategy)
             .max_loaned_samples(1)
             .backpressure_strategy(BackpressureStrategy::DiscardData)
+            .set_degradation_handler(move |cause, _: &_| {
+                if matches!(cause, DegradationCause::FailedToEstablishConnection) {
+                    seen.store(true, Ordering::Relaxed);
+                }
+                DegradationAction::Warn
+            })
             .create()
             .map_err(|e| svc_err(&inbox_name, e))?;
         let notifier = self.open_bell(to)?;
@@ -990,6 +1019,7 @@ impl Ports {
                 inbox: svc,
                 used: Instant::now(),
                 rung: None,
+                unconnected,
             },
         );
         Ok(())
@@ -1017,6 +1047,9 @@ impl Ports {
             Ok(()) => {}
             Err(TransportError::Full(_)) => {
                 self.dropped_sends -= 1; // not dropped: held back
+                self.waiting_since
+                    .entry(to.clone())
+                    .or_insert_with(Instant::now);
                 let q = self.backlog.entry(to.clone()).or_default();
                 Self::hold(q, to, frame, &mut self.dropped_sends);
             }
@@ -1037,8 +1070,17 @@ impl Ports {
 
     /// Tries the held-back control frames again, in order.
     fn flush_backlog(&mut self) {
-        let peers: Vec<Address> = self.backlog.keys().cloned().collect();
-        for to in peers {
+        // The longest waiting first: room for one peer's ports goes to the peer that
+        // has waited for it longest, not to whichever comes first in the map (seen:
+        // one new user's welcome passed over for 10 s while others' frames went).
+        let now = Instant::now();
+        let mut peers: Vec<(Instant, Address)> = self
+            .backlog
+            .keys()
+            .map(|a| (self.waiting_since.get(a).copied().unwrap_or(now), a.clone()))
+            .collect();
+        peers.sort();
+        for (_, to) in peers {
             let Some(mut q) = self.backlog.remove(&to) else {
                 continue;
             };
@@ -1057,7 +1099,9 @@ impl Ports {
                     }
                 }
             }
-            if !q.is_empty() {
+            if q.is_empty() {
+                self.waiting_since.remove(&to);
+            } else {
                 self.backlog.insert(to, q);
             }
         }
@@ -1105,7 +1149,8 @@ impl Ports {
         let quiet = self.quiet_relays && matches!(to, Address::Relay(_) | Address::Process(_));
         let every = self.quiet_ring_every;
         let held = quiet && self.pending_bells.contains(to);
-        let unheard = self.unheard_until.contains_key(to);
+        // (An empty map first: a lookup per frame costs a hash of the address.)
+        let unheard = !self.unheard_until.is_empty() && self.unheard_until.contains_key(to);
         let peer = self.peer(to)?;
         let ring = ring && !(held && peer.rung.is_some_and(|t| t.elapsed() < every));
         let send_err = |e: &dyn std::fmt::Debug| TransportError::Send {
@@ -1122,14 +1167,21 @@ impl Ports {
             .map_err(|e| send_err(&e))?;
         peer.used = Instant::now();
         if delivered == 0 {
-            // Nobody read it: either nobody is there, or the reader's queue is full.
-            return Err(
-                if peer.inbox.dynamic_config().number_of_subscribers() == 0 {
-                    TransportError::Unreachable(to.clone())
-                } else {
-                    TransportError::Full(to.clone())
-                },
-            );
+            // Nobody read it: either nobody is there, or the reader's queue is full, or
+            // the publisher has no line to the reader.
+            if peer.inbox.dynamic_config().number_of_subscribers() == 0 {
+                return Err(TransportError::Unreachable(to.clone()));
+            }
+            if peer.unconnected.load(Ordering::Relaxed) {
+                // It never will have (see `Peer::unconnected`), and it reached none of
+                // this reader's frames: the ports close, the frame waits (as for want
+                // of room) for new ones.
+                tracing::debug!(peer = %to, "a publisher with no line to its reader: its ports close");
+                self.peers.remove(to);
+                self.unconnected += 1;
+                self.short_of_descriptors();
+            }
+            return Err(TransportError::Full(to.clone()));
         }
         if ring {
             peer.rung = Some(peer.used);
@@ -1179,13 +1231,7 @@ impl Ports {
             None => 1,
         };
         self.unheard += 1;
-        if !crate::reactor::descriptors_free(PEER_PORTS_FDS_PROBE) {
-            // Short of descriptors, the likely cause: as when ports fail to open (see
-            // `peer`), as many peers as are open is the most for now, and idle ones'
-            // ports close to make room (see `evict_idle`), for the new notifier too.
-            self.max_open = self.max_open.min(self.peers.len());
-            self.wanting = true;
-        }
+        self.short_of_descriptors();
         if tries.is_power_of_two() {
             tracing::debug!(peer = %to, tries, "a bell was not heard: ringing it again through a new notifier");
         }
@@ -1194,6 +1240,17 @@ impl Ports {
             .saturating_mul(1 << (tries - 1).min(16))
             .min(UNHEARD_MOST);
         self.unheard_until.insert(to.clone(), (now + wait, tries));
+    }
+
+    /// A part of a peer's ports could not make its line to the peer: if short of
+    /// descriptors, the likely cause, as when ports fail to open (see `peer`), as many
+    /// peers as are open is the most for now, and idle ones' ports close to make room
+    /// (see `evict_idle`).
+    fn short_of_descriptors(&mut self) {
+        if !crate::reactor::descriptors_free(PEER_PORTS_FDS_PROBE) {
+            self.max_open = self.max_open.min(self.peers.len());
+            self.wanting = true;
+        }
     }
 
     /// Rings the bells [`Ports::ring`] and [`Ports::unheard`] held, those whose peers'
@@ -1302,8 +1359,10 @@ impl Ports {
     /// busy that each close is slow, a pause would leave them waiting for minutes:
     /// seen with 5,000 users starting at once). A held peer whose ports were closed
     /// stays held: the next frame to it opens them again (a first contact, about
-    /// 0.1–0.6 ms). Peers with frames held back or a bell pending keep theirs. Returns
-    /// whether the most are open still (no more may open: see [`Ports::peer`]).
+    /// 0.1–0.6 ms). Peers with frames held back, a bell pending or a bell not heard
+    /// keep theirs. Frames that have waited [`WANT_PATIENCE`] close peers idle for
+    /// [`BUSY_IDLE`] too. Returns whether the most are open still (no more may open:
+    /// see [`Ports::peer`]).
     fn evict_idle(&mut self, now: Instant) -> bool {
         if self.peers.len() < self.max_open {
             return false;
@@ -1316,7 +1375,16 @@ impl Ports {
             return true;
         }
         self.evicted_at = Some(now);
-        let Some(idle_since) = now.checked_sub(LINGER) else {
+        // Frames that have waited for room past WANT_PATIENCE: peers not idle for
+        // LINGER close too, least recently used first (busy ones reopen on their next
+        // frame), so that a peer waiting does not wait on everyone else's pauses.
+        let impatient = wanting
+            && self
+                .waiting_since
+                .values()
+                .min()
+                .is_some_and(|t| now.saturating_duration_since(*t) >= WANT_PATIENCE);
+        let Some(idle_since) = now.checked_sub(if impatient { BUSY_IDLE } else { LINGER }) else {
             return true;
         };
         let mut idle: Vec<(Instant, Address)> = self
@@ -1327,6 +1395,9 @@ impl Ports {
                     && !self.lingering.contains_key(*a)
                     && !self.backlog.contains_key(*a)
                     && !self.pending_bells.contains(a)
+                    // Its bell not heard yet: closing the publisher could lose the
+                    // frame its reader has not mapped.
+                    && !self.unheard_until.contains_key(*a)
             })
             .map(|(a, p)| (p.used, a.clone()))
             .collect();
@@ -1613,6 +1684,86 @@ mod tests {
         assert!(!sender.has_ports(users[3].me()), "u3 closed for it");
         assert_ne!(users[0].drain_bell() & (1 << bell::LIST_CHANGED), 0, "rung");
         assert!(sender.ports.borrow().held_rings.is_empty());
+        // No peer idle for LINGER: a frame waits, until it has waited WANT_PATIENCE;
+        // then the least recently used peer left alone for BUSY_IDLE closes for it
+        // (one used a moment ago keeps its ports).
+        let open = sender.open_peers();
+        sender.set_max_open_peers(open);
+        let is_open: Vec<usize> = (0..5)
+            .filter(|&k| sender.has_ports(users[k].me()))
+            .collect();
+        let waiting = (0..5).find(|&k| !sender.has_ports(users[k].me())).unwrap();
+        let now = Instant::now();
+        for (i, &k) in is_open.iter().enumerate() {
+            // The first the least recently used (1 s ago), the last just now.
+            let ago = match i {
+                0 => Duration::from_secs(1),
+                i if i + 1 == is_open.len() => Duration::ZERO,
+                _ => Duration::from_millis(500),
+            };
+            set_used(&sender, users[k].me(), now.checked_sub(ago).unwrap());
+        }
+        sender.send_control(users[waiting].me(), &"waits");
+        assert_eq!(sender.backlog(), 1);
+        sender.sweep();
+        assert_eq!(sender.backlog(), 1, "not yet waited past its patience");
+        assert_eq!(sender.open_peers(), open);
+        let past = Instant::now().checked_sub(WANT_PATIENCE).unwrap();
+        sender
+            .ports
+            .borrow_mut()
+            .waiting_since
+            .insert(users[waiting].me().clone(), past);
+        sender.sweep();
+        assert_eq!(sender.backlog(), 0, "went");
+        assert!(
+            !sender.has_ports(users[is_open[0]].me()),
+            "the least recently used closed"
+        );
+        assert!(
+            sender.has_ports(users[*is_open.last().unwrap()].me()),
+            "the busiest kept"
+        );
+        assert!(sender.ports.borrow().waiting_since.is_empty());
+        assert_eq!(
+            users[waiting]
+                .recv()
+                .map(|f| crate::protocol::decode::<String>(&f).unwrap()),
+            Some("waits".to_string())
+        );
+    }
+
+    #[test]
+    fn frames_waiting_for_room_go_the_longest_waiting_first() {
+        let inst = Instance::new(&format!("fifo-test-{}", std::process::id())).unwrap();
+        let mut sender = Endpoint::open(
+            &inst,
+            Address::Broker,
+            create_node("fifo-test-b", false).unwrap(),
+        )
+        .unwrap();
+        unhurried(&sender);
+        let mut users = user_endpoints(&inst, "fifo-test", 4);
+        // No room at all: every frame waits, u3's first, then u1's, u0's, u2's.
+        sender.set_max_open_peers(0);
+        for k in [3, 1, 0, 2] {
+            sender.send_control(users[k].me(), &format!("to {k}"));
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        assert_eq!(sender.backlog(), 4);
+        // Room for one peer at a time: they go in the order they came.
+        let mut order = Vec::new();
+        for most in 1..=4 {
+            sender.set_max_open_peers(most);
+            sender.sweep();
+            for (k, u) in users.iter_mut().enumerate() {
+                if u.recv().is_some() {
+                    order.push(k);
+                }
+            }
+        }
+        assert_eq!(order, [3, 1, 0, 2]);
+        assert_eq!(sender.backlog(), 0);
     }
 
     /// Set in the child process that runs
