@@ -1502,6 +1502,17 @@ mod tests {
         ports.slow_drop = Duration::from_secs(3600);
     }
 
+    /// A broker's endpoint ([`unhurried`]) on a new instance `tag-<pid>`, and `n` users
+    /// ([`user_endpoints`]); the instance is kept with them.
+    fn broker_and_users(tag: &str, n: usize) -> (Instance, Endpoint, Vec<Endpoint>) {
+        let inst = Instance::new(&format!("{tag}-{}", std::process::id())).unwrap();
+        let node = create_node(&format!("{tag}-b"), false).unwrap();
+        let sender = Endpoint::open(&inst, Address::Broker, node).unwrap();
+        unhurried(&sender);
+        let users = user_endpoints(&inst, tag, n);
+        (inst, sender, users)
+    }
+
     /// `n` users `u0`, `u1`, ... of `inst`, each its own endpoint and node.
     fn user_endpoints(inst: &Instance, tag: &str, n: usize) -> Vec<Endpoint> {
         (0..n)
@@ -1599,15 +1610,7 @@ mod tests {
 
     #[test]
     fn past_the_most_open_peers_idle_held_ones_close_oldest_first_and_reopen_on_the_next_frame() {
-        let inst = Instance::new(&format!("evict-test-{}", std::process::id())).unwrap();
-        let mut sender = Endpoint::open(
-            &inst,
-            Address::Broker,
-            create_node("evict-test-b", false).unwrap(),
-        )
-        .unwrap();
-        unhurried(&sender);
-        let mut users = user_endpoints(&inst, "evict-test", 5);
+        let (_inst, mut sender, mut users) = broker_and_users("evict-test", 5);
         for u in &mut users {
             sender.send(u.me(), b"hello").unwrap();
             assert_eq!(u.recv().as_deref(), Some(&b"hello"[..]));
@@ -1735,15 +1738,7 @@ mod tests {
 
     #[test]
     fn frames_waiting_for_room_go_the_longest_waiting_first() {
-        let inst = Instance::new(&format!("fifo-test-{}", std::process::id())).unwrap();
-        let mut sender = Endpoint::open(
-            &inst,
-            Address::Broker,
-            create_node("fifo-test-b", false).unwrap(),
-        )
-        .unwrap();
-        unhurried(&sender);
-        let mut users = user_endpoints(&inst, "fifo-test", 4);
+        let (_inst, mut sender, mut users) = broker_and_users("fifo-test", 4);
         // No room at all: every frame waits, u3's first, then u1's, u0's, u2's.
         sender.set_max_open_peers(0);
         for k in [3, 1, 0, 2] {
