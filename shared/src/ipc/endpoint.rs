@@ -1325,8 +1325,11 @@ impl Ports {
         let now = Instant::now();
         self.drops_paused_until = self.drops_paused_until.filter(|t| *t > now);
         let over = self.evict_idle(now);
-        self.flush_backlog();
+        // Held bells before held frames: a bell not heard needs a few descriptors for
+        // a new notifier, and frames held for room would otherwise take every one that
+        // frees first (seen: users welcomed only once others left, 20 s on).
         self.ring_held();
+        self.flush_backlog();
         // A pause holds the ports' descriptors and memory: past a number of lingering
         // peers they go anyway.
         let crowded = |p: &Self| p.lingering.len() > p.max_lingering_paused;
