@@ -137,7 +137,7 @@ struct Ports {
     dropped_sends: u64,
     /// Control frames a full inbox could not take yet, per peer, in order: retried by
     /// [`Endpoint::sweep`], so no control message is lost to a burst.
-    backlog: HashMap<Address, VecDeque<Vec<u8>>>,
+    backlog: HashMap<Address, HeldBack>,
     /// Peers sent frames by [`Endpoint::send_control_quiet`] whose bells
     /// [`Endpoint::ring_pending`] rings.
     pending_bells: Vec<Address>,
@@ -174,11 +174,14 @@ struct Ports {
     unheard_until: HashMap<Address, (Instant, u32)>,
     /// Bells not heard, so rung again through a new notifier, so far.
     unheard: u64,
-    /// Publishers closed for want of a line to their reader, so far.
-    unconnected: u64,
-    /// Since when each peer with frames held back has had them: the oldest go first
-    /// when room comes, and waiting past [`WANT_PATIENCE`] closes busy peers' ports too.
-    waiting_since: HashMap<Address, Instant>,
+}
+
+/// A peer's held-back control frames, in order, and since when it has had some: the
+/// longest waiting go first when room comes, and waiting past [`WANT_PATIENCE`] closes
+/// busy peers' ports too.
+struct HeldBack {
+    since: Instant,
+    frames: VecDeque<Vec<u8>>,
 }
 
 /// How soon a bell that was not heard is rung again through a new notifier, the first
@@ -756,7 +759,7 @@ impl Endpoint {
             .borrow()
             .backlog
             .values()
-            .map(VecDeque::len)
+            .map(|h| h.frames.len())
             .sum()
     }
 
@@ -931,8 +934,6 @@ impl Ports {
             held_rings: HashMap::new(),
             unheard_until: HashMap::new(),
             unheard: 0,
-            unconnected: 0,
-            waiting_since: HashMap::new(),
         }
     }
 
@@ -958,7 +959,6 @@ impl Ports {
                 self.wanting = true;
                 return Err(TransportError::Full(to.clone()));
             }
-
             let started = Instant::now();
             let opened = self.open_peer(to);
             let took = started.elapsed();
@@ -1039,19 +1039,19 @@ impl Ports {
     }
 
     fn control(&mut self, to: &Address, frame: Vec<u8>, ring: bool) {
-        if let Some(q) = self.backlog.get_mut(to) {
+        if let Some(h) = self.backlog.get_mut(to) {
             // Behind earlier frames: keep the order.
-            return Self::hold(q, to, frame, &mut self.dropped_sends);
+            return Self::hold(&mut h.frames, to, frame, &mut self.dropped_sends);
         }
         match self.send_ringing(to, &frame, ring) {
             Ok(()) => {}
             Err(TransportError::Full(_)) => {
                 self.dropped_sends -= 1; // not dropped: held back
-                self.waiting_since
-                    .entry(to.clone())
-                    .or_insert_with(Instant::now);
-                let q = self.backlog.entry(to.clone()).or_default();
-                Self::hold(q, to, frame, &mut self.dropped_sends);
+                let h = self.backlog.entry(to.clone()).or_insert_with(|| HeldBack {
+                    since: Instant::now(),
+                    frames: VecDeque::new(),
+                });
+                Self::hold(&mut h.frames, to, frame, &mut self.dropped_sends);
             }
             Err(e) => tracing::debug!("{e}"),
         }
@@ -1073,17 +1073,17 @@ impl Ports {
         // The longest waiting first: room for one peer's ports goes to the peer that
         // has waited for it longest, not to whichever comes first in the map (seen:
         // one new user's welcome passed over for 10 s while others' frames went).
-        let now = Instant::now();
         let mut peers: Vec<(Instant, Address)> = self
             .backlog
-            .keys()
-            .map(|a| (self.waiting_since.get(a).copied().unwrap_or(now), a.clone()))
+            .iter()
+            .map(|(a, h)| (h.since, a.clone()))
             .collect();
         peers.sort();
         for (_, to) in peers {
-            let Some(mut q) = self.backlog.remove(&to) else {
+            let Some(mut h) = self.backlog.remove(&to) else {
                 continue;
             };
+            let q = &mut h.frames;
             while let Some(frame) = q.front() {
                 match self.try_send(&to, frame, true) {
                     Ok(()) => {
@@ -1099,10 +1099,8 @@ impl Ports {
                     }
                 }
             }
-            if q.is_empty() {
-                self.waiting_since.remove(&to);
-            } else {
-                self.backlog.insert(to, q);
+            if !q.is_empty() {
+                self.backlog.insert(to, h);
             }
         }
     }
@@ -1178,7 +1176,6 @@ impl Ports {
                 // of room) for new ones.
                 tracing::debug!(peer = %to, "a publisher with no line to its reader: its ports close");
                 self.peers.remove(to);
-                self.unconnected += 1;
                 self.short_of_descriptors();
             }
             return Err(TransportError::Full(to.clone()));
@@ -1221,12 +1218,10 @@ impl Ports {
     /// minute and gave up, the welcome unread in its inbox.
     fn unheard(&mut self, to: &Address, id: usize) {
         let now = Instant::now();
+        *self.held_rings.entry(to.clone()).or_default() |= 1 << id;
         let tries = match self.unheard_until.get(to) {
             // Waiting already: this ring waits with the others.
-            Some((due, _)) if *due > now => {
-                *self.held_rings.entry(to.clone()).or_default() |= 1 << id;
-                return;
-            }
+            Some((due, _)) if *due > now => return,
             Some((_, n)) => n + 1,
             None => 1,
         };
@@ -1235,7 +1230,6 @@ impl Ports {
         if tries.is_power_of_two() {
             tracing::debug!(peer = %to, tries, "a bell was not heard: ringing it again through a new notifier");
         }
-        *self.held_rings.entry(to.clone()).or_default() |= 1 << id;
         let wait = UNHEARD_AGAIN
             .saturating_mul(1 << (tries - 1).min(16))
             .min(UNHEARD_MOST);
@@ -1271,14 +1265,13 @@ impl Ports {
     }
 
     fn ring_now(&mut self, to: &Address, id: usize) -> Result<(), TransportError> {
-        if let Some((due, _)) = self.unheard_until.get(to) {
-            if *due > Instant::now() {
-                // Rung with the others held, when new ports are tried.
-                *self.held_rings.entry(to.clone()).or_default() |= 1 << id;
-                return Ok(());
-            }
+        let unheard_due = self.unheard_until.get(to).map(|(due, _)| *due);
+        if unheard_due.is_some_and(|due| due > Instant::now()) {
+            // Rung with the others held, when a new notifier is tried.
+            *self.held_rings.entry(to.clone()).or_default() |= 1 << id;
+            return Ok(());
         }
-        if self.unheard_until.contains_key(to) && self.peers.contains_key(to) {
+        if unheard_due.is_some() && self.peers.contains_key(to) {
             // Its bell was not heard: a new notifier, whose line to the listener is
             // made anew.
             match self.open_bell(to) {
@@ -1383,10 +1376,11 @@ impl Ports {
         // frame), so that a peer waiting does not wait on everyone else's pauses.
         let impatient = wanting
             && self
-                .waiting_since
+                .backlog
                 .values()
+                .map(|h| h.since)
                 .min()
-                .is_some_and(|t| now.saturating_duration_since(*t) >= WANT_PATIENCE);
+                .is_some_and(|t| now.saturating_duration_since(t) >= WANT_PATIENCE);
         let Some(idle_since) = now.checked_sub(if impatient { BUSY_IDLE } else { LINGER }) else {
             return true;
         };
@@ -1718,8 +1712,10 @@ mod tests {
         sender
             .ports
             .borrow_mut()
-            .waiting_since
-            .insert(users[waiting].me().clone(), past);
+            .backlog
+            .get_mut(users[waiting].me())
+            .unwrap()
+            .since = past;
         sender.sweep();
         assert_eq!(sender.backlog(), 0, "went");
         assert!(
@@ -1730,7 +1726,7 @@ mod tests {
             sender.has_ports(users[*is_open.last().unwrap()].me()),
             "the busiest kept"
         );
-        assert!(sender.ports.borrow().waiting_since.is_empty());
+        assert!(sender.ports.borrow().backlog.is_empty());
         assert_eq!(
             users[waiting]
                 .recv()
