@@ -184,6 +184,12 @@ struct Shell {
     waiting_logged: bool,
     /// When a latched value last rang the broker's bell (see [`LATEST_RING_EVERY`]).
     latest_rung: Option<Instant>,
+    /// In a pass of the loop, before its events went to the app: frames to the broker
+    /// (a session's confirmation, an end, a pong) are written as they come but its bell
+    /// rings only at [`Shell::end_pass`], so that a new session's first update, which
+    /// the app sends when it hears of the session, goes before the broker is woken to
+    /// take a core its user needs. Nothing the broker sends waits on them.
+    broker_bell_late: bool,
 }
 
 /// A latched value is written into the broker's inbox unrung, for the broker to read
@@ -273,6 +279,7 @@ pub fn run_system_with<A: SystemApp>(
         next_token: FIRST_USER_TOKEN,
         waiting_logged: false,
         latest_rung: None,
+        broker_bell_late: false,
     };
     let start = Instant::now();
     core.register();
@@ -300,6 +307,7 @@ pub fn run_system_with<A: SystemApp>(
             .flatten()
             .min();
         let tokens = shell.reactor.wait(timeout)?;
+        shell.broker_bell_late = true;
         let now = start.elapsed();
         let mut udp_readable = false;
         let mut control_lines = Vec::new();
@@ -329,7 +337,7 @@ pub fn run_system_with<A: SystemApp>(
                     if signals.drain() {
                         tracing::info!(system = core.name(), "signal received: leaving");
                         core.shutdown();
-                        shell.flush(&mut core);
+                        shell.end_pass(&mut core);
                         return Ok(core);
                     }
                 }
@@ -399,7 +407,7 @@ pub fn run_system_with<A: SystemApp>(
         for line in control_lines {
             if !apply_control(&mut core, &line) {
                 core.shutdown();
-                shell.flush(&mut core);
+                shell.end_pass(&mut core);
                 return Ok(core);
             }
         }
@@ -410,6 +418,8 @@ pub fn run_system_with<A: SystemApp>(
         // Events first: a session's `SessionStarted` always comes before a tick that
         // could stream to it.
         deliver(&mut app, &mut core, &mut shell, now)?;
+        // What the app sent for this pass's events went first; now the broker may wake.
+        shell.end_pass(&mut core);
         if app.next_tick(&core).is_some_and(|t| t <= now) {
             app.on_tick(&mut core, now);
             deliver(&mut app, &mut core, &mut shell, now)?;
@@ -418,7 +428,7 @@ pub fn run_system_with<A: SystemApp>(
         if app.stop_requested() {
             tracing::info!(system = core.name(), "stopping: the program asked");
             core.shutdown();
-            shell.flush(&mut core);
+            shell.end_pass(&mut core);
             return Ok(core);
         }
     }
@@ -479,7 +489,18 @@ impl Shell {
             }
             self.flush_outputs(core, &mut dead_users);
         }
-        self.endpoint.ring_pending();
+        if self.broker_bell_late {
+            self.endpoint.ring_pending_but(&Address::Broker);
+        } else {
+            self.endpoint.ring_pending();
+        }
+    }
+
+    /// Ends the part of a pass in which the broker's bell waits (see
+    /// [`Shell::broker_bell_late`]): flushes and rings it if frames were written.
+    fn end_pass(&mut self, core: &mut SystemCore) {
+        self.broker_bell_late = false;
+        self.flush(core);
     }
 
     fn flush_outputs(&mut self, core: &mut SystemCore, dead_users: &mut Vec<UserId>) {
@@ -516,7 +537,11 @@ impl Shell {
                     if !matches!(msg, ToBroker::Register { .. }) {
                         // Session ended, offer answers, withdraw, pong...: held back
                         // when the broker's inbox is full, never dropped.
-                        self.endpoint.send_control(&Address::Broker, &msg);
+                        if self.broker_bell_late {
+                            self.endpoint.send_control_quiet(&Address::Broker, &msg);
+                        } else {
+                            self.endpoint.send_control(&Address::Broker, &msg);
+                        }
                         continue;
                     }
                     match self.endpoint.send_msg(&Address::Broker, &msg) {

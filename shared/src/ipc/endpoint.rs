@@ -753,6 +753,23 @@ impl Endpoint {
         }
     }
 
+    /// [`Endpoint::ring_pending`] for every peer but `keep`, whose bell stays pending
+    /// for a later call: a process writes `keep` frames that are on nobody's path as it
+    /// goes, and wakes it only once what it owes others has gone.
+    pub fn ring_pending_but(&mut self, keep: &Address) {
+        let keep = keep.inbox_owner();
+        let mut ports = self.ports.borrow_mut();
+        ports.quiet_relays = false;
+        let pending = std::mem::take(&mut ports.pending_bells);
+        for to in pending {
+            if to == *keep {
+                ports.pending_bells.push(to);
+            } else if let Err(e) = ports.ring(&to, bell::MESSAGE) {
+                tracing::debug!("{e}");
+            }
+        }
+    }
+
     /// Control frames held back for full inboxes.
     pub fn backlog(&self) -> usize {
         self.ports
