@@ -1623,6 +1623,31 @@ mod tests {
     }
 
     #[test]
+    fn ringing_pending_bells_but_one_peers_leaves_that_bell_for_the_next_ring() {
+        let (_inst, mut sender, mut users) = broker_and_users("ring-but-test", 2);
+        let rang = |u: &Endpoint| u.drain_bell() & (1 << bell::MESSAGE) != 0;
+        // Frames to both are written at once; neither bell has rung.
+        sender.send_control_quiet(users[0].me(), &"first");
+        sender.send_control_quiet(users[1].me(), &"second");
+        assert!(!rang(&users[0]) && !rang(&users[1]));
+        // All but u0's ring: u1 is woken, u0 not yet, its frame is in its inbox.
+        sender.ring_pending_but(users[0].me());
+        assert!(rang(&users[1]));
+        assert!(!rang(&users[0]));
+        assert!(sender.bells_pending());
+        // The next ring rings it, once.
+        sender.ring_pending();
+        assert!(rang(&users[0]));
+        assert!(!sender.bells_pending());
+        sender.ring_pending();
+        assert!(!rang(&users[0]) && !rang(&users[1]));
+        let got: Vec<String> = std::iter::from_fn(|| users[0].recv())
+            .map(|f| crate::protocol::decode::<String>(&f).unwrap())
+            .collect();
+        assert_eq!(got, ["first"]);
+    }
+
+    #[test]
     fn past_the_most_open_peers_idle_held_ones_close_oldest_first_and_reopen_on_the_next_frame() {
         let (_inst, mut sender, mut users) = broker_and_users("evict-test", 5);
         for u in &mut users {
