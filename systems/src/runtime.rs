@@ -184,11 +184,13 @@ struct Shell {
     waiting_logged: bool,
     /// When a latched value last rang the broker's bell (see [`LATEST_RING_EVERY`]).
     latest_rung: Option<Instant>,
-    /// In a pass of the loop, before its events went to the app: frames to the broker
-    /// (a session's confirmation, an end, a pong) are written as they come but its bell
-    /// rings only at [`Shell::end_pass`], so that a new session's first update, which
-    /// the app sends when it hears of the session, goes before the broker is woken to
-    /// take a core its user needs. Nothing the broker sends waits on them.
+    /// In a pass of the loop, before its events went to the app: a session's
+    /// confirmation to the broker is written as it comes but the broker's bell rings
+    /// only at [`Shell::end_pass`] (or with the next frame to it that rings), so that
+    /// the session's first update, which the app sends when it hears of the session,
+    /// goes before the broker is woken to take a core its user needs. The grant went to
+    /// the user before the offer came: nothing waits on the confirmation. (An end, which
+    /// frees a place a queued user may wait for, rings at once.)
     broker_bell_late: bool,
 }
 
@@ -537,7 +539,7 @@ impl Shell {
                     if !matches!(msg, ToBroker::Register { .. }) {
                         // Session ended, offer answers, withdraw, pong...: held back
                         // when the broker's inbox is full, never dropped.
-                        if self.broker_bell_late {
+                        if self.broker_bell_late && matches!(msg, ToBroker::OfferAnswer { .. }) {
                             self.endpoint.send_control_quiet(&Address::Broker, &msg);
                         } else {
                             self.endpoint.send_control(&Address::Broker, &msg);
