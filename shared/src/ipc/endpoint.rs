@@ -744,25 +744,23 @@ impl Endpoint {
     /// Rings the bells [`Endpoint::send_control_quiet`] (and [`Endpoint::quiet_relays`])
     /// left, once per peer.
     pub fn ring_pending(&mut self) {
-        let mut ports = self.ports.borrow_mut();
-        ports.quiet_relays = false;
-        for to in std::mem::take(&mut ports.pending_bells) {
-            if let Err(e) = ports.ring(&to, bell::MESSAGE) {
-                tracing::debug!("{e}");
-            }
-        }
+        self.ring_pending_except(None);
     }
 
     /// [`Endpoint::ring_pending`] for every peer but `keep`, whose bell stays pending
     /// for a later call: a process writes `keep` frames that are on nobody's path as it
     /// goes, and wakes it only once what it owes others has gone.
     pub fn ring_pending_but(&mut self, keep: &Address) {
-        let keep = keep.inbox_owner();
+        self.ring_pending_except(Some(keep));
+    }
+
+    /// Rings the pending bells, once per peer, but `keep`'s, which stays pending.
+    fn ring_pending_except(&mut self, keep: Option<&Address>) {
+        let keep = keep.map(Address::inbox_owner);
         let mut ports = self.ports.borrow_mut();
         ports.quiet_relays = false;
-        let pending = std::mem::take(&mut ports.pending_bells);
-        for to in pending {
-            if to == *keep {
+        for to in std::mem::take(&mut ports.pending_bells) {
+            if keep.as_deref() == Some(&to) {
                 ports.pending_bells.push(to);
             } else if let Err(e) = ports.ring(&to, bell::MESSAGE) {
                 tracing::debug!("{e}");
