@@ -192,7 +192,12 @@ pub fn run(client: UserClient, args: &BehaveArgs) -> anyhow::Result<ExitCode> {
     };
     match r.behave() {
         Ok(()) | Err(UserError::Interrupted) => {}
-        Err(_) => r.report.errors += 1,
+        // Said, not only counted: a stress run's report has the count, its standard
+        // error the cause.
+        Err(e) => {
+            tracing::warn!(user = %r.client.core().id(), "behaving user stopped: {e}");
+            r.report.errors += 1;
+        }
     }
     r.report.ended_ms = monotonic_ns() / 1_000_000;
     r.report.unwanted_grants = r.client.core().unwanted_grants();
