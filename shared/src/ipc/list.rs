@@ -309,6 +309,8 @@ pub struct ListReader {
     copy: Option<((u64, u64), Arc<ServiceListSnapshot>)>,
     /// The write each chunk of `copy` came from (of the blackboard in `copy`'s key).
     copy_seqs: Vec<u64>,
+    /// How long a read waits for a write under way ([`LIST_READ_WAIT`]).
+    read_wait: Duration,
 }
 
 /// One list blackboard as a reader holds it: the entries' handles, opened once.
@@ -325,24 +327,59 @@ struct OpenList {
 /// while the reader opened it.
 const FOLLOW_TRIES: usize = 16;
 
-/// Most times a reader takes the list again because the broker wrote it meanwhile.
-const LIST_READ_TRIES: usize = 1000;
+/// How long a reader waits for a write under way to end. On a loaded machine the
+/// broker can lose its core in the middle of a write for milliseconds; a reader that
+/// counted its tries instead (1,000, yielding) gave up under 900 users, and its user
+/// with it. A broker that stops in the middle for good is replaced, and the reader
+/// leaves as soon as the fence names its successor's list.
+const LIST_READ_WAIT: Duration = Duration::from_secs(2);
+
+/// Reads taken back to back before a reader starts to sleep between them.
+const LIST_READ_SPINS: u32 = 8;
+
+/// The first sleep between two reads of a list being written; it doubles up to
+/// [`LIST_READ_NAP_MAX`].
+const LIST_READ_NAP: Duration = Duration::from_micros(20);
+const LIST_READ_NAP_MAX: Duration = Duration::from_millis(1);
+
+/// Why no consistent copy was taken.
+enum ReadFailed {
+    /// The fence names another list now: follow it and read that one.
+    Moved,
+    /// A write was under way for the whole wait, or there is no list.
+    Error(TransportError),
+}
+
+impl ReadFailed {
+    fn into_error(self) -> TransportError {
+        match self {
+            ReadFailed::Moved => TransportError::Service {
+                name: "service list".into(),
+                detail: "it moved to another blackboard while being read".into(),
+            },
+            ReadFailed::Error(e) => e,
+        }
+    }
+}
 
 impl OpenList {
     /// Reads the header, then what `take` reads of the chunks, then the header again,
     /// until the two headers agree and no chunk read is newer (a consistent copy of
     /// one write). `take` gets the header and a chunk reader, and returns `None` when
-    /// what it read is newer than the header (a write under way: read again).
+    /// what it read is newer than the header (a write under way: read again). A write
+    /// under way is waited for, sleeping between reads, for `wait` at most, or until
+    /// `moved` says the fence names another list.
     fn consistent<T>(
         &self,
+        wait: Duration,
+        moved: impl Fn() -> bool,
         mut take: impl FnMut(&ListHeader, &dyn Fn(usize) -> ListChunkRef) -> Option<T>,
-    ) -> Result<(ListHeader, T), TransportError> {
+    ) -> Result<(ListHeader, T), ReadFailed> {
+        let start = Instant::now();
+        let mut nap = LIST_READ_NAP;
         let mut header = *self.header.get();
-        for attempt in 0..LIST_READ_TRIES {
-            if attempt >= 8 {
-                // The broker writes faster than this reader reads: let it run.
-                std::thread::yield_now();
-            }
+        let mut attempt = 0u32;
+        loop {
             let read = |k: usize| ListChunkRef(self.chunks.get(k).map(|c| c.get()));
             let got = take(&header, &read);
             let again = *self.header.get();
@@ -350,11 +387,28 @@ impl OpenList {
                 return Ok((header, got));
             }
             header = again;
+            attempt += 1;
+            if attempt < LIST_READ_SPINS {
+                continue;
+            }
+            // The broker is in the middle of a write and off its core, or writes
+            // faster than this reader reads: let it run.
+            if moved() {
+                return Err(ReadFailed::Moved);
+            }
+            let waited = start.elapsed();
+            if waited >= wait {
+                return Err(ReadFailed::Error(TransportError::Service {
+                    name: "service list".into(),
+                    detail: format!(
+                        "a write of it stayed under way for {} ms ({attempt} reads)",
+                        waited.as_millis()
+                    ),
+                }));
+            }
+            std::thread::sleep(nap.min(wait - waited));
+            nap = (nap * 2).min(LIST_READ_NAP_MAX);
         }
-        Err(TransportError::Service {
-            name: "service list".into(),
-            detail: format!("it changed under each of {LIST_READ_TRIES} reads in a row"),
-        })
     }
 }
 
@@ -379,6 +433,7 @@ impl ListReader {
             current: None,
             copy: None,
             copy_seqs: Vec::new(),
+            read_wait: LIST_READ_WAIT,
         };
         r.follow(node)?;
         Ok(r)
@@ -463,8 +518,7 @@ impl ListReader {
         &mut self,
         node: &Node<Ipc>,
     ) -> Result<Arc<ServiceListSnapshot>, TransportError> {
-        self.follow_or_stay(node)?;
-        self.read()
+        self.on_newest(node, Self::read_here)
     }
 
     /// One page of the running broker's list: the entries `filter` lets through, from
@@ -478,15 +532,45 @@ impl ListReader {
         offset: usize,
         limit: usize,
     ) -> Result<ListPage, TransportError> {
-        self.follow_or_stay(node)?;
         if !filter.is_everything() {
-            return Ok(self.read()?.page(filter, offset, limit));
+            return Ok(self.read_from(node)?.page(filter, offset, limit));
         }
+        self.on_newest(node, |r| r.page_here(offset, limit))
+    }
+
+    /// `read` on the list the fence names, moving to it first; once more if the fence
+    /// named another one while `read` waited for a write under way to end.
+    fn on_newest<T>(
+        &mut self,
+        node: &Node<Ipc>,
+        mut read: impl FnMut(&mut Self) -> Result<T, ReadFailed>,
+    ) -> Result<T, TransportError> {
+        self.follow_or_stay(node)?;
+        match read(self) {
+            Err(ReadFailed::Moved) => {
+                self.follow_or_stay(node)?;
+                read(self).map_err(ReadFailed::into_error)
+            }
+            r => r.map_err(ReadFailed::into_error),
+        }
+    }
+
+    /// Whether `fence` names a list other than `id`.
+    fn moved(fence: &crate::fence::Fence, id: u64) -> bool {
+        let now = fence.list();
+        now != 0 && now != id
+    }
+
+    /// [`ListReader::page_from`] without a filter, on the list this reader is on.
+    fn page_here(&self, offset: usize, limit: usize) -> Result<ListPage, ReadFailed> {
         let Some(open) = &self.current else {
-            return Err(TransportError::Unreachable(Address::Broker));
+            return Err(ReadFailed::Error(TransportError::Unreachable(
+                Address::Broker,
+            )));
         };
         let mut entries = Vec::with_capacity(limit.min(CHUNK_ENTRIES * 64));
-        let (header, ()) = open.consistent(|header, chunk| {
+        let moved = || Self::moved(&self.fence, open.id);
+        let (header, ()) = open.consistent(self.read_wait, moved, |header, chunk| {
             entries.clear();
             let count = header.count as usize;
             let end = offset.saturating_add(limit).min(count);
@@ -515,8 +599,15 @@ impl ListReader {
     /// memory (the last copy's memory is reused if no one holds it any more, else
     /// copied first).
     pub fn read(&mut self) -> Result<Arc<ServiceListSnapshot>, TransportError> {
+        self.read_here().map_err(ReadFailed::into_error)
+    }
+
+    /// [`ListReader::read`], saying when the fence moved on meanwhile.
+    fn read_here(&mut self) -> Result<Arc<ServiceListSnapshot>, ReadFailed> {
         let Some(open) = &self.current else {
-            return Err(TransportError::Unreachable(Address::Broker));
+            return Err(ReadFailed::Error(TransportError::Unreachable(
+                Address::Broker,
+            )));
         };
         let key = (open.id, open.header.get().seq);
         if let Some((k, copy)) = &self.copy {
@@ -534,7 +625,9 @@ impl ListReader {
         // Held elsewhere too: this reader's copy becomes its own (a clone of it).
         let snap = Arc::make_mut(&mut copy);
         let have = &mut self.copy_seqs;
-        let (header, ()) = open.consistent(|header, chunk| {
+        let fence = &self.fence;
+        let moved = || Self::moved(fence, open.id);
+        let (header, ()) = open.consistent(self.read_wait, moved, |header, chunk| {
             let count = header.count as usize;
             let n = chunks_for(count);
             let mut seqs = Vec::with_capacity(n);
@@ -568,5 +661,116 @@ impl ListReader {
         snap.epoch = header.epoch;
         self.copy = Some(((open.id, header.seq), Arc::clone(&copy)));
         Ok(copy)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::tests::stamped_list;
+    use super::*;
+    use std::sync::mpsc;
+
+    /// Leaves a write half done, as a broker that lost its core in the middle of one
+    /// does: its chunks' seqs say a write newer than the header's.
+    fn half_write(w: &mut ListWriter) {
+        w.board.seq_pages[0].update_with_copy(ListSeqs {
+            seqs: [w.seq + 1; SEQS_PER_PAGE],
+        });
+    }
+
+    /// A reader in its own thread (as in another process: its own node), opened on
+    /// `inst`'s list; it reads once it is sent its wait, and sends back what it read
+    /// and how long that took.
+    type Reading = (Result<u64, String>, Duration);
+    type Reader = (
+        mpsc::Sender<Duration>,
+        mpsc::Receiver<Reading>,
+        std::thread::JoinHandle<()>,
+    );
+    fn reader(inst: &Instance) -> Reader {
+        let (go, went) = mpsc::channel::<Duration>();
+        let (tell, told) = mpsc::channel();
+        let inst = inst.clone();
+        let thread = std::thread::spawn(move || {
+            let node = create_node("list-wait-reader", false).unwrap();
+            let mut r = ListReader::open(&node, &inst).unwrap();
+            while let Ok(wait) = went.recv() {
+                r.read_wait = wait;
+                let t = Instant::now();
+                let got = r.read_from(&node).map(|s| s.generation);
+                if tell
+                    .send((got.map_err(|e| e.to_string()), t.elapsed()))
+                    .is_err()
+                {
+                    break;
+                }
+            }
+        });
+        (go, told, thread)
+    }
+
+    #[test]
+    fn a_reader_waits_out_a_write_left_half_done_for_longer_than_a_thousand_reads() {
+        let inst = Instance::new(&format!("list-wait-{}", std::process::id())).unwrap();
+        let node = create_node("list-wait", false).unwrap();
+        let fence = crate::fence::Fence::open(&inst).unwrap();
+        let mut w = ListWriter::open(&node, &inst, 1).unwrap();
+        w.publish(&node, &stamped_list(1, 40), &fence).unwrap();
+        let (go, told, first) = reader(&inst);
+
+        // Finished 300 ms later: the read takes the finished write, not an error.
+        half_write(&mut w);
+        go.send(LIST_READ_WAIT).unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+        w.publish(&node, &stamped_list(2, 40), &fence).unwrap();
+        let (got, took) = told.recv().unwrap();
+        assert_eq!(got, Ok(2), "the write it waited for");
+        assert!(took >= Duration::from_millis(250), "it waited: {took:?}");
+
+        // Never finished: an error once the wait is over, that says why (a new reader:
+        // the first one has write 2, which the header still names, and shares it).
+        half_write(&mut w);
+        drop(go);
+        first.join().unwrap();
+        let (go, told, second) = reader(&inst);
+        go.send(Duration::from_millis(200)).unwrap();
+        let (got, took) = told.recv().unwrap();
+        let e = got.unwrap_err();
+        assert!(e.contains("stayed under way"), "{e}");
+        assert!(took >= Duration::from_millis(200), "{took:?}");
+
+        // Finished at last: read again, whole.
+        w.publish(&node, &stamped_list(3, 40), &fence).unwrap();
+        go.send(LIST_READ_WAIT).unwrap();
+        assert_eq!(told.recv().unwrap().0, Ok(3));
+        // Gone before the process ends: a thread still running then leaves its node.
+        drop(go);
+        second.join().unwrap();
+        drop(w);
+        fence.remove();
+    }
+
+    #[test]
+    fn a_reader_waiting_on_a_dead_brokers_half_write_moves_to_the_new_brokers_list() {
+        let inst = Instance::new(&format!("list-moved-{}", std::process::id())).unwrap();
+        let node = create_node("list-moved", false).unwrap();
+        let fence = crate::fence::Fence::open(&inst).unwrap();
+        let mut old = ListWriter::open(&node, &inst, 1).unwrap();
+        old.publish(&node, &stamped_list(1, 40), &fence).unwrap();
+        let (go, told, thread) = reader(&inst);
+        // The old broker stops in the middle of a write for good; 300 ms later a new
+        // one names its own list. The reader, set to wait far longer, takes the new
+        // list instead of waiting for the old one.
+        half_write(&mut old);
+        go.send(Duration::from_secs(60)).unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+        let mut new = ListWriter::open(&node, &inst, 2).unwrap();
+        new.publish(&node, &stamped_list(7, 12), &fence).unwrap();
+        let (got, _) = told.recv().unwrap();
+        assert_eq!(got, Ok(7));
+        drop(go);
+        thread.join().unwrap();
+        drop((old, new));
+        fence.remove();
     }
 }

@@ -418,7 +418,7 @@ mod tests {
     }
 
     /// A snapshot of `count` entries that all say which write they are (`quota`).
-    fn stamped_list(generation: u64, count: usize) -> Box<ServiceListSnapshot> {
+    pub(super) fn stamped_list(generation: u64, count: usize) -> Box<ServiceListSnapshot> {
         let mut s = Box::new(ServiceListSnapshot::empty());
         s.generation = generation;
         s.epoch = 1;
