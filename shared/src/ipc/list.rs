@@ -384,6 +384,13 @@ impl OpenList {
             let got = take(&header, &read);
             let again = *self.header.get();
             if let Some(got) = got.filter(|_| again.seq == header.seq) {
+                if attempt >= LIST_READ_SPINS {
+                    tracing::debug!(
+                        reads = attempt + 1,
+                        waited_us = start.elapsed().as_micros() as u64,
+                        "the service list was being written: read after a wait"
+                    );
+                }
                 return Ok((header, got));
             }
             header = again;
