@@ -716,13 +716,19 @@ mod tests {
         (go, told, thread)
     }
 
-    #[test]
-    fn a_reader_waits_out_a_write_left_half_done_for_longer_than_a_thousand_reads() {
-        let inst = Instance::new(&format!("list-wait-{}", std::process::id())).unwrap();
-        let node = create_node("list-wait", false).unwrap();
+    /// A test instance named after `name`, with a list of 40 entries written (write 1).
+    fn written(name: &str) -> (Instance, Node<Ipc>, crate::fence::Fence, ListWriter) {
+        let inst = Instance::new(&format!("{name}-{}", std::process::id())).unwrap();
+        let node = create_node(name, false).unwrap();
         let fence = crate::fence::Fence::open(&inst).unwrap();
         let mut w = ListWriter::open(&node, &inst, 1).unwrap();
         w.publish(&node, &stamped_list(1, 40), &fence).unwrap();
+        (inst, node, fence, w)
+    }
+
+    #[test]
+    fn a_reader_waits_out_a_write_left_half_done_for_longer_than_a_thousand_reads() {
+        let (inst, node, fence, mut w) = written("list-wait");
         let (go, told, first) = reader(&inst);
 
         // Finished 300 ms later: the read takes the finished write, not an error.
@@ -759,11 +765,7 @@ mod tests {
 
     #[test]
     fn a_reader_waiting_on_a_dead_brokers_half_write_moves_to_the_new_brokers_list() {
-        let inst = Instance::new(&format!("list-moved-{}", std::process::id())).unwrap();
-        let node = create_node("list-moved", false).unwrap();
-        let fence = crate::fence::Fence::open(&inst).unwrap();
-        let mut old = ListWriter::open(&node, &inst, 1).unwrap();
-        old.publish(&node, &stamped_list(1, 40), &fence).unwrap();
+        let (inst, node, fence, mut old) = written("list-moved");
         let (go, told, thread) = reader(&inst);
         // The old broker stops in the middle of a write for good; 300 ms later a new
         // one names its own list. The reader, set to wait far longer, takes the new
