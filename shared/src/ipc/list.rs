@@ -678,33 +678,44 @@ mod tests {
     use std::sync::mpsc;
 
     /// Leaves a write half done, as a broker that lost its core in the middle of one
-    /// does: its chunks' seqs say a write newer than the header's.
+    /// does: its first chunk and the chunks' seqs say a write newer than the header's.
     fn half_write(w: &mut ListWriter) {
+        let mut chunk = ListChunk::empty();
+        chunk.seq = w.seq + 1;
+        let n = w.written.len().min(CHUNK_ENTRIES);
+        chunk.entries[..n].copy_from_slice(&w.written[..n]);
+        w.board.chunks[0].update_with_copy(chunk);
         w.board.seq_pages[0].update_with_copy(ListSeqs {
             seqs: [w.seq + 1; SEQS_PER_PAGE],
         });
     }
 
     /// A reader in its own thread (as in another process: its own node), opened on
-    /// `inst`'s list; it reads once it is sent its wait, and sends back what it read
-    /// and how long that took.
-    type Reading = (Result<u64, String>, Duration);
+    /// `inst`'s list; it reads once it is sent its wait (the whole list, or with `true`
+    /// the page of its first 100 entries), and sends back the generation and the count
+    /// of entries it read, and how long that took.
+    type Reading = (Result<(u64, usize), String>, Duration);
     type Reader = (
-        mpsc::Sender<Duration>,
+        mpsc::Sender<(Duration, bool)>,
         mpsc::Receiver<Reading>,
         std::thread::JoinHandle<()>,
     );
     fn reader(inst: &Instance) -> Reader {
-        let (go, went) = mpsc::channel::<Duration>();
+        let (go, went) = mpsc::channel::<(Duration, bool)>();
         let (tell, told) = mpsc::channel();
         let inst = inst.clone();
         let thread = std::thread::spawn(move || {
             let node = create_node("list-wait-reader", false).unwrap();
             let mut r = ListReader::open(&node, &inst).unwrap();
-            while let Ok(wait) = went.recv() {
+            while let Ok((wait, page)) = went.recv() {
                 r.read_wait = wait;
                 let t = Instant::now();
-                let got = r.read_from(&node).map(|s| s.generation);
+                let got = if page {
+                    r.page_from(&node, &ListFilter::default(), 0, 100)
+                        .map(|p| (p.generation, p.entries.len()))
+                } else {
+                    r.read_from(&node).map(|s| (s.generation, s.count()))
+                };
                 if tell
                     .send((got.map_err(|e| e.to_string()), t.elapsed()))
                     .is_err()
@@ -733,11 +744,11 @@ mod tests {
 
         // Finished 300 ms later: the read takes the finished write, not an error.
         half_write(&mut w);
-        go.send(LIST_READ_WAIT).unwrap();
+        go.send((LIST_READ_WAIT, false)).unwrap();
         std::thread::sleep(Duration::from_millis(300));
         w.publish(&node, &stamped_list(2, 40), &fence).unwrap();
         let (got, took) = told.recv().unwrap();
-        assert_eq!(got, Ok(2), "the write it waited for");
+        assert_eq!(got, Ok((2, 40)), "the write it waited for");
         assert!(took >= Duration::from_millis(250), "it waited: {took:?}");
 
         // Never finished: an error once the wait is over, that says why (a new reader:
@@ -746,7 +757,7 @@ mod tests {
         drop(go);
         first.join().unwrap();
         let (go, told, second) = reader(&inst);
-        go.send(Duration::from_millis(200)).unwrap();
+        go.send((Duration::from_millis(200), false)).unwrap();
         let (got, took) = told.recv().unwrap();
         let e = got.unwrap_err();
         assert!(e.contains("stayed under way"), "{e}");
@@ -754,8 +765,8 @@ mod tests {
 
         // Finished at last: read again, whole.
         w.publish(&node, &stamped_list(3, 40), &fence).unwrap();
-        go.send(LIST_READ_WAIT).unwrap();
-        assert_eq!(told.recv().unwrap().0, Ok(3));
+        go.send((LIST_READ_WAIT, false)).unwrap();
+        assert_eq!(told.recv().unwrap().0, Ok((3, 40)));
         // Gone before the process ends: a thread still running then leaves its node.
         drop(go);
         second.join().unwrap();
@@ -771,15 +782,24 @@ mod tests {
         // one names its own list. The reader, set to wait far longer, takes the new
         // list instead of waiting for the old one.
         half_write(&mut old);
-        go.send(Duration::from_secs(60)).unwrap();
+        go.send((Duration::from_secs(60), false)).unwrap();
         std::thread::sleep(Duration::from_millis(300));
         let mut new = ListWriter::open(&node, &inst, 2).unwrap();
         new.publish(&node, &stamped_list(7, 12), &fence).unwrap();
         let (got, _) = told.recv().unwrap();
-        assert_eq!(got, Ok(7));
+        assert_eq!(got, Ok((7, 12)));
+        // The same for a page read, in place: that broker dies in the middle of a write
+        // too, and the next one's list is taken.
+        half_write(&mut new);
+        go.send((Duration::from_secs(60), true)).unwrap();
+        std::thread::sleep(Duration::from_millis(300));
+        let mut newer = ListWriter::open(&node, &inst, 3).unwrap();
+        newer.publish(&node, &stamped_list(9, 5), &fence).unwrap();
+        let (got, _) = told.recv().unwrap();
+        assert_eq!(got, Ok((9, 5)));
         drop(go);
         thread.join().unwrap();
-        drop((old, new));
+        drop((old, new, newer));
         fence.remove();
     }
 }
