@@ -776,30 +776,27 @@ mod tests {
 
     #[test]
     fn a_reader_waiting_on_a_dead_brokers_half_write_moves_to_the_new_brokers_list() {
-        let (inst, node, fence, mut old) = written("list-moved");
+        let (inst, node, fence, first) = written("list-moved");
         let (go, told, thread) = reader(&inst);
-        // The old broker stops in the middle of a write for good; 300 ms later a new
-        // one names its own list. The reader, set to wait far longer, takes the new
-        // list instead of waiting for the old one.
-        half_write(&mut old);
-        go.send((Duration::from_secs(60), false)).unwrap();
-        std::thread::sleep(Duration::from_millis(300));
-        let mut new = ListWriter::open(&node, &inst, 2).unwrap();
-        new.publish(&node, &stamped_list(7, 12), &fence).unwrap();
-        let (got, _) = told.recv().unwrap();
-        assert_eq!(got, Ok((7, 12)));
-        // The same for a page read, in place: that broker dies in the middle of a write
-        // too, and the next one's list is taken.
-        half_write(&mut new);
-        go.send((Duration::from_secs(60), true)).unwrap();
-        std::thread::sleep(Duration::from_millis(300));
-        let mut newer = ListWriter::open(&node, &inst, 3).unwrap();
-        newer.publish(&node, &stamped_list(9, 5), &fence).unwrap();
-        let (got, _) = told.recv().unwrap();
-        assert_eq!(got, Ok((9, 5)));
+        // Each broker stops in the middle of a write for good; 300 ms later a new one
+        // names its own list. The reader, set to wait far longer, takes the new list
+        // instead of waiting for the old one: reading the whole list, then a page of it
+        // in place.
+        let mut brokers = vec![first];
+        for (epoch, page, generation, count) in [(2, false, 7, 12), (3, true, 9, 5)] {
+            half_write(brokers.last_mut().unwrap());
+            go.send((Duration::from_secs(60), page)).unwrap();
+            std::thread::sleep(Duration::from_millis(300));
+            let mut next = ListWriter::open(&node, &inst, epoch).unwrap();
+            next.publish(&node, &stamped_list(generation, count), &fence)
+                .unwrap();
+            brokers.push(next);
+            let (got, _) = told.recv().unwrap();
+            assert_eq!(got, Ok((generation, count)), "page: {page}");
+        }
         drop(go);
         thread.join().unwrap();
-        drop((old, new, newer));
+        drop(brokers);
         fence.remove();
     }
 }
