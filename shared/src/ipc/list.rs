@@ -363,16 +363,22 @@ impl ReadFailed {
 }
 
 impl OpenList {
+    /// Whether `fence` names a list other than this one.
+    fn moved(&self, fence: &crate::fence::Fence) -> bool {
+        let now = fence.list();
+        now != 0 && now != self.id
+    }
+
     /// Reads the header, then what `take` reads of the chunks, then the header again,
     /// until the two headers agree and no chunk read is newer (a consistent copy of
     /// one write). `take` gets the header and a chunk reader, and returns `None` when
     /// what it read is newer than the header (a write under way: read again). A write
     /// under way is waited for, sleeping between reads, for `wait` at most, or until
-    /// `moved` says the fence names another list.
+    /// `fence` names another list.
     fn consistent<T>(
         &self,
         wait: Duration,
-        moved: impl Fn() -> bool,
+        fence: &crate::fence::Fence,
         mut take: impl FnMut(&ListHeader, &dyn Fn(usize) -> ListChunkRef) -> Option<T>,
     ) -> Result<(ListHeader, T), ReadFailed> {
         let start = Instant::now();
@@ -400,7 +406,7 @@ impl OpenList {
             }
             // The broker is in the middle of a write and off its core, or writes
             // faster than this reader reads: let it run.
-            if moved() {
+            if self.moved(fence) {
                 return Err(ReadFailed::Moved);
             }
             let waited = start.elapsed();
@@ -562,12 +568,6 @@ impl ListReader {
         }
     }
 
-    /// Whether `fence` names a list other than `id`.
-    fn moved(fence: &crate::fence::Fence, id: u64) -> bool {
-        let now = fence.list();
-        now != 0 && now != id
-    }
-
     /// [`ListReader::page_from`] without a filter, on the list this reader is on.
     fn page_here(&self, offset: usize, limit: usize) -> Result<ListPage, ReadFailed> {
         let Some(open) = &self.current else {
@@ -576,8 +576,7 @@ impl ListReader {
             )));
         };
         let mut entries = Vec::with_capacity(limit.min(CHUNK_ENTRIES * 64));
-        let moved = || Self::moved(&self.fence, open.id);
-        let (header, ()) = open.consistent(self.read_wait, moved, |header, chunk| {
+        let (header, ()) = open.consistent(self.read_wait, &self.fence, |header, chunk| {
             entries.clear();
             let count = header.count as usize;
             let end = offset.saturating_add(limit).min(count);
@@ -632,9 +631,7 @@ impl ListReader {
         // Held elsewhere too: this reader's copy becomes its own (a clone of it).
         let snap = Arc::make_mut(&mut copy);
         let have = &mut self.copy_seqs;
-        let fence = &self.fence;
-        let moved = || Self::moved(fence, open.id);
-        let (header, ()) = open.consistent(self.read_wait, moved, |header, chunk| {
+        let (header, ()) = open.consistent(self.read_wait, &self.fence, |header, chunk| {
             let count = header.count as usize;
             let n = chunks_for(count);
             let mut seqs = Vec::with_capacity(n);
