@@ -161,27 +161,44 @@ pub struct UserClient {
     list_wait: Duration,
 }
 
-/// This process's turn to set a local user up (see [`setup_turn`]).
-type SetupTurn = std::sync::MutexGuard<'static, ()>;
+/// This process's turn to set a local user up, and a place in the machine's (see
+/// [`setup_turn`]).
+struct SetupTurn {
+    _machine: muster_shared::ipc::SetupTurn,
+    _process: std::sync::MutexGuard<'static, ()>,
+}
 
-/// Waits for this process's one turn to set a local user up: its node, inbox, bell and
-/// ports to the broker. Each is a run of files created in
-/// `/dev/shm` and segments mapped into the process; when many threads of one process
-/// (`muster user --count 16`) do it at once they queue on the process's own locks
-/// (its memory map, its descriptor table, which grows with an RCU grace period each
-/// time) and on the directories' locks, holding them while preempted, and a broker
-/// creating files of its own waits behind them all (measured: the broker asleep in
-/// `openat` for up to 430 ms, 900 users 16 a process starting, a first-10-s request
-/// p99 of 0.28–0.47 s). In turn, one thread of a process sets up while the others sleep.
-/// The wait for the broker's welcome is not made in turn (users of a process waiting
-/// for a broker that is not there wait together), and neither is the opening of a
-/// user's list reader: a user welcomed would wait for the connections of all the
-/// process's users after it (measured: list p99 1.2 s, most of it that wait).
+/// How long a user waits for a place in the machine's turn to set up before it goes on
+/// without one: a holder that was stopped keeps nobody for longer. 900 users, a process
+/// each, took 3–5 s to pass (2 at a time, about 4–5 ms each under that load); a
+/// process's users queue for it one at a time.
+const SETUP_PATIENCE: Duration = Duration::from_secs(10);
+
+/// Waits for the turn to set a local user up: its node, inbox, bell and ports to the
+/// broker, a run of files created in `/dev/shm` and segments mapped into the process.
+/// Hundreds of users doing it at once queue on the directories' locks, holding them
+/// while preempted, and on their processes' own locks (the memory map; the descriptor
+/// table, which grows with an RCU grace period each time in a process of many
+/// threads), and a broker creating files of its own (its port into a new inbox) waits
+/// behind them all: measured, 900 users 16 a process starting, the broker asleep in
+/// `openat` for up to 430 ms, a first-10-s request p99 of 0.15–0.58 s. So one thread of
+/// a process sets up at a time, and two users of the machine
+/// ([`muster_shared::ipc::SetupTurn`]). The wait for the broker's welcome is not made
+/// in turn (users waiting for a broker that is not there wait together), nor is the
+/// opening of the list reader (a welcomed user would wait for the setups after it).
 fn setup_turn() -> SetupTurn {
-    static SETUP: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    SETUP
+    static PROCESS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    static USERS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let process = PROCESS
         .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner)
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    // Users of one process spread over the places when they wait.
+    let prefer = (std::process::id() as usize)
+        .wrapping_add(USERS.fetch_add(1, std::sync::atomic::Ordering::Relaxed));
+    SetupTurn {
+        _machine: muster_shared::ipc::SetupTurn::wait(prefer, SETUP_PATIENCE),
+        _process: process,
+    }
 }
 
 /// How long, at least, a local user waits for its welcome from a broker that is running
