@@ -78,7 +78,7 @@ fn take_place(paths: Vec<String>, prefer: usize, patience: Duration) -> Option<s
     let spawned = std::thread::Builder::new()
         .name("shm-turn".into())
         .spawn(move || {
-            let dirs: Vec<_> = paths
+            let mut dirs: Vec<_> = paths
                 .iter()
                 .filter_map(|p| std::fs::File::open(p).ok())
                 .collect();
@@ -86,19 +86,20 @@ fn take_place(paths: Vec<String>, prefer: usize, patience: Duration) -> Option<s
                 let _ = tx.send(None);
                 return;
             }
-            for d in &dirs {
-                // SAFETY: flock(2) on a descriptor this thread owns.
-                if unsafe { libc::flock(d.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
-                    let _ = tx.send(d.try_clone().ok());
-                    return;
-                }
+            // SAFETY: flock(2) on descriptors this thread owns.
+            let free = dirs.iter().position(|d| unsafe {
+                libc::flock(d.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) == 0
+            });
+            if let Some(i) = free {
+                let _ = tx.send(Some(dirs.swap_remove(i)));
+                return;
             }
-            let dir = &dirs[prefer % dirs.len()];
+            let dir = dirs.swap_remove(prefer % dirs.len());
             loop {
                 // SAFETY: as above.
                 if unsafe { libc::flock(dir.as_raw_fd(), libc::LOCK_EX) } == 0 {
                     // Given up on meanwhile: the place goes to the next at once.
-                    let _ = tx.send(dir.try_clone().ok());
+                    let _ = tx.send(Some(dir));
                     return;
                 }
                 if std::io::Error::last_os_error().kind() != std::io::ErrorKind::Interrupted {
